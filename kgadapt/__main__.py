@@ -1,0 +1,3 @@
+from kgadapt.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,64 @@
+"""The ``kgadapt`` command: one entry point, subcommands registered by each part.
+
+Each part owns a module with ``register(subparsers)`` that adds its
+subcommand and sets ``func`` (called with the parsed args; returns an exit
+status or None). Modules are imported only to register; heavy imports (cv2,
+zenoh) belong inside the functions. Any :class:`KgadaptError` ends the
+command with exit status 1 and one line on stderr naming the problem.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from typing import Sequence
+
+from shared.errors import KgadaptError
+
+# (module, what it adds). A part not written yet is simply absent.
+PARTS = (
+    "knowledge.cli",       # kgadapt knowledge ..., kgadapt ask, kgadapt why
+    "onboard.cli",         # kgadapt onboard, kgadapt perception ...
+    "remote.cli",          # kgadapt remote
+    "deploy.cli",          # kgadapt deploy ..., kgadapt certs
+    "bench.cli",           # kgadapt bench ...
+    "kgadapt.demo",        # kgadapt demo
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="kgadapt",
+        description="Graph-based software knowledge for run-time adaptation of a quadcopter's marker detection.",
+    )
+    parser.add_argument("--log-level", default="WARNING", help="DEBUG, INFO, WARNING (default) or ERROR")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in PARTS:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = getattr(logging, str(args.log_level).upper(), None)
+    if not isinstance(level, int):
+        parser.error(f"--log-level {args.log_level!r}: use DEBUG, INFO, WARNING or ERROR")
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        status = args.func(args)
+    except KgadaptError as exc:
+        print(f"kgadapt: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    return int(status or 0)

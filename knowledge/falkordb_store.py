@@ -1,0 +1,190 @@
+"""FalkorDB over RESP: the embedded default and ``falkordb://`` servers."""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from typing import Any, Mapping, Sequence
+
+import redis
+from falkordb import FalkorDB
+from falkordb.edge import Edge
+from falkordb.node import Node
+from falkordb.path import Path as GraphPath
+
+from knowledge.embedded import EmbeddedServer
+from knowledge.store import GraphStore, Row, Statement, StoreSettings, assert_read_only
+from shared.errors import QueryError, ReadOnlyViolation, StoreUnavailable
+
+log = logging.getLogger(__name__)
+
+_PARAM_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+class FalkorDBStore(GraphStore):
+    """A FalkorDB graph, embedded (started by us) or already running."""
+
+    def __init__(self, settings: StoreSettings, *, server: EmbeddedServer | None = None) -> None:
+        super().__init__(settings)
+        self.server = server
+        self._db: FalkorDB | None = None
+        self._graph: Any = None
+
+    def setup(self, *, timeout: float | None = None) -> None:
+        timeout = timeout or self.settings.connect_timeout
+        if self.settings.kind == "embedded":
+            if self.server is None:
+                self.server = EmbeddedServer(self.settings.data_dir, start_timeout=timeout)
+            address = self.server.ensure()
+            kwargs: dict[str, Any] = {"unix_socket_path": address.unix_socket}
+        elif self.settings.unix_socket:
+            kwargs = {"unix_socket_path": self.settings.unix_socket}
+        else:
+            kwargs = {"host": self.settings.host, "port": self.settings.port}
+        if self.settings.password:
+            kwargs["password"] = self.settings.password
+        if self.settings.username:
+            kwargs["username"] = self.settings.username
+        try:
+            self._db = FalkorDB(socket_connect_timeout=timeout, **kwargs)
+            self._db.connection.ping()
+        except (redis.RedisError, OSError) as exc:
+            self._db = None
+            raise StoreUnavailable(f"cannot reach FalkorDB at {self.settings.url}: {exc}") from exc
+        self._graph = self._db.select_graph(self.settings.graph)
+
+    def shutdown(self) -> None:
+        if self._db is not None:
+            try:
+                self._db.connection.close()
+            except redis.RedisError:
+                pass
+            self._db = None
+            self._graph = None
+        if self.server is not None:
+            self.server.stop()
+
+    @property
+    def redis(self) -> redis.Redis:
+        """The underlying redis client (for admin commands such as ``GRAPH.CONFIG``)."""
+        if self._db is None:
+            raise StoreUnavailable("store is not set up; call setup() first")
+        return self._db.connection
+
+    def execute(
+        self,
+        cypher: str,
+        params: Mapping[str, Any] | None = None,
+        *,
+        read_only: bool = False,
+        timeout_ms: int | None = None,
+    ) -> list[Row]:
+        if read_only:
+            assert_read_only(cypher)
+        clean = _check_params(params)
+        result = self._run(cypher, clean, read_only, timeout_ms)
+        columns = [name for _, name in result.header] if result.header else []
+        return [{c: _plain(v) for c, v in zip(columns, row)} for row in result.result_set]
+
+    def _run(self, cypher: str, params: dict[str, Any] | None, read_only: bool, timeout_ms: int | None) -> Any:
+        if self._graph is None:
+            raise StoreUnavailable("store is not set up; call setup() first")
+        for attempt in (1, 2):
+            try:
+                if read_only:
+                    return self._graph.ro_query(cypher, params, timeout=timeout_ms)
+                return self._graph.query(cypher, params, timeout=timeout_ms)
+            except redis.ResponseError as exc:
+                message = str(exc)
+                if "read-only" in message:
+                    raise ReadOnlyViolation(f"read-only query refused by the store: {message}") from exc
+                raise QueryError(f"store rejected the query: {message}") from exc
+            except (redis.ConnectionError, redis.TimeoutError, OSError) as exc:
+                # The embedded server may have been restarted by another of our
+                # processes; find (or start) it again, once.
+                if attempt == 2 or self.settings.kind != "embedded":
+                    raise StoreUnavailable(f"lost FalkorDB at {self.settings.url}: {exc}") from exc
+                log.warning("lost the embedded store (%s); reconnecting", exc)
+                self._reconnect()
+        raise AssertionError("unreachable")
+
+    def _reconnect(self) -> None:
+        if self._db is not None:
+            try:
+                self._db.connection.close()
+            except redis.RedisError:
+                pass
+        self._db = None
+        self._graph = None
+        self.setup()
+
+    def execute_atomic(self, statements: Sequence[Statement]) -> None:
+        """MULTI/EXEC: the batch runs in isolation and in one AOF write.
+
+        Redis does not roll back a transaction whose command fails at run
+        time, so callers validate before writing (the importers do); an
+        error in any reply is raised.
+        """
+        if self._graph is None:
+            raise StoreUnavailable("store is not set up; call setup() first")
+        pipe = self._db.connection.pipeline(transaction=True)
+        for cypher, params in statements:
+            header = self._graph._build_params_header(_check_params(params))
+            pipe.execute_command("GRAPH.QUERY", self.settings.graph, header + cypher, "--compact")
+        try:
+            replies = pipe.execute(raise_on_error=False)
+        except (redis.ConnectionError, redis.TimeoutError, OSError) as exc:
+            raise StoreUnavailable(f"lost FalkorDB at {self.settings.url}: {exc}") from exc
+        except redis.RedisError as exc:
+            raise QueryError(f"store rejected the batch: {exc}") from exc
+        for (cypher, _), reply in zip(statements, replies):
+            if isinstance(reply, Exception):
+                raise QueryError(f"store rejected a statement of the batch ({cypher[:60]}...): {reply}")
+
+    def clear(self) -> None:
+        try:
+            self._graph.delete()
+        except redis.ResponseError:
+            pass  # no such graph yet
+        self._graph = self._db.select_graph(self.settings.graph)
+
+
+def _check_params(params: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    if not params:
+        return None
+    clean: dict[str, Any] = {}
+    for key, value in params.items():
+        if not isinstance(key, str) or not _PARAM_NAME.match(key):
+            raise QueryError(f"bad parameter name {key!r}: use letters, digits and _")
+        clean[key] = _check_value(key, value)
+    return clean
+
+
+def _check_value(key: str, value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        raise QueryError(f"parameter {key!r}: {value} is not a finite number")
+    if isinstance(value, tuple):
+        value = list(value)
+    if isinstance(value, list):
+        return [_check_value(key, v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _check_value(key, v) for k, v in value.items()}
+    if isinstance(value, bytes):
+        raise QueryError(f"parameter {key!r}: bytes are not a graph value")
+    return value
+
+
+def _plain(value: Any) -> Any:
+    """Store values as plain Python: nodes and edges become dicts."""
+    if isinstance(value, Node):
+        return {**value.properties, "_labels": list(value.labels or [])}
+    if isinstance(value, Edge):
+        return {**value.properties, "_type": value.relation}
+    if isinstance(value, GraphPath):
+        return [_plain(n) for n in value.nodes()]
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value

@@ -1,0 +1,115 @@
+"""The knowledge graph's schema: labels, relations, keys and indexes.
+
+Names appear in queries, so they say what they mean and relations point the
+way they read ("a Deployment is EXECUTABLE_ON a Platform").
+
+Nodes (every node has a ``name`` unique within its primary label; nodes made
+from a model file carry ``model_file``, the file they came from, so that a
+changed model replaces its old version)::
+
+    Feature           name, description
+    IlluminationBand  name, min_level, max_level          (mean luminance 0..255)
+    PerceptionGraph   name, description                   (one detector configuration)
+    Component         name, memory_demand_mb, cpu_load    (+ SensorComponent | ProcessingComponent | FlightControl)
+        Camera (a SensorComponent): width, height, fx, fy, cx, cy, fps
+        marker detector (a ProcessingComponent): dictionary, config_json (detector
+        parameters and pre-processing as a JSON object)
+    Port              name, key ("component/port"), direction ("in"|"out"), data_type
+    Deployment        name, executable, arguments (list), environment (list of "K=V"), kind
+                      (+ SystemdServiceFile | DeploymentFile)
+    Platform          name, memory_total_mb, cpu_cores, cpu_capacity    design time
+                      memory_free_mb, cpu_load, online, last_seen        run time (late bound)
+    ProcessProfile    name (instance id), pid, host, start_time, end_time, exit_status,
+                      rss_mb_last, rss_mb_mean, rss_mb_max, cpu_percent_mean   (run time)
+    AdaptationDecision name, time, trigger, inputs_json, query, config, host, duration_ms, outcome
+
+Relations (direction matters)::
+
+    (PerceptionGraph)-[:REALIZES]->(Feature)
+    (PerceptionGraph)-[:CONTAINS]->(Component)
+    (PerceptionGraph)-[:SUITED_FOR]->(IlluminationBand)
+    (PerceptionGraph)-[:CALIBRATED {detection_rate, false_rate, ms_per_frame, at}]->(IlluminationBand)
+    (Component)-[:HAS_PORT]->(Port)
+    (Port)-[:CONNECTED_TO]->(Port)                 out port to in port
+    (Feature)-[:REQUIRES]->(Feature)
+    (Deployment)-[:DEPLOYS]->(PerceptionGraph | Component)
+    (Deployment)-[:EXECUTABLE_ON]->(Platform)
+    (ProcessProfile)-[:PROFILE_OF]->(Deployment)
+    (ProcessProfile)-[:RAN_ON]->(Platform)
+    (ProcessProfile)-[:RAN_CONFIG]->(PerceptionGraph)
+    (AdaptationDecision)-[:CHOSE]->(PerceptionGraph), (AdaptationDecision)-[:PLACED_ON]->(Platform)
+
+Late binding: ``Platform`` run-time properties and every ``ProcessProfile``
+figure are unset until known; queries treat a missing figure as unknown.
+Units: memory in MiB (``_mb``), CPU load in percent of one core, times in
+seconds since the epoch (float).
+"""
+
+from __future__ import annotations
+
+from knowledge.store import GraphStore
+
+FEATURE = "Feature"
+ILLUMINATION_BAND = "IlluminationBand"
+PERCEPTION_GRAPH = "PerceptionGraph"
+COMPONENT = "Component"
+SENSOR_COMPONENT = "SensorComponent"
+PROCESSING_COMPONENT = "ProcessingComponent"
+FLIGHT_CONTROL = "FlightControl"
+CAMERA = "Camera"
+PORT = "Port"
+DEPLOYMENT = "Deployment"
+SYSTEMD_SERVICE_FILE = "SystemdServiceFile"
+DEPLOYMENT_FILE = "DeploymentFile"
+PLATFORM = "Platform"
+PROCESS_PROFILE = "ProcessProfile"
+ADAPTATION_DECISION = "AdaptationDecision"
+
+REALIZES = "REALIZES"
+CONTAINS = "CONTAINS"
+SUITED_FOR = "SUITED_FOR"
+CALIBRATED = "CALIBRATED"
+HAS_PORT = "HAS_PORT"
+CONNECTED_TO = "CONNECTED_TO"
+REQUIRES = "REQUIRES"
+DEPLOYS = "DEPLOYS"
+EXECUTABLE_ON = "EXECUTABLE_ON"
+PROFILE_OF = "PROFILE_OF"
+RAN_ON = "RAN_ON"
+RAN_CONFIG = "RAN_CONFIG"
+CHOSE = "CHOSE"
+PLACED_ON = "PLACED_ON"
+
+# Every query starts from a named node; these make that start an index seek.
+INDEXED_NAMES = (
+    FEATURE,
+    ILLUMINATION_BAND,
+    PERCEPTION_GRAPH,
+    COMPONENT,
+    PORT,
+    DEPLOYMENT,
+    PLATFORM,
+    PROCESS_PROFILE,
+    ADAPTATION_DECISION,
+)
+
+
+def ensure_indexes(store: GraphStore) -> None:
+    """Create the name indexes (idempotent on every backend)."""
+    existing = _existing_indexes(store)
+    for label in INDEXED_NAMES:
+        if label in existing:
+            continue
+        try:
+            store.execute(f"CREATE INDEX FOR (n:{label}) ON (n.name)")
+        except Exception as exc:  # "already indexed" differs per store; anything else re-raised
+            if "already" not in str(exc).lower() and "exist" not in str(exc).lower():
+                raise
+
+
+def _existing_indexes(store: GraphStore) -> set[str]:
+    try:
+        rows = store.execute("CALL db.indexes() YIELD label, properties RETURN label, properties")
+    except Exception:  # not every store has db.indexes(); fall back to trying each
+        return set()
+    return {r["label"] for r in rows if "name" in (r.get("properties") or [])}

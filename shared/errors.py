@@ -1,0 +1,94 @@
+"""The one exception tree of kgadapt.
+
+Every error a caller can act on is one of these; each library's own
+exceptions (redis, neo4j, mgclient, zenoh, pymavlink, OSError) are
+translated at the boundary where we call it, with ``raise ... from exc``.
+
+    KgadaptError
+     ├── ConfigError              bad settings: a store URL, a Zenoh config file, a flag
+     ├── ModelError               a domain model file is malformed (names file and line)
+     ├── StoreError               the graph store failed
+     │    ├── StoreUnavailable    cannot start, reach or connect to the store
+     │    ├── QueryError          the store rejected a query (syntax, runtime)
+     │    └── ReadOnlyViolation   a write was sent through a read-only path
+     ├── NamedQueryError          unknown named query, missing or ill-typed parameter
+     ├── MessageError             a wire message is malformed, of an unknown version, or too big
+     ├── TransportError           Zenoh failed (open, declare, get)
+     │    └── RequestTimeout      no (good) reply in time
+     ├── RemoteError              the far side answered a request with an error reply
+     ├── DeploymentError          the deployer refused or failed a start, stop or migration
+     │    └── ReadinessTimeout    a process did not say it was ready in time
+     └── FlightLinkError          the MAVLink link could not be opened or used
+"""
+
+from __future__ import annotations
+
+
+class KgadaptError(Exception):
+    """Base of every error kgadapt raises on purpose."""
+
+
+class ConfigError(KgadaptError):
+    """A setting, URL, flag or configuration file is wrong."""
+
+
+class ModelError(KgadaptError):
+    """A domain model file is malformed.
+
+    ``str(error)`` reads ``FILE:LINE: what is wrong`` so editors can jump to it.
+    """
+
+    def __init__(self, path: str, line: int | None, message: str) -> None:
+        self.path = str(path)
+        self.line = line
+        self.message = message
+        where = f"{self.path}:{line}" if line is not None else self.path
+        super().__init__(f"{where}: {message}")
+
+
+class StoreError(KgadaptError):
+    """The graph store failed."""
+
+
+class StoreUnavailable(StoreError):
+    """The store could not be started, reached or connected to."""
+
+
+class QueryError(StoreError):
+    """The store rejected a query."""
+
+
+class ReadOnlyViolation(StoreError):
+    """A write was attempted through a read-only path."""
+
+
+class NamedQueryError(KgadaptError):
+    """A named query does not exist, or its parameters are missing or ill-typed."""
+
+
+class MessageError(KgadaptError):
+    """A wire message is malformed, of an unknown version, or oversized."""
+
+
+class TransportError(KgadaptError):
+    """Zenoh failed: opening a session, declaring, or querying."""
+
+
+class RequestTimeout(TransportError):
+    """No reply (or no good reply) arrived in time."""
+
+
+class RemoteError(KgadaptError):
+    """The far side of a request answered with an error reply."""
+
+
+class DeploymentError(KgadaptError):
+    """The deployer refused or failed to start, stop or migrate a process."""
+
+
+class ReadinessTimeout(DeploymentError):
+    """A started process did not say it was ready within its timeout."""
+
+
+class FlightLinkError(KgadaptError):
+    """The MAVLink link to the flight controller could not be opened or used."""

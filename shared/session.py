@@ -1,0 +1,141 @@
+"""Zenoh session configuration: a JSON5 file, then environment, then flags.
+
+Precedence, lowest first: Zenoh's defaults, our defaults (multicast scouting
+off, a 1 s lease so a hung or cut-off peer is noticed within about a second),
+the file given with ``--zenoh-config`` or ``$KGADAPT_ZENOH_CONFIG``, then
+``$KGADAPT_ZENOH_MODE`` / ``_CONNECT`` / ``_LISTEN`` and the flags ``--mode``,
+``--connect``, ``--listen``. Sections we do not set (TLS under
+``transport/link/tls``, ``access_control``, auth) pass through untouched.
+
+Default on one machine: the knowledge service opens in router mode and
+listens on ``tcp/127.0.0.1:7447``; the agents are peers that connect to it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+from dataclasses import dataclass, field, replace
+from typing import Sequence
+
+import zenoh
+
+from shared.errors import ConfigError, TransportError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+MODES = ("peer", "client", "router")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ZenohSettings:
+    """How to open a Zenoh session. Empty tuples mean "leave the file's (or Zenoh's) value"."""
+
+    config_file: str | None = None
+    mode: str | None = None
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    lease_ms: int = 1000
+    keep_alive: int = 4
+    exit_on_failure: bool | None = None
+    connect_timeout_ms: int | None = None
+    extra: dict[str, object] = field(default_factory=dict)  # key path -> JSON value
+
+    def with_defaults(self, *, mode: str, connect: Sequence[str] = (), listen: Sequence[str] = ()) -> "ZenohSettings":
+        """Fill mode and endpoints that neither file nor flags nor environment set."""
+        return replace(
+            self,
+            mode=self.mode or mode,
+            connect=self.connect or (() if self.config_file else tuple(connect)),
+            listen=self.listen or (() if self.config_file else tuple(listen)),
+        )
+
+
+def settings_from_env(**overrides: object) -> ZenohSettings:
+    """Settings from ``$KGADAPT_ZENOH_*``, then ``overrides`` (None values ignored)."""
+    env = os.environ
+    values: dict[str, object] = {
+        "config_file": env.get("KGADAPT_ZENOH_CONFIG") or None,
+        "mode": env.get("KGADAPT_ZENOH_MODE") or None,
+        "connect": _split(env.get("KGADAPT_ZENOH_CONNECT")),
+        "listen": _split(env.get("KGADAPT_ZENOH_LISTEN")),
+    }
+    values.update({k: v for k, v in overrides.items() if v not in (None, (), [])})
+    for key in ("connect", "listen"):
+        values[key] = tuple(values[key])  # type: ignore[arg-type]
+    return ZenohSettings(**values)  # type: ignore[arg-type]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--zenoh-config``, ``--mode``, ``--connect``, ``--listen`` to a command."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file (TLS, ACL, endpoints)")
+    group.add_argument("--mode", choices=MODES, help="Zenoh session mode")
+    group.add_argument("--connect", action="append", metavar="ENDPOINT", help="endpoint to connect to (repeatable)")
+    group.add_argument("--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on (repeatable)")
+
+
+def settings_from_args(args: argparse.Namespace) -> ZenohSettings:
+    return settings_from_env(
+        config_file=getattr(args, "zenoh_config", None),
+        mode=getattr(args, "mode", None),
+        connect=tuple(getattr(args, "connect", None) or ()),
+        listen=tuple(getattr(args, "listen", None) or ()),
+    )
+
+
+def build_config(settings: ZenohSettings) -> zenoh.Config:
+    """Make the ``zenoh.Config``; raise ConfigError naming a bad file or value."""
+    if settings.config_file:
+        try:
+            config = zenoh.Config.from_file(settings.config_file)
+        except Exception as exc:  # zenoh.ZError, OSError
+            raise ConfigError(f"Zenoh config {settings.config_file}: {exc}") from exc
+    else:
+        config = zenoh.Config()
+    if settings.mode is not None and settings.mode not in MODES:
+        raise ConfigError(f"Zenoh mode {settings.mode!r}: use one of {', '.join(MODES)}")
+    inserts: dict[str, object] = {
+        "scouting/multicast/enabled": settings.multicast_scouting,
+        "transport/link/tx/lease": settings.lease_ms,
+        "transport/link/tx/keep_alive": settings.keep_alive,
+    }
+    if settings.mode:
+        inserts["mode"] = settings.mode
+    if settings.connect:
+        inserts["connect/endpoints"] = list(settings.connect)
+    if settings.listen:
+        inserts["listen/endpoints"] = list(settings.listen)
+    if settings.exit_on_failure is not None:
+        inserts["connect/exit_on_failure"] = settings.exit_on_failure
+    if settings.connect_timeout_ms is not None:
+        inserts["connect/timeout_ms"] = settings.connect_timeout_ms
+    inserts.update(settings.extra)
+    for key, value in inserts.items():
+        try:
+            config.insert_json5(key, json.dumps(value))
+        except Exception as exc:
+            raise ConfigError(f"Zenoh config key {key!r} = {value!r}: {exc}") from exc
+    return config
+
+
+def open_session(settings: ZenohSettings) -> zenoh.Session:
+    """Open a session; raise TransportError (or ConfigError) on failure."""
+    config = build_config(settings)
+    try:
+        session = zenoh.open(config)
+    except Exception as exc:
+        raise TransportError(
+            f"cannot open Zenoh session (mode {settings.mode}, connect {list(settings.connect)}, "
+            f"listen {list(settings.listen)}): {exc}"
+        ) from exc
+    log.debug("zenoh session %s open (mode %s)", session.info.zid(), settings.mode)
+    return session
+
+
+def _split(value: str | None) -> tuple[str, ...]:
+    return tuple(v.strip() for v in (value or "").split(",") if v.strip())
