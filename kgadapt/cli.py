@@ -19,12 +19,16 @@ from shared.errors import KgadaptError
 
 # (module, what it adds). A part not written yet is simply absent.
 PARTS = (
-    "knowledge.cli",       # kgadapt knowledge ..., kgadapt ask, kgadapt why
-    "onboard.cli",         # kgadapt onboard, kgadapt perception ...
-    "remote.cli",          # kgadapt remote
-    "deploy.cli",          # kgadapt deploy ..., kgadapt certs
-    "bench.cli",           # kgadapt bench ...
-    "kgadapt.demo",        # kgadapt demo
+    "knowledge.cli",          # kgadapt knowledge load|query|queries|cypher|export (+ serve, via a hook)
+    "knowledge.service_cli",  # kgadapt ask
+    "onboard.cli",            # kgadapt onboard
+    "onboard.perception_cli", # kgadapt perception calibrate|camera|detector ...
+    "onboard.flight_cli",     # kgadapt flight ... (MAVLink bridge, fake flight controller)
+    "remote.cli",             # kgadapt remote
+    "deploy.cli",             # kgadapt deploy start|stop|list|migrate
+    "adaptation.cli",         # kgadapt why
+    "bench.cli",              # kgadapt bench table1|zenoh|deployer|perception|adaptation|reliability
+    "kgadapt.demo",           # kgadapt demo
 )
 
 
