@@ -26,7 +26,7 @@ PARTS = (
     "onboard.flight_cli",     # kgadapt flight ... (MAVLink bridge, fake flight controller)
     "remote.cli",             # kgadapt remote
     "deploy.cli",             # kgadapt deploy start|stop|list|migrate
-    "adaptation.cli",         # kgadapt why
+    "onboard.adaptation_cli", # kgadapt why
     "bench.cli",              # kgadapt bench table1|zenoh|deployer|perception|adaptation|reliability
     "kgadapt.demo",           # kgadapt demo
 )
