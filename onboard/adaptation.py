@@ -1,0 +1,300 @@
+"""Run-time adaptation (MAPE-K): analyse what the monitors saw, plan with the knowledge graph.
+
+This module is the decision logic only; it does no I/O of its own. The
+adaptation manager (``onboard/adaptation_manager.py``) feeds it observations
+from Zenoh, hands it a ``KnowledgeAsk`` (named queries over Zenoh or on a
+store), and executes its plans through the deployers.
+
+Analyse
+    :class:`BandTracker` turns smoothed illumination levels into band changes
+    with hysteresis (a margin beyond the band edge) and a minimum dwell (the
+    new band must hold that long), so light hovering at a threshold does not
+    make the detector flap. :class:`Analyzer` adds the other triggers: the
+    running host can no longer hold the detector, a host was lost or came
+    back, the detection rate collapsed.
+
+Plan
+    :class:`Planner` asks the graph which configuration suits the band (best
+    calibrated detection rate, then fewest ms per frame) and which platforms
+    can hold it (the ``placement`` query, with live free memory), then picks a
+    host by the preference setting. The default, ``onboard-first``, keeps the
+    detector on the quadcopter while it fits, because the link to the remote
+    host can fail and a detector on the far side of a broken link sees no
+    frames; ``remote-first`` saves onboard CPU and memory instead.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+# A function that answers a named query: (name, params) -> rows.
+KnowledgeAsk = Callable[[str, Mapping[str, Any]], list[dict[str, Any]]]
+
+FEATURE = "MarkerDetection"
+PREFERENCES = ("onboard-first", "remote-first")
+
+
+@dataclass(frozen=True)
+class Band:
+    """An illumination band: mean luminance in [min_level, max_level)."""
+
+    name: str
+    min_level: float
+    max_level: float
+
+    def contains(self, level: float, margin: float = 0.0) -> bool:
+        return self.min_level - margin <= level < self.max_level + margin
+
+
+def bands_from_rows(rows: Sequence[Mapping[str, Any]]) -> list[Band]:
+    """Distinct bands of the ``detector_configs`` rows, darkest first."""
+    seen: dict[str, Band] = {}
+    for row in rows:
+        name = row.get("band")
+        if name and name not in seen:
+            seen[name] = Band(str(name), float(row["min_level"]), float(row["max_level"]))
+    return sorted(seen.values(), key=lambda b: b.min_level)
+
+
+@dataclass(kw_only=True)
+class BandTracker:
+    """The current band, changed only past a margin and after a dwell."""
+
+    bands: Sequence[Band]
+    hysteresis: float = 4.0  # luminance levels beyond the edge before a change counts
+    dwell_s: float = 1.0  # how long the new band must hold
+    current: Band | None = None
+    _pending: Band | None = field(default=None, repr=False)
+    _pending_since: float = field(default=0.0, repr=False)
+
+    def band_of(self, level: float) -> Band | None:
+        for band in self.bands:
+            if band.contains(level):
+                return band
+        if not self.bands:
+            return None
+        # Outside every band: the nearest one (levels beyond the extremes).
+        return min(self.bands, key=lambda b: min(abs(level - b.min_level), abs(level - b.max_level)))
+
+    def update(self, level: float, now: float) -> Band | None:
+        """Feed one smoothed level; return the new band when it changes, else None."""
+        if not math.isfinite(level):
+            return None
+        if self.current is None:
+            self.current = self.band_of(level)
+            return self.current
+        if self.current.contains(level, self.hysteresis):
+            self._pending = None
+            return None
+        candidate = self.band_of(level)
+        if candidate is None or candidate == self.current:
+            self._pending = None
+            return None
+        if candidate != self._pending:
+            self._pending, self._pending_since = candidate, now
+        if now - self._pending_since >= self.dwell_s:
+            self.current, self._pending = candidate, None
+            return candidate
+        return None
+
+
+@dataclass(frozen=True)
+class Trigger:
+    """Why the manager reconsiders the placement."""
+
+    kind: str  # startup | band_changed | memory_short | host_lost | host_back | rate_collapsed | operator
+    time: float
+    detail: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def urgent(self) -> bool:
+        """Urgent triggers act even during final descent: the detector is gone or about to be."""
+        return self.kind in ("startup", "host_lost")
+
+    def describe(self) -> str:
+        bits = ", ".join(f"{k}={v}" for k, v in self.detail.items())
+        return f"{self.kind}({bits})" if bits else self.kind
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where the detector runs (or should): configuration, deployment, host, instance."""
+
+    config: str
+    deployment: str
+    host: str
+    instance: str | None = None
+    demand_mb: float = 0.0
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A planned placement with the evidence it rests on."""
+
+    target: Placement
+    reason: str
+    inputs: Mapping[str, Any]
+    queries: tuple[str, ...]
+
+    def same_as(self, current: Placement | None) -> bool:
+        return current is not None and (current.config, current.host) == (self.target.config, self.target.host)
+
+
+class PlanningError(Exception):
+    """No configuration or no platform can realise the feature now."""
+
+
+@dataclass(kw_only=True)
+class HostView:
+    """What the monitors know of one host."""
+
+    name: str
+    online: bool = False
+    memory_free_mb: float | None = None
+    cpu_load: float | None = None
+    last_seen: float = 0.0
+
+
+@dataclass(kw_only=True)
+class Analyzer:
+    """Turns observations into triggers. Keeps the state it needs (hosts, rates)."""
+
+    tracker: BandTracker
+    collapse_rate: float = 0.2  # detection rate below this ...
+    collapse_window: int = 30  # ... over this many frames, in a band where calibration promised more
+    hosts: dict[str, HostView] = field(default_factory=dict)
+    _recent: list[bool] = field(default_factory=list, repr=False)
+
+    def on_illumination(self, level: float, now: float) -> Trigger | None:
+        before = self.tracker.current
+        band = self.tracker.update(level, now)
+        if band is None or before is None:
+            return None
+        return Trigger("band_changed", now, {"from": before.name, "to": band.name, "level": round(level, 1)})
+
+    def on_host_status(self, host: str, *, free_mb: float, cpu_load: float, now: float,
+                       running: Placement | None) -> Trigger | None:
+        view = self.hosts.setdefault(host, HostView(name=host))
+        view.memory_free_mb, view.cpu_load, view.last_seen = free_mb, cpu_load, now
+        view.online = True
+        if running is not None and running.host == host and free_mb < 0:
+            # Free memory already excludes the running detector; below zero the
+            # host is over its budget and can no longer hold it.
+            return Trigger("memory_short", now, {"host": host, "free_mb": round(free_mb, 1),
+                                                 "demand_mb": running.demand_mb})
+        return None
+
+    def on_liveliness(self, host: str, alive: bool, now: float, running: Placement | None) -> Trigger | None:
+        view = self.hosts.setdefault(host, HostView(name=host))
+        was = view.online
+        view.online = alive
+        if not alive and was:
+            if running is not None and running.host == host:
+                return Trigger("host_lost", now, {"host": host})
+            return Trigger("host_lost", now, {"host": host, "running_elsewhere": True})
+        if alive and not was:
+            return Trigger("host_back", now, {"host": host})
+        return None
+
+    def on_detection(self, seen: bool, now: float, expected_rate: float | None) -> Trigger | None:
+        self._recent.append(seen)
+        if len(self._recent) > self.collapse_window:
+            del self._recent[0]
+        if len(self._recent) < self.collapse_window or expected_rate is None:
+            return None
+        rate = sum(self._recent) / len(self._recent)
+        if rate < self.collapse_rate <= expected_rate:
+            self._recent.clear()
+            return Trigger("rate_collapsed", now, {"rate": round(rate, 2), "expected": round(expected_rate, 2)})
+        return None
+
+    def reset_rate(self) -> None:
+        self._recent.clear()
+
+
+@dataclass(kw_only=True)
+class Planner:
+    """Chooses configuration and host from the knowledge graph."""
+
+    ask: KnowledgeAsk
+    feature: str = FEATURE
+    preference: str = "onboard-first"
+    onboard_host: str = "onboard"
+
+    def __post_init__(self) -> None:
+        if self.preference not in PREFERENCES:
+            raise ValueError(f"preference {self.preference!r}: use one of {', '.join(PREFERENCES)}")
+
+    def configs(self) -> list[dict[str, Any]]:
+        return self.ask("detector_configs", {"feature": self.feature})
+
+    def choose_config(self, band: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+        """The best configuration for ``band``: highest calibrated rate, then cheapest."""
+        rows = self.configs()
+        candidates = [r for r in rows if r.get("band") == band]
+        if not candidates:
+            raise PlanningError(f"no detector configuration is suited for band {band!r}")
+
+        def score(row: Mapping[str, Any]) -> tuple[float, float, str]:
+            rate = row.get("detection_rate")
+            ms = row.get("ms_per_frame")
+            return (-(rate if rate is not None else -1.0), ms if ms is not None else math.inf, str(row["config"]))
+
+        return min(candidates, key=score), rows
+
+    def plan(self, *, band: str, running: Placement | None, lost_hosts: Sequence[str] = ()) -> Plan:
+        config_row, all_rows = self.choose_config(band)
+        config = str(config_row["config"])
+        rows = self.ask("placement", {"feature": self.feature, "config": config})
+        demand = float(config_row.get("memory_demand_mb") or 0.0)
+        fits: dict[str, dict[str, Any]] = {}
+        for row in rows:
+            host = str(row["platform"])
+            if host in lost_hosts:
+                continue
+            fits[host] = row
+        # The host already running a detector gets that detector's memory back
+        # when it is replaced, so it may hold a configuration the query ruled out.
+        if running is not None and running.host not in fits and running.host not in lost_hosts:
+            for row in self.ask("platforms", {}):
+                free = row.get("memory_free_mb")
+                if (row.get("platform") == running.host and row.get("online") and free is not None
+                        and free + running.demand_mb >= demand):
+                    deployment = self.ask("detector_config", {"config": config})
+                    if deployment:
+                        fits[running.host] = {"platform": running.host, "free_mb": free + running.demand_mb,
+                                              "deployment": deployment[0]["deployment"]}
+        if not fits:
+            raise PlanningError(f"no online platform has {demand:.0f} MiB free for {config}")
+        order = sorted(fits, key=self._host_rank)
+        host = order[0]
+        if running is not None and running.host in fits and running.config == config:
+            host = running.host  # already well placed: do not move for preference alone
+        row = fits[host]
+        target = Placement(config=config, deployment=str(row["deployment"]), host=host, demand_mb=demand)
+        reason = (f"band {band}: {config} has the best calibrated rate "
+                  f"({_fmt(config_row.get('detection_rate'))}); {host} has {_fmt(row.get('free_mb'))} MiB free "
+                  f"for {demand:.0f} MiB ({self.preference})")
+        inputs = {
+            "band": band,
+            "candidates": [{k: r.get(k) for k in ("config", "band", "detection_rate", "ms_per_frame")}
+                           for r in all_rows if r.get("band") == band],
+            "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in order],
+            "running": None if running is None else {"config": running.config, "host": running.host},
+        }
+        return Plan(target=target, reason=reason, inputs=inputs, queries=("detector_configs", "placement"))
+
+    def _host_rank(self, host: str) -> tuple[int, str]:
+        onboard = host == self.onboard_host
+        first = onboard if self.preference == "onboard-first" else not onboard
+        return (0 if first else 1, host)
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "?"
+    if isinstance(value, float):
+        return f"{value:.2f}"
+    return str(value)

@@ -1,0 +1,98 @@
+"""The analysis step: band changes with hysteresis and dwell, and the other triggers."""
+
+from __future__ import annotations
+
+import math
+
+from onboard.adaptation import Analyzer, Band, BandTracker, Placement, bands_from_rows
+
+BANDS = [Band("dark", 0, 25), Band("dusk", 25, 80), Band("day", 80, 256)]
+
+
+def tracker(**kw) -> BandTracker:
+    return BandTracker(bands=BANDS, hysteresis=4.0, dwell_s=1.0, **kw)
+
+
+def test_the_first_level_sets_the_band_at_once():
+    t = tracker()
+    assert t.update(120.0, now=0.0) == BANDS[2]
+    assert t.current.name == "day"
+
+
+def test_a_band_change_needs_the_new_band_to_hold_for_the_dwell_time():
+    t = tracker()
+    t.update(120.0, 0.0)
+    assert t.update(50.0, 1.0) is None  # dusk seen, dwell starts
+    assert t.update(50.0, 1.5) is None
+    assert t.update(50.0, 2.0).name == "dusk"
+
+
+def test_light_hovering_at_a_threshold_causes_no_change():
+    t = tracker()
+    t.update(90.0, 0.0)  # day
+    changes = []
+    for i in range(200):  # oscillate +-3 around the day/dusk edge at 80, 10 Hz for 20 s
+        level = 80.0 + 3.0 * math.sin(i)
+        change = t.update(level, 0.1 * i)
+        if change:
+            changes.append(change.name)
+    assert changes == []
+
+
+def test_a_brief_dip_shorter_than_the_dwell_does_not_change_the_band():
+    t = tracker()
+    t.update(120.0, 0.0)
+    t.update(10.0, 1.0)
+    t.update(10.0, 1.5)
+    assert t.update(120.0, 1.9) is None
+    assert t.update(10.0, 2.2) is None  # dwell restarts from here
+    assert t.current.name == "day"
+
+
+def test_bands_come_from_the_detector_configuration_rows_darkest_first():
+    rows = [
+        {"config": "a", "band": "day", "min_level": 80, "max_level": 256},
+        {"config": "b", "band": "dark", "min_level": 0, "max_level": 25},
+        {"config": "c", "band": "day", "min_level": 80, "max_level": 256},
+    ]
+    assert [b.name for b in bands_from_rows(rows)] == ["dark", "day"]
+
+
+def test_analyzer_reports_a_band_change_with_from_and_to():
+    a = Analyzer(tracker=tracker())
+    assert a.on_illumination(120.0, 0.0) is None  # first band is not a change
+    a.on_illumination(15.0, 1.0)
+    trigger = a.on_illumination(15.0, 2.5)
+    assert trigger.kind == "band_changed"
+    assert trigger.detail["from"] == "day" and trigger.detail["to"] == "dark"
+
+
+def test_a_host_over_its_budget_while_running_the_detector_is_memory_short():
+    a = Analyzer(tracker=tracker())
+    running = Placement(config="marker_detection_day", deployment="d", host="onboard", demand_mb=120)
+    assert a.on_host_status("onboard", free_mb=300, cpu_load=10, now=0, running=running) is None
+    trigger = a.on_host_status("onboard", free_mb=-20, cpu_load=10, now=1, running=running)
+    assert trigger.kind == "memory_short" and trigger.detail["host"] == "onboard"
+    # A squeeze on another host does not concern the running detector.
+    assert a.on_host_status("remote", free_mb=-5, cpu_load=10, now=1, running=running) is None
+
+
+def test_losing_the_running_host_is_urgent_and_its_return_is_noticed():
+    a = Analyzer(tracker=tracker())
+    running = Placement(config="c", deployment="d", host="remote")
+    assert a.on_liveliness("remote", True, 0.0, running).kind == "host_back"
+    lost = a.on_liveliness("remote", False, 1.0, running)
+    assert lost.kind == "host_lost" and lost.urgent
+    assert a.on_liveliness("remote", False, 1.1, running) is None  # no repeat
+
+
+def test_a_detection_rate_collapse_is_reported_once_per_window():
+    a = Analyzer(tracker=tracker(), collapse_rate=0.2, collapse_window=10)
+    triggers = [a.on_detection(False, float(i), expected_rate=0.9) for i in range(10)]
+    assert [t.kind for t in triggers if t] == ["rate_collapsed"]
+    assert a.on_detection(False, 11.0, expected_rate=0.9) is None  # window restarts
+
+
+def test_no_collapse_is_claimed_where_calibration_promised_little():
+    a = Analyzer(tracker=tracker(), collapse_rate=0.2, collapse_window=10)
+    assert all(a.on_detection(False, float(i), expected_rate=0.1) is None for i in range(20))
