@@ -84,6 +84,8 @@ class FalkorDBStore(GraphStore):
             assert_read_only(cypher)
         clean = _check_params(params)
         result = self._run(cypher, clean, read_only, timeout_ms)
+        if result is None:
+            return []
         columns = [name for _, name in result.header] if result.header else []
         return [{c: _plain(v) for c, v in zip(columns, row)} for row in result.result_set]
 
@@ -97,6 +99,8 @@ class FalkorDBStore(GraphStore):
                 return self._graph.query(cypher, params, timeout=timeout_ms)
             except redis.ResponseError as exc:
                 message = str(exc)
+                if read_only and "empty key" in message:
+                    return None  # FalkorDB: a read on a graph never written to; no rows
                 if "read-only" in message:
                     raise ReadOnlyViolation(f"read-only query refused by the store: {message}") from exc
                 raise QueryError(f"store rejected the query: {message}") from exc

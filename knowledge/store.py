@@ -97,9 +97,11 @@ def parse_store_url(url: str | None = None) -> StoreSettings:
 # Clauses that change the graph or reach outside it. Matched outside string
 # literals and comments, case-insensitively, as whole words.
 _WRITE_WORDS = re.compile(
-    r"\b(CREATE|MERGE|SET|DELETE|DETACH|REMOVE|DROP|CALL|LOAD|FOREACH|ALTER|GRANT|REVOKE)\b",
+    r"(?<![.\w$])(CREATE|MERGE|SET|DELETE|DETACH|REMOVE|DROP|CALL|LOAD|FOREACH|ALTER|GRANT|REVOKE)\b(?!\s*:)",
     re.IGNORECASE,
 )
+# An alias may be any word ("... AS load"); it is a name, not a clause.
+_ALIASES = re.compile(r"\bAS\s+\w+", re.IGNORECASE)
 _LITERALS = re.compile(r"'(?:[^'\\]|\\.)*'|\"(?:[^\"\\]|\\.)*\"|`[^`]*`|//[^\n]*|/\*.*?\*/", re.DOTALL)
 
 
@@ -108,7 +110,7 @@ def assert_read_only(cypher: str) -> None:
 
     Conservative on purpose: ``CALL`` is refused too, since procedures can write.
     """
-    stripped = _LITERALS.sub(" ", cypher)
+    stripped = _ALIASES.sub(" AS _", _LITERALS.sub(" ", cypher))
     match = _WRITE_WORDS.search(stripped)
     if match:
         raise ReadOnlyViolation(f"read-only query refused: it contains {match.group(1).upper()}")

@@ -49,6 +49,10 @@ def test_read_only_path_refuses_writes(store):
     assert store.execute("MATCH (n:Nope) RETURN count(n) AS c")[0]["c"] == 0
 
 
+def test_a_read_on_a_graph_never_written_returns_no_rows(resp_store):
+    assert resp_store.execute("MATCH (n) RETURN n", read_only=True) == []
+
+
 def test_a_bad_query_raises_query_error_and_the_store_keeps_answering(store):
     with pytest.raises(QueryError):
         store.execute("MATCH (n RETURN n")
@@ -74,6 +78,7 @@ def test_non_finite_numbers_are_refused_before_reaching_the_store(store):
 
 def test_lexical_read_only_check_ignores_words_inside_strings():
     assert_read_only("MATCH (n) WHERE n.name = 'CREATE SET DELETE' RETURN n")
+    assert_read_only("MATCH (n) RETURN n.set AS load, {create: 1} AS m")
     with pytest.raises(ReadOnlyViolation, match="MERGE"):
         assert_read_only("MATCH (n) merge (m:X) RETURN n")
     with pytest.raises(ReadOnlyViolation, match="CALL"):

@@ -1,0 +1,126 @@
+"""A deployment description, whatever notation it was written in.
+
+Both deployment notations (systemd service files and plain deployment files)
+end here: a ``Deployment`` node (+ the label of its notation) that DEPLOYS one
+perception graph or component and is EXECUTABLE_ON one or more platforms.
+The executable and arguments may use only the deployer's placeholders
+(docs/CONTRACTS.md); the deployer fills them in from its own knowledge.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+from dataclasses import dataclass
+
+from knowledge import schema as S
+from knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
+
+PLACEHOLDERS = ("python", "robot", "host", "instance", "config", "connect")
+_PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
+_ENV = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
+
+
+@dataclass
+class DeploymentDraft:
+    """What a deployment notation found, with the line of each part (for errors)."""
+
+    name: str
+    name_origin: Origin
+    kind: str  # schema label: SYSTEMD_SERVICE_FILE | DEPLOYMENT_FILE
+    command: list[str] | None = None
+    command_origin: Origin | None = None
+    deploys: list[tuple[str, Origin]] | None = None
+    platforms: list[tuple[str, Origin]] | None = None
+    environment: list[tuple[str, Origin]] | None = None
+    description: str | None = None
+
+
+def split_command(text: str, origin: Origin, what: str) -> list[str]:
+    """Split a command line like a shell would (quotes respected, nothing expanded)."""
+    try:
+        words = shlex.split(text, comments=False, posix=True)
+    except ValueError as exc:
+        raise origin.error(f"{what}: {exc}") from exc
+    if not words:
+        raise origin.error(f"{what} is empty")
+    return words
+
+
+def check_name(name: str, origin: Origin, what: str) -> str:
+    if not _NAME.match(name):
+        raise origin.error(f"{what} {name!r} is not a valid name (letters, digits, _ . -)")
+    return name
+
+
+def check_placeholders(word: str, origin: Origin) -> None:
+    for m in _PLACEHOLDER.finditer(word):
+        if m.group(1) not in PLACEHOLDERS:
+            raise origin.error(f"unknown placeholder {{{m.group(1)}}} in {word!r} "
+                               f"(allowed: {', '.join('{' + p + '}' for p in PLACEHOLDERS)})")
+    stray = _PLACEHOLDER.sub("", word)
+    if "{" in stray or "}" in stray:
+        raise origin.error(f"unbalanced brace in {word!r}")
+
+
+def check_text(word: str, origin: Origin, what: str) -> None:
+    # FalkorDB's Bolt listener splices string parameters into query text and so
+    # refuses these; refusing them here keeps every store able to hold the model.
+    if "'" in word or "\\" in word:
+        raise origin.error(f"{what} {word!r} may not contain ' or \\")
+
+
+def environment_entries(text: str, origin: Origin) -> list[str]:
+    """``K=V K2="v 2"`` into ``["K=V", "K2=v 2"]``."""
+    entries = split_command(text, origin, "environment")
+    for entry in entries:
+        if not _ENV.match(entry):
+            raise origin.error(f"environment entry {entry!r} is not NAME=VALUE")
+        if "{" in entry or "}" in entry:
+            raise origin.error(f"environment entry {entry!r}: placeholders are allowed only in the command")
+        check_text(entry, origin, "environment entry")
+    return entries
+
+
+def emit(model: ParsedModel, draft: DeploymentDraft, file_origin: Origin) -> None:
+    """Check a finished draft and add its node and relations to ``model``."""
+    if not draft.command:
+        raise file_origin.error(f"deployment {draft.name} names no executable")
+    if not draft.deploys:
+        raise file_origin.error(f"deployment {draft.name} does not say what it deploys")
+    if not draft.platforms:
+        raise file_origin.error(f"deployment {draft.name} names no platform it is executable on")
+    assert draft.command_origin is not None
+    for word in draft.command:
+        check_placeholders(word, draft.command_origin)
+        check_text(word, draft.command_origin, "command word")
+    seen: set[str] = set()
+    for platform, origin in draft.platforms:
+        if platform in seen:
+            raise origin.error(f"platform {platform!r} named twice")
+        seen.add(platform)
+    props = {
+        "name": draft.name,
+        "kind": draft.kind,
+        "executable": draft.command[0],
+        "arguments": draft.command[1:],
+        "environment": [e for e, _ in draft.environment or []],
+    }
+    if draft.description:
+        props["description"] = draft.description
+    model.nodes.append(NodeSpec(S.DEPLOYMENT, draft.name, props, draft.name_origin, (draft.kind,)))
+    me = Ref((S.DEPLOYMENT,), draft.name, "deployment")
+    for target, origin in draft.deploys:
+        model.edges.append(EdgeSpec(
+            S.DEPLOYS, me, Ref((S.PERCEPTION_GRAPH, S.COMPONENT), target, "perception graph or component"), origin))
+    for platform, origin in draft.platforms:
+        model.edges.append(EdgeSpec(S.EXECUTABLE_ON, me, Ref((S.PLATFORM,), platform, "platform"), origin))
+
+
+def name_list(text: str, origin: Origin, what: str) -> list[tuple[str, Origin]]:
+    """``a, b c`` (commas or spaces) into checked names."""
+    names = [n for n in re.split(r"[,\s]+", text.strip()) if n]
+    if not names:
+        raise origin.error(f"{what}: no name given")
+    return [(check_name(n, origin, what), origin) for n in names]

@@ -1,0 +1,380 @@
+"""The named, parameterised queries every part of kgadapt asks the knowledge graph.
+
+A :class:`NamedQuery` is Cypher text with declared parameters; callers give
+values, never text (``run_named`` checks names and types first and raises
+:class:`NamedQueryError` naming the query and parameter). All run read-only.
+
+The production queries follow the meaningful relations in their direction,
+with bounded patterns, starting from the most selective named (indexed) node,
+so their cost does not grow with the number of models (DESIGN.md sections 3
+and 7). The paper's own texts are kept as ``fig4_literal`` and
+``fig5_literal``: their unbounded ``-[*]-`` walks the whole graph once many
+models share platforms, and Fig. 4's second MATCH is not joined to its first
+(it returns every deployment executable on the platform whenever the feature
+reaches any component).
+
+Where a query may be anchored on an optional parameter (``placement`` and
+``cpu_overload`` on ``config``), ``cypher`` is the anchored text and
+``when_missing`` holds the text used without it: one index seek instead of a
+condition that would defeat the index.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from knowledge import schema as S
+from knowledge.store import GraphStore
+from shared.errors import NamedQueryError
+
+DEFAULT_FEATURE = "MarkerDetection"
+
+
+@dataclass(frozen=True)
+class Param:
+    """A declared parameter: ``type`` is "str", "int", "float" or "bool"."""
+
+    type: str
+    required: bool = True
+    default: Any = None
+    help: str = ""
+
+    def describe(self, name: str) -> str:
+        if self.required:
+            return f"{name}: {self.type}"
+        if self.default is None:
+            return f"{name}: {self.type} (optional)"
+        return f"{name}: {self.type} = {self.default}"
+
+
+@dataclass(frozen=True)
+class NamedQuery:
+    """A query by name: its meaning, its parameters and its Cypher text."""
+
+    name: str
+    description: str
+    params: dict[str, Param]
+    cypher: str
+    when_missing: Mapping[str, str] = field(default_factory=dict)
+
+    def text_for(self, values: Mapping[str, Any]) -> str:
+        """The Cypher text for these (checked) values."""
+        for param, text in self.when_missing.items():
+            if values.get(param) is None:
+                return text
+        return self.cypher
+
+
+_FEATURE = Param("str", required=False, default=DEFAULT_FEATURE, help="feature name")
+_CONFIG_OPT = Param("str", required=False, help="detector configuration (PerceptionGraph name)")
+
+# Pieces shared by queries; labels and relation types only from knowledge/schema.py.
+_DEMAND = f"""
+MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
+WITH g, sum(c.memory_demand_mb) AS demand"""
+_PLACEMENT_TAIL = f"""
+MATCH (g)<-[:{S.DEPLOYS}]-(d:{S.DEPLOYMENT})-[:{S.EXECUTABLE_ON}]->(p:{S.PLATFORM})
+WHERE p.online = true AND p.memory_free_mb >= demand
+RETURN g.name AS config, d.name AS deployment, p.name AS platform,
+       demand AS demand_mb, p.memory_free_mb AS free_mb
+ORDER BY config, free_mb DESC, platform"""
+_CPU_TAIL = f"""
+MATCH (p:{S.PLATFORM} {{name: $platform}})
+OPTIONAL MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
+WITH g, p, sum(c.cpu_load) AS detector_load
+OPTIONAL MATCH (fc:{S.FLIGHT_CONTROL})
+WITH g, p, detector_load, sum(fc.cpu_load) AS flight_load
+WITH g, p, detector_load, flight_load, detector_load + flight_load AS total,
+     p.cpu_capacity * $limit_pct / 100.0 AS limit_load
+RETURN g.name AS config, p.name AS platform, detector_load, flight_load AS flight_control_load,
+       total AS total_load, limit_load, total > limit_load AS exceeds
+ORDER BY config"""
+
+_QUERIES = [
+    NamedQuery(
+        "feature_deployments",
+        "Fig. 4, directed: deployments of the perception graphs realising a feature that are "
+        "executable on a platform.",
+        {"feature": _FEATURE, "platform": Param("str", help="platform name, e.g. remote")},
+        f"""
+MATCH (f:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
+      <-[:{S.DEPLOYS}]-(d:{S.DEPLOYMENT})-[:{S.EXECUTABLE_ON}]->(p:{S.PLATFORM} {{name: $platform}})
+RETURN d.name AS deployment, d.kind AS kind, g.name AS config, p.name AS platform
+ORDER BY deployment""",
+    ),
+    NamedQuery(
+        "placement",
+        "Fig. 5, directed: online platforms whose free memory covers the summed memory demand of "
+        "the components a detector configuration contains (every configuration of the feature, "
+        "or the one given), where its deployment may run. Roomiest platform first.",
+        {"feature": _FEATURE, "config": _CONFIG_OPT},
+        f"""
+MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}})-[:{S.REALIZES}]->(:{S.FEATURE} {{name: $feature}})"""
+        + _DEMAND + _PLACEMENT_TAIL,
+        when_missing={"config": f"""
+MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})"""
+                      + _DEMAND + _PLACEMENT_TAIL},
+    ),
+    NamedQuery(
+        "deployable_components",
+        "Components required for a feature that are also deployable on a platform "
+        "(the remote host unless told otherwise), with the configurations that bring them there.",
+        {"feature": _FEATURE, "platform": Param("str", required=False, default="remote", help="platform name")},
+        f"""
+MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
+      <-[:{S.DEPLOYS}]-(:{S.DEPLOYMENT})-[:{S.EXECUTABLE_ON}]->(:{S.PLATFORM} {{name: $platform}})
+MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
+WITH c, g ORDER BY g.name
+RETURN c.name AS component, c.memory_demand_mb AS memory_demand_mb, collect(DISTINCT g.name) AS configs
+ORDER BY component""",
+    ),
+    NamedQuery(
+        "camera_resolutions",
+        "Whether a feature can be realised with cameras of different resolutions: one row per "
+        "resolution among the cameras of its perception graphs (more than one row means yes).",
+        {"feature": _FEATURE},
+        f"""
+MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})-[:{S.CONTAINS}]->(c:{S.CAMERA})
+WITH c.width AS width, c.height AS height, c.name AS camera, g.name AS config
+ORDER BY camera, config
+RETURN width, height, collect(DISTINCT camera) AS cameras, collect(DISTINCT config) AS configs
+ORDER BY width, height""",
+    ),
+    NamedQuery(
+        "low_memory_components",
+        "Components of a feature that ran in the past (process profiles with memory samples) "
+        "with an average memory usage below a threshold.",
+        {"feature": _FEATURE, "threshold_mb": Param("float", help="average resident memory limit, MiB")},
+        f"""
+MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
+      <-[:{S.RAN_CONFIG}]-(r:{S.PROCESS_PROFILE})
+WHERE r.rss_mb_mean IS NOT NULL
+MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
+WITH c, avg(r.rss_mb_mean) AS avg_mb, count(DISTINCT r) AS runs
+WHERE avg_mb < $threshold_mb
+RETURN c.name AS component, runs, avg_mb AS avg_memory_mb
+ORDER BY component""",
+    ),
+    NamedQuery(
+        "cpu_overload",
+        "Whether the CPU load would exceed a limit if a detector configuration (each of the "
+        "feature's, or the one given) and the flight control ran on the same platform. Loads are "
+        "the design-time cpu_load figures in percent of one core; the limit is limit_pct percent "
+        "of the platform's capacity (100 per core).",
+        {"platform": Param("str", help="platform name"), "config": _CONFIG_OPT, "feature": _FEATURE,
+         "limit_pct": Param("float", required=False, default=80.0, help="percent of the platform's CPU capacity")},
+        f"""
+MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}})-[:{S.REALIZES}]->(:{S.FEATURE} {{name: $feature}})"""
+        + _CPU_TAIL,
+        when_missing={"config": f"""
+MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})""" + _CPU_TAIL},
+    ),
+    NamedQuery(
+        "detector_configs",
+        "The detector configurations realising a feature: the band each is suited for, its memory "
+        "demand, and its calibrated detection rate in that band (null until calibrated). "
+        "ms_per_frame is the calibrated figure, else the design-time estimate.",
+        {"feature": _FEATURE},
+        f"""
+MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
+OPTIONAL MATCH (g)-[:{S.SUITED_FOR}]->(b:{S.ILLUMINATION_BAND})
+OPTIONAL MATCH (g)-[cal:{S.CALIBRATED}]->(b)
+OPTIONAL MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
+WITH g, b, cal, sum(c.memory_demand_mb) AS demand, max(c.ms_per_frame) AS design_ms
+RETURN g.name AS config, b.name AS band, b.min_level AS min_level, b.max_level AS max_level,
+       demand AS memory_demand_mb, cal.detection_rate AS detection_rate, cal.false_rate AS false_rate,
+       coalesce(cal.ms_per_frame, design_ms) AS ms_per_frame, cal.at AS calibrated_at
+ORDER BY min_level, config""",
+    ),
+    NamedQuery(
+        "detector_config",
+        "One detector configuration: its ArUco dictionary, detector settings (config_json), "
+        "memory demand and deployment. No row when the configuration is unknown.",
+        {"config": Param("str", help="detector configuration (PerceptionGraph name)")},
+        f"""
+MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}})
+OPTIONAL MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
+WITH g, sum(c.memory_demand_mb) AS demand
+OPTIONAL MATCH (g)-[:{S.CONTAINS}]->(m:{S.PROCESSING_COMPONENT})
+WHERE m.config_json IS NOT NULL
+OPTIONAL MATCH (g)<-[:{S.DEPLOYS}]-(d:{S.DEPLOYMENT})
+RETURN g.name AS config, m.dictionary AS dictionary, m.config_json AS config_json,
+       demand AS memory_demand_mb, min(d.name) AS deployment""",
+    ),
+    NamedQuery(
+        "deployment",
+        "One deployment description: kind, executable, arguments, environment, the platforms it "
+        "is executable on and what it deploys. No row when unknown.",
+        {"name": Param("str", help="deployment name")},
+        f"""
+MATCH (d:{S.DEPLOYMENT} {{name: $name}})
+OPTIONAL MATCH (d)-[:{S.EXECUTABLE_ON}]->(p:{S.PLATFORM})
+WITH d, p ORDER BY p.name
+WITH d, collect(p.name) AS platforms
+OPTIONAL MATCH (d)-[:{S.DEPLOYS}]->(t)
+WITH d, platforms, t ORDER BY t.name
+RETURN d.name AS name, d.kind AS kind, d.executable AS executable, d.arguments AS arguments,
+       d.environment AS environment, platforms, collect(t.name) AS deploys""",
+    ),
+    NamedQuery(
+        "platforms",
+        "Every platform with its design-time size and its latest run-time figures (null until known).",
+        {},
+        f"""
+MATCH (p:{S.PLATFORM})
+RETURN p.name AS platform, p.memory_total_mb AS memory_total_mb, p.memory_free_mb AS memory_free_mb,
+       p.cpu_load AS cpu_load, p.online AS online, p.last_seen AS last_seen,
+       p.cpu_cores AS cpu_cores, p.cpu_capacity AS cpu_capacity
+ORDER BY platform""",
+    ),
+    NamedQuery(
+        "decisions",
+        "The adaptation decisions taken, newest first.",
+        {"limit": Param("int", required=False, default=20, help="how many")},
+        f"""
+MATCH (a:{S.ADAPTATION_DECISION})
+RETURN a.name AS name, a.time AS time, a.trigger AS trigger, a.inputs_json AS inputs_json,
+       a.query AS query, a.config AS config, a.host AS host, a.duration_ms AS duration_ms,
+       a.outcome AS outcome
+ORDER BY time DESC, name DESC
+LIMIT $limit""",
+    ),
+    NamedQuery(
+        "current_placement",
+        "The newest running detector process (a process profile with no end time that ran a "
+        "detector configuration), and the newest decision that chose that configuration and host.",
+        {},
+        f"""
+MATCH (r:{S.PROCESS_PROFILE})-[:{S.RAN_CONFIG}]->(g:{S.PERCEPTION_GRAPH})
+WHERE r.end_time IS NULL
+WITH r, g ORDER BY r.start_time DESC, r.name DESC LIMIT 1
+OPTIONAL MATCH (g)<-[:{S.CHOSE}]-(a:{S.ADAPTATION_DECISION})
+WHERE a.host = r.host
+WITH r, g, a ORDER BY a.time DESC
+WITH r, g, collect(a)[0] AS a
+RETURN r.instance AS instance, g.name AS config, r.host AS host, r.pid AS pid,
+       r.start_time AS start_time, r.name AS run_id, a.name AS decision, a.time AS decision_time,
+       a.trigger AS trigger""",
+    ),
+    NamedQuery(
+        "fig4_literal",
+        "The paper's Fig. 4 as written (unbounded undirected path; the second MATCH is not "
+        "joined to the first). Kept for comparison; use feature_deployments.",
+        {"feature": _FEATURE, "platform": Param("str", help="platform name")},
+        f"""
+MATCH (f:{S.FEATURE})-[*]-(c:{S.COMPONENT})
+WHERE f.name = $feature
+MATCH (p:{S.PLATFORM})-[:{S.EXECUTABLE_ON}]-(d:{S.DEPLOYMENT})
+WHERE p.name = $platform
+RETURN d""",
+    ),
+    NamedQuery(
+        "fig5_literal",
+        "The paper's Fig. 5 as written (unbounded <-[*]->, memory of every component reachable "
+        "from the feature), with our property names. Kept for comparison; use placement.",
+        {"feature": _FEATURE},
+        f"""
+MATCH (f:{S.FEATURE} {{name: $feature}}) <-[*]-> (c:{S.COMPONENT})
+WITH DISTINCT c
+WITH SUM(c.memory_demand_mb) as MEM
+MATCH (p:{S.PLATFORM}) <-[:{S.EXECUTABLE_ON}]-(d:{S.DEPLOYMENT})
+WHERE p.memory_free_mb >= MEM
+RETURN p""",
+    ),
+]
+
+QUERIES: dict[str, NamedQuery] = {q.name: q for q in _QUERIES}
+
+
+def get_query(name: str) -> NamedQuery:
+    """The named query, or NamedQueryError listing the known names."""
+    try:
+        return QUERIES[name]
+    except KeyError:
+        raise NamedQueryError(f"unknown named query {name!r} (known: {', '.join(sorted(QUERIES))})") from None
+
+
+def check_params(name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Every declared parameter of query ``name`` with a checked value (None for an absent optional)."""
+    query = get_query(name)
+    params = dict(params or {})
+    for key in params:
+        if key not in query.params:
+            known = ", ".join(query.params) or "none"
+            raise NamedQueryError(f"query {name!r} has no parameter {key!r} (parameters: {known})")
+    values: dict[str, Any] = {}
+    for key, spec in query.params.items():
+        value = params.get(key)
+        if value is None:
+            if spec.required:
+                raise NamedQueryError(f"query {name!r} needs parameter {key!r} ({spec.type}{': ' + spec.help if spec.help else ''})")
+            value = spec.default
+        if value is not None:
+            value = _typed(name, key, spec.type, value)
+        values[key] = value
+    return values
+
+
+def _typed(name: str, key: str, kind: str, value: Any) -> Any:
+    ok = {
+        "str": isinstance(value, str),
+        "int": isinstance(value, int) and not isinstance(value, bool),
+        "float": isinstance(value, (int, float)) and not isinstance(value, bool),
+        "bool": isinstance(value, bool),
+    }.get(kind)
+    if ok is None:
+        raise NamedQueryError(f"query {name!r}: parameter {key!r} declares unknown type {kind!r}")
+    if not ok:
+        raise NamedQueryError(f"query {name!r}: parameter {key!r} must be {kind}, not {type(value).__name__} ({value!r})")
+    if kind == "float":
+        if not math.isfinite(value):
+            raise NamedQueryError(f"query {name!r}: parameter {key!r} must be a finite number, not {value!r}")
+        return float(value)
+    if kind == "str" and not value:
+        raise NamedQueryError(f"query {name!r}: parameter {key!r} is empty")
+    return value
+
+
+def run_named(store: GraphStore, name: str, params: Mapping[str, Any] | None = None, *,
+              timeout_ms: int | None = None) -> list[dict]:
+    """Check the parameters, then run named query ``name`` read-only; return its rows."""
+    values = check_params(name, params)
+    return store.execute(get_query(name).text_for(values), values, read_only=True, timeout_ms=timeout_ms)
+
+
+_TRUE = {"true", "yes", "1", "on"}
+_FALSE = {"false", "no", "0", "off"}
+
+
+def coerce_params(name: str, raw: Mapping[str, str]) -> dict[str, Any]:
+    """Command-line strings to the types query ``name`` declares (unknown names are refused)."""
+    query = get_query(name)
+    out: dict[str, Any] = {}
+    for key, text in raw.items():
+        spec = query.params.get(key)
+        if spec is None:
+            known = ", ".join(query.params) or "none"
+            raise NamedQueryError(f"query {name!r} has no parameter {key!r} (parameters: {known})")
+        try:
+            if spec.type == "int":
+                out[key] = int(text)
+            elif spec.type == "float":
+                out[key] = float(text)
+            elif spec.type == "bool":
+                lowered = text.strip().lower()
+                if lowered not in _TRUE | _FALSE:
+                    raise ValueError(text)
+                out[key] = lowered in _TRUE
+            else:
+                out[key] = text
+        except ValueError:
+            raise NamedQueryError(f"query {name!r}: parameter {key!r} must be {spec.type}, not {text!r}") from None
+    return out
+
+
+def catalogue() -> list[dict[str, Any]]:
+    """One row per named query: name, parameters, description (for listings)."""
+    return [{"name": q.name, "params": ", ".join(p.describe(k) for k, p in q.params.items()) or "-",
+             "description": q.description} for q in _QUERIES]

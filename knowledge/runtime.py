@@ -1,0 +1,236 @@
+"""Late binding: run-time facts written into the knowledge graph.
+
+The models create the nodes whose figures are unknown at design time
+(``Platform``: free memory, CPU load, online); the agents, the deployer and
+the adaptation manager fill them in through these writers, each one
+parameterised statement, idempotent where it can be (MERGE on name), all
+through the store interface. The knowledge service exposes exactly
+:data:`WRITERS` as its write verbs; :func:`run_write` checks a verb's
+parameters (names and types) so a malformed request is refused with a
+:class:`NamedQueryError` naming the verb and the parameter.
+
+A model reload never touches what is written here (see knowledge/loader.py).
+Units: memory in MiB, CPU in percent of one core, times in epoch seconds.
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+from typing import Any, Callable, Mapping
+
+from knowledge import schema as S
+from knowledge.store import GraphStore
+from shared.errors import NamedQueryError
+
+_NUM = (int, float)
+
+
+def _check(verb: str, **values: tuple[Any, tuple[type, ...], bool]) -> None:
+    """Each value as (value, allowed types, may be None)."""
+    for key, (value, types, optional) in values.items():
+        if value is None:
+            if optional:
+                continue
+            raise NamedQueryError(f"write {verb!r}: parameter {key!r} is missing")
+        if isinstance(value, bool) and bool not in types:
+            raise NamedQueryError(f"write {verb!r}: parameter {key!r} must be a number, not a bool")
+        if not isinstance(value, types):
+            names = " or ".join(t.__name__ for t in types)
+            raise NamedQueryError(f"write {verb!r}: parameter {key!r} must be {names}, not {type(value).__name__}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise NamedQueryError(f"write {verb!r}: parameter {key!r} must be a finite number")
+        if isinstance(value, str) and not value:
+            raise NamedQueryError(f"write {verb!r}: parameter {key!r} is empty")
+
+
+def update_platform(store: GraphStore, *, name: str, time: float, memory_total_mb: float | None = None,
+                    memory_free_mb: float | None = None, cpu_load: float | None = None,
+                    cpu_cores: int | None = None, online: bool | None = None) -> None:
+    """A host's latest figures (a host the models do not know gets a Platform node too)."""
+    _check("platform", name=(name, (str,), False), time=(time, _NUM, False),
+           memory_total_mb=(memory_total_mb, _NUM, True), memory_free_mb=(memory_free_mb, _NUM, True),
+           cpu_load=(cpu_load, _NUM, True), cpu_cores=(cpu_cores, (int,), True), online=(online, (bool,), True))
+    figures = {k: v for k, v in {"memory_total_mb": memory_total_mb, "memory_free_mb": memory_free_mb,
+                                 "cpu_load": cpu_load, "cpu_cores": cpu_cores, "online": online}.items()
+               if v is not None}
+    store.execute(f"MERGE (p:{S.PLATFORM} {{name: $name}}) SET p += $figures, p.last_seen = $time",
+                  {"name": name, "figures": figures, "time": float(time)})
+
+
+def set_platform_online(store: GraphStore, *, name: str, online: bool, time: float) -> None:
+    """A host came or went (liveliness). ``last_seen`` moves only when it is online."""
+    _check("platform_online", name=(name, (str,), False), online=(online, (bool,), False), time=(time, _NUM, False))
+    store.execute(
+        f"MERGE (p:{S.PLATFORM} {{name: $name}}) "
+        "SET p.online = $online, p.online_since = $time, "
+        "p.last_seen = CASE WHEN $online THEN $time ELSE p.last_seen END",
+        {"name": name, "online": online, "time": float(time)})
+
+
+def record_process_start(store: GraphStore, *, run_id: str, instance: str, deployment: str, config: str | None,
+                         host: str, pid: int, start_time: float) -> None:
+    """A started process: its ProcessProfile, PROFILE_OF its deployment, RAN_ON its host, RAN_CONFIG its configuration.
+
+    Relations to a deployment or configuration the graph does not know are left
+    out (the profile still records their names); the host gets a Platform node.
+    """
+    _check("process_start", run_id=(run_id, (str,), False), instance=(instance, (str,), False),
+           deployment=(deployment, (str,), False), config=(config, (str,), True), host=(host, (str,), False),
+           pid=(pid, (int,), False), start_time=(start_time, _NUM, False))
+    params = {"run_id": run_id, "instance": instance, "deployment": deployment, "config": config, "host": host,
+              "pid": pid, "start_time": float(start_time)}
+    # The common case in one cheap statement: everything it links to is known and the
+    # profile is new (MERGE of relations costs about a third more here). Anything
+    # else -- a retried start, an unknown host, deployment or configuration -- takes
+    # the general, idempotent statement.
+    created = store.execute(_START_NEW, params)
+    if not created or not created[0]["created"]:
+        store.execute(_START_ANY, params)
+
+
+_PROFILE_PROPS = ("run_id: $run_id, instance: $instance, deployment: $deployment, config: $config, "
+                  "host: $host, pid: $pid, start_time: $start_time")
+_START_NEW = f"""MATCH (d:{S.DEPLOYMENT} {{name: $deployment}}), (p:{S.PLATFORM} {{name: $host}}),
+      (g:{S.PERCEPTION_GRAPH} {{name: $config}})
+OPTIONAL MATCH (old:{S.PROCESS_PROFILE} {{name: $run_id}})
+WITH d, p, g WHERE old IS NULL
+CREATE (r:{S.PROCESS_PROFILE} {{name: $run_id, {_PROFILE_PROPS}}})
+CREATE (r)-[:{S.PROFILE_OF}]->(d), (r)-[:{S.RAN_ON}]->(p), (r)-[:{S.RAN_CONFIG}]->(g)
+RETURN count(r) AS created"""
+_START_ANY = f"""MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}})
+SET r += {{{_PROFILE_PROPS}}}
+MERGE (p:{S.PLATFORM} {{name: $host}})
+MERGE (r)-[:{S.RAN_ON}]->(p)
+WITH r
+OPTIONAL MATCH (d:{S.DEPLOYMENT} {{name: $deployment}})
+FOREACH (x IN CASE WHEN d IS NULL THEN [] ELSE [d] END | MERGE (r)-[:{S.PROFILE_OF}]->(x))
+WITH r
+OPTIONAL MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}})
+FOREACH (x IN CASE WHEN g IS NULL THEN [] ELSE [g] END | MERGE (r)-[:{S.RAN_CONFIG}]->(x))"""
+
+
+def record_process_sample(store: GraphStore, *, run_id: str, rss_mb_last: float, rss_mb_mean: float,
+                          rss_mb_max: float, cpu_percent_mean: float) -> None:
+    """A process's memory and CPU figures so far (MERGE: a sample may arrive before its start)."""
+    _check("process_sample", run_id=(run_id, (str,), False), rss_mb_last=(rss_mb_last, _NUM, False),
+           rss_mb_mean=(rss_mb_mean, _NUM, False), rss_mb_max=(rss_mb_max, _NUM, False),
+           cpu_percent_mean=(cpu_percent_mean, _NUM, False))
+    store.execute(
+        f"MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}}) "
+        "SET r.rss_mb_last = $rss_mb_last, r.rss_mb_mean = $rss_mb_mean, r.rss_mb_max = $rss_mb_max, "
+        "r.cpu_percent_mean = $cpu_percent_mean",
+        {"run_id": run_id, "rss_mb_last": float(rss_mb_last), "rss_mb_mean": float(rss_mb_mean),
+         "rss_mb_max": float(rss_mb_max), "cpu_percent_mean": float(cpu_percent_mean)})
+
+
+def record_process_end(store: GraphStore, *, run_id: str, end_time: float, exit_status: int | None) -> None:
+    """A process ended (``exit_status`` negative for a signal, None when unknown)."""
+    _check("process_end", run_id=(run_id, (str,), False), end_time=(end_time, _NUM, False),
+           exit_status=(exit_status, (int,), True))
+    store.execute(
+        f"MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}}) SET r.end_time = $end_time, r.exit_status = $exit_status",
+        {"run_id": run_id, "end_time": float(end_time), "exit_status": exit_status})
+
+
+def record_calibration(store: GraphStore, *, config: str, band: str, detection_rate: float,
+                       false_rate: float, ms_per_frame: float, time: float) -> None:
+    """How well a configuration detected markers in a band: one CALIBRATED relation per pair, replaced."""
+    _check("calibration", config=(config, (str,), False), band=(band, (str,), False),
+           detection_rate=(detection_rate, _NUM, False), false_rate=(false_rate, _NUM, False),
+           ms_per_frame=(ms_per_frame, _NUM, False), time=(time, _NUM, False))
+    for key, rate in (("detection_rate", detection_rate), ("false_rate", false_rate)):
+        if not 0.0 <= rate <= 1.0:
+            raise NamedQueryError(f"write 'calibration': {key} {rate} is not between 0 and 1")
+    rows = store.execute(
+        f"MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}}), (b:{S.ILLUMINATION_BAND} {{name: $band}}) "
+        f"MERGE (g)-[c:{S.CALIBRATED}]->(b) "
+        "SET c.detection_rate = $detection_rate, c.false_rate = $false_rate, c.ms_per_frame = $ms_per_frame, "
+        "c.at = $time RETURN count(c) AS n",
+        {"config": config, "band": band, "detection_rate": float(detection_rate), "false_rate": float(false_rate),
+         "ms_per_frame": float(ms_per_frame), "time": float(time)})
+    if not rows or not rows[0]["n"]:
+        raise NamedQueryError(f"write 'calibration': no detector configuration {config!r} "
+                              f"or no illumination band {band!r} in the graph")
+
+
+def record_decision(store: GraphStore, *, name: str, time: float, trigger: str, inputs_json: str | None = None,
+                    query: str | None = None, config: str | None = None, host: str | None = None,
+                    duration_ms: float | None = None, outcome: str | None = None) -> None:
+    """An adaptation decision: what triggered it, what it chose (CHOSE the configuration, PLACED_ON the host)."""
+    _check("decision", name=(name, (str,), False), time=(time, _NUM, False), trigger=(trigger, (str,), False),
+           inputs_json=(inputs_json, (str,), True), query=(query, (str,), True), config=(config, (str,), True),
+           host=(host, (str,), True), duration_ms=(duration_ms, _NUM, True), outcome=(outcome, (str,), True))
+    store.execute(
+        f"""MERGE (a:{S.ADAPTATION_DECISION} {{name: $name}})
+SET a.time = $time, a.trigger = $trigger, a.inputs_json = $inputs_json, a.query = $query,
+    a.config = $config, a.host = $host, a.duration_ms = $duration_ms, a.outcome = $outcome
+WITH a
+OPTIONAL MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}})
+FOREACH (x IN CASE WHEN g IS NULL THEN [] ELSE [g] END | MERGE (a)-[:{S.CHOSE}]->(x))
+WITH a
+OPTIONAL MATCH (p:{S.PLATFORM} {{name: $host}})
+FOREACH (x IN CASE WHEN p IS NULL THEN [] ELSE [p] END | MERGE (a)-[:{S.PLACED_ON}]->(x))""",
+        {"name": name, "time": float(time), "trigger": trigger, "inputs_json": inputs_json, "query": query,
+         "config": config, "host": host, "duration_ms": None if duration_ms is None else float(duration_ms),
+         "outcome": outcome})
+
+
+def update_flight_control(store: GraphStore, *, name: str, time: float, link: bool, armed: bool | None = None,
+                          mode: str | None = None, landed_state: str | None = None,
+                          battery_pct: float | None = None, battery_v: float | None = None,
+                          autopilot_load_pct: float | None = None, last_heartbeat: float | None = None) -> None:
+    """The flight controller's state onto the FlightControl component (its run-time properties).
+
+    ``autopilot_load_pct`` is the autopilot's own main-loop load, not the
+    component's design-time ``cpu_load`` on the companion computer.
+    """
+    _check("flight_state", name=(name, (str,), False), time=(time, _NUM, False), link=(link, (bool,), False),
+           armed=(armed, (bool,), True), mode=(mode, (str,), True), landed_state=(landed_state, (str,), True),
+           battery_pct=(battery_pct, _NUM, True), battery_v=(battery_v, _NUM, True),
+           autopilot_load_pct=(autopilot_load_pct, _NUM, True), last_heartbeat=(last_heartbeat, _NUM, True))
+    figures = {k: v for k, v in {"link": link, "armed": armed, "mode": mode, "landed_state": landed_state,
+                                 "battery_pct": battery_pct, "battery_v": battery_v,
+                                 "autopilot_load_pct": autopilot_load_pct, "last_heartbeat": last_heartbeat}.items()
+               if v is not None}
+    # MERGE on the primary label (names are unique per label), then mark it flight control.
+    store.execute(f"MERGE (c:{S.COMPONENT} {{name: $name}}) SET c:{S.FLIGHT_CONTROL}, c += $figures, "
+                  "c.last_seen = $time", {"name": name, "figures": figures, "time": float(time)})
+
+
+WRITERS: dict[str, Callable[..., None]] = {
+    "platform": update_platform,
+    "platform_online": set_platform_online,
+    "process_start": record_process_start,
+    "process_sample": record_process_sample,
+    "process_end": record_process_end,
+    "calibration": record_calibration,
+    "decision": record_decision,
+    "flight_state": update_flight_control,
+}
+
+
+def writer_params(verb: str) -> dict[str, bool]:
+    """The parameters of write ``verb``: name -> required."""
+    fn = _writer(verb)
+    return {p.name: p.default is inspect.Parameter.empty
+            for p in inspect.signature(fn).parameters.values() if p.kind is inspect.Parameter.KEYWORD_ONLY}
+
+
+def run_write(store: GraphStore, verb: str, params: Mapping[str, Any]) -> None:
+    """Call write ``verb`` with ``params`` after checking their names (types are checked by the writer)."""
+    expected = writer_params(verb)
+    for key in params:
+        if key not in expected:
+            raise NamedQueryError(f"write {verb!r} has no parameter {key!r} (parameters: {', '.join(expected)})")
+    for key, required in expected.items():
+        if required and key not in params:
+            raise NamedQueryError(f"write {verb!r} needs parameter {key!r}")
+    WRITERS[verb](store, **params)
+
+
+def _writer(verb: str) -> Callable[..., None]:
+    try:
+        return WRITERS[verb]
+    except KeyError:
+        raise NamedQueryError(f"unknown write {verb!r} (known: {', '.join(WRITERS)})") from None

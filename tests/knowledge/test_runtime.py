@@ -1,0 +1,122 @@
+"""Run-time writes: late-bound figures land on the model's nodes, idempotently, and bad input is refused."""
+
+from __future__ import annotations
+
+import pytest
+
+from knowledge import runtime as R
+from shared.errors import NamedQueryError
+
+
+def _row(store, cypher, **params):
+    rows = store.execute(cypher, params, read_only=True)
+    assert len(rows) == 1, rows
+    return rows[0]
+
+
+def test_platform_figures_fill_in_the_modelled_node_and_keep_what_a_later_update_omits(known_store):
+    R.update_platform(known_store, name="alpha", time=10.0, memory_free_mb=400.0, cpu_load=30.0, online=True)
+    R.update_platform(known_store, name="alpha", time=11.0, cpu_load=35.0)
+    row = _row(known_store, "MATCH (p:Platform {name: 'alpha'}) RETURN p.memory_free_mb AS free, p.cpu_load AS cpu, "
+                            "p.online AS online, p.last_seen AS seen, p.memory_total_mb AS total")
+    assert row == {"free": 400.0, "cpu": 35.0, "online": True, "seen": 11.0, "total": 1000.0}
+    assert _row(known_store, "MATCH (p:Platform) RETURN count(p) AS n")["n"] == 2
+
+
+def test_a_host_the_models_do_not_know_gets_a_platform_node(store):
+    R.update_platform(store, name="visitor", time=5.0, memory_total_mb=2048.0, memory_free_mb=1024.0, cpu_cores=2)
+    row = _row(store, "MATCH (p:Platform {name: 'visitor'}) RETURN p.memory_total_mb AS t, p.cpu_cores AS c, "
+                      "p.model_file AS f")
+    assert row == {"t": 2048.0, "c": 2, "f": None}
+
+
+def test_going_offline_keeps_the_last_time_the_host_was_seen(store):
+    R.set_platform_online(store, name="beta", online=True, time=20.0)
+    R.set_platform_online(store, name="beta", online=False, time=25.0)
+    row = _row(store, "MATCH (p:Platform {name: 'beta'}) RETURN p.online AS online, p.last_seen AS seen")
+    assert row == {"online": False, "seen": 20.0}
+
+
+def test_a_process_profile_links_to_its_deployment_host_and_configuration_once(known_store):
+    for _ in range(2):
+        R.record_process_start(known_store, run_id="run-9", instance="det", deployment="d_b", config="g_b",
+                               host="beta", pid=99, start_time=3.0)
+    row = _row(known_store, """
+        MATCH (r:ProcessProfile {name: 'run-9'})
+        RETURN size([(r)-[:PROFILE_OF]->(:Deployment {name: 'd_b'}) | 1]) AS profile_of,
+               size([(r)-[:RAN_ON]->(:Platform {name: 'beta'}) | 1]) AS ran_on,
+               size([(r)-[:RAN_CONFIG]->(:PerceptionGraph {name: 'g_b'}) | 1]) AS ran_config,
+               r.pid AS pid, r.instance AS instance, r.end_time AS end_time""")
+    assert row == {"profile_of": 1, "ran_on": 1, "ran_config": 1, "pid": 99, "instance": "det", "end_time": None}
+    R.record_process_sample(known_store, run_id="run-9", rss_mb_last=50.0, rss_mb_mean=45.5, rss_mb_max=52.0,
+                            cpu_percent_mean=33.0)
+    R.record_process_end(known_store, run_id="run-9", end_time=9.0, exit_status=-15)
+    row = _row(known_store, "MATCH (r:ProcessProfile {name: 'run-9'}) RETURN r.rss_mb_mean AS m, r.end_time AS e, "
+                            "r.exit_status AS x")
+    assert row == {"m": 45.5, "e": 9.0, "x": -15}
+
+
+def test_a_profile_of_an_unknown_deployment_is_still_recorded_without_dangling_links(known_store):
+    R.record_process_sample(known_store, run_id="early", rss_mb_last=1.0, rss_mb_mean=1.0, rss_mb_max=1.0,
+                            cpu_percent_mean=0.0)  # a sample may arrive before the start
+    R.record_process_start(known_store, run_id="early", instance="x", deployment="ghost", config="g_ghost",
+                           host="alpha", pid=5, start_time=1.0)
+    row = _row(known_store, "MATCH (r:ProcessProfile {name: 'early'}) OPTIONAL MATCH (r)-[e]->(n) "
+                            "RETURN r.deployment AS d, r.rss_mb_mean AS m, collect(type(e)) AS links")
+    assert (row["d"], row["m"], row["links"]) == ("ghost", 1.0, ["RAN_ON"])
+
+
+def test_calibration_is_one_relation_per_configuration_and_band_replaced_by_the_next(known_store):
+    R.record_calibration(known_store, config="g_a", band="day", detection_rate=0.5, false_rate=0.1,
+                         ms_per_frame=6.0, time=1.0)
+    R.record_calibration(known_store, config="g_a", band="day", detection_rate=0.97, false_rate=0.0,
+                         ms_per_frame=4.0, time=2.0)
+    row = _row(known_store, "MATCH (:PerceptionGraph {name: 'g_a'})-[c:CALIBRATED]->(:IlluminationBand {name: 'day'}) "
+                            "RETURN count(c) AS n, max(c.detection_rate) AS r, max(c.at) AS at")
+    assert row == {"n": 1, "r": 0.97, "at": 2.0}
+    with pytest.raises(NamedQueryError, match="no detector configuration 'g_zz'"):
+        R.record_calibration(known_store, config="g_zz", band="day", detection_rate=0.5, false_rate=0.0,
+                             ms_per_frame=1.0, time=3.0)
+    with pytest.raises(NamedQueryError, match="detection_rate 1.5 is not between 0 and 1"):
+        R.record_calibration(known_store, config="g_a", band="day", detection_rate=1.5, false_rate=0.0,
+                             ms_per_frame=1.0, time=3.0)
+
+
+def test_a_decision_links_to_the_configuration_and_host_it_chose(known_store):
+    R.record_decision(known_store, name="d-1", time=1.5, trigger="illumination 5 (dark)", inputs_json='{"level": 5}',
+                      query="placement", config="g_b", host="beta", duration_ms=2.5, outcome="started")
+    row = _row(known_store, "MATCH (a:AdaptationDecision {name: 'd-1'})-[:CHOSE]->(g), (a)-[:PLACED_ON]->(p) "
+                            "RETURN g.name AS g, p.name AS p, a.inputs_json AS i, a.duration_ms AS ms")
+    assert row == {"g": "g_b", "p": "beta", "i": '{"level": 5}', "ms": 2.5}
+
+
+def test_the_flight_state_lands_on_the_flight_control_component(known_store):
+    R.update_flight_control(known_store, name="fc", time=12.0, link=True, armed=False, mode="LOITER",
+                            battery_pct=80.0, autopilot_load_pct=22.0)
+    row = _row(known_store, "MATCH (c:Component:FlightControl {name: 'fc'}) RETURN c.link AS link, c.mode AS mode, "
+                            "c.autopilot_load_pct AS apl, c.cpu_load AS cpu, c.last_seen AS seen")
+    assert row == {"link": True, "mode": "LOITER", "apl": 22.0, "cpu": 70, "seen": 12.0}
+    assert _row(known_store, "MATCH (c:Component {name: 'fc'}) RETURN count(c) AS n")["n"] == 1
+
+
+def test_the_writers_are_the_contract_verbs():
+    assert set(R.WRITERS) == {"platform", "platform_online", "process_start", "process_sample", "process_end",
+                              "calibration", "decision", "flight_state"}
+    assert R.writer_params("process_end") == {"run_id": True, "end_time": True, "exit_status": True}
+
+
+@pytest.mark.parametrize("verb, params, message", [
+    ("reboot", {}, r"unknown write 'reboot'"),
+    ("platform", {"name": "a", "time": 1.0, "colour": "red"}, r"'platform' has no parameter 'colour'"),
+    ("process_end", {"run_id": "r", "end_time": 1.0}, r"'process_end' needs parameter 'exit_status'"),
+    ("process_start", {"run_id": "r", "instance": "i", "deployment": "d", "config": "c", "host": "h",
+                       "pid": "12", "start_time": 1.0}, r"'pid' must be int, not str"),
+    ("platform", {"name": "a", "time": 1.0, "memory_free_mb": True}, r"'memory_free_mb' must be a number, not a bool"),
+    ("platform", {"name": "a", "time": float("nan")}, r"'time' must be a finite number"),
+    ("platform_online", {"name": "", "online": True, "time": 1.0}, r"'name' is empty"),
+])
+def test_a_malformed_write_is_refused_naming_the_verb_and_parameter(resp_store, verb, params, message):
+    resp_store.execute("CREATE (:Marker {name: 'm'})")
+    with pytest.raises(NamedQueryError, match=message):
+        R.run_write(resp_store, verb, params)
+    assert resp_store.execute("MATCH (n) RETURN count(n) AS c")[0]["c"] == 1  # nothing written
