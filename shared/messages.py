@@ -57,8 +57,9 @@ SCHEMAS: dict[str, Schema] = {
             "host": _NAME, "time": _TIME,
             "memory_total_mb": _f(*NUMBER), "memory_free_mb": _f(*NUMBER), "cpu_load": _f(*NUMBER),
             "cpu_cores": _f(int, required=False), "budget_mb": _f(*NUMBER, required=False),
-            "ours_mb": _f(*NUMBER, required=False),
+            "ours_mb": _f(*NUMBER, required=False), "reserved_mb": _f(*NUMBER, required=False),
         }),
+        Schema("squeeze_request", 1, {"reserve_mb": _f(*NUMBER)}),
         Schema("frame", 1, {
             "camera": _NAME, "seq": _f(int), "time": _TIME,
             "width": _f(int), "height": _f(int), "jpeg": _f(bytes, max_len=MAX_PAYLOAD),
@@ -86,18 +87,22 @@ SCHEMAS: dict[str, Schema] = {
         Schema("deploy_request", 1, {
             "deployment": _f(str, required=False, max_len=64), "config": _f(str, required=False, max_len=64),
             "instance": _f(str, required=False, max_len=64),
+            "wait_ready": _f(bool, required=False), "ready_timeout": _f(*NUMBER, required=False),
         }),
         Schema("deploy_reply", 1, {"ok": _f(bool), "detail": _f(dict, required=False)}),
         Schema("deploy_event", 1, {
             "event": _f(str, max_len=32), "host": _NAME, "instance": _NAME, "time": _TIME,
             "pid": _f(int, required=False), "returncode": _f(int, required=False),
             "detail": _f(str, required=False, max_len=4096),
+            "run_id": _f(str, required=False, max_len=128), "deployment": _f(str, required=False, max_len=64),
+            "config": _f(str, required=False, max_len=64),
         }),
         Schema("flight_state", 1, {
             "time": _TIME, "link": _f(bool), "armed": _f(bool, required=False),
             "mode": _f(str, required=False, max_len=64), "landed_state": _f(str, required=False, max_len=32),
             "battery_pct": _f(*NUMBER, required=False), "battery_v": _f(*NUMBER, required=False),
             "onboard_load": _f(*NUMBER, required=False),
+            "event": _f(str, required=False, max_len=32),  # link_up, link_lost, link_restored
         }),
         Schema("adaptation_event", 1, {
             "time": _TIME, "trigger": _f(str, max_len=256), "decision": _f(dict, required=False),
@@ -125,10 +130,8 @@ def decode(payload: bytes | bytearray | memoryview, kind: str) -> dict[str, Any]
     if len(data) > schema.max_size:
         raise MessageError(f"{kind} message of {len(data)} bytes exceeds {schema.max_size}")
     try:
-        message = msgpack.unpackb(
-            data, raw=False, strict_map_key=True, use_list=True,
-            max_buffer_size=schema.max_size,
-        )
+        # The size was checked above; msgpack's unpackb() takes no max_buffer_size.
+        message = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True)
     except Exception as exc:  # msgpack raises several unrelated types
         raise MessageError(f"{kind} message is not valid msgpack: {exc}") from exc
     if not isinstance(message, dict):

@@ -1,0 +1,435 @@
+"""The flight bridge: detections in over Zenoh, LANDING_TARGET out over MAVLink, flight state back.
+
+:class:`FlightBridge` is a part of the onboard agent. It follows the
+detections of the running marker detector (``kgadapt/<robot>/detector/*/markers``),
+turns the chosen marker of each detection into a LANDING_TARGET with the
+camera's intrinsics (:func:`landing_target`), and publishes the flight
+controller's state (:class:`onboard.mavlink.FlightState`) as ``flight_state``
+on ``kgadapt/<robot>/flight/state`` every ``state_period_s`` and at once when
+the link, arming, mode or landed state changes.
+
+Geometry. Angles are measured from the principal point with the pinhole model:
+``angle_x = atan((u - cx) / fx)``, ``angle_y = atan((v - cy) / fy)`` where
+``(u, v)`` is the marker's centre in pixels (mean of its four corners), +x to
+the right and +y down the image, as LANDING_TARGET defines them. A pose, when
+a detection carries one, is the marker's position in the camera's optical
+frame (x right, y down, z out of the lens, metres); with the camera looking
+down and the top of the image towards the vehicle's nose it becomes body FRD
+as (forward, right, down) = (-y, x, z) and sets ``position_valid``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+from onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
+from shared import keys, messages
+from shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics in pixels (from the Camera node of the models: fx, fy, cx, cy)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise FlightLinkError(f"camera intrinsic {name} must be a finite number, not {value!r}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise FlightLinkError(f"camera focal lengths must be positive, not fx={self.fx}, fy={self.fy}")
+
+
+def intrinsics_from_graph(client: Any, camera: str) -> CameraIntrinsics:
+    """The intrinsics of component ``camera`` from the knowledge graph (a KnowledgeClient's read-only Cypher)."""
+    from knowledge import schema as S  # only when asked: the bridge itself needs no store code
+
+    rows = client.cypher(
+        f"MATCH (c:{S.COMPONENT} {{name: $camera}}) RETURN c.fx AS fx, c.fy AS fy, c.cx AS cx, c.cy AS cy",
+        {"camera": camera},
+    )
+    if not rows or any(rows[0].get(k) is None for k in ("fx", "fy", "cx", "cy")):
+        raise ConfigError(f"camera {camera!r} has no intrinsics (fx, fy, cx, cy) in the knowledge graph")
+    return CameraIntrinsics(**{k: float(rows[0][k]) for k in ("fx", "fy", "cx", "cy")})
+
+
+def marker_points(corners: Any) -> list[tuple[float, float]]:
+    """The four (x, y) corners of one marker, from ``[[x,y]*4]``, ``[[[x,y]*4]]`` or ``[x,y]*4`` flat."""
+    points = corners
+    if isinstance(points, (list, tuple)) and len(points) == 1 and isinstance(points[0], (list, tuple)):
+        points = points[0]  # OpenCV's 1x4x2 shape
+    if isinstance(points, (list, tuple)) and len(points) == 8 and all(_is_number(v) for v in points):
+        points = [points[i:i + 2] for i in range(0, 8, 2)]
+    if not isinstance(points, (list, tuple)) or len(points) != 4:
+        raise MessageError(f"marker corners must be four (x, y) points, not {corners!r:.80}")
+    result = []
+    for point in points:
+        if not isinstance(point, (list, tuple)) or len(point) != 2 or not all(_is_number(v) for v in point):
+            raise MessageError(f"marker corner must be (x, y) numbers, not {point!r:.80}")
+        result.append((float(point[0]), float(point[1])))
+    return result
+
+
+def landing_target(
+    corners: Any,
+    intrinsics: CameraIntrinsics,
+    *,
+    frame_time: float,
+    marker_id: int = 0,
+    pose: Sequence[float] | None = None,
+) -> LandingTarget:
+    """The LANDING_TARGET for one marker seen at ``corners`` (pixels) in a frame taken at ``frame_time``."""
+    points = marker_points(corners)
+    u = sum(p[0] for p in points) / 4.0
+    v = sum(p[1] for p in points) / 4.0
+    k = intrinsics
+    xs = [p[0] for p in points]
+    ys = [p[1] for p in points]
+    position = None
+    distance = 0.0
+    if pose is not None:
+        x_cam, y_cam, z_cam = (float(c) for c in pose)
+        position = (-y_cam, x_cam, z_cam)
+        distance = math.sqrt(x_cam * x_cam + y_cam * y_cam + z_cam * z_cam)
+    return LandingTarget(
+        time=float(frame_time),
+        angle_x=math.atan((u - k.cx) / k.fx),
+        angle_y=math.atan((v - k.cy) / k.fy),
+        size_x=math.atan((max(xs) - k.cx) / k.fx) - math.atan((min(xs) - k.cx) / k.fx),
+        size_y=math.atan((max(ys) - k.cy) / k.fy) - math.atan((min(ys) - k.cy) / k.fy),
+        distance=distance,
+        target_num=marker_id if 0 <= marker_id <= 255 else 0,
+        position=position,
+    )
+
+
+def choose_marker(detections: dict, target_id: int | None) -> int | None:
+    """Index of the marker to land on: ``target_id`` if seen, else the largest in the image; None if none."""
+    ids, corners = detections["ids"], detections["corners"]
+    if len(ids) != len(corners):
+        raise MessageError(f"detections has {len(ids)} ids but {len(corners)} corner sets")
+    if target_id is not None:
+        return next((i for i, marker in enumerate(ids) if marker_id_of(marker) == target_id), None)
+    best, best_area = None, -1.0
+    for i, c in enumerate(corners):
+        points = marker_points(c)
+        area = abs(sum(points[j][0] * points[j - 1][1] - points[j - 1][0] * points[j][1] for j in range(4))) / 2
+        if area > best_area:
+            best, best_area = i, area
+    return best
+
+
+def marker_id_of(value: object) -> int | None:
+    """A marker id from ``7`` or OpenCV's ``[7]`` (ids come as an N x 1 array); None if not an id."""
+    if isinstance(value, list) and len(value) == 1:
+        value = value[0]
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _pose_of(detections: dict, index: int) -> list[float] | None:
+    """The optional pose of marker ``index``: ``poses[index]`` as [x, y, z] or {"tvec": [x, y, z]}."""
+    poses = detections.get("poses")
+    if not isinstance(poses, list) or index >= len(poses) or poses[index] is None:
+        return None
+    pose = poses[index]
+    if isinstance(pose, dict):
+        pose = pose.get("tvec")
+    if not isinstance(pose, (list, tuple)) or len(pose) != 3 or not all(_is_number(v) for v in pose):
+        raise MessageError(f"detections pose {index} must be [x, y, z] metres, not {poses[index]!r:.80}")
+    return [float(v) for v in pose]
+
+
+@dataclass(frozen=True, kw_only=True)
+class BridgeSettings:
+    """What the bridge follows, where it sends, and how often."""
+
+    robot: str
+    link: LinkSettings
+    intrinsics: CameraIntrinsics
+    detector: str = "*"  # detector instance to follow; "*" = whichever runs
+    target_id: int | None = None  # marker id to land on; None = the largest marker seen
+    state_period_s: float = 0.2  # flight_state at 5 Hz, plus at once on a discrete change
+    max_target_hz: float = 30.0  # LANDING_TARGET at the detection rate, capped here
+    max_detection_age_s: float = 0.5  # older detections would steer towards where the marker was
+    queue_limit: int = 64
+
+
+StateCallback = Callable[[FlightState], None]
+
+_STOP = object()
+
+
+class FlightBridge:
+    """Detections -> LANDING_TARGET, flight controller -> ``flight_state``. ``setup(session)``/``shutdown()``.
+
+    ``on_state(state)`` (e.g. a write of the FlightControl component's run-time
+    properties into the graph) runs on a thread of its own with the latest
+    published state, so a slow callback never delays a landing target.
+    """
+
+    def __init__(self, settings: BridgeSettings, *, on_state: StateCallback | None = None) -> None:
+        keys.check_name(settings.robot, "robot name")
+        if settings.detector != "*":
+            keys.check_name(settings.detector, "detector instance")
+        if settings.state_period_s <= 0 or settings.max_target_hz <= 0:
+            raise FlightLinkError("state_period_s and max_target_hz must be positive")
+        self.settings = settings
+        self._intrinsics = settings.intrinsics
+        self._on_state = on_state
+        self.link = FlightLink(settings.link)
+        self.link.on_state(self._on_link_state)
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queued = 0  # detections waiting; SimpleQueue has no bound of its own
+        self._queued_lock = threading.Lock()
+        self._publisher = None
+        self._subscriber = None
+        self._worker: threading.Thread | None = None
+        self._notifier: threading.Thread | None = None
+        self._latest_for_callback: FlightState | None = None
+        self._callback_ready = threading.Condition()
+        self._stopping = False
+        self._last_published: tuple | None = None
+        self._last_frame_time = -math.inf
+        self._last_target_mono = time.monotonic()
+        self._tokens = 2.0
+        self._last_send_error = ""
+        self.counters = {
+            "detections": 0, "malformed": 0, "no_target": 0, "stale": 0, "duplicate": 0, "rate_limited": 0,
+            "targets_sent": 0, "send_failed": 0, "published": 0, "queue_full": 0,
+        }
+
+    # -- lifecycle
+
+    def setup(self, session) -> None:
+        """Open the MAVLink link, declare the publisher and subscriber, start the worker."""
+        self._stopping = False
+        self.link.setup()
+        try:
+            self._publisher = session.declare_publisher(keys.flight_state(self.settings.robot))
+            self._subscriber = session.declare_subscriber(
+                keys.detector_markers(self.settings.robot, self.settings.detector), self._on_sample
+            )
+        except Exception as exc:
+            self.link.shutdown()
+            raise TransportError(f"flight bridge cannot declare on Zenoh: {exc}") from exc
+        self._worker = threading.Thread(target=self._work, name="flight-bridge", daemon=True)
+        self._worker.start()
+        if self._on_state is not None:
+            self._notifier = threading.Thread(target=self._notify, name="flight-state-callback", daemon=True)
+            self._notifier.start()
+        log.info("flight bridge up: %s -> LANDING_TARGET on %s", self.settings.detector, self.link.endpoint.url)
+
+    def shutdown(self) -> None:
+        """Undeclare, stop the threads, close the link."""
+        self._stopping = True
+        subscriber, self._subscriber = self._subscriber, None
+        if subscriber is not None:
+            _quietly(subscriber.undeclare)
+        self._queue.put((_STOP, None))
+        if self._worker is not None:
+            self._worker.join(timeout=2.0)
+            self._worker = None
+        with self._callback_ready:
+            self._callback_ready.notify_all()
+        if self._notifier is not None:
+            self._notifier.join(timeout=2.0)
+            self._notifier = None
+        publisher, self._publisher = self._publisher, None
+        if publisher is not None:
+            _quietly(publisher.undeclare)
+        self.link.shutdown()
+
+    @property
+    def state(self) -> FlightState:
+        return self.link.state
+
+    def set_intrinsics(self, intrinsics: CameraIntrinsics) -> None:
+        """Use other intrinsics from the next detection on (the camera's resolution changed)."""
+        self._intrinsics = intrinsics
+
+    # -- inputs (called on Zenoh's and the link's threads: only enqueue)
+
+    def _on_sample(self, sample) -> None:
+        with self._queued_lock:
+            if self._queued >= self.settings.queue_limit:
+                self.counters["queue_full"] += 1
+                return
+            self._queued += 1
+        self._queue.put(("detections", bytes(sample.payload.to_bytes())))
+
+    def _on_link_state(self, state: FlightState) -> None:
+        self._queue.put(("state", state))
+
+    # -- the worker
+
+    def _work(self) -> None:
+        period = self.settings.state_period_s
+        next_publish = time.monotonic()
+        while True:
+            try:
+                kind, value = self._queue.get(timeout=max(0.0, next_publish - time.monotonic()))
+            except queue.Empty:
+                kind, value = None, None
+            if kind is _STOP:
+                return
+            try:
+                if kind == "detections":
+                    with self._queued_lock:
+                        self._queued -= 1
+                    self._handle_detections(value)
+                elif kind == "state" and (value.event or value.discrete() != self._last_published):
+                    self._publish(value)
+                    next_publish = time.monotonic() + period
+            except Exception:  # the bridge must outlive any one bad input
+                log.exception("flight bridge: cannot handle %s", kind)
+            if time.monotonic() >= next_publish:
+                self._publish(self.link.state)
+                next_publish = time.monotonic() + period
+
+    def _handle_detections(self, payload: bytes) -> None:
+        self.counters["detections"] += 1
+        try:
+            detections = messages.decode(payload, "detections")
+            index = choose_marker(detections, self.settings.target_id)
+            if index is None:
+                self.counters["no_target"] += 1
+                return
+            target = landing_target(
+                detections["corners"][index], self._intrinsics, frame_time=detections["frame_time"],
+                marker_id=marker_id_of(detections["ids"][index]) or 0, pose=_pose_of(detections, index),
+            )
+        except (MessageError, FlightLinkError) as exc:
+            self.counters["malformed"] += 1
+            if self.counters["malformed"] % 100 == 1:
+                log.warning("flight bridge dropped a detections message (%d so far): %s",
+                            self.counters["malformed"], exc)
+            return
+        if time.time() - target.time > self.settings.max_detection_age_s:
+            self.counters["stale"] += 1
+            return
+        if target.time <= self._last_frame_time:
+            # the same (or an older) frame from a second detector while a migration overlaps them
+            self.counters["duplicate"] += 1
+            return
+        # A token bucket (burst 2) rather than a minimum gap: a detector at exactly the cap, with
+        # jitter, keeps its full rate, and a faster one is held to max_target_hz on average.
+        now = time.monotonic()
+        self._tokens = min(2.0, self._tokens + (now - self._last_target_mono) * self.settings.max_target_hz)
+        self._last_target_mono = now
+        if self._tokens < 1.0:
+            self.counters["rate_limited"] += 1
+            return
+        try:
+            self.link.send_landing_target(target)
+        except FlightLinkError as exc:
+            self.counters["send_failed"] += 1
+            if str(exc) != self._last_send_error:
+                self._last_send_error = str(exc)
+                log.warning("flight bridge: LANDING_TARGET not sent: %s", exc)
+            return
+        self._last_send_error = ""
+        self._last_frame_time = target.time
+        self._tokens -= 1.0
+        self.counters["targets_sent"] += 1
+
+    def _publish(self, state: FlightState) -> None:
+        publisher = self._publisher
+        if publisher is None:
+            return
+        try:
+            publisher.put(messages.encode("flight_state", state.as_message()))
+        except Exception as exc:  # zenoh errors: log and try again next period
+            log.warning("flight bridge: flight_state not published: %s", exc)
+            return
+        self._last_published = state.discrete()
+        self.counters["published"] += 1
+        if self._on_state is not None:
+            with self._callback_ready:
+                self._latest_for_callback = state
+                self._callback_ready.notify()
+
+    def _notify(self) -> None:
+        while True:
+            with self._callback_ready:
+                while self._latest_for_callback is None and not self._stopping:
+                    self._callback_ready.wait()
+                if self._stopping:
+                    return
+                state, self._latest_for_callback = self._latest_for_callback, None
+            try:
+                self._on_state(state)  # type: ignore[misc]
+            except Exception:
+                log.exception("flight bridge: on_state callback failed")
+
+
+def flight_control_params(state: FlightState, component: str = "flight_control") -> dict[str, Any]:
+    """Parameters of the ``flight_state`` write: the FlightControl component's run-time properties.
+
+    ``autopilot_load_pct`` is the autopilot's main-loop load (SYS_STATUS.load), not the
+    component's design-time ``cpu_load`` on the companion computer.
+    """
+    params = {
+        "name": component, "time": state.time, "link": state.link, "armed": state.armed, "mode": state.mode,
+        "landed_state": state.landed_state, "battery_pct": state.battery_pct, "battery_v": state.battery_v,
+        "autopilot_load_pct": state.onboard_load, "last_heartbeat": state.last_heartbeat,
+    }
+    return {k: v for k, v in params.items() if v is not None}
+
+
+class FlightControlWriter:
+    """An ``on_state`` callback that writes the flight state into the graph through a KnowledgeClient.
+
+    Writes at once when link, arming, mode or landed state change, else at most every
+    ``min_period_s``; a failed write is logged (once per distinct error) and retried with the next state.
+    """
+
+    def __init__(self, client: Any, *, component: str = "flight_control", verb: str = "flight_state",
+                 min_period_s: float = 1.0) -> None:
+        self.client = client
+        self.component = component
+        self.verb = verb
+        self.min_period_s = min_period_s
+        self.written = 0
+        self.failed = 0
+        self._last: tuple | None = None
+        self._last_at = -math.inf
+        self._last_error = ""
+
+    def __call__(self, state: FlightState) -> None:
+        now = time.monotonic()
+        if state.discrete() == self._last and now - self._last_at < self.min_period_s:
+            return
+        try:
+            self.client.write(self.verb, flight_control_params(state, self.component))
+        except KgadaptError as exc:
+            self.failed += 1
+            if str(exc) != self._last_error:
+                self._last_error = str(exc)
+                log.warning("flight state not written to the graph: %s", exc)
+            return
+        self._last, self._last_at, self._last_error = state.discrete(), now, ""
+        self.written += 1
+
+
+def _quietly(undo: Callable[[], object]) -> None:
+    try:
+        undo()
+    except Exception as exc:
+        log.debug("ignored during shutdown: %s", exc)

@@ -1,0 +1,263 @@
+"""``kgadapt flight``: the fake flight controller, a flight-state monitor, and the bridge on its own.
+
+    kgadapt flight fake-fc --url udpout:127.0.0.1:14550 [--armed] [--mode LOITER] [--land-after 20]
+    kgadapt flight monitor --url udpin:0.0.0.0:14550 [--json] [--duration 10]
+    kgadapt flight bridge --robot quad1 --url udpin:0.0.0.0:14550 --fx 600 --fy 600 --cx 320 --cy 240
+
+Long-running commands stop on Ctrl-C or SIGTERM and exit 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+
+# Only light imports here: pymavlink and zenoh are imported inside the commands.
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "flight", help="MAVLink flight controller link: fake autopilot, state monitor, bridge",
+        description="MAVLink 2 link to the flight controller (common dialect).",
+    )
+    sub = parser.add_subparsers(dest="flight_command", metavar="SUBCOMMAND")
+    sub.required = True
+
+    fake = sub.add_parser(
+        "fake-fc", help="run a fake flight controller speaking MAVLink 2",
+        description="A fake autopilot: streams HEARTBEAT, SYS_STATUS, BATTERY_STATUS, EXTENDED_SYS_STATE and "
+                    "counts what it receives. Prints KGADAPT_READY once its socket is open.",
+    )
+    fake.add_argument("--url", default="udpout:127.0.0.1:14550",
+                      help="where to talk (default udpout:127.0.0.1:14550; udpin:HOST:PORT to listen)")
+    fake.add_argument("--system-id", type=int, default=1, help="MAVLink system id (default 1)")
+    fake.add_argument("--armed", action="store_true", help="report armed")
+    fake.add_argument("--mode", default="LOITER", help="ArduCopter mode name (default LOITER)")
+    fake.add_argument("--landed-state", default=None,
+                      help="ON_GROUND, IN_AIR, TAKEOFF, LANDING, UNDEFINED (default IN_AIR if --armed else ON_GROUND)")
+    fake.add_argument("--battery-pct", type=float, default=90.0, help="battery charge, percent (default 90)")
+    fake.add_argument("--load-pct", type=float, default=22.0, help="main-loop load, percent (default 22)")
+    fake.add_argument("--land-after", type=float, default=None, metavar="S",
+                      help="start the scripted final descent after S seconds")
+    fake.add_argument("--descent", type=float, default=5.0, metavar="S", help="final descent duration (default 5)")
+    fake.add_argument("--rate-scale", type=float, default=1.0,
+                      help="multiply every stream rate (default 1: HEARTBEAT 1 Hz, SYS_STATUS 2 Hz, others 1 Hz)")
+    fake.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (0: run until stopped)")
+    fake.add_argument("--json", action="store_true", help="print one JSON object per second")
+    fake.set_defaults(func=_fake_fc)
+
+    monitor = sub.add_parser(
+        "monitor", help="print the flight controller's state",
+        description="Connect to a flight controller and print its state on every change and once a second.",
+    )
+    _add_link_arguments(monitor)
+    monitor.add_argument("--wait", type=float, default=10.0, metavar="S",
+                         help="fail if no heartbeat within S seconds (default 10)")
+    monitor.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (0: run until stopped)")
+    monitor.add_argument("--every", type=float, default=1.0, metavar="S", help="also print every S seconds (default 1)")
+    monitor.add_argument("--json", action="store_true", help="print JSON objects, one per line")
+    monitor.set_defaults(func=_monitor)
+
+    bridge = sub.add_parser(
+        "bridge", help="run the flight bridge alone (detections -> LANDING_TARGET, flight_state)",
+        description="Follow a detector's detections over Zenoh, send LANDING_TARGET, publish flight_state. "
+                    "The onboard agent hosts the same bridge; this runs it on its own.",
+    )
+    from shared import session as zsession
+
+    _add_link_arguments(bridge)
+    bridge.add_argument("--robot", required=True, help="robot name (key namespace)")
+    bridge.add_argument("--detector", default="*", help="detector instance to follow (default: any)")
+    bridge.add_argument("--target-id", type=int, default=None, help="marker id to land on (default: largest seen)")
+    bridge.add_argument("--camera", help="read the intrinsics of this camera component from the knowledge service")
+    for name in ("fx", "fy", "cx", "cy"):
+        bridge.add_argument(f"--{name}", type=float, help=f"camera intrinsic {name}, pixels (instead of --camera)")
+    bridge.add_argument("--write-graph", action="store_true",
+                        help="write the flight state into the FlightControl component through the knowledge service")
+    zsession.add_arguments(bridge)
+    bridge.set_defaults(func=_bridge)
+
+
+def _add_link_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--url", default="udpin:0.0.0.0:14550",
+                        help="flight controller: udpin:HOST:PORT (default udpin:0.0.0.0:14550), udpout:HOST:PORT, "
+                             "tcp:HOST:PORT or /dev/ttyX:BAUD")
+    parser.add_argument("--system-id", type=int, default=1, help="our MAVLink system id (default 1)")
+    parser.add_argument("--component-id", type=int, default=191, help="our component id (default 191, onboard computer)")
+    parser.add_argument("--target-system", type=int, default=None, help="autopilot system id to follow (default: first heard)")
+    parser.add_argument("--heartbeat-timeout", type=float, default=3.0, metavar="S",
+                        help="link lost after S seconds without heartbeat (default 3)")
+
+
+def _link_settings(args: argparse.Namespace):
+    from onboard.mavlink import LinkSettings
+
+    return LinkSettings(url=args.url, system_id=args.system_id, component_id=args.component_id,
+                        target_system=args.target_system, heartbeat_timeout_s=args.heartbeat_timeout)
+
+
+def _stop_event() -> threading.Event:
+    """An event set by SIGTERM (Ctrl-C is caught where we wait)."""
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    return stop
+
+
+def _run_until(stop: threading.Event, duration: float, every: float, tick) -> None:
+    deadline = time.monotonic() + duration if duration > 0 else None
+    try:
+        while not stop.is_set():
+            wait = every if deadline is None else min(every, deadline - time.monotonic())
+            if wait <= 0 or stop.wait(wait):
+                break
+            tick()
+    except KeyboardInterrupt:
+        pass
+
+
+def _fake_fc(args: argparse.Namespace) -> int:
+    from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
+
+    if args.rate_scale <= 0:
+        from shared.errors import ConfigError
+
+        raise ConfigError(f"--rate-scale must be positive, not {args.rate_scale}")
+    r = args.rate_scale
+    settings = FakeFCSettings(url=args.url, system_id=args.system_id, heartbeat_hz=1.0 * r,
+                              sys_status_hz=2.0 * r, battery_hz=1.0 * r, extended_state_hz=1.0 * r)
+    landed = args.landed_state or ("IN_AIR" if args.armed else "ON_GROUND")
+    vehicle = VehicleState(armed=args.armed, mode=args.mode.upper(), landed_state=landed.upper(),
+                           battery_pct=args.battery_pct, load_pct=args.load_pct)
+    fc = FakeFlightController(settings, vehicle)
+    stop = _stop_event()
+    fc.setup()
+    started = time.monotonic()
+    landing = {"started": False}
+    print("KGADAPT_READY", flush=True)
+
+    def tick() -> None:
+        if args.land_after is not None and not landing["started"] and time.monotonic() - started >= args.land_after:
+            landing["started"] = True
+            fc.land(args.descent)
+        v = fc.vehicle
+        counts = {kind: len(fc.received(kind)) for kind in ("HEARTBEAT", "LANDING_TARGET")}
+        last = fc.received("LANDING_TARGET")[-1:]
+        report = {"time": time.time(), "armed": v.armed, "mode": v.mode, "landed_state": v.landed_state,
+                  "battery_pct": round(v.battery_pct, 1), "received": counts,
+                  "last_landing_target": last[0].fields if last else None}
+        if args.json:
+            print(json.dumps(report, default=str), flush=True)
+        else:
+            target = ""
+            if last:
+                f = last[0].fields
+                target = f" last target angle_x={f['angle_x']:+.4f} angle_y={f['angle_y']:+.4f} rad"
+            print(f"{v.mode:<9} armed={v.armed!s:<5} {v.landed_state:<9} battery={v.battery_pct:5.1f}% "
+                  f"heartbeats={counts['HEARTBEAT']} landing_targets={counts['LANDING_TARGET']}{target}", flush=True)
+
+    try:
+        _run_until(stop, args.duration, 1.0, tick)
+    finally:
+        fc.shutdown()
+    return 0
+
+
+def _monitor(args: argparse.Namespace) -> int:
+    import queue
+
+    from onboard.mavlink import FlightLink
+
+    if args.every <= 0:
+        from shared.errors import ConfigError
+
+        raise ConfigError(f"--every must be positive, not {args.every}")
+    link = FlightLink(_link_settings(args))
+    stop = _stop_event()
+    changed = threading.Event()
+    events: queue.SimpleQueue = queue.SimpleQueue()  # snapshots made for link events: each one is printed
+    shown: dict = {"discrete": None}
+
+    def on_state(state) -> None:
+        if state.event:
+            events.put(state)
+        if state.discrete() != shown["discrete"]:
+            changed.set()
+
+    link.on_state(on_state)
+    link.setup()
+    try:
+        link.wait_for_heartbeat(args.wait)
+
+        def show(state) -> None:
+            shown["discrete"] = state.discrete()
+            if args.json:
+                print(json.dumps(state.as_message()), flush=True)
+                return
+            battery = "-" if state.battery_pct is None else f"{state.battery_pct:.0f}%"
+            volts = "-" if state.battery_v is None else f"{state.battery_v:.2f} V"
+            load = "-" if state.onboard_load is None else f"{state.onboard_load:.1f}%"
+            event = f"  [{state.event}]" if state.event else ""
+            print(f"link={'up' if state.link else 'LOST'} armed={state.armed} mode={state.mode} "
+                  f"landed={state.landed_state} battery={battery} {volts} load={load}{event}", flush=True)
+
+        last = 0.0
+
+        def tick() -> None:
+            nonlocal last
+            printed = False
+            while not events.empty():
+                show(events.get())
+                printed = True
+            state = link.state
+            news = changed.is_set() and state.discrete() != shown["discrete"]
+            changed.clear()
+            if news or time.monotonic() - last >= args.every:
+                show(state)
+                printed = True
+            if printed:
+                last = time.monotonic()
+
+        tick()
+        _run_until(stop, args.duration, min(0.05, args.every), tick)
+    finally:
+        link.shutdown()
+    return 0
+
+
+def _bridge(args: argparse.Namespace) -> int:
+    from onboard.flight import (BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter,
+                                intrinsics_from_graph)
+    from shared import session as zsession
+    from shared.errors import ConfigError
+
+    given = [args.fx, args.fy, args.cx, args.cy]
+    if (args.camera is None) == (None in given):
+        raise ConfigError("give either --camera NAME or all of --fx --fy --cx --cy")
+    zsettings = zsession.settings_from_args(args).with_defaults(mode="peer", connect=[zsession.DEFAULT_ENDPOINT])
+    session = zsession.open_session(zsettings)
+    stop = _stop_event()
+    bridge = None
+    try:
+        client = None
+        if args.camera or args.write_graph:
+            from knowledge.client import KnowledgeClient
+
+            client = KnowledgeClient(session, args.robot)
+        intrinsics = (intrinsics_from_graph(client, args.camera) if args.camera
+                      else CameraIntrinsics(fx=args.fx, fy=args.fy, cx=args.cx, cy=args.cy))
+        settings = BridgeSettings(robot=args.robot, link=_link_settings(args), detector=args.detector,
+                                  target_id=args.target_id, intrinsics=intrinsics)
+        bridge = FlightBridge(settings, on_state=FlightControlWriter(client) if args.write_graph else None)
+        bridge.setup(session)
+        print("KGADAPT_READY", flush=True)
+        _run_until(stop, 0.0, 5.0, lambda: print(json.dumps(bridge.counters), file=sys.stderr, flush=True))
+    finally:
+        if bridge is not None:
+            bridge.shutdown()
+        session.close()
+    return 0

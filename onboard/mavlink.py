@@ -1,0 +1,790 @@
+"""The MAVLink link to the flight controller: our own transport, MAVLink 2, common dialect.
+
+pymavlink's ``mavutil`` picks the protocol version and dialect from process-wide
+environment variables (``MAVLINK20``, ``MAVLINK_DIALECT``) and even writes
+``os.environ`` when imported. This module never imports it: it drives its own
+``MAVLink`` object from ``pymavlink.dialects.v20.common`` (MAVLink 2 by
+construction) over its own sockets or serial port, so importing it changes
+nothing for anyone else in the process.
+
+Endpoints (``Endpoint.parse``)::
+
+    udpin:HOST:PORT     listen for the flight controller (or a router) on UDP; replies go to
+                        the last address a valid MAVLink message came from
+    udpout:HOST:PORT    send to HOST:PORT over UDP; replies come back to our ephemeral port
+    tcp:HOST:PORT       TCP client (e.g. SITL on tcp:127.0.0.1:5760); reconnects when dropped
+    /dev/ttyX[:BAUD]    serial port, raw 8N1 (default 57600 baud); also serial:/dev/ttyX:BAUD
+
+:class:`FlightLink` reads HEARTBEAT, SYS_STATUS, BATTERY_STATUS and
+EXTENDED_SYS_STATE of the first autopilot it hears (or of ``target_system``)
+into a :class:`FlightState` (asking for those streams with
+MAV_CMD_SET_MESSAGE_INTERVAL each time the link comes up), says when the link is lost (no heartbeat for
+``heartbeat_timeout_s``) and when it comes back, sends our own HEARTBEAT as an
+onboard controller at 1 Hz, and sends LANDING_TARGET on request.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import re
+import select
+import socket
+import struct
+import termios
+import threading
+import time
+from dataclasses import dataclass, replace
+from typing import Callable
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from shared.errors import FlightLinkError
+
+log = logging.getLogger(__name__)
+
+UINT16_MAX = 65535
+LINK_UP = "link_up"              # first heartbeat from the flight controller
+LINK_LOST = "link_lost"          # no heartbeat for heartbeat_timeout_s
+LINK_RESTORED = "link_restored"  # a heartbeat again after a loss
+
+_READ_TIMEOUT_S = 0.1  # how often blocked readers look at the stop flag
+_TICK_S = 0.05         # heartbeat-timeout resolution
+
+# ---------------------------------------------------------------- endpoints
+
+_HOST_PORT = re.compile(r"^(?P<host>[A-Za-z0-9_.\-]+|\[[0-9A-Fa-f:.]+\]):(?P<port>\d{1,5})$")
+_SERIAL = re.compile(r"^(?P<device>/dev/[A-Za-z0-9_./\-]+?)(?::(?P<baud>\d+))?$")
+_BAUDS = {int(name[1:]): getattr(termios, name) for name in dir(termios) if re.fullmatch(r"B\d+", name)}
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """Where the flight controller is: parsed from a URL, checked, no I/O."""
+
+    url: str
+    kind: str  # "udpin" | "udpout" | "tcp" | "serial"
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baud: int = 0
+
+    @classmethod
+    def parse(cls, url: str) -> "Endpoint":
+        """Parse ``udpin:``, ``udpout:``, ``tcp:``, ``/dev/ttyX:BAUD``; raise FlightLinkError naming a bad URL."""
+        if not isinstance(url, str) or not url.strip():
+            raise FlightLinkError(f"bad flight controller URL {url!r}: empty")
+        text = url.strip()
+        scheme, sep, rest = text.partition(":")
+        if text.startswith("/dev/") or scheme == "serial":
+            match = _SERIAL.match(text if text.startswith("/dev/") else rest)
+            if not match:
+                raise FlightLinkError(f"bad flight controller URL {url!r}: use /dev/DEVICE[:BAUD]")
+            baud = int(match["baud"] or 57600)
+            if baud not in _BAUDS:
+                raise FlightLinkError(f"bad flight controller URL {url!r}: baud rate {baud} is not supported")
+            return cls(url=text, kind="serial", device=match["device"], baud=baud)
+        kind = {"udp": "udpin", "udpin": "udpin", "udpout": "udpout", "tcp": "tcp"}.get(scheme)
+        if not sep or kind is None:
+            raise FlightLinkError(
+                f"bad flight controller URL {url!r}: use udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT "
+                "or /dev/DEVICE[:BAUD]"
+            )
+        match = _HOST_PORT.match(rest)
+        if not match or not 0 < int(match["port"]) < 65536:
+            raise FlightLinkError(f"bad flight controller URL {url!r}: expected {scheme}:HOST:PORT with a port 1-65535")
+        return cls(url=text, kind=kind, host=match["host"].strip("[]"), port=int(match["port"]))
+
+
+# ---------------------------------------------------------------- transports
+# Each transport: open(timeout), read(timeout) -> (bytes, source) or None, write(bytes), close().
+# ``datagram`` says whether one read is one or more whole MAVLink packets (UDP) or a byte stream.
+
+
+class _UdpTransport:
+    datagram = True
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        self._endpoint = endpoint
+        self._sock: socket.socket | None = None
+        # udpout: fixed; udpin: the last source a valid message came from (see accept_source).
+        self._peer: tuple | None = None
+
+    def open(self, timeout: float) -> None:
+        ep = self._endpoint
+        try:
+            infos = socket.getaddrinfo(ep.host, ep.port, type=socket.SOCK_DGRAM)
+            family, _, _, _, address = infos[0]
+            sock = socket.socket(family, socket.SOCK_DGRAM)
+            if ep.kind == "udpin":
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                sock.bind(address)
+            else:
+                sock.bind(("::" if family == socket.AF_INET6 else "0.0.0.0", 0))
+                self._peer = address
+        except OSError as exc:
+            raise FlightLinkError(f"cannot open flight controller link {ep.url}: {exc}") from exc
+        sock.settimeout(_READ_TIMEOUT_S)
+        self._sock = sock
+
+    @property
+    def local_address(self) -> tuple:
+        assert self._sock is not None
+        return self._sock.getsockname()
+
+    def read(self, timeout: float) -> tuple[bytes, object] | None:
+        sock = self._sock
+        if sock is None:
+            return None
+        try:
+            data, source = sock.recvfrom(65535)
+        except (socket.timeout, BlockingIOError):
+            return None
+        except OSError:
+            if self._sock is None:  # closed under us by shutdown
+                return None
+            raise
+        return data, source
+
+    def accept_source(self, source: object) -> None:
+        if self._endpoint.kind == "udpin":
+            self._peer = source  # type: ignore[assignment]
+
+    @property
+    def can_send(self) -> bool:
+        return self._peer is not None
+
+    def write(self, data: bytes) -> None:
+        if self._sock is None or self._peer is None:
+            raise FlightLinkError(f"no flight controller heard yet on {self._endpoint.url}: nowhere to send")
+        try:
+            self._sock.sendto(data, self._peer)
+        except OSError as exc:
+            raise FlightLinkError(f"send on {self._endpoint.url} failed: {exc}") from exc
+
+    def close(self) -> None:
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            sock.close()
+
+
+class _TcpTransport:
+    datagram = False
+    _RETRY_S = 1.0
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        self._endpoint = endpoint
+        self._sock: socket.socket | None = None
+        self._closed = False
+        self._next_retry = 0.0
+        self._lock = threading.Lock()
+
+    def open(self, timeout: float) -> None:
+        self._sock = self._connect(timeout)
+
+    def _connect(self, timeout: float) -> socket.socket:
+        ep = self._endpoint
+        try:
+            sock = socket.create_connection((ep.host, ep.port), timeout=timeout)
+        except OSError as exc:
+            raise FlightLinkError(f"cannot connect to flight controller at {ep.url}: {exc}") from exc
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.settimeout(_READ_TIMEOUT_S)
+        return sock
+
+    def read(self, timeout: float) -> tuple[bytes, object] | None:
+        sock = self._sock
+        if sock is None:
+            self._maybe_reconnect()
+            return None
+        try:
+            data = sock.recv(65536)
+        except (socket.timeout, BlockingIOError):
+            return None
+        except OSError as exc:
+            data = b""
+            if not self._closed:
+                log.warning("flight controller link %s: %s", self._endpoint.url, exc)
+        if not data:  # peer closed: drop the socket, reconnect later
+            self._drop(sock)
+            return None
+        return data, None
+
+    def _drop(self, sock: socket.socket) -> None:
+        with self._lock:
+            if self._sock is sock:
+                self._sock = None
+        sock.close()
+        self._next_retry = time.monotonic() + self._RETRY_S
+
+    def _maybe_reconnect(self) -> None:
+        if self._closed or time.monotonic() < self._next_retry:
+            time.sleep(_READ_TIMEOUT_S)
+            return
+        try:
+            sock = self._connect(self._RETRY_S)
+        except FlightLinkError:
+            self._next_retry = time.monotonic() + self._RETRY_S
+            return
+        with self._lock:
+            if self._closed:
+                sock.close()
+                return
+            self._sock = sock
+        log.info("flight controller link %s reconnected", self._endpoint.url)
+
+    def accept_source(self, source: object) -> None:
+        pass
+
+    @property
+    def can_send(self) -> bool:
+        return self._sock is not None
+
+    def write(self, data: bytes) -> None:
+        sock = self._sock
+        if sock is None:
+            raise FlightLinkError(f"flight controller link {self._endpoint.url} is not connected")
+        try:
+            sock.sendall(data)
+        except OSError as exc:
+            raise FlightLinkError(f"send on {self._endpoint.url} failed: {exc}") from exc
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            sock, self._sock = self._sock, None
+        if sock is not None:
+            sock.close()
+
+
+class _SerialTransport:
+    """A tty in raw 8N1 mode through termios: no pyserial needed."""
+
+    datagram = False
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        self._endpoint = endpoint
+        self._fd: int | None = None
+        self._write_lock = threading.Lock()
+
+    def open(self, timeout: float) -> None:
+        ep = self._endpoint
+        try:
+            fd = os.open(ep.device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        except OSError as exc:
+            raise FlightLinkError(f"cannot open serial port {ep.url}: {exc}") from exc
+        try:
+            iflag, oflag, cflag, lflag, _, _, cc = termios.tcgetattr(fd)
+            speed = _BAUDS[ep.baud]
+            # raw: no echo, no line editing, no CR/LF translation, no flow control
+            iflag = 0
+            oflag = 0
+            lflag = 0
+            cflag = (cflag & ~(termios.CSIZE | termios.PARENB | termios.CSTOPB | getattr(termios, "CRTSCTS", 0)))
+            cflag |= termios.CS8 | termios.CREAD | termios.CLOCAL
+            cc[termios.VMIN] = 0
+            cc[termios.VTIME] = 0
+            termios.tcsetattr(fd, termios.TCSANOW, [iflag, oflag, cflag, lflag, speed, speed, cc])
+        except (OSError, termios.error) as exc:
+            os.close(fd)
+            raise FlightLinkError(f"cannot configure serial port {ep.url} (is it a tty?): {exc}") from exc
+        self._fd = fd
+
+    def read(self, timeout: float) -> tuple[bytes, object] | None:
+        fd = self._fd
+        if fd is None:
+            return None
+        try:
+            ready, _, _ = select.select([fd], [], [], timeout)
+            if not ready:
+                return None
+            data = os.read(fd, 4096)
+        except (BlockingIOError, InterruptedError):
+            return None
+        except (OSError, ValueError) as exc:
+            if self._fd is None:
+                return None
+            raise FlightLinkError(f"serial port {self._endpoint.url} failed: {exc}") from exc
+        return (data, None) if data else None
+
+    def accept_source(self, source: object) -> None:
+        pass
+
+    @property
+    def can_send(self) -> bool:
+        return self._fd is not None
+
+    def write(self, data: bytes) -> None:
+        fd = self._fd
+        if fd is None:
+            raise FlightLinkError(f"serial port {self._endpoint.url} is not open")
+        view = memoryview(data)
+        with self._write_lock:
+            try:
+                while view:
+                    try:
+                        view = view[os.write(fd, view):]
+                    except BlockingIOError:
+                        select.select([], [fd], [], 0.1)
+            except OSError as exc:
+                raise FlightLinkError(f"send on {self._endpoint.url} failed: {exc}") from exc
+
+    def close(self) -> None:
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            os.close(fd)
+
+
+def open_transport(endpoint: Endpoint, timeout: float):
+    """Open the transport for ``endpoint`` (bounded by ``timeout``); raise FlightLinkError."""
+    transport = {"udpin": _UdpTransport, "udpout": _UdpTransport, "tcp": _TcpTransport,
+                 "serial": _SerialTransport}[endpoint.kind](endpoint)
+    transport.open(timeout)
+    return transport
+
+
+class _Writer:
+    """The file-like object pymavlink's MAVLink.send writes packed bytes to."""
+
+    def __init__(self, transport) -> None:
+        self.transport = transport
+
+    def write(self, data: bytes) -> None:
+        self.transport.write(bytes(data))
+
+
+class PacketParser:
+    """Bytes in, MAVLink messages out; bad bytes counted, never raised.
+
+    A datagram holds whole packets, so each datagram gets a fresh parser: a
+    truncated or forged header cannot swallow the next good packet. A byte
+    stream (TCP, serial) keeps one parser that resynchronises on its own.
+    """
+
+    def __init__(self, *, datagram: bool) -> None:
+        self._datagram = datagram
+        self._stream = self._new()
+        self.bad = 0
+
+    @staticmethod
+    def _new() -> mavlink2.MAVLink:
+        parser = mavlink2.MAVLink(None, 0, 0)
+        parser.robust_parsing = True  # bad bytes become BAD_DATA messages instead of exceptions
+        return parser
+
+    def feed(self, data: bytes) -> list:
+        parser = self._new() if self._datagram else self._stream
+        try:
+            messages = parser.parse_buffer(data) or []
+        except Exception as exc:  # pymavlink raises MAVError, struct.error, IndexError on odd input
+            self.bad += 1
+            log.debug("dropped undecodable MAVLink bytes (%d): %s", len(data), exc)
+            if not self._datagram:
+                self._stream = self._new()
+            return []
+        good = []
+        for message in messages:
+            kind = message.get_type()
+            if kind == "BAD_DATA":
+                self.bad += 1
+            elif not kind.startswith("UNKNOWN"):
+                good.append(message)
+        return good
+
+
+def new_mavlink(transport, *, system_id: int, component_id: int) -> mavlink2.MAVLink:
+    """A MAVLink 2 encoder writing to ``transport`` as (system_id, component_id)."""
+    return mavlink2.MAVLink(_Writer(transport), srcSystem=system_id, srcComponent=component_id)
+
+
+def is_mavlink2(message) -> bool:
+    """Whether a received message came as a MAVLink 2 packet."""
+    buf = message.get_msgbuf()
+    return bool(buf) and buf[0] == mavlink2.PROTOCOL_MARKER_V2
+
+
+# ---------------------------------------------------------------- modes and states
+
+# ArduCopter flight modes (custom_mode numbers), ArduPilot's documented values.
+COPTER_MODES = {
+    0: "STABILIZE", 1: "ACRO", 2: "ALT_HOLD", 3: "AUTO", 4: "GUIDED", 5: "LOITER", 6: "RTL",
+    7: "CIRCLE", 9: "LAND", 11: "DRIFT", 13: "SPORT", 14: "FLIP", 15: "AUTOTUNE", 16: "POSHOLD",
+    17: "BRAKE", 18: "THROW", 19: "AVOID_ADSB", 20: "GUIDED_NOGPS", 21: "SMART_RTL", 22: "FLOWHOLD",
+    23: "FOLLOW", 24: "ZIGZAG", 25: "SYSTEMID", 26: "AUTOROTATE", 27: "AUTO_RTL", 28: "TURTLE",
+}
+COPTER_MODE_NUMBERS = {name: number for number, name in COPTER_MODES.items()}
+_COPTER_TYPES = {
+    getattr(mavlink2, name) for name in (
+        "MAV_TYPE_QUADROTOR", "MAV_TYPE_COAXIAL", "MAV_TYPE_HELICOPTER", "MAV_TYPE_HEXAROTOR",
+        "MAV_TYPE_OCTOROTOR", "MAV_TYPE_TRICOPTER", "MAV_TYPE_DODECAROTOR", "MAV_TYPE_DECAROTOR",
+    ) if hasattr(mavlink2, name)
+}
+# PX4 packs main mode in bits 16-23 and sub mode (for AUTO) in bits 24-31 of custom_mode.
+_PX4_MAIN = {1: "MANUAL", 2: "ALTCTL", 3: "POSCTL", 4: "AUTO", 5: "ACRO", 6: "OFFBOARD",
+             7: "STABILIZED", 8: "RATTITUDE", 9: "SIMPLE", 10: "TERMINATION"}
+_PX4_AUTO = {1: "READY", 2: "TAKEOFF", 3: "LOITER", 4: "MISSION", 5: "RTL", 6: "LAND",
+             8: "FOLLOW_TARGET", 9: "PRECLAND", 10: "VTOL_TAKEOFF"}
+
+LANDED_STATES = {
+    mavlink2.MAV_LANDED_STATE_UNDEFINED: "UNDEFINED",
+    mavlink2.MAV_LANDED_STATE_ON_GROUND: "ON_GROUND",
+    mavlink2.MAV_LANDED_STATE_IN_AIR: "IN_AIR",
+    mavlink2.MAV_LANDED_STATE_TAKEOFF: "TAKEOFF",
+    mavlink2.MAV_LANDED_STATE_LANDING: "LANDING",
+}
+LANDED_STATE_NUMBERS = {name: number for number, name in LANDED_STATES.items()}
+_AUTOPILOTS = {mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot", mavlink2.MAV_AUTOPILOT_PX4: "px4",
+               mavlink2.MAV_AUTOPILOT_GENERIC: "generic"}
+
+
+def mode_name(autopilot: int, vehicle_type: int, base_mode: int, custom_mode: int) -> str:
+    """A readable flight mode from a HEARTBEAT's autopilot, type and mode fields."""
+    if base_mode & mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+        if autopilot == mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA and vehicle_type in _COPTER_TYPES:
+            return COPTER_MODES.get(custom_mode, f"MODE_{custom_mode}")
+        if autopilot == mavlink2.MAV_AUTOPILOT_PX4:
+            main = _PX4_MAIN.get((custom_mode >> 16) & 0xFF, f"MODE_{custom_mode}")
+            sub = (custom_mode >> 24) & 0xFF
+            return f"{main}.{_PX4_AUTO.get(sub, sub)}" if main == "AUTO" and sub else main
+    return f"MODE_{custom_mode}"
+
+
+@dataclass(frozen=True, kw_only=True)
+class FlightState:
+    """What we know about the flight controller; None = not heard yet."""
+
+    time: float  # epoch seconds of the last change
+    link: bool = False
+    armed: bool | None = None
+    mode: str | None = None
+    landed_state: str | None = None  # UNDEFINED, ON_GROUND, IN_AIR, TAKEOFF, LANDING
+    battery_pct: float | None = None
+    battery_v: float | None = None
+    onboard_load: float | None = None  # flight controller main-loop load, percent
+    system_id: int | None = None
+    autopilot: str | None = None
+    last_heartbeat: float | None = None  # epoch seconds
+    event: str | None = None  # the link event this snapshot was made for, if any
+
+    def discrete(self) -> tuple:
+        """The fields whose change is news at once (the rest is published periodically)."""
+        return (self.link, self.armed, self.mode, self.landed_state)
+
+    def as_message(self) -> dict:
+        """The body of a ``flight_state`` wire message."""
+        body = {
+            "time": self.time, "link": self.link, "armed": self.armed, "mode": self.mode,
+            "landed_state": self.landed_state, "battery_pct": self.battery_pct, "battery_v": self.battery_v,
+            "onboard_load": self.onboard_load, "system_id": self.system_id, "autopilot": self.autopilot,
+            "last_heartbeat": self.last_heartbeat, "event": self.event,
+        }
+        return {k: v for k, v in body.items() if v is not None}
+
+
+@dataclass(frozen=True, kw_only=True)
+class LandingTarget:
+    """One LANDING_TARGET: angles from the image centre, optionally a position in body FRD."""
+
+    time: float  # epoch seconds of the frame the target was seen in
+    angle_x: float  # rad, + to the right of the image centre
+    angle_y: float  # rad, + below the image centre
+    size_x: float = 0.0  # rad
+    size_y: float = 0.0  # rad
+    distance: float = 0.0  # m, 0 = unknown
+    target_num: int = 0
+    position: tuple[float, float, float] | None = None  # m, body FRD; sets position_valid=1
+
+    def __post_init__(self) -> None:
+        for name in ("time", "angle_x", "angle_y", "size_x", "size_y", "distance"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise FlightLinkError(f"LANDING_TARGET field {name} must be a finite number, not {value!r}")
+        if self.time < 0:
+            raise FlightLinkError(f"LANDING_TARGET time must not be negative, not {self.time!r}")
+        if self.position is not None and (
+            len(self.position) != 3 or not all(math.isfinite(float(v)) for v in self.position)
+        ):
+            raise FlightLinkError(f"LANDING_TARGET position must be three finite numbers, not {self.position!r}")
+
+
+# ---------------------------------------------------------------- the link
+
+
+@dataclass(frozen=True, kw_only=True)
+class LinkSettings:
+    """How to reach the flight controller and how we appear to it."""
+
+    url: str
+    system_id: int = 1  # a companion computer shares the vehicle's system id ...
+    component_id: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER  # ... with its own component id
+    target_system: int | None = None  # the autopilot to follow; None = the first one heard
+    heartbeat_timeout_s: float = 3.0
+    heartbeat_period_s: float = 1.0
+    open_timeout_s: float = 5.0
+    # Asked of the autopilot with MAV_CMD_SET_MESSAGE_INTERVAL whenever the link comes up: ArduCopter
+    # does not stream EXTENDED_SYS_STATE by default, and this spares us its SRn_* stream parameters.
+    stream_rates: tuple[tuple[str, float], ...] = (
+        ("SYS_STATUS", 2.0), ("BATTERY_STATUS", 1.0), ("EXTENDED_SYS_STATE", 1.0),
+    )
+
+
+StateListener = Callable[[FlightState], None]
+
+
+class FlightLink:
+    """The adapter: reads the flight controller's state, sends our heartbeat and landing targets.
+
+    ``setup()`` opens the transport and starts two threads (reader, ticker);
+    listeners registered with :meth:`on_state` run on those threads and must
+    return quickly (hand work to a queue).
+    """
+
+    def __init__(self, settings: LinkSettings) -> None:
+        self.settings = settings
+        self.endpoint = Endpoint.parse(settings.url)
+        if settings.heartbeat_timeout_s <= 0 or settings.heartbeat_period_s <= 0:
+            raise FlightLinkError(f"flight link {settings.url}: heartbeat period and timeout must be positive")
+        self._stream_requests = []
+        for name, hz in settings.stream_rates:
+            msg_id = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}", None)
+            if msg_id is None or not hz > 0:
+                raise FlightLinkError(f"flight link {settings.url}: cannot request {name} at {hz} Hz")
+            self._stream_requests.append((msg_id, hz))
+        self._streams_wanted = threading.Event()  # set when the link comes up: ask for our streams
+        self._transport = None
+        self._mav: mavlink2.MAVLink | None = None
+        self._send_lock = threading.Lock()
+        self._state_lock = threading.Lock()
+        self._state = FlightState(time=time.time())
+        self._fc: tuple[int, int] | None = None  # (system, component) of the autopilot we follow
+        self._last_heartbeat_mono: float | None = None
+        self._have_battery_status = False
+        self._listeners: list[StateListener] = []
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._heard = threading.Condition(self._state_lock)
+        self.counters = {"received": 0, "bad": 0, "sent": 0, "send_errors": 0, "links_lost": 0}
+
+    # -- lifecycle
+
+    def setup(self) -> None:
+        """Open the transport (bounded by ``open_timeout_s``) and start reading; raise FlightLinkError."""
+        if self._transport is not None:
+            return
+        self._stop.clear()
+        self._transport = open_transport(self.endpoint, self.settings.open_timeout_s)
+        self._parser = PacketParser(datagram=self._transport.datagram)
+        self._mav = new_mavlink(self._transport, system_id=self.settings.system_id,
+                                component_id=self.settings.component_id)
+        self._threads = [
+            threading.Thread(target=self._read_loop, name="mavlink-reader", daemon=True),
+            threading.Thread(target=self._tick_loop, name="mavlink-ticker", daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
+        log.info("flight link %s open", self.endpoint.url)
+
+    def shutdown(self) -> None:
+        """Stop the threads and close the transport."""
+        self._stop.set()
+        transport, self._transport = self._transport, None
+        for thread in self._threads:
+            thread.join(timeout=2.0)
+        self._threads = []
+        if transport is not None:
+            transport.close()
+        with self._state_lock:  # no longer hearing anything; no listener call, we are going away
+            self._state = replace(self._state, time=time.time(), link=False, event=None)
+
+    def __enter__(self) -> "FlightLink":
+        self.setup()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+    # -- reading
+
+    @property
+    def state(self) -> FlightState:
+        with self._state_lock:
+            return self._state
+
+    def on_state(self, listener: StateListener) -> None:
+        """Call ``listener(state)`` on every change of the state (and with every link event)."""
+        self._listeners.append(listener)
+
+    def wait_for_heartbeat(self, timeout: float) -> FlightState:
+        """Block until the link is up; raise FlightLinkError naming the URL after ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        with self._heard:
+            while not self._state.link:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise FlightLinkError(
+                        f"no heartbeat from a flight controller on {self.endpoint.url} within {timeout:g} s"
+                    )
+                self._heard.wait(left)
+            return self._state
+
+    def _read_loop(self) -> None:
+        while not self._stop.is_set():
+            transport = self._transport
+            if transport is None:
+                return
+            try:
+                chunk = transport.read(_READ_TIMEOUT_S)
+            except Exception as exc:  # a failing port must not kill the thread silently
+                log.error("flight link %s read failed: %s", self.endpoint.url, exc)
+                self._stop.wait(0.5)
+                continue
+            if chunk is None:
+                continue
+            data, source = chunk
+            messages = self._parser.feed(data)
+            self.counters["bad"] = self._parser.bad
+            for message in messages:
+                self.counters["received"] += 1
+                try:
+                    if self._handle(message):
+                        transport.accept_source(source)
+                except Exception:  # one odd message must never stop the reader
+                    log.exception("flight link %s: cannot use %s", self.endpoint.url, message.get_type())
+
+    def _handle(self, message) -> bool:
+        """Fold one message into the state; True if it came from the autopilot we follow."""
+        kind = message.get_type()
+        src = (message.get_srcSystem(), message.get_srcComponent())
+        if kind == "HEARTBEAT":
+            if message.autopilot == mavlink2.MAV_AUTOPILOT_INVALID:
+                return False  # a GCS, companion or gimbal: not a flight controller
+            if self._fc is None:
+                if self.settings.target_system is not None and src[0] != self.settings.target_system:
+                    return False
+                self._fc = src
+                log.info("flight link %s: following autopilot %d/%d", self.endpoint.url, *src)
+            if src != self._fc:
+                return False
+            self._last_heartbeat_mono = time.monotonic()
+            armed = bool(message.base_mode & mavlink2.MAV_MODE_FLAG_SAFETY_ARMED)
+            mode = mode_name(message.autopilot, message.type, message.base_mode, message.custom_mode)
+            was_up = self.state.link
+            event = None if was_up else (LINK_RESTORED if self.counters["links_lost"] else LINK_UP)
+            self._update(event=event, link=True, armed=armed, mode=mode, system_id=src[0],
+                         autopilot=_AUTOPILOTS.get(message.autopilot, str(message.autopilot)),
+                         last_heartbeat=time.time())
+            if event:
+                self._streams_wanted.set()
+                log.log(logging.WARNING if event == LINK_RESTORED else logging.INFO,
+                        "flight link %s: %s (autopilot %d/%d)", self.endpoint.url, event, *src)
+            return True
+        if self._fc is None or src[0] != self._fc[0]:
+            return False
+        if kind == "SYS_STATUS":
+            changes: dict = {"onboard_load": message.load / 10.0}
+            if not self._have_battery_status:
+                if message.voltage_battery != UINT16_MAX:
+                    changes["battery_v"] = message.voltage_battery / 1000.0
+                if message.battery_remaining >= 0:
+                    changes["battery_pct"] = float(message.battery_remaining)
+            self._update(**changes)
+        elif kind == "BATTERY_STATUS":
+            if message.id != 0:
+                return True  # the first battery is the one that flies
+            self._have_battery_status = True
+            cells = [v for v in message.voltages if v != UINT16_MAX]
+            cells += [v for v in getattr(message, "voltages_ext", ()) if v]
+            changes = {}
+            if cells:
+                changes["battery_v"] = sum(cells) / 1000.0
+            if message.battery_remaining >= 0:
+                changes["battery_pct"] = float(message.battery_remaining)
+            self._update(**changes)
+        elif kind == "EXTENDED_SYS_STATE":
+            self._update(landed_state=LANDED_STATES.get(message.landed_state, "UNDEFINED"))
+        return True
+
+    def _update(self, *, event: str | None = None, **changes: object) -> None:
+        with self._state_lock:
+            old = self._state
+            if not event and all(getattr(old, k) == v for k, v in changes.items()):
+                return
+            new = replace(old, time=time.time(), event=event, **changes)
+            self._state = new
+            self._heard.notify_all()
+        for listener in list(self._listeners):
+            try:
+                listener(new)
+            except Exception:
+                log.exception("flight state listener failed")
+
+    def _tick_loop(self) -> None:
+        period = self.settings.heartbeat_period_s
+        next_heartbeat = time.monotonic()
+        while not self._stop.wait(_TICK_S):
+            now = time.monotonic()
+            last = self._last_heartbeat_mono
+            if self.state.link and last is not None and now - last > self.settings.heartbeat_timeout_s:
+                self.counters["links_lost"] += 1
+                log.warning("flight link %s: link_lost (no heartbeat for %.1f s)", self.endpoint.url, now - last)
+                self._update(event=LINK_LOST, link=False)
+            if now >= next_heartbeat:
+                next_heartbeat = now + period
+                self._send_heartbeat()
+            if self._streams_wanted.is_set():
+                self._streams_wanted.clear()
+                self._request_streams()
+
+    # -- sending
+
+    def _send_heartbeat(self) -> None:
+        transport = self._transport
+        if transport is None or not transport.can_send:
+            return  # udpin: nobody to talk to until the flight controller speaks
+        try:
+            self._send(self._mav.heartbeat_encode(  # type: ignore[union-attr]
+                mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0,
+                mavlink2.MAV_STATE_ACTIVE,
+            ))
+        except FlightLinkError as exc:
+            log.debug("heartbeat not sent: %s", exc)
+
+    def _request_streams(self) -> None:
+        fc = self._fc
+        if fc is None or self._mav is None:
+            return
+        for msg_id, hz in self._stream_requests:
+            try:
+                self._send(self._mav.command_long_encode(
+                    fc[0], fc[1], mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / hz, 0, 0, 0, 0, 0,
+                ))
+            except FlightLinkError as exc:
+                log.debug("stream request not sent: %s", exc)
+
+    def send_landing_target(self, target: LandingTarget) -> None:
+        """Send one LANDING_TARGET (MAVLink 2, MAV_FRAME_BODY_FRD, vision fiducial); raise FlightLinkError."""
+        if self._mav is None:
+            raise FlightLinkError(f"flight link {self.endpoint.url} is not set up")
+        x, y, z = target.position or (0.0, 0.0, 0.0)
+        message = self._mav.landing_target_encode(
+            int(target.time * 1e6), target.target_num if 0 <= target.target_num <= 255 else 0,
+            mavlink2.MAV_FRAME_BODY_FRD, target.angle_x, target.angle_y, target.distance,
+            target.size_x, target.size_y, x, y, z, (1.0, 0.0, 0.0, 0.0),
+            mavlink2.LANDING_TARGET_TYPE_VISION_FIDUCIAL, 1 if target.position is not None else 0,
+        )
+        self._send(message)
+
+    def _send(self, message) -> None:
+        with self._send_lock:
+            if self._mav is None or self._transport is None:
+                raise FlightLinkError(f"flight link {self.endpoint.url} is closed")
+            try:
+                self._mav.send(message)
+            except FlightLinkError:
+                self.counters["send_errors"] += 1
+                raise
+            except (struct.error, ValueError, TypeError) as exc:  # a field out of its wire range
+                self.counters["send_errors"] += 1
+                raise FlightLinkError(f"cannot pack {message.get_type()} for {self.endpoint.url}: {exc}") from exc
+            self.counters["sent"] += 1

@@ -1,0 +1,63 @@
+"""Fixtures for the flight tests: a fake autopilot and our link, talking real MAVLink 2 over loopback UDP."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import pytest
+
+from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
+from onboard.mavlink import FlightLink, LinkSettings
+
+
+# What the tests' links ask of the fake autopilot (the defaults, 1-2 Hz, would slow the tests down).
+FAST_STREAMS = (("SYS_STATUS", 10.0), ("BATTERY_STATUS", 10.0), ("EXTENDED_SYS_STATE", 10.0))
+
+
+def free_udp_port() -> int:
+    """A UDP port on loopback that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until(predicate, timeout: float, what: str, interval: float = 0.01):
+    """Poll ``predicate`` until it returns something truthy; fail naming ``what`` after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(interval)
+
+
+@pytest.fixture
+def connect():
+    """``connect(vehicle=, heartbeat_timeout_s=, stream_hz=, on_state=)`` -> (link, fc), link up; closed after."""
+    opened: list = []
+
+    def _connect(*, vehicle: VehicleState = VehicleState(), heartbeat_timeout_s: float = 0.5,
+                 stream_hz: float = 10.0, on_state=None) -> tuple[FlightLink, FakeFlightController]:
+        port = free_udp_port()
+        link = FlightLink(LinkSettings(url=f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=heartbeat_timeout_s,
+                                       stream_rates=FAST_STREAMS))
+        if on_state is not None:
+            link.on_state(on_state)  # before anything is heard, so no event is missed
+        link.setup()
+        opened.append(link)
+        fc = FakeFlightController(
+            FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=stream_hz, sys_status_hz=stream_hz,
+                           battery_hz=stream_hz, extended_state_hz=stream_hz, drain_pct_per_min=0.0),
+            vehicle,
+        )
+        fc.setup()
+        opened.append(fc)
+        link.wait_for_heartbeat(5.0)
+        return link, fc
+
+    yield _connect
+    for part in reversed(opened):
+        part.shutdown()

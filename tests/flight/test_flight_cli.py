@@ -1,0 +1,123 @@
+"""``kgadapt flight fake-fc | monitor | bridge`` as real child processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+
+import pytest
+
+from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
+from shared import keys, messages
+from shared.session import ZenohSettings, open_session
+from tests.conftest import REPO, free_port
+from tests.flight.conftest import free_udp_port, wait_until
+from tests.flight.test_landing_target import ANGLE_X, ANGLE_Y, SQUARE
+
+
+def _spawn(kgadapt_cmd, *args: str) -> subprocess.Popen:
+    return subprocess.Popen([*kgadapt_cmd, *args], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_ready(process: subprocess.Popen, timeout: float = 15.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = process.stdout.readline()  # type: ignore[union-attr]
+        if line.strip() == "KGADAPT_READY":
+            return
+        if not line and process.poll() is not None:
+            break
+    process.kill()
+    pytest.fail(f"no KGADAPT_READY; stderr: {process.stderr.read()}")  # type: ignore[union-attr]
+
+
+def _stop(process: subprocess.Popen) -> int:
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+    try:
+        return process.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        raise
+
+
+def test_monitor_prints_the_state_of_the_fake_fc_run_as_a_command(kgadapt_cmd):
+    port = free_udp_port()
+    fc = _spawn(kgadapt_cmd, "flight", "fake-fc", "--url", f"udpout:127.0.0.1:{port}", "--armed", "--mode", "GUIDED",
+                "--battery-pct", "55", "--rate-scale", "5")
+    try:
+        _wait_ready(fc)
+        out = subprocess.run([*kgadapt_cmd, "flight", "monitor", "--url", f"udpin:127.0.0.1:{port}", "--json",
+                              "--duration", "1.0", "--every", "0.2", "--wait", "5"],
+                             cwd=REPO, capture_output=True, text=True, timeout=30)
+        assert out.returncode == 0, out.stderr
+        states = [json.loads(line) for line in out.stdout.splitlines()]
+        assert states[0]["link"] is True and states[0]["event"] == "link_up"
+        last = states[-1]
+        assert (last["armed"], last["mode"], last["landed_state"]) == (True, "GUIDED", "IN_AIR")
+        assert last["battery_pct"] == 55.0 and last["onboard_load"] == 22.0
+    finally:
+        assert _stop(fc) == 0  # SIGTERM ends it cleanly
+
+
+def test_monitor_with_a_bad_url_exits_1_with_one_line_naming_it(kgadapt_cmd):
+    out = subprocess.run([*kgadapt_cmd, "flight", "monitor", "--url", "udpin:127.0.0.1"],
+                         cwd=REPO, capture_output=True, text=True, timeout=30)
+    assert out.returncode == 1
+    assert out.stderr.strip().count("\n") == 0 and "'udpin:127.0.0.1'" in out.stderr
+
+
+def test_the_bridge_command_turns_detections_into_landing_targets_and_publishes_flight_state(kgadapt_cmd):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    observer = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
+    port = free_udp_port()
+    states: list[dict] = []
+    sub = observer.declare_subscriber(
+        keys.flight_state("clitest"), lambda s: states.append(messages.decode(s.payload.to_bytes(), "flight_state"))
+    )
+    bridge = _spawn(kgadapt_cmd, "flight", "bridge", "--robot", "clitest", "--url", f"udpin:127.0.0.1:{port}",
+                    "--fx", "600", "--fy", "500", "--cx", "320", "--cy", "240", "--connect", endpoint)
+    fc = FakeFlightController(FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=5),
+                              VehicleState(armed=True, mode="LAND", landed_state="LANDING"))
+    publisher = observer.declare_publisher(keys.detector_markers("clitest", "det9"))
+    try:
+        _wait_ready(bridge)
+        fc.setup()
+        wait_until(lambda: any(s.get("landed_state") == "LANDING" for s in states), 10, "flight_state from the bridge")
+        seq = 0
+
+        def targets():
+            nonlocal seq
+            seq += 1
+            now = time.time()
+            publisher.put(messages.encode("detections", {
+                "instance": "det9", "config": "c", "host": "onboard", "seq": seq, "frame_time": now, "time": now,
+                "ids": [3], "corners": [SQUARE], "processing_ms": 3.0}))
+            return fc.received("LANDING_TARGET")
+
+        got = wait_until(targets, 10, "LANDING_TARGET from the bridge process", interval=0.1)
+        assert got[0].fields["angle_x"] == pytest.approx(ANGLE_X, abs=1e-6)
+        assert got[0].fields["angle_y"] == pytest.approx(ANGLE_Y, abs=1e-6)
+    finally:
+        publisher.undeclare()
+        fc.shutdown()
+        code = _stop(bridge)
+        sub.undeclare()
+        observer.close()
+    assert code == 0
+
+
+@pytest.mark.parametrize("sub", ["fake-fc", "monitor", "bridge"])
+def test_every_flight_subcommand_has_help(kgadapt_cmd, sub):
+    out = subprocess.run([*kgadapt_cmd, "flight", sub, "--help"], cwd=REPO, capture_output=True, text=True, timeout=30,
+                         env={**os.environ})
+    assert out.returncode == 0 and "--url" in out.stdout
+
+
+def test_the_bridge_command_without_intrinsics_or_camera_exits_1_saying_what_is_missing(kgadapt_cmd):
+    out = subprocess.run([*kgadapt_cmd, "flight", "bridge", "--robot", "clitest", "--fx", "600"],
+                         cwd=REPO, capture_output=True, text=True, timeout=30)
+    assert out.returncode == 1 and "--camera" in out.stderr and "--cy" in out.stderr
