@@ -21,7 +21,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
 bench: $(STAMP)
-	$(BIN)/kgadapt bench table1
+	$(BIN)/kgadapt bench table1 --full
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,39 @@
+"""``kgadapt bench``: every benchmark as a subcommand.
+
+Each bench module exposes ``register(bench_subparsers)``; a module that is
+not written yet is skipped. Results go to ``bench/results/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+# table1 first: it is the one every checkout has.
+BENCHES = (
+    "bench.table1",
+    "bench.zenoh_bench",
+    "bench.deployer_bench",
+    "bench.perception_bench",
+    "bench.adaptation_bench",
+    "bench.reliability_bench",
+)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``kgadapt bench`` and the subcommands of every bench present."""
+    parser = subparsers.add_parser(
+        "bench",
+        help="run a benchmark and write its results to bench/results/",
+        description="Benchmarks. Each writes JSON records (mean, sd, p50, p99 in ms) to bench/results/.",
+    )
+    bench_sub = parser.add_subparsers(dest="bench", metavar="BENCH")
+    bench_sub.required = True
+    for name in BENCHES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:
+                continue  # that bench is not written yet
+            raise
+        module.register(bench_sub)
