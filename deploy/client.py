@@ -1,0 +1,120 @@
+"""Talking to the deployers over Zenoh: start, stop, status, list, and their events.
+
+:class:`DeployerClient` is what the command line, the migration and the
+adaptation manager use to ask a host's deployer (deploy/deployer.py) to act.
+Replies are checked; a refusal raises :class:`DeploymentError` (or
+:class:`ReadinessTimeout`) with the deployer's own words, a malformed request
+:class:`RemoteError`, and silence :class:`RequestTimeout`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+from shared import keys, messages
+from shared.errors import DeploymentError, MessageError, ReadinessTimeout, RemoteError, RequestTimeout, TransportError
+
+log = logging.getLogger(__name__)
+
+_ERRORS = {"ReadinessTimeout": ReadinessTimeout}
+
+
+class DeployerClient:
+    """Requests to the deployers of one robot.
+
+    ``timeout`` bounds every request but ``start`` with ``wait_ready``, which
+    may take as long as the process needs to get ready (``start_timeout``).
+    """
+
+    def __init__(self, session: Any, robot: str, *, timeout: float = 5.0, start_timeout: float = 60.0) -> None:
+        self.session = session
+        self.robot = keys.check_name(robot, "robot name")
+        self.timeout = timeout
+        self.start_timeout = start_timeout
+
+    def start(self, host: str, deployment: str, config: str, *, instance: str | None = None,
+              wait_ready: bool = True, ready_timeout: float | None = None) -> dict[str, Any]:
+        """Ask ``host`` to start ``deployment`` with ``config``; returns the process snapshot."""
+        body: dict[str, Any] = {"deployment": deployment, "config": config, "wait_ready": wait_ready}
+        if instance:
+            body["instance"] = instance
+        if ready_timeout is not None:
+            body["ready_timeout"] = float(ready_timeout)
+        wait = self.start_timeout if wait_ready else self.timeout
+        if ready_timeout is not None and wait_ready:
+            wait = max(wait, ready_timeout + self.timeout)
+        return self._one(host, "start", body, wait)
+
+    def stop(self, host: str, instance: str) -> dict[str, Any]:
+        """Ask ``host`` to stop ``instance``; returns the final snapshot (with ``returncode``)."""
+        return self._one(host, "stop", {"instance": instance}, self.timeout + 15.0)  # escalation may take a while
+
+    def status(self, host: str, instance: str) -> dict[str, Any]:
+        return self._one(host, "status", {"instance": instance}, self.timeout)
+
+    def list(self, host: str = "*") -> list[dict[str, Any]]:
+        """Processes on ``host`` (``*``: every deployer that answers), each with its ``host``."""
+        processes: list[dict[str, Any]] = []
+        for detail in self._ask(host, "list", {}, self.timeout):
+            processes.extend(detail.get("processes") or [])
+        return processes
+
+    def find(self, instance: str) -> dict[str, Any]:
+        """The snapshot of ``instance`` on whichever host runs it (a live one first)."""
+        found = [p for p in self.list("*") if p.get("instance") == instance]
+        if not found:
+            raise DeploymentError(f"no deployer knows instance {instance!r}")
+        found.sort(key=lambda p: p.get("state") not in ("ready", "running", "starting", "restarting"))
+        return found[0]
+
+    # -- internals ----------------------------------------------------------------
+
+    def _one(self, host: str, verb: str, body: dict[str, Any], timeout: float) -> dict[str, Any]:
+        keys.check_name(host, "host name")
+        # No reply at once means no matching queryable is known (yet): a session
+        # opened a moment ago may not have the deployers' declarations. Nobody
+        # got the request, so asking again is safe, until ``self.timeout``.
+        deadline = time.monotonic() + self.timeout
+        while True:
+            details = self._ask(host, verb, body, timeout)
+            if details:
+                return details[0]
+            if time.monotonic() >= deadline:
+                raise RequestTimeout(
+                    f"no deployer on host {host} answered {verb} (is the {host} agent running and reachable?)"
+                )
+            time.sleep(0.05)
+
+    def _ask(self, host: str, verb: str, body: dict[str, Any], timeout: float) -> list[dict[str, Any]]:
+        key = keys.deployer_verb(self.robot, host, verb)
+        payload = messages.encode("deploy_request", body)
+        try:
+            replies = list(self.session.get(key, payload=payload, timeout=timeout))
+        except Exception as exc:  # zenoh.ZError
+            raise TransportError(f"deployer {verb} on {key}: {exc}") from exc
+        details: list[dict[str, Any]] = []
+        for reply in replies:
+            if reply.ok is None:
+                text = _text(reply.err.payload)
+                if text.strip().lower() == "timeout":
+                    raise RequestTimeout(f"deployer on host {host} did not answer {verb} within {timeout:g} s")
+                raise RemoteError(f"deployer {verb} on host {host}: {text}")
+            try:
+                message = messages.decode(reply.ok.payload.to_bytes(), "deploy_reply")
+            except MessageError as exc:
+                raise RemoteError(f"deployer {verb} on {reply.ok.key_expr}: bad reply: {exc}") from exc
+            detail = message.get("detail") or {}
+            if not message["ok"]:
+                error = _ERRORS.get(str(detail.get("error_type")), DeploymentError)
+                raise error(f"{detail.get('host', host)}: {detail.get('error', 'refused')}")
+            details.append(detail)
+        return details
+
+
+def _text(payload: Any) -> str:
+    try:
+        return payload.to_string()
+    except Exception:
+        return repr(payload)

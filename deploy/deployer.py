@@ -1,0 +1,401 @@
+"""The deployer: a host's detector processes, started and stopped on request over Zenoh.
+
+One :class:`Deployer` runs in each agent (onboard and remote) as one of its
+parts. It answers four queryables (``shared.keys.deployer_verb``)::
+
+    kgadapt/<robot>/host/<host>/deployer/start    deploy_request {deployment, config, instance?,
+                                                                  wait_ready?, ready_timeout?}
+    kgadapt/<robot>/host/<host>/deployer/stop     deploy_request {instance}
+    kgadapt/<robot>/host/<host>/deployer/status   deploy_request {instance}
+    kgadapt/<robot>/host/<host>/deployer/list     deploy_request {}
+
+and replies ``deploy_reply {ok, detail}``: ``detail`` is the process snapshot
+(``ProcessInfo.to_dict()`` plus ``host``), for ``list`` ``{host, processes}``;
+a refusal or failure is ``ok: false`` with ``detail {error, error_type}``. A
+request that is not a valid ``deploy_request`` gets ``query.reply_err``.
+Events (``started``, ``ready``, ``exited``, ``restarted``, ``stopped``,
+``failed``) go out as ``deploy_event`` on ``.../host/<host>/deployer/events``.
+
+What runs comes from the knowledge store only: the named query
+``deployment`` gives executable, arguments and environment; the deployment
+must DEPLOY the requested configuration and be EXECUTABLE_ON this host, and
+its texts may use only the placeholders of docs/CONTRACTS.md. A request that
+carries anything else (a ``command``, an ``executable``...) is refused: a
+request names what to run, it never says how.
+
+Requests are answered on a small thread pool, never in the Zenoh callback;
+profiles are written through the knowledge service by :class:`ProfileRecorder`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import re
+import secrets
+import sys
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping
+
+from deploy.options import add_arguments  # noqa: F401  (re-exported for agents)
+from deploy.profile import ProfileRecorder, ProfileSettings
+from deploy.supervisor import (
+    ProcessEvent,
+    ProcessInfo,
+    ProcessSpec,
+    RestartPolicy,
+    StopPolicy,
+    Supervisor,
+    SupervisorSettings,
+)
+from shared import keys, messages
+from shared.agent import DEFAULT_ROBOT
+from shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RemoteError, TransportError
+from shared.session import DEFAULT_ENDPOINT
+
+log = logging.getLogger(__name__)
+
+VERBS = ("start", "stop", "status", "list")
+PLACEHOLDERS = ("python", "robot", "host", "instance", "config", "connect")
+_PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
+_ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+# Fields a request may carry besides kind and version; anything else is refused.
+_ALLOWED = {
+    "start": {"deployment", "config", "instance", "wait_ready", "ready_timeout"},
+    "stop": {"instance"},
+    "status": {"instance"},
+    "list": set(),
+}
+
+
+@dataclass(frozen=True, kw_only=True)
+class DeployerSettings:
+    """One host's deployer. ``connect`` fills ``{connect}``: the endpoint the agent itself uses."""
+
+    robot: str = DEFAULT_ROBOT
+    host: str
+    connect: str = DEFAULT_ENDPOINT
+    zenoh_config: str | None = None  # handed to children as $KGADAPT_ZENOH_CONFIG (TLS, ACL)
+    zenoh_mode: str | None = None  # handed to children as $KGADAPT_ZENOH_MODE
+    python: str = sys.executable
+    ready_timeout: float = 15.0
+    max_ready_timeout: float = 120.0  # a request may ask for less or more, up to this
+    restart: RestartPolicy = field(default_factory=RestartPolicy)
+    stop: StopPolicy = field(default_factory=StopPolicy)
+    sample_interval: float = 1.0
+    knowledge_timeout: float = 2.0
+    workers: int = 4
+
+    def __post_init__(self) -> None:
+        keys.check_name(self.robot, "robot name")
+        keys.check_name(self.host, "host name")
+
+
+class Deployer:
+    """The deployer part of an agent: ``setup(session)``, ``shutdown()``.
+
+    The same operations are available in-process (``start``, ``stop``,
+    ``status``, ``list``) for the agent's own use and for tests.
+    ``knowledge`` is anything with ``query(name, params)`` and
+    ``write(verb, params)``; by default a ``KnowledgeClient`` on the session.
+    """
+
+    name = "deployer"
+
+    def __init__(self, settings: DeployerSettings, *, knowledge: Any = None) -> None:
+        self.settings = settings
+        self._knowledge = knowledge
+        self.supervisor = Supervisor(SupervisorSettings())
+        self.recorder: ProfileRecorder | None = None
+        self._session: Any = None
+        self._queryables: list[Any] = []
+        self._publisher: Any = None
+        self._publish_lock = threading.Lock()
+        self._pool: ThreadPoolExecutor | None = None
+
+    # -- life cycle ---------------------------------------------------------------
+
+    def setup(self, session: Any) -> None:
+        """Start the supervisor and profile recorder, declare queryables and the event publisher."""
+        s = self.settings
+        self._session = session
+        if self._knowledge is None:
+            from knowledge.client import KnowledgeClient
+
+            self._knowledge = KnowledgeClient(session, s.robot, timeout=s.knowledge_timeout)
+        try:
+            self.recorder = ProfileRecorder(
+                host=s.host, write=self._knowledge.write, settings=ProfileSettings(sample_interval=s.sample_interval)
+            )
+            self.recorder.setup()
+            self.supervisor.add_listener(self.recorder.on_event)
+            self.supervisor.add_listener(self._publish_event)
+            self.supervisor.setup()
+            self._pool = ThreadPoolExecutor(max_workers=s.workers, thread_name_prefix=f"deployer-{s.host}")
+            self._publisher = session.declare_publisher(keys.deployer_events(s.robot, s.host))
+            for verb in VERBS:
+                key = keys.deployer_verb(s.robot, s.host, verb)
+                self._queryables.append(session.declare_queryable(key, self._callback(verb, key)))
+        except KgadaptError:
+            self.shutdown()
+            raise
+        except Exception as exc:  # zenoh.ZError and friends
+            self.shutdown()
+            raise TransportError(f"deployer of host {s.host}: cannot declare its queryables: {exc}") from exc
+        log.info("deployer of host %s (robot %s) ready", s.host, s.robot)
+
+    def shutdown(self) -> None:
+        """Refuse new requests, stop every process (SIGINT, SIGTERM, SIGKILL), flush profiles."""
+        for queryable in self._queryables:
+            _quietly(queryable.undeclare)
+        self._queryables = []
+        self.supervisor.shutdown()  # also wakes requests waiting for readiness
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        if self.recorder is not None:
+            self.recorder.shutdown()
+            self.recorder = None
+        with self._publish_lock:
+            if self._publisher is not None:
+                _quietly(self._publisher.undeclare)
+                self._publisher = None
+        self._session = None
+
+    # -- operations ---------------------------------------------------------------
+
+    def resolve(self, deployment: str, config: str, instance: str | None = None,
+                *, ready_timeout: float | None = None) -> ProcessSpec:
+        """What to run for ``deployment`` with ``config`` on this host, from the knowledge store.
+
+        Raises DeploymentError naming what is wrong: an unknown deployment, one
+        that does not deploy ``config`` or is not executable on this host, a
+        placeholder that is not allowed.
+        """
+        s = self.settings
+        keys.check_name(deployment, "deployment name")
+        keys.check_name(config, "configuration name")
+        instance = keys.check_name(instance, "instance") if instance else new_instance_name(config, s.host)
+        try:
+            rows = self._knowledge.query("deployment", {"name": deployment})
+        except (RemoteError, TransportError) as exc:
+            raise DeploymentError(f"cannot look up deployment {deployment} in the knowledge store: {exc}") from exc
+        if not rows:
+            raise DeploymentError(f"deployment {deployment!r} is not in the knowledge store")
+        row = rows[0]
+        platforms = list(row.get("platforms") or [])
+        if s.host not in platforms:
+            where = ", ".join(map(str, platforms)) or "no platform"
+            raise DeploymentError(f"deployment {deployment} is not executable on host {s.host} (only on {where})")
+        deploys = list(row.get("deploys") or [])
+        if config not in deploys:
+            what = ", ".join(map(str, deploys)) or "nothing"
+            raise DeploymentError(f"deployment {deployment} does not deploy configuration {config} (it deploys {what})")
+        executable = row.get("executable")
+        if not isinstance(executable, str) or not executable.strip():
+            raise DeploymentError(f"deployment {deployment} has no executable in the knowledge store")
+        values = {
+            "python": s.python, "robot": s.robot, "host": s.host,
+            "instance": instance, "config": config, "connect": s.connect,
+        }
+        argv = [fill_placeholders(executable, values, f"deployment {deployment} executable")]
+        for i, arg in enumerate(_as_list(row.get("arguments"), deployment, "arguments")):
+            argv.append(fill_placeholders(str(arg), values, f"deployment {deployment} argument {i}"))
+        env: list[tuple[str, str]] = []
+        if s.zenoh_config:
+            env.append(("KGADAPT_ZENOH_CONFIG", s.zenoh_config))
+        if s.zenoh_mode:
+            env.append(("KGADAPT_ZENOH_MODE", s.zenoh_mode))
+        for item in _as_list(row.get("environment"), deployment, "environment"):
+            name, sep, value = str(item).partition("=")
+            if not sep or not _ENV_NAME.match(name):
+                raise DeploymentError(f"deployment {deployment}: environment entry {item!r} is not NAME=VALUE")
+            env.append((name, fill_placeholders(value, values, f"deployment {deployment} environment {name}")))
+        timeout = s.ready_timeout if ready_timeout is None else ready_timeout
+        if not 0 < timeout <= s.max_ready_timeout:
+            raise DeploymentError(f"ready_timeout {timeout:g} s: use more than 0 and at most {s.max_ready_timeout:g} s")
+        return ProcessSpec(
+            instance=instance, argv=tuple(argv), env=tuple(env), deployment=deployment, config=config,
+            ready_timeout=timeout, restart=s.restart, stop=s.stop,
+        )
+
+    def start(self, deployment: str, config: str, *, instance: str | None = None,
+              wait_ready: bool = True, ready_timeout: float | None = None) -> ProcessInfo:
+        """Check with the knowledge store, then start; see :meth:`Supervisor.start`."""
+        spec = self.resolve(deployment, config, instance, ready_timeout=ready_timeout)
+        log.info("host %s: starting %s (%s, %s): %s", self.settings.host, spec.instance, deployment, config, " ".join(spec.argv))
+        return self.supervisor.start(spec, wait_ready=wait_ready)
+
+    def stop(self, instance: str) -> ProcessInfo:
+        """Stop one instance (SIGINT, SIGTERM, SIGKILL)."""
+        return self.supervisor.stop(keys.check_name(instance, "instance"))
+
+    def status(self, instance: str) -> ProcessInfo:
+        return self.supervisor.status(keys.check_name(instance, "instance"))
+
+    def list(self) -> list[ProcessInfo]:
+        return self.supervisor.list()
+
+    # -- Zenoh --------------------------------------------------------------------
+
+    def _callback(self, verb: str, key: str) -> Callable[[Any], None]:
+        def on_query(query: Any) -> None:
+            pool = self._pool
+            if pool is None:
+                return  # shutting down; dropping the query ends it on the querier's side
+            try:
+                pool.submit(self._answer, verb, key, query)
+            except RuntimeError:  # pool shut down between the check and submit
+                pass
+
+        return on_query
+
+    def _answer(self, verb: str, key: str, query: Any) -> None:
+        with query:  # drops the query when done, so the querier is not left waiting
+            try:
+                payload = query.payload
+                if payload is None:
+                    raise MessageError(f"{verb} request has no payload; send a deploy_request message")
+                request = messages.decode(payload.to_bytes(), "deploy_request")
+            except MessageError as exc:
+                log.info("host %s: malformed %s request: %s", self.settings.host, verb, exc)
+                query.reply_err(f"deployer {self.settings.host}: {exc}")
+                return
+            try:
+                detail = self._handle(verb, request)
+                reply = {"ok": True, "detail": detail}
+            except KgadaptError as exc:
+                log.info("host %s: %s refused: %s", self.settings.host, verb, exc)
+                reply = {"ok": False, "detail": {"error": str(exc), "error_type": type(exc).__name__,
+                                                  "host": self.settings.host}}
+            except Exception as exc:  # a bug: answer, log, keep serving
+                log.exception("host %s: %s request failed", self.settings.host, verb)
+                query.reply_err(f"deployer {self.settings.host}: internal error in {verb}: {exc}")
+                return
+            try:
+                query.reply(key, messages.encode("deploy_reply", reply))
+            except Exception as exc:
+                log.warning("host %s: cannot reply to %s: %s", self.settings.host, verb, exc)
+
+    def _handle(self, verb: str, request: Mapping[str, Any]) -> dict[str, Any]:
+        extra = sorted(set(request) - {"kind", "v"} - _ALLOWED[verb])
+        if extra:
+            raise DeploymentError(
+                f"{verb} request field(s) {', '.join(map(repr, extra))} not accepted: a request names a "
+                "deployment and a configuration; what runs comes from the knowledge store"
+            )
+        host = self.settings.host
+        if verb == "list":
+            return {"host": host, "processes": [_info_dict(i, host) for i in self.list()]}
+        if verb in ("stop", "status"):
+            instance = request.get("instance")
+            if not instance:
+                raise DeploymentError(f"{verb} request needs an instance")
+            info = self.stop(instance) if verb == "stop" else self.status(instance)
+            return _info_dict(info, host)
+        for name in ("deployment", "config"):
+            if not request.get(name):
+                raise DeploymentError(f"start request needs a {name}")
+        wait_ready = request.get("wait_ready", True)
+        if not isinstance(wait_ready, bool):
+            raise DeploymentError("start request field 'wait_ready' must be true or false")
+        ready_timeout = request.get("ready_timeout")
+        if ready_timeout is not None and (isinstance(ready_timeout, bool) or not isinstance(ready_timeout, (int, float))):
+            raise DeploymentError("start request field 'ready_timeout' must be a number of seconds")
+        info = self.start(
+            request["deployment"], request["config"], instance=request.get("instance") or None,
+            wait_ready=wait_ready, ready_timeout=ready_timeout,
+        )
+        return _info_dict(info, host)
+
+    def _publish_event(self, event: ProcessEvent) -> None:
+        body = {
+            "event": event.event, "host": self.settings.host, "instance": event.instance, "time": event.time,
+            "pid": event.pid, "returncode": event.returncode, "detail": (event.detail or "")[-4000:] or None,
+            "run_id": event.run_id, "deployment": event.deployment, "config": event.config,
+        }
+        with self._publish_lock:
+            if self._publisher is None:
+                return
+            try:
+                self._publisher.put(messages.encode("deploy_event", body))
+            except Exception as exc:  # never let a transport hiccup stop supervision
+                log.warning("cannot publish deployer event %s: %s", event.event, exc)
+
+
+def new_instance_name(config: str, host: str) -> str:
+    """A fresh instance id: ``<config>-<host>-<6 hex>``, a safe key chunk of at most 64 characters."""
+    return f"{config[:40]}-{host[:16]}-{secrets.token_hex(3)}"
+
+
+def fill_placeholders(text: str, values: Mapping[str, str], where: str) -> str:
+    """Replace ``{name}`` by ``values[name]``; any other ``{...}`` raises DeploymentError."""
+
+    def substitute(match: re.Match[str]) -> str:
+        name = match.group(1)
+        if name not in values:
+            raise DeploymentError(
+                f"{where}: placeholder {{{name}}} is not allowed; use {', '.join('{' + p + '}' for p in PLACEHOLDERS)}"
+            )
+        return values[name]
+
+    return _PLACEHOLDER.sub(substitute, text)
+
+
+def _as_list(value: Any, deployment: str, what: str) -> list[Any]:
+    if value is None:
+        return []
+    if not isinstance(value, (list, tuple)):
+        raise DeploymentError(f"deployment {deployment}: {what} in the knowledge store is not a list")
+    return list(value)
+
+
+def _info_dict(info: ProcessInfo, host: str) -> dict[str, Any]:
+    data = info.to_dict()
+    data["host"] = host
+    return data
+
+
+def _quietly(fn: Callable[[], Any]) -> None:
+    try:
+        fn()
+    except Exception as exc:  # undeclare after the session closed, etc.
+        log.debug("deployer cleanup: %s", exc)
+
+
+# -- agent wiring -------------------------------------------------------------------
+
+
+def settings_from_args(args: argparse.Namespace, *, robot: str, host: str) -> DeployerSettings:
+    """Deployer settings of an agent command; ``{connect}`` is the agent's own first endpoint."""
+    from shared.session import settings_from_args as zenoh_settings_from_args
+
+    zenoh = zenoh_settings_from_args(args)
+    connect = zenoh.connect[0] if zenoh.connect else _first_connect_in_file(zenoh.config_file) or DEFAULT_ENDPOINT
+    stop = getattr(args, "stop_timeout", 3.0)
+    return DeployerSettings(
+        robot=robot, host=host, connect=connect, zenoh_config=zenoh.config_file, zenoh_mode=zenoh.mode,
+        ready_timeout=getattr(args, "ready_timeout", 15.0),
+        restart=RestartPolicy(max_restarts=getattr(args, "max_restarts", 3)),
+        stop=StopPolicy(sigint_timeout=stop, sigterm_timeout=stop),
+        sample_interval=getattr(args, "profile_interval", 1.0),
+    )
+
+
+def _first_connect_in_file(path: str | None) -> str | None:
+    if not path:
+        return None
+    import json
+
+    import zenoh
+
+    try:
+        endpoints = json.loads(zenoh.Config.from_file(path).get_json("connect/endpoints"))
+    except Exception as exc:
+        raise ConfigError(f"Zenoh config {path}: cannot read connect/endpoints: {exc}") from exc
+    if isinstance(endpoints, dict):  # per-mode form {router: [...], peer: [...]}
+        endpoints = endpoints.get("peer") or next(iter(endpoints.values()), [])
+    return endpoints[0] if endpoints else None

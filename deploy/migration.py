@@ -1,0 +1,157 @@
+"""Planned migration of a detector between hosts without losing output.
+
+``migrate(session, robot, instance, target_host)``:
+
+1. find the instance (its host, deployment and configuration) through the deployers;
+2. subscribe to the markers of a new instance id, then ask the target's
+   deployer to start the same deployment and configuration under that id and
+   wait until it is ready (or another ``deployment`` / ``config`` when given:
+   the same make-before-break switch serves a change of configuration, on the
+   same host or another);
+3. wait for its first ``detections`` message;
+4. only then ask the source's deployer to stop the old instance.
+
+If the target does not get ready, or produces nothing in time, the new
+instance is stopped (best effort), the source keeps running, and a
+:class:`DeploymentError` (``ReadinessTimeout`` for readiness) says so.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from deploy.client import DeployerClient
+from deploy.deployer import new_instance_name
+from shared import keys, messages
+from shared.errors import DeploymentError, KgadaptError, MessageError, ReadinessTimeout
+
+log = logging.getLogger(__name__)
+
+LIVE = ("ready", "running")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MigrationReport:
+    """What a migration did, with its phases in milliseconds from its start."""
+
+    instance: str
+    new_instance: str
+    deployment: str
+    config: str
+    source_host: str
+    target_host: str
+    target_ready_ms: float
+    first_output_ms: float
+    source_stopped_ms: float
+    source_returncode: int | None
+    new_pid: int | None
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class _FirstOutput:
+    """Notes the arrival of the first valid detections message (callback only sets an event)."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.at: float | None = None
+
+    def __call__(self, sample: Any) -> None:
+        if self.event.is_set():
+            return
+        try:
+            messages.decode(sample.payload.to_bytes(), "detections")
+        except MessageError as exc:
+            log.info("migration: dropped a malformed detections message: %s", exc)
+            return
+        self.at = time.perf_counter()
+        self.event.set()
+
+
+def migrate(
+    session: Any,
+    robot: str,
+    instance: str,
+    target_host: str,
+    *,
+    source_host: str | None = None,
+    deployment: str | None = None,
+    config: str | None = None,
+    new_instance: str | None = None,
+    ready_timeout: float = 15.0,
+    output_timeout: float = 5.0,
+    client: DeployerClient | None = None,
+) -> MigrationReport:
+    """Move ``instance`` to ``target_host``: start there, wait for output, stop the source.
+
+    ``deployment`` and ``config`` default to the source's; give them to switch
+    configuration at the same time (or only that, with ``target_host`` the
+    source's host).
+    """
+    client = client or DeployerClient(session, robot)
+    keys.check_name(target_host, "host name")
+    source = client.status(source_host, instance) if source_host else client.find(instance)
+    source_host = str(source.get("host") or source_host)
+    if source.get("state") not in LIVE:
+        raise DeploymentError(f"instance {instance} on {source_host} is {source.get('state')}, not running; nothing to migrate")
+    deployment = deployment or str(source["deployment"])
+    config = config or str(source["config"])
+    if source_host == target_host and (deployment, config) == (source["deployment"], source["config"]):
+        raise DeploymentError(f"instance {instance} already runs on {target_host} with {deployment} / {config}")
+    new_instance = keys.check_name(new_instance, "instance") if new_instance else new_instance_name(config, target_host)
+
+    t0 = time.perf_counter()
+    first = _FirstOutput()
+    subscriber = session.declare_subscriber(keys.detector_markers(robot, new_instance), first)
+    try:
+        try:
+            started = client.start(target_host, deployment, config, instance=new_instance,
+                                   wait_ready=True, ready_timeout=ready_timeout)
+        except KgadaptError as exc:
+            _abandon(client, target_host, new_instance)
+            kind = ReadinessTimeout if isinstance(exc, ReadinessTimeout) else DeploymentError
+            raise kind(
+                f"migration of {instance} to {target_host} failed: {exc}; {instance} keeps running on {source_host}"
+            ) from exc
+        ready_ms = (time.perf_counter() - t0) * 1000.0
+        if not first.event.wait(output_timeout):
+            _abandon(client, target_host, new_instance)
+            raise DeploymentError(
+                f"migration of {instance} to {target_host} failed: {new_instance} was ready but produced no "
+                f"detections within {output_timeout:g} s; stopped it; {instance} keeps running on {source_host}"
+            )
+        output_ms = ((first.at or time.perf_counter()) - t0) * 1000.0
+    finally:
+        try:
+            subscriber.undeclare()
+        except Exception as exc:
+            log.debug("undeclare: %s", exc)
+    try:
+        stopped = client.stop(source_host, instance)
+    except KgadaptError as exc:
+        raise DeploymentError(
+            f"migration of {instance}: {new_instance} runs on {target_host}, but stopping {instance} on "
+            f"{source_host} failed: {exc}"
+        ) from exc
+    stopped_ms = (time.perf_counter() - t0) * 1000.0
+    log.info("migrated %s (%s) from %s to %s as %s in %.0f ms", instance, config, source_host, target_host,
+             new_instance, stopped_ms)
+    return MigrationReport(
+        instance=instance, new_instance=new_instance, deployment=deployment, config=config,
+        source_host=source_host, target_host=target_host, target_ready_ms=round(ready_ms, 3),
+        first_output_ms=round(output_ms, 3), source_stopped_ms=round(stopped_ms, 3),
+        source_returncode=stopped.get("returncode"), new_pid=started.get("pid"),
+    )
+
+
+def _abandon(client: DeployerClient, host: str, instance: str) -> None:
+    """Stop a half-started target instance; it may not exist, which is fine."""
+    try:
+        client.stop(host, instance)
+    except KgadaptError as exc:
+        log.debug("migration cleanup of %s on %s: %s", instance, host, exc)

@@ -1,0 +1,23 @@
+"""The deployer's command-line flags, importable without Zenoh or psutil.
+
+Agent commands register their flags at ``kgadapt`` start-up, where heavy
+imports are not wanted (kgadapt/cli.py); the settings are built later by
+:func:`deploy.deployer.settings_from_args`.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The deployer's flags for agent commands (``kgadapt onboard``, ``kgadapt remote``, ``kgadapt deploy serve``)."""
+    group = parser.add_argument_group("deployer")
+    group.add_argument("--ready-timeout", type=float, default=15.0, metavar="S",
+                       help="seconds a started process has to print KGADAPT_READY (default 15)")
+    group.add_argument("--max-restarts", type=int, default=3, metavar="N",
+                       help="restarts of a crashed process before it is reported failed (default 3)")
+    group.add_argument("--stop-timeout", type=float, default=3.0, metavar="S",
+                       help="seconds after SIGINT, and again after SIGTERM, before escalating (default 3)")
+    group.add_argument("--profile-interval", type=float, default=1.0, metavar="S",
+                       help="seconds between memory/CPU samples of each process (default 1)")

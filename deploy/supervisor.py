@@ -1,0 +1,656 @@
+"""The local process supervisor: start, watch, restart and stop child processes.
+
+One :class:`Supervisor` per agent runs the detector processes of its host.
+For each *instance* (a name unique among the live ones) it
+
+- starts the program in its own session and process group, asked by the
+  kernel to die with the agent (``PR_SET_PDEATHSIG``), so neither a crashed
+  agent nor a detector's own children leave orphans behind;
+- watches stdout for the readiness line (``KGADAPT_READY``) within a timeout;
+- notices the exit and its return code, and restarts a crashed program with
+  exponential back-off up to a limit (systemd's ``Restart=on-failure``);
+- stops it like ros2 launch does: SIGINT, then SIGTERM, then SIGKILL, each
+  after its own timeout, sent to the whole process group.
+
+What happens is reported to listeners as :class:`ProcessEvent` values
+(``started``, ``ready``, ``exited``, ``restarted``, ``stopped``, ``failed``).
+Listeners run on the supervisor's threads: they must be quick and must not
+call back into the supervisor.
+
+Threads: every fork happens on one long-lived *spawner* thread, because
+``PR_SET_PDEATHSIG`` fires when the forking *thread* ends, not the process;
+a child forked from a short-lived thread would be killed with it. Each run
+then has a reader (stdout), a waiter (exit) and, until it is ready, a
+watchdog thread.
+"""
+
+from __future__ import annotations
+
+import collections
+import ctypes
+import logging
+import os
+import queue
+import secrets
+import shutil
+import signal
+import subprocess
+import threading
+import time
+from concurrent.futures import Future
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+from shared.errors import DeploymentError, ReadinessTimeout
+from shared.keys import check_name
+
+log = logging.getLogger(__name__)
+
+READY_LINE = "KGADAPT_READY"
+
+# Instance states. "ready" and "running" are live; the last four are final.
+STARTING, READY, RUNNING, RESTARTING, STOPPING = "starting", "ready", "running", "restarting", "stopping"
+STOPPED, EXITED, FAILED = "stopped", "exited", "failed"
+LIVE_STATES = frozenset({STARTING, READY, RUNNING, RESTARTING, STOPPING})
+FINAL_STATES = frozenset({STOPPED, EXITED, FAILED})
+
+_PR_SET_PDEATHSIG = 1
+try:  # resolved here, not in the child: after fork only async-signal-safe work is wise
+    _prctl = ctypes.CDLL(None, use_errno=True).prctl
+    _prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
+    _prctl.restype = ctypes.c_int
+except (OSError, AttributeError):  # not Linux: no parent-death signal, killpg on shutdown still works
+    _prctl = None
+
+
+def _child_setup(parent_pid: int, death_signal: int) -> Callable[[], None]:
+    """The preexec_fn: ask the kernel for ``death_signal`` when the spawner thread dies."""
+
+    def setup() -> None:
+        if _prctl is not None:
+            _prctl(_PR_SET_PDEATHSIG, death_signal, 0, 0, 0)
+        # The agent may have died between fork and prctl; then nobody would signal us.
+        if os.getppid() != parent_pid:
+            os.kill(os.getpid(), death_signal)
+
+    return setup
+
+
+@dataclass(frozen=True, kw_only=True)
+class RestartPolicy:
+    """Restart a crashed process (non-zero exit or signal) with exponential back-off.
+
+    A run that lasted ``stable_after`` seconds resets the count, so a detector
+    that crashes once a day is not given up on after a week.
+    """
+
+    max_restarts: int = 3
+    backoff_initial: float = 0.5
+    backoff_factor: float = 2.0
+    backoff_max: float = 10.0
+    stable_after: float = 60.0
+
+    def delay(self, attempt: int) -> float:
+        """Seconds to wait before restart number ``attempt`` (1-based)."""
+        return min(self.backoff_max, self.backoff_initial * self.backoff_factor ** (attempt - 1))
+
+
+@dataclass(frozen=True, kw_only=True)
+class StopPolicy:
+    """Escalation timeouts in seconds: SIGINT, wait, SIGTERM, wait, SIGKILL, wait."""
+
+    sigint_timeout: float = 3.0
+    sigterm_timeout: float = 3.0
+    sigkill_timeout: float = 5.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProcessSpec:
+    """What to run for one instance. ``env`` is added to the agent's own environment."""
+
+    instance: str
+    argv: tuple[str, ...]
+    env: tuple[tuple[str, str], ...] = ()
+    cwd: str | None = None
+    deployment: str = ""
+    config: str = ""
+    ready_line: str | None = READY_LINE  # None: ready as soon as it runs
+    ready_timeout: float = 10.0
+    restart: RestartPolicy = field(default_factory=RestartPolicy)
+    stop: StopPolicy = field(default_factory=StopPolicy)
+
+    def __post_init__(self) -> None:
+        check_name(self.instance, "instance")
+        if not self.argv or not all(isinstance(a, str) for a in self.argv):
+            raise DeploymentError(f"instance {self.instance}: argv must be a non-empty list of strings")
+        if self.ready_timeout <= 0:
+            raise DeploymentError(f"instance {self.instance}: ready_timeout must be positive")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProcessEvent:
+    """Something that happened to an instance (see the module docstring for the kinds)."""
+
+    event: str
+    instance: str
+    time: float
+    run_id: str
+    pid: int | None = None
+    returncode: int | None = None
+    detail: str | None = None
+    deployment: str = ""
+    config: str = ""
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProcessInfo:
+    """A snapshot of one instance, safe to hand out and to serialise."""
+
+    instance: str
+    deployment: str
+    config: str
+    state: str
+    pid: int | None
+    run_id: str
+    restarts: int
+    started_at: float | None
+    ready_at: float | None
+    ended_at: float | None
+    returncode: int | None
+    argv: tuple[str, ...]
+    detail: str | None = None
+    output: tuple[str, ...] = ()  # the last lines the current (or last) run printed
+
+    @property
+    def live(self) -> bool:
+        return self.state in LIVE_STATES
+
+    def to_dict(self) -> dict:
+        data = asdict(self)
+        data["argv"] = list(self.argv)
+        data["output"] = list(self.output)
+        return data
+
+
+@dataclass(frozen=True, kw_only=True)
+class SupervisorSettings:
+    """``death_signal`` reaches the children when the agent dies without cleaning up.
+
+    SIGKILL, not SIGTERM: a detector that ignores SIGTERM must not outlive its agent.
+    """
+
+    death_signal: int = signal.SIGKILL
+    keep_finished: int = 50  # final instances remembered for list/status
+    spawn_timeout: float = 10.0
+    # How the parent-death signal is set: "preexec" calls prctl in a preexec_fn
+    # (race-free: the child also checks its parent is still there), which makes
+    # Python fork() the whole agent; "setpriv" execs util-linux's
+    # ``setpriv --pdeathsig`` first, which lets Python use vfork. Measured here
+    # (bench/deployer_bench.py): a few ms saved per start in a large agent.
+    launcher: str = "preexec"
+
+    def __post_init__(self) -> None:
+        if self.launcher not in ("preexec", "setpriv"):
+            raise DeploymentError(f"launcher {self.launcher!r}: use 'preexec' or 'setpriv'")
+
+
+class _Run:
+    """One execution of an instance's program."""
+
+    def __init__(self, proc: subprocess.Popen[bytes], run_id: str) -> None:
+        self.proc = proc
+        self.run_id = run_id
+        self.pid = proc.pid
+        self.started_at = time.time()
+        self.ready_at: float | None = None
+        self.ended_at: float | None = None
+        self.returncode: int | None = None
+        self.reaped = False  # once True the pid (and process group id) may be reused
+        self.ready = threading.Event()
+        self.done = threading.Event()
+        self.not_ready_in_time = False
+        self.tail: collections.deque[str] = collections.deque(maxlen=20)
+
+
+class _Instance:
+    def __init__(self, spec: ProcessSpec) -> None:
+        self.spec = spec
+        self.state = STARTING
+        self.run: _Run | None = None
+        self.restarts = 0  # since the last stable run
+        self.total_restarts = 0
+        self.stop_requested = False
+        self.detail: str | None = None
+
+
+class Supervisor:
+    """Runs and watches the child processes of one host. ``setup()`` before use."""
+
+    def __init__(self, settings: SupervisorSettings | None = None) -> None:
+        self.settings = settings or SupervisorSettings()
+        self._lock = threading.RLock()
+        self._changed = threading.Condition(self._lock)
+        self._instances: dict[str, _Instance] = {}
+        self._finished: collections.deque[str] = collections.deque()
+        self._listeners: list[Callable[[ProcessEvent], None]] = []
+        self._spawn_queue: queue.Queue = queue.Queue()
+        self._spawner: threading.Thread | None = None
+        self._closing = False
+
+    # -- life cycle ---------------------------------------------------------------
+
+    def setup(self) -> None:
+        """Start the spawner thread. No child runs before this."""
+        if self._spawner is not None:
+            return
+        if self.settings.launcher == "setpriv" and not shutil.which("setpriv"):
+            raise DeploymentError("launcher 'setpriv' needs util-linux's setpriv on PATH")
+        self._closing = False
+        self._spawner = threading.Thread(target=self._spawn_loop, name="supervisor-spawner", daemon=True)
+        self._spawner.start()
+
+    def shutdown(self) -> None:
+        """Stop every live instance (escalating as configured), then the spawner thread."""
+        with self._lock:
+            self._closing = True
+            live = [name for name, inst in self._instances.items() if inst.state in LIVE_STATES]
+        stoppers = [threading.Thread(target=self._stop_quietly, args=(name,), daemon=True) for name in live]
+        for t in stoppers:
+            t.start()
+        for t in stoppers:
+            t.join()
+        if self._spawner is not None:
+            self._spawn_queue.put(None)
+            self._spawner.join(timeout=5)
+            self._spawner = None
+
+    def add_listener(self, listener: Callable[[ProcessEvent], None]) -> None:
+        """Call ``listener(event)`` for every event from now on (on supervisor threads)."""
+        self._listeners.append(listener)
+
+    # -- requests -----------------------------------------------------------------
+
+    def start(self, spec: ProcessSpec, *, wait_ready: bool = True) -> ProcessInfo:
+        """Start ``spec``; with ``wait_ready`` return once it is ready.
+
+        Raises DeploymentError when the instance name is taken by a live one or
+        the program cannot be started or gives up, ReadinessTimeout when it
+        did not print the readiness line in time (it is then stopped).
+        """
+        with self._lock:
+            if self._spawner is None or self._closing:
+                raise DeploymentError("supervisor is not running (call setup() first)")
+            old = self._instances.get(spec.instance)
+            if old is not None and old.state in LIVE_STATES:
+                raise DeploymentError(f"instance {spec.instance} is already running (pid {old.run.pid if old.run else '-'})")
+            inst = _Instance(spec)
+            self._instances[spec.instance] = inst
+            if spec.instance in self._finished:
+                self._finished.remove(spec.instance)
+        try:
+            self._launch(inst)
+        except DeploymentError as exc:
+            with self._lock:
+                inst.state, inst.detail = FAILED, str(exc)
+                self._remember_finished(spec.instance)
+                self._changed.notify_all()
+            self._emit(inst, "failed", detail=str(exc))
+            raise
+        if not wait_ready:
+            return self._info(inst)
+        return self.wait_ready(spec.instance)
+
+    def wait_ready(self, instance: str, timeout: float | None = None) -> ProcessInfo:
+        """Block until ``instance`` is ready; raise if it ends up stopped, exited or failed."""
+        with self._lock:
+            inst = self._get(instance)
+            spec = inst.spec
+            # Bounded even if every restart runs into its readiness timeout.
+            if timeout is None:
+                attempts = spec.restart.max_restarts + 1
+                timeout = attempts * (spec.ready_timeout + spec.restart.backoff_max) + 5.0
+            deadline = time.monotonic() + timeout
+            while inst.state not in (READY, RUNNING) and inst.state not in FINAL_STATES:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise ReadinessTimeout(f"instance {instance} not ready within {timeout:.1f} s")
+                self._changed.wait(left)
+            if inst.state in (READY, RUNNING):
+                return self._info(inst)
+            run = inst.run
+            if run is not None and run.not_ready_in_time:
+                raise ReadinessTimeout(
+                    f"instance {instance} did not print {spec.ready_line} within {spec.ready_timeout:g} s; stopped it"
+                )
+            why = f": {inst.detail}" if inst.detail else ""
+            raise DeploymentError(f"instance {instance} {inst.state} before it was ready{why}")
+
+    def stop(self, instance: str) -> ProcessInfo:
+        """Stop ``instance``: SIGINT, SIGTERM, SIGKILL with the spec's timeouts.
+
+        Returns the final snapshot (with the return code). Stopping an instance
+        that already ended returns its snapshot; an unknown one raises.
+        """
+        with self._lock:
+            inst = self._get(instance)
+            if inst.state not in FINAL_STATES:
+                inst.stop_requested = True
+                inst.state = STOPPING
+                self._changed.notify_all()  # wakes a back-off wait
+        while True:
+            with self._lock:
+                if inst.state in FINAL_STATES:
+                    return self._info(inst)
+                run = inst.run
+            if run is not None and not run.done.is_set():
+                self._escalate(inst, run)
+            with self._lock:
+                # The waiter (or back-off) thread sets the final state; a restart
+                # launched meanwhile shows up as a new run and is stopped in turn.
+                deadline = time.monotonic() + 5.0
+                while inst.state not in FINAL_STATES and inst.run is run:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        raise DeploymentError(f"instance {instance} did not reach a final state after it exited")
+                    self._changed.wait(left)
+
+    def _escalate(self, inst: _Instance, run: _Run) -> None:
+        policy = inst.spec.stop
+        for sig, wait in (
+            (signal.SIGINT, policy.sigint_timeout),
+            (signal.SIGTERM, policy.sigterm_timeout),
+            (signal.SIGKILL, policy.sigkill_timeout),
+        ):
+            self._signal_group(run, sig)
+            if run.done.wait(wait):
+                return
+            log.info("instance %s (pid %s) still running %.1f s after %s", inst.spec.instance, run.pid, wait, sig.name)
+        raise DeploymentError(
+            f"instance {inst.spec.instance} (pid {run.pid}) survived SIGKILL; is it stuck in the kernel?"
+        )
+
+    def status(self, instance: str) -> ProcessInfo:
+        """The snapshot of one instance; DeploymentError if unknown."""
+        with self._lock:
+            return self._info(self._get(instance))
+
+    def list(self, *, include_finished: bool = True) -> list[ProcessInfo]:
+        """Snapshots of all instances (live first, then recently finished)."""
+        with self._lock:
+            infos = [self._info(i) for i in self._instances.values()]
+        if not include_finished:
+            infos = [i for i in infos if i.live]
+        return sorted(infos, key=lambda i: (not i.live, i.instance))
+
+    # -- internals ----------------------------------------------------------------
+
+    def _get(self, instance: str) -> _Instance:
+        inst = self._instances.get(instance)
+        if inst is None:
+            raise DeploymentError(f"no instance {instance!r} on this host")
+        return inst
+
+    def _info(self, inst: _Instance) -> ProcessInfo:
+        run = inst.run
+        return ProcessInfo(
+            instance=inst.spec.instance,
+            deployment=inst.spec.deployment,
+            config=inst.spec.config,
+            state=inst.state,
+            pid=run.pid if run else None,
+            run_id=run.run_id if run else "",
+            restarts=inst.total_restarts,
+            started_at=run.started_at if run else None,
+            ready_at=run.ready_at if run else None,
+            ended_at=run.ended_at if run else None,
+            returncode=run.returncode if run else None,
+            argv=inst.spec.argv,
+            detail=inst.detail,
+            output=tuple(list(run.tail)[-5:]) if run else (),
+        )
+
+    def _remember_finished(self, name: str) -> None:
+        # Called with the lock held: forget the oldest final instances beyond the limit.
+        if name not in self._finished:
+            self._finished.append(name)
+        while len(self._finished) > self.settings.keep_finished:
+            old = self._finished.popleft()
+            inst = self._instances.get(old)
+            if inst is not None and inst.state in FINAL_STATES:
+                del self._instances[old]
+
+    def _emit(self, inst: _Instance, event: str, **fields: object) -> None:
+        run = inst.run
+        ev = ProcessEvent(
+            event=event,
+            instance=inst.spec.instance,
+            time=time.time(),
+            run_id=run.run_id if run else "",
+            pid=fields.pop("pid", run.pid if run else None),  # type: ignore[arg-type]
+            deployment=inst.spec.deployment,
+            config=inst.spec.config,
+            **fields,  # type: ignore[arg-type]
+        )
+        log.debug("event %s", ev)
+        for listener in list(self._listeners):
+            try:
+                listener(ev)
+            except Exception:  # a listener's bug must not stop supervision
+                log.exception("deployer event listener failed on %s", ev)
+
+    def _launch(self, inst: _Instance, *, restart: bool = False) -> None:
+        """Spawn one run of ``inst`` (on the spawner thread), report it, start its threads."""
+        future: Future = Future()
+        self._spawn_queue.put((inst.spec, future))
+        try:
+            proc, run_id = future.result(timeout=self.settings.spawn_timeout)
+        except OSError as exc:
+            raise DeploymentError(f"cannot start instance {inst.spec.instance} ({inst.spec.argv[0]}): {exc}") from exc
+        except TimeoutError as exc:  # concurrent.futures.TimeoutError is TimeoutError since 3.11
+            raise DeploymentError(f"spawner did not start instance {inst.spec.instance} in time") from exc
+        run = _Run(proc, run_id)
+        with self._lock:
+            inst.run = run
+            if not inst.stop_requested:  # a stop that came during the spawn keeps its state
+                inst.state = STARTING if inst.spec.ready_line else RUNNING
+            if not inst.spec.ready_line:
+                run.ready_at = run.started_at
+                run.ready.set()
+            self._changed.notify_all()
+        # Reported before the reader thread can report "ready".
+        self._emit(inst, "started")
+        if restart:
+            self._emit(inst, "restarted", detail=f"restart {inst.restarts} of {inst.spec.restart.max_restarts}")
+        name = inst.spec.instance
+        threading.Thread(target=self._read_output, args=(inst, run), name=f"out-{name}", daemon=True).start()
+        threading.Thread(target=self._wait_exit, args=(inst, run), name=f"wait-{name}", daemon=True).start()
+        if inst.spec.ready_line:
+            threading.Thread(target=self._watch_readiness, args=(inst, run), name=f"ready-{name}", daemon=True).start()
+
+    def _spawn_loop(self) -> None:
+        parent = os.getpid()
+        while True:
+            item = self._spawn_queue.get()
+            if item is None:
+                return
+            spec, future = item
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                env = dict(os.environ)
+                env["PYTHONUNBUFFERED"] = "1"  # a Python child's readiness line must not sit in a pipe buffer
+                env.update(dict(spec.env))
+                argv, preexec = list(spec.argv), _child_setup(parent, self.settings.death_signal)
+                if self.settings.launcher == "setpriv":
+                    name = signal.Signals(self.settings.death_signal).name.removeprefix("SIG")
+                    argv, preexec = [shutil.which("setpriv") or "setpriv", f"--pdeathsig={name}", "--", *argv], None
+                proc = subprocess.Popen(
+                    argv,
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.STDOUT,
+                    cwd=spec.cwd,
+                    env=env,
+                    start_new_session=True,  # own group: our signals reach its children, a terminal's do not
+                    preexec_fn=preexec,
+                )
+            except (OSError, ValueError, subprocess.SubprocessError) as exc:
+                future.set_exception(exc if isinstance(exc, OSError) else OSError(str(exc)))
+                continue
+            future.set_result((proc, f"{spec.instance}-{secrets.token_hex(4)}"))
+
+    def _read_output(self, inst: _Instance, run: _Run) -> None:
+        child_log = logging.getLogger(f"{__name__}.{inst.spec.instance}")
+        assert run.proc.stdout is not None
+        for raw in run.proc.stdout:
+            line = raw.decode("utf-8", errors="replace").rstrip("\r\n")
+            if inst.spec.ready_line and not run.ready.is_set() and line.strip() == inst.spec.ready_line:
+                with self._lock:
+                    run.ready_at = time.time()
+                    run.ready.set()
+                    is_current = inst.run is run and inst.state == STARTING
+                    if is_current:
+                        inst.state = READY
+                        if inst.restarts and inst.detail:
+                            inst.detail = None
+                    self._changed.notify_all()
+                if is_current:
+                    self._emit(inst, "ready")
+                continue
+            run.tail.append(line)
+            child_log.debug("%s", line)
+        run.proc.stdout.close()
+
+    def _watch_readiness(self, inst: _Instance, run: _Run) -> None:
+        if run.ready.wait(inst.spec.ready_timeout) or run.done.is_set():
+            return
+        with self._lock:
+            if inst.run is not run or inst.stop_requested or run.done.is_set() or run.ready.is_set():
+                return
+            run.not_ready_in_time = True
+            inst.stop_requested = True  # no restart: a program that cannot get ready will not by retrying
+            inst.state = STOPPING
+            inst.detail = f"not ready within {inst.spec.ready_timeout:g} s"
+        log.warning("instance %s (pid %s) not ready within %.1f s; stopping it", inst.spec.instance, run.pid, inst.spec.ready_timeout)
+        policy = inst.spec.stop
+        for sig, wait in ((signal.SIGTERM, policy.sigterm_timeout), (signal.SIGKILL, policy.sigkill_timeout)):
+            self._signal_group(run, sig)
+            if run.done.wait(wait):
+                return
+
+    def _signal_group(self, run: _Run, sig: int) -> None:
+        with self._lock:
+            if run.reaped:  # the group id may belong to someone else by now
+                return
+            try:
+                os.killpg(run.pid, sig)
+            except ProcessLookupError:
+                pass
+            except PermissionError as exc:  # the child changed its uid; we cannot do more
+                log.error("cannot signal process group %s: %s", run.pid, exc)
+
+    def _wait_exit(self, inst: _Instance, run: _Run) -> None:
+        # Wait without reaping: while the leader is a zombie its pid, and so its
+        # process group id, cannot be reused, and killpg still hits its children.
+        while True:
+            try:
+                os.waitid(os.P_PID, run.pid, os.WEXITED | os.WNOWAIT)
+                break
+            except ChildProcessError:
+                break
+            except InterruptedError:
+                continue
+        with self._lock:
+            try:
+                os.killpg(run.pid, signal.SIGKILL)  # leftovers of the group: no orphans
+            except (ProcessLookupError, PermissionError):
+                pass
+            returncode = run.proc.wait()
+            run.reaped = True
+            run.returncode = returncode
+            run.ended_at = time.time()
+        run.done.set()
+        tail = "\n".join(list(run.tail)[-5:]) or None
+        self._emit(inst, "exited", returncode=returncode, detail=tail if returncode else None)
+        self._after_exit(inst, run, returncode, tail)
+
+    def _after_exit(self, inst: _Instance, run: _Run, returncode: int, tail: str | None) -> None:
+        spec = inst.spec
+        with self._lock:
+            if inst.run is not run:
+                return
+            if run.not_ready_in_time:
+                inst.state = FAILED
+                self._remember_finished(spec.instance)
+                self._changed.notify_all()
+                final = "failed"
+            elif inst.stop_requested:
+                inst.state = STOPPED
+                self._remember_finished(spec.instance)
+                self._changed.notify_all()
+                final = "stopped"
+            elif returncode == 0:
+                inst.state = EXITED
+                inst.detail = "exited by itself with status 0"
+                self._remember_finished(spec.instance)
+                self._changed.notify_all()
+                return
+            else:
+                final = ""
+                if run.ended_at - run.started_at >= spec.restart.stable_after:
+                    inst.restarts = 0
+                if inst.restarts >= spec.restart.max_restarts or self._closing:
+                    inst.state = FAILED
+                    inst.detail = f"exited with status {returncode} after {inst.restarts} restarts" + (
+                        f"; last output: {tail}" if tail else ""
+                    )
+                    self._remember_finished(spec.instance)
+                    self._changed.notify_all()
+                    final = "failed"
+                else:
+                    inst.restarts += 1
+                    inst.total_restarts += 1
+                    inst.state = RESTARTING
+                    inst.detail = f"exited with status {returncode}; restart {inst.restarts} of {spec.restart.max_restarts}"
+                    self._changed.notify_all()
+        if final == "failed":
+            self._emit(inst, "failed", detail=inst.detail)
+            return
+        if final == "stopped":
+            self._emit(inst, "stopped", returncode=returncode)
+            return
+        self._restart_after_backoff(inst)
+
+    def _restart_after_backoff(self, inst: _Instance) -> None:
+        delay = inst.spec.restart.delay(inst.restarts)
+        deadline = time.monotonic() + delay
+        with self._lock:
+            while not inst.stop_requested and not self._closing:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._changed.wait(left)
+            if inst.stop_requested or self._closing:
+                inst.state = STOPPED
+                self._remember_finished(inst.spec.instance)
+                self._changed.notify_all()
+                stopped = True
+            else:
+                stopped = False
+        if stopped:
+            self._emit(inst, "stopped")
+            return
+        try:
+            self._launch(inst, restart=True)
+        except DeploymentError as exc:
+            with self._lock:
+                inst.state, inst.detail = FAILED, str(exc)
+                self._remember_finished(inst.spec.instance)
+                self._changed.notify_all()
+            self._emit(inst, "failed", detail=str(exc))
+
+    def _stop_quietly(self, name: str) -> None:
+        try:
+            self.stop(name)
+        except DeploymentError as exc:
+            log.error("shutdown: %s", exc)

@@ -1,0 +1,151 @@
+"""The deployer over Zenoh: what runs comes from the knowledge store, nothing else."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import psutil
+import pytest
+
+from deploy.client import DeployerClient
+from shared import keys, messages
+from shared.errors import DeploymentError
+from tests.deploy.conftest import CONFIG, ROBOT, Collector, add_deployment, wait_for_deployers
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def alive(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+
+
+def wait_until(predicate, timeout: float = 10.0, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.02)
+    raise AssertionError(f"{what} not met within {timeout} s")
+
+
+def raw_request(session, host: str, verb: str, payload: bytes):
+    replies = list(session.get(keys.deployer_verb(ROBOT, host, verb), payload=payload, timeout=5))
+    assert len(replies) == 1
+    return replies[0]
+
+
+def test_a_deployment_from_the_store_starts_on_request_reports_events_and_stops(hosts, client_session):
+    events = Collector(client_session, keys.deployer_events(ROBOT, "onboard"), "deploy_event")
+    client = DeployerClient(client_session, ROBOT)
+    info = client.start("onboard", "echo", CONFIG, instance="det1")
+    assert info["state"] == "ready" and info["host"] == "onboard" and alive(info["pid"])
+    # Placeholders were filled by the deployer from its own knowledge.
+    assert info["argv"][:3] == [sys.executable, "-m", "deploy.echo_detector"]
+    assert info["argv"][info["argv"].index("--host") + 1] == "onboard"
+    assert info["argv"][info["argv"].index("--instance") + 1] == "det1"
+    assert [p["instance"] for p in client.list("*")] == ["det1"]
+    final = client.stop("onboard", "det1")
+    assert final["state"] == "stopped" and final["returncode"] is not None and not alive(info["pid"])
+    events.wait_for(lambda e: e["event"] == "stopped")
+    kinds = [e["event"] for _, e in events.items]
+    assert kinds == ["started", "ready", "exited", "stopped"]
+    assert all(e["instance"] == "det1" and e["deployment"] == "echo" for _, e in events.items)
+    events.close()
+
+
+def test_an_unknown_deployment_is_refused_and_nothing_runs(hosts, client_session):
+    client = DeployerClient(client_session, ROBOT)
+    with pytest.raises(DeploymentError, match="'no_such_deployment' is not in the knowledge store"):
+        client.start("onboard", "no_such_deployment", CONFIG)
+    assert client.list("*") == []
+
+
+def test_a_deployment_for_another_host_is_refused_and_nothing_runs(hosts, client_session):
+    client = DeployerClient(client_session, ROBOT)
+    with pytest.raises(DeploymentError, match="not executable on host onboard .only on remote"):
+        client.start("onboard", "echo_remote_only", CONFIG)
+    assert client.list("*") == []
+
+
+def test_a_configuration_the_deployment_does_not_deploy_is_refused(hosts, client_session):
+    client = DeployerClient(client_session, ROBOT)
+    with pytest.raises(DeploymentError, match="does not deploy configuration marker_detection_dark"):
+        client.start("onboard", "echo", "marker_detection_dark")
+    assert client.list("*") == []
+
+
+@pytest.mark.parametrize("field", ["command", "executable", "arguments", "environment"])
+def test_a_start_request_carrying_a_command_line_is_refused_and_nothing_runs(hosts, client_session, tmp_path, field):
+    marker = tmp_path / "pwned"
+    evil = f"touch {marker}" if field in ("command", "executable") else ["-c", f"open({str(marker)!r}, 'w')"]
+    payload = messages.encode("deploy_request", {"deployment": "echo", "config": CONFIG, field: evil})
+    reply = raw_request(client_session, "onboard", "start", payload)
+    body = messages.decode(reply.ok.payload.to_bytes(), "deploy_reply")
+    assert body["ok"] is False
+    assert repr(field) in body["detail"]["error"] and "knowledge store" in body["detail"]["error"]
+    assert DeployerClient(client_session, ROBOT).list("*") == []
+    assert not marker.exists()
+
+
+def test_a_malformed_request_gets_an_error_reply_and_the_deployer_keeps_serving(hosts, client_session):
+    reply = raw_request(client_session, "onboard", "start", b"\xc1 not msgpack")
+    assert reply.ok is None and "not valid msgpack" in reply.err.payload.to_string()
+    reply = raw_request(client_session, "onboard", "stop", messages.encode("deploy_request", {"instance": "../x"}))
+    assert "bad instance" in messages.decode(reply.ok.payload.to_bytes(), "deploy_reply")["detail"]["error"]
+    assert DeployerClient(client_session, ROBOT).list("onboard") == []
+
+
+def test_a_placeholder_outside_the_contract_is_refused_naming_it(graph, hosts, client_session):
+    add_deployment(graph, "leaky", platforms=["onboard"], deploys=[CONFIG], arguments=["-c", "print('{home}')"])
+    with pytest.raises(DeploymentError, match=r"placeholder \{home\} is not allowed"):
+        DeployerClient(client_session, ROBOT).start("onboard", "leaky", CONFIG)
+
+
+def test_the_process_profile_reaches_the_graph_start_then_memory_then_exit(graph, hosts, client_session):
+    client = DeployerClient(client_session, ROBOT)
+    info = client.start("onboard", "echo", CONFIG, instance="profiled")
+    run = info["run_id"]
+
+    def profile():
+        rows = graph.execute(
+            "MATCH (r:ProcessProfile {name: $run})-[:RAN_ON]->(p:Platform), (r)-[:PROFILE_OF]->(d:Deployment) "
+            "RETURN r AS r, p.name AS platform, d.name AS deployment", {"run": run})
+        return rows[0] if rows else None
+
+    row = wait_until(profile, what="process_start in the graph")
+    assert row["platform"] == "onboard" and row["deployment"] == "echo"
+    assert row["r"]["pid"] == info["pid"] and abs(row["r"]["start_time"] - info["started_at"]) < 1.0
+    # The first sample comes right after exec, when little is mapped; a Python with Zenoh soon has MiBs.
+    row = wait_until(lambda: (p := profile()) and (p["r"].get("rss_mb_max") or 0) > 5 and p, what="memory figures")
+    assert row["r"]["rss_mb_max"] < 2000 and 0 < row["r"]["rss_mb_mean"] <= row["r"]["rss_mb_max"]
+    assert row["r"]["rss_mb_last"] > 0 and row["r"]["cpu_percent_mean"] >= 0
+    assert row["r"].get("end_time") is None
+    client.stop("onboard", "profiled")
+    row = wait_until(lambda: (p := profile()) and p["r"].get("end_time") and p, what="exit status")
+    assert row["r"]["exit_status"] == client.status("onboard", "profiled")["returncode"]
+    assert row["r"]["end_time"] >= row["r"]["start_time"]
+
+
+def test_killing_an_agent_with_sigkill_leaves_no_detector_running(knowledge, endpoint, test_session):
+    agent = subprocess.Popen(
+        [sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
+         "--connect", endpoint], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert "agent ready" in agent.stdout.readline()
+        wait_for_deployers(test_session, ["onboard"])
+        info = DeployerClient(test_session, ROBOT).start("onboard", "echo", CONFIG)
+        assert alive(info["pid"])
+        os.kill(agent.pid, signal.SIGKILL)
+        agent.wait()
+        wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="detector gone after kill -9 of its agent")
+    finally:
+        agent.kill()
+        agent.wait()

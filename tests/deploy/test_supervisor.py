@@ -1,0 +1,244 @@
+"""The local supervisor with real child processes (no Zenoh)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+import psutil
+import pytest
+
+from deploy.supervisor import ProcessEvent, ProcessSpec, RestartPolicy, StopPolicy, Supervisor, SupervisorSettings
+from shared.errors import DeploymentError, ReadinessTimeout
+
+READY_AND_WAIT = "import time; print('KGADAPT_READY'); time.sleep(60)"
+DEAF = (
+    "import signal, time\n"
+    "signal.signal(signal.SIGINT, signal.SIG_IGN); signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+    "print('KGADAPT_READY'); time.sleep(60)"
+)
+
+
+def py(code: str) -> tuple[str, ...]:
+    return (sys.executable, "-c", code)
+
+
+def spec(instance: str, code: str, **kw) -> ProcessSpec:
+    kw.setdefault("ready_timeout", 10.0)
+    return ProcessSpec(instance=instance, argv=py(code), **kw)
+
+
+class Recorder:
+    """Collects events; wait_for blocks until one of a kind arrives."""
+
+    def __init__(self) -> None:
+        self.events: list[ProcessEvent] = []
+        self._cv = threading.Condition()
+
+    def __call__(self, event: ProcessEvent) -> None:
+        with self._cv:
+            self.events.append(event)
+            self._cv.notify_all()
+
+    def kinds(self, instance: str) -> list[str]:
+        with self._cv:
+            return [e.event for e in self.events if e.instance == instance]
+
+    def wait_for(self, instance: str, kind: str, count: int = 1, timeout: float = 15.0) -> None:
+        with self._cv:
+            ok = self._cv.wait_for(lambda: self.kinds(instance).count(kind) >= count, timeout)
+        assert ok, f"no {count}x {kind} for {instance}; saw {self.kinds(instance)}"
+
+
+@pytest.fixture
+def events():
+    return Recorder()
+
+
+@pytest.fixture
+def supervisor(events):
+    sup = Supervisor()
+    sup.add_listener(events)
+    sup.setup()
+    yield sup
+    sup.shutdown()
+
+
+def gone(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+def wait_gone(pid: int, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if gone(pid):
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_a_started_child_is_ready_and_stops_on_sigint(supervisor, events):
+    info = supervisor.start(spec("a", READY_AND_WAIT))
+    assert info.state == "ready" and info.pid and info.ready_at >= info.started_at
+    assert not gone(info.pid)
+    final = supervisor.stop("a")
+    assert final.state == "stopped"
+    assert final.returncode == -signal.SIGINT  # Python dies of the SIGINT it did not handle
+    assert gone(info.pid)
+    assert events.kinds("a") == ["started", "ready", "exited", "stopped"]
+
+
+def test_a_child_that_handles_sigint_exits_cleanly_without_escalation(supervisor):
+    code = "import time\ntry:\n    print('KGADAPT_READY')\n    time.sleep(60)\nexcept KeyboardInterrupt:\n    pass"
+    supervisor.start(spec("clean", code))
+    assert supervisor.stop("clean").returncode == 0
+
+
+def test_a_child_deaf_to_sigint_and_sigterm_is_killed_after_the_timeouts(supervisor):
+    stop = StopPolicy(sigint_timeout=0.3, sigterm_timeout=0.3)
+    supervisor.start(spec("deaf", DEAF, stop=stop))
+    t0 = time.monotonic()
+    final = supervisor.stop("deaf")
+    elapsed = time.monotonic() - t0
+    assert final.returncode == -signal.SIGKILL
+    assert elapsed >= 0.6  # both timeouts were given before SIGKILL
+
+
+def test_a_crashing_child_is_restarted_up_to_the_limit_then_reported_failed(supervisor, events):
+    policy = RestartPolicy(max_restarts=2, backoff_initial=0.05)
+    with pytest.raises(DeploymentError, match="status 3 after 2 restarts.*boom"):
+        supervisor.start(spec("crash", "import sys; print('boom'); sys.exit(3)", restart=policy))
+    kinds = events.kinds("crash")
+    assert kinds.count("started") == 3 and kinds.count("restarted") == 2
+    assert kinds.count("exited") == 3 and kinds[-1] == "failed"
+    info = supervisor.status("crash")
+    assert info.state == "failed" and info.returncode == 3 and info.restarts == 2
+
+
+def test_backoff_grows_between_restarts(supervisor, events):
+    policy = RestartPolicy(max_restarts=2, backoff_initial=0.2, backoff_factor=2.0)
+    with pytest.raises(DeploymentError):
+        supervisor.start(spec("slowcrash", "import sys; sys.exit(1)", restart=policy))
+    starts = [e.time for e in events.events if e.instance == "slowcrash" and e.event == "started"]
+    exits = [e.time for e in events.events if e.instance == "slowcrash" and e.event == "exited"]
+    assert starts[1] - exits[0] >= 0.2 and starts[2] - exits[1] >= 0.4
+
+
+def test_a_child_that_crashes_after_ready_comes_back_ready(supervisor, events, tmp_path):
+    flag = tmp_path / "crashed-once"
+    code = textwrap.dedent(f"""
+        import os, sys, time
+        print('KGADAPT_READY', flush=True)
+        if not os.path.exists({str(flag)!r}):
+            open({str(flag)!r}, 'w').close()
+            sys.exit(5)
+        time.sleep(60)
+    """)
+    supervisor.start(spec("phoenix", code, restart=RestartPolicy(backoff_initial=0.05)))
+    events.wait_for("phoenix", "ready", count=2)
+    info = supervisor.status("phoenix")
+    assert info.state == "ready" and info.restarts == 1
+    assert events.kinds("phoenix")[:5] == ["started", "ready", "exited", "started", "restarted"]
+
+
+def test_a_child_that_never_gets_ready_is_stopped_and_not_restarted(supervisor, events):
+    with pytest.raises(ReadinessTimeout, match="KGADAPT_READY within 0.3 s"):
+        supervisor.start(spec("mute", "import time; time.sleep(60)", ready_timeout=0.3))
+    info = supervisor.status("mute")
+    assert info.state == "failed" and gone(info.pid)
+    assert events.kinds("mute").count("started") == 1
+
+
+def test_stopping_a_child_also_ends_the_processes_it_started(supervisor):
+    code = textwrap.dedent("""
+        import subprocess, time
+        child = subprocess.Popen(['sleep', '60'])
+        print(child.pid, flush=True)
+        print('KGADAPT_READY', flush=True)
+        time.sleep(60)
+    """)
+    supervisor.start(spec("parent", code))
+    grandchild = _first_number_in_output(supervisor, "parent")
+    assert not gone(grandchild)
+    supervisor.stop("parent")
+    assert wait_gone(grandchild)
+
+
+def test_a_live_instance_name_cannot_be_started_twice(supervisor):
+    supervisor.start(spec("twice", READY_AND_WAIT))
+    with pytest.raises(DeploymentError, match="already running"):
+        supervisor.start(spec("twice", READY_AND_WAIT))
+
+
+def test_a_missing_program_is_refused_naming_it(supervisor):
+    with pytest.raises(DeploymentError, match="no-such-detector"):
+        supervisor.start(ProcessSpec(instance="ghost", argv=("/nonexistent/no-such-detector",)))
+    assert supervisor.status("ghost").state == "failed"
+
+
+def test_a_stop_during_backoff_ends_the_restarts(supervisor, events):
+    policy = RestartPolicy(max_restarts=5, backoff_initial=5.0)
+    supervisor.start(spec("loop", "import sys; sys.exit(1)", restart=policy), wait_ready=False)
+    events.wait_for("loop", "exited")
+    t0 = time.monotonic()
+    assert supervisor.stop("loop").state == "stopped"
+    assert time.monotonic() - t0 < 2.0  # the back-off wait was cut short
+    assert events.kinds("loop").count("started") == 1
+
+
+def test_shutdown_stops_every_child(events):
+    sup = Supervisor()
+    sup.add_listener(events)
+    sup.setup()
+    pids = [sup.start(spec(f"s{i}", READY_AND_WAIT)).pid for i in range(3)]
+    sup.shutdown()
+    assert all(gone(pid) for pid in pids)
+
+
+@pytest.mark.parametrize("launcher", ["preexec", pytest.param("setpriv", marks=pytest.mark.skipif(
+    not shutil.which("setpriv"), reason="util-linux setpriv is not installed"))])
+def test_killing_the_supervising_process_with_sigkill_kills_its_children(tmp_path, launcher):
+    script = tmp_path / "agent.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys, time
+        sys.path.insert(0, {os.getcwd()!r})
+        from deploy.supervisor import ProcessSpec, Supervisor, SupervisorSettings
+        sup = Supervisor(SupervisorSettings(launcher={launcher!r})); sup.setup()
+        info = sup.start(ProcessSpec(instance="det", argv=({sys.executable!r}, "-c", {DEAF!r})))
+        print(info.pid, flush=True)
+        time.sleep(60)
+    """))
+    agent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(agent.stdout.readline())
+        assert not gone(child)
+        agent.kill()
+        agent.wait()
+        assert wait_gone(child, timeout=5.0)
+    finally:
+        agent.kill()
+        agent.wait()
+
+
+def _first_number_in_output(supervisor: Supervisor, instance: str) -> int:
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+        for line in supervisor.status(instance).output:
+            if line.strip().isdigit():
+                return int(line.strip())
+        time.sleep(0.02)
+    raise AssertionError("the child did not print its child's pid")
+
+
+def test_an_unknown_launcher_is_refused_naming_it():
+    with pytest.raises(DeploymentError, match="launcher 'fork'"):
+        SupervisorSettings(launcher="fork")
