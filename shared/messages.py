@@ -65,6 +65,7 @@ SCHEMAS: dict[str, Schema] = {
             "width": _f(int), "height": _f(int), "jpeg": _f(bytes, max_len=MAX_PAYLOAD),
             "truth": _f(list, required=False, max_len=1024),
             "level": _f(*NUMBER, required=False),
+            "sent": _f(*NUMBER, required=False),  # publication time (capture "time" is before encoding)
         }, max_size=MAX_PAYLOAD),
         Schema("illumination", 1, {
             "camera": _NAME, "seq": _f(int), "time": _TIME,
@@ -76,6 +77,10 @@ SCHEMAS: dict[str, Schema] = {
             "frame_time": _TIME, "time": _TIME,
             "ids": _f(list, max_len=1024), "corners": _f(list, max_len=1024),
             "processing_ms": _f(*NUMBER),
+            # optional, from onboard.detector: when the frame arrived, JPEG decode time, stale frames
+            # dropped so far, and the camera's publication time of the frame (transport = received - frame_sent)
+            "camera": _OPT_NAME, "received": _f(*NUMBER, required=False), "decode_ms": _f(*NUMBER, required=False),
+            "dropped": _f(int, required=False), "frame_sent": _f(*NUMBER, required=False),
         }),
         Schema("query_request", 1, {"params": _f(dict, required=False, max_len=64)}),
         Schema("cypher_request", 1, {

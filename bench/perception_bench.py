@@ -1,0 +1,194 @@
+"""``kgadapt bench perception``: detector cost per configuration, frame transport, calibration.
+
+Three measurements, written to ``bench/results/perception.json`` (records in
+the shared format of bench/stats.py) and summarised for docs/perception.md:
+
+1. **ms per frame** of every detector configuration of the shipped models at
+   640x480, per illumination band (the calibration run: the same frames for
+   every configuration; figures also written to ``calibration.json``/``.png``).
+2. **frame transport** at 30 fps from the camera publisher (this process) to a
+   detector in another process over Zenoh on loopback: publication to arrival
+   in the detector (target p99 <= 20 ms), and capture to detections published.
+3. **the calibration table**: detection rate, false rate and ms per frame per
+   configuration and band, and the best configuration of each band.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import queue
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from shared.errors import KgadaptError
+
+REPO = Path(__file__).resolve().parent.parent
+RESULTS = REPO / "bench" / "results"
+TRANSPORT_TARGET_P99_MS = 20.0
+DAY_JSON = '{"dictionary": "DICT_4X4_50", "preprocess": [], "parameters": {}}'
+
+
+def register(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser(
+        "perception",
+        help="detector ms per frame per configuration, frame transport latency, calibration table",
+        description="Perception benchmark: every detector configuration of the shipped models over the "
+                    "synthetic scenario per illumination band (ms per frame, detection rate), and frame "
+                    "transport at 30 fps from the camera publisher to a detector process over Zenoh "
+                    "(latency p50/p99; target p99 <= 20 ms on loopback).",
+    )
+    p.add_argument("--frames", type=int, default=12, help="calibration frames per level (default 12)")
+    p.add_argument("--levels", type=int, default=4, help="calibration levels per band (default 4)")
+    p.add_argument("--seconds", type=float, default=10.0, help="transport run length (default 10 s)")
+    p.add_argument("--fps", type=float, default=30.0, help="transport frame rate (default 30)")
+    p.add_argument("--store", default=None, help="store URL (default: a fresh embedded store in a temp dir)")
+    p.add_argument("--out", type=Path, default=RESULTS / "perception.json", help="records (default %(default)s)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    import json
+
+    summary = run(frames=args.frames, levels=args.levels, seconds=args.seconds, fps=args.fps,
+                  store_url=args.store, out=args.out, progress=None if args.json else _say)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print("\n".join(summary["calibration_table"]))
+        t = summary["transport"]
+        print(f"transport at {t['fps']:g} fps, {t['frames_sent']} frames sent, {t['detections']} detections: "
+              f"publish->detector p50 {t['transport_p50_ms']:.2f} ms p99 {t['transport_p99_ms']:.2f} ms "
+              f"(target p99 <= {TRANSPORT_TARGET_P99_MS:g}: {'met' if t['target_met'] else 'NOT met'}); "
+              f"capture->detections p50 {t['end_to_end_p50_ms']:.2f} ms p99 {t['end_to_end_p99_ms']:.2f} ms")
+        print(f"wrote {summary['out']}")
+    return 0
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def run(*, frames: int = 12, levels: int = 4, seconds: float = 10.0, fps: float = 30.0,
+        store_url: str | None = None, out: Path | str = RESULTS / "perception.json",
+        progress: Any = None) -> dict[str, Any]:
+    """Run all three measurements; write the records; return a summary."""
+    from bench import stats
+    from onboard.calibration import CalibrationSettings, run_calibration
+
+    settings = CalibrationSettings(frames_per_level=frames, levels_per_band=levels)
+    with tempfile.TemporaryDirectory(prefix="kgadapt-perception-") as tmp:
+        url = store_url or f"embedded:{tmp}/store"
+        calibration = run_calibration(url, settings=settings, progress=progress,
+                                      json_path=RESULTS / "calibration.json", plot_path=RESULTS / "calibration.png")
+    records: list[dict[str, Any]] = []
+    for r in calibration["results"]:
+        records.append({
+            "store": "none", "n": None, "op": f"detect {r['config']} {r['band']}",
+            "mean_ms": r["ms_per_frame"], "sd_ms": None, "p50_ms": None, "p99_ms": r["ms_p99"],
+            "reps": r["frames"], "config": r["config"], "band": r["band"],
+            "detection_rate": r["detection_rate"], "false_rate": r["false_rate"], "resolution": "640x480",
+        })
+    if progress:
+        progress(f"frame transport: {seconds:g} s at {fps:g} fps to a detector process ...")
+    transport = measure_transport(seconds=seconds, fps=fps)
+    for op, key in (("transport publish->detector", "transport_ms"), ("capture->detections", "end_to_end_ms"),
+                    ("detector processing", "processing_ms")):
+        records.append(stats.make_record(store="zenoh-loopback", n=None, op=op, samples_ms=transport.pop(key),
+                                         fps=fps, resolution="640x480"))
+    summary = {
+        "machine": stats.machine_info(),
+        "calibration_best": calibration["best"],
+        "calibration_table": calibration["table"],
+        "transport": transport,
+        "records": records,
+    }
+    path = stats.write_records(out, records)
+    summary["out"] = str(path)
+    side = Path(path).with_suffix(".summary.json")
+    import json
+
+    side.write_text(json.dumps({k: v for k, v in summary.items() if k != "records"}, indent=2) + "\n")
+    return summary
+
+
+def measure_transport(*, seconds: float, fps: float, robot: str = "benchperc") -> dict[str, Any]:
+    """Camera publisher here, detector in a child process; latencies from the detections' timestamps."""
+    from bench import stats
+    from onboard.camera import CameraPart, CameraSettings, SyntheticSource
+    from onboard.scenario import IlluminationProfile
+    from shared import keys, messages
+    from shared.session import ZenohSettings, open_session
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    session = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
+    got: queue.Queue[bytes] = queue.Queue()
+    sub = session.declare_subscriber(keys.detector_markers(robot, "bench"), lambda s: got.put(s.payload.to_bytes()))
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    child = subprocess.Popen(
+        [sys.executable, "-m", "onboard.detector", "--robot", robot, "--host", "bench", "--instance", "bench",
+         "--config-json", DAY_JSON, "--connect", endpoint],
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+    )
+    camera = CameraPart(CameraSettings(robot=robot, fps=fps), SyntheticSource(IlluminationProfile.constant(120)))
+    try:
+        line = child.stdout.readline() if child.stdout else ""
+        if line.strip() != "KGADAPT_READY":
+            raise KgadaptError(f"detector for the transport bench did not start (status {child.poll()})")
+        camera.setup(session)
+        # The first frames pay for the subscription reaching us and OpenCV's first allocations.
+        _drain(got, time.monotonic() + 1.0)
+        start_published = camera.stats.published
+        bodies = [messages.decode(p, "detections") for p in _drain(got, time.monotonic() + seconds)]
+        sent = camera.stats.published - start_published
+    finally:
+        camera.shutdown()
+        child.send_signal(signal.SIGTERM)
+        try:
+            child.wait(10)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+        sub.undeclare()
+        session.close()
+    transport = [(b["received"] - b["frame_sent"]) * 1e3 for b in bodies if "frame_sent" in b]
+    end_to_end = [(b["time"] - b["frame_time"]) * 1e3 for b in bodies]
+    processing = [b["processing_ms"] for b in bodies]
+    if not transport:
+        raise KgadaptError("the transport bench got no detections")
+    t = stats.summarize(transport)
+    e = stats.summarize(end_to_end)
+    return {
+        "fps": fps, "seconds": seconds, "frames_sent": sent, "detections": len(bodies),
+        "dropped_stale": bodies[-1].get("dropped", 0) if bodies else 0,
+        "transport_p50_ms": round(t.p50_ms, 3), "transport_p99_ms": round(t.p99_ms, 3),
+        "end_to_end_p50_ms": round(e.p50_ms, 3), "end_to_end_p99_ms": round(e.p99_ms, 3),
+        "target_p99_ms": TRANSPORT_TARGET_P99_MS, "target_met": t.p99_ms <= TRANSPORT_TARGET_P99_MS,
+        "transport_ms": transport, "end_to_end_ms": end_to_end, "processing_ms": processing,
+    }
+
+
+def _drain(q: queue.Queue[bytes], until: float) -> list[bytes]:
+    items = []
+    while True:
+        left = until - time.monotonic()
+        if left <= 0:
+            return items
+        try:
+            items.append(q.get(timeout=left))
+        except queue.Empty:
+            return items
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -1,0 +1,265 @@
+"""The marker-detection core: a detector configuration, pre-processing and ArUco.
+
+A configuration is the ``config_json`` of a marker-detector component in the
+knowledge graph (docs/CONTRACTS.md)::
+
+    {"dictionary": "DICT_4X4_50",
+     "preprocess": [{"op": "gamma", "gamma": 0.5}, {"op": "clahe", "clip_limit": 2.0, "tile": 8},
+                    {"op": "stretch", "low_pct": 2, "high_pct": 98}, {"op": "blur", "ksize": 3}],
+     "parameters": {"adaptiveThreshWinSizeMax": 53, "adaptiveThreshConstant": 3}}
+
+:func:`parse_config` checks it and says what is wrong (an unknown op, a
+parameter ``cv2.aruco.DetectorParameters`` does not have, a value of the
+wrong type); :class:`MarkerDetector` runs it on grey frames. :func:`score`
+compares detections with a frame's ground truth.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from shared.errors import ConfigError
+
+# op name -> {argument: (type, default, low, high)}
+_OPS: dict[str, dict[str, tuple[type, Any, float, float]]] = {
+    "gamma": {"gamma": (float, 1.0, 0.05, 10.0)},
+    "clahe": {"clip_limit": (float, 2.0, 0.1, 100.0), "tile": (int, 8, 1, 64)},
+    "stretch": {"low_pct": (float, 1.0, 0.0, 49.0), "high_pct": (float, 99.0, 51.0, 100.0)},
+    "blur": {"ksize": (int, 3, 1, 31)},
+}
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """A checked detector configuration."""
+
+    name: str
+    dictionary: str = "DICT_4X4_50"
+    preprocess: tuple[tuple[str, tuple[tuple[str, Any], ...]], ...] = ()
+    parameters: tuple[tuple[str, Any], ...] = ()
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "dictionary": self.dictionary,
+            "preprocess": [{"op": op, **dict(args)} for op, args in self.preprocess],
+            "parameters": dict(self.parameters),
+        }
+
+
+def parse_config(name: str, raw: str | Mapping[str, Any], *, dictionary: str | None = None) -> DetectorConfig:
+    """Check a ``config_json`` (text or mapping); raise ConfigError naming ``name`` and the problem."""
+    where = f"detector configuration {name!r}"
+    if isinstance(raw, (str, bytes)):
+        try:
+            data = json.loads(raw)
+        except ValueError as exc:
+            raise ConfigError(f"{where}: config_json is not JSON: {exc}") from exc
+    else:
+        data = raw
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where}: config_json must be an object, not {type(data).__name__}")
+    unknown = sorted(set(data) - {"dictionary", "preprocess", "parameters"})
+    if unknown:
+        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (use dictionary, preprocess, parameters)")
+    dict_name = data.get("dictionary") or dictionary or "DICT_4X4_50"
+    if not isinstance(dict_name, str):
+        raise ConfigError(f"{where}: dictionary must be a name such as DICT_4X4_50")
+    from onboard.scenario import dictionary as lookup
+
+    try:
+        lookup(dict_name)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from exc
+
+    steps = data.get("preprocess") or []
+    if not isinstance(steps, list):
+        raise ConfigError(f"{where}: preprocess must be a list of {{op: ...}} objects")
+    preprocess = []
+    for i, step in enumerate(steps):
+        if not isinstance(step, Mapping) or not isinstance(step.get("op"), str):
+            raise ConfigError(f"{where}: preprocess[{i}] must be an object with an 'op'")
+        op = step["op"]
+        spec = _OPS.get(op)
+        if spec is None:
+            raise ConfigError(f"{where}: preprocess[{i}] has unknown op {op!r} (use {', '.join(_OPS)})")
+        args = []
+        for key, value in step.items():
+            if key == "op":
+                continue
+            if key not in spec:
+                raise ConfigError(f"{where}: preprocess[{i}] op {op!r} has no argument {key!r} (use {', '.join(spec)})")
+        for key, (kind, default, low, high) in spec.items():
+            value = step.get(key, default)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and value != int(value)):
+                raise ConfigError(f"{where}: preprocess[{i}] {op}.{key} must be {kind.__name__}, not {value!r}")
+            if not low <= value <= high or not math.isfinite(value):
+                raise ConfigError(f"{where}: preprocess[{i}] {op}.{key} = {value} is outside [{low}, {high}]")
+            if op == "blur" and key == "ksize" and int(value) % 2 == 0:
+                raise ConfigError(f"{where}: preprocess[{i}] blur.ksize must be odd, not {value}")
+            args.append((key, kind(value)))
+        preprocess.append((op, tuple(args)))
+
+    params = data.get("parameters") or {}
+    if not isinstance(params, Mapping):
+        raise ConfigError(f"{where}: parameters must be an object of cv2.aruco.DetectorParameters attributes")
+    config = DetectorConfig(name, dict_name, tuple(preprocess), tuple(sorted(params.items())))
+    _detector_parameters(config)  # checks every parameter name and type now, not on the first frame
+    return config
+
+
+def _detector_parameters(config: DetectorConfig) -> Any:
+    import cv2
+
+    params = cv2.aruco.DetectorParameters()
+    for key, value in config.parameters:
+        if key.startswith("_") or not hasattr(params, key) or callable(getattr(params, key)):
+            raise ConfigError(f"detector configuration {config.name!r}: cv2.aruco.DetectorParameters has no {key!r}")
+        if isinstance(value, str) and value.startswith("CORNER_REFINE_"):
+            value = getattr(cv2.aruco, value, value)  # a readable name for cornerRefinementMethod
+        current = getattr(params, key)
+        if isinstance(current, bool) != isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(
+                f"detector configuration {config.name!r}: parameter {key!r} must be "
+                f"{type(current).__name__}, not {value!r}"
+            )
+        if isinstance(current, int) and not isinstance(current, bool) and value != int(value):
+            raise ConfigError(f"detector configuration {config.name!r}: parameter {key!r} must be an integer, not {value!r}")
+        try:
+            setattr(params, key, type(current)(value))
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise ConfigError(f"detector configuration {config.name!r}: parameter {key!r} = {value!r}: {exc}") from exc
+    return params
+
+
+@dataclass
+class Detection:
+    """What one frame gave: marker ids and their corners, and the time it took."""
+
+    ids: list[int]
+    corners: list[list[list[float]]]  # per marker: 4 x [x, y]
+    processing_ms: float
+    preprocess_ms: float = 0.0
+
+
+class MarkerDetector:
+    """Pre-processing and ``cv2.aruco.ArucoDetector`` for one configuration."""
+
+    def __init__(self, config: DetectorConfig) -> None:
+        import cv2
+
+        from onboard.scenario import dictionary
+
+        self.config = config
+        self._cv2 = cv2
+        self._steps: list[Callable[[np.ndarray], np.ndarray]] = [self._step(op, dict(args)) for op, args in config.preprocess]
+        self._detector = cv2.aruco.ArucoDetector(dictionary(config.dictionary), _detector_parameters(config))
+
+    def _step(self, op: str, args: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
+        cv2 = self._cv2
+        if op == "gamma":
+            lut = np.clip(255.0 * (np.arange(256) / 255.0) ** args["gamma"] + 0.5, 0, 255).astype(np.uint8)
+            return lambda img: cv2.LUT(img, lut)
+        if op == "clahe":
+            clahe = cv2.createCLAHE(clipLimit=args["clip_limit"], tileGridSize=(args["tile"], args["tile"]))
+            return clahe.apply
+        if op == "stretch":
+            low_pct, high_pct = args["low_pct"], args["high_pct"]
+
+            def stretch(img: np.ndarray) -> np.ndarray:
+                # Percentiles from a histogram of every 4th pixel: cheap and robust to noise.
+                hist = cv2.calcHist([img[::4, ::4]], [0], None, [256], [0, 256]).ravel().cumsum()
+                total = hist[-1]
+                low = int(np.searchsorted(hist, total * low_pct / 100.0))
+                high = int(np.searchsorted(hist, total * high_pct / 100.0))
+                if high <= low:
+                    return img
+                scale = 255.0 / (high - low)
+                return cv2.convertScaleAbs(img, alpha=scale, beta=-low * scale)
+
+            return stretch
+        if op == "blur":
+            k = args["ksize"]
+            return (lambda img: img) if k <= 1 else (lambda img: cv2.GaussianBlur(img, (k, k), 0))
+        raise ConfigError(f"unknown pre-processing op {op!r}")  # parse_config refuses these first
+
+    def preprocess(self, gray: np.ndarray) -> np.ndarray:
+        for step in self._steps:
+            gray = step(gray)
+        return gray
+
+    def detect(self, gray: np.ndarray) -> Detection:
+        """Pre-process a grey frame and find markers in it."""
+        if gray.ndim != 2 or gray.dtype != np.uint8:
+            raise ConfigError(f"detector needs a grey uint8 image, got {gray.dtype} {gray.shape}")
+        start = time.perf_counter()
+        image = self.preprocess(gray)
+        mid = time.perf_counter()
+        corners, ids, _rejected = self._detector.detectMarkers(image)
+        end = time.perf_counter()
+        if ids is None:
+            return Detection([], [], (end - start) * 1e3, (mid - start) * 1e3)
+        return Detection(
+            [int(i) for i in ids.ravel()],
+            [[[round(float(x), 2), round(float(y), 2)] for x, y in c.reshape(4, 2)] for c in corners],
+            (end - start) * 1e3,
+            (mid - start) * 1e3,
+        )
+
+
+@dataclass
+class Score:
+    """Detections against ground truth, summed over frames."""
+
+    frames: int = 0
+    truth: int = 0
+    hits: int = 0
+    false: int = 0
+    corner_error_px: list[float] = field(default_factory=list)
+
+    def add(self, other: "Score") -> None:
+        self.frames += other.frames
+        self.truth += other.truth
+        self.hits += other.hits
+        self.false += other.false
+        self.corner_error_px += other.corner_error_px
+
+    @property
+    def detection_rate(self) -> float:
+        return self.hits / self.truth if self.truth else 0.0
+
+    @property
+    def false_rate(self) -> float:
+        """False detections per marker shown (same denominator as the detection rate)."""
+        return self.false / self.truth if self.truth else 0.0
+
+
+def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, tolerance_px: float = 5.0) -> Score:
+    """Match detections to truth: same id and mean corner distance within ``tolerance_px``.
+
+    ``truth`` items are :class:`onboard.scenario.Truth` or wire maps ``{"id", "corners"}``.
+    A detection that matches nothing (wrong id, wrong place, or a second hit) is false.
+    """
+    wanted: dict[int, np.ndarray] = {}
+    for item in truth:
+        tid, tc = (item["id"], item["corners"]) if isinstance(item, Mapping) else (item.id, item.corners)
+        wanted[int(tid)] = np.asarray(tc, np.float32).reshape(4, 2)
+    result = Score(frames=1, truth=len(wanted))
+    for mid, mc in zip(ids, corners):
+        expected = wanted.get(int(mid))
+        if expected is None:
+            result.false += 1
+            continue
+        error = float(np.linalg.norm(np.asarray(mc, np.float32).reshape(4, 2) - expected, axis=1).mean())
+        if error <= tolerance_px:
+            result.hits += 1
+            result.corner_error_px.append(error)
+            del wanted[int(mid)]
+        else:
+            result.false += 1
+    return result

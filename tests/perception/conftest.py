@@ -1,0 +1,143 @@
+"""Fixtures of the perception tests: a Zenoh session on loopback, detector processes, collectors."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import pytest
+
+from shared import messages
+from shared.session import ZenohSettings, open_session
+from tests.conftest import REPO, free_port
+
+_robots = itertools.count()
+
+# The cheap default, and a configuration made for the dark (both as the calibration ranks them).
+DAY_JSON = '{"dictionary": "DICT_4X4_50", "preprocess": [], "parameters": {"cornerRefinementMethod": 1}}'
+
+
+def wait_for(predicate: Callable[[], object], timeout: float, what: str, interval: float = 0.02):
+    """Poll ``predicate`` until it is truthy; fail naming ``what`` after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() >= deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(interval)
+
+
+@pytest.fixture
+def robot() -> str:
+    """A robot name of its own, so tests never see each other's keys."""
+    return f"p{os.getpid()}x{next(_robots)}"
+
+
+@pytest.fixture(scope="module")
+def endpoint_session():
+    """A peer session listening on a free loopback port: ``(endpoint, session)``."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    session = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
+    yield endpoint, session
+    session.close()
+
+
+class Collector:
+    """Decoded messages of one kind from a key expression, handed over by a queue."""
+
+    def __init__(self, session: Any, key: str, kind: str) -> None:
+        self.kind = kind
+        self.items: queue.Queue[dict[str, Any]] = queue.Queue()
+        self._sub = session.declare_subscriber(key, lambda s: self.items.put(s.payload.to_bytes()))
+
+    def next(self, timeout: float = 10.0) -> dict[str, Any]:
+        return messages.decode(self.items.get(timeout=timeout), self.kind)
+
+    def wait_for(self, predicate: Callable[[dict[str, Any]], bool], timeout: float = 10.0, what: str = "a message"):
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise AssertionError(f"no {self.kind} message with {what} within {timeout} s")
+            try:
+                item = self.next(timeout=left)
+            except queue.Empty:
+                continue
+            if predicate(item):
+                return item
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+class DetectorProcess:
+    """``python -m onboard.detector`` as a child; stdout lines collected by a thread."""
+
+    def __init__(self, args: list[str], log_dir: Path, name: str) -> None:
+        self.stderr_path = log_dir / f"{name}.stderr"
+        self._stderr = open(self.stderr_path, "w")
+        env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "onboard.detector", *args], cwd=REPO, env=env,
+            stdout=subprocess.PIPE, stderr=self._stderr, text=True,
+        )
+        self.lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            self.lines.put(line.strip())
+
+    def wait_ready(self, timeout: float = 20.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                if self.lines.get(timeout=0.1) == "KGADAPT_READY":
+                    return
+            except queue.Empty:
+                if self.process.poll() is not None:
+                    break
+        raise AssertionError(f"detector not ready (status {self.process.poll()}); stderr:\n{self.stderr()}")
+
+    def stderr(self) -> str:
+        self._stderr.flush()
+        return self.stderr_path.read_text()
+
+    def wait(self, timeout: float = 10.0) -> int:
+        return self.process.wait(timeout)
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> int:
+        if self.process.poll() is None:
+            self.process.send_signal(sig)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self._stderr.close()
+        return self.process.returncode
+
+
+@pytest.fixture
+def detectors(tmp_path):
+    """Start detector processes; each one still running is stopped at teardown, also on failure."""
+    started: list[DetectorProcess] = []
+
+    def start(*args: str) -> DetectorProcess:
+        child = DetectorProcess(list(args), tmp_path, f"detector{len(started)}")
+        started.append(child)
+        return child
+
+    yield start
+    for child in reversed(started):
+        child.stop()

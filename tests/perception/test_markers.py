@@ -1,0 +1,138 @@
+"""The detection core: configurations, detection against ground truth, and calibration per band."""
+
+from __future__ import annotations
+
+
+import cv2
+import numpy as np
+import pytest
+
+from onboard.calibration import (CalibrationSettings, band_levels, best_per_band, calibrate, configs_from_store,
+                                 ensure_models, record)
+from onboard.illumination import Band
+from onboard.markers import MarkerDetector, parse_config, score
+from onboard.scenario import IlluminationProfile, SyntheticScene
+from shared.errors import ConfigError
+
+
+def jpeg_round_trip(image: np.ndarray, quality: int = 80) -> np.ndarray:
+    ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    assert ok
+    return cv2.imdecode(jpeg, cv2.IMREAD_GRAYSCALE)
+
+
+def test_rendered_markers_are_detected_at_their_true_corners():
+    scene = SyntheticScene()
+    detector = MarkerDetector(parse_config("subpix", {"parameters": {"cornerRefinementMethod": "CORNER_REFINE_SUBPIX"}}))
+    rng = np.random.default_rng(3)
+    for t in (0.0, 1.3, 2.9, 4.4):
+        frame = scene.render(t, IlluminationProfile.constant(120), rng)
+        found = detector.detect(jpeg_round_trip(frame.image))
+        result = score(found.ids, found.corners, frame.truth, tolerance_px=3.0)
+        assert sorted(found.ids) == sorted(t.id for t in frame.truth) == [3, 7, 12, 21, 33, 42]
+        assert result.hits == 6 and result.false == 0
+        assert max(result.corner_error_px) < 1.0
+
+
+def test_the_scene_sways_so_the_truth_moves_between_frames():
+    scene = SyntheticScene()
+    _, early = scene.reflectance(0.0)
+    _, later = scene.reflectance(1.5)
+    assert early[0].id == later[0].id
+    assert np.abs(np.subtract(early[0].corners, later[0].corners)).max() > 2
+
+
+def test_score_counts_wrong_ids_and_misplaced_corners_as_false_detections():
+    truth = [{"id": 3, "corners": [[0, 0], [10, 0], [10, 10], [0, 10]]}]
+    square = [[0, 0], [10, 0], [10, 10], [0, 10]]
+    shifted = [[x + 20, y] for x, y in square]
+    assert (score([3], [square], truth).hits, score([3], [square], truth).false) == (1, 0)
+    assert (score([4], [square], truth).hits, score([4], [square], truth).false) == (0, 1)
+    assert (score([3], [shifted], truth).hits, score([3], [shifted], truth).false) == (0, 1)
+    twice = score([3, 3], [square, square], truth)
+    assert (twice.hits, twice.false) == (1, 1)
+
+
+@pytest.mark.parametrize(
+    "config, words",
+    [
+        ('{"preprocess": [{"op": "sharpen"}]}', "unknown op 'sharpen'"),
+        ('{"preprocess": [{"op": "blur", "ksize": 4}]}', "blur.ksize must be odd"),
+        ('{"preprocess": [{"op": "gamma", "gamma": "strong"}]}', "gamma.gamma must be float"),
+        ('{"preprocess": [{"op": "clahe", "clip": 2}]}', "has no argument 'clip'"),
+        ('{"parameters": {"adaptiveThreshWinSizeMaxx": 53}}', "has no 'adaptiveThreshWinSizeMaxx'"),
+        ('{"parameters": {"adaptiveThreshWinSizeMax": 5.5}}', "must be an integer"),
+        ('{"parameters": {"detectInvertedMarker": 1}}', "must be bool"),
+        ('{"dictionary": "DICT_9X9_7"}', "unknown ArUco dictionary 'DICT_9X9_7'"),
+        ('{"thresholds": {}}', "unknown key 'thresholds'"),
+        ('[1, 2]', "must be an object"),
+        ("{not json", "not JSON"),
+    ],
+)
+def test_a_bad_configuration_is_refused_naming_it_and_the_problem(config, words):
+    with pytest.raises(ConfigError) as caught:
+        parse_config("marker_detection_odd", config)
+    assert "'marker_detection_odd'" in str(caught.value) and words in str(caught.value)
+
+
+def test_each_preprocessing_op_runs_and_keeps_the_frame_shape():
+    config = parse_config("all", {
+        "preprocess": [{"op": "stretch", "low_pct": 2, "high_pct": 98}, {"op": "gamma", "gamma": 0.5},
+                       {"op": "clahe", "clip_limit": 2.0, "tile": 8}, {"op": "blur", "ksize": 3}],
+    })
+    dim = np.random.default_rng(0).integers(0, 20, (120, 160), dtype=np.uint8)
+    out = MarkerDetector(config).preprocess(dim)
+    assert out.shape == dim.shape and out.dtype == np.uint8
+    assert out.mean() > 3 * dim.mean()  # stretch and gamma brighten a dark frame
+
+
+def test_band_levels_sample_the_whole_band_below_saturation():
+    assert band_levels(Band("dusk", 12, 40), 4) == [15.5, 22.5, 29.5, 36.5]
+    assert max(band_levels(Band("day", 40, 255), 4, max_level=200)) < 200
+
+
+@pytest.fixture
+def calibrated(resp_store):
+    """The shipped models, calibrated on a few frames (the same run the CLI does, smaller)."""
+    assert ensure_models(resp_store) is True
+    configs, bands, _ = configs_from_store(resp_store)
+    results = calibrate(configs, bands, CalibrationSettings(frames_per_level=3, levels_per_band=3))
+    return resp_store, configs, bands, results
+
+
+def test_configurations_differ_in_the_dark_as_calibration_shows(calibrated):
+    _, configs, bands, results = calibrated
+    by = {(r.config, r.band): r for r in results}
+    assert {b.name for b in bands} == {"dark", "dusk", "day"}
+    assert by[("marker_detection_day", "dark")].detection_rate < 0.3
+    assert by[("marker_detection_dark", "dark")].detection_rate > 0.8
+    assert by[("marker_detection_day", "day")].detection_rate == by[("marker_detection_dark", "day")].detection_rate == 1.0
+    best = best_per_band(results)
+    assert best["dark"] == "marker_detection_dark"
+    assert best["day"] == "marker_detection_day"  # equal rate in good light: the cheap one wins by speed
+
+
+def test_calibration_figures_land_in_the_graph(calibrated):
+    from knowledge.queries import run_named
+
+    store, _, _, results = calibrated
+    assert record(store, results, at=1234.5) == len(results)
+    rows = {r["config"]: r for r in run_named(store, "detector_configs", {"feature": "MarkerDetection"})}
+    dark = next(r for r in results if r.config == "marker_detection_dark" and r.band == "dark")
+    assert rows["marker_detection_dark"]["detection_rate"] == pytest.approx(dark.detection_rate)
+    assert rows["marker_detection_dark"]["ms_per_frame"] == pytest.approx(dark.ms_per_frame)
+    assert rows["marker_detection_dark"]["calibrated_at"] == 1234.5
+    every = store.execute("MATCH (:PerceptionGraph)-[c:CALIBRATED]->(:IlluminationBand) RETURN count(c) AS n")
+    assert every[0]["n"] == len(results) == 3 * len(rows) - 3  # every suited configuration x every band; hd left out
+
+
+def test_the_best_configuration_of_a_band_is_the_most_accurate_then_the_fastest():
+    from onboard.calibration import CalibrationResult
+
+    def result(config, rate, ms, false=0.0):
+        return CalibrationResult(config=config, band="b", detection_rate=rate, false_rate=false, ms_per_frame=ms,
+                                 ms_p99=ms, frames=1, markers=6)
+
+    assert best_per_band([result("slow", 1.0, 9.0), result("cheap", 0.998, 2.0)]) == {"b": "cheap"}
+    assert best_per_band([result("slow", 1.0, 9.0), result("cheap", 0.99, 2.0)]) == {"b": "slow"}
+    assert best_per_band([result("noisy", 1.0, 2.0, false=0.1), result("clean", 0.95, 9.0)]) == {"b": "clean"}
