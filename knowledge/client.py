@@ -1,0 +1,67 @@
+"""Ask a robot's knowledge service over Zenoh.
+
+>>> client = KnowledgeClient(session, "quad1")
+>>> client.query("placement", {"feature": "MarkerDetection"})
+[{'config': ..., 'platform': 'remote', ...}]
+
+Errors: :class:`RemoteError` when the service answers with an error reply
+(its text names the problem), :class:`RequestTimeout` when nothing answers in
+time, :class:`MessageError` when the reply itself is malformed.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Mapping
+
+from shared import keys, messages
+from shared.errors import MessageError, RemoteError, RequestTimeout, TransportError
+
+
+class KnowledgeClient:
+    """Named queries, read-only Cypher and run-time writes on ``robot``'s knowledge service."""
+
+    def __init__(self, session: Any, robot: str, *, timeout: float = 2.0) -> None:
+        self.session = session
+        self.robot = keys.check_name(robot, "robot name")
+        self.timeout = timeout
+        self.last_elapsed_ms: float | None = None  # store time the service reported for the last request
+
+    def query(self, name: str, params: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
+        """Rows of named query ``name`` with ``params``."""
+        payload = messages.encode("query_request", {"params": dict(params or {})})
+        return self._ask(keys.knowledge_query(self.robot, keys.check_name(name, "query name")), payload, f"query {name!r}")
+
+    def cypher(self, text: str, params: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
+        """Rows of a read-only Cypher statement (a write is refused by the service)."""
+        payload = messages.encode("cypher_request", {"cypher": text, "params": dict(params or {})})
+        return self._ask(keys.knowledge_cypher(self.robot), payload, "cypher")
+
+    def write(self, verb: str, params: Mapping[str, Any]) -> list[dict[str, Any]]:
+        """Apply run-time write ``verb`` (see knowledge.runtime.WRITERS)."""
+        payload = messages.encode("write_request", {"params": dict(params)})
+        return self._ask(keys.knowledge_write(self.robot, keys.check_name(verb, "write verb")), payload, f"write {verb!r}")
+
+    def _ask(self, key: str, payload: bytes, what: str) -> list[dict[str, Any]]:
+        deadline = time.monotonic() + self.timeout
+        try:
+            replies = self.session.get(key, payload=payload, timeout=self.timeout)
+        except Exception as exc:  # zenoh.ZError: session closed, bad key
+            raise TransportError(f"{what} on {key}: {exc}") from exc
+        error: str | None = None
+        for reply in replies:
+            if reply.ok is not None:
+                body = messages.decode(reply.ok.payload.to_bytes(), "rows")
+                self.last_elapsed_ms = body.get("elapsed_ms")
+                return body["rows"]
+            text = reply.err.payload.to_bytes().decode("utf-8", "replace")
+            if text != "Timeout":  # Zenoh's own reply when the queryable is slower than the timeout
+                error = text
+                break
+        if error is not None:
+            raise RemoteError(f"{what} refused by the knowledge service of {self.robot}: {error}")
+        waited = self.timeout - max(0.0, deadline - time.monotonic())
+        raise RequestTimeout(
+            f"{what}: no answer from the knowledge service of robot {self.robot!r} on {key} "
+            f"within {waited:.1f} s (is `kgadapt knowledge serve` running and reachable?)"
+        )

@@ -1,0 +1,496 @@
+"""The knowledge service: the graph store, reachable over Zenoh.
+
+It owns the store and serves, under ``kgadapt/<robot>/knowledge/``:
+
+===========================  ====================================  ==========================
+key                          request                               reply
+===========================  ====================================  ==========================
+``query/<name>``             ``query_request {params}``            ``rows {rows, elapsed_ms}``
+``cypher``                   ``cypher_request {cypher, params}``   ``rows`` (read-only only)
+``write/<verb>``             ``write_request {params}``            ``rows {rows: []}``
+===========================  ====================================  ==========================
+
+``<name>`` is any of ``knowledge.queries.QUERIES``, ``<verb>`` any of
+``knowledge.runtime.WRITERS``. A named query may also be asked without a
+payload, its parameters in the selector (``query/placement?feature=MarkerDetection``),
+which is handy from Zenoh's own tools. Every problem (malformed, truncated,
+wrong-typed or oversized payload, unknown query or verb, missing or ill-typed
+parameter, a write sent as Cypher, a store error) is answered with
+``query.reply_err(text)`` naming it.
+
+Write verbs sit on their own key (``knowledge/write/**``) so that Zenoh access
+control can keep them from other robots while the queries stay open; with
+``writes=False`` (``kgadapt knowledge serve --read-only``) they are not
+declared at all.
+
+It also keeps each ``Platform``'s run-time figures current: host statuses
+(``host/<host>/status``) update free memory, CPU load and ``last_seen``
+(the service's receive time, so hosts' clocks need not agree), and host
+liveliness (``host/<host>/alive``, subscribed with history) sets ``online``.
+A status never sets ``online``: only the token does, so a late status cannot
+revive a host whose token is gone. At setup every platform is first marked
+offline; the liveliness history then marks the live ones online again.
+
+Threads: Zenoh callbacks only put work on queues. Request workers (``workers``
+of them) answer queries; one status worker applies host statuses and
+liveliness changes, keeping only the newest of each per host when it falls
+behind, so a burst of statuses costs one write per host.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping
+
+import zenoh
+
+from knowledge import queries, runtime
+from knowledge.store import GraphStore
+from shared import keys, messages
+from shared.errors import ConfigError, KgadaptError, MessageError, NamedQueryError, QueryError
+
+log = logging.getLogger(__name__)
+
+_STOP = object()
+_PLAIN = (str, int, float, bool, type(None))
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServiceSettings:
+    """How the knowledge service serves."""
+
+    robot: str = "quad1"
+    writes: bool = True  # declare knowledge/write/<verb>; False = --read-only
+    workers: int = 2  # request worker threads (a slow Cypher query then blocks only one)
+    query_timeout_ms: int = 5000  # named queries and Cypher (FalkorDB honours it late for reads)
+    max_pending_requests: int = 1000
+    max_pending_statuses: int = 10000
+    mark_offline_at_start: bool = True
+
+    def __post_init__(self) -> None:
+        keys.check_name(self.robot, "robot name")
+        if self.workers < 1:
+            raise ConfigError(f"workers {self.workers!r}: at least 1")
+
+
+class KnowledgeService:
+    """Serve one store over Zenoh. ``setup(session)`` declares, ``shutdown()`` undeclares.
+
+    The store and the session belong to the caller: the service neither opens
+    nor closes them.
+    """
+
+    def __init__(self, store: GraphStore, settings: ServiceSettings = ServiceSettings()) -> None:
+        self.store = store
+        self.settings = settings
+        self._requests: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_requests)
+        self._events: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_statuses)
+        self._threads: list[threading.Thread] = []
+        self._declared: list[Any] = []
+        self._stats_lock = threading.Lock()
+        self._stats: collections.Counter[str] = collections.Counter()
+        self._last_drop = ""
+        self._drop_log = _RateLimitedLog(log, per_second=10)
+        self._store_lock = _store_lock(store)
+        self._writers: Mapping[str, Callable[..., Any]] = dict(runtime.WRITERS) if settings.writes else {}
+
+    # -- life cycle ---------------------------------------------------------
+
+    def setup(self, session: Any) -> None:
+        """Start the workers and declare the queryables and subscribers on ``session``."""
+        robot = self.settings.robot
+        if self.settings.mark_offline_at_start:
+            self._mark_all_offline()
+        for i in range(self.settings.workers):
+            self._start_thread(self._request_loop, f"knowledge-requests-{i}")
+        self._start_thread(self._event_loop, "knowledge-status")
+        try:
+            # Subscribers first: declarations reach others in order, so whoever
+            # sees the queryables also sees that statuses are listened to.
+            self._declared.append(
+                session.liveliness().declare_subscriber(keys.host_alive(robot, "*"), self._on_alive, history=True)
+            )
+            self._declared.append(session.declare_subscriber(keys.host_status(robot, "*"), self._on_status))
+            if self.settings.writes:
+                self._declared.append(session.declare_queryable(keys.knowledge_write(robot, "*"), self._on_write))
+            self._declared.append(session.declare_queryable(keys.knowledge_cypher(robot), self._on_cypher))
+            self._declared.append(session.declare_queryable(keys.knowledge_query(robot, "*"), self._on_named_query))
+        except Exception:
+            self.shutdown()
+            raise
+        log.info(
+            "knowledge service for robot %s: %d named queries, cypher (read-only), %s",
+            robot, len(queries.QUERIES),
+            f"write verbs {', '.join(sorted(self._writers))}" if self.settings.writes else "no write verbs (read-only)",
+        )
+
+    def shutdown(self) -> None:
+        """Undeclare everything and stop the workers (pending requests get an error reply)."""
+        for entity in reversed(self._declared):
+            try:
+                entity.undeclare()
+            except Exception as exc:  # the session may be closed already
+                log.debug("undeclare failed: %s", exc)
+        self._declared.clear()
+        for _ in range(self.settings.workers):
+            _put_blocking(self._requests, _STOP)
+        _put_blocking(self._events, _STOP)
+        for thread in self._threads:
+            thread.join(timeout=10)
+        self._threads.clear()
+        while True:
+            try:
+                item = self._requests.get_nowait()
+            except queue.Empty:
+                break
+            if item is not _STOP:
+                _, query = item
+                _finish(query, error="knowledge service is shutting down")
+
+    def stats(self) -> dict[str, Any]:
+        """Counters: requests answered/refused, statuses applied/dropped, the last drop reason."""
+        with self._stats_lock:
+            return {**self._stats, "last_drop": self._last_drop}
+
+    # -- request handling, Zenoh-free (tests call these directly) -----------
+
+    def answer_named(self, name: str, payload: bytes | None, selector_params: Mapping[str, str] | None = None) -> bytes:
+        """A ``rows`` reply for named query ``name``; raise KgadaptError naming the problem."""
+        if name not in queries.QUERIES:
+            raise NamedQueryError(f"unknown named query {name!r}; known: {', '.join(sorted(queries.QUERIES))}")
+        if payload:
+            request = messages.decode(payload, "query_request")
+            params = _plain_params(request.get("params") or {}, f"query {name!r}")
+        elif selector_params:
+            params = queries.coerce_params(name, dict(selector_params))
+        else:
+            params = {}
+        start = time.perf_counter()
+        with self._store_lock:
+            rows = queries.run_named(self.store, name, params, timeout_ms=self.settings.query_timeout_ms)
+        return _rows_reply(rows, (time.perf_counter() - start) * 1000, f"query {name!r}")
+
+    def answer_cypher(self, payload: bytes | None) -> bytes:
+        """A ``rows`` reply for read-only Cypher; a write is refused with ReadOnlyViolation."""
+        if not payload:
+            raise MessageError("cypher_request has no payload")
+        request = messages.decode(payload, "cypher_request")
+        params = _plain_params(request.get("params") or {}, "cypher")
+        start = time.perf_counter()
+        with self._store_lock:
+            rows = self.store.execute(
+                request["cypher"], params, read_only=True, timeout_ms=self.settings.query_timeout_ms
+            )
+        return _rows_reply(rows, (time.perf_counter() - start) * 1000, "cypher")
+
+    def answer_write(self, verb: str, payload: bytes | None) -> bytes:
+        """Apply write verb ``verb``; an empty ``rows`` reply, or KgadaptError naming the problem."""
+        if not self.settings.writes:
+            raise NamedQueryError("this knowledge service is read-only: no write verbs")
+        if verb not in self._writers:
+            raise NamedQueryError(f"unknown write verb {verb!r}; known: {', '.join(sorted(self._writers))}")
+        if not payload:
+            raise MessageError(f"write_request for {verb!r} has no payload")
+        request = messages.decode(payload, "write_request")
+        params = _plain_params(request["params"], f"write verb {verb!r}")
+        start = time.perf_counter()
+        with self._store_lock:
+            runtime.run_write(self.store, verb, params)  # checks names and types, naming them
+        return _rows_reply([], (time.perf_counter() - start) * 1000, f"write verb {verb!r}")
+
+    # -- Zenoh callbacks: hand over, nothing else ---------------------------
+
+    def _on_named_query(self, query: Any) -> None:
+        self._enqueue_request("query", query)
+
+    def _on_cypher(self, query: Any) -> None:
+        self._enqueue_request("cypher", query)
+
+    def _on_write(self, query: Any) -> None:
+        self._enqueue_request("write", query)
+
+    def _enqueue_request(self, kind: str, query: Any) -> None:
+        try:
+            self._requests.put_nowait((kind, query))
+        except queue.Full:
+            # Dropping the query finalizes it: the caller sees no reply rather than a hang.
+            self._count("requests_shed")
+            self._drop_log.warning("request shed: %d requests pending", self.settings.max_pending_requests)
+
+    def _on_status(self, sample: Any) -> None:
+        self._enqueue_event(("status", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
+
+    def _on_alive(self, sample: Any) -> None:
+        online = sample.kind == zenoh.SampleKind.PUT
+        self._enqueue_event(("alive", str(sample.key_expr), online, time.time()))
+
+    def _enqueue_event(self, event: tuple[Any, ...]) -> None:
+        try:
+            self._events.put_nowait(event)
+        except queue.Full:
+            self._drop(f"{event[0]} on {event[1]}: {self.settings.max_pending_statuses} events pending")
+
+    # -- workers ------------------------------------------------------------
+
+    def _start_thread(self, target: Callable[[], None], name: str) -> None:
+        thread = threading.Thread(target=target, name=name, daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def _request_loop(self) -> None:
+        while True:
+            item = self._requests.get()
+            if item is _STOP:
+                return
+            kind, query = item
+            try:
+                self._serve(kind, query)
+            except Exception:  # never let one request end the worker
+                log.exception("request worker: unexpected failure")
+
+    def _serve(self, kind: str, query: Any) -> None:
+        robot = self.settings.robot
+        try:
+            key = str(query.key_expr)
+            payload = query.payload.to_bytes() if query.payload is not None else None
+            if kind == "query":
+                name = keys.last_chunk(key)
+                body = self.answer_named(name, payload, _selector_params(query))
+                reply_key = keys.knowledge_query(robot, name)
+            elif kind == "cypher":
+                body = self.answer_cypher(payload)
+                reply_key = keys.knowledge_cypher(robot)
+            else:
+                verb = keys.last_chunk(key)
+                body = self.answer_write(verb, payload)
+                reply_key = keys.knowledge_write(robot, verb)
+        except KgadaptError as exc:
+            self._count("requests_refused")
+            log.info("%s request on %s refused: %s", kind, query.key_expr, exc)
+            _finish(query, error=str(exc))
+            return
+        except Exception as exc:
+            self._count("requests_failed")
+            log.exception("%s request on %s failed", kind, query.key_expr)
+            _finish(query, error=f"internal error answering {kind} request: {type(exc).__name__}: {exc}")
+            return
+        self._count("requests_answered")
+        _finish(query, key=reply_key, payload=body)
+
+    def _event_loop(self) -> None:
+        while True:
+            first = self._events.get()
+            if first is _STOP:
+                return
+            batch = [first]
+            stop = False
+            while len(batch) < 1000:  # drain what piled up: only the newest per host matters
+                try:
+                    item = self._events.get_nowait()
+                except queue.Empty:
+                    break
+                if item is _STOP:
+                    stop = True
+                    break
+                batch.append(item)
+            try:
+                self._apply_events(batch)
+            except Exception:
+                log.exception("status worker: unexpected failure")
+            if stop:
+                return
+
+    def _apply_events(self, batch: list[tuple[Any, ...]]) -> None:
+        statuses: dict[str, tuple[dict[str, Any], float]] = {}
+        alive: dict[str, tuple[bool, float]] = {}
+        for kind, key, value, received in batch:
+            try:
+                if kind == "status":
+                    body = self._check_status(key, value)
+                    statuses[body["host"]] = (body, received)
+                else:
+                    host = _host_of(key)
+                    alive[host] = (value, received)
+            except KgadaptError as exc:
+                self._drop(f"{kind} on {key}: {exc}")
+        self._count("events_received", len(batch))
+        for host, (online, received) in alive.items():
+            self._apply(runtime.set_platform_online, host, "liveliness", name=host, online=online, time=received)
+            log.info("host %s is %s", host, "online" if online else "offline")
+        for host, (body, received) in statuses.items():
+            self._apply(
+                runtime.update_platform, host, "status",
+                name=host, time=received,
+                memory_total_mb=float(body["memory_total_mb"]), memory_free_mb=float(body["memory_free_mb"]),
+                cpu_load=float(body["cpu_load"]), cpu_cores=body.get("cpu_cores"),
+            )
+
+    def _apply(self, writer: Callable[..., Any], host: str, what: str, **params: Any) -> None:
+        try:
+            with self._store_lock:
+                writer(self.store, **params)
+        except KgadaptError as exc:
+            self._drop(f"{what} of host {host}: store refused it: {exc}")
+            return
+        self._count(f"{what}_applied")
+
+    def _check_status(self, key: str, payload: bytes) -> dict[str, Any]:
+        host = _host_of(key)
+        body = messages.decode(payload, "host_status")
+        if body["host"] != host:
+            raise MessageError(f"host_status on the key of host {host!r} names host {body['host']!r}")
+        for field in ("memory_total_mb", "memory_free_mb", "cpu_load"):
+            if body[field] < 0:
+                raise MessageError(f"host_status field {field!r} is negative ({body[field]})")
+        cores = body.get("cpu_cores")
+        if cores is not None and cores < 1:
+            raise MessageError(f"host_status field 'cpu_cores' must be at least 1, got {cores}")
+        return body
+
+    def _mark_all_offline(self) -> None:
+        now = time.time()
+        with self._store_lock:
+            try:
+                rows = queries.run_named(self.store, "platforms", {})
+            except QueryError as exc:
+                if "empty key" not in str(exc):
+                    raise
+                return  # FalkorDB refuses reads of a graph not created yet: nothing to mark
+            for row in rows:
+                if row.get("online"):
+                    runtime.set_platform_online(self.store, name=row["platform"], online=False, time=now)
+
+    # -- bookkeeping --------------------------------------------------------
+
+    def _count(self, what: str, n: int = 1) -> None:
+        if n:
+            with self._stats_lock:
+                self._stats[what] += n
+
+    def _drop(self, reason: str) -> None:
+        with self._stats_lock:
+            self._stats["events_dropped"] += 1
+            self._last_drop = reason
+        self._drop_log.warning("dropped %s", reason)
+
+
+# -- helpers ----------------------------------------------------------------
+
+
+def _plain_params(params: Mapping[Any, Any], what: str) -> dict[str, Any]:
+    """Keep only plain values (msgpack may also carry bytes and extension types)."""
+    for name, value in params.items():
+        if not isinstance(name, str):
+            raise MessageError(f"{what}: parameter name {name!r} is not a string")
+        _check_plain(value, f"{what}: parameter {name!r}", depth=0)
+    return dict(params)
+
+
+def _check_plain(value: Any, what: str, depth: int) -> None:
+    if depth > 8:
+        raise MessageError(f"{what} is nested too deeply")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise MessageError(f"{what} is not a finite number")
+    if isinstance(value, int) and not isinstance(value, bool) and not -(2**63) <= value < 2**63:
+        raise MessageError(f"{what} does not fit in 64 bits")
+    if isinstance(value, _PLAIN):
+        return
+    if isinstance(value, list):
+        for item in value:
+            _check_plain(item, what, depth + 1)
+        return
+    if isinstance(value, dict):
+        for k, item in value.items():
+            if not isinstance(k, str):
+                raise MessageError(f"{what} has a map key {k!r} that is not a string")
+            _check_plain(item, what, depth + 1)
+        return
+    raise MessageError(f"{what} has a value of type {type(value).__name__}, not a graph value")
+
+
+def _rows_reply(rows: list[dict[str, Any]], elapsed_ms: float, what: str) -> bytes:
+    try:
+        return messages.encode("rows", {"rows": rows, "elapsed_ms": round(elapsed_ms, 4)})
+    except MessageError as exc:
+        raise MessageError(f"{what}: the answer cannot be sent: {exc}") from exc
+    except (TypeError, ValueError, OverflowError) as exc:  # msgpack cannot pack a store value
+        raise MessageError(f"{what}: the answer holds a value that cannot be sent: {exc}") from exc
+
+
+def _selector_params(query: Any) -> dict[str, str]:
+    try:
+        pairs = list(query.parameters)
+    except Exception:
+        return {}
+    return {k: v for k, v in pairs if not k.startswith("_")}
+
+
+def _host_of(key: str) -> str:
+    try:
+        return keys.check_name(keys.last_chunk(key, 2), "host name")
+    except ConfigError as exc:
+        raise MessageError(str(exc)) from exc
+
+
+def _finish(query: Any, *, key: str | None = None, payload: bytes | None = None, error: str | None = None) -> None:
+    """Reply (or reply_err), then drop the query so the caller's get completes."""
+    try:
+        if error is not None:
+            query.reply_err(error)
+        else:
+            query.reply(key, payload)
+    except Exception as exc:  # the querier may be gone; nothing to tell it
+        log.debug("reply failed: %s", exc)
+    finally:
+        try:
+            query.drop()
+        except Exception:
+            pass
+
+
+def _put_blocking(q: queue.Queue[Any], item: Any) -> None:
+    try:
+        q.put(item, timeout=5)
+    except queue.Full:
+        log.warning("worker queue stayed full at shutdown")
+
+
+def _store_lock(store: GraphStore) -> Any:
+    """FalkorDB's client is thread-safe (a connection pool); other backends get one lock."""
+    from knowledge.falkordb_store import FalkorDBStore
+
+    if isinstance(store, FalkorDBStore):
+        return contextlib.nullcontext()
+    return threading.Lock()
+
+
+class _RateLimitedLog:
+    """At most ``per_second`` warnings a second; the rest are counted and summarized."""
+
+    def __init__(self, logger: logging.Logger, *, per_second: int) -> None:
+        self.logger = logger
+        self.per_second = per_second
+        self._window = 0.0
+        self._count = 0
+        self._suppressed = 0
+        self._lock = threading.Lock()
+
+    def warning(self, fmt: str, *args: Any) -> None:
+        with self._lock:
+            now = time.monotonic()
+            if now - self._window >= 1.0:
+                if self._suppressed:
+                    self.logger.warning("(%d similar messages suppressed)", self._suppressed)
+                self._window, self._count, self._suppressed = now, 0, 0
+            self._count += 1
+            if self._count > self.per_second:
+                self._suppressed += 1
+                return
+        self.logger.warning(fmt, *args)

@@ -1,0 +1,149 @@
+"""``kgadapt knowledge serve`` (the knowledge service) and ``kgadapt ask`` (its client).
+
+``serve`` owns the store: it opens it (starting the embedded FalkorDB when the
+store is ``embedded:``), opens Zenoh as a router listening on
+``tcp/127.0.0.1:7447`` unless told otherwise, serves until SIGINT or SIGTERM,
+then undeclares everything and stops the store if it started it.
+
+``ask`` asks any robot's service over Zenoh and prints the rows::
+
+    kgadapt ask placement --param feature=MarkerDetection
+    kgadapt ask --robot quad2 --cypher 'MATCH (p:Platform) RETURN p.name AS name' --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+
+def register(subparsers: Any) -> None:
+    """Add ``kgadapt ask``."""
+    from shared.session import add_arguments as add_zenoh_arguments
+
+    ask = subparsers.add_parser(
+        "ask",
+        help="ask a robot's knowledge service over Zenoh",
+        description="Run a named query (or read-only Cypher) on a robot's knowledge service over Zenoh "
+        "and print the rows. Connects as a Zenoh client to tcp/127.0.0.1:7447 unless told otherwise.",
+    )
+    ask.add_argument("query", nargs="?", metavar="QUERY", help="named query (see `kgadapt knowledge queries`)")
+    ask.add_argument("--param", "-p", action="append", default=[], metavar="KEY=VALUE", help="query parameter (repeatable)")
+    ask.add_argument("--cypher", metavar="TEXT", help="read-only Cypher instead of a named query")
+    ask.add_argument("--robot", default="quad1", help="whose knowledge to ask (default quad1)")
+    ask.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the answer (default 3)")
+    ask.add_argument("--json", action="store_true", help="print rows as JSON")
+    add_zenoh_arguments(ask)
+    ask.set_defaults(func=run_ask)
+
+
+def register_knowledge(knowledge_subparsers: Any) -> None:
+    """Add ``kgadapt knowledge serve`` (called by knowledge/cli.py)."""
+    from shared.session import add_arguments as add_zenoh_arguments
+
+    serve = knowledge_subparsers.add_parser(
+        "serve",
+        help="serve the knowledge graph over Zenoh",
+        description="Own the graph store and serve it over Zenoh: named queries, read-only Cypher, "
+        "run-time writes, and platform status from the hosts' monitors and liveliness. "
+        "Opens Zenoh as a router on tcp/127.0.0.1:7447 unless told otherwise.",
+    )
+    serve.add_argument("--store", metavar="URL", help="graph store URL (default $KGADAPT_STORE or embedded:)")
+    serve.add_argument("--robot", default="quad1", help="robot name, the key namespace (default quad1)")
+    serve.add_argument(
+        "--read-only", action="store_true",
+        help="do not declare the write verbs (knowledge/write/*); queries and Cypher stay available",
+    )
+    serve.add_argument("--workers", type=int, default=2, help="request worker threads (default 2)")
+    add_zenoh_arguments(serve)
+    serve.set_defaults(func=run_serve)
+
+
+def run_serve(args: argparse.Namespace) -> int:
+    import logging
+
+    from knowledge.schema import ensure_indexes
+    from knowledge.service import KnowledgeService, ServiceSettings
+    from knowledge.store import open_store
+    from shared.agent import StopSignals
+    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+
+    log = logging.getLogger("knowledge.service")
+    settings = ServiceSettings(robot=args.robot, writes=not args.read_only, workers=args.workers)
+    zenoh = settings_from_args(args).with_defaults(mode="router", listen=[DEFAULT_ENDPOINT])
+    with StopSignals() as stop:
+        store = open_store(args.store)
+        store.setup()
+        try:
+            ensure_indexes(store)
+            session = open_session(zenoh)
+            try:
+                service = KnowledgeService(store, settings)
+                service.setup(session)
+                try:
+                    print(
+                        f"knowledge service ready: robot {settings.robot}, store {store.url}, "
+                        f"zenoh {zenoh.mode} listen {list(zenoh.listen)} connect {list(zenoh.connect)}, "
+                        f"writes {'on' if settings.writes else 'off'}",
+                        flush=True,
+                    )
+                    stop.wait()
+                    log.info("signal %s: stopping the knowledge service", stop.received)
+                finally:
+                    service.shutdown()
+            finally:
+                session.close()
+        finally:
+            store.shutdown()
+    return 0
+
+
+def run_ask(args: argparse.Namespace) -> int:
+    from knowledge.client import KnowledgeClient
+    from knowledge.store import rows_as_table
+    from shared.errors import ConfigError
+    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+
+    if bool(args.query) == bool(args.cypher):
+        raise ConfigError("give either a named QUERY or --cypher TEXT (not both, not neither)")
+    raw = _parse_params(args.param)
+    if args.query:
+        from knowledge.queries import QUERIES, coerce_params
+
+        # A query this checkout does not know is sent as text: the far side judges it.
+        params: dict[str, Any] = coerce_params(args.query, raw) if args.query in QUERIES else dict(raw)
+    else:
+        params = {k: _guess_value(v) for k, v in raw.items()}
+    zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
+    session = open_session(zenoh)
+    try:
+        client = KnowledgeClient(session, args.robot, timeout=args.timeout)
+        rows = client.query(args.query, params) if args.query else client.cypher(args.cypher, params)
+    finally:
+        session.close()
+    if args.json:
+        print(json.dumps(rows, default=str))
+    else:
+        print(rows_as_table(rows))
+    return 0
+
+
+def _parse_params(items: list[str]) -> dict[str, str]:
+    from shared.errors import ConfigError
+
+    params: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--param {item!r}: use KEY=VALUE")
+        params[key] = value
+    return params
+
+
+def _guess_value(text: str) -> Any:
+    """Cypher parameters from the command line: JSON when it parses (numbers, true, lists), else text."""
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text

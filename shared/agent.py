@@ -1,0 +1,181 @@
+"""The agent skeleton: one Zenoh session, a liveliness token, and a list of parts.
+
+An agent (``kgadapt onboard``, ``kgadapt remote``) is a host's resident
+process. What it does lives in *parts*: objects with ``setup(session)`` and
+``shutdown()`` (the host monitor now; camera, MAVLink bridge, deployer and
+adaptation manager later). The agent opens the session, sets the parts up in
+order, and only then declares ``kgadapt/<robot>/host/<host>/alive``, so that a
+host seen alive is a host ready to serve. Shutdown goes the other way: token
+first (everyone sees the host leave), parts in reverse order, session last.
+
+The session's lease (shared/session.py, 1000 ms) is what makes a hung or
+cut-off agent disappear from everyone's liveliness view within about a
+second; a killed one disappears at once (its sockets close).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Protocol
+
+from shared import keys
+from shared.errors import KgadaptError
+from shared.session import DEFAULT_ENDPOINT, ZenohSettings, add_arguments as add_zenoh_arguments
+from shared.session import open_session, settings_from_args as zenoh_settings_from_args
+
+log = logging.getLogger(__name__)
+
+DEFAULT_ROBOT = "quad1"
+
+
+class Part(Protocol):
+    """Something an agent runs. ``__init__`` does no I/O."""
+
+    name: str
+
+    def setup(self, session: Any) -> None:
+        """Declare what the part needs on ``session`` and start its threads; raise on failure."""
+
+    def shutdown(self) -> None:
+        """Undo ``setup``; must not raise, must be safe after a failed or partial setup."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class AgentSettings:
+    """Who the agent is and how it reaches the others."""
+
+    robot: str = DEFAULT_ROBOT
+    host: str
+    role: str  # "onboard" | "remote": what the logs call it
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+
+    def __post_init__(self) -> None:
+        keys.check_name(self.robot, "robot name")
+        keys.check_name(self.host, "host name")
+
+
+class Agent:
+    """A host's agent: session, liveliness token and parts."""
+
+    def __init__(self, settings: AgentSettings, parts: Iterable[Part] = ()) -> None:
+        self.settings = settings
+        self.parts: list[Part] = list(parts)
+        self.session: Any = None
+        self._token: Any = None
+        self._ready: list[Part] = []
+
+    def add(self, part: Part) -> None:
+        """Add a part before ``setup()``."""
+        if self.session is not None:
+            raise KgadaptError(f"cannot add part {part.name!r}: agent {self.settings.host} is already set up")
+        self.parts.append(part)
+
+    def setup(self) -> None:
+        """Open the session, set the parts up, then declare the liveliness token.
+
+        On failure everything already set up is undone and the error raised.
+        """
+        s = self.settings
+        self.session = open_session(s.zenoh)
+        try:
+            for part in self.parts:
+                log.info("%s agent %s: setting up %s", s.role, s.host, part.name)
+                part.setup(self.session)
+                self._ready.append(part)
+            self._token = self.session.liveliness().declare_token(keys.host_alive(s.robot, s.host))
+        except BaseException:
+            self.shutdown()
+            raise
+        log.info("%s agent %s of robot %s is alive with %d part(s)", s.role, s.host, s.robot, len(self._ready))
+
+    def shutdown(self) -> None:
+        """Drop the token, shut the parts down in reverse order, close the session."""
+        if self._token is not None:
+            try:
+                self._token.undeclare()
+            except Exception as exc:  # session already closed
+                log.debug("token undeclare failed: %s", exc)
+            self._token = None
+        while self._ready:
+            part = self._ready.pop()
+            try:
+                part.shutdown()
+            except Exception:  # one part's failure must not keep the others running
+                log.exception("%s agent %s: shutting down %s failed", self.settings.role, self.settings.host, part.name)
+        if self.session is not None:
+            try:
+                self.session.close()
+            except Exception as exc:
+                log.debug("session close failed: %s", exc)
+            self.session = None
+            log.info("%s agent %s stopped", self.settings.role, self.settings.host)
+
+
+class StopSignals:
+    """Turn SIGINT and SIGTERM into an event for the main thread (restored on exit)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.received: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> "StopSignals":
+        for sig in self.SIGNALS:
+            self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+    def _handle(self, signum: int, _frame: Any) -> None:
+        self.received = signum
+        self.event.set()
+
+    def wait(self) -> None:
+        # A timed wait keeps the main thread responsive to signals on every Python.
+        while not self.event.wait(0.5):
+            pass
+
+
+def add_agent_arguments(parser: argparse.ArgumentParser, *, default_host: str) -> None:
+    """``--robot``, ``--host`` and the Zenoh flags of an agent command."""
+    parser.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name, the key namespace (default {DEFAULT_ROBOT})")
+    parser.add_argument("--host", default=default_host, help=f"this host's name, as the models call its Platform (default {default_host})")
+    add_zenoh_arguments(parser)
+
+
+def agent_settings_from_args(args: argparse.Namespace, *, role: str) -> AgentSettings:
+    """Agents are peers connecting to the knowledge service's router unless told otherwise."""
+    zenoh = zenoh_settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
+    return AgentSettings(robot=args.robot, host=args.host, role=role, zenoh=zenoh)
+
+
+def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) -> int:
+    """Set up, announce readiness on stdout, wait for SIGINT/SIGTERM, shut down."""
+    s = agent.settings
+    with StopSignals() as stop:
+        agent.setup()
+        try:
+            line = (
+                f"{s.role} agent ready: robot {s.robot}, host {s.host}, "
+                f"zenoh {s.zenoh.mode} connect {list(s.zenoh.connect)}"
+            )
+            (announce or _print_flush)(line)
+            stop.wait()
+            log.info("%s agent %s: signal %s, stopping", s.role, s.host, stop.received)
+        finally:
+            agent.shutdown()
+    return 0
+
+
+def _print_flush(line: str) -> None:
+    print(line, flush=True)
+    sys.stdout.flush()
