@@ -36,6 +36,7 @@ class BoltStore(GraphStore):
             self._db = gqlalchemy.Memgraph(host=s.host, port=s.port, username=s.username, password=s.password)
         else:
             self._db = gqlalchemy.Neo4j(host=s.host, port=s.port, username=s.username, password=s.password)
+            self._shorten_connect_timeout(min(1.0, timeout))
         deadline = time.monotonic() + timeout
         while True:
             try:
@@ -48,6 +49,26 @@ class BoltStore(GraphStore):
                     self._db = None
                     raise StoreUnavailable(f"cannot reach Bolt server at {s.url}: {exc}") from exc
                 time.sleep(0.1)
+
+    def _shorten_connect_timeout(self, seconds: float) -> None:
+        """Give gqlalchemy's neo4j driver a short connection timeout.
+
+        Measured with FalkorDB's Bolt listener: after a client disconnects, the
+        next handshake hangs until the driver's default 30 s timeout (twice).
+        With a short timeout that attempt fails fast and the retry connects.
+        """
+        import neo4j
+
+        conn = self._db._get_cached_connection()
+        old = getattr(conn, "_connection", None)
+        if old is None:
+            return
+        s = self.settings
+        conn._connection = neo4j.GraphDatabase.driver(
+            f"bolt://{s.host}:{s.port}", auth=(s.username, s.password), encrypted=False,
+            connection_timeout=seconds, connection_acquisition_timeout=seconds * 2,
+        )
+        old.close()
 
     def _open_session(self) -> None:
         """Neo4j class: keep one Bolt session for every query.

@@ -41,6 +41,9 @@ class ZenohSettings:
     multicast_scouting: bool = False
     lease_ms: int = 1000
     keep_alive: int = 4
+    # Zenoh waits this long in open() for scouting answers (default 500 ms, measured
+    # here for routers and gossiping peers); our endpoints are explicit, so none.
+    scouting_delay_ms: int | None = 0
     exit_on_failure: bool | None = None
     connect_timeout_ms: int | None = None
     extra: dict[str, object] = field(default_factory=dict)  # key path -> JSON value
@@ -49,7 +52,8 @@ class ZenohSettings:
         """Fill mode and endpoints that neither file nor flags nor environment set."""
         return replace(
             self,
-            mode=self.mode or mode,
+            # A config file's own mode wins over our default (flags and env still win over the file).
+            mode=self.mode or (None if self.config_file else mode),
             connect=self.connect or (() if self.config_file else tuple(connect)),
             listen=self.listen or (() if self.config_file else tuple(listen)),
         )
@@ -104,6 +108,8 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
         "transport/link/tx/lease": settings.lease_ms,
         "transport/link/tx/keep_alive": settings.keep_alive,
     }
+    if settings.scouting_delay_ms is not None:
+        inserts["scouting/delay"] = settings.scouting_delay_ms
     if settings.mode:
         inserts["mode"] = settings.mode
     if settings.connect:
