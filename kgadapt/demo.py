@@ -1,6 +1,12 @@
-"""``kgadapt demo``: the paper's queries answered from the shipped models.
+"""``kgadapt demo``: the adaptation scenario end to end, or (``--queries``) the paper's queries.
 
-Loads ``knowledge/models`` into an embedded store of its own (``./var/demo-store``,
+The scenario (the default, what ``make demo`` runs) is in :func:`run_scenario`:
+on one machine and the embedded store, the knowledge service, a remote agent,
+the onboard agent with the synthetic camera (day, dusk, dark, flicker, day)
+and a fake flight controller, plus a scripted memory squeeze on the onboard
+host. It prints a live timeline and ends with a summary table and a PNG.
+
+``--queries`` loads ``knowledge/models`` into an embedded store of its own (``./var/demo-store``,
 emptied first, so it never touches the user's store), writes the run-time
 facts an agent would write (live platform figures with the onboard computer's
 memory squeezed, a past detector run, a calibration), and prints the answers
@@ -41,12 +47,21 @@ QUESTIONS: list[tuple[str, str, dict[str, Any]]] = [
 def register(subparsers: Any) -> None:
     """Add ``kgadapt demo``."""
     parser = subparsers.add_parser(
-        "demo", help="load the shipped models and answer the paper's queries",
-        description="Load knowledge/models into a demo store (./var/demo-store, emptied first), add the "
-                    "run-time facts an agent would write, and print the answers to the paper's queries.")
+        "demo", help="run the adaptation scenario (or, with --queries, answer the paper's queries)",
+        description="Run the robot on this machine through day, dusk, dark, flicker and day with a memory "
+                    "squeeze, printing what changed, what was decided and how long it took; ends with a "
+                    "summary table and a PNG timeline (var/demo/timeline.png). With --queries: load "
+                    "knowledge/models into a demo store and print the answers to the paper's queries.")
+    parser.add_argument("--queries", action="store_true", help="only answer the paper's queries (a few seconds)")
     parser.add_argument("--store", metavar="URL", default=DEMO_STORE,
-                        help=f"store to use (default {DEMO_STORE}); it is emptied first")
+                        help=f"--queries: store to use (default {DEMO_STORE}); it is emptied first")
     parser.add_argument("--models", metavar="DIR", default=str(MODELS), help="model directory (default: shipped)")
+    parser.add_argument("--workdir", default="var/demo", help="scenario: logs, store and plots (default var/demo)")
+    parser.add_argument("--duration", type=float, default=62.0, metavar="S", help="scenario length (default 62)")
+    parser.add_argument("--speed", type=float, default=1.0, help="scenario seconds per second (default 1)")
+    parser.add_argument("--squeeze", default="350M", metavar="SIZE",
+                        help="memory reserved on the onboard host in the dark phase (default 350M)")
+    parser.add_argument("--json", action="store_true", help="scenario: print the summary as JSON at the end")
     parser.set_defaults(func=run)
 
 
@@ -79,6 +94,14 @@ def _facts(store: Any) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.queries:
+        return run_queries(args)
+    from kgadapt.demo_scenario import run_scenario
+
+    return run_scenario(args)
+
+
+def run_queries(args: argparse.Namespace) -> int:
     from knowledge.loader import load_models
     from knowledge.queries import run_named
     from knowledge.store import open_store, rows_as_table

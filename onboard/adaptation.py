@@ -126,7 +126,8 @@ class Placement:
     deployment: str
     host: str
     instance: str | None = None
-    demand_mb: float = 0.0
+    demand_mb: float = 0.0  # declared in the graph (sum of the components' memory demand)
+    held_mb: float = 0.0  # what the running process actually holds (its profile's last RSS)
 
 
 @dataclass(frozen=True)
@@ -179,10 +180,11 @@ class Analyzer:
         view = self.hosts.setdefault(host, HostView(name=host))
         view.memory_free_mb, view.cpu_load, view.last_seen = free_mb, cpu_load, now
         view.online = True
-        if running is not None and running.host == host and free_mb < 0:
-            # Free memory already excludes the running detector; below zero the
-            # host is over its budget and can no longer hold it.
+        if running is not None and running.host == host and free_mb + running.held_mb < running.demand_mb:
+            # Free memory excludes what the running detector holds; with that given
+            # back, the host must still cover the demand the graph declares.
             return Trigger("memory_short", now, {"host": host, "free_mb": round(free_mb, 1),
+                                                 "held_mb": round(running.held_mb, 1),
                                                  "demand_mb": running.demand_mb})
         return None
 
@@ -245,6 +247,11 @@ class Planner:
         return min(candidates, key=score), rows
 
     def plan(self, *, band: str, running: Placement | None, lost_hosts: Sequence[str] = ()) -> Plan:
+        """Configuration for ``band`` and a host that can hold it now.
+
+        The host running a detector gets back what that detector holds, since a
+        change replaces it there.
+        """
         config_row, all_rows = self.choose_config(band)
         config = str(config_row["config"])
         rows = self.ask("placement", {"feature": self.feature, "config": config})
@@ -261,10 +268,10 @@ class Planner:
             for row in self.ask("platforms", {}):
                 free = row.get("memory_free_mb")
                 if (row.get("platform") == running.host and row.get("online") and free is not None
-                        and free + running.demand_mb >= demand):
+                        and free + running.held_mb >= demand):
                     deployment = self.ask("detector_config", {"config": config})
                     if deployment:
-                        fits[running.host] = {"platform": running.host, "free_mb": free + running.demand_mb,
+                        fits[running.host] = {"platform": running.host, "free_mb": free + running.held_mb,
                                               "deployment": deployment[0]["deployment"]}
         if not fits:
             raise PlanningError(f"no online platform has {demand:.0f} MiB free for {config}")

@@ -101,10 +101,15 @@ def _link_settings(args: argparse.Namespace):
 
 
 def _stop_event() -> threading.Event:
-    """An event set by SIGTERM (Ctrl-C is caught where we wait)."""
+    """An event set by SIGTERM or SIGINT.
+
+    SIGINT gets its own handler: a background job of a non-interactive shell
+    starts with SIGINT ignored, so Ctrl-C's KeyboardInterrupt would never come.
+    """
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
     return stop
 
 

@@ -1,7 +1,6 @@
 """``kgadapt remote`` (the remote host's agent) and ``kgadapt squeeze``.
 
-The remote agent's parts today: the host monitor. The deployer part joins in
-:func:`build_parts` when deploy/ provides it.
+The remote agent's parts: the host monitor and the deployer.
 
 ``kgadapt squeeze --host H SIZE`` asks host H's monitor to reserve SIZE of
 memory (``0`` lifts it): the way to make a host run short on cue in tests and
@@ -42,16 +41,22 @@ def register(subparsers: Any) -> None:
 
 
 def add_part_arguments(parser: argparse.ArgumentParser) -> None:
+    from deploy import options as deploy_options
     from shared import hostmonitor
 
     hostmonitor.add_arguments(parser)
+    deploy_options.add_arguments(parser)
 
 
 def build_parts(args: argparse.Namespace) -> list[Any]:
-    """The remote agent's parts, in setup order."""
+    """The remote agent's parts, in setup order: host monitor, deployer."""
+    from deploy.deployer import Deployer, settings_from_args as deployer_settings
     from shared.hostmonitor import HostMonitor, settings_from_args
 
-    return [HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))]
+    return [
+        HostMonitor(settings_from_args(args, robot=args.robot, host=args.host)),
+        Deployer(deployer_settings(args, robot=args.robot, host=args.host)),
+    ]
 
 
 def run(args: argparse.Namespace) -> int:

@@ -67,11 +67,12 @@ def test_analyzer_reports_a_band_change_with_from_and_to():
     assert trigger.detail["from"] == "day" and trigger.detail["to"] == "dark"
 
 
-def test_a_host_over_its_budget_while_running_the_detector_is_memory_short():
+def test_a_host_whose_free_memory_no_longer_covers_the_running_detectors_demand_is_memory_short():
     a = Analyzer(tracker=tracker())
-    running = Placement(config="marker_detection_day", deployment="d", host="onboard", demand_mb=120)
+    running = Placement(config="marker_detection_day", deployment="d", host="onboard", demand_mb=120, held_mb=50)
     assert a.on_host_status("onboard", free_mb=300, cpu_load=10, now=0, running=running) is None
-    trigger = a.on_host_status("onboard", free_mb=-20, cpu_load=10, now=1, running=running)
+    assert a.on_host_status("onboard", free_mb=70, cpu_load=10, now=0.5, running=running) is None  # 70+50 covers 120
+    trigger = a.on_host_status("onboard", free_mb=69, cpu_load=10, now=1, running=running)
     assert trigger.kind == "memory_short" and trigger.detail["host"] == "onboard"
     # A squeeze on another host does not concern the running detector.
     assert a.on_host_status("remote", free_mb=-5, cpu_load=10, now=1, running=running) is None

@@ -129,7 +129,7 @@ def test_every_subcommand_has_help_with_a_store_option(args):
 
 def test_the_demo_answers_the_papers_queries_quickly(tmp_path):
     started = time.monotonic()
-    result = kgadapt("demo", "--store", f"embedded:{tmp_path / 'demo'}", timeout=60)
+    result = kgadapt("demo", "--queries", "--store", f"embedded:{tmp_path / 'demo'}", timeout=60)
     elapsed = time.monotonic() - started
     assert result.returncode == 0, result.stderr
     for title in ("Fig. 4", "Fig. 5 / placement", "cameras of different resolutions", "CPU load", "below 100 MiB"):

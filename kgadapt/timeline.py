@@ -1,0 +1,236 @@
+"""What happened during a run, as seen on the Zenoh network: the demo's timeline.
+
+:class:`Recorder` subscribes (callbacks only append under a lock) to
+illumination, host status, the adaptation manager's decisions and every
+detector's detections, and can print decisions live. Afterwards it answers:
+detection rate over time, frames that no detector processed around each
+planned migration, the summary table, and a PNG timeline.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from shared import keys, messages
+from shared.errors import MessageError
+
+
+@dataclass
+class Decision:
+    time: float
+    trigger: str
+    kind: str
+    config: str | None
+    host: str | None
+    outcome: str
+    latency_ms: float | None
+    frames_lost: int | None = None
+
+
+@dataclass
+class Recorder:
+    """Records one robot's run. ``setup(session)`` subscribes; ``shutdown()`` stops."""
+
+    robot: str
+    camera: str = "cam0"
+    on_decision: Callable[[Decision], None] | None = None
+    t0: float = field(default_factory=time.time)
+    light: list[tuple[float, float, int]] = field(default_factory=list)  # (time, smoothed level, frame seq)
+    memory: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # host -> (time, free MiB)
+    detections: list[tuple[float, str, str, str, int, int]] = field(default_factory=list)
+    decisions: list[Decision] = field(default_factory=list)
+    marks: list[tuple[float, str]] = field(default_factory=list)  # scripted actions (squeeze, kill)
+
+    def __post_init__(self) -> None:
+        self._lock = threading.Lock()
+        self._subs: list[Any] = []
+        self._detected_seqs: set[int] = set()
+
+    def setup(self, session: Any) -> None:
+        r = self.robot
+        self._subs = [
+            session.declare_subscriber(keys.camera_illumination(r, self.camera), self._on_light),
+            session.declare_subscriber(keys.host_status(r), self._on_status),
+            session.declare_subscriber(keys.adaptation_events(r), self._on_event),
+            session.declare_subscriber(keys.detector_markers(r), self._on_detections),
+        ]
+
+    def shutdown(self) -> None:
+        for sub in self._subs:
+            try:
+                sub.undeclare()
+            except Exception:  # the session may already be closed
+                pass
+        self._subs = []
+
+    def mark(self, text: str) -> None:
+        with self._lock:
+            self.marks.append((time.time(), text))
+
+    # -- callbacks: decode and append, nothing else ------------------------
+
+    def _decode(self, sample: Any, kind: str) -> dict[str, Any] | None:
+        try:
+            return messages.decode(sample.payload.to_bytes(), kind)
+        except MessageError:
+            return None
+
+    def _on_light(self, sample: Any) -> None:
+        m = self._decode(sample, "illumination")
+        if m:
+            with self._lock:
+                self.light.append((time.time(), float(m["smoothed"]), int(m["seq"])))
+
+    def _on_status(self, sample: Any) -> None:
+        m = self._decode(sample, "host_status")
+        if m:
+            with self._lock:
+                self.memory.setdefault(str(m["host"]), []).append((time.time(), float(m["memory_free_mb"])))
+
+    def _on_detections(self, sample: Any) -> None:
+        m = self._decode(sample, "detections")
+        if m:
+            with self._lock:
+                self.detections.append((time.time(), str(m["instance"]), str(m["config"]), str(m["host"]),
+                                        int(m["seq"]), len(m["ids"])))
+                self._detected_seqs.add(int(m["seq"]))
+
+    def _on_event(self, sample: Any) -> None:
+        m = self._decode(sample, "adaptation_event")
+        if not m:
+            return
+        d = m.get("decision") or {}
+        decision = Decision(time=float(m["time"]), trigger=str(m["trigger"]), kind=str(d.get("trigger_kind") or ""),
+                            config=d.get("config"), host=d.get("host"), outcome=str(m.get("outcome") or ""),
+                            latency_ms=d.get("latency_ms"))
+        with self._lock:
+            self.decisions.append(decision)
+        if self.on_decision:
+            self.on_decision(decision)
+
+    # -- analysis ----------------------------------------------------------
+
+    def latest(self) -> dict[str, Any]:
+        """The newest figures, for a status line."""
+        with self._lock:
+            light = self.light[-1][1] if self.light else None
+            free = {h: v[-1][1] for h, v in self.memory.items() if v}
+            last = self.detections[-1] if self.detections else None
+        return {"light": light, "free": free, "running": None if last is None else f"{last[2]}@{last[3]}",
+                "rate": self.detection_rate(time.time() - 1.0, time.time())}
+
+    def detection_rate(self, start: float, end: float) -> float | None:
+        """Share of frames in [start, end) on which some detector found a marker."""
+        with self._lock:
+            frames = [seq for t, _, seq in self.light if start <= t < end]
+            hits = {seq for t, _, _, _, seq, n in self.detections if n > 0}
+        if not frames:
+            return None
+        return sum(1 for seq in frames if seq in hits) / len(frames)
+
+    def frames_unprocessed(self, start: float, end: float) -> int:
+        """Frames captured in [start, end) that no detector answered (with or without markers)."""
+        with self._lock:
+            frames = [seq for t, _, seq in self.light if start <= t < end]
+            done = set(self._detected_seqs)
+        return sum(1 for seq in frames if seq not in done)
+
+    def attribute_losses(self, margin_s: float = 0.5) -> None:
+        """Frames lost around each migration: the window from its trigger to its end, plus a margin."""
+        for d in self.decisions:
+            if d.outcome.startswith("migrated") and d.latency_ms is not None:
+                start = d.time - d.latency_ms / 1000.0 - margin_s
+                # The last frames of the window may still be in flight when the run ends; a
+                # migration is done when its event is published, so its window ends there.
+                d.frames_lost = self.frames_unprocessed(start, d.time + margin_s)
+
+    def baseline_loss(self) -> tuple[int, int]:
+        """(frames no detector answered, frames) while a detector ran, outside migrations."""
+        with self._lock:
+            if not self.detections:
+                return 0, 0
+            first = self.detections[0][0]
+            frames = [(t, seq) for t, _, seq in self.light if t >= first + 1.0]
+            done = set(self._detected_seqs)
+            windows = [(d.time - (d.latency_ms or 0) / 1000.0 - 1.0, d.time + 1.0) for d in self.decisions]
+        steady = [seq for t, seq in frames if not any(a <= t < b for a, b in windows)]
+        return sum(1 for seq in steady if seq not in done), len(steady)
+
+    def summary_rows(self) -> list[dict[str, Any]]:
+        self.attribute_losses()
+        return [{
+            "t_s": round(d.time - self.t0, 1), "trigger": d.trigger[:44], "chosen": f"{d.config}@{d.host}",
+            "outcome": d.outcome.split(":")[0], "latency_ms": d.latency_ms, "frames_lost": d.frames_lost,
+        } for d in self.decisions]
+
+    def plot(self, path: Path, bands: list[tuple[str, float, float]] | None = None) -> Path:
+        """Draw the timeline PNG: illumination, configuration, host, detection rate, free memory."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        with self._lock:
+            light = list(self.light)
+            dets = list(self.detections)
+            memory = {h: list(v) for h, v in self.memory.items()}
+            decisions = list(self.decisions)
+            marks = list(self.marks)
+        t0 = self.t0
+        fig, axes = plt.subplots(5, 1, figsize=(11, 10), sharex=True,
+                                 gridspec_kw={"height_ratios": [2, 1, 1, 1.3, 1.5]})
+        ax = axes[0]
+        ax.plot([t - t0 for t, _, _ in light], [v for _, v, _ in light], color="goldenrod", lw=1.2)
+        for name, lo, hi in bands or []:
+            ax.axhline(lo, color="grey", lw=0.5, ls=":")
+            ax.text(0.2, (lo + min(hi, 130)) / 2, name, fontsize=8, color="grey", va="center")
+        ax.set_ylabel("illumination\n(mean level)")
+        ax.set_ylim(0, 135)
+        configs = sorted({c for _, _, c, _, _, _ in dets})
+        hosts = sorted({h for _, _, _, h, _, _ in dets})
+        axes[1].scatter([t - t0 for t, *_ in dets], [configs.index(c) for _, _, c, _, _, _ in dets], s=2)
+        axes[1].set_yticks(range(len(configs)), [c.replace("marker_detection_", "") for c in configs])
+        axes[1].set_ylabel("configuration")
+        axes[2].scatter([t - t0 for t, *_ in dets], [hosts.index(h) for _, _, _, h, _, _ in dets], s=2, color="purple")
+        axes[2].set_yticks(range(len(hosts)), hosts)
+        axes[2].set_ylabel("host")
+        times = [t for t, _, _ in light]
+        if times:
+            end = times[-1]
+            step, xs, ys = 0.5, [], []
+            t = times[0]
+            while t < end:
+                rate = self.detection_rate(t, t + 1.0)
+                if rate is not None:
+                    xs.append(t + 0.5 - t0)
+                    ys.append(rate * 100)
+                t += step
+            axes[3].plot(xs, ys, color="green")
+        axes[3].set_ylabel("frames with\nmarkers (%)")
+        axes[3].set_ylim(-5, 105)
+        # Hosts differ by an order of magnitude: the onboard host on the left axis, the others on the right.
+        other = axes[4].twinx()
+        for i, (host, values) in enumerate(sorted(memory.items())):
+            target = axes[4] if host == "onboard" else other
+            target.plot([t - t0 for t, _ in values], [v for _, v in values], label=host, color=f"C{i}")
+            target.set_ylabel(f"free MiB\n{host}" if host == "onboard" else f"free MiB, {host}", color=f"C{i}")
+        axes[4].set_xlabel("seconds")
+        for d in decisions:
+            for a in axes:
+                a.axvline(d.time - t0, color="red", lw=0.6, alpha=0.6)
+        for t, text in marks:
+            for a in axes:
+                a.axvline(t - t0, color="black", lw=0.8, ls="--", alpha=0.7)
+            axes[4].text(t - t0, axes[4].get_ylim()[1] * 0.9, " " + text, fontsize=7)
+        fig.suptitle("kgadapt demo: illumination, chosen detector, host, detection rate, free memory "
+                     "(red: adaptation decisions)", fontsize=10)
+        fig.tight_layout()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        return path
+

@@ -1,0 +1,446 @@
+"""The adaptation manager: the paper's Fig. 6 loop as a part of the onboard agent.
+
+Monitor (Zenoh subscribers: illumination, host status, host liveliness, flight
+state, the running detector's detections) -> analyse (:mod:`onboard.adaptation`)
+-> plan (named queries through the knowledge service) -> execute (the hosts'
+deployers) -> knowledge (every decision written into the graph).
+
+Callbacks only queue observations; one worker thread analyses and acts, so a
+migration never runs inside a Zenoh callback and decisions happen one at a time.
+
+Execution is make-before-break: a planned change starts the new detector,
+waits for its first detections, and only then stops the old one
+(:func:`deploy.migration.migrate`). When the host running the detector is
+lost, a new detector starts at once on a host that can hold it. During final
+descent (flight state ``LANDING``) planned changes are deferred; losing the
+running host is still acted on.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from deploy.client import DeployerClient
+from deploy.deployer import new_instance_name
+from deploy.migration import migrate
+from knowledge.client import KnowledgeClient
+from onboard.adaptation import (
+    FEATURE,
+    Analyzer,
+    BandTracker,
+    Placement,
+    Plan,
+    Planner,
+    PlanningError,
+    Trigger,
+    bands_from_rows,
+)
+from shared import keys, messages
+from shared.errors import KgadaptError, MessageError
+
+log = logging.getLogger(__name__)
+
+LIVE_STATES = ("starting", "ready", "running", "restarting")
+
+
+@dataclass(frozen=True, kw_only=True)
+class AdaptationSettings:
+    """How the manager decides. ``preference``: see :mod:`onboard.adaptation`."""
+
+    robot: str
+    camera: str = "cam0"
+    feature: str = FEATURE
+    preference: str = "onboard-first"
+    onboard_host: str = "onboard"
+    hysteresis: float = 4.0
+    dwell_s: float = 1.0
+    ready_timeout: float = 20.0
+    output_timeout: float = 5.0
+    knowledge_timeout: float = 15.0  # bounded wait for the knowledge service at setup
+    rss_refresh_s: float = 2.0
+
+
+@dataclass(kw_only=True)
+class Outcome:
+    """What one decision did, for the graph, the event stream and the demo's summary."""
+
+    trigger: Trigger
+    plan: Plan | None = None
+    outcome: str = ""
+    latency_ms: float | None = None  # trigger observed -> new detector's first detection
+    frames_lost: int | None = None
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+class _FirstDetections:
+    """Sets an event on the first valid detections message of one instance."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.at: float | None = None
+
+    def __call__(self, sample: Any) -> None:
+        if self.event.is_set():
+            return
+        try:
+            messages.decode(sample.payload.to_bytes(), "detections")
+        except MessageError:
+            return
+        self.at = time.time()
+        self.event.set()
+
+
+class AdaptationManager:
+    """The MAPE-K loop. ``__init__`` does no I/O; ``setup(session)`` starts it."""
+
+    name = "adaptation"
+
+    def __init__(self, settings: AdaptationSettings) -> None:
+        self.settings = settings
+        self.current: Placement | None = None
+        self.history: list[Outcome] = []
+        self.landing = False
+        self._queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=4096)
+        self._stop = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._session: Any = None
+        self._handles: list[Any] = []
+        self._events_pub: Any = None
+        self._knowledge: KnowledgeClient | None = None
+        self._deployers: DeployerClient | None = None
+        self._analyzer: Analyzer | None = None
+        self._planner: Planner | None = None
+        self._configs: dict[str, dict[str, Any]] = {}
+        self._held_checked = 0.0
+        self._decisions = 0
+        self._lock = threading.Lock()
+
+    # -- lifecycle -------------------------------------------------------
+
+    def setup(self, session: Any) -> None:
+        s = self.settings
+        self._session = session
+        self._knowledge = KnowledgeClient(session, s.robot)
+        self._deployers = DeployerClient(session, s.robot)
+        rows = self._wait_for_knowledge()
+        self._configs = {str(r["config"]): r for r in rows}
+        bands = bands_from_rows(rows)
+        if not bands:
+            raise KgadaptError(f"the knowledge graph has no detector configuration with a band for {s.feature}")
+        self._analyzer = Analyzer(tracker=BandTracker(bands=bands, hysteresis=s.hysteresis, dwell_s=s.dwell_s))
+        self._planner = Planner(ask=self._knowledge.query, feature=s.feature, preference=s.preference,
+                                onboard_host=s.onboard_host)
+        self._events_pub = session.declare_publisher(keys.adaptation_events(s.robot))
+        self._handles = [
+            session.declare_subscriber(keys.camera_illumination(s.robot, s.camera), self._on("illumination")),
+            session.declare_subscriber(keys.host_status(s.robot), self._on("host_status")),
+            session.liveliness().declare_subscriber(keys.host_alive(s.robot), self._on_alive, history=True),
+            session.declare_subscriber(keys.flight_state(s.robot), self._on("flight_state")),
+            session.declare_subscriber(keys.detector_markers(s.robot), self._on("detections")),
+        ]
+        self._stop.clear()
+        self._worker = threading.Thread(target=self._run, name="adaptation", daemon=True)
+        self._worker.start()
+        log.info("adaptation manager up: bands %s, preference %s", [b.name for b in bands], s.preference)
+
+    def shutdown(self) -> None:
+        self._stop.set()
+        if self._worker is not None:
+            self._worker.join(timeout=30)
+            self._worker = None
+        for handle in self._handles:
+            try:
+                handle.undeclare()
+            except Exception as exc:  # session may be closing
+                log.debug("undeclare: %s", exc)
+        self._handles = []
+        current, self.current = self.current, None
+        if current is not None and current.instance and self._deployers is not None:
+            # We started it; a clean shutdown stops it wherever it runs.
+            try:
+                self._deployers.stop(current.host, current.instance)
+            except KgadaptError as exc:
+                log.warning("could not stop %s on %s: %s", current.instance, current.host, exc)
+        if self._events_pub is not None:
+            try:
+                self._events_pub.undeclare()
+            except Exception as exc:
+                log.debug("undeclare: %s", exc)
+            self._events_pub = None
+
+    def _wait_for_knowledge(self) -> list[dict[str, Any]]:
+        deadline = time.monotonic() + self.settings.knowledge_timeout
+        while True:
+            try:
+                return self._knowledge.query("detector_configs", {"feature": self.settings.feature})
+            except KgadaptError as exc:
+                if time.monotonic() >= deadline:
+                    raise KgadaptError(f"adaptation: the knowledge service did not answer: {exc}") from exc
+                time.sleep(0.2)
+
+    # -- monitor: callbacks only queue -----------------------------------
+
+    def _on(self, kind: str):
+        def callback(sample: Any) -> None:
+            self._put((kind, (str(sample.key_expr), sample.payload.to_bytes())))
+        return callback
+
+    def _on_alive(self, sample: Any) -> None:
+        alive = str(sample.kind).endswith("PUT")
+        self._put(("alive", (keys.last_chunk(str(sample.key_expr), 2), alive)))
+
+    def _put(self, item: tuple[str, Any]) -> None:
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            log.warning("adaptation: observation queue full; dropping %s", item[0])
+
+    # -- analyse, plan, execute ------------------------------------------
+
+    def _run(self) -> None:
+        self._adopt_running()
+        while not self._stop.is_set():
+            try:
+                kind, data = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                kind, data = "tick", None
+            try:
+                trigger = self._observe(kind, data)
+                if trigger is None and self.current is None:
+                    trigger = self._startup_trigger()
+                if trigger is not None:
+                    self._act(trigger)
+            except Exception:  # the loop must survive any single bad observation or failed action
+                log.exception("adaptation: handling %s failed", kind)
+
+    def _observe(self, kind: str, data: Any) -> Trigger | None:
+        now = time.time()
+        a = self._analyzer
+        if kind == "alive":
+            host, alive = data
+            if host == self.settings.onboard_host and not alive:
+                # Our own token goes first when our agent shuts down; we go with it.
+                return None
+            return a.on_liveliness(host, alive, now, self.current)
+        if kind == "tick":
+            return None
+        key, payload = data
+        try:
+            if kind == "illumination":
+                m = messages.decode(payload, "illumination")
+                return a.on_illumination(float(m["smoothed"]), now)
+            if kind == "host_status":
+                m = messages.decode(payload, "host_status")
+                host = str(m["host"])
+                if self.current is not None and self.current.host == host:
+                    self._refresh_held(now)
+                return a.on_host_status(host, free_mb=float(m["memory_free_mb"]), cpu_load=float(m["cpu_load"]),
+                                        now=now, running=self.current)
+            if kind == "flight_state":
+                m = messages.decode(payload, "flight_state")
+                self.landing = m.get("landed_state") == "LANDING"
+                return None
+            if kind == "detections":
+                m = messages.decode(payload, "detections")
+                if self.current is None or m["instance"] != self.current.instance:
+                    return None
+                band = a.tracker.current.name if a.tracker.current else None
+                return a.on_detection(bool(m["ids"]), now, self._expected_rate(self.current.config, band))
+        except MessageError as exc:
+            log.info("adaptation: dropped a %s message on %s: %s", kind, key, exc)
+        return None
+
+    def _startup_trigger(self) -> Trigger | None:
+        a = self._analyzer
+        if a.tracker.current is None or not any(h.online for h in a.hosts.values()):
+            return None
+        return Trigger("startup", time.time(), {"band": a.tracker.current.name})
+
+    def _expected_rate(self, config: str, band: str | None) -> float | None:
+        row = self._configs.get(config)
+        if row is None or band is None or row.get("band") != band:
+            return None
+        rate = row.get("detection_rate")
+        return float(rate) if rate is not None else None
+
+    def _refresh_held(self, now: float) -> None:
+        if now - self._held_checked < self.settings.rss_refresh_s or self.current is None:
+            return
+        self._held_checked = now
+        run_id = getattr(self, "_run_id", None)
+        if not run_id:
+            return
+        try:
+            rows = self._knowledge.cypher(
+                "MATCH (r:ProcessProfile {name: $run_id}) RETURN r.rss_mb_last AS rss", {"run_id": run_id})
+        except KgadaptError as exc:
+            log.debug("adaptation: no profile figures yet: %s", exc)
+            return
+        if rows and rows[0].get("rss") is not None:
+            c = self.current
+            self.current = Placement(config=c.config, deployment=c.deployment, host=c.host, instance=c.instance,
+                                     demand_mb=c.demand_mb, held_mb=float(rows[0]["rss"]))
+
+    def _act(self, trigger: Trigger) -> None:
+        a = self._analyzer
+        band = a.tracker.current
+        if band is None:
+            return
+        if trigger.kind == "host_back":
+            # A host back from a partition may still run the detector we replaced: no twins.
+            twins = self.reconcile(str(trigger.detail.get("host")))
+            if twins:
+                self._record(Outcome(trigger=trigger, outcome=f"stopped twin(s) {', '.join(twins)}"))
+        lost = tuple(h.name for h in a.hosts.values() if not h.online)
+        running_lost = self.current is not None and self.current.host in lost
+        if self.landing and not (trigger.urgent or running_lost):
+            self._record(Outcome(trigger=trigger, outcome="deferred: final descent"))
+            return
+        started = time.perf_counter()
+        try:
+            plan = self._planner.plan(band=band.name, running=None if running_lost else self.current,
+                                      lost_hosts=lost)
+        except (PlanningError, KgadaptError) as exc:
+            self._record(Outcome(trigger=trigger, outcome=f"no plan: {exc}"))
+            return
+        if plan.same_as(self.current) and not running_lost:
+            if trigger.kind not in ("host_back", "startup"):
+                self._record(Outcome(trigger=trigger, plan=plan, outcome="kept"))
+            return
+        try:
+            if self.current is None or running_lost:
+                result = self._start_fresh(plan, trigger)
+            else:
+                result = self._switch(plan, trigger)
+        except KgadaptError as exc:
+            result = Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}")
+        result.detail["plan_ms"] = round((time.perf_counter() - started) * 1000.0, 1)
+        self._record(result)
+        if running_lost and not result.outcome.startswith("failed"):
+            a.reset_rate()
+
+    def _start_fresh(self, plan: Plan, trigger: Trigger) -> Outcome:
+        t = plan.target
+        instance = new_instance_name(t.config, t.host)
+        first = _FirstDetections()
+        sub = self._session.declare_subscriber(keys.detector_markers(self.settings.robot, instance), first)
+        try:
+            snapshot = self._deployers.start(t.host, t.deployment, t.config, instance=instance, wait_ready=True,
+                                             ready_timeout=self.settings.ready_timeout)
+            got = first.event.wait(self.settings.output_timeout)
+        finally:
+            sub.undeclare()
+        self._set_current(plan, instance, snapshot.get("run_id"))
+        latency = (first.at - trigger.time) * 1000.0 if got and first.at else None
+        return Outcome(trigger=trigger, plan=plan, outcome="started" if got else "started, no detections yet",
+                       latency_ms=latency, detail={"instance": instance, "pid": snapshot.get("pid")})
+
+    def _switch(self, plan: Plan, trigger: Trigger) -> Outcome:
+        t, old = plan.target, self.current
+        called_at = time.time()
+        report = migrate(self._session, self.settings.robot, old.instance, t.host, source_host=old.host,
+                         deployment=t.deployment, config=t.config, client=self._deployers,
+                         ready_timeout=self.settings.ready_timeout, output_timeout=self.settings.output_timeout)
+        snapshot = {}
+        try:
+            snapshot = self._deployers.status(t.host, report.new_instance)
+        except KgadaptError:
+            pass
+        self._set_current(plan, report.new_instance, snapshot.get("run_id"))
+        # migrate() measures from its own start; add the time from the trigger to that start.
+        latency = (called_at - trigger.time) * 1000.0 + report.first_output_ms
+        return Outcome(trigger=trigger, plan=plan, outcome="migrated", latency_ms=latency, frames_lost=0,
+                       detail={"instance": report.new_instance, "from": f"{old.config}@{old.host}",
+                               "target_ready_ms": report.target_ready_ms})
+
+    def _set_current(self, plan: Plan, instance: str, run_id: str | None) -> None:
+        t = plan.target
+        self.current = Placement(config=t.config, deployment=t.deployment, host=t.host, instance=instance,
+                                 demand_mb=t.demand_mb, held_mb=0.0)
+        self._run_id = run_id
+        self._held_checked = 0.0
+        self._analyzer.reset_rate()
+
+    def _adopt_running(self) -> None:
+        """After a restart: adopt one live detector of ours, stop any twin."""
+        try:
+            processes = self._deployers.list("*")
+        except KgadaptError as exc:
+            log.info("adaptation: no deployer answered at start (%s); nothing to adopt", exc)
+            return
+        live = [p for p in processes if p.get("state") in LIVE_STATES and p.get("config") in self._configs]
+        if not live:
+            return
+        keep, *twins = sorted(live, key=lambda p: (p.get("host") != self.settings.onboard_host, p.get("instance")))
+        row = self._configs[keep["config"]]
+        self.current = Placement(config=keep["config"], deployment=keep["deployment"], host=keep["host"],
+                                 instance=keep["instance"], demand_mb=float(row.get("memory_demand_mb") or 0))
+        self._run_id = keep.get("run_id")
+        log.info("adaptation: adopted %s on %s", keep["instance"], keep["host"])
+        for twin in twins:
+            try:
+                self._deployers.stop(twin["host"], twin["instance"])
+                log.info("adaptation: stopped twin %s on %s", twin["instance"], twin["host"])
+            except KgadaptError as exc:
+                log.warning("adaptation: could not stop twin %s: %s", twin["instance"], exc)
+
+    def reconcile(self, host: str) -> list[str]:
+        """Stop detectors on ``host`` that are not the current one (after a partition heals)."""
+        stopped = []
+        try:
+            processes = self._deployers.list(host)
+        except KgadaptError:
+            return stopped
+        for p in processes:
+            if (p.get("state") in LIVE_STATES and p.get("config") in self._configs
+                    and (self.current is None or p.get("instance") != self.current.instance)):
+                try:
+                    self._deployers.stop(host, p["instance"])
+                    stopped.append(p["instance"])
+                except KgadaptError as exc:
+                    log.warning("adaptation: could not stop twin %s on %s: %s", p["instance"], host, exc)
+        return stopped
+
+    # -- knowledge -------------------------------------------------------
+
+    def _record(self, outcome: Outcome) -> None:
+        trigger, plan = outcome.trigger, outcome.plan
+        self._decisions += 1
+        now = time.time()
+        name = f"{self.settings.robot}-decision-{int(now * 1000)}-{self._decisions}"
+        target = plan.target if plan else None
+        inputs = {"trigger": dict(trigger.detail), **(dict(plan.inputs) if plan else {}), **outcome.detail}
+        params = {
+            "name": name, "time": now, "trigger": trigger.describe(),
+            "inputs_json": json.dumps(inputs, default=str),
+            "query": ",".join(plan.queries) if plan else None,
+            "config": target.config if target else None, "host": target.host if target else None,
+            "duration_ms": None if outcome.latency_ms is None else round(outcome.latency_ms, 1),
+            "outcome": outcome.outcome if not plan else f"{outcome.outcome}: {plan.reason}",
+        }
+        try:
+            self._knowledge.write("decision", params)
+        except KgadaptError as exc:
+            log.warning("adaptation: could not record decision %s: %s", name, exc)
+        with self._lock:
+            self.history.append(outcome)
+        event = {
+            "time": now, "trigger": trigger.describe(), "outcome": outcome.outcome[:256],
+            "decision": {
+                "config": params["config"], "host": params["host"], "latency_ms": params["duration_ms"],
+                "trigger_kind": trigger.kind, "frames_lost": outcome.frames_lost, "name": name,
+                "instance": self.current.instance if self.current else None,
+            },
+        }
+        try:
+            self._events_pub.put(messages.encode("adaptation_event", event))
+        except Exception as exc:  # publishing is best effort; the graph has the record
+            log.debug("adaptation event not published: %s", exc)
+        log.info("decision %s: %s -> %s@%s (%s, %s ms)", name, trigger.describe(), params["config"],
+                 params["host"], outcome.outcome, params["duration_ms"])
