@@ -44,20 +44,29 @@ class KnowledgeClient:
 
     def _ask(self, key: str, payload: bytes, what: str) -> list[dict[str, Any]]:
         deadline = time.monotonic() + self.timeout
-        try:
-            replies = self.session.get(key, payload=payload, timeout=self.timeout)
-        except Exception as exc:  # zenoh.ZError: session closed, bad key
-            raise TransportError(f"{what} on {key}: {exc}") from exc
         error: str | None = None
-        for reply in replies:
-            if reply.ok is not None:
-                body = messages.decode(reply.ok.payload.to_bytes(), "rows")
-                self.last_elapsed_ms = body.get("elapsed_ms")
-                return body["rows"]
-            text = reply.err.payload.to_bytes().decode("utf-8", "replace")
-            if text != "Timeout":  # Zenoh's own reply when the queryable is slower than the timeout
-                error = text
+        while True:
+            remaining = max(0.05, deadline - time.monotonic())
+            try:
+                replies = self.session.get(key, payload=payload, timeout=remaining)
+            except Exception as exc:  # zenoh.ZError: session closed, bad key
+                raise TransportError(f"{what} on {key}: {exc}") from exc
+            answered = False
+            for reply in replies:
+                answered = True
+                if reply.ok is not None:
+                    body = messages.decode(reply.ok.payload.to_bytes(), "rows")
+                    self.last_elapsed_ms = body.get("elapsed_ms")
+                    return body["rows"]
+                text = reply.err.payload.to_bytes().decode("utf-8", "replace")
+                if text != "Timeout":  # Zenoh's own reply when the queryable is slower than the timeout
+                    error = text
+                    break
+            # Zero replies at once: no queryable is known yet (just after open(), or while
+            # the service restarts). Nobody received the request, so asking again is safe.
+            if answered or error is not None or time.monotonic() + 0.05 >= deadline:
                 break
+            time.sleep(0.05)
         if error is not None:
             raise RemoteError(f"{what} refused by the knowledge service of {self.robot}: {error}")
         waited = self.timeout - max(0.0, deadline - time.monotonic())

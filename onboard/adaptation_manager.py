@@ -64,6 +64,7 @@ class AdaptationSettings:
     output_timeout: float = 5.0
     knowledge_timeout: float = 15.0  # bounded wait for the knowledge service at setup
     rss_refresh_s: float = 2.0
+    startup_grace_s: float = 5.0  # how long the first placement waits for our own host to show online
 
 
 @dataclass(kw_only=True)
@@ -119,6 +120,7 @@ class AdaptationManager:
         self._configs: dict[str, dict[str, Any]] = {}
         self._held_checked = 0.0
         self._decisions = 0
+        self._setup_at = 0.0
         self._lock = threading.Lock()
 
     # -- lifecycle -------------------------------------------------------
@@ -145,6 +147,7 @@ class AdaptationManager:
             session.declare_subscriber(keys.detector_markers(s.robot), self._on("detections")),
         ]
         self._stop.clear()
+        self._setup_at = time.monotonic()
         self._worker = threading.Thread(target=self._run, name="adaptation", daemon=True)
         self._worker.start()
         log.info("adaptation manager up: bands %s, preference %s", [b.name for b in bands], s.preference)
@@ -212,7 +215,8 @@ class AdaptationManager:
                 kind, data = "tick", None
             try:
                 trigger = self._observe(kind, data)
-                if trigger is None and self.current is None:
+                if self.current is None:
+                    # Nothing runs: whatever was observed, the question is where to start.
                     trigger = self._startup_trigger()
                 if trigger is not None:
                     self._act(trigger)
@@ -260,7 +264,28 @@ class AdaptationManager:
         a = self._analyzer
         if a.tracker.current is None or not any(h.online for h in a.hosts.values()):
             return None
+        if not self._own_host_known():
+            return None
         return Trigger("startup", time.time(), {"band": a.tracker.current.name})
+
+    def _own_host_known(self) -> bool:
+        """True once the graph shows our own host online with its figures, or after a grace period.
+
+        Our agent declares its liveliness token only after all its parts are up,
+        so the first plan could otherwise see only the remote host online.
+        """
+        if time.monotonic() - self._setup_at > self.settings.startup_grace_s:
+            return True
+        own = self._analyzer.hosts.get(self.settings.onboard_host)
+        if own is None or not own.online:
+            return False
+        try:
+            rows = self._knowledge.query("platforms", {})
+        except KgadaptError:
+            return False
+        # Online and with a free-memory figure: a status put right after open() can be lost.
+        return any(r.get("platform") == self.settings.onboard_host and r.get("online")
+                   and r.get("memory_free_mb") is not None for r in rows)
 
     def _expected_rate(self, config: str, band: str | None) -> float | None:
         row = self._configs.get(config)

@@ -1,0 +1,110 @@
+"""``kgadapt why``: explain the current placement of the marker detector from the graph.
+
+Reads what the adaptation manager wrote (the running detector's process
+profile and the decision that put it there, with the inputs it used) and asks
+the placement query again, so the answer shows both why it was chosen then
+and whether it still fits now. Works on the store directly (``--store``) or,
+from another machine, through the knowledge service over Zenoh (``--connect``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from typing import Any, Callable
+
+Ask = Callable[[str, dict[str, Any]], list[dict[str, Any]]]
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "why", help="explain where the marker detector runs and why",
+        description="Explain the current detector placement from the knowledge graph: the decision that "
+                    "chose it, the inputs it used, and whether the placement query still agrees.")
+    parser.add_argument("--store", metavar="URL", help="store URL (default $KGADAPT_STORE or embedded:)")
+    parser.add_argument("--robot", default="quad1", help="robot name, for --connect (default quad1)")
+    parser.add_argument("--history", type=int, default=5, metavar="N", help="also list the last N decisions (default 5)")
+    parser.add_argument("--json", action="store_true", help="print the explanation as JSON")
+    from shared.session import add_arguments
+
+    add_arguments(parser)
+    parser.set_defaults(func=run)
+
+
+def explain(ask: Ask, *, history: int = 5) -> dict[str, Any]:
+    """Everything ``why`` says, as data."""
+    current = ask("current_placement", {})
+    decisions = ask("decisions", {"limit": history})
+    out: dict[str, Any] = {"running": current[0] if current else None, "history": decisions}
+    if not current:
+        return out
+    row = current[0]
+    chosen = next((d for d in decisions if d.get("name") == row.get("decision")), None)
+    if chosen is None and row.get("decision"):
+        chosen = next((d for d in ask("decisions", {"limit": 1000}) if d.get("name") == row["decision"]), None)
+    if chosen is not None:
+        try:
+            chosen = {**chosen, "inputs": json.loads(chosen.get("inputs_json") or "null")}
+        except ValueError:
+            pass
+    out["decision"] = chosen
+    out["placement_now"] = ask("placement", {"config": row["config"]})
+    return out
+
+
+def render(data: dict[str, Any]) -> str:
+    running = data.get("running")
+    if not running:
+        return "No detector is running according to the graph (no process profile without an end time)."
+    lines = [f"The detector {running['instance']} runs configuration {running['config']} on {running['host']} "
+             f"(pid {running.get('pid')}, started {_ago(running.get('start_time'))})."]
+    d = data.get("decision")
+    if d:
+        lines.append(f"It was placed there by decision {d['name']} ({_ago(d.get('time'))}), triggered by "
+                     f"{d.get('trigger')}:")
+        lines.append(f"  {d.get('outcome')}")
+        inputs = d.get("inputs") or {}
+        for c in inputs.get("candidates") or []:
+            lines.append(f"  candidate {c.get('config')}: calibrated rate {c.get('detection_rate')}, "
+                         f"{c.get('ms_per_frame')} ms/frame")
+        for p in inputs.get("platforms") or []:
+            lines.append(f"  platform {p.get('platform')}: {p.get('free_mb')} MiB free then")
+    else:
+        lines.append("No adaptation decision chose this placement (started by hand?).")
+    now = data.get("placement_now") or []
+    hosts = ", ".join(f"{r['platform']} ({r['free_mb']:.0f} MiB free)" for r in now)
+    lines.append(f"Now, the platforms that can hold {running['config']}: {hosts or 'none'}.")
+    if data.get("history"):
+        lines.append("Recent decisions:")
+        for h in data["history"]:
+            lines.append(f"  {_ago(h.get('time')):>9}  {h.get('trigger')} -> {h.get('config')}@{h.get('host')}")
+    return "\n".join(lines)
+
+
+def _ago(t: Any) -> str:
+    if not isinstance(t, (int, float)):
+        return "?"
+    seconds = max(0.0, time.time() - t)
+    return f"{seconds:.0f} s ago" if seconds < 120 else f"{seconds / 60:.0f} min ago"
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.connect or args.zenoh_config:
+        from knowledge.client import KnowledgeClient
+        from shared.session import open_session, settings_from_args
+
+        session = open_session(settings_from_args(args).with_defaults(mode="client"))
+        try:
+            client = KnowledgeClient(session, args.robot)
+            data = explain(client.query, history=args.history)
+        finally:
+            session.close()
+    else:
+        from knowledge.queries import run_named
+        from knowledge.store import open_store
+
+        with open_store(args.store) as store:
+            data = explain(lambda name, params: run_named(store, name, params), history=args.history)
+    print(json.dumps(data, default=str, indent=2) if args.json else render(data))
+    return 0
