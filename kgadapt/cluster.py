@@ -5,11 +5,19 @@ Every process is a real child (``python -m kgadapt ...``) in its own process
 group; ``start()`` waits on each one's readiness line with a bounded wait and
 raises with its log tail; ``stop()`` asks politely (SIGINT), then SIGTERM,
 then SIGKILL, and always runs, even after a failed start.
+
+With a :class:`HostNetwork` (the fault tests and ``kgadapt bench
+reliability``), the hosts are Linux network namespaces on one bridge: the
+knowledge service and the onboard agent run in the ``onboard`` namespace, the
+remote agent in ``remote``, and Zenoh runs over their veth addresses, so a
+host's link can be cut and restored (``ip link set ... down``).
 """
 
 from __future__ import annotations
 
 import os
+import secrets
+import shutil
 import signal
 import socket
 import subprocess
@@ -20,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from shared.errors import KgadaptError
+from shared.errors import KgadaptError, TransportError
 
 REPO = Path(__file__).resolve().parent.parent
 MODELS = REPO / "knowledge" / "models"
@@ -58,6 +66,10 @@ class ClusterSettings:
     log_level: str = "INFO"
     start_timeout: float = 30.0
     extra_onboard_args: tuple[str, ...] = ()
+    extra_remote_args: tuple[str, ...] = ()
+    # Zenoh mode of both agents (and, through their deployers, of the detectors they start);
+    # None: their default (peer). "client" sends all traffic through the service's router.
+    agent_mode: str | None = None
 
 
 @dataclass
@@ -65,8 +77,13 @@ class Child:
     name: str
     process: subprocess.Popen[str]
     log_path: Path
+    argv: tuple[str, ...] = ()
+    ready_text: str | None = None
     ready: threading.Event = field(default_factory=threading.Event)
     lines: list[str] = field(default_factory=list)
+    argv: tuple[str, ...] = ()
+    ready_marker: str | None = None
+    host: str | None = None  # the network namespace's host it runs in (None: this machine's network)
 
     def tail(self, n: int = 15) -> str:
         try:
@@ -76,10 +93,15 @@ class Child:
 
 
 class LocalCluster:
-    """Start and stop the robot's processes on loopback. ``__init__`` does no I/O."""
+    """Start and stop the robot's processes on loopback. ``__init__`` does no I/O.
 
-    def __init__(self, settings: ClusterSettings) -> None:
+    With ``network`` (set up by the caller) each process runs in its host's
+    namespace and the service listens on the onboard host's address.
+    """
+
+    def __init__(self, settings: ClusterSettings, *, network: "HostNetwork | None" = None) -> None:
         self.settings = settings
+        self.network = network
         self.port = 0
         self.fc_port = 0
         self.children: dict[str, Child] = {}
@@ -87,7 +109,8 @@ class LocalCluster:
 
     @property
     def endpoint(self) -> str:
-        return f"tcp/127.0.0.1:{self.port}"
+        host = self.network.address("onboard") if self.network else "127.0.0.1"
+        return f"tcp/{host}:{self.port}"
 
     def kgadapt(self, *args: str) -> list[str]:
         return [sys.executable, "-m", "kgadapt", "--log-level", self.settings.log_level, *args]
@@ -115,11 +138,14 @@ class LocalCluster:
         self.port = free_tcp_port()
         self.fc_port = free_udp_port()
         connect = ("--connect", self.endpoint)
+        if s.agent_mode:
+            connect += ("--mode", s.agent_mode)
         try:
             self._spawn("service", self.kgadapt("knowledge", "serve", "--robot", s.robot, "--store", self.store_url,
-                                                "--listen", self.endpoint), ready="service ready")
+                                                "--listen", self.endpoint), ready="service ready", host="onboard")
             self._spawn("remote", self.kgadapt("remote", "--robot", s.robot, "--host", "remote",
-                                               "--memory-budget", s.remote_budget, *connect), ready="agent ready")
+                                               "--memory-budget", s.remote_budget, *connect, *s.extra_remote_args),
+                        ready="agent ready", host="remote")
             onboard = ["onboard", "--robot", s.robot, "--host", "onboard", "--memory-budget", s.onboard_budget,
                        "--camera-source", f"synthetic:{s.profile}" if s.profile else "synthetic",
                        "--fps", str(s.fps), "--scenario-speed", str(s.scenario_speed), *connect]
@@ -127,21 +153,31 @@ class LocalCluster:
                 fc = ["flight", "fake-fc", "--url", f"udpout:127.0.0.1:{self.fc_port}", "--armed"]
                 if s.land_after_s is not None:
                     fc += ["--land-after", str(s.land_after_s)]
-                self._spawn("fake-fc", self.kgadapt(*fc), ready="KGADAPT_READY")
+                self._spawn("fake-fc", self.kgadapt(*fc), ready="KGADAPT_READY", host="onboard")
                 onboard += ["--fc", f"udpin:127.0.0.1:{self.fc_port}"]
             if s.adapt:
                 onboard += ["--adapt", "--prefer", s.prefer, "--dwell", str(s.dwell_s)]
-            self._spawn("onboard", self.kgadapt(*onboard, *s.extra_onboard_args), ready="agent ready")
+            self._spawn("onboard", self.kgadapt(*onboard, *s.extra_onboard_args), ready="agent ready", host="onboard")
         except BaseException:
             self.stop()
             raise
 
-    def _spawn(self, name: str, argv: Sequence[str], *, ready: str | None) -> Child:
+    def respawn(self, name: str) -> Child:
+        """Start a child again, with the same command, after it ended (e.g. an agent restart)."""
+        old = self.children[name]
+        if old.process.poll() is None:
+            raise KgadaptError(f"{name} (pid {old.process.pid}) is still running; stop or kill it first")
+        return self._spawn(name, old.argv, ready=old.ready_marker, host=old.host, append=True)
+
+    def _spawn(self, name: str, argv: Sequence[str], *, ready: str | None, host: str | None = None,
+               append: bool = False) -> Child:
         log_path = self.settings.workdir / f"{name}.log"
-        log_file = open(log_path, "w")
-        process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=log_file, stdin=subprocess.DEVNULL,
+        log_file = open(log_path, "a" if append else "w")
+        where = host if self.network is not None else None
+        command = self.network.run_in(where, argv) if where else list(argv)
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=log_file, stdin=subprocess.DEVNULL,
                                    text=True, cwd=REPO, start_new_session=True)
-        child = Child(name, process, log_path)
+        child = Child(name, process, log_path, argv=tuple(argv), ready_marker=ready, host=where)
         self.children[name] = child
 
         def pump() -> None:  # stdout to the log and the readiness line to an event
@@ -162,6 +198,13 @@ class LocalCluster:
                 why = f"exited with {process.returncode}" if process.poll() is not None else "was not ready in time"
                 raise KgadaptError(f"{name} {why}; last log lines:\n{child.tail()}")
         return child
+
+    def respawn(self, name: str) -> Child:
+        """Start a stopped or killed process again with the same command line (and wait for it)."""
+        old = self.children.pop(name)
+        if old.process.poll() is None:
+            raise KgadaptError(f"{name} is still running (pid {old.process.pid}); stop it first")
+        return self._spawn(name, old.argv, ready=old.ready_text)
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
         """Send ``sig`` to one process's whole group (e.g. kill -9 of the remote agent and its detectors' parent)."""
@@ -200,3 +243,162 @@ class LocalCluster:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+# -- hosts as network namespaces ------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class NetworkSettings:
+    """Which hosts to make and how to address them.
+
+    ``tag`` makes every name unique to this run (namespaces ``kgadapt-<host>-<tag>``,
+    the bridge's ``kgadapt-sw-<tag>``), so that a run never touches namespaces it did
+    not create. The subnet exists only inside those namespaces.
+    """
+
+    hosts: tuple[str, ...] = ("onboard", "remote", "robot2")
+    subnet: str = "10.213.7"  # a /24 of our own: host i gets <subnet>.<i + 1>
+    tag: str = field(default_factory=lambda: secrets.token_hex(3))
+    command_timeout: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not 1 <= len(self.hosts) <= 250 or len(set(self.hosts)) != len(self.hosts):
+            raise KgadaptError(f"network hosts {self.hosts!r}: give 1 to 250 distinct names")
+        for host in self.hosts:
+            if not host.isalnum() or len(host) > 12:
+                raise KgadaptError(f"network host {host!r}: use at most 12 letters and digits (interface names)")
+
+
+class HostNetwork:
+    """Hosts as Linux network namespaces, each linked by a veth pair to a bridge in a namespace of its own.
+
+    Nothing is added to the namespace this process runs in: traffic flows only
+    between the namespaces made here. ``cut(host)`` takes the host's port on the
+    bridge down (its cable is pulled); ``heal(host)`` brings it back.
+    ``shutdown()`` kills whatever still runs inside the namespaces (only our
+    processes can be there) and deletes them; it is safe after a failed setup.
+    Needs root (CAP_SYS_ADMIN, CAP_NET_ADMIN) and iproute2's ``ip``.
+    """
+
+    def __init__(self, settings: NetworkSettings | None = None) -> None:
+        self.settings = settings or NetworkSettings()
+        self._created: list[str] = []
+
+    @property
+    def switch(self) -> str:
+        return f"kgadapt-sw-{self.settings.tag}"
+
+    def namespace(self, host: str) -> str:
+        self._index(host)
+        return f"kgadapt-{host}-{self.settings.tag}"
+
+    def address(self, host: str) -> str:
+        return f"{self.settings.subnet}.{self._index(host) + 1}"
+
+    def port(self, host: str) -> str:
+        """The bridge port (interface in the switch namespace) of ``host``'s link."""
+        self._index(host)
+        return f"to-{host}"
+
+    def run_in(self, host: str, argv: Sequence[str]) -> list[str]:
+        """``argv`` run inside ``host``'s namespace (``ip netns exec`` execs it: the PID stays the program's)."""
+        return ["ip", "netns", "exec", self.namespace(host), *argv]
+
+    @staticmethod
+    def unavailable_reason() -> str | None:
+        """Why network namespaces cannot be made here, or None when they can."""
+        if os.geteuid() != 0:
+            return "network namespaces need root (CAP_SYS_ADMIN and CAP_NET_ADMIN)"
+        if shutil.which("ip") is None:
+            return "iproute2's ip command is not installed"
+        probe = f"kgadapt-probe-{secrets.token_hex(3)}"
+        made = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True, timeout=10)
+        if made.returncode != 0:
+            return f"ip netns add failed: {made.stderr.strip() or made.returncode}"
+        subprocess.run(["ip", "netns", "del", probe], capture_output=True, timeout=10)
+        return None
+
+    def setup(self) -> None:
+        """Make the namespaces, the bridge and one link per host; raise TransportError naming a failed step."""
+        s = self.settings
+        try:
+            self._ip("netns", "add", self.switch)
+            self._created.append(self.switch)
+            sw = ("-n", self.switch)
+            self._ip(*sw, "link", "add", "br0", "type", "bridge")
+            self._ip(*sw, "link", "set", "br0", "up")
+            for host in s.hosts:
+                ns = self.namespace(host)
+                self._ip("netns", "add", ns)
+                self._created.append(ns)
+                port = self.port(host)
+                # Both ends are made from the switch's side: the host's end moves straight into its namespace.
+                self._ip(*sw, "link", "add", port, "type", "veth", "peer", "name", "eth0", "netns", ns)
+                self._ip(*sw, "link", "set", port, "master", "br0")
+                self._ip(*sw, "link", "set", port, "up")
+                self._ip("-n", ns, "link", "set", "lo", "up")
+                self._ip("-n", ns, "addr", "add", f"{self.address(host)}/24", "dev", "eth0")
+                self._ip("-n", ns, "link", "set", "eth0", "up")
+        except BaseException:
+            self.shutdown()
+            raise
+
+    def cut(self, host: str) -> float:
+        """Pull ``host``'s cable; returns the time (epoch seconds) it was done."""
+        self._ip("-n", self.switch, "link", "set", self.port(host), "down")
+        return time.time()
+
+    def heal(self, host: str) -> float:
+        """Plug ``host``'s cable back in; returns the time it was done."""
+        self._ip("-n", self.switch, "link", "set", self.port(host), "up")
+        return time.time()
+
+    def inode(self, host: str) -> int:
+        """The namespace's inode: compare with ``os.stat(f"/proc/{pid}/ns/net").st_ino`` to find its processes."""
+        return os.stat(f"/run/netns/{self.namespace(host)}").st_ino
+
+    def pids(self, host: str) -> list[int]:
+        """Processes running in ``host``'s namespace."""
+        out = subprocess.run(["ip", "netns", "pids", self.namespace(host)], capture_output=True, text=True,
+                             timeout=self.settings.command_timeout)
+        return [int(p) for p in out.stdout.split()]
+
+    def shutdown(self, timeout: float = 5.0) -> None:
+        """Kill what still runs in our namespaces and delete them (ours only, newest first)."""
+        while self._created:
+            ns = self._created.pop()
+            deadline = time.monotonic() + timeout
+            while True:
+                out = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True, timeout=10)
+                pids = [int(p) for p in out.stdout.split()]
+                if not pids or time.monotonic() > deadline:
+                    break
+                for pid in pids:
+                    try:
+                        os.kill(pid, signal.SIGKILL)
+                    except ProcessLookupError:
+                        pass
+                time.sleep(0.05)
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
+
+    def _index(self, host: str) -> int:
+        try:
+            return self.settings.hosts.index(host)
+        except ValueError:
+            raise KgadaptError(f"host {host!r} is not in this network ({', '.join(self.settings.hosts)})") from None
+
+    def _ip(self, *args: str) -> None:
+        try:
+            done = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=self.settings.command_timeout)
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            raise TransportError(f"ip {' '.join(args)}: {exc}") from exc
+        if done.returncode != 0:
+            raise TransportError(f"ip {' '.join(args)} failed: {done.stderr.strip() or done.returncode}")
+
+    def __enter__(self) -> "HostNetwork":
+        self.setup()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
