@@ -86,9 +86,10 @@ class _Robot:
         return None
 
 
-def measure_migrations(workdir: Path, count: int, hold: float) -> tuple[list[float], list[int], int, tuple[int, int]]:
-    """(latencies ms, frames lost per migration, decisions that were not migrations,
-    (frames no detector answered, frames) in steady state outside migrations)."""
+def measure_migrations(workdir: Path, count: int, hold: float) -> tuple[list[float], list[int], int, tuple[int, int],
+                                                                     list[int]]:
+    """(latencies ms, frames lost per migration (coverage gap), decisions that were not migrations,
+    (frames no detector answered, frames) in steady state outside migrations, busy drops per migration)."""
     profile, t = [], 0.0
     for _ in range(count // 2 + 2):
         profile += [[t, 120], [t + hold, 120], [t + hold + 0.3, 5], [t + 2 * hold + 0.3, 5]]
@@ -101,8 +102,9 @@ def measure_migrations(workdir: Path, count: int, hold: float) -> tuple[list[flo
     robot.recorder.attribute_losses()
     done = migrated()[:count]
     others = [d for d in robot.recorder.decisions if d.kind != "startup" and not d.outcome.startswith("migrated")]
-    return ([d.latency_ms for d in done if d.latency_ms is not None], [d.frames_lost or 0 for d in done],
-            len(others), robot.recorder.baseline_loss())
+    return ([d.latency_ms for d in done if d.latency_ms is not None],
+            [d.frames_lost for d in done if d.frames_lost is not None],
+            len(others), robot.recorder.baseline_loss(), [d.frames_dropped or 0 for d in done])
 
 
 def measure_failovers(workdir: Path, count: int) -> list[float]:
@@ -135,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     workdir = Path(tempfile.mkdtemp(prefix="kgadapt-bench-adaptation-"))
     started = time.time()
     try:
-        latencies, lost, other, (base_lost, base_frames) = measure_migrations(
+        latencies, lost, other, (base_lost, base_frames), dropped = measure_migrations(
             workdir / "migrations", args.adaptations, args.hold)
         failovers = measure_failovers(workdir / "failover", args.failovers) if args.failovers else []
     finally:
@@ -149,6 +151,7 @@ def run(args: argparse.Namespace) -> int:
         records.append(make_record(store=store, n=None, op="frames_lost_per_migration", samples_ms=[float(x) for x in lost],
                                    unit="frames", total=sum(lost), target=0, other_decisions=other,
                                    steady_state_unanswered=base_lost, steady_state_frames=base_frames,
+                                   busy_drops_around_migrations=sum(dropped),
                                    load_average=os.getloadavg()[0]))
     if failovers:
         records.append(make_record(store=store, n=None, op="failover_after_kill9", samples_ms=failovers,
@@ -162,7 +165,8 @@ def run(args: argparse.Namespace) -> int:
         rows = [[r["op"], r["reps"], r["p50_ms"], r["p99_ms"], r["max_ms"]] for r in records]
         print(format_table(rows, ["measure", "n", "p50", "p99", "max"]))
         if lost:
-            print(f"frames lost in {len(lost)} planned migrations: {sum(lost)} (target 0); outside migrations "
+            print(f"frames lost in {len(lost)} planned migrations (between the old detector's last answer and "
+                  f"the new one's first): {sum(lost)} (target 0); busy drops around them {sum(dropped)}; outside migrations "
                   f"{base_lost} of {base_frames} frames went unanswered (detectors drop stale frames when busy); "
                   f"load average {os.getloadavg()[0]:.2f}")
         if failovers:

@@ -97,8 +97,9 @@ def run_scenario(args: argparse.Namespace) -> int:
     if latencies:
         say(f"\n{len(rows)} decisions, {len(migrations)} planned migrations; latency from trigger to the new "
             f"detector's first detection: median {latencies[len(latencies) // 2]:.0f} ms, max {latencies[-1]:.0f} ms")
-    say(f"frames lost in planned migrations: {sum(r['frames_lost'] or 0 for r in migrations)}; "
-        f"frames no detector answered outside migrations: {lost} of {steady}")
+    say(f"frames lost in planned migrations (between the old detector's last answer and the new one's first): "
+        f"{sum(r['frames_lost'] or 0 for r in migrations)}; frames dropped by busy detectors around migrations: "
+        f"{sum(r['busy_drops'] or 0 for r in migrations)}, outside migrations: {lost} of {steady}")
     bands = _bands(cluster)
     png = recorder.plot(workdir / "timeline.png", bands)
     say(f"timeline plot: {png}")

@@ -28,7 +28,10 @@ class Decision:
     host: str | None
     outcome: str
     latency_ms: float | None
-    frames_lost: int | None = None
+    frames_lost: int | None = None  # frames between the old detector's last answer and the new one's first
+    frames_dropped: int | None = None  # frames no detector answered around the migration (busy detectors)
+    instance: str | None = None
+    previous_instance: str | None = None
 
 
 @dataclass
@@ -106,7 +109,8 @@ class Recorder:
         d = m.get("decision") or {}
         decision = Decision(time=float(m["time"]), trigger=str(m["trigger"]), kind=str(d.get("trigger_kind") or ""),
                             config=d.get("config"), host=d.get("host"), outcome=str(m.get("outcome") or ""),
-                            latency_ms=d.get("latency_ms"))
+                            latency_ms=d.get("latency_ms"), instance=d.get("instance"),
+                            previous_instance=d.get("previous_instance"))
         with self._lock:
             self.decisions.append(decision)
         if self.on_decision:
@@ -140,13 +144,31 @@ class Recorder:
         return sum(1 for seq in frames if seq not in done)
 
     def attribute_losses(self, margin_s: float = 0.5) -> None:
-        """Frames lost around each migration: the window from its trigger to its end, plus a margin."""
+        """Per migration: the coverage gap (frames lost) and busy drops around it.
+
+        A planned migration loses a frame when no detector covers it: captured
+        after the old instance's last answered frame and before the new one's
+        first. With make-before-break the new one answers first, so the gap is 0.
+        Separately, ``frames_dropped`` counts frames nobody answered in the window
+        around the migration: detectors drop stale frames when the CPU is busy.
+        """
+        with self._lock:
+            frames = [seq for _, _, seq in self.light]
+            answered: dict[str, list[int]] = {}
+            for _, instance, _, _, seq, _ in self.detections:
+                answered.setdefault(instance, []).append(seq)
         for d in self.decisions:
-            if d.outcome.startswith("migrated") and d.latency_ms is not None:
-                start = d.time - d.latency_ms / 1000.0 - margin_s
-                # The last frames of the window may still be in flight when the run ends; a
-                # migration is done when its event is published, so its window ends there.
-                d.frames_lost = self.frames_unprocessed(start, d.time + margin_s)
+            if not (d.outcome.startswith("migrated") and d.latency_ms is not None):
+                continue
+            start = d.time - d.latency_ms / 1000.0 - margin_s
+            d.frames_dropped = self.frames_unprocessed(start, d.time + margin_s)
+            old = answered.get(d.previous_instance or "", [])
+            new = answered.get(d.instance or "", [])
+            if not old or not new:
+                d.frames_lost = None  # not observed (e.g. the recorder joined late)
+                continue
+            old_last, new_first = max(old), min(new)
+            d.frames_lost = sum(1 for seq in frames if old_last < seq < new_first)
 
     def baseline_loss(self) -> tuple[int, int]:
         """(frames no detector answered, frames) while a detector ran, outside migrations."""
@@ -165,6 +187,7 @@ class Recorder:
         return [{
             "t_s": round(d.time - self.t0, 1), "trigger": d.trigger[:44], "chosen": f"{d.config}@{d.host}",
             "outcome": d.outcome.split(":")[0], "latency_ms": d.latency_ms, "frames_lost": d.frames_lost,
+            "busy_drops": d.frames_dropped,
         } for d in self.decisions]
 
     def plot(self, path: Path, bands: list[tuple[str, float, float]] | None = None) -> Path:

@@ -65,6 +65,7 @@ class AdaptationSettings:
     knowledge_timeout: float = 15.0  # bounded wait for the knowledge service at setup
     rss_refresh_s: float = 2.0
     startup_grace_s: float = 5.0  # how long the first placement waits for our own host to show online
+    retry_s: float = 1.0  # the running host lost and no replacement started: try again this often
 
 
 @dataclass(kw_only=True)
@@ -121,6 +122,8 @@ class AdaptationManager:
         self._held_checked = 0.0
         self._decisions = 0
         self._setup_at = 0.0
+        self._retry: Trigger | None = None  # a lost detector not yet replaced (e.g. the knowledge service was down)
+        self._retry_at = 0.0
         self._lock = threading.Lock()
 
     # -- lifecycle -------------------------------------------------------
@@ -218,6 +221,8 @@ class AdaptationManager:
                 if self.current is None:
                     # Nothing runs: whatever was observed, the question is where to start.
                     trigger = self._startup_trigger()
+                if trigger is None:
+                    trigger = self._due_retry()
                 if trigger is not None:
                     self._act(trigger)
             except Exception:  # the loop must survive any single bad observation or failed action
@@ -333,6 +338,8 @@ class AdaptationManager:
                                       lost_hosts=lost)
         except (PlanningError, KgadaptError) as exc:
             self._record(Outcome(trigger=trigger, outcome=f"no plan: {exc}"))
+            if running_lost:
+                self._retry_later(trigger)
             return
         if plan.same_as(self.current) and not running_lost:
             if trigger.kind not in ("host_back", "startup"):
@@ -349,6 +356,25 @@ class AdaptationManager:
         self._record(result)
         if running_lost and not result.outcome.startswith("failed"):
             a.reset_rate()
+        elif running_lost:
+            self._retry_later(trigger)
+
+    def _retry_later(self, trigger: Trigger) -> None:
+        """The detector is gone and none replaced it: act on ``trigger`` again after ``retry_s``.
+
+        Without this, a failover that fails once (the knowledge service restarting
+        its store, a deployer not answering) would leave the robot without a
+        detector until some other trigger came. The trigger keeps its time, so the
+        recorded latency runs from the loss.
+        """
+        self._retry = trigger
+        self._retry_at = time.monotonic() + self.settings.retry_s
+
+    def _due_retry(self) -> Trigger | None:
+        if self._retry is None or time.monotonic() < self._retry_at:
+            return None
+        trigger, self._retry = self._retry, None
+        return trigger
 
     def _start_fresh(self, plan: Plan, trigger: Trigger) -> Outcome:
         t = plan.target
@@ -380,9 +406,9 @@ class AdaptationManager:
         self._set_current(plan, report.new_instance, snapshot.get("run_id"))
         # migrate() measures from its own start; add the time from the trigger to that start.
         latency = (called_at - trigger.time) * 1000.0 + report.first_output_ms
-        return Outcome(trigger=trigger, plan=plan, outcome="migrated", latency_ms=latency, frames_lost=0,
-                       detail={"instance": report.new_instance, "from": f"{old.config}@{old.host}",
-                               "target_ready_ms": report.target_ready_ms})
+        return Outcome(trigger=trigger, plan=plan, outcome="migrated", latency_ms=latency,
+                       detail={"instance": report.new_instance, "previous_instance": old.instance,
+                               "from": f"{old.config}@{old.host}", "target_ready_ms": report.target_ready_ms})
 
     def _set_current(self, plan: Plan, instance: str, run_id: str | None) -> None:
         t = plan.target
@@ -461,6 +487,7 @@ class AdaptationManager:
                 "config": params["config"], "host": params["host"], "latency_ms": params["duration_ms"],
                 "trigger_kind": trigger.kind, "frames_lost": outcome.frames_lost, "name": name,
                 "instance": self.current.instance if self.current else None,
+                "previous_instance": outcome.detail.get("previous_instance"),
             },
         }
         try:

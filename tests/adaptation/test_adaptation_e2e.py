@@ -91,7 +91,8 @@ def test_the_detector_follows_the_light_through_the_bands_without_losing_frames(
                              capture_output=True, text=True, timeout=30)
     assert why.returncode == 0, why.stderr
     explained = json.loads(why.stdout)
-    assert (explained["running"]["config"], explained["running"]["host"]) == ("marker_detection_dark", "onboard")
+    assert (explained["running"]["config"], explained["running"]["host"]) == ("marker_detection_dark", "onboard"), (
+        f"why said {explained['running']}; decisions {run.recorder.decisions}")
     assert explained["decision"]["trigger"].startswith("band_changed(from=dusk, to=dark")
     assert [p["platform"] for p in explained["placement_now"]] == ["remote", "onboard"]  # most free memory first
     startup = run.recorder.decisions[0]
