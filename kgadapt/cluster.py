@@ -70,6 +70,7 @@ class ClusterSettings:
     # Zenoh mode of both agents (and, through their deployers, of the detectors they start);
     # None: their default (peer). "client" sends all traffic through the service's router.
     agent_mode: str | None = None
+    env: tuple[tuple[str, str], ...] = ()  # extra environment of every child (e.g. ZENOH_RUNTIME)
 
 
 @dataclass
@@ -81,8 +82,6 @@ class Child:
     ready_text: str | None = None
     ready: threading.Event = field(default_factory=threading.Event)
     lines: list[str] = field(default_factory=list)
-    argv: tuple[str, ...] = ()
-    ready_marker: str | None = None
     host: str | None = None  # the network namespace's host it runs in (None: this machine's network)
 
     def tail(self, n: int = 15) -> str:
@@ -162,22 +161,16 @@ class LocalCluster:
             self.stop()
             raise
 
-    def respawn(self, name: str) -> Child:
-        """Start a child again, with the same command, after it ended (e.g. an agent restart)."""
-        old = self.children[name]
-        if old.process.poll() is None:
-            raise KgadaptError(f"{name} (pid {old.process.pid}) is still running; stop or kill it first")
-        return self._spawn(name, old.argv, ready=old.ready_marker, host=old.host, append=True)
-
     def _spawn(self, name: str, argv: Sequence[str], *, ready: str | None, host: str | None = None,
                append: bool = False) -> Child:
         log_path = self.settings.workdir / f"{name}.log"
         log_file = open(log_path, "a" if append else "w")
         where = host if self.network is not None else None
         command = self.network.run_in(where, argv) if where else list(argv)
+        env = {**os.environ, **dict(self.settings.env)} if self.settings.env else None
         process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=log_file, stdin=subprocess.DEVNULL,
-                                   text=True, cwd=REPO, start_new_session=True)
-        child = Child(name, process, log_path, argv=tuple(argv), ready_marker=ready, host=where)
+                                   text=True, cwd=REPO, start_new_session=True, env=env)
+        child = Child(name, process, log_path, argv=tuple(argv), ready_text=ready, host=where)
         self.children[name] = child
 
         def pump() -> None:  # stdout to the log and the readiness line to an event
@@ -200,11 +193,16 @@ class LocalCluster:
         return child
 
     def respawn(self, name: str) -> Child:
-        """Start a stopped or killed process again with the same command line (and wait for it)."""
-        old = self.children.pop(name)
+        """Start a stopped or killed process again with the same command line (and wait for it).
+
+        It runs where it ran before (its host's namespace), appends to its log, and
+        counts as the newest child (``stop()`` stops it first).
+        """
+        old = self.children[name]
         if old.process.poll() is None:
             raise KgadaptError(f"{name} is still running (pid {old.process.pid}); stop it first")
-        return self._spawn(name, old.argv, ready=old.ready_text)
+        del self.children[name]
+        return self._spawn(name, old.argv, ready=old.ready_text, host=old.host, append=True)
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
         """Send ``sig`` to one process's whole group (e.g. kill -9 of the remote agent and its detectors' parent)."""

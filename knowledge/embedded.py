@@ -30,6 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import redis
+from redis.backoff import NoBackoff
+from redis.retry import Retry
 
 from shared.errors import StoreUnavailable
 
@@ -214,7 +216,10 @@ class EmbeddedServer:
 
 
 def _answers_ping(sock: str) -> bool:
-    client = redis.Redis(unix_socket_path=sock, socket_timeout=1.0, socket_connect_timeout=1.0)
+    # No retries: redis-py 8 retries a refused connection ten times with back-off,
+    # which added ~4.5 s to finding that a crashed server is gone.
+    client = redis.Redis(unix_socket_path=sock, socket_timeout=1.0, socket_connect_timeout=1.0,
+                         retry=Retry(NoBackoff(), 0))
     try:
         return bool(client.ping())
     except (redis.RedisError, OSError):

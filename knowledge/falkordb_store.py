@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import threading
 from typing import Any, Mapping, Sequence
 
 import redis
@@ -30,6 +31,7 @@ class FalkorDBStore(GraphStore):
         self.server = server
         self._db: FalkorDB | None = None
         self._graph: Any = None
+        self._reconnect_lock = threading.Lock()
 
     def setup(self, *, timeout: float | None = None) -> None:
         timeout = timeout or self.settings.connect_timeout
@@ -47,12 +49,13 @@ class FalkorDBStore(GraphStore):
         if self.settings.username:
             kwargs["username"] = self.settings.username
         try:
-            self._db = FalkorDB(socket_connect_timeout=timeout, **kwargs)
-            self._db.connection.ping()
+            db = FalkorDB(socket_connect_timeout=timeout, **kwargs)
+            db.connection.ping()
         except (redis.RedisError, OSError) as exc:
-            self._db = None
             raise StoreUnavailable(f"cannot reach FalkorDB at {self.settings.url}: {exc}") from exc
-        self._graph = self._db.select_graph(self.settings.graph)
+        # Other threads keep using the old client until the new one is whole.
+        self._graph = db.select_graph(self.settings.graph)
+        self._db = db
 
     def shutdown(self) -> None:
         if self._db is not None:
@@ -110,18 +113,21 @@ class FalkorDBStore(GraphStore):
                 if attempt == 2 or self.settings.kind != "embedded":
                     raise StoreUnavailable(f"lost FalkorDB at {self.settings.url}: {exc}") from exc
                 log.warning("lost the embedded store (%s); reconnecting", exc)
-                self._reconnect()
+                self._reconnect(self._graph)
         raise AssertionError("unreachable")
 
-    def _reconnect(self) -> None:
-        if self._db is not None:
-            try:
-                self._db.connection.close()
-            except redis.RedisError:
-                pass
-        self._db = None
-        self._graph = None
-        self.setup()
+    def _reconnect(self, failed_graph: Any) -> None:
+        """Reconnect once for all threads: whoever comes second finds it done."""
+        with self._reconnect_lock:
+            if self._graph is not failed_graph and self._graph is not None:
+                return  # another thread already reconnected
+            old = self._db
+            self.setup()  # replaces _db and _graph only when it succeeds
+            if old is not None and old is not self._db:
+                try:
+                    old.connection.close()
+                except redis.RedisError:
+                    pass
 
     def execute_atomic(self, statements: Sequence[Statement]) -> None:
         """MULTI/EXEC: the batch runs in isolation and in one AOF write.

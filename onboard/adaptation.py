@@ -178,8 +178,10 @@ class Analyzer:
     def on_host_status(self, host: str, *, free_mb: float, cpu_load: float, now: float,
                        running: Placement | None) -> Trigger | None:
         view = self.hosts.setdefault(host, HostView(name=host))
+        # Only liveliness says a host is online: after a partition heals, a status may
+        # arrive before the token, and marking the host online here would swallow the
+        # host_back that stops a twin detector there.
         view.memory_free_mb, view.cpu_load, view.last_seen = free_mb, cpu_load, now
-        view.online = True
         if running is not None and running.host == host and free_mb + running.held_mb < running.demand_mb:
             # Free memory excludes what the running detector holds; with that given
             # back, the host must still cover the demand the graph declares.

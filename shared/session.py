@@ -129,8 +129,18 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     return config
 
 
+# Zenoh closes a dead TCP link with a 10 s SO_LINGER, blocking one thread of its
+# receive runtime in close(). Measured in the partition tests: a host cut off with
+# two links (agent and detector) blocked both default threads, and the router then
+# routed nothing until the link came back. More receive threads keep it routing.
+# Zenoh reads this when its runtime starts, i.e. at the first open(); the only way
+# to set it is the environment, so it is set here, once, unless the user chose.
+ZENOH_RUNTIME = "(rx: (worker_threads: 8))"
+
+
 def open_session(settings: ZenohSettings) -> zenoh.Session:
     """Open a session; raise TransportError (or ConfigError) on failure."""
+    os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
     config = build_config(settings)
     try:
         session = zenoh.open(config)

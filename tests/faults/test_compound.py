@@ -1,0 +1,19 @@
+"""Two faults at once: the knowledge store and the remote host die together."""
+
+from __future__ import annotations
+
+import pytest
+
+pytestmark = pytest.mark.netns
+
+
+def test_the_detector_comes_back_onboard_even_when_the_knowledge_store_dies_with_the_remote_host(robot):
+    result = robot.kill_store_and_remote()
+
+    # The first plan finds the store gone; the manager tries again until the service has it back.
+    assert result["failover_ms"] < 15000, result
+    running = robot.settle()
+    assert (running["instance"], running["host"]) == (result["new_instance"], "onboard")
+    assert robot.orphans() == []
+    lost = [d for d in robot.probe.events if d["ev"] == "decision" and d.get("kind") == "host_lost"]
+    assert lost and lost[-1]["outcome"].startswith("started"), lost

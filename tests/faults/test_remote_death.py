@@ -1,0 +1,21 @@
+"""kill -9 of the remote agent while it runs the detector: the detector comes back onboard within 2 s."""
+
+from __future__ import annotations
+
+import pytest
+
+pytestmark = pytest.mark.netns
+
+
+def test_a_detector_runs_onboard_within_2_s_of_kill_9_of_the_remote_agent(robot):
+    result = robot.kill_remote()
+
+    assert result["failover_ms"] < 2000, result  # kill -> first detections of the new onboard detector
+    assert result["new_instance"] != result["old_instance"]
+    assert result["remote_detector_gone"], "the remote detector outlived its agent (parent-death signal)"
+    running = robot.settle()
+    assert (running["instance"], running["host"]) == (result["new_instance"], "onboard")
+    assert robot.orphans() == []
+    platforms = robot.platforms()  # as another robot on the network sees the graph
+    assert platforms["remote"]["online"] is False
+    assert platforms["onboard"]["online"] is True
