@@ -29,6 +29,7 @@ PARTS = (
     "onboard.adaptation_cli", # kgadapt why
     "bench.cli",              # kgadapt bench table1|zenoh|deployer|perception|adaptation|reliability
     "kgadapt.demo",           # kgadapt demo
+    "kgadapt.certs",          # kgadapt certs (TLS certificate authority and certificates)
 )
 
 

@@ -217,9 +217,22 @@ class BoltStore(GraphStore):
 def _check_params(params: Mapping[str, Any] | None) -> dict[str, Any]:
     clean = dict(params or {})
     for key, value in clean.items():
-        if isinstance(value, float) and not math.isfinite(value):
-            raise QueryError(f"parameter {key!r}: {value} is not a finite number")
+        _check_value(key, value)
     return clean
+
+
+def _check_value(key: str, value: Any) -> None:
+    if isinstance(value, float) and not math.isfinite(value):
+        raise QueryError(f"parameter {key!r}: {value} is not a finite number")
+    if isinstance(value, str) and "\x00" in value:
+        # FalkorDB's Bolt listener cuts strings at NUL; no store here should keep half a value.
+        raise QueryError(f"parameter {key!r}: a NUL character is not allowed in a string")
+    if isinstance(value, (list, tuple)):
+        for item in value:
+            _check_value(key, item)
+    if isinstance(value, dict):
+        for item in value.values():
+            _check_value(key, item)
 
 
 def _refuse_quotes(params: Mapping[str, Any], where: str = "") -> None:

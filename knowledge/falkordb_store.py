@@ -182,6 +182,9 @@ def _check_value(key: str, value: Any) -> Any:
         return {str(k): _check_value(key, v) for k, v in value.items()}
     if isinstance(value, bytes):
         raise QueryError(f"parameter {key!r}: bytes are not a graph value")
+    if isinstance(value, str) and "\x00" in value:
+        # FalkorDB rejects the statement, and in a MULTI/EXEC batch the others would still apply.
+        raise QueryError(f"parameter {key!r}: a NUL character is not allowed in a string")
     return value
 
 

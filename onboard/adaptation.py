@@ -248,11 +248,14 @@ class Planner:
 
         return min(candidates, key=score), rows
 
-    def plan(self, *, band: str, running: Placement | None, lost_hosts: Sequence[str] = ()) -> Plan:
+    def plan(self, *, band: str, running: Placement | None, lost_hosts: Sequence[str] = (),
+             live_free: Mapping[str, float] | None = None) -> Plan:
         """Configuration for ``band`` and a host that can hold it now.
 
         The host running a detector gets back what that detector holds, since a
-        change replaces it there.
+        change replaces it there. ``live_free`` is the caller's own, fresher view of
+        free memory (host statuses it just received): a host the graph still thinks
+        fits but that no longer does by that view is left out.
         """
         config_row, all_rows = self.choose_config(band)
         config = str(config_row["config"])
@@ -275,6 +278,11 @@ class Planner:
                     if deployment:
                         fits[running.host] = {"platform": running.host, "free_mb": free + running.held_mb,
                                               "deployment": deployment[0]["deployment"]}
+        for host in list(fits):
+            free = (live_free or {}).get(host)
+            credit = running.held_mb if running is not None and running.host == host else 0.0
+            if free is not None and free + credit < demand:
+                del fits[host]  # the graph has not caught up with a squeeze we already saw
         if not fits:
             raise PlanningError(f"no online platform has {demand:.0f} MiB free for {config}")
         order = sorted(fits, key=self._host_rank)

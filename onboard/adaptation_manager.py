@@ -334,8 +334,9 @@ class AdaptationManager:
             return
         started = time.perf_counter()
         try:
+            live = {h.name: h.memory_free_mb for h in a.hosts.values() if h.memory_free_mb is not None}
             plan = self._planner.plan(band=band.name, running=None if running_lost else self.current,
-                                      lost_hosts=lost)
+                                      lost_hosts=lost, live_free=live)
         except (PlanningError, KgadaptError) as exc:
             self._record(Outcome(trigger=trigger, outcome=f"no plan: {exc}"))
             if running_lost:

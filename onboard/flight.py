@@ -168,6 +168,7 @@ class BridgeSettings:
     state_period_s: float = 0.2  # flight_state at 5 Hz, plus at once on a discrete change
     max_target_hz: float = 30.0  # LANDING_TARGET at the detection rate, capped here
     max_detection_age_s: float = 0.5  # older detections would steer towards where the marker was
+    max_clock_skew_s: float = 0.5  # a frame time further ahead than this is refused, not trusted
     queue_limit: int = 64
 
 
@@ -321,8 +322,14 @@ class FlightBridge:
                 log.warning("flight bridge dropped a detections message (%d so far): %s",
                             self.counters["malformed"], exc)
             return
-        if time.time() - target.time > self.settings.max_detection_age_s:
+        age = time.time() - target.time
+        if age > self.settings.max_detection_age_s:
             self.counters["stale"] += 1
+            return
+        if age < -self.settings.max_clock_skew_s:
+            # From the future: sending it would make it the newest frame and every real
+            # detection after it a "duplicate", silencing LANDING_TARGET.
+            self.counters["future"] = self.counters.get("future", 0) + 1
             return
         if target.time <= self._last_frame_time:
             # the same (or an older) frame from a second detector while a migration overlaps them

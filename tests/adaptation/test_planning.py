@@ -84,3 +84,9 @@ def test_the_plan_explains_itself(graph):
     plan = planner(graph).plan(band="day", running=None)
     assert "marker_detection_day" in plan.reason and "onboard" in plan.reason
     assert plan.inputs["band"] == "day" and plan.inputs["platforms"][0]["platform"] == "onboard"
+
+
+def test_a_squeeze_seen_live_before_the_graph_shows_it_already_counts(graph):
+    # The graph still says 400 MiB free onboard; the status just received says 200.
+    plan = planner(graph).plan(band="dark", running=None, live_free={"onboard": 200.0})
+    assert plan.target.host == "remote"

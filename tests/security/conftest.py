@@ -1,0 +1,157 @@
+"""Fixtures of the security tests: certificates made by ``kgadapt certs``, the shipped Zenoh configurations.
+
+The shipped configurations (deploy/zenoh/*.json5) reference certificates
+under ``/etc/kgadapt/tls/``; :func:`shipped_config` points them at a test
+directory instead (a text substitution, so the file names must be exactly the
+ones ``kgadapt certs`` writes) and changes only what a test on loopback needs:
+endpoints and, for sessions that must fail fast, the connect timeout.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import pytest
+import zenoh
+
+from tests.conftest import REPO
+
+ZENOH_DIR = REPO / "deploy" / "zenoh"
+SHIPPED_TLS_DIR = "/etc/kgadapt/tls"
+ROBOT = "quad1"  # the robot the shipped configurations are written for
+OTHER_ROBOT = "quad2"  # listed as one of the "other-robots" in router.json5
+FAST_OPEN = {"scouting/delay": 0}
+_written = itertools.count()
+
+
+def kgadapt(*args: str, check: bool = True, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    """Run ``kgadapt ARGS`` from this checkout; with ``check`` fail showing its stderr."""
+    result = subprocess.run([sys.executable, "-m", "kgadapt", *args], capture_output=True, text=True,
+                            timeout=timeout, cwd=REPO)
+    if check and result.returncode != 0:
+        raise AssertionError(f"kgadapt {' '.join(args)} exited {result.returncode}: {result.stderr.strip()}")
+    return result
+
+
+def shipped_config(name: str, tls_dir: Path, out_dir: Path, **changes: Any) -> Path:
+    """The shipped configuration ``name`` with its TLS files in ``tls_dir`` and ``changes`` (key/path -> value)."""
+    text = (ZENOH_DIR / name).read_text().replace(SHIPPED_TLS_DIR, str(tls_dir))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    n = next(_written)
+    source = out_dir / f"{n}-{name}"
+    source.write_text(text)
+    config = zenoh.Config.from_file(str(source))
+    for key, value in changes.items():
+        config.insert_json5(key, json.dumps(value))
+    path = out_dir / f"{n}-{Path(name).stem}.json"
+    path.write_text(str(config))
+    return path
+
+
+def wait_for(predicate: Callable[[], object], timeout: float, what: str, interval: float = 0.02) -> Any:
+    """Poll ``predicate`` until it returns something truthy; fail naming ``what`` after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    last: Exception | None = None
+    while True:
+        try:
+            value = predicate()
+            if value:
+                return value
+        except Exception as exc:  # keep polling; show the last error on failure
+            last = exc
+        if time.monotonic() >= deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what} (last error: {last})")
+        time.sleep(interval)
+
+
+@dataclass(frozen=True)
+class Pki:
+    """Certificates of one test fleet, all made by ``kgadapt certs``."""
+
+    tls: Path  # ca.pem and every certificate of our CA: quad1-*, quad2-onboard, mallory-operator
+    foreign: Path  # another CA with its own quad1-operator certificate
+
+    def pair(self, cn: str, *, foreign: bool = False) -> tuple[Path, Path]:
+        directory = self.foreign if foreign else self.tls
+        return directory / f"{cn}.pem", directory / f"{cn}-key.pem"
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
+    """Our CA with this robot's four identities (router valid for localhost), another robot's onboard
+    identity and a stranger's (CN not listed anywhere), plus a foreign CA that also issued a quad1-operator."""
+    base = tmp_path_factory.mktemp("pki")
+    tls, foreign = base / "tls", base / "foreign"
+    kgadapt("certs", str(tls), "--robot", ROBOT, "--router-address", "localhost", "--router-address", "127.0.0.1")
+    kgadapt("certs", str(tls), "--robot", OTHER_ROBOT, "--role", "onboard", "--use-ca")
+    kgadapt("certs", str(tls), "--robot", "mallory", "--role", "operator", "--use-ca")
+    kgadapt("certs", str(foreign), "--robot", ROBOT, "--role", "operator", "--router-address", "localhost")
+    return Pki(tls=tls, foreign=foreign)
+
+
+class Child:
+    """A ``kgadapt`` child process; stdout lines are collected by a thread, stderr goes to a file."""
+
+    def __init__(self, name: str, args: list[str], log_dir: Path) -> None:
+        import os
+        import queue
+        import threading
+
+        self.name = name
+        self.stderr_path = log_dir / f"{name}.stderr"
+        self._stderr = open(self.stderr_path, "w")
+        self.lines: "queue.Queue[str]" = queue.Queue()
+        env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+        self.process = subprocess.Popen([sys.executable, "-m", "kgadapt", "--log-level", "INFO", *args], cwd=REPO,
+                                        env=env, stdout=subprocess.PIPE, stderr=self._stderr, text=True)
+        threading.Thread(target=self._read, name=f"{name}-stdout", daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            self.lines.put(line)
+
+    def wait_for_line(self, text: str, timeout: float = 30.0) -> str:
+        import queue
+
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise AssertionError(f"{self.name}: no line with {text!r} within {timeout} s:\n{self.stderr()}")
+            try:
+                line = self.lines.get(timeout=min(left, 0.2))
+            except queue.Empty:
+                if self.process.poll() is not None:
+                    raise AssertionError(f"{self.name} exited with {self.process.returncode}:\n{self.stderr()}")
+                continue
+            if text in line:
+                return line
+
+    def stderr(self) -> str:
+        try:
+            return self.stderr_path.read_text(errors="replace")[-4000:]
+        except OSError:
+            return ""
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def stop(self, timeout: float = 15.0) -> int:
+        import signal
+
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self._stderr.close()
+        return self.process.returncode

@@ -1,0 +1,334 @@
+"""Mutual TLS and access control of the shipped configurations, with certificates made by ``kgadapt certs``.
+
+Real processes on loopback: ``kgadapt knowledge serve`` on the shipped
+router configuration (the one place rules are enforced) over an embedded
+store holding the shipped models, and ``kgadapt onboard`` (host monitor with
+its squeeze queryable, deployer, liveliness) on the shipped onboard
+configuration as a client of it. The test's own sessions use the shipped
+onboard configuration with another certificate each: this robot's operator,
+another robot of the fleet (``quad2-onboard``, listed as one of the
+``other-robots``), a stranger of our CA, someone of another CA, and nobody.
+
+Every refusal is paired with the same request from this robot's operator
+succeeding, so a refusal cannot pass merely because something is not up.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, Callable
+
+import pytest
+
+from deploy.client import DeployerClient
+from knowledge.client import KnowledgeClient
+from knowledge.runtime import WRITERS
+from shared import keys, messages
+from shared.errors import RemoteError, RequestTimeout, TransportError
+from shared.hostmonitor import squeeze
+from shared.session import ZenohSettings, open_session
+from tests.conftest import REPO, free_port
+from tests.security.conftest import FAST_OPEN, OTHER_ROBOT, ROBOT, Child, kgadapt, shipped_config, wait_for
+
+OPERATOR = f"{ROBOT}-operator"
+OTHER = f"{OTHER_ROBOT}-onboard"
+STRANGER = "mallory-operator"  # signed by our CA, named by no policy
+FAIL_FAST = {"connect/exit_on_failure": True, "connect/timeout_ms": 1000}
+
+# Shell metacharacters in a deployment's arguments and environment (in the model file, quoted for
+# shlex): the deployer runs the words as they are, without a shell, so none of these may run.
+SHELL_WORDS = ["$(touch {m})", "`touch {m}`", "; touch {m}", "&& touch {m}", "| touch {m}", "> {m}"]
+PROBE_CODE = ("import json, os, sys, time; print(json.dumps([sys.argv[1:], os.environ.get(\"PROBE\")]), flush=True); "
+              "print(\"KGADAPT_READY\", flush=True); time.sleep(60)")
+
+
+def write_probe_model(directory: Path, marker: Path) -> None:
+    words = " ".join(shlex.quote(w.format(m=marker)) for w in SHELL_WORDS)
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "shell_probe.deploy").write_text(
+        "name: shell_probe\n"
+        "deploys: marker_detection_day\n"
+        "executable: {python}\n"
+        f"arguments: -c {shlex.quote(PROBE_CODE)} {words}\n"
+        f"environment: PROBE={shlex.quote(f'$(touch {marker})')}\n"
+        "executable_on: onboard\n"
+    )
+
+
+class Network:
+    """The robot's service and onboard agent behind TLS; ``config(cn)`` is a client configuration as ``cn``."""
+
+    def __init__(self, pki: Any, work: Path) -> None:
+        self.pki = pki
+        self.work = work
+        self.port = free_port()
+        self.marker = work / "pwned"
+        self.children: list[Child] = []
+
+    def start(self) -> None:
+        models = self.work / "models"
+        write_probe_model(models, self.marker)
+        store = f"embedded:{self.work / 'store'}"
+        kgadapt("knowledge", "load", str(REPO / "knowledge" / "models"), str(models), "--store", store, timeout=120)
+        router = shipped_config("router.json5", self.pki.tls, self.work, **{
+            "listen/endpoints": [f"tls/127.0.0.1:{self.port}"], **FAST_OPEN})
+        service = Child("service", ["knowledge", "serve", "--store", store, "--robot", ROBOT,
+                                    "--zenoh-config", str(router)], self.work)
+        self.children.append(service)
+        service.wait_for_line("knowledge service ready")
+        onboard = self.config(f"{ROBOT}-onboard")
+        agent = Child("onboard", ["onboard", "--robot", ROBOT, "--host", "onboard", "--memory-budget", "700M",
+                                  "--zenoh-config", str(onboard), "--mode", "client", "--ready-timeout", "10"],
+                      self.work)
+        self.children.append(agent)
+        agent.wait_for_line("agent ready")
+
+    def config(self, cn: str, *, foreign: bool = False, **changes: Any) -> Path:
+        cert, key = self.pki.pair(cn, foreign=foreign)
+        return shipped_config("onboard.json5", self.pki.tls, self.work, **{
+            "connect/endpoints": [f"tls/localhost:{self.port}"],
+            "transport/link/tls/connect_certificate": str(cert), "transport/link/tls/connect_private_key": str(key),
+            **FAST_OPEN, **changes})
+
+    def stop(self) -> None:
+        for child in reversed(self.children):
+            child.stop()
+
+
+@pytest.fixture(scope="module")
+def network(pki, tmp_path_factory):
+    net = Network(pki, tmp_path_factory.mktemp("secured"))
+    try:
+        net.start()
+        yield net
+    finally:
+        net.stop()
+
+
+@pytest.fixture
+def session_as(network):
+    """``session_as(cn, **config changes)``: a client session with ``cn``'s certificate, closed after the test."""
+    opened = []
+
+    def open_as(cn: str, *, foreign: bool = False, **changes: Any):
+        session = open_session(ZenohSettings(config_file=str(network.config(cn, foreign=foreign, **changes))))
+        opened.append(session)
+        return session
+
+    yield open_as
+    for session in opened:
+        session.close()
+
+
+def graph_snapshot(knowledge: KnowledgeClient) -> tuple[Any, ...]:
+    """Everything but the live figures of platforms (the onboard agent keeps updating those)."""
+    nodes = knowledge.cypher("MATCH (n) WHERE NOT n:Platform RETURN labels(n) AS l, properties(n) AS p")
+    platforms = knowledge.cypher("MATCH (p:Platform) RETURN p.name AS name ORDER BY name")
+    relations = knowledge.cypher("MATCH (a)-[r]->(b) RETURN a.name AS a, type(r) AS t, properties(r) AS p, "
+                                 "b.name AS b")
+    key = lambda row: repr(sorted(row.items()))  # noqa: E731
+    return sorted(nodes, key=key), platforms, sorted(relations, key=key)
+
+
+def write_params(verb: str) -> dict[str, Any]:
+    """Valid parameters for each write verb, so that only the identity decides."""
+    return {
+        "platform": {"name": "forged_host", "time": 1.0, "memory_free_mb": 1.0},
+        "platform_online": {"name": "onboard", "online": False, "time": 1.0},
+        "process_start": {"run_id": "forged-run", "instance": "forged", "deployment": "detector_day",
+                          "config": "marker_detection_day", "host": "onboard", "pid": 1, "start_time": 1.0},
+        "process_sample": {"run_id": "forged-run", "rss_mb_last": 1.0, "rss_mb_mean": 1.0, "rss_mb_max": 1.0,
+                           "cpu_percent_mean": 1.0},
+        "process_end": {"run_id": "forged-run", "end_time": 2.0, "exit_status": 0},
+        "calibration": {"config": "marker_detection_day", "band": "dark", "detection_rate": 1.0, "false_rate": 0.0,
+                        "ms_per_frame": 1.0, "time": 1.0},
+        "decision": {"name": "forged-decision", "time": 1.0, "trigger": "forged"},
+        "flight_state": {"name": "flight_control", "time": 1.0, "link": True, "mode": "FORGED"},
+    }[verb]
+
+
+def concurrently(calls: dict[str, Callable[[], Any]]) -> dict[str, Any]:
+    """Run the calls in parallel; each one's result or the exception it raised."""
+    def outcome(call: Callable[[], Any]) -> Any:
+        try:
+            return call()
+        except Exception as exc:
+            return exc
+
+    with ThreadPoolExecutor(len(calls)) as pool:
+        futures = {name: pool.submit(outcome, call) for name, call in calls.items()}
+        return {name: future.result() for name, future in futures.items()}
+
+
+def reply_payloads(session: Any, key: str, payload: bytes | None = None) -> list[bytes]:
+    return [(r.ok.payload if r.ok is not None else r.err.payload).to_bytes()
+            for r in session.get(key, payload=payload, timeout=2)]
+
+
+# -- who may connect ----------------------------------------------------------------------------------
+
+
+def test_a_peer_without_a_client_certificate_cannot_connect(session_as):
+    with pytest.raises(TransportError):
+        session_as(OPERATOR, **{"transport/link/tls/connect_certificate": None,
+                                "transport/link/tls/connect_private_key": None, **FAIL_FAST})
+    assert session_as(OPERATOR, **FAIL_FAST)  # the same configuration with the certificate connects
+
+
+def test_plain_tcp_to_the_tls_port_is_refused(network):
+    with pytest.raises(TransportError):
+        open_session(ZenohSettings(mode="client", connect=(f"tcp/127.0.0.1:{network.port}",)))
+
+
+def test_a_certificate_from_another_ca_cannot_connect_even_with_this_robots_operator_name(session_as):
+    with pytest.raises(TransportError):
+        session_as(OPERATOR, foreign=True, **FAIL_FAST)
+
+
+def test_a_router_with_a_certificate_of_our_ca_for_another_name_is_not_trusted(network, pki, tmp_path):
+    # Another robot's host certificate is signed by our CA but not valid for the name the hosts dial.
+    port = free_port()
+    cert, key = pki.pair(OTHER)
+    impostor = open_session(ZenohSettings(config_file=str(shipped_config("router.json5", pki.tls, tmp_path, **{
+        "listen/endpoints": [f"tls/127.0.0.1:{port}"], "transport/link/tls/listen_certificate": str(cert),
+        "transport/link/tls/listen_private_key": str(key), **FAST_OPEN}))))
+    try:
+        with pytest.raises(TransportError):
+            open_session(ZenohSettings(config_file=str(network.config(
+                OPERATOR, **{"connect/endpoints": [f"tls/localhost:{port}"], **FAIL_FAST}))))
+    finally:
+        impostor.close()
+
+
+# -- what another robot may do ------------------------------------------------------------------------
+
+
+def test_another_robot_may_ask_named_queries_and_read_only_cypher(session_as):
+    knowledge = KnowledgeClient(session_as(OTHER), ROBOT, timeout=2.0)
+    assert knowledge.query("deployment", {"name": "detector_hd"})[0]["platforms"] == ["remote"]
+    assert knowledge.cypher("MATCH (f:Feature {name: $f}) RETURN f.name AS f", {"f": "MarkerDetection"}) == [
+        {"f": "MarkerDetection"}]
+
+
+def test_another_robot_cannot_start_list_or_stop_processes_nor_squeeze_a_host(session_as):
+    other = DeployerClient(session_as(OTHER), ROBOT, timeout=1.0)
+    operator_session = session_as(OPERATOR)
+    operator = DeployerClient(operator_session, ROBOT, timeout=3.0)
+    outcomes = concurrently({
+        "start": lambda: other.start("onboard", "detector_day", "marker_detection_day", instance="intruder",
+                                     wait_ready=False),
+        "stop": lambda: other.stop("onboard", "anything"),
+        "squeeze": lambda: squeeze(other.session, ROBOT, "onboard", 600.0, timeout=1.0),
+    })
+    assert {what: type(outcome) for what, outcome in outcomes.items()} == dict.fromkeys(outcomes, RequestTimeout)
+    list_key, empty = keys.deployer_verb(ROBOT, "onboard", "list"), messages.encode("deploy_request", {})
+    assert reply_payloads(other.session, list_key, empty) == []  # not even an answer
+    assert len(reply_payloads(operator_session, list_key, empty)) == 1  # while the deployer answers this robot
+    assert operator.list("onboard") == []  # and nothing was started
+    squeezed = squeeze(operator_session, ROBOT, "onboard", 0.0, timeout=3.0)  # the queryable is there too
+    assert squeezed["host"] == "onboard" and squeezed.get("reserved_mb", 0.0) == 0.0
+
+
+def test_another_robot_cannot_write_knowledge_with_any_verb_this_robots_operator_may_use(session_as):
+    other = KnowledgeClient(session_as(OTHER), ROBOT, timeout=1.0)
+    operator = KnowledgeClient(session_as(OPERATOR), ROBOT, timeout=3.0)
+    before = graph_snapshot(operator)
+    # A denied request is dropped at the router: the asker waits its whole timeout, so ask all at once.
+    outcomes = concurrently({verb: (lambda v=verb: other.write(v, write_params(v))) for verb in WRITERS})
+    assert {verb: type(outcome) for verb, outcome in outcomes.items()} == {verb: RequestTimeout for verb in WRITERS}
+    assert graph_snapshot(operator) == before
+    for verb in WRITERS:
+        assert operator.write(verb, write_params(verb)) == [], verb  # the same write from this robot is applied
+    assert graph_snapshot(operator) != before
+
+
+def test_another_robots_read_only_cypher_cannot_write(session_as):
+    other = KnowledgeClient(session_as(OTHER), ROBOT, timeout=2.0)
+    before = graph_snapshot(other)
+    for text in ["CREATE (:Platform {name: 'forged'})", "MATCH (n) DETACH DELETE n",
+                 "MATCH (d:Deployment) SET d.executable = '/bin/sh'",
+                 "LOAD CSV FROM 'file:///etc/passwd' AS row RETURN row",
+                 "CALL db.idx.fulltext.drop('Deployment')",
+                 "MATCH (n) RETURN n UNION MATCH (m) DETACH DELETE m RETURN m AS n"]:
+        with pytest.raises(RemoteError, match="read-only"):
+            other.cypher(text)
+    assert graph_snapshot(other) == before
+
+
+def test_another_robot_cannot_put_statuses_or_liveliness_into_the_graph(session_as):
+    other = session_as(OTHER)
+    operator_session = session_as(OPERATOR)
+    operator = KnowledgeClient(operator_session, ROBOT, timeout=3.0)
+    status = {"time": 1.0, "memory_total_mb": 100.0, "memory_free_mb": 1.0, "cpu_load": 0.0}
+    other.put(keys.host_status(ROBOT, "forged_status"),
+              messages.encode("host_status", {"host": "forged_status", **status}))
+    token = other.liveliness().declare_token(keys.host_alive(ROBOT, "forged_alive"))
+    try:
+        operator_session.put(keys.host_status(ROBOT, "operator_box"),
+                             messages.encode("host_status", {"host": "operator_box", **status}))
+        names = lambda: {r["platform"] for r in operator.query("platforms", {})}  # noqa: E731
+        wait_for(lambda: "operator_box" in names(), 5, "the operator's status to reach the graph")
+        assert not {"forged_status", "forged_alive"} & names()
+    finally:
+        token.undeclare()
+
+
+def test_another_robot_can_neither_read_this_robots_data_nor_answer_its_queries(session_as):
+    other = session_as(OTHER)
+    operator = session_as(OPERATOR)
+    agent = session_as(f"{ROBOT}-onboard")
+    seen_by_other: list[str] = []
+    seen_by_agent: list[str] = []
+    spy = other.declare_subscriber(f"kgadapt/{ROBOT}/**", lambda s: seen_by_other.append(str(s.key_expr)))
+    own = agent.declare_subscriber(keys.camera_frame(ROBOT, "cam0"), lambda s: seen_by_agent.append(str(s.key_expr)))
+    forged = other.declare_queryable(keys.knowledge_query(ROBOT, "placement"),
+                                     lambda q: q.reply(q.key_expr, b"forged answer"))
+    try:
+        wait_for(lambda: (operator.put(keys.camera_frame(ROBOT, "cam0"), b"frame"), seen_by_agent)[1], 5,
+                 "a frame to reach this robot's own subscriber")
+        answers = reply_payloads(operator, keys.knowledge_query(ROBOT, "placement"))
+    finally:
+        for entity in (spy, own, forged):
+            entity.undeclare()
+    assert seen_by_other == []
+    assert len(answers) == 1 and b"forged" not in answers[0]
+    assert messages.decode(answers[0], "rows")["rows"] is not None  # the knowledge service's own answer
+
+
+def test_wildcard_requests_of_another_robot_reach_no_queryable(session_as):
+    other = session_as(OTHER)
+    payload = messages.encode("deploy_request", {"deployment": "detector_day", "config": "marker_detection_day"})
+    for selector in [f"kgadapt/{ROBOT}/**", "kgadapt/**", "**", f"kgadapt/{ROBOT}/knowledge/**",
+                     f"kgadapt/{ROBOT}/knowledge/*/*", f"kgadapt/{ROBOT}/host/*/deployer/start"]:
+        assert reply_payloads(other, selector, payload) == [], selector
+    assert DeployerClient(session_as(OPERATOR), ROBOT, timeout=3.0).list("onboard") == []
+
+
+def test_a_certificate_of_our_ca_that_no_policy_names_gets_nothing(session_as):
+    stranger = session_as(STRANGER)
+    with pytest.raises(RequestTimeout):
+        KnowledgeClient(stranger, ROBOT, timeout=1.0).query("platforms", {})
+    assert reply_payloads(stranger, keys.deployer_verb(ROBOT, "onboard", "list"),
+                          messages.encode("deploy_request", {})) == []
+
+
+# -- what the deployer runs ---------------------------------------------------------------------------
+
+
+def test_commands_from_the_models_run_without_a_shell_and_their_words_arrive_verbatim(network, session_as):
+    operator = DeployerClient(session_as(OPERATOR), ROBOT, timeout=3.0, start_timeout=20.0)
+    info = operator.start("onboard", "shell_probe", "marker_detection_day", instance="shellprobe")
+    try:
+        assert info["state"] == "ready"
+        argv, probe = wait_for(lambda: next(
+            (json.loads(line) for line in operator.status("onboard", "shellprobe")["output"]
+             if line.startswith("[[")), None), 5, "the probe's own report of its arguments")
+    finally:
+        operator.stop("onboard", "shellprobe")
+    marker = str(network.marker)
+    assert argv == [w.format(m=marker) for w in SHELL_WORDS]
+    assert probe == f"$(touch {marker})"
+    assert not network.marker.exists()
