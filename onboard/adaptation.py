@@ -285,10 +285,11 @@ class Planner:
                 del fits[host]  # the graph has not caught up with a squeeze we already saw
         if not fits:
             raise PlanningError(f"no online platform has {demand:.0f} MiB free for {config}")
+        # The preference decides every time. Plans happen only on triggers (with
+        # hysteresis and dwell on the light), so this cannot flap; it brings the
+        # detector back to the preferred host when that host returns.
         order = sorted(fits, key=self._host_rank)
         host = order[0]
-        if running is not None and running.host in fits and running.config == config:
-            host = running.host  # already well placed: do not move for preference alone
         row = fits[host]
         target = Placement(config=config, deployment=str(row["deployment"]), host=host, demand_mb=demand)
         reason = (f"band {band}: {config} has the best calibrated rate "

@@ -65,6 +65,7 @@ class AdaptationSettings:
     knowledge_timeout: float = 15.0  # bounded wait for the knowledge service at setup
     rss_refresh_s: float = 2.0
     startup_grace_s: float = 5.0  # how long the first placement waits for our own host to show online
+    graph_catch_up_s: float = 2.0  # how long a host_back waits for the graph to show the host online
     retry_s: float = 1.0  # the running host lost and no replacement started: try again this often
 
 
@@ -273,6 +274,25 @@ class AdaptationManager:
             return None
         return Trigger("startup", time.time(), {"band": a.tracker.current.name})
 
+    def _graph_shows_online(self, host: str, timeout: float) -> bool:
+        """Wait (bounded) until the graph shows ``host`` online with a free-memory figure.
+
+        We and the knowledge service see a liveliness token at the same moment;
+        planning before the service has written it would leave the host out.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                rows = self._knowledge.query("platforms", {})
+            except KgadaptError:
+                rows = []
+            if any(r.get("platform") == host and r.get("online") and r.get("memory_free_mb") is not None
+                   for r in rows):
+                return True
+            if time.monotonic() >= deadline or self._stop.is_set():
+                return False
+            time.sleep(0.05)
+
     def _own_host_known(self) -> bool:
         """True once the graph shows our own host online with its figures, or after a grace period.
 
@@ -323,6 +343,7 @@ class AdaptationManager:
         if band is None:
             return
         if trigger.kind == "host_back":
+            self._graph_shows_online(str(trigger.detail.get("host")), self.settings.graph_catch_up_s)
             # A host back from a partition may still run the detector we replaced: no twins.
             twins = self.reconcile(str(trigger.detail.get("host")))
             if twins:

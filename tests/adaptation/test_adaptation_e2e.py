@@ -144,3 +144,18 @@ def test_a_memory_squeeze_moves_the_detector_remote_and_losing_the_remote_host_b
         lean = run_named(store, "low_memory_components", {"threshold_mb": 1.0})
     assert "aruco_dark" in {r["component"] for r in ran}
     assert all(r["avg_memory_mb"] > 1.0 for r in ran) and lean == []
+
+
+def test_with_remote_first_the_detector_returns_to_the_remote_host_when_it_comes_back(tmp_path):
+    with Run(tmp_path, [[0, 120], [120, 120]], prefer="remote-first") as run:
+        first = run.wait_for(run.decision("startup"), 20, "the first detector")
+        assert first.host == "remote"
+        run.wait_for(lambda: run.running(first.time) == {("marker_detection_day", "remote")}, 5, "remote detections")
+        run.cluster.kill("remote", signal.SIGKILL)
+        lost = run.wait_for(run.decision("host_lost"), 5, "the lost host")
+        assert lost.host == "onboard"
+        run.cluster.respawn("remote")
+        back = run.wait_for(run.decision("host_back"), 10, "the remote host back")
+        assert (back.host, back.outcome) == ("remote", "migrated")
+        run.wait_for(lambda: run.running(back.time) == {("marker_detection_day", "remote")}, 5,
+                     "detections from the remote host only")
