@@ -666,6 +666,10 @@ class RobotOnHosts:
                                         timeout, f"the twin {twin} to be stopped")
         decision = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == "host_back"
                                          and e["t"] >= healed_at, timeout, "the adaptation manager's host_back decision")
+        # remote-first: once the twin is gone, a planned migration brings the detector back.
+        returned = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == "host_back"
+                                         and str(e.get("outcome", "")).startswith("migrated") and e["t"] >= healed_at,
+                                         timeout, "the detector to move back to the preferred remote host")
         after = self.settle()
         graph_ok = _wait_until(lambda: self._graph_healed(twin), 10.0)
         platforms = self.platforms()
@@ -677,6 +681,7 @@ class RobotOnHosts:
             "heal_ms": round((stopped["t"] - healed_at) * 1000.0, 1),
             "twin": twin, "twin_ran_during_cut": twin_alive_in_cut, "twin_event": stopped["event"],
             "host_back_outcome": decision.get("outcome"),
+            "returned_ms": round((returned["t"] - healed_at) * 1000.0, 1),
             "running_after": after["instance"], "running_host_after": after["host"],
             "graph_healed": graph_ok,
             "online": {h: bool(r.get("online")) for h, r in platforms.items()},

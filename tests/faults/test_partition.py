@@ -16,7 +16,8 @@ def test_a_cut_link_fails_over_onboard_and_heals_to_exactly_one_detector_without
     assert result["twin_ran_during_cut"], "the remote detector should have kept running on its side of the cut"
     # After the heal: the twin on the remote host is stopped by the adaptation manager, one detector is left.
     assert result["host_back_outcome"].startswith("stopped twin"), result
-    assert result["running_host_after"] == "onboard" and result["running_after"] != result["twin"]
+    # Then the preference (remote-first) brings it back, as a new instance, not the twin.
+    assert result["running_host_after"] == "remote" and result["running_after"] != result["twin"]
     assert len(robot.live_detectors()) == 1 and len(robot.detector_processes()) == 1
     assert result["orphans"] == 0
     # The graph is right again: both hosts online, the twin's run has ended.
