@@ -66,6 +66,7 @@ class AdaptationSettings:
     rss_refresh_s: float = 2.0
     startup_grace_s: float = 5.0  # how long the first placement waits for our own host to show online
     graph_catch_up_s: float = 2.0  # how long a host_back waits for the graph to show the host online
+    settle_s: float = 1.0  # after a change, host statuses this young do not count for memory_short
     retry_s: float = 1.0  # the running host lost and no replacement started: try again this often
 
 
@@ -123,6 +124,7 @@ class AdaptationManager:
         self._held_checked = 0.0
         self._decisions = 0
         self._setup_at = 0.0
+        self._settled_after = 0.0
         self._retry: Trigger | None = None  # a lost detector not yet replaced (e.g. the knowledge service was down)
         self._retry_at = 0.0
         self._lock = threading.Lock()
@@ -195,7 +197,7 @@ class AdaptationManager:
 
     def _on(self, kind: str):
         def callback(sample: Any) -> None:
-            self._put((kind, (str(sample.key_expr), sample.payload.to_bytes())))
+            self._put((kind, (str(sample.key_expr), sample.payload.to_bytes(), time.time())))
         return callback
 
     def _on_alive(self, sample: Any) -> None:
@@ -240,7 +242,7 @@ class AdaptationManager:
             return a.on_liveliness(host, alive, now, self.current)
         if kind == "tick":
             return None
-        key, payload = data
+        key, payload, received = data
         try:
             if kind == "illumination":
                 m = messages.decode(payload, "illumination")
@@ -250,8 +252,12 @@ class AdaptationManager:
                 host = str(m["host"])
                 if self.current is not None and self.current.host == host:
                     self._refresh_held(now)
+                # A status received before the last change settled was measured while old and
+                # new detector both ran (it may have queued while we migrated): it updates the
+                # view but cannot say the new detector does not fit.
+                settled = received >= self._settled_after
                 return a.on_host_status(host, free_mb=float(m["memory_free_mb"]), cpu_load=float(m["cpu_load"]),
-                                        now=now, running=self.current)
+                                        now=now, running=self.current if settled else None)
             if kind == "flight_state":
                 m = messages.decode(payload, "flight_state")
                 self.landing = m.get("landed_state") == "LANDING"
@@ -327,8 +333,10 @@ class AdaptationManager:
         if not run_id:
             return
         try:
+            # The maximum, not the last sample: the first sample is taken right after exec
+            # (a few MiB) and would make the detector look as if it held nothing.
             rows = self._knowledge.cypher(
-                "MATCH (r:ProcessProfile {name: $run_id}) RETURN r.rss_mb_last AS rss", {"run_id": run_id})
+                "MATCH (r:ProcessProfile {name: $run_id}) RETURN r.rss_mb_max AS rss", {"run_id": run_id})
         except KgadaptError as exc:
             log.debug("adaptation: no profile figures yet: %s", exc)
             return
@@ -438,6 +446,7 @@ class AdaptationManager:
                                  demand_mb=t.demand_mb, held_mb=0.0)
         self._run_id = run_id
         self._held_checked = 0.0
+        self._settled_after = time.time() + self.settings.settle_s
         self._analyzer.reset_rate()
 
     def _adopt_running(self) -> None:
