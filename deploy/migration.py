@@ -54,12 +54,13 @@ class MigrationReport:
         return asdict(self)
 
 
-class _FirstOutput:
+class FirstOutput:
     """Notes the arrival of the first valid detections message (callback only sets an event)."""
 
     def __init__(self) -> None:
         self.event = threading.Event()
-        self.at: float | None = None
+        self.at: float | None = None  # perf_counter() of the first output, for durations
+        self.wall: float | None = None  # time.time() of it, to compare with other hosts' times
 
     def __call__(self, sample: Any) -> None:
         if self.event.is_set():
@@ -70,6 +71,7 @@ class _FirstOutput:
             log.info("migration: dropped a malformed detections message: %s", exc)
             return
         self.at = time.perf_counter()
+        self.wall = time.time()
         self.event.set()
 
 
@@ -106,7 +108,7 @@ def migrate(
     new_instance = keys.check_name(new_instance, "instance") if new_instance else new_instance_name(config, target_host)
 
     t0 = time.perf_counter()
-    first = _FirstOutput()
+    first = FirstOutput()
     subscriber = session.declare_subscriber(keys.detector_markers(robot, new_instance), first)
     try:
         try:

@@ -29,33 +29,16 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
+from onboard.illumination import Band, bands_from_rows
+
+__all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",
+           "PlanningError", "HostView", "KnowledgeAsk", "FEATURE", "PREFERENCES"]
+
 # A function that answers a named query: (name, params) -> rows.
 KnowledgeAsk = Callable[[str, Mapping[str, Any]], list[dict[str, Any]]]
 
 FEATURE = "MarkerDetection"
 PREFERENCES = ("onboard-first", "remote-first")
-
-
-@dataclass(frozen=True)
-class Band:
-    """An illumination band: mean luminance in [min_level, max_level)."""
-
-    name: str
-    min_level: float
-    max_level: float
-
-    def contains(self, level: float, margin: float = 0.0) -> bool:
-        return self.min_level - margin <= level < self.max_level + margin
-
-
-def bands_from_rows(rows: Sequence[Mapping[str, Any]]) -> list[Band]:
-    """Distinct bands of the ``detector_configs`` rows, darkest first."""
-    seen: dict[str, Band] = {}
-    for row in rows:
-        name = row.get("band")
-        if name and name not in seen:
-            seen[name] = Band(str(name), float(row["min_level"]), float(row["max_level"]))
-    return sorted(seen.values(), key=lambda b: b.min_level)
 
 
 @dataclass(kw_only=True)

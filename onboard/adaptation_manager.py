@@ -28,7 +28,7 @@ from typing import Any
 
 from deploy.client import DeployerClient
 from deploy.deployer import new_instance_name
-from deploy.migration import migrate
+from deploy.migration import FirstOutput, migrate
 from knowledge.client import KnowledgeClient
 from onboard.adaptation import (
     FEATURE,
@@ -80,24 +80,6 @@ class Outcome:
     latency_ms: float | None = None  # trigger observed -> new detector's first detection
     frames_lost: int | None = None
     detail: dict[str, Any] = field(default_factory=dict)
-
-
-class _FirstDetections:
-    """Sets an event on the first valid detections message of one instance."""
-
-    def __init__(self) -> None:
-        self.event = threading.Event()
-        self.at: float | None = None
-
-    def __call__(self, sample: Any) -> None:
-        if self.event.is_set():
-            return
-        try:
-            messages.decode(sample.payload.to_bytes(), "detections")
-        except MessageError:
-            return
-        self.at = time.time()
-        self.event.set()
 
 
 class AdaptationManager:
@@ -409,7 +391,7 @@ class AdaptationManager:
     def _start_fresh(self, plan: Plan, trigger: Trigger) -> Outcome:
         t = plan.target
         instance = new_instance_name(t.config, t.host)
-        first = _FirstDetections()
+        first = FirstOutput()
         sub = self._session.declare_subscriber(keys.detector_markers(self.settings.robot, instance), first)
         try:
             snapshot = self._deployers.start(t.host, t.deployment, t.config, instance=instance, wait_ready=True,
@@ -418,7 +400,7 @@ class AdaptationManager:
         finally:
             sub.undeclare()
         self._set_current(plan, instance, snapshot.get("run_id"))
-        latency = (first.at - trigger.time) * 1000.0 if got and first.at else None
+        latency = (first.wall - trigger.time) * 1000.0 if got and first.wall else None
         return Outcome(trigger=trigger, plan=plan, outcome="started" if got else "started, no detections yet",
                        latency_ms=latency, detail={"instance": instance, "pid": snapshot.get("pid")})
 
