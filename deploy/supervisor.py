@@ -63,10 +63,23 @@ except (OSError, AttributeError):  # not Linux: no parent-death signal, killpg o
     _prctl = None
 
 
+try:  # libc's signal(): Python's refuses in a child forked from a non-main thread
+    _libc_signal = ctypes.CDLL(None, use_errno=True).signal
+    _libc_signal.argtypes = [ctypes.c_int, ctypes.c_void_p]
+    _libc_signal.restype = ctypes.c_void_p
+except (OSError, AttributeError):  # pragma: no cover - not Linux
+    _libc_signal = None
+
+
 def _child_setup(parent_pid: int, death_signal: int) -> Callable[[], None]:
-    """The preexec_fn: ask the kernel for ``death_signal`` when the spawner thread dies."""
+    """The preexec_fn: default SIGINT/SIGTERM, and ``death_signal`` when the spawner thread dies."""
 
     def setup() -> None:
+        # An ignored signal stays ignored across exec: a supervisor started as a background
+        # job of a shell (SIGINT ignored) would otherwise make every child deaf to our SIGINT.
+        if _libc_signal is not None:
+            _libc_signal(signal.SIGINT, None)  # None = SIG_DFL (0)
+            _libc_signal(signal.SIGTERM, None)
         if _prctl is not None:
             _prctl(_PR_SET_PDEATHSIG, death_signal, 0, 0, 0)
         # The agent may have died between fork and prctl; then nobody would signal us.

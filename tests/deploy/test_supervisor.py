@@ -242,3 +242,21 @@ def _first_number_in_output(supervisor: Supervisor, instance: str) -> int:
 def test_an_unknown_launcher_is_refused_naming_it():
     with pytest.raises(DeploymentError, match="launcher 'fork'"):
         SupervisorSettings(launcher="fork")
+
+
+def test_a_supervisor_in_a_process_that_ignores_sigint_still_stops_its_child_with_sigint():
+    # A background job of a non-interactive shell (CI, for one) starts with SIGINT ignored,
+    # and an ignored signal stays ignored across fork and exec.
+    code = textwrap.dedent(f"""
+        import signal, sys
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        from deploy.supervisor import ProcessSpec, Supervisor
+        sup = Supervisor()
+        sup.setup()
+        sup.start(ProcessSpec(instance="c", argv=(sys.executable, "-c", {READY_AND_WAIT!r})))
+        print(sup.stop("c").returncode)
+        sup.shutdown()
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout.strip().splitlines()[-1]) == -signal.SIGINT
