@@ -47,6 +47,8 @@ from shared.errors import KgadaptError, MessageError
 log = logging.getLogger(__name__)
 
 LIVE_STATES = ("starting", "ready", "running", "restarting")
+UNMEASURED_MB = 5.0  # a detector's profile below this has only its exec-time sample
+MEASURE_WITHIN_S = 10.0  # how long after a change an unmeasured detector is given the benefit of the doubt
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -107,6 +109,7 @@ class AdaptationManager:
         self._decisions = 0
         self._setup_at = 0.0
         self._settled_after = 0.0
+        self._changed_at = 0.0
         self._retry: Trigger | None = None  # a lost detector not yet replaced (e.g. the knowledge service was down)
         self._retry_at = 0.0
         self._lock = threading.Lock()
@@ -238,8 +241,16 @@ class AdaptationManager:
                 # new detector both ran (it may have queued while we migrated): it updates the
                 # view but cannot say the new detector does not fit.
                 settled = received >= self._settled_after
-                return a.on_host_status(host, free_mb=float(m["memory_free_mb"]), cpu_load=float(m["cpu_load"]),
-                                        now=now, running=self.current if settled else None)
+                free = float(m["memory_free_mb"])
+                running = self.current if settled else None
+                if running is not None and running.host == host and free + running.held_mb < running.demand_mb:
+                    # Before calling it unfit, make sure "held" is a real measurement: the
+                    # profile's first sample is taken at exec (a few MiB).
+                    self._refresh_held(now, force=True)
+                    running = self.current
+                    if running.held_mb < UNMEASURED_MB and now - self._changed_at < MEASURE_WITHIN_S:
+                        running = None
+                return a.on_host_status(host, free_mb=free, cpu_load=float(m["cpu_load"]), now=now, running=running)
             if kind == "flight_state":
                 m = messages.decode(payload, "flight_state")
                 self.landing = m.get("landed_state") == "LANDING"
@@ -307,8 +318,8 @@ class AdaptationManager:
         rate = row.get("detection_rate")
         return float(rate) if rate is not None else None
 
-    def _refresh_held(self, now: float) -> None:
-        if now - self._held_checked < self.settings.rss_refresh_s or self.current is None:
+    def _refresh_held(self, now: float, *, force: bool = False) -> None:
+        if self.current is None or (not force and now - self._held_checked < self.settings.rss_refresh_s):
             return
         self._held_checked = now
         run_id = getattr(self, "_run_id", None)
@@ -428,7 +439,8 @@ class AdaptationManager:
                                  demand_mb=t.demand_mb, held_mb=0.0)
         self._run_id = run_id
         self._held_checked = 0.0
-        self._settled_after = time.time() + self.settings.settle_s
+        self._changed_at = time.time()
+        self._settled_after = self._changed_at + self.settings.settle_s
         self._analyzer.reset_rate()
 
     def _adopt_running(self) -> None:
