@@ -63,6 +63,7 @@ class ClusterSettings:
     calibrate: bool = True
     fake_fc: bool = True
     land_after_s: float | None = None  # fake FC starts a final descent after this many seconds
+    descent_s: float = 5.0  # ... lasting this long (LANDING, then ON_GROUND)
     log_level: str = "INFO"
     start_timeout: float = 30.0
     extra_onboard_args: tuple[str, ...] = ()
@@ -151,7 +152,7 @@ class LocalCluster:
             if s.fake_fc:
                 fc = ["flight", "fake-fc", "--url", f"udpout:127.0.0.1:{self.fc_port}", "--armed"]
                 if s.land_after_s is not None:
-                    fc += ["--land-after", str(s.land_after_s)]
+                    fc += ["--land-after", str(s.land_after_s), "--descent", str(s.descent_s)]
                 self._spawn("fake-fc", self.kgadapt(*fc), ready="KGADAPT_READY", host="onboard")
                 onboard += ["--fc", f"udpin:127.0.0.1:{self.fc_port}"]
             if s.adapt:

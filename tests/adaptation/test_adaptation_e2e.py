@@ -159,3 +159,15 @@ def test_with_remote_first_the_detector_returns_to_the_remote_host_when_it_comes
         assert (back.host, back.outcome) == ("remote", "migrated")
         run.wait_for(lambda: run.running(back.time) == {("marker_detection_day", "remote")}, 5,
                      "detections from the remote host only")
+
+
+def test_no_planned_change_happens_during_final_descent(tmp_path):
+    # The fake flight controller starts its final descent (LANDING) 1 s in, for 30 s;
+    # the light goes dark at 6 s. The band change is recorded and deferred, not acted on.
+    with Run(tmp_path, [[0, 120], [6, 120], [7, 5], [40, 5]], land_after_s=1.0, descent_s=30.0) as run:
+        first = run.wait_for(run.decision("startup"), 20, "the first detector")
+        deferred = run.wait_for(run.decision("band_changed"), 20, "the band change to dark")
+        assert deferred.outcome.startswith("deferred: final descent"), deferred
+        time.sleep(1.0)
+        assert run.running(deferred.time) == {("marker_detection_day", first.host)}
+    assert [d.kind for d in run.recorder.decisions] == ["startup", "band_changed"]
