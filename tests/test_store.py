@@ -9,7 +9,6 @@ import sys
 
 import pytest
 
-from knowledge.embedded import EmbeddedServer
 from knowledge.store import assert_read_only, open_store, parse_store_url
 from shared.errors import ConfigError, QueryError, ReadOnlyViolation
 

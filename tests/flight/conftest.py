@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import socket
-import time
 
 import pytest
 
 from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from onboard.mavlink import FlightLink, LinkSettings
+from tests.support import wait_for as wait_until  # noqa: F401 (the tests import it from here)
 
 
 # What the tests' links ask of the fake autopilot (the defaults, 1-2 Hz, would slow the tests down).
@@ -20,18 +20,6 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def wait_until(predicate, timeout: float, what: str, interval: float = 0.01):
-    """Poll ``predicate`` until it returns something truthy; fail naming ``what`` after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(interval)
 
 
 @pytest.fixture

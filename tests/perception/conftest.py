@@ -18,23 +18,12 @@ import pytest
 from shared import messages
 from shared.session import ZenohSettings, open_session
 from tests.conftest import REPO, free_port
+from tests.support import wait_for  # noqa: F401 (the tests import it from here)
 
 _robots = itertools.count()
 
 # The cheap default, and a configuration made for the dark (both as the calibration ranks them).
 DAY_JSON = '{"dictionary": "DICT_4X4_50", "preprocess": [], "parameters": {"cornerRefinementMethod": 1}}'
-
-
-def wait_for(predicate: Callable[[], object], timeout: float, what: str, interval: float = 0.02):
-    """Poll ``predicate`` until it is truthy; fail naming ``what`` after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(interval)
 
 
 @pytest.fixture

@@ -13,15 +13,15 @@ import itertools
 import json
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import pytest
 import zenoh
 
 from tests.conftest import REPO
+from tests.support import Child as _Child, wait_for  # noqa: F401 (the tests import wait_for from here)
 
 ZENOH_DIR = REPO / "deploy" / "zenoh"
 SHIPPED_TLS_DIR = "/etc/kgadapt/tls"
@@ -55,20 +55,7 @@ def shipped_config(name: str, tls_dir: Path, out_dir: Path, **changes: Any) -> P
     return path
 
 
-def wait_for(predicate: Callable[[], object], timeout: float, what: str, interval: float = 0.02) -> Any:
-    """Poll ``predicate`` until it returns something truthy; fail naming ``what`` after ``timeout`` s."""
-    deadline = time.monotonic() + timeout
-    last: Exception | None = None
-    while True:
-        try:
-            value = predicate()
-            if value:
-                return value
-        except Exception as exc:  # keep polling; show the last error on failure
-            last = exc
-        if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what} (last error: {last})")
-        time.sleep(interval)
+
 
 
 @dataclass(frozen=True)
@@ -96,62 +83,8 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
     return Pki(tls=tls, foreign=foreign)
 
 
-class Child:
-    """A ``kgadapt`` child process; stdout lines are collected by a thread, stderr goes to a file."""
 
-    def __init__(self, name: str, args: list[str], log_dir: Path) -> None:
-        import os
-        import queue
-        import threading
 
-        self.name = name
-        self.stderr_path = log_dir / f"{name}.stderr"
-        self._stderr = open(self.stderr_path, "w")
-        self.lines: "queue.Queue[str]" = queue.Queue()
-        env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-        self.process = subprocess.Popen([sys.executable, "-m", "kgadapt", "--log-level", "INFO", *args], cwd=REPO,
-                                        env=env, stdout=subprocess.PIPE, stderr=self._stderr, text=True)
-        threading.Thread(target=self._read, name=f"{name}-stdout", daemon=True).start()
-
-    def _read(self) -> None:
-        for line in self.process.stdout:
-            self.lines.put(line)
-
-    def wait_for_line(self, text: str, timeout: float = 30.0) -> str:
-        import queue
-
-        deadline = time.monotonic() + timeout
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise AssertionError(f"{self.name}: no line with {text!r} within {timeout} s:\n{self.stderr()}")
-            try:
-                line = self.lines.get(timeout=min(left, 0.2))
-            except queue.Empty:
-                if self.process.poll() is not None:
-                    raise AssertionError(f"{self.name} exited with {self.process.returncode}:\n{self.stderr()}")
-                continue
-            if text in line:
-                return line
-
-    def stderr(self) -> str:
-        try:
-            return self.stderr_path.read_text(errors="replace")[-4000:]
-        except OSError:
-            return ""
-
-    def alive(self) -> bool:
-        return self.process.poll() is None
-
-    def stop(self, timeout: float = 15.0) -> int:
-        import signal
-
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-            try:
-                self.process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        self._stderr.close()
-        return self.process.returncode
+def Child(name: str, args: list[str], log_dir: Path) -> _Child:
+    """A ``kgadapt ARGS`` child (see tests/support.py)."""
+    return _Child.kgadapt(name, args, log_dir)

@@ -4,14 +4,8 @@ from __future__ import annotations
 
 import itertools
 import os
-import queue
-import signal
-import subprocess
 import sys
-import threading
 import time
-from pathlib import Path
-from typing import Callable
 
 import pytest
 
@@ -20,25 +14,10 @@ from knowledge.schema import ensure_indexes
 from knowledge.service import KnowledgeService, ServiceSettings
 from shared import keys
 from shared.session import ZenohSettings, open_session
-from tests.conftest import REPO, free_port
+from tests.conftest import free_port
+from tests.support import Child, wait_for  # noqa: F401 (the tests import wait_for from here)
 
 _robots = itertools.count()
-
-
-def wait_for(predicate: Callable[[], object], timeout: float, what: str, interval: float = 0.01):
-    """Poll ``predicate`` until it returns something truthy; fail naming ``what`` after ``timeout`` s."""
-    deadline = time.monotonic() + timeout
-    last_error: Exception | None = None
-    while True:
-        try:
-            value = predicate()
-            if value:
-                return value
-        except Exception as exc:  # keep polling; report the last error on failure
-            last_error = exc
-        if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what} (last error: {last_error})")
-        time.sleep(interval)
 
 
 def platform_row(client: KnowledgeClient, name: str) -> dict | None:
@@ -98,65 +77,6 @@ def client(zenoh_pair, robot, service) -> KnowledgeClient:
     _, session = zenoh_pair
     wait_until_serving(session, robot, writes=service.settings.writes)
     return KnowledgeClient(session, robot, timeout=3.0)
-
-
-class Child:
-    """A ``kgadapt`` child process whose stdout lines are collected by a thread."""
-
-    def __init__(self, argv: list[str], name: str, log_dir: Path) -> None:
-        self.name = name
-        self.argv = argv
-        self.lines: queue.Queue[str] = queue.Queue()
-        self.output: list[str] = []
-        self.stderr_path = log_dir / f"{name}.stderr"
-        env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-        self._stderr = open(self.stderr_path, "w")
-        self.process = subprocess.Popen(
-            argv, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=self._stderr, text=True,
-        )
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        for line in self.process.stdout:
-            self.output.append(line)
-            self.lines.put(line)
-
-    def wait_for_line(self, text: str, timeout: float = 15.0) -> str:
-        deadline = time.monotonic() + timeout
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise AssertionError(f"{self.name}: no line with {text!r} within {timeout} s; stderr:\n{self.stderr()}")
-            try:
-                line = self.lines.get(timeout=min(left, 0.2))
-            except queue.Empty:
-                if self.process.poll() is not None:
-                    raise AssertionError(f"{self.name} exited with {self.process.returncode}; stderr:\n{self.stderr()}")
-                continue
-            if text in line:
-                return line
-
-    def stderr(self) -> str:
-        try:
-            return self.stderr_path.read_text()[-4000:]
-        except OSError:
-            return ""
-
-    def stop(self, timeout: float = 10.0) -> int:
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-            try:
-                self.process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        self._stderr.close()
-        return self.process.returncode
-
-    def kill9(self) -> None:
-        self.process.kill()
-        self.process.wait()
 
 
 @pytest.fixture

@@ -8,7 +8,6 @@ request.
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import msgpack
