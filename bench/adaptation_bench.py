@@ -46,44 +46,11 @@ def register(bench_subparsers: Any) -> None:
     p.set_defaults(func=run)
 
 
-class _Robot:
-    def __init__(self, workdir: Path, profile: list[list[float]], **settings: Any) -> None:
-        from kgadapt.cluster import ClusterSettings, LocalCluster
-        from kgadapt.timeline import Recorder
+def _robot(workdir: Path, profile: list[list[float]], **settings: Any) -> Any:
+    from kgadapt.cluster import ClusterSettings, WatchedRobot, write_profile
 
-        path = workdir / "profile.json"
-        workdir.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps({"points": profile, "noise": 2.0, "gradient": 0.2, "loop": True}))
-        self.cluster = LocalCluster(ClusterSettings(workdir=workdir, profile=str(path), calibrate=False,
-                                                    fake_fc=False, log_level="WARNING", **settings))
-        self.recorder = Recorder(robot="quad1")
-        self.session: Any = None
-
-    def __enter__(self) -> "_Robot":
-        from shared.session import ZenohSettings, open_session
-
-        self.cluster.prepare_store()
-        self.cluster.start()
-        self.session = open_session(ZenohSettings(mode="peer", connect=(self.cluster.endpoint,)))
-        self.recorder.t0 = time.time()
-        self.recorder.setup(self.session)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        try:
-            self.recorder.shutdown()
-            self.session.close()
-        finally:
-            self.cluster.stop()
-
-    def wait(self, predicate, timeout: float) -> Any:
-        deadline = time.time() + timeout
-        while time.time() < deadline:
-            value = predicate()
-            if value:
-                return value
-            time.sleep(0.02)
-        return None
+    return WatchedRobot(ClusterSettings(workdir=workdir, profile=write_profile(workdir / "profile.json", profile, loop=True),
+                                        calibrate=False, fake_fc=False, log_level="WARNING", **settings))
 
 
 def measure_migrations(workdir: Path, count: int, hold: float) -> tuple[list[float], list[int], int, tuple[int, int],
@@ -95,7 +62,7 @@ def measure_migrations(workdir: Path, count: int, hold: float) -> tuple[list[flo
         profile += [[t, 120], [t + hold, 120], [t + hold + 0.3, 5], [t + 2 * hold + 0.3, 5]]
         t += 2 * hold + 0.6
     profile.append([t, 120])
-    with _Robot(workdir, profile) as robot:
+    with _robot(workdir, profile) as robot:
         migrated = lambda: [d for d in robot.recorder.decisions if d.outcome.startswith("migrated")]
         robot.wait(lambda: len(migrated()) >= count, count * (hold + 1.5) + 30)
         time.sleep(1.0)
@@ -110,7 +77,7 @@ def measure_migrations(workdir: Path, count: int, hold: float) -> tuple[list[flo
 def measure_failovers(workdir: Path, count: int) -> list[float]:
     """Milliseconds from kill -9 of the remote agent to the first detection onboard."""
     times: list[float] = []
-    with _Robot(workdir, [[0, 120], [3600, 120]], prefer="remote-first") as robot:
+    with _robot(workdir, [[0, 120], [3600, 120]], prefer="remote-first") as robot:
         rec = robot.recorder
         for _ in range(count):
             # Only the remote detector answers (a handover back to remote must be finished:

@@ -401,3 +401,67 @@ class HostNetwork:
 
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
+
+
+def write_profile(path: Path, points: list[list[float]], *, loop: bool = False) -> str:
+    """Write a synthetic-camera illumination profile (see onboard/scenarios/README.md); returns its path."""
+    import json
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"points": points, "noise": 2.0, "gradient": 0.2, "loop": loop}))
+    return str(path)
+
+
+class WatchedRobot:
+    """A :class:`LocalCluster` with a :class:`kgadapt.timeline.Recorder` watching it over Zenoh.
+
+    ``with WatchedRobot(settings) as robot:`` loads (and calibrates) the store,
+    starts the processes, and attaches the recorder; leaving stops everything.
+    """
+
+    def __init__(self, settings: ClusterSettings) -> None:
+        from kgadapt.timeline import Recorder
+
+        self.cluster = LocalCluster(settings)
+        self.recorder = Recorder(robot=settings.robot)
+        self.session = None
+        self.prepared: list[str] = []  # what loading (and calibrating) printed
+        self.timings: dict[str, float] = {}  # seconds: prepare, start
+        self.exit_codes: dict[str, int | None] = {}  # of every process, after leaving
+
+    def __enter__(self) -> "WatchedRobot":
+        from shared.session import ZenohSettings, open_session
+
+        t = time.perf_counter()
+        self.prepared = self.cluster.prepare_store()
+        self.timings["prepare"] = time.perf_counter() - t
+        try:
+            t = time.perf_counter()
+            self.cluster.start()
+            self.timings["start"] = time.perf_counter() - t
+            self.recorder.t0 = time.time()
+            self.session = open_session(ZenohSettings(mode="peer", connect=(self.cluster.endpoint,)))
+            self.recorder.setup(self.session)
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self.recorder.shutdown()
+            if self.session is not None:
+                self.session.close()
+                self.session = None
+        finally:
+            self.exit_codes = self.cluster.stop()
+
+    def wait(self, predicate, timeout: float, interval: float = 0.02):
+        """The predicate's first truthy value within ``timeout`` seconds, else None."""
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            value = predicate()
+            if value:
+                return value
+            time.sleep(interval)
+        return None

@@ -18,8 +18,8 @@ import sys
 import time
 from pathlib import Path
 
-from kgadapt.cluster import REPO, ClusterSettings, LocalCluster
-from kgadapt.timeline import Decision, Recorder
+from kgadapt.cluster import REPO, ClusterSettings, LocalCluster, WatchedRobot
+from kgadapt.timeline import Decision
 
 # (scenario second, action, argument): the demo profile is dark from 26 s to 36 s.
 SCRIPT = (
@@ -31,37 +31,32 @@ SCRIPT = (
 def run_scenario(args: argparse.Namespace) -> int:
     from knowledge.store import rows_as_table
     from shared.hostmonitor import parse_size_mb, squeeze
-    from shared.session import ZenohSettings, open_session
 
     workdir = (REPO / args.workdir) if not Path(args.workdir).is_absolute() else Path(args.workdir)
     shutil.rmtree(workdir, ignore_errors=True)
     squeeze_mb = parse_size_mb(args.squeeze)
     settings = ClusterSettings(workdir=workdir, scenario_speed=args.speed)
-    cluster = LocalCluster(settings)
+    robot = WatchedRobot(settings)
+    recorder, cluster = robot.recorder, robot.cluster
     say = _printer()
     say(f"kgadapt demo: the robot on this machine, {args.duration:.0f} s of day, dusk, dark, flicker, day")
     say(f"  logs, store and plots in {workdir}")
-    t = time.perf_counter()
-    outputs = cluster.prepare_store()
-    say(f"  models loaded and every detector configuration calibrated in {time.perf_counter() - t:.1f} s:")
-    for line in outputs[-1].splitlines():
-        if line.strip() and not line.startswith(("wrote", "recorded")):
-            say("    " + line)
-    t = time.perf_counter()
-    cluster.start()
-    say(f"  knowledge service, remote agent (budget {settings.remote_budget}), fake flight controller and onboard "
-        f"agent (budget {settings.onboard_budget}) up in {time.perf_counter() - t:.1f} s; zenoh {cluster.endpoint}")
-    session = open_session(ZenohSettings(mode="peer", connect=(cluster.endpoint,)))
-    recorder = Recorder(robot=settings.robot, t0=time.time())
 
     def on_decision(d: Decision) -> None:
         latency = "" if d.latency_ms is None else f" in {d.latency_ms:.0f} ms"
         say(f"{d.time - recorder.t0:6.1f} s  {d.trigger:<46} -> {d.config}@{d.host}: {d.outcome.split(':')[0]}{latency}")
 
     recorder.on_decision = on_decision
-    recorder.setup(session)
-    say("\n  time    what changed                                    what was decided")
-    try:
+    with robot:
+        session = robot.session
+        say(f"  models loaded and every detector configuration calibrated in {robot.timings['prepare']:.1f} s:")
+        for line in robot.prepared[-1].splitlines():
+            if line.strip() and not line.startswith(("wrote", "recorded")):
+                say("    " + line)
+        say(f"  knowledge service, remote agent (budget {settings.remote_budget}), fake flight controller and "
+            f"onboard agent (budget {settings.onboard_budget}) up in {robot.timings['start']:.1f} s; "
+            f"zenoh {cluster.endpoint}")
+        say("\n  time    what changed                                    what was decided")
         pending = list(SCRIPT)
         next_status = 5.0
         while (elapsed := time.time() - recorder.t0) < args.duration / args.speed:
@@ -83,10 +78,7 @@ def run_scenario(args: argparse.Namespace) -> int:
                     f"{rate}, free MiB: {free}")
                 next_status += 5.0
             time.sleep(0.05)
-    finally:
-        recorder.shutdown()
-        session.close()
-        codes = cluster.stop()
+    codes = robot.exit_codes
     bad = {name: code for name, code in codes.items() if code not in (0, -2, 130)}
     rows = recorder.summary_rows()
     lost, steady = recorder.baseline_loss()

@@ -16,52 +16,24 @@ from pathlib import Path
 
 import pytest
 
-from kgadapt.cluster import ClusterSettings, LocalCluster
-from kgadapt.timeline import Recorder
+from kgadapt.cluster import ClusterSettings, WatchedRobot, write_profile
 from shared.hostmonitor import squeeze
-from shared.session import ZenohSettings, open_session
 
 pytestmark = pytest.mark.slow
 
 
-def profile(tmp_path: Path, points: list[list[float]]) -> str:
-    path = tmp_path / "profile.json"
-    path.write_text(json.dumps({"points": points, "noise": 2.0, "gradient": 0.2, "loop": False}))
-    return str(path)
-
-
-class Run:
-    """A started cluster with a recorder attached."""
+class Run(WatchedRobot):
+    """The whole robot under an illumination profile of the test's own, watched."""
 
     def __init__(self, tmp_path: Path, points: list[list[float]], **settings) -> None:
         settings.setdefault("calibrate", False)  # one configuration per band: calibration cannot change the choice
-        self.cluster = LocalCluster(ClusterSettings(workdir=tmp_path / "run", profile=profile(tmp_path, points),
-                                                    log_level="INFO", **settings))
-        self.session = None
-        self.recorder: Recorder | None = None
-
-    def __enter__(self) -> "Run":
-        self.cluster.prepare_store()
-        self.recorder = Recorder(robot="quad1", t0=time.time())
-        self.cluster.start()
-        self.session = open_session(ZenohSettings(mode="peer", connect=(self.cluster.endpoint,)))
-        self.recorder.setup(self.session)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        try:
-            self.recorder.shutdown()
-            self.session.close()
-        finally:
-            self.cluster.stop()
+        super().__init__(ClusterSettings(workdir=tmp_path / "run", profile=write_profile(tmp_path / "profile.json", points),
+                                         log_level="INFO", **settings))
 
     def wait_for(self, predicate, timeout: float, what: str):
-        deadline = time.time() + timeout
-        while time.time() < deadline:
-            value = predicate()
-            if value:
-                return value
-            time.sleep(0.05)
+        value = self.wait(predicate, timeout, interval=0.05)
+        if value:
+            return value
         logs = {n: c.tail(8) for n, c in self.cluster.children.items()}
         raise AssertionError(f"timed out waiting for {what}; decisions {self.recorder.decisions}; logs {logs}")
 
