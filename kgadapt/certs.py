@@ -238,10 +238,9 @@ class CertificateAuthority:
 
 def make_certificates(settings: CertSettings) -> CertReport:
     """Make (or reuse, with ``use_ca``) the CA in ``settings.directory`` and issue each role's certificate."""
-    try:
-        import cryptography  # noqa: F401
-    except ImportError as exc:
-        raise ConfigError("kgadapt certs needs the 'cryptography' package (pip install cryptography)") from exc
+    from shared.extras import require
+
+    require("cryptography", extra="certs", what="kgadapt certs")
     directory = Path(settings.directory)
     sans = {role: tuple(check_address(a) for a in settings.sans(role)) for role in settings.roles}
     existing = [name for name in (CA_CERT, CA_KEY) if (directory / name).exists()]

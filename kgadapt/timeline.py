@@ -192,8 +192,9 @@ class Recorder:
 
     def plot(self, path: Path, bands: list[tuple[str, float, float]] | None = None) -> Path:
         """Draw the timeline PNG: illumination, configuration, host, detection rate, free memory."""
-        import matplotlib
+        from shared.extras import require
 
+        matplotlib = require("matplotlib", extra="plots", what="the demo's timeline plot")
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 

@@ -1,85 +1,126 @@
-"""Bolt servers through gqlalchemy: ``memgraph://`` (Memgraph) and ``bolt://`` (Neo4j class).
+"""Bolt servers through the Neo4j Python driver: ``memgraph://``, ``bolt://`` and their TLS forms.
 
-``bolt://`` also reaches FalkorDB started with ``BOLT_PORT``, which the tests use
-as a stand-in Bolt server (DESIGN.md section 7 lists its sharp edges: the first
-handshake after a disconnect may be dropped, so ``setup()`` retries it).
+Memgraph documents the Neo4j Python driver as a supported client; it gives
+what this backend needs through its public API alone: a per-query timeout
+sent in the Bolt transaction metadata (``tx_timeout``, which Memgraph and
+Neo4j enforce on the server), explicit transactions, TLS settings, typed
+errors, and graph values (``neo4j.graph``) we turn into plain ones.
+
+``bolt://`` also reaches FalkorDB started with ``BOLT_PORT``, which the tests
+use as the Bolt server that runs here. It claims to be Neo4j but behaves
+differently, and this backend finds that out by behaviour, never by error
+text (:meth:`BoltStore.setup`): it pastes string parameters into the query
+text, ignores ``tx_timeout``, has no explicit transactions, and may hang the
+handshake that follows a disconnect, so one session is kept for every query.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
-from knowledge.store import GraphStore, Row, Statement, StoreSettings, assert_read_only
+import neo4j
+from neo4j import exceptions as neo4j_errors
+from neo4j import graph as neo4j_graph
+
+from knowledge.dialect import FALKORDB, MEMGRAPH, NEO4J, Dialect
+from knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
 from shared.errors import QueryError, ReadOnlyViolation, StoreUnavailable
 
 log = logging.getLogger(__name__)
 
+# A transient conflict (Memgraph: concurrent writes to one node) is retried
+# this many times, after these pauses; then it is a QueryError.
+TRANSIENT_RETRY_PAUSES = (0.02, 0.08, 0.25)
+# Connection loss: the driver's error types that mean "no server", not "bad query".
+_LOST = (neo4j_errors.ServiceUnavailable, neo4j_errors.SessionExpired, OSError)
+
 
 class BoltStore(GraphStore):
-    """Memgraph (``memgraph://``) or any Bolt server (``bolt://``) via gqlalchemy."""
+    """Memgraph (``memgraph://``) or any Bolt server (``bolt://``) via the Neo4j Python driver."""
 
     def __init__(self, settings: StoreSettings) -> None:
         super().__init__(settings)
-        self._db: Any = None
-        self._session: Any = None
+        self._driver: neo4j.Driver | None = None
+        self._session: neo4j.Session | None = None
+        self._lock = threading.RLock()
         self._splices_params = False
+        self._dialect: Dialect = MEMGRAPH if settings.kind == "memgraph" else NEO4J
+
+    # --- what this backend is -------------------------------------------------
+
+    @property
+    def dialect(self) -> Dialect:
+        return self._dialect
+
+    @property
+    def capabilities(self) -> Capabilities:
+        stand_in = self._splices_params  # FalkorDB's Bolt listener
+        return Capabilities(
+            transactions=not stand_in,
+            timeouts=not stand_in,
+            tls=True,
+            read_only="check",
+        )
+
+    # --- life cycle -----------------------------------------------------------
 
     def setup(self, *, timeout: float | None = None) -> None:
-        import gqlalchemy
-
         timeout = timeout or self.settings.connect_timeout
-        s = self.settings
-        if s.kind == "memgraph":
-            self._db = gqlalchemy.Memgraph(host=s.host, port=s.port, username=s.username, password=s.password)
-        else:
-            self._db = gqlalchemy.Neo4j(host=s.host, port=s.port, username=s.username, password=s.password)
-            self._shorten_connect_timeout(min(1.0, timeout))
         deadline = time.monotonic() + timeout
         while True:
             try:
+                self._driver = self._make_driver(min(1.0, timeout))
                 self._open_session()
-                self._fetch("RETURN 1 AS one", {})
+                self._fetch("RETURN 1 AS one", {}, None)
                 self._splices_params = self._probe_parameter_splicing()
+                if self._splices_params:
+                    self._dialect = FALKORDB
                 return
-            except Exception as exc:  # each driver has its own errors; all mean "not reachable"
+            except neo4j_errors.AuthError as exc:
+                self._close_quietly()
+                raise StoreUnavailable(f"Bolt server at {self.settings.url} refused the login: {exc}") from exc
+            except (neo4j_errors.Neo4jError, neo4j_errors.DriverError, OSError) as exc:
+                self._close_quietly()
                 if time.monotonic() >= deadline:
-                    self._db = None
-                    raise StoreUnavailable(f"cannot reach Bolt server at {s.url}: {exc}") from exc
+                    raise StoreUnavailable(f"cannot reach Bolt server at {self.settings.url}: {_one_line(exc)}") from exc
                 time.sleep(0.1)
 
-    def _shorten_connect_timeout(self, seconds: float) -> None:
-        """Give gqlalchemy's neo4j driver a short connection timeout.
-
-        Measured with FalkorDB's Bolt listener: after a client disconnects, the
-        next handshake hangs until the driver's default 30 s timeout (twice).
-        With a short timeout that attempt fails fast and the retry connects.
-        """
-        import neo4j
-
-        conn = self._db._get_cached_connection()
-        old = getattr(conn, "_connection", None)
-        if old is None:
-            return
+    def _make_driver(self, connect_timeout: float) -> neo4j.Driver:
+        """One driver; a short connection timeout so a dropped handshake fails fast and is retried."""
         s = self.settings
-        conn._connection = neo4j.GraphDatabase.driver(
-            f"bolt://{s.host}:{s.port}", auth=(s.username, s.password), encrypted=False,
-            connection_timeout=seconds, connection_acquisition_timeout=seconds * 2,
-        )
-        old.close()
+        auth = (s.username, s.password) if s.username else None
+        kwargs: dict[str, Any] = {
+            "connection_timeout": connect_timeout,
+            "connection_acquisition_timeout": max(2.0, connect_timeout * 2),
+            "max_transaction_retry_time": 0.0,
+            "user_agent": "kgadapt",
+        }
+        scheme = "bolt"
+        if s.tls == "verify" and s.ca_file:
+            kwargs["encrypted"] = True
+            kwargs["trusted_certificates"] = neo4j.TrustCustomCAs(s.ca_file)
+        elif s.tls == "verify":
+            scheme = "bolt+s"
+        elif s.tls == "self-signed":
+            scheme = "bolt+ssc"
+        try:
+            return neo4j.GraphDatabase.driver(f"{scheme}://{s.host}:{s.port}", auth=auth, **kwargs)
+        except (neo4j_errors.ConfigurationError, ValueError) as exc:
+            raise StoreUnavailable(f"cannot set up a Bolt driver for {s.url}: {exc}") from exc
 
     def _open_session(self) -> None:
-        """Neo4j class: keep one Bolt session for every query.
+        """Keep one session for every query.
 
-        gqlalchemy opens a session per query; FalkorDB's Bolt listener drops
-        the connection handed back to the pool, so we hold our own session.
+        FalkorDB's Bolt listener may hang the handshake of the connection that
+        follows a disconnect; one long-lived session keeps one connection.
         """
-        self._session = None
-        if self.settings.kind == "bolt":
-            driver = self._db._get_cached_connection()._connection
-            self._session = driver.session()
+        if self._driver is None:
+            raise StoreUnavailable("store is not set up; call setup() first")
+        self._session = self._driver.session()
 
     def _probe_parameter_splicing(self) -> bool:
         """True when the server pastes string parameters into the query text.
@@ -90,41 +131,33 @@ class BoltStore(GraphStore):
         """
         probe = "kg'\\probe"
         try:
-            rows = self._fetch("RETURN $p AS p", {"p": probe})
-        except Exception:
+            rows = self._fetch("RETURN $p AS p", {"p": probe}, None)
+        except neo4j_errors.Neo4jError:
             return True
         spliced = not rows or rows[0].get("p") != probe
         if spliced:
-            log.warning("Bolt server at %s splices parameters into query text; "
-                        "string parameters with ' or \\ will be refused", self.settings.url)
+            log.warning("Bolt server at %s splices parameters into query text; string parameters "
+                        "with ' or \\ will be refused, and it cannot cut queries off at a timeout",
+                        self.settings.url)
         return spliced
 
-    def _fetch(self, cypher: str, params: dict[str, Any]) -> list[Row]:
-        if self._session is None:
-            return [{k: _plain(v) for k, v in row.items()} for row in self._db.execute_and_fetch(cypher, params)]
-        from gqlalchemy.connection import _convert_neo4j_value
-
-        result = self._session.run(cypher, params)
-        keys = result.keys()
-        return [{k: _plain(_convert_neo4j_value(record[k])) for k in keys} for record in result]
-
     def shutdown(self) -> None:
-        session, self._session = getattr(self, "_session", None), None
-        if session is not None:
+        """Close the session and the driver; never opens a connection to do so."""
+        with self._lock:
+            self._close_quietly()
+
+    def _close_quietly(self) -> None:
+        session, self._session = self._session, None
+        driver, self._driver = self._driver, None
+        for closer in (session, driver):
+            if closer is None:
+                continue
             try:
-                session.close()
-            except Exception:  # best effort
-                pass
-        db, self._db = self._db, None
-        if db is None:
-            return
-        try:
-            conn = db._get_cached_connection()
-            inner = getattr(conn, "_connection", None)
-            if inner is not None and hasattr(inner, "close"):
-                inner.close()
-        except Exception:  # closing is best effort
-            pass
+                closer.close()
+            except (neo4j_errors.Neo4jError, neo4j_errors.DriverError, OSError):
+                pass  # closing a dead connection: nothing to undo
+
+    # --- queries --------------------------------------------------------------
 
     def execute(
         self,
@@ -136,82 +169,101 @@ class BoltStore(GraphStore):
     ) -> list[Row]:
         if read_only:
             assert_read_only(cypher)
-        if self._db is None:
-            raise StoreUnavailable("store is not set up; call setup() first")
         clean = _check_params(params)
         if self._splices_params:
             _refuse_quotes(clean)
-        try:
-            try:
-                return self._fetch(cypher, clean)
-            except Exception as exc:
-                if type(exc).__name__ not in ("ServiceUnavailable", "SessionExpired") or self._session is None:
-                    raise
-                log.warning("Bolt connection dropped (%s); opening a new session", exc)
-                self._open_session()
-                return self._fetch(cypher, clean)
-        except (ConnectionError, OSError) as exc:
-            raise StoreUnavailable(f"lost Bolt server at {self.settings.url}: {exc}") from exc
-        except Exception as exc:  # neo4j.exceptions / mgclient.DatabaseError
-            message = str(exc) or type(exc).__name__
-            if "read" in message.lower() and "only" in message.lower():
-                raise ReadOnlyViolation(message) from exc
-            raise QueryError(f"store rejected the query: {message}") from exc
+        seconds = timeout_ms / 1000.0 if timeout_ms and self.capabilities.timeouts else None
+        return self._with_errors(lambda: self._fetch(cypher, clean, seconds), timeout_ms)
 
     def execute_atomic(self, statements: Sequence[Statement]) -> None:
-        """One explicit transaction where the driver offers it.
+        """One explicit transaction, rolled back on any error.
 
-        Memgraph (mgclient) and Neo4j roll back on error. FalkorDB's Bolt
-        listener has no explicit transactions; there the statements run one by
-        one after the importers' validation.
+        FalkorDB's Bolt listener has no explicit transactions; there the
+        statements run one by one after the importers' validation.
         """
-        if self._db is None:
-            raise StoreUnavailable("store is not set up; call setup() first")
-        conn = self._db._get_cached_connection()
-        inner = getattr(conn, "_connection", None)
+        batch = [(cypher, _check_params(params)) for cypher, params in statements]
         if self._splices_params:
-            for _, params in statements:
-                _refuse_quotes(params or {})
-        try:
-            if self.settings.kind == "memgraph" and inner is not None and hasattr(inner, "autocommit"):
-                inner.autocommit = False
-                try:
-                    cursor = inner.cursor()
-                    for cypher, params in statements:
-                        cursor.execute(cypher, _check_params(params) or {})
-                        cursor.fetchall()
-                    inner.commit()
-                except Exception:
-                    inner.rollback()
-                    raise
-                finally:
-                    inner.autocommit = True
-                return
-            if inner is not None and hasattr(inner, "session") and not self._is_falkordb():
-                with inner.session() as session:
-                    with session.begin_transaction() as tx:
-                        for cypher, params in statements:
-                            tx.run(cypher, _check_params(params) or {}).consume()
-                        tx.commit()
-                return
-            for cypher, params in statements:
-                self.execute(cypher, params)
-        except (QueryError, StoreUnavailable):
-            raise
-        except Exception as exc:
-            raise QueryError(f"store rejected the batch: {exc}") from exc
+            for _, params in batch:
+                _refuse_quotes(params)
+        if not self.capabilities.transactions:
+            for cypher, params in batch:
+                self._with_errors(lambda c=cypher, p=params: self._fetch(c, p, None), None)
+            return
 
-    def _is_falkordb(self) -> bool:
-        # FalkorDB's Bolt listener serves one graph named "falkordb" and has no transactions.
-        cached = getattr(self, "_falkordb", None)
-        if cached is None:
+        def run_batch() -> None:
+            session = self._current_session()
+            with session.begin_transaction() as tx:
+                for cypher, params in batch:
+                    tx.run(cypher, params).consume()
+                tx.commit()
+
+        self._with_errors(run_batch, None)
+
+    def _current_session(self) -> neo4j.Session:
+        if self._session is None:
+            # Reconnect on the call after a loss (the loss itself was reported).
+            if self._driver is None:
+                raise StoreUnavailable("store is not set up; call setup() first")
+            self._open_session()
+        assert self._session is not None
+        return self._session
+
+    def _fetch(self, cypher: str, params: dict[str, Any], timeout_s: float | None) -> list[Row]:
+        session = self._current_session()
+        result = session.run(neo4j.Query(cypher, timeout=timeout_s), params)
+        return [{key: plain(value) for key, value in record.items()} for record in result]
+
+    def _with_errors(self, work: Callable[[], Any], timeout_ms: int | None) -> Any:
+        """Run ``work`` under the store lock; translate the driver's errors into ours."""
+        with self._lock:
+            if self._driver is None:
+                raise StoreUnavailable("store is not set up; call setup() first")
+            for attempt, pause in enumerate((*TRANSIENT_RETRY_PAUSES, None)):
+                try:
+                    return work()
+                except neo4j_errors.TransientError as exc:
+                    if _is_timeout(exc):
+                        raise QueryError(f"query cut off by the store at its {timeout_ms} ms limit: "
+                                         f"{exc.message or exc}") from exc
+                    if pause is None:
+                        raise QueryError(f"store kept reporting a conflict after {attempt} retries: "
+                                         f"{exc.message or exc}") from exc
+                    log.info("transient store error (%s); retrying in %.0f ms", exc.code, pause * 1000)
+                    time.sleep(pause)
+                except _LOST as exc:
+                    self._drop_session()
+                    raise StoreUnavailable(f"lost Bolt server at {self.settings.url}: {_one_line(exc)}") from exc
+                except neo4j_errors.Neo4jError as exc:
+                    message = exc.message or str(exc) or type(exc).__name__
+                    if _is_timeout(exc):
+                        raise QueryError(f"query cut off by the store at its {timeout_ms} ms limit: "
+                                         f"{message}") from exc
+                    if exc.code and "Forbidden" in exc.code and "ReadOnly" in exc.code:
+                        raise ReadOnlyViolation(f"read-only query refused by the store: {message}") from exc
+                    raise QueryError(f"store rejected the query: {message}") from exc
+                except neo4j_errors.DriverError as exc:
+                    self._drop_session()
+                    raise StoreUnavailable(f"Bolt driver failed for {self.settings.url}: {exc}") from exc
+        raise AssertionError("unreachable")
+
+    def _drop_session(self) -> None:
+        session, self._session = self._session, None
+        if session is not None:
             try:
-                rows = list(self._db.execute_and_fetch("CALL dbms.components() YIELD name RETURN name"))
-                cached = any("falkor" in str(r.get("name", "")).lower() for r in rows)
-            except Exception:
-                cached = True  # no dbms.components(): not Neo4j; run statements one by one
-            self._falkordb = cached
-        return cached
+                session.close()
+            except (neo4j_errors.Neo4jError, neo4j_errors.DriverError, OSError):
+                pass
+
+
+def _one_line(exc: BaseException) -> str:
+    """The driver's messages span lines; a CLI error is one line."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _is_timeout(exc: neo4j_errors.Neo4jError) -> bool:
+    """The server's own timeout codes (Neo4j: TransactionTimedOut*; Memgraph reports it as a transient error)."""
+    code = exc.code or ""
+    return "TimedOut" in code or "Timeout" in code
 
 
 def _check_params(params: Mapping[str, Any] | None) -> dict[str, Any]:
@@ -249,19 +301,23 @@ def _refuse_quotes(params: Mapping[str, Any], where: str = "") -> None:
             _refuse_quotes({str(i): v for i, v in enumerate(value)}, f"{name}.")
 
 
-def _plain(value: Any) -> Any:
-    labels = getattr(value, "_labels", None)
-    if labels is not None:
-        props = getattr(value, "_properties", None) or {
-            k: v for k, v in value.__dict__.items() if not k.startswith("_")
-        }
-        return {**props, "_labels": sorted(labels)}
-    rel_type = getattr(value, "_type", None)
-    if rel_type is not None and hasattr(value, "_start_node_id"):
-        props = getattr(value, "_properties", None) or {}
-        return {**props, "_type": rel_type}
-    if isinstance(value, list):
-        return [_plain(v) for v in value]
+def plain(value: Any) -> Any:
+    """A driver value as plain Python, the same shapes as the RESP backend gives.
+
+    A node is its properties plus ``_labels`` (sorted); a relationship its
+    properties plus ``_type``; a path the list of its nodes. Lists and maps
+    are converted all the way down; temporal values become ISO strings.
+    """
+    if isinstance(value, neo4j_graph.Node):
+        return {**{k: plain(v) for k, v in value.items()}, "_labels": sorted(value.labels)}
+    if isinstance(value, neo4j_graph.Relationship):
+        return {**{k: plain(v) for k, v in value.items()}, "_type": value.type}
+    if isinstance(value, neo4j_graph.Path):
+        return [plain(node) for node in value.nodes]
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
     if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
+        return {k: plain(v) for k, v in value.items()}
+    if hasattr(value, "iso_format"):  # neo4j.time Date, Time, DateTime, Duration
+        return value.iso_format()
     return value

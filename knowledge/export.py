@@ -60,7 +60,9 @@ def literal(value: Any) -> str:
     if isinstance(value, float):
         if not math.isfinite(value):
             raise QueryError(f"cannot export the non-finite number {value!r}")
-        text = repr(value)
+        # openCypher's grammar has no '+' in an exponent (Memgraph's lexer
+        # rejects 1e+16), so write 1e16; every store reads that form.
+        text = repr(value).replace("e+", "e")
         return text if any(c in text for c in ".eE") else text + ".0"
     if isinstance(value, str):
         return "'" + "".join(_escape(c) for c in value) + "'"

@@ -14,8 +14,9 @@ from falkordb.edge import Edge
 from falkordb.node import Node
 from falkordb.path import Path as GraphPath
 
+from knowledge.dialect import FALKORDB, Dialect
 from knowledge.embedded import EmbeddedServer
-from knowledge.store import GraphStore, Row, Statement, StoreSettings, assert_read_only
+from knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
 from shared.errors import QueryError, ReadOnlyViolation, StoreUnavailable
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,16 @@ class FalkorDBStore(GraphStore):
             self._graph = None
         if self.server is not None:
             self.server.stop()
+
+    @property
+    def dialect(self) -> Dialect:
+        return FALKORDB
+
+    @property
+    def capabilities(self) -> Capabilities:
+        # MULTI/EXEC batches; GRAPH.QUERY's TIMEOUT; GRAPH.RO_QUERY refuses writes. No TLS on
+        # the unix socket of the embedded store.
+        return Capabilities(transactions=True, timeouts=True, tls=False, read_only="store")
 
     @property
     def redis(self) -> redis.Redis:
@@ -191,7 +202,7 @@ def _check_value(key: str, value: Any) -> Any:
 def _plain(value: Any) -> Any:
     """Store values as plain Python: nodes and edges become dicts."""
     if isinstance(value, Node):
-        return {**value.properties, "_labels": list(value.labels or [])}
+        return {**value.properties, "_labels": sorted(value.labels or [])}
     if isinstance(value, Edge):
         return {**value.properties, "_type": value.relation}
     if isinstance(value, GraphPath):

@@ -95,21 +95,9 @@ INDEXED_NAMES = (
 
 
 def ensure_indexes(store: GraphStore) -> None:
-    """Create the name indexes (idempotent on every backend)."""
-    existing = _existing_indexes(store)
+    """Create the name indexes in the store's own dialect; idempotent on every backend."""
+    dialect = store.dialect
+    existing = dialect.indexed(store.execute(dialect.list_statement))
     for label in INDEXED_NAMES:
-        if label in existing:
-            continue
-        try:
-            store.execute(f"CREATE INDEX FOR (n:{label}) ON (n.name)")
-        except Exception as exc:  # "already indexed" differs per store; anything else re-raised
-            if "already" not in str(exc).lower() and "exist" not in str(exc).lower():
-                raise
-
-
-def _existing_indexes(store: GraphStore) -> set[str]:
-    try:
-        rows = store.execute("CALL db.indexes() YIELD label, properties RETURN label, properties")
-    except Exception:  # not every store has db.indexes(); fall back to trying each
-        return set()
-    return {r["label"] for r in rows if "name" in (r.get("properties") or [])}
+        if (label, "name") not in existing:
+            store.execute(dialect.create_index(label, "name"))

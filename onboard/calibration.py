@@ -262,8 +262,9 @@ def table(results: Sequence[CalibrationResult], bands: Sequence[Band]) -> str:
 
 def plot(results: Sequence[CalibrationResult], bands: Sequence[Band], path: Path | str) -> Path:
     """Grouped bars: detection rate (top) and ms per frame (bottom) per band and configuration."""
-    import matplotlib
+    from shared.extras import require
 
+    matplotlib = require("matplotlib", extra="plots", what="the calibration plot")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

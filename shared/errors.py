@@ -1,11 +1,12 @@
 """The one exception tree of kgadapt.
 
 Every error a caller can act on is one of these; each library's own
-exceptions (redis, neo4j, mgclient, zenoh, pymavlink, OSError) are
+exceptions (redis, neo4j, zenoh, pymavlink, OSError) are
 translated at the boundary where we call it, with ``raise ... from exc``.
 
     KgadaptError
      ├── ConfigError              bad settings: a store URL, a Zenoh config file, a flag
+     │    └── MissingExtra        the command needs an optional part that is not installed
      ├── ModelError               a domain model file is malformed (names file and line)
      ├── StoreError               the graph store failed
      │    ├── StoreUnavailable    cannot start, reach or connect to the store
@@ -30,6 +31,18 @@ class KgadaptError(Exception):
 
 class ConfigError(KgadaptError):
     """A setting, URL, flag or configuration file is wrong."""
+
+
+class MissingExtra(ConfigError):
+    """A command needs an optional part of kgadapt (an extra) that is not installed."""
+
+    def __init__(self, extra: str, what: str, module: str) -> None:
+        self.extra = extra
+        self.module = module
+        super().__init__(
+            f"{what} needs the '{extra}' extra (module {module!r} is not installed): "
+            f"pip install 'kgadapt[{extra}]'"
+        )
 
 
 class ModelError(KgadaptError):

@@ -55,8 +55,21 @@ def test_exported_literals_are_escaped_so_tricky_strings_come_back_unchanged(res
 
 def test_literal_formats_each_value_type():
     assert [E.literal(v) for v in (None, True, 3, 2.0, 1e20, "a'b\\c", [1, "x"])] == [
-        "null", "true", "3", "2.0", "1e+20", "'a\\'b\\\\c'", "[1, 'x']"]
+        "null", "true", "3", "2.0", "1e20", "'a\\'b\\\\c'", "[1, 'x']"]
     assert E.name("Platform") == "Platform" and E.name("odd `name`") == "`odd ``name```"
+
+
+def test_large_and_small_floats_are_written_without_a_plus_in_the_exponent(resp_store):
+    # openCypher's grammar (and Memgraph's lexer) has no '+' in an exponent.
+    # (FalkorDB's parser keeps 15 significant digits of a float literal, so
+    # 1.2345678901234568e17 would come back as 1.23456789012346e17: not tested here.)
+    values = [1e16, 1e300, -2.5e20, 1e-7, 1.5e17]
+    assert all("+" not in E.literal(v) for v in values)
+    resp_store.execute("CREATE (:Probe {v: $v})", {"v": values})
+    script = E.export(resp_store, "cypher")
+    resp_store.clear()
+    E.import_script(resp_store, script)
+    assert resp_store.execute("MATCH (p:Probe) RETURN p.v AS v") == [{"v": values}]
 
 
 def test_dot_export_draws_every_node_and_relation(known_store):
