@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test venv bench clean
+.PHONY: demo test venv bench dist clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -24,4 +24,8 @@ bench: $(STAMP)
 	$(BIN)/kgadapt bench table1 --full
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache
+	rm -rf $(VENV) build dist *.egg-info .pytest_cache
+
+# Offline install archives for x86_64 and aarch64 (docs/deploy.md); needs a package index once.
+dist: $(STAMP)
+	$(BIN)/python -m deploy.archive --out dist

@@ -67,6 +67,7 @@ def run_serve(args: argparse.Namespace) -> int:
     from knowledge.service import KnowledgeService, ServiceSettings
     from knowledge.store import open_store
     from shared.agent import StopSignals
+    from shared.notifier import ServiceNotifier
     from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
     log = logging.getLogger("knowledge.service")
@@ -81,16 +82,19 @@ def run_serve(args: argparse.Namespace) -> int:
             try:
                 service = KnowledgeService(store, settings)
                 service.setup(session)
+                notifier = ServiceNotifier()
                 try:
-                    print(
+                    line = (
                         f"knowledge service ready: robot {settings.robot}, store {store.url}, "
                         f"zenoh {zenoh.mode} listen {list(zenoh.listen)} connect {list(zenoh.connect)}, "
-                        f"writes {'on' if settings.writes else 'off'}",
-                        flush=True,
+                        f"writes {'on' if settings.writes else 'off'}"
                     )
-                    stop.wait()
+                    print(line, flush=True)
+                    notifier.ready(status=line)
+                    stop.wait(tick=notifier.watchdog)
                     log.info("signal %s: stopping the knowledge service", stop.received)
                 finally:
+                    notifier.stopping()
                     service.shutdown()
             finally:
                 session.close()

@@ -93,6 +93,12 @@ class Agent:
             raise
         log.info("%s agent %s of robot %s is alive with %d part(s)", s.role, s.host, s.robot, len(self._ready))
 
+    def healthy(self) -> bool:
+        """Every part set up reports healthy (a part without ``healthy()`` counts as healthy)."""
+        if self.session is None:
+            return False
+        return all(getattr(part, "healthy", lambda: True)() for part in list(self._ready))
+
     def shutdown(self) -> None:
         """Drop the token, shut the parts down in reverse order, close the session."""
         if self._token is not None:
@@ -139,10 +145,12 @@ class StopSignals:
         self.received = signum
         self.event.set()
 
-    def wait(self) -> None:
+    def wait(self, tick: Callable[[], None] | None = None) -> None:
+        """Wait for a signal, calling ``tick`` about twice a second meanwhile (the watchdog)."""
         # A timed wait keeps the main thread responsive to signals on every Python.
         while not self.event.wait(0.5):
-            pass
+            if tick is not None:
+                tick()
 
 
 def add_agent_arguments(parser: argparse.ArgumentParser, *, default_host: str) -> None:
@@ -159,8 +167,15 @@ def agent_settings_from_args(args: argparse.Namespace, *, role: str) -> AgentSet
 
 
 def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) -> int:
-    """Set up, announce readiness on stdout, wait for SIGINT/SIGTERM, shut down."""
+    """Set up, announce readiness (stdout and systemd), wait for SIGINT/SIGTERM, shut down.
+
+    Under systemd (``Type=notify``) the watchdog is fed only while every part
+    is healthy, so a hung or broken agent is restarted, not only a dead one.
+    """
+    from shared.notifier import ServiceNotifier
+
     s = agent.settings
+    notifier = ServiceNotifier()
     with StopSignals() as stop:
         agent.setup()
         try:
@@ -169,9 +184,16 @@ def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) ->
                 f"zenoh {s.zenoh.mode} connect {list(s.zenoh.connect)}"
             )
             (announce or _print_flush)(line)
-            stop.wait()
+            notifier.ready(status=line)
+
+            def tick() -> None:
+                if agent.healthy():
+                    notifier.watchdog()
+
+            stop.wait(tick=tick)
             log.info("%s agent %s: signal %s, stopping", s.role, s.host, stop.received)
         finally:
+            notifier.stopping()
             agent.shutdown()
     return 0
 

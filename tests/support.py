@@ -37,15 +37,21 @@ def wait_for(predicate: Callable[[], object], timeout: float, what: str, interva
 class Child:
     """A child process whose stdout lines a thread collects; stderr goes to a file in ``log_dir``."""
 
-    def __init__(self, argv: list[str], name: str, log_dir: Path) -> None:
+    def __init__(self, argv: list[str], name: str, log_dir: Path, *, from_checkout: bool = True,
+                 env: dict[str, str] | None = None) -> None:
+        """``from_checkout=False`` runs outside this checkout (cwd ``log_dir``, no PYTHONPATH): an installed kgadapt."""
         self.name = name
         self.argv = argv
         self.lines: queue.Queue[str] = queue.Queue()
         self.output: list[str] = []
         self.stderr_path = log_dir / f"{name}.stderr"
-        env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+        base = {k: v for k, v in os.environ.items() if from_checkout or k != "PYTHONPATH"}
+        if from_checkout:
+            base["PYTHONPATH"] = str(REPO)
+        env = {**base, "PYTHONUNBUFFERED": "1", **(env or {})}
         self._stderr = open(self.stderr_path, "w")
-        self.process = subprocess.Popen(argv, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=self._stderr, text=True)
+        self.process = subprocess.Popen(argv, cwd=REPO if from_checkout else log_dir, env=env,
+                                        stdout=subprocess.PIPE, stderr=self._stderr, text=True)
         threading.Thread(target=self._read, name=f"{name}-stdout", daemon=True).start()
 
     @classmethod
