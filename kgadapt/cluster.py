@@ -193,6 +193,10 @@ class LocalCluster:
                 raise KgadaptError(f"{name} {why}; last log lines:\n{child.tail()}")
         return child
 
+    def spawn(self, name: str, argv: Sequence[str], *, ready: str | None) -> Child:
+        """Start one more process of this cluster (logged, stopped by ``stop()``), waiting for ``ready``."""
+        return self._spawn(name, argv, ready=ready)
+
     def respawn(self, name: str) -> Child:
         """Start a stopped or killed process again with the same command line (and wait for it).
 
