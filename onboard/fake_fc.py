@@ -211,6 +211,7 @@ class FakeFlightController:
         self._rebooting_until: float | None = None
         self.reboots = 0
         self.precland = PrecLandState()
+        self._drop_commands = 0
 
     # -- lifecycle
 
@@ -301,6 +302,19 @@ class FakeFlightController:
     @property
     def rebooting(self) -> bool:
         return self._rebooting_until is not None
+
+    def set_stream(self, name: str, hz: float | None) -> None:
+        """Stream ``name`` at ``hz`` (None: stop it), as if the autopilot had been told so."""
+        with self._lock:
+            if hz is None:
+                self._periods.pop(name, None)
+            else:
+                self._periods[name] = 1.0 / hz
+
+    def drop_commands(self, count: int) -> None:
+        """Let the next ``count`` COMMAND_LONGs go unanswered, as if lost on the radio."""
+        with self._lock:
+            self._drop_commands = count
 
     def stream_rate(self, name: str) -> float | None:
         """The rate (Hz) at which ``name`` is streamed now; None if it is off."""
@@ -402,6 +416,10 @@ class FakeFlightController:
 
     def _handle_command(self, message) -> None:
         command = message.command
+        with self._lock:
+            if self._drop_commands > 0:
+                self._drop_commands -= 1
+                return
         handlers = {
             mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
             mavlink2.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,

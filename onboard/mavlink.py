@@ -596,7 +596,7 @@ StateListener = Callable[[FlightState], None]
 _BOOT_TIME_FIELD = {"ATTITUDE": "time_boot_ms", "GLOBAL_POSITION_INT": "time_boot_ms",
                     "LOCAL_POSITION_NED": "time_boot_ms", "DISTANCE_SENSOR": "time_boot_ms",
                     "SYSTEM_TIME": "time_boot_ms"}
-_BOOT_BACKWARDS_MS = 1000  # tolerate reordering; a reboot resets to a few seconds
+_BOOT_BACKWARDS_MS = 100  # a router may reorder a little; a reboot restarts the clock from 0
 
 
 class FlightLink:
@@ -689,8 +689,18 @@ class FlightLink:
 
     @property
     def state(self) -> FlightState:
+        """The latest state; a stream's fields older than its timeout are unknown here even between ticks."""
         with self._state_lock:
-            return self._state
+            state = self._state
+            now = time.monotonic()
+            stale = [name for name, heard in self._heard_mono.items()
+                     if name != "HEARTBEAT" and now - heard > self.stream_timeout(name)]
+        if not stale:
+            return state
+        cleared = {f: None for name in stale for f in STREAM_FIELDS[name]}
+        if "SYS_STATUS" in stale and "BATTERY_STATUS" not in dict(state.heard):
+            cleared.update({f: None for f in STREAM_FIELDS["BATTERY_STATUS"]})
+        return replace(state, heard=tuple((k, t) for k, t in state.heard if k not in stale), **cleared)
 
     def on_state(self, listener: StateListener) -> None:
         """Call ``listener(state)`` on every change of the state (and with every link event)."""
@@ -765,6 +775,8 @@ class FlightLink:
         if field is not None and src == self._fc:
             boot_ms = int(getattr(message, field))
             last = self.state.boot_ms
+            # One autopilot's messages come in order, so its clock never goes back, unless it restarted.
+            # (Not compared with our clock: a reader stalled by a busy machine would look like a reboot.)
             if last is not None and boot_ms + _BOOT_BACKWARDS_MS < last:
                 self._rebooted(f"time since boot went back from {last} to {boot_ms} ms")
             self._update(boot_ms=boot_ms)
