@@ -37,6 +37,7 @@ class LandingCheckSettings:
     marker_size_m: float = 0.5
     sizes_known: bool = True  # a site marker file gives the marker's size: the target goes with its position
     rangefinder: bool = True  # the (fake) vehicle has a downward rangefinder
+    noise_px: float = 0.5  # detector corner noise (standard deviation, pixels)
     hold_s: float = 1.5
     resend_hz: float = 10.0
     alt_m: float = 10.0
@@ -91,7 +92,6 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
     ))
     stop = threading.Event()
     publisher: threading.Thread | None = None
-    counts: dict = {}
     started = time.monotonic()
     try:
         bridge.setup(session)
@@ -107,7 +107,8 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
                             size_m=s.marker_size_m)
         pose = fake_pose(fc) if fc is not None else link_pose(link)
         publisher = threading.Thread(
-            target=lambda: counts.update(run_detections(session, robot, scene, pose, rate_hz=s.rate_hz, stop=stop)),
+            target=run_detections, args=(session, robot, scene, pose),
+            kwargs=dict(rate_hz=s.rate_hz, stop=stop, noise_px=s.noise_px),
             name="landing-check-detections", daemon=True)
         publisher.start()
         started = time.monotonic()
@@ -119,7 +120,7 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
         return LandingResult(
             error_m=horizontal_error(scene.north, scene.east, final), landed=bool(landed),
             acquired=(fc.precland.counters["acquired"] > 0) if fc is not None else None,
-            seconds=time.monotonic() - started, detections=counts.get("sent", 0) if not publisher.is_alive() else -1,
+            seconds=time.monotonic() - started, detections=bridge.counters["detections"],
             targets_sent=bridge.counters["targets_sent"], targets_resent=bridge.counters["targets_resent"],
         )
     finally:

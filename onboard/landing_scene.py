@@ -15,6 +15,7 @@ as the detector would, for the flight bridge to follow.
 from __future__ import annotations
 
 import math
+import random
 import threading
 import time
 from dataclasses import dataclass
@@ -55,12 +56,13 @@ class MarkerScene:
 
 
 def run_detections(session, robot: str, scene: MarkerScene, pose: Callable[[], Pose | None], *, rate_hz: float,
-                   stop: threading.Event, instance: str = "scene") -> dict:
+                   stop: threading.Event, instance: str = "scene", noise_px: float = 0.0, seed: int = 12) -> dict:
     """Publish ``detections`` of ``scene`` at ``rate_hz`` until ``stop``; returns counts (sent, out of view)."""
     from shared import keys, messages
 
     publisher = session.declare_publisher(keys.detector_markers(robot, instance))
     counts = {"sent": 0, "out_of_view": 0}
+    rng = random.Random(seed)
     seq = 0
     period = 1.0 / rate_hz
     next_at = time.monotonic()
@@ -73,6 +75,8 @@ def run_detections(session, robot: str, scene: MarkerScene, pose: Callable[[], P
                 counts["out_of_view"] += 1
             else:
                 seq += 1
+                if noise_px > 0:
+                    corners = [[u + rng.gauss(0, noise_px), v + rng.gauss(0, noise_px)] for u, v in corners]
                 publisher.put(messages.encode("detections", {
                     "instance": instance, "config": "scene", "host": "scene", "seq": seq,
                     "frame_time": frame_time, "time": time.time(), "ids": [[scene.marker_id]],

@@ -121,3 +121,25 @@ def test_the_bridge_command_without_intrinsics_or_camera_exits_1_saying_what_is_
     out = subprocess.run([*kgadapt_cmd, "flight", "bridge", "--robot", "clitest", "--fx", "600"],
                          cwd=REPO, capture_output=True, text=True, timeout=30)
     assert out.returncode == 1 and "--camera" in out.stderr and "--cy" in out.stderr
+
+
+def test_status_prints_every_field_with_its_age_and_the_missing_streams(kgadapt_cmd):
+    port = free_udp_port()
+    fc = FakeFlightController(FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=5, rangefinder=False),
+                              VehicleState(armed=True, mode="LOITER", landed_state="IN_AIR", alt=4.0))
+    with fc:
+        done = subprocess.run([*kgadapt_cmd, "flight", "status", "--url", f"udpin:127.0.0.1:{port}", "--json",
+                               "--settle", "4"], cwd=REPO, capture_output=True, text=True, timeout=30)
+        assert done.returncode == 0, done.stderr
+        state = json.loads(done.stdout)
+        assert state["mode"] == "LOITER" and state["landed_state"] == "IN_AIR"
+        assert state["alt_rel_m"] == pytest.approx(4.0) and state["position_ned"][2] == pytest.approx(-4.0)
+        assert len(state["attitude"]) == 3 and state["home"][0] == pytest.approx(fc.settings.home[0])
+        assert "rangefinder_m" not in state  # no rangefinder: unknown, not 0
+        assert "DISTANCE_SENSOR" in state["missing"] and "DISTANCE_SENSOR" not in state["heard"]
+        assert state["timeouts"]["ATTITUDE"] == pytest.approx(1.0)
+        text = subprocess.run([*kgadapt_cmd, "flight", "status", "--url", f"udpin:127.0.0.1:{port}", "--settle", "2"],
+                              cwd=REPO, capture_output=True, text=True, timeout=30)
+        assert text.returncode == 0, text.stderr
+        assert "altitude 4.00 m above home" in text.stdout
+        assert "DISTANCE_SENSOR      never heard" in text.stdout and "missing    DISTANCE_SENSOR" in text.stdout
