@@ -87,6 +87,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     check.add_argument("--no-rangefinder", action="store_true", help="the fake vehicle has no downward rangefinder")
     check.add_argument("--no-sizes", action="store_true", help="no marker sizes: angles (+ rangefinder) only")
     check.add_argument("--hold", type=float, default=1.5, metavar="S", help="re-send the last target up to S s")
+    check.add_argument("--reboot-first", action="store_true",
+                       help="reboot the autopilot on the ground first, report how soon every stream was back")
     check.add_argument("--sitl-url", default=None, help="a real autopilot, e.g. tcp:127.0.0.1:5760 (ArduCopter SITL)")
     check.add_argument("--json", action="store_true", help="print one JSON object")
     check.set_defaults(func=_land_check)
@@ -391,7 +393,8 @@ def _land_check(args: argparse.Namespace) -> int:
     from shared.session import ZenohSettings, open_session
 
     settings = LandingCheckSettings(rate_hz=args.rate, rangefinder=not args.no_rangefinder,
-                                    sizes_known=not args.no_sizes, hold_s=args.hold, url=args.sitl_url)
+                                    sizes_known=not args.no_sizes, hold_s=args.hold, url=args.sitl_url,
+                                    reboot_first=args.reboot_first)
     session = open_session(ZenohSettings(mode="peer", listen=(), connect=()))
     try:
         result = run_landing_check(session, settings)
@@ -402,5 +405,7 @@ def _land_check(args: argparse.Namespace) -> int:
     else:
         print(f"landed={result.landed} error={result.error_m:.2f} m acquired={result.acquired} "
               f"in {result.seconds:.1f} s; detections {result.detections}, LANDING_TARGETs "
-              f"{result.targets_sent} + {result.targets_resent} re-sent", flush=True)
+              f"{result.targets_sent} + {result.targets_resent} re-sent"
+              + ("" if result.streams_back_s is None else f"; streams back {result.streams_back_s:.1f} s after reboot"),
+              flush=True)
     return 0 if result.landed else 1

@@ -42,6 +42,7 @@ class LandingCheckSettings:
     resend_hz: float = 10.0
     alt_m: float = 10.0
     timeout_s: float = 60.0
+    reboot_first: bool = False  # reboot the autopilot on the ground, then take off (the fake starts on the ground)
     url: str | None = None  # a real autopilot (SITL); None = the fake flight controller
     fake: dict = field(default_factory=dict)  # FakeFCSettings overrides (e.g. a faster LAND_SPEED for tests)
 
@@ -55,6 +56,7 @@ class LandingResult:
     detections: int
     targets_sent: int
     targets_resent: int
+    streams_back_s: float | None = None  # after the reboot: from the reboot command to every stream heard again
 
     def as_dict(self) -> dict:
         return self.__dict__.copy()
@@ -80,6 +82,7 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
         fc = FakeFlightController(
             FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=2.0, sys_status_hz=0, battery_hz=0,
                            extended_state_hz=0, rangefinder=s.rangefinder, drain_pct_per_min=0.0, **s.fake),
+            VehicleState(mode="LOITER") if s.reboot_first else
             VehicleState(armed=True, mode="LOITER", landed_state="IN_AIR", alt=s.alt_m),
         )
     else:
@@ -100,7 +103,8 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
         link = bridge.link
         link.wait_for_heartbeat(10)
         _wait(lambda: link.state.position_ned is not None and link.state.attitude is not None, 10, "position")
-        if fc is None:
+        streams_back_s = _reboot(link) if s.reboot_first else None
+        if fc is None or s.reboot_first:
             _take_off(link, s.alt_m)
         start = link.state.position_ned
         scene = MarkerScene(cam, north=start[0] + s.marker_north, east=start[1] + s.marker_east,
@@ -122,6 +126,7 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
             acquired=(fc.precland.counters["acquired"] > 0) if fc is not None else None,
             seconds=time.monotonic() - started, detections=bridge.counters["detections"],
             targets_sent=bridge.counters["targets_sent"], targets_resent=bridge.counters["targets_resent"],
+            streams_back_s=streams_back_s,
         )
     finally:
         stop.set()
@@ -130,6 +135,21 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
         bridge.shutdown()
         if fc is not None:
             fc.shutdown()
+
+
+def _reboot(link) -> float:
+    """Reboot the autopilot (on the ground); seconds until the link saw it and every stream came back."""
+    # The link sees a reboot by the autopilot's clock going back: let it run past what a restart shows first.
+    _wait(lambda: (link.state.boot_ms or 0) > 2000, 10, "2 s of autopilot uptime")
+    reboots = link.state.reboots
+    started = time.monotonic()
+    outcome = link.command(mavlink2.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1, label="reboot")
+    if outcome is not CommandOutcome.ACCEPTED:
+        raise FlightLinkError(f"the autopilot refused to reboot: {outcome.value}")
+    wanted = {name for name, _ in link.settings.stream_rates if name != "DISTANCE_SENSOR"}  # not on every vehicle
+    _wait(lambda: link.state.reboots > reboots, 30, "reboot seen")
+    _wait(lambda: wanted <= set(dict(link.state.heard)), 30, "every stream after the reboot")
+    return time.monotonic() - started
 
 
 def _take_off(link, alt_m: float) -> None:

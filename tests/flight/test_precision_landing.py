@@ -43,3 +43,10 @@ def test_without_the_held_target_one_detection_a_second_is_too_few(session):
     result = run_landing_check(session, LandingCheckSettings(rate_hz=1.0, hold_s=0.0, fake=FAST))
     assert result.landed and not result.acquired
     assert result.error_m > 2.0
+
+
+def test_after_a_reboot_on_the_ground_it_takes_off_and_lands_on_the_marker(session):
+    result = run_landing_check(session, LandingCheckSettings(rate_hz=1.0, reboot_first=True,
+                                                             fake=dict(FAST, climb_ms=5.0)))
+    assert result.streams_back_s is not None and result.streams_back_s < 2.2 + 5.0  # reboot silence + 5 s
+    assert result.landed and result.acquired and result.error_m < 0.5, result
