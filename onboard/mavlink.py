@@ -693,7 +693,7 @@ class FlightLink:
         with self._state_lock:
             state = self._state
             now = time.monotonic()
-            stale = [name for name, heard in self._heard_mono.items()
+            stale = [name for name, heard in tuple(self._heard_mono.items())  # a copy: the reader adds to it
                      if name != "HEARTBEAT" and now - heard > self.stream_timeout(name)]
         if not stale:
             return state
@@ -768,7 +768,9 @@ class FlightLink:
         if self._fc is None or src[0] != self._fc[0]:
             return False
         if kind == "COMMAND_ACK":
-            if message.target_system in (0, self.settings.system_id):
+            # A router may pass on acks meant for a ground station: only ours count.
+            if message.target_system in (0, self.settings.system_id) and \
+                    message.target_component in (0, self.settings.component_id):
                 self.commands.on_ack(message)
             return True
         field = _BOOT_TIME_FIELD.get(kind)
@@ -870,7 +872,7 @@ class FlightLink:
 
     def _heard_tuple(self) -> tuple[tuple[str, float], ...]:
         offset = time.time() - time.monotonic()
-        return tuple(sorted((k, round(v + offset, 3)) for k, v in self._heard_mono.items()))
+        return tuple(sorted((k, round(v + offset, 3)) for k, v in tuple(self._heard_mono.items())))
 
     def _remember_pose(self, *, attitude: tuple | None = None, position: tuple | None = None) -> None:
         with self._state_lock:
@@ -938,7 +940,7 @@ class FlightLink:
         for name, (_, _, timeout) in self._streams.items():
             heard = self._heard_mono.get(name)
             if heard is not None and now - heard > timeout:
-                del self._heard_mono[name]
+                self._heard_mono.pop(name, None)
                 self.counters["streams_stopped"] += 1
                 log.warning("flight link %s: %s stopped (nothing for %.1f s): its fields are unknown",
                             self.endpoint.url, name, now - heard)

@@ -119,3 +119,17 @@ def test_a_second_autopilot_does_not_take_over_while_ours_speaks(ardu):
     with FakeFlightController(FakeFCSettings(url=f"udpout:127.0.0.1:{port}", system_id=9, **ARDUCOPTER_DEFAULTS)):
         time.sleep(0.5)  # nothing to wait for: the point is that nothing changes
         assert link.state.system_id == 1 and link.state.reboots == 0
+
+
+def test_an_ack_meant_for_a_ground_station_does_not_answer_our_command(ardu):
+    import socket
+
+    link, fc = ardu(link=dict(commands=CommandSettings(first_wait_s=0.3, backoff=1.0, attempts=2)))
+    fc.drop_commands(10)
+    autopilot = mavlink2.MAVLink(None, 1, 1)  # the same ids as the autopilot, as a router would pass it on
+    ack = autopilot.command_ack_encode(mavlink2.MAV_CMD_DO_SET_MODE, mavlink2.MAV_RESULT_ACCEPTED, 0, 0, 255, 190)
+    pending = link.commands.submit(mavlink2.MAV_CMD_DO_SET_MODE, (mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4),
+                                   (1, 1), label="GUIDED")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.sendto(ack.pack(autopilot), ("127.0.0.1", link._transport.local_address[1]))
+    assert pending.result(5) is CommandOutcome.NO_ACK
