@@ -440,14 +440,15 @@ def flight_control_params(state: FlightState, component: str = "flight_control")
     """Parameters of the ``flight_state`` write: the FlightControl component's run-time properties.
 
     ``autopilot_load_pct`` is the autopilot's main-loop load (SYS_STATUS.load), not the
-    component's design-time ``cpu_load`` on the companion computer.
+    component's design-time ``cpu_load`` on the companion computer. Unknown figures go as
+    None, and the writer removes them from the graph: no stale value stays there as current.
     """
     params = {
         "name": component, "time": state.time, "link": state.link, "armed": state.armed, "mode": state.mode,
         "landed_state": state.landed_state, "battery_pct": state.battery_pct, "battery_v": state.battery_v,
         "autopilot_load_pct": state.onboard_load, "last_heartbeat": state.last_heartbeat,
     }
-    return {k: v for k, v in params.items() if v is not None}
+    return params
 
 
 class FlightControlWriter:
