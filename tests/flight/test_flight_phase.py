@@ -11,7 +11,10 @@ from shared import messages
 
 @pytest.mark.parametrize("state, expected", [
     ({"landed_state": "LANDING", "mode": "LOITER"}, True),
-    ({"landed_state": "IN_AIR", "mode": "LAND"}, False),  # the autopilot says it is not landing (yet)
+    ({"landed_state": "IN_AIR", "mode": "RTL", "alt_rel_m": 15.0}, False),  # RTL's return at altitude
+    ({"landed_state": "IN_AIR", "mode": "RTL", "alt_rel_m": 6.0}, True),  # its last metres
+    ({"landed_state": "IN_AIR", "mode": "LAND"}, False),  # altitude unknown, the autopilot says in the air
+    ({"landed_state": "IN_AIR", "mode": "LOITER", "alt_rel_m": 2.0}, False),
     ({"landed_state": "ON_GROUND", "mode": "LAND"}, False),
     ({"mode": "LAND"}, True),  # landed state unknown: its stream stopped, or after a reboot
     ({"landed_state": "UNDEFINED", "mode": "RTL"}, True),
