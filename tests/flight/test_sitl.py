@@ -29,7 +29,8 @@ pytestmark = pytest.mark.skipif(
     not SITL, reason="needs an ArduCopter SITL binary: set KGADAPT_SITL=/path/to/arducopter "
                      "(./waf configure --board sitl && ./waf copter in ArduPilot's source)")
 
-PARAMS = {
+PARAMS = {  # sim_vehicle.py would load Tools/autotest/default_params/copter.parm; the binary alone needs the frame
+    "FRAME_CLASS": 1, "FRAME_TYPE": 1,
     "PLND_ENABLED": 1, "PLND_TYPE": 1, "PLND_EST_TYPE": 1, "PLND_YAW_ALIGN": 0, "PLND_LAG": 0.05,
     "PLND_XY_DIST_MAX": 2.5, "LAND_SPEED": 50,
 }
