@@ -143,6 +143,8 @@ class VehicleState:
             raise FlightLinkError(f"battery_pct and load_pct must be 0..100, not {self.battery_pct}, {self.load_pct}")
         if self.alt is None:
             object.__setattr__(self, "alt", 0.0 if self.landed_state in ("ON_GROUND", "UNDEFINED") else 10.0)
+        if not 0 <= self.alt < 10_000:
+            raise FlightLinkError(f"alt must be 0..10000 m above home, not {self.alt}")
 
     @property
     def position_ned(self) -> tuple[float, float, float]:

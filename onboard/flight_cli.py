@@ -31,8 +31,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     fake = sub.add_parser(
         "fake-fc", help="run a fake flight controller speaking MAVLink 2",
-        description="A fake autopilot: streams HEARTBEAT, SYS_STATUS, BATTERY_STATUS, EXTENDED_SYS_STATE and "
-                    "counts what it receives. Prints KGADAPT_READY once its socket is open.",
+        description="A fake autopilot that follows ArduCopter (docs/flight.md): streams HEARTBEAT, SYS_STATUS, "
+                    "BATTERY_STATUS, EXTENDED_SYS_STATE, and ATTITUDE, GLOBAL_POSITION_INT, LOCAL_POSITION_NED, "
+                    "DISTANCE_SENSOR, HOME_POSITION when asked; acknowledges commands; lands with precision "
+                    "landing on LANDING_TARGETs; counts what it receives. Prints KGADAPT_READY once its socket is open.",
     )
     fake.add_argument("--url", default="udpout:127.0.0.1:14550",
                       help="where to talk (default udpout:127.0.0.1:14550; udpin:HOST:PORT to listen)")
@@ -43,6 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="ON_GROUND, IN_AIR, TAKEOFF, LANDING, UNDEFINED (default IN_AIR if --armed else ON_GROUND)")
     fake.add_argument("--battery-pct", type=float, default=90.0, help="battery charge, percent (default 90)")
     fake.add_argument("--load-pct", type=float, default=22.0, help="main-loop load, percent (default 22)")
+    fake.add_argument("--alt", type=float, default=None, metavar="M",
+                      help="height above home (default 10 when --armed, else 0)")
+    fake.add_argument("--no-rangefinder", action="store_true", help="no downward rangefinder")
     fake.add_argument("--land-after", type=float, default=None, metavar="S",
                       help="start the scripted final descent after S seconds")
     fake.add_argument("--descent", type=float, default=5.0, metavar="S", help="final descent duration (default 5)")
@@ -171,10 +176,11 @@ def _fake_fc(args: argparse.Namespace) -> int:
         raise ConfigError(f"--rate-scale must be positive, not {args.rate_scale}")
     r = args.rate_scale
     settings = FakeFCSettings(url=args.url, system_id=args.system_id, heartbeat_hz=1.0 * r,
-                              sys_status_hz=2.0 * r, battery_hz=1.0 * r, extended_state_hz=1.0 * r)
+                              sys_status_hz=2.0 * r, battery_hz=1.0 * r, extended_state_hz=1.0 * r,
+                              rangefinder=not args.no_rangefinder)
     landed = args.landed_state or ("IN_AIR" if args.armed else "ON_GROUND")
     vehicle = VehicleState(armed=args.armed, mode=args.mode.upper(), landed_state=landed.upper(),
-                           battery_pct=args.battery_pct, load_pct=args.load_pct)
+                           battery_pct=args.battery_pct, load_pct=args.load_pct, alt=args.alt)
     fc = FakeFlightController(settings, vehicle)
     stop = _stop_event()
     fc.setup()
