@@ -38,9 +38,15 @@ no code copied) and has a test in ``tests/flight/test_fake_fc_ardupilot.py``:
   target is lost 2 s after the last measurement. LAND then steers over the
   target and does not descend while farther than ``PLND_XY_DIST_MAX`` (2.5 m).
 
-Simplified (documented, not relied on): the Kalman filter is replaced by the
-latest measurement, ``PLND_LAG`` and the retry logic (``PLND_STRICT``) are not
-modelled, the vehicle moves kinematically (no wind, no tilt unless set).
+The estimator is a two-state Kalman filter per axis with AC_PrecLand's model
+(PosVelEKF.cpp: predicted with the vehicle's change of velocity and
+``PLND_ACC_P_NSE``; measurement variance ``(0.01 z + 0.02)^2``; a measurement
+whose NIS is 3 or more is rejected, unless 3 in a row were), written from the
+textbook, not from ArduPilot's generated code.
+
+Simplified (documented, not relied on): ``PLND_LAG`` (measurements are taken as of
+now) and the retry logic (``PLND_STRICT``) are not modelled, and the vehicle moves
+kinematically (no wind, no tilt unless set).
 
 Run it alone with ``kgadapt flight fake-fc --url udpout:127.0.0.1:14550``.
 """
@@ -106,6 +112,7 @@ class FakeFCSettings:
     rangefinder_max_m: float = 40.0
     precland: bool = True  # PLND_ENABLED=1, PLND_TYPE=1 (MAVLink), PLND_EST_TYPE=1
     plnd_xy_dist_max_m: float = 2.5
+    plnd_accel_noise: float = 2.5  # PLND_ACC_P_NSE
     land_speed_ms: float = 0.5  # LAND_SPEED 50 cm/s
     land_alt_low_m: float = 10.0  # LAND_ALT_LOW; above it LAND descends at descent_fast_ms
     descent_fast_ms: float = 1.5  # WPNAV_SPEED_DN
@@ -175,8 +182,38 @@ class PrecLandState:
     init_ms: int = 0
     last_update_ms: int = -10**9
     acquired: bool = False
-    target_ne: tuple[float, float] | None = None  # where the target is, NE metres from home
+    target_ne: tuple[float, float] | None = None  # where the estimator puts the target, NE metres from home
+    axes: list = field(default_factory=list)  # one _Axis per N and E: the estimator's state
+    outliers: int = 0
     counters: dict = field(default_factory=lambda: collections.Counter())
+
+
+class _Axis:
+    """One axis of the target estimator: the target's position and velocity relative to the vehicle.
+
+    A textbook two-state Kalman filter with the model of AC_PrecLand's PosVelEKF (predicted
+    with the vehicle's change of velocity, position measurements with their variance).
+    """
+
+    def __init__(self, pos: float, pos_var: float, vel: float, vel_var: float) -> None:
+        self.x = [pos, vel]
+        self.p = [[pos_var, 0.0], [0.0, vel_var]]
+
+    def predict(self, dt: float, dvel: float, dvel_noise: float) -> None:
+        (p00, p01), (_, p11) = self.p
+        self.x = [self.x[0] + dt * self.x[1], self.x[1] + dvel]
+        self.p = [[p00 + dt * (2 * p01 + dt * p11), p01 + dt * p11], [p01 + dt * p11, p11 + dvel_noise ** 2]]
+
+    def nis(self, z: float, r: float) -> float:
+        return (z - self.x[0]) ** 2 / (self.p[0][0] + r)
+
+    def fuse(self, z: float, r: float) -> None:
+        (p00, p01), (_, p11) = self.p
+        s = p00 + r
+        k0, k1 = p00 / s, p01 / s
+        innovation = z - self.x[0]
+        self.x = [self.x[0] + k0 * innovation, self.x[1] + k1 * innovation]
+        self.p = [[(1 - k0) * p00, (1 - k0) * p01], [(1 - k0) * p01, p11 - k1 * p01]]
 
 
 class FakeFlightController:
@@ -214,6 +251,8 @@ class FakeFlightController:
         self.reboots = 0
         self.precland = PrecLandState()
         self._drop_commands = 0
+        self._velocity = (0.0, 0.0)  # NE m/s over the last step, and its change: what the estimator predicts with
+        self._dvel = (0.0, 0.0)
 
     # -- lifecycle
 
@@ -549,11 +588,15 @@ class FakeFlightController:
             p.los_body = los
             p.los_ms = self.boot_ms
 
-    def _precland_update(self, v: VehicleState, now_ms: int) -> None:
-        """One AC_PrecLand::update: consume a new line of sight, run the estimator's timers."""
+    def _precland_update(self, v: VehicleState, now_ms: int, dt: float, dvel: tuple[float, float],
+                         vel: tuple[float, float]) -> None:
+        """One AC_PrecLand::update (run_estimator, KALMAN_FILTER): predict, fuse a new line of sight, timers."""
         p = self.precland
         if p.los_body is not None and now_ms - p.los_ms > LOS_VALID_MS:
             p.los_body = None
+        if p.initialized and p.axes:  # predict with the vehicle's change of velocity (PLND_ACC_P_NSE 2.5)
+            for axis, dv in zip(p.axes, dvel):
+                axis.predict(dt, -dv, self.settings.plnd_accel_noise * dt)
         if p.los_body is not None and p.los_ms != p.consumed_ms:
             p.consumed_ms = p.los_ms
             measured = self._measure(v, p.los_body, p.distance)
@@ -561,11 +604,19 @@ class FakeFlightController:
                 p.counters["no_height"] += 1
             else:
                 p.counters["measurements"] += 1
-                p.target_ne = measured
+                rel_n, rel_e, down = measured
+                r = (down * 0.01 + 0.02) ** 2  # the measurement variance AC_PrecLand gives a still vehicle
                 if not p.initialized:
                     self._text("PrecLand: Target Found")
-                    p.initialized, p.init_ms = True, now_ms
-                p.last_update_ms = now_ms
+                    p.axes = [_Axis(rel_n, r, -vel[0], 4.0), _Axis(rel_e, r, -vel[1], 4.0)]
+                    p.initialized, p.init_ms, p.last_update_ms, p.outliers = True, now_ms, now_ms, 0
+                elif max(p.axes[0].nis(rel_n, r), p.axes[1].nis(rel_e, r)) < 3.0 or p.outliers >= 3:
+                    p.axes[0].fuse(rel_n, r)
+                    p.axes[1].fuse(rel_e, r)
+                    p.outliers, p.last_update_ms = 0, now_ms
+                else:
+                    p.outliers += 1
+                    p.counters["outliers"] += 1
         if now_ms - p.last_update_ms > LANDING_TARGET_TIMEOUT_MS:  # target_acquired()
             if p.acquired:
                 self._text("PrecLand: Target Lost")
@@ -579,9 +630,11 @@ class FakeFlightController:
                 p.acquired = True
                 p.counters["acquired"] += 1
                 self._text("PrecLand: Init Complete")
+        if p.acquired and p.axes:
+            p.target_ne = (v.north + p.axes[0].x[0], v.east + p.axes[1].x[0])
 
-    def _measure(self, v: VehicleState, los_body: tuple, distance: float) -> tuple[float, float] | None:
-        """construct_pos_meas_using_rangefinder: the target's NE position, or None without a height."""
+    def _measure(self, v: VehicleState, los_body: tuple, distance: float) -> tuple[float, float, float] | None:
+        """construct_pos_meas_using_rangefinder: the target relative to the vehicle (NED), None without a height."""
         los_ned = body_to_ned((v.roll, v.pitch, v.yaw), los_body)
         if los_body[2] <= 0 or los_ned[2] <= 0:
             return None  # not pointing down the approach vector
@@ -592,7 +645,7 @@ class FakeFlightController:
             dist = height / los_ned[2]
         else:
             return None  # angles alone, no rangefinder: ArduPilot cannot place the target
-        return (v.north + los_ned[0] * dist, v.east + los_ned[1] * dist)
+        return (los_ned[0] * dist, los_ned[1] * dist, los_ned[2] * dist)
 
     def _rangefinder_m(self, v: VehicleState) -> float | None:
         if not self.settings.rangefinder:
@@ -612,10 +665,15 @@ class FakeFlightController:
             v = self._vehicle
             if v.armed and self.settings.drain_pct_per_min > 0:
                 v = replace(v, battery_pct=max(0.0, v.battery_pct - self.settings.drain_pct_per_min * elapsed / 60.0))
+            vel = self._velocity
             if self.settings.precland:
-                self._precland_update(v, self.boot_ms)
-            v = self._fly(v, elapsed)
-            self._vehicle = v
+                self._precland_update(v, self.boot_ms, elapsed, self._dvel, vel)
+            moved = self._fly(v, elapsed)
+            if elapsed > 0:
+                new_vel = ((moved.north - v.north) / elapsed, (moved.east - v.east) / elapsed)
+                self._dvel = (new_vel[0] - vel[0], new_vel[1] - vel[1])
+                self._velocity = new_vel
+            self._vehicle = moved
 
     def _fly(self, v: VehicleState, dt: float) -> VehicleState:
         """Kinematic ArduCopter: take-off in GUIDED, LAND (with precision landing), RTL."""
@@ -666,6 +724,7 @@ class FakeFlightController:
                                 landed_state="ON_GROUND", yaw=v.yaw, battery_pct=v.battery_pct)
         self.precland = PrecLandState()
         self._takeoff_alt = self._scripted_descent_ms = None
+        self._velocity = self._dvel = (0.0, 0.0)
 
     # -- sending
 

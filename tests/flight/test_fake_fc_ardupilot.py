@@ -157,3 +157,22 @@ def test_takeoff_land_and_touchdown_move_the_landed_state_as_arducopter_does(ard
     wait_until(lambda: link.state.landed_state == "ON_GROUND" and link.state.armed is False, 5, "touchdown, disarmed")
     assert link.state.mode == "LAND"
     assert seen[-4:] == ["TAKEOFF", "IN_AIR", "LANDING", "ON_GROUND"]
+
+
+# -- AC_PrecLand::run_estimator (KALMAN_FILTER): outlier rejection
+
+def test_a_single_outlier_is_rejected_and_three_in_a_row_are_taken(ardu):
+    link, fc = ardu(vehicle=HOVER)
+    _stream_targets(link, _angles(ax=0.0, ay=0.0), 20, 2.4)
+    wait_until(lambda: fc.precland.acquired, 1, "acquired")
+    assert fc.precland.target_ne == pytest.approx((0.0, 0.0), abs=0.01)
+    far = _angles(ax=math.atan(0.5), ay=0.0)  # 4 m to the right: far outside the filter's spread
+    link.send_landing_target(far())
+    wait_until(lambda: fc.precland.counters["outliers"] == 1, 2, "the outlier rejected")
+    assert fc.precland.target_ne == pytest.approx((0.0, 0.0), abs=0.01)
+    for rejected in (2, 3):
+        link.send_landing_target(far())
+        wait_until(lambda: fc.precland.counters["outliers"] == rejected, 2, f"outlier {rejected} rejected")
+    link.send_landing_target(far())  # the 4th in a row is fused: three were rejected before it
+    wait_until(lambda: fc.precland.target_ne[1] > 0.5, 2, "the estimate moving right")
+    assert fc.precland.counters["outliers"] == 3
