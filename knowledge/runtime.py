@@ -183,16 +183,18 @@ def update_flight_control(store: GraphStore, *, name: str, time: float, link: bo
     """The flight controller's state onto the FlightControl component (its run-time properties).
 
     ``autopilot_load_pct`` is the autopilot's own main-loop load, not the
-    component's design-time ``cpu_load`` on the companion computer.
+    component's design-time ``cpu_load`` on the companion computer. A figure
+    given as None is unknown now (its stream stopped, the link is lost): its
+    property is removed, so the graph never shows a stale value as current.
     """
     _check("flight_state", name=(name, (str,), False), time=(time, _NUM, False), link=(link, (bool,), False),
            armed=(armed, (bool,), True), mode=(mode, (str,), True), landed_state=(landed_state, (str,), True),
            battery_pct=(battery_pct, _NUM, True), battery_v=(battery_v, _NUM, True),
            autopilot_load_pct=(autopilot_load_pct, _NUM, True), last_heartbeat=(last_heartbeat, _NUM, True))
-    figures = {k: v for k, v in {"link": link, "armed": armed, "mode": mode, "landed_state": landed_state,
-                                 "battery_pct": battery_pct, "battery_v": battery_v,
-                                 "autopilot_load_pct": autopilot_load_pct, "last_heartbeat": last_heartbeat}.items()
-               if v is not None}
+    # null in SET += removes the property (FalkorDB, Neo4j and Memgraph alike)
+    figures = {"link": link, "armed": armed, "mode": mode, "landed_state": landed_state,
+               "battery_pct": battery_pct, "battery_v": battery_v,
+               "autopilot_load_pct": autopilot_load_pct, "last_heartbeat": last_heartbeat}
     # MERGE on the primary label (names are unique per label), then mark it flight control.
     store.execute(f"MERGE (c:{S.COMPONENT} {{name: $name}}) SET c:{S.FLIGHT_CONTROL}, c += $figures, "
                   "c.last_seen = $time", {"name": name, "figures": figures, "time": float(time)})

@@ -12,7 +12,8 @@ Execution is make-before-break: a planned change starts the new detector,
 waits for its first detections, and only then stops the old one
 (:func:`deploy.migration.migrate`). When the host running the detector is
 lost, a new detector starts at once on a host that can hold it. During final
-descent (flight state ``LANDING``) planned changes are deferred; losing the
+descent (flight state ``LANDING``, or landed state unknown in LAND/RTL:
+:func:`onboard.flight_phase.in_final_descent`) planned changes are deferred; losing the
 running host is still acted on.
 """
 
@@ -41,6 +42,7 @@ from onboard.adaptation import (
     Trigger,
     bands_from_rows,
 )
+from onboard.flight_phase import in_final_descent
 from shared import keys, messages
 from shared.errors import KgadaptError, MessageError
 
@@ -253,7 +255,7 @@ class AdaptationManager:
                 return a.on_host_status(host, free_mb=free, cpu_load=float(m["cpu_load"]), now=now, running=running)
             if kind == "flight_state":
                 m = messages.decode(payload, "flight_state")
-                self.landing = m.get("landed_state") == "LANDING"
+                self.landing = in_final_descent(m)  # landed state unknown in LAND/RTL counts as descent
                 return None
             if kind == "detections":
                 m = messages.decode(payload, "detections")

@@ -44,6 +44,12 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
     fc.add_argument("--fc", metavar="URL", help="MAVLink URL of the flight controller, e.g. udpin:0.0.0.0:14550")
     fc.add_argument("--camera-model", default="camera",
                     help="camera component in the graph whose intrinsics aim LANDING_TARGET (default camera)")
+    fc.add_argument("--fc-camera-file", metavar="JSON",
+                    help="camera file (intrinsics, distortion, mounting) instead of the graph's intrinsics")
+    fc.add_argument("--fc-markers", metavar="JSON",
+                    help="site marker file (ids and sizes): LANDING_TARGET then carries the marker's position")
+    fc.add_argument("--fc-profile", choices=("auto", "ardupilot", "px4"), default="auto",
+                    help="LANDING_TARGET frame per autopilot (default: from its heartbeat)")
     ad = parser.add_argument_group("adaptation")
     ad.add_argument("--adapt", action="store_true", help="run the adaptation manager on this agent")
     ad.add_argument("--prefer", choices=("onboard-first", "remote-first"), default="onboard-first",
@@ -60,8 +66,10 @@ class FlightPart:
 
     name = "flight"
 
-    def __init__(self, *, robot: str, url: str, camera_model: str) -> None:
+    def __init__(self, *, robot: str, url: str, camera_model: str, camera: Any = None, markers: Any = None,
+                 profile: str = "auto") -> None:
         self.robot, self.url, self.camera_model = robot, url, camera_model
+        self.camera, self.markers, self.profile = camera, markers, profile  # checked files (onboard.landing_targets)
         self.bridge: Any = None
 
     def setup(self, session: Any) -> None:
@@ -69,9 +77,14 @@ class FlightPart:
         from onboard.flight import BridgeSettings, FlightBridge, FlightControlWriter, intrinsics_from_graph
         from onboard.mavlink import LinkSettings
 
+        from onboard.flight import CameraIntrinsics
+
         client = KnowledgeClient(session, self.robot)
-        settings = BridgeSettings(robot=self.robot, link=LinkSettings(url=self.url),
-                                  intrinsics=intrinsics_from_graph(client, self.camera_model))
+        c = self.camera
+        intrinsics = (CameraIntrinsics(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy) if c is not None
+                      else intrinsics_from_graph(client, self.camera_model))
+        settings = BridgeSettings(robot=self.robot, link=LinkSettings(url=self.url), intrinsics=intrinsics,
+                                  camera=c, markers=self.markers, profile=self.profile)
         self.bridge = FlightBridge(settings, on_state=FlightControlWriter(client))
         self.bridge.setup(session)
 
@@ -98,7 +111,13 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
                              speed=args.scenario_speed)
         parts.append(CameraPart(settings, source))
     if args.fc:
-        parts.append(FlightPart(robot=args.robot, url=args.fc, camera_model=args.camera_model))
+        from onboard.landing_targets import load_camera, load_site_markers
+
+        parts.append(FlightPart(  # the files are checked here, before anything starts
+            robot=args.robot, url=args.fc, camera_model=args.camera_model,
+            camera=load_camera(args.fc_camera_file) if getattr(args, "fc_camera_file", None) else None,
+            markers=load_site_markers(args.fc_markers) if getattr(args, "fc_markers", None) else None,
+            profile=getattr(args, "fc_profile", "auto")))
     if args.adapt:
         from onboard.adaptation_manager import AdaptationManager, AdaptationSettings
 

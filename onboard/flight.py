@@ -28,6 +28,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
+from onboard.landing_targets import AutopilotProfile, CameraModel, SiteMarkers, TargetBuilder, TargetHold
 from onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
 from shared import keys, messages
 from shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
@@ -170,6 +171,11 @@ class BridgeSettings:
     max_detection_age_s: float = 0.5  # older detections would steer towards where the marker was
     max_clock_skew_s: float = 0.5  # a frame time further ahead than this is refused, not trusted
     queue_limit: int = 64
+    camera: CameraModel | None = None  # intrinsics + mounting (a camera file); None: ``intrinsics``, mounted straight
+    markers: SiteMarkers | None = None  # marker sizes: with them the target goes with its position
+    profile: str = "auto"  # ardupilot | px4 | auto (from the autopilot's heartbeat)
+    hold_s: float = 1.5  # re-send the last target, predicted, this long after its frame ...
+    resend_hz: float = 10.0  # ... at this rate: ArduPilot's estimator wants a measurement every 0.5 s
 
 
 StateCallback = Callable[[FlightState], None]
@@ -193,6 +199,9 @@ class FlightBridge:
             raise FlightLinkError("state_period_s and max_target_hz must be positive")
         self.settings = settings
         self._intrinsics = settings.intrinsics
+        AutopilotProfile.of(settings.profile)  # a bad name fails here, not at the first detection
+        self._targets = TargetBuilder(settings.camera or _camera_of(settings.intrinsics), settings.markers)
+        self._hold = TargetHold(hold_s=settings.hold_s, resend_hz=settings.resend_hz)
         self._on_state = on_state
         self.link = FlightLink(settings.link)
         self.link.on_state(self._on_link_state)
@@ -213,7 +222,7 @@ class FlightBridge:
         self._last_send_error = ""
         self.counters = {
             "detections": 0, "malformed": 0, "no_target": 0, "stale": 0, "duplicate": 0, "rate_limited": 0,
-            "targets_sent": 0, "send_failed": 0, "published": 0, "queue_full": 0,
+            "targets_sent": 0, "send_failed": 0, "published": 0, "queue_full": 0, "targets_resent": 0,
         }
 
     # -- lifecycle
@@ -264,6 +273,14 @@ class FlightBridge:
     def set_intrinsics(self, intrinsics: CameraIntrinsics) -> None:
         """Use other intrinsics from the next detection on (the camera's resolution changed)."""
         self._intrinsics = intrinsics
+        camera = self._targets.camera
+        self._targets.camera = CameraModel(fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy,
+                                           distortion=camera.distortion, yaw_deg=camera.yaw_deg,
+                                           offset_m=camera.offset_m)
+
+    @property
+    def profile(self) -> AutopilotProfile:
+        return AutopilotProfile.of(self.settings.profile, self.link.state)
 
     # -- inputs (called on Zenoh's and the link's threads: only enqueue)
 
@@ -284,8 +301,11 @@ class FlightBridge:
         period = self.settings.state_period_s
         next_publish = time.monotonic()
         while True:
+            wake = next_publish
+            if self._hold.held is not None:
+                wake = min(wake, time.monotonic() + max(0.0, self._hold.last_sent + self._hold.period_s - time.time()))
             try:
-                kind, value = self._queue.get(timeout=max(0.0, next_publish - time.monotonic()))
+                kind, value = self._queue.get(timeout=max(0.0, wake - time.monotonic()))
             except queue.Empty:
                 kind, value = None, None
             if kind is _STOP:
@@ -303,6 +323,22 @@ class FlightBridge:
             if time.monotonic() >= next_publish:
                 self._publish(self.link.state)
                 next_publish = time.monotonic() + period
+            if self._hold.due(time.time()):
+                self._resend()
+
+    def _resend(self) -> None:
+        """Between detections: the last confirmed target, predicted for the vehicle's motion since its frame."""
+        now = time.time()
+        target = self._hold.predicted(now, self.link.state, self.profile)
+        self._hold.last_sent = now
+        if target is None:
+            return
+        try:
+            self.link.send_landing_target(target)
+        except FlightLinkError:
+            self.counters["send_failed"] += 1
+            return
+        self.counters["targets_resent"] += 1
 
     def _handle_detections(self, payload: bytes) -> None:
         self.counters["detections"] += 1
@@ -312,10 +348,19 @@ class FlightBridge:
             if index is None:
                 self.counters["no_target"] += 1
                 return
-            target = landing_target(
-                detections["corners"][index], self._intrinsics, frame_time=detections["frame_time"],
-                marker_id=marker_id_of(detections["ids"][index]) or 0, pose=_pose_of(detections, index),
-            )
+            marker_id = marker_id_of(detections["ids"][index]) or 0
+            pose = _pose_of(detections, index)
+            if pose is not None:  # the detector measured the pose itself
+                target, held = landing_target(
+                    detections["corners"][index], self._intrinsics, frame_time=detections["frame_time"],
+                    marker_id=marker_id, pose=pose,
+                ), None
+            else:
+                target, held = self._targets.build(
+                    marker_points(detections["corners"][index]), marker_id=marker_id,
+                    frame_time=float(detections["frame_time"]), profile=self.profile, state=self.link.state,
+                    pose_at=self.link.pose_at,
+                )
         except (MessageError, FlightLinkError) as exc:
             self.counters["malformed"] += 1
             if self.counters["malformed"] % 100 == 1:
@@ -355,6 +400,7 @@ class FlightBridge:
         self._last_frame_time = target.time
         self._tokens -= 1.0
         self.counters["targets_sent"] += 1
+        self._hold.confirm(held, time.time())
 
     def _publish(self, state: FlightState) -> None:
         publisher = self._publisher
@@ -386,18 +432,23 @@ class FlightBridge:
                 log.exception("flight bridge: on_state callback failed")
 
 
+def _camera_of(k: CameraIntrinsics) -> CameraModel:
+    return CameraModel(fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy)
+
+
 def flight_control_params(state: FlightState, component: str = "flight_control") -> dict[str, Any]:
     """Parameters of the ``flight_state`` write: the FlightControl component's run-time properties.
 
     ``autopilot_load_pct`` is the autopilot's main-loop load (SYS_STATUS.load), not the
-    component's design-time ``cpu_load`` on the companion computer.
+    component's design-time ``cpu_load`` on the companion computer. Unknown figures go as
+    None, and the writer removes them from the graph: no stale value stays there as current.
     """
     params = {
         "name": component, "time": state.time, "link": state.link, "armed": state.armed, "mode": state.mode,
         "landed_state": state.landed_state, "battery_pct": state.battery_pct, "battery_v": state.battery_v,
         "autopilot_load_pct": state.onboard_load, "last_heartbeat": state.last_heartbeat,
     }
-    return {k: v for k, v in params.items() if v is not None}
+    return params
 
 
 class FlightControlWriter:

@@ -2,6 +2,8 @@
 
     kgadapt flight fake-fc --url udpout:127.0.0.1:14550 [--armed] [--mode LOITER] [--land-after 20]
     kgadapt flight monitor --url udpin:0.0.0.0:14550 [--json] [--duration 10]
+    kgadapt flight status --url udpin:0.0.0.0:14550 [--json]
+    kgadapt flight land-check [--rate 1] [--no-rangefinder] [--no-sizes] [--sitl-url tcp:127.0.0.1:5760]
     kgadapt flight bridge --robot quad1 --url udpin:0.0.0.0:14550 --fx 600 --fy 600 --cx 320 --cy 240
 
 Long-running commands stop on Ctrl-C or SIGTERM and exit 0.
@@ -29,8 +31,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     fake = sub.add_parser(
         "fake-fc", help="run a fake flight controller speaking MAVLink 2",
-        description="A fake autopilot: streams HEARTBEAT, SYS_STATUS, BATTERY_STATUS, EXTENDED_SYS_STATE and "
-                    "counts what it receives. Prints KGADAPT_READY once its socket is open.",
+        description="A fake autopilot that follows ArduCopter (docs/flight.md): streams HEARTBEAT, SYS_STATUS, "
+                    "BATTERY_STATUS, EXTENDED_SYS_STATE, and ATTITUDE, GLOBAL_POSITION_INT, LOCAL_POSITION_NED, "
+                    "DISTANCE_SENSOR, HOME_POSITION when asked; acknowledges commands; lands with precision "
+                    "landing on LANDING_TARGETs; counts what it receives. Prints KGADAPT_READY once its socket is open.",
     )
     fake.add_argument("--url", default="udpout:127.0.0.1:14550",
                       help="where to talk (default udpout:127.0.0.1:14550; udpin:HOST:PORT to listen)")
@@ -41,6 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="ON_GROUND, IN_AIR, TAKEOFF, LANDING, UNDEFINED (default IN_AIR if --armed else ON_GROUND)")
     fake.add_argument("--battery-pct", type=float, default=90.0, help="battery charge, percent (default 90)")
     fake.add_argument("--load-pct", type=float, default=22.0, help="main-loop load, percent (default 22)")
+    fake.add_argument("--alt", type=float, default=None, metavar="M",
+                      help="height above home (default 10 when --armed, else 0)")
+    fake.add_argument("--no-rangefinder", action="store_true", help="no downward rangefinder")
     fake.add_argument("--land-after", type=float, default=None, metavar="S",
                       help="start the scripted final descent after S seconds")
     fake.add_argument("--descent", type=float, default=5.0, metavar="S", help="final descent duration (default 5)")
@@ -62,6 +69,35 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     monitor.add_argument("--json", action="store_true", help="print JSON objects, one per line")
     monitor.set_defaults(func=_monitor)
 
+    status = sub.add_parser(
+        "status", help="print the flight controller's state once, every field with its age",
+        description="Connect, wait for the streams, print the flight state (altitude, attitude, position, "
+                    "rangefinder, home, battery, landed state; each with when it was last heard; missing streams "
+                    "and refused commands) and exit.",
+    )
+    _add_link_arguments(status)
+    status.add_argument("--wait", type=float, default=10.0, metavar="S", help="fail if no heartbeat within S seconds")
+    status.add_argument("--settle", type=float, default=3.0, metavar="S",
+                        help="then wait up to S seconds for every stream (default 3)")
+    status.add_argument("--json", action="store_true", help="print one JSON object")
+    status.set_defaults(func=_status)
+
+    check = sub.add_parser(
+        "land-check", help="fly one precision landing on a marker and print how far from it the vehicle landed",
+        description="Marker 2.5 m forward, 2 m right, 10 m below; detections at --rate over Zenoh (in this "
+                    "process) to the flight bridge; LAND; error at touchdown. The fake flight controller "
+                    "(ArduCopter's speeds and AC_PrecLand behaviour) unless --sitl-url names a real autopilot.",
+    )
+    check.add_argument("--rate", type=float, default=1.0, help="detections a second (default 1)")
+    check.add_argument("--no-rangefinder", action="store_true", help="the fake vehicle has no downward rangefinder")
+    check.add_argument("--no-sizes", action="store_true", help="no marker sizes: angles (+ rangefinder) only")
+    check.add_argument("--hold", type=float, default=1.5, metavar="S", help="re-send the last target up to S s")
+    check.add_argument("--reboot-first", action="store_true",
+                       help="reboot the autopilot on the ground first, report how soon every stream was back")
+    check.add_argument("--sitl-url", default=None, help="a real autopilot, e.g. tcp:127.0.0.1:5760 (ArduCopter SITL)")
+    check.add_argument("--json", action="store_true", help="print one JSON object")
+    check.set_defaults(func=_land_check)
+
     bridge = sub.add_parser(
         "bridge", help="run the flight bridge alone (detections -> LANDING_TARGET, flight_state)",
         description="Follow a detector's detections over Zenoh, send LANDING_TARGET, publish flight_state. "
@@ -76,6 +112,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     bridge.add_argument("--camera", help="read the intrinsics of this camera component from the knowledge service")
     for name in ("fx", "fy", "cx", "cy"):
         bridge.add_argument(f"--{name}", type=float, help=f"camera intrinsic {name}, pixels (instead of --camera)")
+    bridge.add_argument("--camera-file", help="camera file (JSON: intrinsics, distortion, mounting), checked on load")
+    bridge.add_argument("--markers", help="site marker file (JSON: marker ids and sizes): targets go with positions")
+    bridge.add_argument("--profile", default="auto", choices=("auto", "ardupilot", "px4"),
+                        help="LANDING_TARGET frame: ardupilot = body FRD, px4 = local NED (default: from the heartbeat)")
+    bridge.add_argument("--hold", type=float, default=1.5, metavar="S",
+                        help="re-send the last target, predicted, up to S s after its frame (default 1.5; 0 = off)")
     bridge.add_argument("--write-graph", action="store_true",
                         help="write the flight state into the FlightControl component through the knowledge service")
     zsession.add_arguments(bridge)
@@ -134,10 +176,11 @@ def _fake_fc(args: argparse.Namespace) -> int:
         raise ConfigError(f"--rate-scale must be positive, not {args.rate_scale}")
     r = args.rate_scale
     settings = FakeFCSettings(url=args.url, system_id=args.system_id, heartbeat_hz=1.0 * r,
-                              sys_status_hz=2.0 * r, battery_hz=1.0 * r, extended_state_hz=1.0 * r)
+                              sys_status_hz=2.0 * r, battery_hz=1.0 * r, extended_state_hz=1.0 * r,
+                              rangefinder=not args.no_rangefinder)
     landed = args.landed_state or ("IN_AIR" if args.armed else "ON_GROUND")
     vehicle = VehicleState(armed=args.armed, mode=args.mode.upper(), landed_state=landed.upper(),
-                           battery_pct=args.battery_pct, load_pct=args.load_pct)
+                           battery_pct=args.battery_pct, load_pct=args.load_pct, alt=args.alt)
     fc = FakeFlightController(settings, vehicle)
     stop = _stop_event()
     fc.setup()
@@ -208,7 +251,8 @@ def _monitor(args: argparse.Namespace) -> int:
             load = "-" if state.onboard_load is None else f"{state.onboard_load:.1f}%"
             event = f"  [{state.event}]" if state.event else ""
             print(f"link={'up' if state.link else 'LOST'} armed={state.armed} mode={state.mode} "
-                  f"landed={state.landed_state} battery={battery} {volts} load={load}{event}", flush=True)
+                  f"landed={state.landed_state} battery={battery} {volts} load={load} {_motion(state)}{event}",
+                  flush=True)
 
         last = 0.0
 
@@ -240,9 +284,17 @@ def _bridge(args: argparse.Namespace) -> int:
     from shared import session as zsession
     from shared.errors import ConfigError
 
+    from onboard.landing_targets import load_camera, load_site_markers
+
     given = [args.fx, args.fy, args.cx, args.cy]
-    if (args.camera is None) == (None in given):
-        raise ConfigError("give either --camera NAME or all of --fx --fy --cx --cy")
+    camera_file = load_camera(args.camera_file) if args.camera_file else None
+    markers = load_site_markers(args.markers) if args.markers else None
+    if camera_file is not None:
+        if args.camera is not None or None not in given:
+            raise ConfigError("give one of --camera-file, --camera NAME or --fx --fy --cx --cy")
+        args.fx, args.fy, args.cx, args.cy = camera_file.fx, camera_file.fy, camera_file.cx, camera_file.cy
+    elif (args.camera is None) == (None in given):
+        raise ConfigError("give either --camera-file, --camera NAME or all of --fx --fy --cx --cy")
     zsettings = zsession.settings_from_args(args).with_defaults(mode="peer", connect=[zsession.DEFAULT_ENDPOINT])
     session = zsession.open_session(zsettings)
     stop = _stop_event()
@@ -256,7 +308,8 @@ def _bridge(args: argparse.Namespace) -> int:
         intrinsics = (intrinsics_from_graph(client, args.camera) if args.camera
                       else CameraIntrinsics(fx=args.fx, fy=args.fy, cx=args.cx, cy=args.cy))
         settings = BridgeSettings(robot=args.robot, link=_link_settings(args), detector=args.detector,
-                                  target_id=args.target_id, intrinsics=intrinsics)
+                                  target_id=args.target_id, intrinsics=intrinsics, camera=camera_file,
+                                  markers=markers, profile=args.profile, hold_s=args.hold)
         bridge = FlightBridge(settings, on_state=FlightControlWriter(client) if args.write_graph else None)
         bridge.setup(session)
         print("KGADAPT_READY", flush=True)
@@ -266,3 +319,99 @@ def _bridge(args: argparse.Namespace) -> int:
             bridge.shutdown()
         session.close()
     return 0
+
+
+def _num(value, fmt: str = "{:.2f}") -> str:
+    return "-" if value is None else fmt.format(value)
+
+
+def _motion(state) -> str:
+    """Altitude, attitude, position and rangefinder in one short line ('-' = unknown)."""
+    import math
+
+    att = "-" if state.attitude is None else "/".join(f"{math.degrees(a):.1f}" for a in state.attitude)
+    pos = "-" if state.position_ned is None else "/".join(f"{v:.2f}" for v in state.position_ned)
+    return (f"alt={_num(state.alt_rel_m)} m rpy={att} deg ned={pos} m rng={_num(state.rangefinder_m)} m"
+            + (f" missing={','.join(state.missing)}" if state.missing else ""))
+
+
+def status_lines(state, timeouts: dict[str, float], now: float) -> list[str]:
+    """``kgadapt flight status``: one line a group of fields, with its age and timeout."""
+    import math
+
+    from onboard.mavlink import STREAM_FIELDS
+
+    heard = dict(state.heard)
+    lines = [f"link       {'up' if state.link else 'LOST'}  autopilot {state.autopilot or '-'} "
+             f"system {state.system_id if state.system_id is not None else '-'}  reboots seen {state.reboots}"]
+    shown = {
+        "HEARTBEAT": f"armed {state.armed}  mode {state.mode}",
+        "EXTENDED_SYS_STATE": f"landed {state.landed_state}",
+        "SYS_STATUS": f"autopilot load {_num(state.onboard_load, '{:.1f}')} %",
+        "BATTERY_STATUS": f"battery {_num(state.battery_pct, '{:.0f}')} %  {_num(state.battery_v)} V",
+        "GLOBAL_POSITION_INT": f"altitude {_num(state.alt_rel_m)} m above home, {_num(state.alt_amsl_m)} m AMSL  "
+                               f"lat {_num(state.lat_deg, '{:.7f}')} lon {_num(state.lon_deg, '{:.7f}')}",
+        "ATTITUDE": "attitude " + ("-" if state.attitude is None else
+                                   "roll {:.1f} pitch {:.1f} yaw {:.1f} deg".format(*map(math.degrees, state.attitude)))
+                    + ("" if state.rates is None else "  rates {:.1f} {:.1f} {:.1f} deg/s".format(*map(math.degrees, state.rates))),
+        "LOCAL_POSITION_NED": "local NED " + ("-" if state.position_ned is None else
+                                              "{:.2f} {:.2f} {:.2f} m".format(*state.position_ned))
+                              + ("" if state.velocity_ned is None else "  v {:.2f} {:.2f} {:.2f} m/s".format(*state.velocity_ned)),
+        "DISTANCE_SENSOR": f"rangefinder {_num(state.rangefinder_m)} m",
+        "HOME_POSITION": "home " + ("-" if state.home is None else "{:.7f} {:.7f} {:.1f} m AMSL".format(*state.home)),
+    }
+    for stream in STREAM_FIELDS:
+        age = "never heard" if stream not in heard else f"{now - heard[stream]:.2f} s ago"
+        timeout = timeouts.get(stream)
+        limit = "" if timeout is None else f" (unknown after {timeout:g} s)"
+        lines.append(f"{stream:<20} {age:<12}{limit:<24} {shown[stream]}")
+    if state.missing:
+        lines.append("missing    " + ", ".join(state.missing))
+    for refusal in state.refused:
+        lines.append(f"refused    {refusal}")
+    return lines
+
+
+def _status(args: argparse.Namespace) -> int:
+    from onboard.mavlink import STREAM_FIELDS, FlightLink
+
+    link = FlightLink(_link_settings(args))
+    link.setup()
+    try:
+        link.wait_for_heartbeat(args.wait)
+        wanted = {name for name, _ in link.settings.stream_rates}
+        deadline = time.monotonic() + args.settle
+        while time.monotonic() < deadline and not wanted <= set(dict(link.state.heard)):
+            time.sleep(0.05)
+        state = link.state
+        timeouts = {name: link.stream_timeout(name) for name in STREAM_FIELDS}
+        if args.json:
+            print(json.dumps({**state.as_message(), "timeouts": timeouts}), flush=True)
+        else:
+            print("\n".join(status_lines(state, timeouts, time.time())), flush=True)
+    finally:
+        link.shutdown()
+    return 0
+
+
+def _land_check(args: argparse.Namespace) -> int:
+    from onboard.landing_check import LandingCheckSettings, run_landing_check
+    from shared.session import ZenohSettings, open_session
+
+    settings = LandingCheckSettings(rate_hz=args.rate, rangefinder=not args.no_rangefinder,
+                                    sizes_known=not args.no_sizes, hold_s=args.hold, url=args.sitl_url,
+                                    reboot_first=args.reboot_first)
+    session = open_session(ZenohSettings(mode="peer", listen=(), connect=()))
+    try:
+        result = run_landing_check(session, settings)
+    finally:
+        session.close()
+    if args.json:
+        print(json.dumps(result.as_dict()), flush=True)
+    else:
+        print(f"landed={result.landed} error={result.error_m:.2f} m acquired={result.acquired} "
+              f"in {result.seconds:.1f} s; detections {result.detections}, LANDING_TARGETs "
+              f"{result.targets_sent} + {result.targets_resent} re-sent"
+              + ("" if result.streams_back_s is None else f"; streams back {result.streams_back_s:.1f} s after reboot"),
+              flush=True)
+    return 0 if result.landed else 1

@@ -25,6 +25,7 @@ onboard controller at 1 Hz, and sends LANDING_TARGET on request.
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import os
@@ -36,7 +37,7 @@ import termios
 import threading
 import time
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import Any, Callable
 
 from pymavlink.dialects.v20 import common as mavlink2
 
@@ -450,9 +451,24 @@ def mode_name(autopilot: int, vehicle_type: int, base_mode: int, custom_mode: in
     return f"MODE_{custom_mode}"
 
 
+# What each stream tells: the FlightState fields it owns. A stream not heard within its timeout
+# makes its fields unknown (None); HEARTBEAT's fields follow the link instead.
+STREAM_FIELDS: dict[str, tuple[str, ...]] = {
+    "HEARTBEAT": ("armed", "mode"),
+    "SYS_STATUS": ("onboard_load",),
+    "BATTERY_STATUS": ("battery_pct", "battery_v"),
+    "EXTENDED_SYS_STATE": ("landed_state",),
+    "ATTITUDE": ("attitude", "rates"),
+    "GLOBAL_POSITION_INT": ("alt_rel_m", "alt_amsl_m", "lat_deg", "lon_deg"),
+    "LOCAL_POSITION_NED": ("position_ned", "velocity_ned"),
+    "DISTANCE_SENSOR": ("rangefinder_m",),
+    "HOME_POSITION": ("home",),
+}
+
+
 @dataclass(frozen=True, kw_only=True)
 class FlightState:
-    """What we know about the flight controller; None = not heard yet."""
+    """What we know about the flight controller; None = unknown (not heard, or not heard within its timeout)."""
 
     time: float  # epoch seconds of the last change
     link: bool = False
@@ -462,6 +478,21 @@ class FlightState:
     battery_pct: float | None = None
     battery_v: float | None = None
     onboard_load: float | None = None  # flight controller main-loop load, percent
+    alt_rel_m: float | None = None  # above home (GLOBAL_POSITION_INT.relative_alt)
+    alt_amsl_m: float | None = None  # above mean sea level (GLOBAL_POSITION_INT.alt)
+    lat_deg: float | None = None
+    lon_deg: float | None = None
+    attitude: tuple[float, float, float] | None = None  # roll, pitch, yaw, rad
+    rates: tuple[float, float, float] | None = None  # roll, pitch, yaw rates, rad/s
+    position_ned: tuple[float, float, float] | None = None  # m from the EKF origin (LOCAL_POSITION_NED)
+    velocity_ned: tuple[float, float, float] | None = None  # m/s
+    rangefinder_m: float | None = None  # downward rangefinder, within its valid range
+    home: tuple[float, float, float] | None = None  # lat deg, lon deg, alt m AMSL
+    heard: tuple[tuple[str, float], ...] = ()  # (stream, epoch seconds last heard) for every stream now valid
+    boot_ms: int | None = None  # the autopilot's time since boot, from the last message that carries it
+    reboots: int = 0  # autopilot reboots seen since our start
+    missing: tuple[str, ...] = ()  # streams asked for that do not arrive
+    refused: tuple[str, ...] = ()  # the last commands the autopilot refused or did not acknowledge
     system_id: int | None = None
     autopilot: str | None = None
     last_heartbeat: float | None = None  # epoch seconds
@@ -469,14 +500,26 @@ class FlightState:
 
     def discrete(self) -> tuple:
         """The fields whose change is news at once (the rest is published periodically)."""
-        return (self.link, self.armed, self.mode, self.landed_state)
+        return (self.link, self.armed, self.mode, self.landed_state, self.reboots)
+
+    def last_heard(self, stream: str) -> float | None:
+        return dict(self.heard).get(stream)
 
     def as_message(self) -> dict:
         """The body of a ``flight_state`` wire message."""
         body = {
             "time": self.time, "link": self.link, "armed": self.armed, "mode": self.mode,
             "landed_state": self.landed_state, "battery_pct": self.battery_pct, "battery_v": self.battery_v,
-            "onboard_load": self.onboard_load, "system_id": self.system_id, "autopilot": self.autopilot,
+            "onboard_load": self.onboard_load, "alt_rel_m": self.alt_rel_m, "alt_amsl_m": self.alt_amsl_m,
+            "lat_deg": self.lat_deg, "lon_deg": self.lon_deg,
+            "attitude": list(self.attitude) if self.attitude else None,
+            "rates": list(self.rates) if self.rates else None,
+            "position_ned": list(self.position_ned) if self.position_ned else None,
+            "velocity_ned": list(self.velocity_ned) if self.velocity_ned else None,
+            "rangefinder_m": self.rangefinder_m, "home": list(self.home) if self.home else None,
+            "heard": dict(self.heard) or None, "boot_ms": self.boot_ms, "reboots": self.reboots,
+            "missing": list(self.missing) or None, "refused": list(self.refused) or None,
+            "system_id": self.system_id, "autopilot": self.autopilot,
             "last_heartbeat": self.last_heartbeat, "event": self.event,
         }
         return {k: v for k, v in body.items() if v is not None}
@@ -484,16 +527,17 @@ class FlightState:
 
 @dataclass(frozen=True, kw_only=True)
 class LandingTarget:
-    """One LANDING_TARGET: angles from the image centre, optionally a position in body FRD."""
+    """One LANDING_TARGET: angles from the image centre, optionally a position (body FRD or local NED)."""
 
-    time: float  # epoch seconds of the frame the target was seen in
+    time: float  # epoch seconds of the frame the target was seen in (or the time it was predicted for)
     angle_x: float  # rad, + to the right of the image centre
     angle_y: float  # rad, + below the image centre
     size_x: float = 0.0  # rad
     size_y: float = 0.0  # rad
     distance: float = 0.0  # m, 0 = unknown
     target_num: int = 0
-    position: tuple[float, float, float] | None = None  # m, body FRD; sets position_valid=1
+    position: tuple[float, float, float] | None = None  # m in ``frame``; sets position_valid=1
+    frame: int = mavlink2.MAV_FRAME_BODY_FRD  # ArduPilot: BODY_FRD; PX4: LOCAL_NED
 
     def __post_init__(self) -> None:
         for name in ("time", "angle_x", "angle_y", "size_x", "size_y", "distance"):
@@ -506,9 +550,19 @@ class LandingTarget:
             len(self.position) != 3 or not all(math.isfinite(float(v)) for v in self.position)
         ):
             raise FlightLinkError(f"LANDING_TARGET position must be three finite numbers, not {self.position!r}")
+        if self.frame not in (mavlink2.MAV_FRAME_BODY_FRD, mavlink2.MAV_FRAME_LOCAL_NED):
+            raise FlightLinkError(f"LANDING_TARGET frame must be BODY_FRD (12) or LOCAL_NED (1), not {self.frame}")
 
 
 # ---------------------------------------------------------------- the link
+
+AUTOPILOT_REBOOTED = "autopilot_rebooted"  # time since boot went backwards, or a new autopilot system id
+
+DEFAULT_STREAM_RATES: tuple[tuple[str, float], ...] = (
+    ("SYS_STATUS", 2.0), ("BATTERY_STATUS", 1.0), ("EXTENDED_SYS_STATE", 2.0), ("ATTITUDE", 20.0),
+    ("GLOBAL_POSITION_INT", 5.0), ("LOCAL_POSITION_NED", 10.0), ("DISTANCE_SENSOR", 10.0),
+    ("HOME_POSITION", 0.5),
+)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -522,35 +576,51 @@ class LinkSettings:
     heartbeat_timeout_s: float = 3.0
     heartbeat_period_s: float = 1.0
     open_timeout_s: float = 5.0
-    # Asked of the autopilot with MAV_CMD_SET_MESSAGE_INTERVAL whenever the link comes up: ArduCopter
-    # does not stream EXTENDED_SYS_STATE by default, and this spares us its SRn_* stream parameters.
-    stream_rates: tuple[tuple[str, float], ...] = (
-        ("SYS_STATUS", 2.0), ("BATTERY_STATUS", 1.0), ("EXTENDED_SYS_STATE", 1.0),
-    )
+    # Asked of the autopilot with MAV_CMD_SET_MESSAGE_INTERVAL whenever the link comes up, after a
+    # reboot and whenever one stops: ArduCopter does not stream EXTENDED_SYS_STATE by default, and
+    # this spares us its SRn_* stream parameters.
+    stream_rates: tuple[tuple[str, float], ...] = DEFAULT_STREAM_RATES
+    stream_timeout_periods: float = 3.0  # a stream is stopped after this many of its periods unheard ...
+    stream_timeout_min_s: float = 1.0  # ... and never sooner than this
+    reboot_gap_s: float = 1.8  # an autopilot heartbeat gap longer than this: ask for every stream again
+    stream_retry_max_s: float = 30.0  # a stream that does not come is asked for again, backing off to this
+    commands: Any = None  # retries of acknowledged commands (None: the defaults)
+
+    def stream_timeout(self, name: str, hz: float) -> float:
+        return max(self.stream_timeout_min_s, self.stream_timeout_periods / hz)
 
 
 StateListener = Callable[[FlightState], None]
 
+# Messages that carry the autopilot's time since boot: a jump back means it rebooted.
+_BOOT_TIME_FIELD = {"ATTITUDE": "time_boot_ms", "GLOBAL_POSITION_INT": "time_boot_ms",
+                    "LOCAL_POSITION_NED": "time_boot_ms", "DISTANCE_SENSOR": "time_boot_ms",
+                    "SYSTEM_TIME": "time_boot_ms"}
+_BOOT_BACKWARDS_MS = 100  # a router may reorder a little; a reboot restarts the clock from 0
+
 
 class FlightLink:
-    """The adapter: reads the flight controller's state, sends our heartbeat and landing targets.
+    """The adapter: reads the flight controller's state, sends our heartbeat, commands and landing targets.
 
-    ``setup()`` opens the transport and starts two threads (reader, ticker);
-    listeners registered with :meth:`on_state` run on those threads and must
-    return quickly (hand work to a queue).
+    ``setup()`` opens the transport and starts three threads (reader, ticker,
+    commands); listeners registered with :meth:`on_state` run on the reader
+    and ticker threads and must return quickly (hand work to a queue).
     """
 
     def __init__(self, settings: LinkSettings) -> None:
+        from onboard.mavlink_commands import CommandSender, CommandSettings
+
         self.settings = settings
         self.endpoint = Endpoint.parse(settings.url)
         if settings.heartbeat_timeout_s <= 0 or settings.heartbeat_period_s <= 0:
             raise FlightLinkError(f"flight link {settings.url}: heartbeat period and timeout must be positive")
-        self._stream_requests = []
+        self._streams: dict[str, tuple[int, float, float]] = {}  # name -> (message id, Hz, timeout s)
         for name, hz in settings.stream_rates:
             msg_id = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}", None)
-            if msg_id is None or not hz > 0:
-                raise FlightLinkError(f"flight link {settings.url}: cannot request {name} at {hz} Hz")
-            self._stream_requests.append((msg_id, hz))
+            if msg_id is None or not hz > 0 or name not in STREAM_FIELDS:
+                raise FlightLinkError(f"flight link {settings.url}: cannot request {name} at {hz} Hz "
+                                      f"(streams: {', '.join(n for n in STREAM_FIELDS if n != 'HEARTBEAT')})")
+            self._streams[name] = (msg_id, hz, settings.stream_timeout(name, hz))
         self._streams_wanted = threading.Event()  # set when the link comes up: ask for our streams
         self._transport = None
         self._mav: mavlink2.MAVLink | None = None
@@ -559,12 +629,21 @@ class FlightLink:
         self._state = FlightState(time=time.time())
         self._fc: tuple[int, int] | None = None  # (system, component) of the autopilot we follow
         self._last_heartbeat_mono: float | None = None
+        self._heard_mono: dict[str, float] = {}
+        self._asked_mono: dict[str, float] = {}  # stream -> when we last asked for it
+        self._retry_s: dict[str, float] = {}  # stream -> current back-off
         self._have_battery_status = False
         self._listeners: list[StateListener] = []
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._heard = threading.Condition(self._state_lock)
-        self.counters = {"received": 0, "bad": 0, "sent": 0, "send_errors": 0, "links_lost": 0}
+        self._poses: collections.deque = collections.deque(maxlen=256)  # (epoch, attitude, position_ned)
+        self.counters = {"received": 0, "bad": 0, "sent": 0, "send_errors": 0, "links_lost": 0,
+                         "reboots": 0, "stream_requests": 0, "streams_stopped": 0}
+        self.commands = CommandSender(settings.commands or CommandSettings(), encoder=lambda: self._mav,
+                                      send=self._send, alive=lambda: self.state.link,
+                                      on_refusal=lambda r: self._update(
+                                          refused=tuple(str(x) for x in list(self.commands.refusals)[-5:])))
 
     # -- lifecycle
 
@@ -577,6 +656,7 @@ class FlightLink:
         self._parser = PacketParser(datagram=self._transport.datagram)
         self._mav = new_mavlink(self._transport, system_id=self.settings.system_id,
                                 component_id=self.settings.component_id)
+        self.commands.setup()
         self._threads = [
             threading.Thread(target=self._read_loop, name="mavlink-reader", daemon=True),
             threading.Thread(target=self._tick_loop, name="mavlink-ticker", daemon=True),
@@ -588,6 +668,7 @@ class FlightLink:
     def shutdown(self) -> None:
         """Stop the threads and close the transport."""
         self._stop.set()
+        self.commands.shutdown()
         transport, self._transport = self._transport, None
         for thread in self._threads:
             thread.join(timeout=2.0)
@@ -608,12 +689,37 @@ class FlightLink:
 
     @property
     def state(self) -> FlightState:
+        """The latest state; a stream's fields older than its timeout are unknown here even between ticks."""
         with self._state_lock:
-            return self._state
+            state = self._state
+            now = time.monotonic()
+            stale = [name for name, heard in tuple(self._heard_mono.items())  # a copy: the reader adds to it
+                     if name != "HEARTBEAT" and now - heard > self.stream_timeout(name)]
+        if not stale:
+            return state
+        cleared = {f: None for name in stale for f in STREAM_FIELDS[name]}
+        if "SYS_STATUS" in stale and "BATTERY_STATUS" not in dict(state.heard):
+            cleared.update({f: None for f in STREAM_FIELDS["BATTERY_STATUS"]})
+        return replace(state, heard=tuple((k, t) for k, t in state.heard if k not in stale), **cleared)
 
     def on_state(self, listener: StateListener) -> None:
         """Call ``listener(state)`` on every change of the state (and with every link event)."""
         self._listeners.append(listener)
+
+    def stream_timeout(self, name: str) -> float:
+        """Seconds after which ``name``'s fields become unknown."""
+        if name == "HEARTBEAT":
+            return self.settings.heartbeat_timeout_s
+        return self._streams[name][2] if name in self._streams else self.settings.stream_timeout_min_s
+
+    def pose_at(self, when: float, *, within_s: float = 0.25) -> tuple[tuple, tuple | None] | None:
+        """(attitude, position_ned or None) heard nearest to epoch ``when``; None if none within ``within_s``."""
+        with self._state_lock:
+            poses = list(self._poses)
+        best = min(poses, key=lambda p: abs(p[0] - when), default=None)
+        if best is None or abs(best[0] - when) > within_s:
+            return None
+        return best[1], best[2]
 
     def wait_for_heartbeat(self, timeout: float) -> FlightState:
         """Block until the link is up; raise FlightLinkError naming the URL after ``timeout`` s."""
@@ -656,59 +762,144 @@ class FlightLink:
         """Fold one message into the state; True if it came from the autopilot we follow."""
         kind = message.get_type()
         src = (message.get_srcSystem(), message.get_srcComponent())
+        now = time.monotonic()
         if kind == "HEARTBEAT":
-            if message.autopilot == mavlink2.MAV_AUTOPILOT_INVALID:
-                return False  # a GCS, companion or gimbal: not a flight controller
-            if self._fc is None:
-                if self.settings.target_system is not None and src[0] != self.settings.target_system:
-                    return False
-                self._fc = src
-                log.info("flight link %s: following autopilot %d/%d", self.endpoint.url, *src)
-            if src != self._fc:
-                return False
-            self._last_heartbeat_mono = time.monotonic()
-            armed = bool(message.base_mode & mavlink2.MAV_MODE_FLAG_SAFETY_ARMED)
-            mode = mode_name(message.autopilot, message.type, message.base_mode, message.custom_mode)
-            was_up = self.state.link
-            event = None if was_up else (LINK_RESTORED if self.counters["links_lost"] else LINK_UP)
-            self._update(event=event, link=True, armed=armed, mode=mode, system_id=src[0],
-                         autopilot=_AUTOPILOTS.get(message.autopilot, str(message.autopilot)),
-                         last_heartbeat=time.time())
-            if event:
-                self._streams_wanted.set()
-                log.log(logging.WARNING if event == LINK_RESTORED else logging.INFO,
-                        "flight link %s: %s (autopilot %d/%d)", self.endpoint.url, event, *src)
-            return True
+            return self._handle_heartbeat(message, src, now)
         if self._fc is None or src[0] != self._fc[0]:
             return False
+        if kind == "COMMAND_ACK":
+            # A router may pass on acks meant for a ground station: only ours count.
+            if message.target_system in (0, self.settings.system_id) and \
+                    message.target_component in (0, self.settings.component_id):
+                self.commands.on_ack(message)
+            return True
+        field = _BOOT_TIME_FIELD.get(kind)
+        if field is not None and src == self._fc:
+            boot_ms = int(getattr(message, field))
+            last = self.state.boot_ms
+            # One autopilot's messages come in order, so its clock never goes back, unless it restarted.
+            # (Not compared with our clock: a reader stalled by a busy machine would look like a reboot.)
+            if last is not None and boot_ms + _BOOT_BACKWARDS_MS < last:
+                self._rebooted(f"time since boot went back from {last} to {boot_ms} ms")
+            self._update(boot_ms=boot_ms)
+        changes: dict | None = None
         if kind == "SYS_STATUS":
-            changes: dict = {"onboard_load": message.load / 10.0}
+            changes = {"onboard_load": message.load / 10.0}
             if not self._have_battery_status:
                 if message.voltage_battery != UINT16_MAX:
                     changes["battery_v"] = message.voltage_battery / 1000.0
                 if message.battery_remaining >= 0:
                     changes["battery_pct"] = float(message.battery_remaining)
-            self._update(**changes)
         elif kind == "BATTERY_STATUS":
             if message.id != 0:
                 return True  # the first battery is the one that flies
             self._have_battery_status = True
             cells = [v for v in message.voltages if v != UINT16_MAX]
             cells += [v for v in getattr(message, "voltages_ext", ()) if v]
-            changes = {}
-            if cells:
-                changes["battery_v"] = sum(cells) / 1000.0
-            if message.battery_remaining >= 0:
-                changes["battery_pct"] = float(message.battery_remaining)
-            self._update(**changes)
+            changes = {"battery_v": sum(cells) / 1000.0 if cells else None,
+                       "battery_pct": float(message.battery_remaining) if message.battery_remaining >= 0 else None}
         elif kind == "EXTENDED_SYS_STATE":
-            self._update(landed_state=LANDED_STATES.get(message.landed_state, "UNDEFINED"))
+            changes = {"landed_state": LANDED_STATES.get(message.landed_state, "UNDEFINED")}
+        elif kind == "ATTITUDE":
+            attitude = (message.roll, message.pitch, message.yaw)
+            changes = {"attitude": attitude, "rates": (message.rollspeed, message.pitchspeed, message.yawspeed)}
+            self._remember_pose(attitude=attitude)
+        elif kind == "GLOBAL_POSITION_INT":
+            changes = {"alt_rel_m": message.relative_alt / 1000.0, "alt_amsl_m": message.alt / 1000.0,
+                       "lat_deg": message.lat / 1e7, "lon_deg": message.lon / 1e7}
+        elif kind == "LOCAL_POSITION_NED":
+            position = (message.x, message.y, message.z)
+            changes = {"position_ned": position, "velocity_ned": (message.vx, message.vy, message.vz)}
+            self._remember_pose(position=position)
+        elif kind == "DISTANCE_SENSOR":
+            if message.orientation != mavlink2.MAV_SENSOR_ROTATION_PITCH_270:
+                return True  # only the downward rangefinder gives the height above the pad
+            cm = message.current_distance
+            valid = message.min_distance <= cm <= message.max_distance and cm > 0
+            changes = {"rangefinder_m": cm / 100.0 if valid else None}
+        elif kind == "HOME_POSITION":
+            changes = {"home": (message.latitude / 1e7, message.longitude / 1e7, message.altitude / 1000.0)}
+        if changes is not None:
+            self._heard_stream(kind, now, changes)
         return True
 
-    def _update(self, *, event: str | None = None, **changes: object) -> None:
+    def _handle_heartbeat(self, message, src: tuple[int, int], now: float) -> bool:
+        if message.autopilot == mavlink2.MAV_AUTOPILOT_INVALID:
+            return False  # a GCS, companion or gimbal: not a flight controller
+        if self.settings.target_system is not None and src[0] != self.settings.target_system:
+            return False
+        if self._fc is None:
+            self._fc = src
+            log.info("flight link %s: following autopilot %d/%d", self.endpoint.url, *src)
+        elif src != self._fc:
+            last = self._last_heartbeat_mono
+            if self.settings.target_system is not None or (last is not None and now - last <= self.settings.reboot_gap_s):
+                return False  # another autopilot while ours speaks: not ours
+            # Ours went silent and an autopilot with another id speaks: the vehicle came back
+            # with a new system id (or was replaced). Follow it, forget what the old one said.
+            old, self._fc = self._fc, src
+            self._rebooted(f"autopilot {old[0]}/{old[1]} went silent, {src[0]}/{src[1]} speaks")
+        last = self._last_heartbeat_mono
+        self._last_heartbeat_mono = now
+        if last is not None and self.state.link and now - last > self.settings.reboot_gap_s:
+            # A gap shorter than the link timeout can still be a reboot (ArduCopter SITL: 2.2 s), which
+            # resets every stream to its default: ask again; the streams' timeouts clear what stopped.
+            log.warning("flight link %s: heartbeat gap of %.1f s: asking for every stream again",
+                        self.endpoint.url, now - last)
+            self._streams_wanted.set()
+        armed = bool(message.base_mode & mavlink2.MAV_MODE_FLAG_SAFETY_ARMED)
+        mode = mode_name(message.autopilot, message.type, message.base_mode, message.custom_mode)
+        was_up = self.state.link
+        event = None if was_up else (LINK_RESTORED if self.counters["links_lost"] else LINK_UP)
+        self._heard_mono["HEARTBEAT"] = now
+        self._update(event=event, link=True, armed=armed, mode=mode, system_id=src[0],
+                     autopilot=_AUTOPILOTS.get(message.autopilot, str(message.autopilot)),
+                     last_heartbeat=time.time(), heard=self._heard_tuple())
+        if event:
+            self._streams_wanted.set()
+            log.log(logging.WARNING if event == LINK_RESTORED else logging.INFO,
+                    "flight link %s: %s (autopilot %d/%d)", self.endpoint.url, event, *src)
+        return True
+
+    def _heard_stream(self, kind: str, now: float, changes: dict) -> None:
+        self._heard_mono[kind] = now
+        self._retry_s.pop(kind, None)
+        changes["heard"] = self._heard_tuple()
+        missing = self.state.missing
+        if kind in missing:
+            changes["missing"] = tuple(m for m in missing if m != kind)
+        self._update(quiet_keys=("heard",), **changes)
+
+    def _heard_tuple(self) -> tuple[tuple[str, float], ...]:
+        offset = time.time() - time.monotonic()
+        return tuple(sorted((k, round(v + offset, 3)) for k, v in tuple(self._heard_mono.items())))
+
+    def _remember_pose(self, *, attitude: tuple | None = None, position: tuple | None = None) -> None:
+        with self._state_lock:
+            last = self._poses[-1] if self._poses else (0.0, None, None)
+            self._poses.append((time.time(), attitude or last[1], position or last[2]))
+
+    def _rebooted(self, why: str) -> None:
+        """The autopilot restarted: what it said before is void, and every stream must be asked for again."""
+        self.counters["reboots"] += 1
+        log.warning("flight link %s: autopilot rebooted (%s): asking for every stream again", self.endpoint.url, why)
+        self._heard_mono = {k: v for k, v in self._heard_mono.items() if k == "HEARTBEAT"}
+        self._have_battery_status = False
+        with self._state_lock:
+            self._poses.clear()
+        cleared = {f: None for stream, fields in STREAM_FIELDS.items() if stream != "HEARTBEAT" for f in fields}
+        self._update(event=AUTOPILOT_REBOOTED, reboots=self.state.reboots + 1, boot_ms=None,
+                     heard=self._heard_tuple(), **cleared)
+        self._streams_wanted.set()
+
+    def _update(self, *, event: str | None = None, quiet_keys: tuple[str, ...] = (), **changes: object) -> None:
         with self._state_lock:
             old = self._state
-            if not event and all(getattr(old, k) == v for k, v in changes.items()):
+            if not event and all(getattr(old, k) == v for k, v in changes.items() if k not in quiet_keys):
+                if not quiet_keys:
+                    return
+                self._state = replace(old, **changes)  # only "heard" moved: no news for the listeners
+                self._heard.notify_all()
                 return
             new = replace(old, time=time.time(), event=event, **changes)
             self._state = new
@@ -728,13 +919,49 @@ class FlightLink:
             if self.state.link and last is not None and now - last > self.settings.heartbeat_timeout_s:
                 self.counters["links_lost"] += 1
                 log.warning("flight link %s: link_lost (no heartbeat for %.1f s)", self.endpoint.url, now - last)
-                self._update(event=LINK_LOST, link=False)
+                # Nothing heard is current any more: every stream's fields become unknown with the link.
+                self._heard_mono.clear()
+                cleared = {f: None for fields in STREAM_FIELDS.values() for f in fields}
+                self._update(event=LINK_LOST, link=False, heard=(), **cleared)
             if now >= next_heartbeat:
                 next_heartbeat = now + period
                 self._send_heartbeat()
             if self._streams_wanted.is_set():
                 self._streams_wanted.clear()
-                self._request_streams()
+                self._request_streams(list(self._streams), now)
+            elif self.state.link:
+                self._check_streams(now)
+
+    def _check_streams(self, now: float) -> None:
+        """Expire the fields of every stream not heard within its timeout; ask again for what does not come."""
+        expired: dict[str, object] = {}
+        missing = set(self.state.missing)
+        again = []
+        for name, (_, _, timeout) in self._streams.items():
+            heard = self._heard_mono.get(name)
+            if heard is not None and now - heard > timeout:
+                self._heard_mono.pop(name, None)
+                self.counters["streams_stopped"] += 1
+                log.warning("flight link %s: %s stopped (nothing for %.1f s): its fields are unknown",
+                            self.endpoint.url, name, now - heard)
+                fields = STREAM_FIELDS[name]
+                if name == "BATTERY_STATUS":
+                    self._have_battery_status = False
+                if name == "SYS_STATUS" and not self._have_battery_status:
+                    fields += STREAM_FIELDS["BATTERY_STATUS"]
+                expired.update({f: None for f in fields})
+                heard = None
+            if heard is None:
+                asked = self._asked_mono.get(name, 0.0)
+                if now - asked > max(timeout, self._retry_s.get(name, 0.0)):
+                    missing.add(name)
+                    again.append(name)
+        if expired or missing != set(self.state.missing):
+            self._update(missing=tuple(sorted(missing)), heard=self._heard_tuple(), **expired)
+        if again:
+            for name in again:  # back off: a stream the autopilot lacks (no rangefinder) is not asked for at 10 Hz
+                self._retry_s[name] = min(self.settings.stream_retry_max_s, max(1.0, 2 * self._retry_s.get(name, 0.5)))
+            self._request_streams(again, now)
 
     # -- sending
 
@@ -750,26 +977,32 @@ class FlightLink:
         except FlightLinkError as exc:
             log.debug("heartbeat not sent: %s", exc)
 
-    def _request_streams(self) -> None:
+    def _request_streams(self, names: list[str], now: float) -> None:
         fc = self._fc
         if fc is None or self._mav is None:
             return
-        for msg_id, hz in self._stream_requests:
-            try:
-                self._send(self._mav.command_long_encode(
-                    fc[0], fc[1], mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / hz, 0, 0, 0, 0, 0,
-                ))
-            except FlightLinkError as exc:
-                log.debug("stream request not sent: %s", exc)
+        for name in names:
+            msg_id, hz, _ = self._streams[name]
+            self._asked_mono[name] = now
+            self.counters["stream_requests"] += 1
+            self.commands.submit(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, (msg_id, 1e6 / hz), fc,
+                                 label=f"{name} at {hz:g} Hz")
+
+    def command(self, command: int, *params: float, label: str = "", timeout: float | None = 15.0):
+        """Send one COMMAND_LONG to the autopilot and wait for its outcome (a CommandOutcome)."""
+        fc = self._fc
+        if fc is None:
+            raise FlightLinkError(f"no autopilot heard on {self.endpoint.url}: nowhere to send a command")
+        return self.commands.submit(command, params, fc, label=label).result(timeout)
 
     def send_landing_target(self, target: LandingTarget) -> None:
-        """Send one LANDING_TARGET (MAVLink 2, MAV_FRAME_BODY_FRD, vision fiducial); raise FlightLinkError."""
+        """Send one LANDING_TARGET (MAVLink 2, vision fiducial, in the target's frame); raise FlightLinkError."""
         if self._mav is None:
             raise FlightLinkError(f"flight link {self.endpoint.url} is not set up")
         x, y, z = target.position or (0.0, 0.0, 0.0)
         message = self._mav.landing_target_encode(
             int(target.time * 1e6), target.target_num if 0 <= target.target_num <= 255 else 0,
-            mavlink2.MAV_FRAME_BODY_FRD, target.angle_x, target.angle_y, target.distance,
+            target.frame, target.angle_x, target.angle_y, target.distance,
             target.size_x, target.size_y, x, y, z, (1.0, 0.0, 0.0, 0.0),
             mavlink2.LANDING_TARGET_TYPE_VISION_FIDUCIAL, 1 if target.position is not None else 0,
         )

@@ -107,7 +107,16 @@ SCHEMAS: dict[str, Schema] = {
             "mode": _f(str, required=False, max_len=64), "landed_state": _f(str, required=False, max_len=32),
             "battery_pct": _f(*NUMBER, required=False), "battery_v": _f(*NUMBER, required=False),
             "onboard_load": _f(*NUMBER, required=False),
-            "event": _f(str, required=False, max_len=32),  # link_up, link_lost, link_restored
+            "event": _f(str, required=False, max_len=32),  # link_up, link_lost, link_restored, autopilot_rebooted
+            # optional (issue 12): absent = unknown, i.e. not heard within its stream's timeout
+            "alt_rel_m": _f(*NUMBER, required=False), "alt_amsl_m": _f(*NUMBER, required=False),
+            "lat_deg": _f(*NUMBER, required=False), "lon_deg": _f(*NUMBER, required=False),
+            "attitude": _f(list, required=False, max_len=3), "rates": _f(list, required=False, max_len=3),
+            "position_ned": _f(list, required=False, max_len=3), "velocity_ned": _f(list, required=False, max_len=3),
+            "rangefinder_m": _f(*NUMBER, required=False), "home": _f(list, required=False, max_len=3),
+            "heard": _f(dict, required=False, max_len=16), "boot_ms": _f(int, required=False),
+            "reboots": _f(int, required=False), "missing": _f(list, required=False, max_len=16),
+            "refused": _f(list, required=False, max_len=16),
         }),
         Schema("adaptation_event", 1, {
             "time": _TIME, "trigger": _f(str, max_len=256), "decision": _f(dict, required=False),

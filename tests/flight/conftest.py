@@ -49,3 +49,40 @@ def connect():
     yield _connect
     for part in reversed(opened):
         part.shutdown()
+
+
+# Every stream the link knows, fast (the tests' vehicle moves in seconds, not minutes).
+ALL_FAST = (("SYS_STATUS", 10.0), ("BATTERY_STATUS", 10.0), ("EXTENDED_SYS_STATE", 10.0), ("ATTITUDE", 20.0),
+            ("GLOBAL_POSITION_INT", 10.0), ("LOCAL_POSITION_NED", 20.0), ("DISTANCE_SENSOR", 10.0),
+            ("HOME_POSITION", 2.0))
+# ArduCopter on a companion port: HEARTBEAT at 1 Hz (10 here, for speed), nothing else until asked.
+ARDUCOPTER_DEFAULTS = dict(heartbeat_hz=10.0, sys_status_hz=0.0, battery_hz=0.0, extended_state_hz=0.0)
+
+
+@pytest.fixture
+def ardu():
+    """``ardu(vehicle=, fc=dict, link=dict)`` -> (link, fc): the fake FC with ArduCopter's defaults, every stream asked."""
+    opened: list = []
+
+    def _start(*, vehicle: VehicleState = VehicleState(), fc: dict | None = None, link: dict | None = None,
+               wait: bool = True) -> tuple[FlightLink, FakeFlightController]:
+        port = free_udp_port()
+        link_settings = dict(url=f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=1.0, stream_rates=ALL_FAST)
+        link_settings.update(link or {})
+        the_link = FlightLink(LinkSettings(**link_settings))
+        the_link.setup()
+        opened.append(the_link)
+        fc_settings = dict(url=f"udpout:127.0.0.1:{port}", drain_pct_per_min=0.0, **ARDUCOPTER_DEFAULTS)
+        fc_settings.update(fc or {})
+        the_fc = FakeFlightController(FakeFCSettings(**fc_settings), vehicle)
+        the_fc.setup()
+        opened.append(the_fc)
+        if wait:
+            the_link.wait_for_heartbeat(5.0)
+            wait_until(lambda: the_link.state.attitude is not None and the_link.state.landed_state, 5,
+                       "the streams the link asked for")
+        return the_link, the_fc
+
+    yield _start
+    for part in reversed(opened):
+        part.shutdown()

@@ -110,7 +110,7 @@ def test_the_bridge_command_turns_detections_into_landing_targets_and_publishes_
     assert code == 0
 
 
-@pytest.mark.parametrize("sub", ["fake-fc", "monitor", "bridge"])
+@pytest.mark.parametrize("sub", ["fake-fc", "monitor", "status", "bridge"])
 def test_every_flight_subcommand_has_help(kgadapt_cmd, sub):
     out = subprocess.run([*kgadapt_cmd, "flight", sub, "--help"], cwd=REPO, capture_output=True, text=True, timeout=30,
                          env={**os.environ})
@@ -121,3 +121,77 @@ def test_the_bridge_command_without_intrinsics_or_camera_exits_1_saying_what_is_
     out = subprocess.run([*kgadapt_cmd, "flight", "bridge", "--robot", "clitest", "--fx", "600"],
                          cwd=REPO, capture_output=True, text=True, timeout=30)
     assert out.returncode == 1 and "--camera" in out.stderr and "--cy" in out.stderr
+
+
+def test_status_prints_every_field_with_its_age_and_the_missing_streams(kgadapt_cmd):
+    port = free_udp_port()
+    fc = FakeFlightController(FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=5, rangefinder=False),
+                              VehicleState(armed=True, mode="LOITER", landed_state="IN_AIR", alt=4.0))
+    with fc:
+        done = subprocess.run([*kgadapt_cmd, "flight", "status", "--url", f"udpin:127.0.0.1:{port}", "--json",
+                               "--settle", "4"], cwd=REPO, capture_output=True, text=True, timeout=30)
+        assert done.returncode == 0, done.stderr
+        state = json.loads(done.stdout)
+        assert state["mode"] == "LOITER" and state["landed_state"] == "IN_AIR"
+        assert state["alt_rel_m"] == pytest.approx(4.0) and state["position_ned"][2] == pytest.approx(-4.0)
+        assert len(state["attitude"]) == 3 and state["home"][0] == pytest.approx(fc.settings.home[0])
+        assert "rangefinder_m" not in state  # no rangefinder: unknown, not 0
+        assert "DISTANCE_SENSOR" in state["missing"] and "DISTANCE_SENSOR" not in state["heard"]
+        assert state["timeouts"]["ATTITUDE"] == pytest.approx(1.0)
+        text = subprocess.run([*kgadapt_cmd, "flight", "status", "--url", f"udpin:127.0.0.1:{port}", "--settle", "2"],
+                              cwd=REPO, capture_output=True, text=True, timeout=30)
+        assert text.returncode == 0, text.stderr
+        assert "altitude 4.00 m above home" in text.stdout
+        assert "DISTANCE_SENSOR      never heard" in text.stdout and "missing    DISTANCE_SENSOR" in text.stdout
+
+
+def test_the_bridge_command_with_camera_and_marker_files_sends_positions_and_holds_them(kgadapt_cmd, tmp_path):
+    from onboard.landing_scene import MarkerScene
+    from onboard.landing_targets import CameraModel
+
+    camera = CameraModel(fx=615.0, fy=615.0, cx=320.0, cy=240.0, width=640, height=480, yaw_deg=90.0)
+    (tmp_path / "camera.json").write_text(json.dumps(camera.as_dict()))
+    (tmp_path / "markers.json").write_text(json.dumps({"site": "t", "markers": [{"id": 7, "size_m": 0.5}]}))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    observer = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
+    port = free_udp_port()
+    bridge = _spawn(kgadapt_cmd, "flight", "bridge", "--robot", "clitest", "--url", f"udpin:127.0.0.1:{port}",
+                    "--camera-file", str(tmp_path / "camera.json"), "--markers", str(tmp_path / "markers.json"),
+                    "--connect", endpoint)
+    vehicle = VehicleState(armed=True, mode="LOITER", landed_state="IN_AIR", alt=8.0, yaw=0.3)
+    fc = FakeFlightController(FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=5), vehicle)
+    publisher = observer.declare_publisher(keys.detector_markers("clitest", "det9"))
+    scene = MarkerScene(camera, north=1.0, east=0.5, size_m=0.5)
+    try:
+        _wait_ready(bridge)
+        fc.setup()
+        # the bridge's link asks for ATTITUDE and LOCAL_POSITION_NED: the held target needs them
+        wait_until(lambda: fc.stream_rate("LOCAL_POSITION_NED") and fc.stream_rate("ATTITUDE"), 10, "streams asked")
+        now = time.time()
+        corners = scene.corners(((0.0, 0.0, 0.3), vehicle.position_ned))
+        publisher.put(messages.encode("detections", {
+            "instance": "det9", "config": "c", "host": "onboard", "seq": 1, "frame_time": now, "time": now,
+            "ids": [[7]], "corners": [[corners]], "processing_ms": 3.0}))
+        got = fc.wait_for("LANDING_TARGET", 5, timeout=10)  # one detection, then the held target re-sent
+        from onboard.geometry import ned_to_body
+
+        truth = ned_to_body((0.0, 0.0, 0.3), (1.0, 0.5, 8.0))
+        for target in got[:5]:
+            f = target.fields
+            assert f["position_valid"] == 1 and f["frame"] == 12 and f["target_num"] == 7
+            assert (f["x"], f["y"], f["z"]) == pytest.approx(truth, abs=0.02)
+        assert got[1].fields["time_usec"] > got[0].fields["time_usec"]  # predicted for when it is re-sent
+    finally:
+        publisher.undeclare()
+        fc.shutdown()
+        code = _stop(bridge)
+        observer.close()
+    assert code == 0
+
+
+def test_the_bridge_command_with_a_bad_camera_file_exits_1_naming_it(kgadapt_cmd, tmp_path):
+    bad = tmp_path / "cam.json"
+    bad.write_text(json.dumps({"fx": 600, "fy": 600, "cx": 320}))
+    out = subprocess.run([*kgadapt_cmd, "flight", "bridge", "--robot", "clitest", "--camera-file", str(bad)],
+                         cwd=REPO, capture_output=True, text=True, timeout=30)
+    assert out.returncode == 1 and str(bad) in out.stderr and "lacks cy" in out.stderr

@@ -29,10 +29,9 @@ def proposed_update_flight_control(store, *, name: str, time: float, link: bool,
                                    autopilot_load_pct: float | None = None,
                                    last_heartbeat: float | None = None) -> None:
     """The write verb ``flight_state`` as proposed to knowledge/runtime.py (used until it exists there)."""
-    figures = {k: v for k, v in {"link": link, "armed": armed, "mode": mode, "landed_state": landed_state,
-                                 "battery_pct": battery_pct, "battery_v": battery_v,
-                                 "autopilot_load_pct": autopilot_load_pct,
-                                 "last_heartbeat": last_heartbeat}.items() if v is not None}
+    figures = {"link": link, "armed": armed, "mode": mode, "landed_state": landed_state,
+               "battery_pct": battery_pct, "battery_v": battery_v,
+               "autopilot_load_pct": autopilot_load_pct, "last_heartbeat": last_heartbeat}
     store.execute(f"MERGE (c:{S.COMPONENT}:{S.FLIGHT_CONTROL} {{name: $name}}) SET c += $figures, c.last_seen = $time",
                   {"name": name, "figures": figures, "time": float(time)})
 
@@ -109,6 +108,19 @@ def test_a_failing_graph_write_is_counted_and_logged_not_raised(knowledge, caplo
     assert "no_such_verb" in caplog.text
 
 
-def test_flight_control_params_leave_out_what_is_unknown():
+def test_flight_control_params_send_what_is_unknown_as_none():
     params = flight_control_params(FlightState(time=5.0, link=False, mode="LOITER"))
-    assert params == {"name": "flight_control", "time": 5.0, "link": False, "mode": "LOITER"}
+    assert params == {"name": "flight_control", "time": 5.0, "link": False, "mode": "LOITER", "armed": None,
+                      "landed_state": None, "battery_pct": None, "battery_v": None, "autopilot_load_pct": None,
+                      "last_heartbeat": None}
+
+
+def test_a_figure_that_became_unknown_leaves_the_graph(knowledge):
+    store, client = knowledge
+    writer = FlightControlWriter(client)
+    writer(FlightState(time=1.0, link=True, armed=True, mode="LAND", landed_state="LANDING", battery_pct=50.0))
+    writer(FlightState(time=2.0, link=True, armed=True, mode="LAND", landed_state=None, battery_pct=50.0))
+    assert writer.written == 2
+    rows = store.execute(f"MATCH (c:{S.FLIGHT_CONTROL} {{name: 'flight_control'}}) RETURN c.landed_state AS landed, "
+                         "c.mode AS mode, c.battery_pct AS pct, c.last_seen AS seen")
+    assert rows == [{"landed": None, "mode": "LAND", "pct": 50.0, "seen": 2.0}]

@@ -16,6 +16,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from onboard.mavlink import (
+    DEFAULT_STREAM_RATES,
     LINK_LOST,
     LINK_RESTORED,
     LINK_UP,
@@ -93,20 +94,20 @@ def test_the_link_asks_the_autopilot_for_its_streams_each_time_the_link_comes_up
     with FlightLink(LinkSettings(url=f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=0.3)) as link, fc:
         link.wait_for_heartbeat(3)
         wait_until(lambda: link.state.landed_state == "ON_GROUND", 3, "EXTENDED_SYS_STATE after the request")
-        assert fc.stream_rate("EXTENDED_SYS_STATE") == pytest.approx(1.0)
+        assert fc.stream_rate("EXTENDED_SYS_STATE") == pytest.approx(2.0)
         assert fc.stream_rate("SYS_STATUS") == pytest.approx(2.0)
+        assert fc.stream_rate("ATTITUDE") == pytest.approx(20.0)
+        wait_until(lambda: len(fc.received("COMMAND_LONG")) >= len(DEFAULT_STREAM_RATES), 3, "every stream request")
         requests = [c.fields for c in fc.received("COMMAND_LONG")]
-        assert {(r["command"], r["param1"], r["param2"]) for r in requests} == {
-            (mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, float(mavlink2.MAVLINK_MSG_ID_SYS_STATUS), 500000.0),
-            (mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, float(mavlink2.MAVLINK_MSG_ID_BATTERY_STATUS), 1e6),
-            (mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, float(mavlink2.MAVLINK_MSG_ID_EXTENDED_SYS_STATE), 1e6),
-        }
+        asked = {(r["param1"], round(r["param2"])) for r in requests}
+        assert asked == {(float(getattr(mavlink2, f"MAVLINK_MSG_ID_{n}")), round(1e6 / hz)) for n, hz in DEFAULT_STREAM_RATES}
+        assert {r["command"] for r in requests} == {mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL}
         assert all(r["target_system"] == 1 and r["target_component"] == 1 for r in requests)
         fc.pause()
         wait_until(lambda: not link.state.link, 2, "link_lost")
         fc.clear_received()
         fc.resume()
-        fc.wait_for("COMMAND_LONG", 3, timeout=3)  # asked again: an autopilot may have rebooted meanwhile
+        fc.wait_for("COMMAND_LONG", len(DEFAULT_STREAM_RATES), timeout=3)  # asked again: an autopilot may have rebooted meanwhile
 
 
 def test_landing_target_arrives_as_mavlink2_with_frame_type_and_validity(connect):

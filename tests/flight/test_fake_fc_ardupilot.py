@@ -1,0 +1,178 @@
+"""The fake flight controller does what ArduCopter does, behaviour by behaviour (see its docstring for the source).
+
+Each test names the ArduPilot function whose behaviour it checks.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink2
+
+from onboard.fake_fc import VehicleState
+from onboard.mavlink import LandingTarget
+from onboard.mavlink_commands import CommandOutcome
+from tests.flight.conftest import wait_until
+
+HOVER = VehicleState(armed=True, mode="LOITER", landed_state="IN_AIR", alt=8.0)
+CUSTOM = mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+
+
+def _stream_targets(link, make, hz: float, seconds: float) -> None:
+    """Send ``make()`` at ``hz`` for ``seconds`` (the way a detector would)."""
+    stop = time.monotonic() + seconds
+    while time.monotonic() < stop:
+        link.send_landing_target(make())
+        time.sleep(1.0 / hz)
+
+
+def _angles(ax: float = 0.1, ay: float = -0.1, distance: float = 0.0):
+    return lambda: LandingTarget(time=time.time(), angle_x=ax, angle_y=ay, distance=distance)
+
+
+# -- AC_PrecLand_MAVLink::handle_msg / AC_PrecLand::construct_pos_meas_using_rangefinder
+
+def test_angles_without_a_distance_and_without_a_rangefinder_are_never_acquired(ardu):
+    link, fc = ardu(vehicle=HOVER, fc=dict(rangefinder=False))
+    _stream_targets(link, _angles(), 20, 2.6)
+    assert fc.precland.counters["received"] >= 40
+    assert fc.precland.counters["no_height"] >= 40 and fc.precland.counters["measurements"] == 0
+    assert not fc.precland.acquired
+
+
+def test_angles_with_a_rangefinder_are_acquired_after_2_s_of_updates_and_placed_by_the_height(ardu):
+    link, fc = ardu(vehicle=HOVER)
+    _stream_targets(link, _angles(ax=math.atan(0.25), ay=math.atan(-0.5)), 20, 2.4)
+    wait_until(lambda: fc.precland.acquired, 1, "acquired")
+    # los (-tan(ay), tan(ax), 1) scaled to the 8 m height: 4 m forward, 2 m right
+    assert fc.precland.target_ne == pytest.approx((4.0, 2.0), abs=0.01)
+    assert "PrecLand: Init Complete" in fc.texts
+
+
+def test_angles_with_a_distance_are_acquired_without_a_rangefinder(ardu):
+    link, fc = ardu(vehicle=HOVER, fc=dict(rangefinder=False))
+    _stream_targets(link, _angles(ax=0.0, ay=0.0, distance=8.0), 20, 2.4)
+    wait_until(lambda: fc.precland.acquired, 1, "acquired")
+    assert fc.precland.target_ne == pytest.approx((0.0, 0.0), abs=0.01)
+
+
+def test_a_position_in_body_frd_with_its_distance_is_acquired(ardu):
+    link, fc = ardu(vehicle=HOVER, fc=dict(rangefinder=False))
+    _stream_targets(link, lambda: LandingTarget(time=time.time(), angle_x=0, angle_y=0, distance=math.sqrt(1 + 4 + 64),
+                                                position=(1.0, -2.0, 8.0)), 20, 2.4)
+    wait_until(lambda: fc.precland.acquired, 1, "acquired")
+    assert fc.precland.target_ne == pytest.approx((1.0, -2.0), abs=0.01)
+
+
+def test_a_position_in_local_ned_is_refused_as_an_unsupported_frame(ardu):
+    link, fc = ardu(vehicle=HOVER)
+    _stream_targets(link, lambda: LandingTarget(time=time.time(), angle_x=0, angle_y=0, distance=8.0,
+                                                position=(0.0, 0.0, 0.0), frame=mavlink2.MAV_FRAME_LOCAL_NED), 20, 1.0)
+    assert fc.precland.counters["frame_unsupported"] >= 10 and fc.precland.counters["measurements"] == 0
+    assert fc.texts.count("Plnd: Frame not supported ") == 1  # said once
+
+
+def test_a_position_without_a_distance_is_dropped(ardu):
+    link, fc = ardu(vehicle=HOVER)
+    _stream_targets(link, lambda: LandingTarget(time=time.time(), angle_x=0, angle_y=0, distance=0.0,
+                                                position=(0.0, 0.0, 8.0)), 20, 1.0)
+    assert fc.precland.counters["no_distance"] >= 10 and fc.precland.counters["measurements"] == 0
+
+
+# -- AC_PrecLand::check_ekf_init_timeout / target_acquired
+
+def test_one_target_a_second_fails_the_estimator_init(ardu):
+    link, fc = ardu(vehicle=HOVER)
+    _stream_targets(link, _angles(), 1.0, 4.5)
+    assert fc.precland.counters["measurements"] >= 4
+    assert fc.precland.counters["init_failed"] >= 3 and not fc.precland.acquired
+    assert "PrecLand: Init Failed" in fc.texts
+
+
+def test_the_target_is_lost_2_s_after_the_last_measurement(ardu):
+    link, fc = ardu(vehicle=HOVER)
+    _stream_targets(link, _angles(), 20, 2.4)
+    wait_until(lambda: fc.precland.acquired, 1, "acquired")
+    last = time.monotonic()
+    wait_until(lambda: not fc.precland.acquired, 4, "lost")
+    assert time.monotonic() - last >= 1.9
+    assert "PrecLand: Target Lost" in fc.texts
+
+
+# -- GCS_MAVLINK::set_message_interval, and streams after a reboot
+
+def test_message_intervals_set_stop_and_restore_defaults_and_refuse_unknown_messages(ardu):
+    link, fc = ardu(fc=dict(sys_status_hz=2.0))
+    cmd = mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL
+    assert link.command(cmd, mavlink2.MAVLINK_MSG_ID_SYS_STATUS, 50_000) is CommandOutcome.ACCEPTED
+    assert fc.stream_rate("SYS_STATUS") == pytest.approx(20.0)
+    assert link.command(cmd, mavlink2.MAVLINK_MSG_ID_SYS_STATUS, -1) is CommandOutcome.ACCEPTED
+    assert fc.stream_rate("SYS_STATUS") is None
+    assert link.command(cmd, mavlink2.MAVLINK_MSG_ID_SYS_STATUS, 0) is CommandOutcome.ACCEPTED
+    assert fc.stream_rate("SYS_STATUS") == pytest.approx(2.0)
+    assert link.command(cmd, mavlink2.MAVLINK_MSG_ID_VFR_HUD, 100_000) is CommandOutcome.FAILED
+
+
+def test_after_a_reboot_streams_are_back_at_their_defaults(ardu):
+    link, fc = ardu(fc=dict(sys_status_hz=2.0))
+    assert fc.stream_rate("ATTITUDE") == pytest.approx(20.0)  # asked by the link
+    link.shutdown()  # nobody to ask again
+    fc.reboot()
+    wait_until(lambda: fc.reboots == 1, 5, "the reboot")
+    assert fc.stream_rate("ATTITUDE") is None and fc.stream_rate("EXTENDED_SYS_STATE") is None
+    assert fc.stream_rate("SYS_STATUS") == pytest.approx(2.0) and fc.stream_rate("HEARTBEAT") == pytest.approx(10.0)
+    assert fc.boot_ms < 2000
+
+
+def test_reboot_command_wants_param1_1_or_3(ardu):
+    link, fc = ardu()
+    assert link.command(mavlink2.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 2) is CommandOutcome.UNSUPPORTED
+    assert not fc.rebooting
+
+
+# -- Mode::allows_arming, do_user_takeoff, landed_state, mode_land
+
+def test_arming_is_refused_in_land_and_takeoff_only_in_guided_armed_on_the_ground(ardu):
+    link, fc = ardu(vehicle=VehicleState(mode="LAND"))
+    assert link.command(mavlink2.MAV_CMD_COMPONENT_ARM_DISARM, 1) is CommandOutcome.FAILED
+    assert link.command(mavlink2.MAV_CMD_DO_SET_MODE, CUSTOM, 5) is CommandOutcome.ACCEPTED  # LOITER
+    assert link.command(mavlink2.MAV_CMD_COMPONENT_ARM_DISARM, 1) is CommandOutcome.ACCEPTED
+    assert link.command(mavlink2.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 5) is CommandOutcome.FAILED  # not GUIDED
+    assert link.command(mavlink2.MAV_CMD_DO_SET_MODE, CUSTOM, 99) is CommandOutcome.FAILED  # no such mode
+
+
+def test_takeoff_land_and_touchdown_move_the_landed_state_as_arducopter_does(ardu):
+    link, fc = ardu(fc=dict(climb_ms=10.0, land_speed_ms=5.0))
+    seen: list[str] = []
+    link.on_state(lambda s: s.landed_state and (not seen or seen[-1] != s.landed_state) and seen.append(s.landed_state))
+    assert link.command(mavlink2.MAV_CMD_DO_SET_MODE, CUSTOM, 4) is CommandOutcome.ACCEPTED  # GUIDED
+    assert link.command(mavlink2.MAV_CMD_COMPONENT_ARM_DISARM, 1) is CommandOutcome.ACCEPTED
+    assert link.command(mavlink2.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 3) is CommandOutcome.ACCEPTED
+    wait_until(lambda: link.state.landed_state == "IN_AIR" and link.state.alt_rel_m > 2.9, 5, "at 3 m")
+    assert link.command(mavlink2.MAV_CMD_COMPONENT_ARM_DISARM, 0) is CommandOutcome.FAILED  # not in the air
+    assert link.command(mavlink2.MAV_CMD_DO_SET_MODE, CUSTOM, 9) is CommandOutcome.ACCEPTED  # LAND
+    wait_until(lambda: link.state.landed_state == "ON_GROUND" and link.state.armed is False, 5, "touchdown, disarmed")
+    assert link.state.mode == "LAND"
+    assert seen[-4:] == ["TAKEOFF", "IN_AIR", "LANDING", "ON_GROUND"]
+
+
+# -- AC_PrecLand::run_estimator (KALMAN_FILTER): outlier rejection
+
+def test_a_single_outlier_is_rejected_and_three_in_a_row_are_taken(ardu):
+    link, fc = ardu(vehicle=HOVER)
+    _stream_targets(link, _angles(ax=0.0, ay=0.0), 20, 2.4)
+    wait_until(lambda: fc.precland.acquired, 1, "acquired")
+    assert fc.precland.target_ne == pytest.approx((0.0, 0.0), abs=0.01)
+    far = _angles(ax=math.atan(0.5), ay=0.0)  # 4 m to the right: far outside the filter's spread
+    link.send_landing_target(far())
+    wait_until(lambda: fc.precland.counters["outliers"] == 1, 2, "the outlier rejected")
+    assert fc.precland.target_ne == pytest.approx((0.0, 0.0), abs=0.01)
+    for rejected in (2, 3):
+        link.send_landing_target(far())
+        wait_until(lambda: fc.precland.counters["outliers"] == rejected, 2, f"outlier {rejected} rejected")
+    link.send_landing_target(far())  # the 4th in a row is fused: three were rejected before it
+    wait_until(lambda: fc.precland.target_ne[1] > 0.5, 2, "the estimate moving right")
+    assert fc.precland.counters["outliers"] == 3
