@@ -53,6 +53,7 @@ class CypherLimits:
     max_depth: int = 8  # brackets and sub-expressions nested in each other
     max_hops: int = 6  # upper bound of a variable-length relation
     max_clauses: int = 16
+    max_rows: int = 1000  # RETURN ... LIMIT at most this; appended when a single RETURN has none
 
 
 FUNCTIONS = frozenset(
@@ -150,11 +151,22 @@ def _is_property(tokens: list[Token], i: int) -> bool:
     return i > 0 and tokens[i - 1].text == "."
 
 
-def check_cypher(text: str, *, limits: CypherLimits = CypherLimits()) -> None:
-    """Raise :class:`CypherRefused` unless ``text`` is one query of the accepted subset."""
+def check_cypher(text: str, *, limits: CypherLimits = CypherLimits()) -> str:
+    """The text to run for ``text``, or :class:`CypherRefused` if it is outside the accepted subset.
+
+    The rows are bounded too: a query with one RETURN and no LIMIT gets
+    ``LIMIT max_rows`` appended; a RETURN's own LIMIT must be a whole number of
+    at most ``max_rows``, and each part of a UNION needs one.
+    """
     if not isinstance(text, str) or not text.strip():
         raise CypherRefused("query refused: the Cypher text is empty")
-    _Parser(tokenize(text, limits=limits), limits).query()
+    parser = _Parser(tokenize(text, limits=limits), limits)
+    parser.query()
+    if all(parser.return_limits):
+        return text
+    if len(parser.return_limits) > 1:
+        raise CypherRefused(f"query refused: every part of a UNION needs RETURN ... LIMIT n (n at most {limits.max_rows})")
+    return f"{text.rstrip()}\nLIMIT {limits.max_rows}"
 
 
 class _Parser:
@@ -164,6 +176,7 @@ class _Parser:
         self.limits = limits
         self.depth = 0
         self.clauses = 0
+        self.return_limits: list[bool] = []  # per RETURN: has its own (checked) LIMIT
 
     # -- token helpers ------------------------------------------------------
 
@@ -238,7 +251,7 @@ class _Parser:
                 if self.accept("where"):
                     self.expr()
             elif self.accept("return"):
-                self.projection()
+                self.return_limits.append(self.projection(final=True))
                 return
             else:
                 self.fail("expected MATCH, OPTIONAL MATCH, UNWIND, WITH or RETURN")
@@ -250,7 +263,7 @@ class _Parser:
         if self.accept("where"):
             self.expr()
 
-    def projection(self) -> None:
+    def projection(self, *, final: bool = False) -> bool:
         self.accept("distinct")
         if not self.accept("*"):
             self.item()
@@ -263,8 +276,16 @@ class _Parser:
                 self.sort_item()
         if self.accept("skip"):
             self.expr()
-        if self.accept("limit"):
+        if not self.accept("limit"):
+            return False
+        if not final:
             self.expr()
+            return True
+        t = self.tok
+        if t.kind != "number" or not t.text.isdigit() or int(t.text) > self.limits.max_rows:
+            self.fail(f"RETURN ... LIMIT must be a whole number of at most {self.limits.max_rows}")
+        self.i += 1
+        return True
 
     def item(self) -> None:
         self.expr()

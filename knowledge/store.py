@@ -55,6 +55,9 @@ class StoreSettings:
     username: str = ""
     password: str = ""
     connect_timeout: float = 10.0
+    # Hard limit on one round trip (s): the client abandons a query whose answer has not
+    # come by then, whatever the store does with its own timeout. None: wait for ever.
+    socket_timeout: float | None = None
 
 
 def parse_store_url(url: str | None = None) -> StoreSettings:

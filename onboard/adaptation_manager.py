@@ -119,7 +119,7 @@ class AdaptationManager:
     def setup(self, session: Any) -> None:
         s = self.settings
         self._session = session
-        self._knowledge = KnowledgeClient(session, s.robot)
+        self._knowledge = KnowledgeClient(session, s.robot, own=True)
         self._deployers = DeployerClient(session, s.robot)
         rows = self._wait_for_knowledge()
         self._configs = {str(r["config"]): r for r in rows}

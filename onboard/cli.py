@@ -69,7 +69,7 @@ class FlightPart:
         from onboard.flight import BridgeSettings, FlightBridge, FlightControlWriter, intrinsics_from_graph
         from onboard.mavlink import LinkSettings
 
-        client = KnowledgeClient(session, self.robot)
+        client = KnowledgeClient(session, self.robot, own=True)
         settings = BridgeSettings(robot=self.robot, link=LinkSettings(url=self.url),
                                   intrinsics=intrinsics_from_graph(client, self.camera_model))
         self.bridge = FlightBridge(settings, on_state=FlightControlWriter(client))
