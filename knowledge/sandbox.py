@@ -104,20 +104,23 @@ class QuerySandbox:
             try:
                 return store.execute(cypher, params, read_only=True, timeout_ms=max(1, int(limit_s * 1000)))
             except QueryTimeLimit as exc:
-                self._restart(generation, f"a query ran past its {limit_s:g} s limit")
+                if generation == self._generation:
+                    self._restart(generation, f"a query ran past its {limit_s:g} s limit")
                 raise QueryTimeLimit(
                     f"query stopped at its hard time limit of {limit_s * 1000:.0f} ms "
                     "(abandoned; the server running it was killed)"
                 ) from exc
             except QueryError as exc:
                 if "timed out" in str(exc).lower():  # the store's own timeout came first
-                    raise QueryTimeLimit(f"query stopped at its time limit of {limit_s * 1000:.0f} ms") from exc
+                    raise QueryTimeLimit(f"query stopped at its hard time limit of {limit_s * 1000:.0f} ms (by the store)") from exc
                 raise
-            except StoreUnavailable:
-                # Killed under us (another query's limit, or a crash): once more on a new server.
-                self._restart(generation, "the server was gone")
+            except (StoreUnavailable, ValueError, OSError, redis.RedisError):
+                # Killed under us (another query's limit: its client was closed, hence ValueError
+                # too), or crashed: once more on a new server.
+                if generation == self._generation:
+                    self._restart(generation, "the server was gone")
                 if attempt == 2:
-                    raise
+                    raise StoreUnavailable("the query sandbox failed twice running this query") from None
         raise AssertionError("unreachable")
 
     # -- internals ------------------------------------------------------------

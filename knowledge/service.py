@@ -24,7 +24,8 @@ detectors; the shipped ACL keeps other robots off it) and the write verbs
 are served by their own workers from the primary store. ``query/*`` and
 ``cypher`` (anyone allowed to read, other robots included) are served by
 other workers from a :class:`~knowledge.sandbox.QuerySandbox`, a copy of the
-graph in a separate, lower-priority FalkorDB server, at most a second old.
+graph in a separate, lower-priority FalkorDB server (one per public worker),
+as fresh as the primary.
 Each of those questions has a hard time limit (``public_time_limit_ms``,
 or a literal paper query's own shorter one): past it the answer is
 abandoned and the sandbox server killed, so the work stops. Free Cypher must
@@ -128,7 +129,8 @@ class KnowledgeService:
         self._store_lock = _store_lock(store)
         self._writers: Mapping[str, Callable[..., Any]] = dict(runtime.WRITERS) if settings.writes else {}
         self._lock = ServiceLock(store) if settings.lock else None
-        self.sandbox: QuerySandbox | None = None
+        self.sandboxes: list[QuerySandbox] = []  # one per public worker: a kill costs only its own question
+        self._sandbox_pool: queue.Queue[QuerySandbox] = queue.Queue()
 
     # -- life cycle ---------------------------------------------------------
 
@@ -139,8 +141,11 @@ class KnowledgeService:
             self._lock.acquire()  # before anything is written: a second service changes nothing
         try:
             if self.settings.sandbox and isinstance(self.store, FalkorDBStore):
-                self.sandbox = QuerySandbox(self.store)
-                self.sandbox.setup()
+                for _ in range(self.settings.public_workers):
+                    sandbox = QuerySandbox(self.store)
+                    self.sandboxes.append(sandbox)
+                    sandbox.setup()
+                    self._sandbox_pool.put(sandbox)
             if self.settings.mark_offline_at_start:
                 self._mark_all_offline()
         except Exception:
@@ -171,7 +176,7 @@ class KnowledgeService:
             "other robots' questions from %s, %d ms hard limit",
             robot, len(queries.QUERIES),
             f"write verbs {', '.join(sorted(self._writers))}" if self.settings.writes else "no write verbs (read-only)",
-            f"a sandbox copy (pid {self.sandbox.pid})" if self.sandbox else "the store itself",
+            f"{len(self.sandboxes)} sandbox copies" if self.sandboxes else "the store itself",
             self.settings.public_time_limit_ms,
         )
 
@@ -192,9 +197,9 @@ class KnowledgeService:
         for thread in self._threads:
             thread.join(timeout=10)
         self._threads.clear()
-        if self.sandbox is not None:
-            self.sandbox.shutdown()
-            self.sandbox = None
+        for sandbox in self.sandboxes:
+            sandbox.shutdown()
+        self.sandboxes.clear()
         if self._lock is not None:
             self._lock.release()
         for pending in (self._requests, self._public_requests):
@@ -255,8 +260,12 @@ class KnowledgeService:
     def _run_untrusted(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str) -> list[dict[str, Any]]:
         """In the sandbox when there is one (killed past the limit), else on the store with its timeout."""
         try:
-            if self.sandbox is not None:
-                return self.sandbox.execute(text, params, limit_s=limit_ms / 1000)
+            if self.sandboxes:
+                sandbox = self._sandbox_pool.get()  # as many as public workers: never waits
+                try:
+                    return sandbox.execute(text, params, limit_s=limit_ms / 1000)
+                finally:
+                    self._sandbox_pool.put(sandbox)
             with self._store_lock:
                 return self.store.execute(text, params, read_only=True, timeout_ms=limit_ms)
         except QueryTimeLimit as exc:
