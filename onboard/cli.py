@@ -86,9 +86,10 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
     from deploy.deployer import Deployer, settings_from_args as deployer_settings
     from shared.hostmonitor import HostMonitor, settings_from_args
 
+    monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))
     parts: list[Any] = [
-        HostMonitor(settings_from_args(args, robot=args.robot, host=args.host)),
-        Deployer(deployer_settings(args, robot=args.robot, host=args.host)),
+        monitor,
+        Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb),
     ]
     if args.camera_source:
         from onboard.camera import CameraPart, CameraSettings, make_source

@@ -127,6 +127,13 @@ class HostMonitor:
                 continue
         return total / MIB
 
+    def free_mb(self) -> float:
+        """Free memory now, as ``sample()`` would publish it (for the deployer's start check)."""
+        s = self.settings
+        if s.memory_budget_mb is not None:
+            return max(0.0, s.memory_budget_mb - self.ours_mb() - self._reserved_mb)
+        return max(0.0, psutil.virtual_memory().available / MIB - self._reserved_mb)
+
     def sample(self) -> dict[str, Any]:
         """One ``host_status`` body measured now."""
         s = self.settings

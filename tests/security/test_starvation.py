@@ -21,49 +21,15 @@ import pytest
 
 from bench import table1
 from knowledge.client import KnowledgeClient
-from knowledge.loader import load_models
 from knowledge.store import open_store
 from shared.errors import KgadaptError
 from shared.session import ZenohSettings, open_session
-from tests.conftest import REPO, free_port
+from tests.conftest import REPO
 from tests.security.outsider import Outsider
-from tests.support import Child, wait_for
+from tests.support import wait_for
 
-MODELS = REPO / "knowledge" / "models"
 DARK = "marker_detection_dark"
 HEAVY = "MATCH (a), (b), (c), (d), (e) RETURN count(*) AS n"  # 33^5 rows: seconds of work
-
-
-@pytest.fixture
-def served(tmp_path):
-    store_dir = tmp_path / "store"
-    with open_store(f"embedded:{store_dir}") as store:
-        load_models(store, [MODELS])
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    robot = f"s{free_port()}"
-    service = Child.kgadapt("service", ["knowledge", "serve", "--store", f"embedded:{store_dir}", "--robot", robot,
-                                        "--listen", endpoint], tmp_path)
-    sessions = []
-    agent = None
-    try:
-        service.wait_for_line("knowledge service ready")
-        # A host online with free memory, so that placement has an answer to give.
-        agent = Child.kgadapt("remote", ["remote", "--robot", robot, "--host", "remote", "--memory-budget", "2G",
-                                         "--connect", endpoint], tmp_path)
-        agent.wait_for_line("agent ready")
-
-        def session():
-            s = open_session(ZenohSettings(mode="client", connect=(endpoint,)))
-            sessions.append(s)
-            return s
-
-        yield {"robot": robot, "session": session, "service": service, "store_dir": store_dir, "endpoint": endpoint}
-    finally:
-        for s in sessions:
-            s.close()
-        if agent is not None:
-            agent.stop()
-        service.stop()
 
 
 def _where(rows: list[dict]) -> list[tuple]:
@@ -90,7 +56,8 @@ def _closed_listener() -> tuple[socket.socket, list[socket.socket]]:
     return listener, accepted
 
 
-def test_four_hostile_askers_in_parallel_leave_the_robots_own_placement_answered(served):
+def test_four_hostile_askers_in_parallel_leave_the_robots_own_placement_answered(loopback_robot):
+    served = loopback_robot()
     robot = served["robot"]
     own = KnowledgeClient(served["session"](), robot, timeout=2.0, own=True)
     expected = wait_for(lambda: own.query("placement", {"config": DARK}) or None, 10, "first own placement")

@@ -1,0 +1,47 @@
+"""Deployers protect their host: one host per change request, and no start beyond the memory budget.
+
+A real knowledge service and a real remote agent (budget 300 MiB) on
+loopback; requests are sent as an outsider would, from CONTRACTS.md.
+"""
+
+from __future__ import annotations
+
+import msgpack
+import pytest
+
+from deploy.client import DeployerClient
+from shared.errors import DeploymentError
+from tests.security.outsider import Outsider
+
+DARK = "marker_detection_dark"  # 324 MiB declared: more than a 300 MiB budget can hold
+DAY = "marker_detection_day"
+
+
+def _start(config: str, deployment: str) -> bytes:
+    return msgpack.packb({"kind": "deploy_request", "v": 1, "deployment": deployment, "config": config,
+                          "wait_ready": True})
+
+
+def test_a_wildcard_start_reaches_no_host(loopback_robot):
+    robot = loopback_robot(remote_budget="2G")
+    outsider = Outsider(robot["session"](), robot["robot"])
+    for key in (f"kgadapt/{robot['robot']}/host/*/deployer/start", f"kgadapt/{robot['robot']}/host/**/start",
+                f"kgadapt/{robot['robot']}/host/$*ote/deployer/start"):
+        answer = outsider.raw(key, _start(DAY, "detector_day"), timeout=10)
+        assert answer.kind == "err" and "exactly one host" in answer.error, (key, answer)
+    stop = outsider.raw(f"kgadapt/{robot['robot']}/host/*/deployer/stop",
+                        msgpack.packb({"kind": "deploy_request", "v": 1, "instance": "x"}), timeout=10)
+    assert stop.kind == "err" and "exactly one host" in stop.error
+    assert DeployerClient(robot["session"](), robot["robot"]).list("*") == []  # nothing started anywhere
+
+
+def test_a_start_beyond_the_hosts_memory_budget_is_refused_with_that_reason(loopback_robot):
+    robot = loopback_robot(remote_budget="300M")
+    deployers = DeployerClient(robot["session"](), robot["robot"])
+    with pytest.raises(DeploymentError, match=r"needs 324 MiB and host remote has \d+ MiB free within its memory budget"):
+        deployers.start("remote", "detector_dark", DARK)
+    assert deployers.list("remote") == []
+    # What fits still starts: the check refuses by the figures, not by the request.
+    started = deployers.start("remote", "detector_day", DAY)
+    assert started["state"] in ("ready", "running")
+    deployers.stop("remote", started["instance"])
