@@ -73,6 +73,7 @@ from knowledge.sandbox import QuerySandbox
 from knowledge.service_lock import ServiceLock
 from knowledge.store import GraphStore
 from shared import keys, messages
+from shared.hostmonitor import check_status
 from shared.errors import ConfigError, KgadaptError, MessageError, NamedQueryError, QueryError, QueryTimeLimit
 
 log = logging.getLogger(__name__)
@@ -428,17 +429,7 @@ class KnowledgeService:
         self._count(f"{what}_applied")
 
     def _check_status(self, key: str, payload: bytes) -> dict[str, Any]:
-        host = _host_of(key)
-        body = messages.decode(payload, "host_status")
-        if body["host"] != host:
-            raise MessageError(f"host_status on the key of host {host!r} names host {body['host']!r}")
-        for field in ("memory_total_mb", "memory_free_mb", "cpu_load"):
-            if body[field] < 0:
-                raise MessageError(f"host_status field {field!r} is negative ({body[field]})")
-        cores = body.get("cpu_cores")
-        if cores is not None and cores < 1:
-            raise MessageError(f"host_status field 'cpu_cores' must be at least 1, got {cores}")
-        return body
+        return check_status(_host_of(key), messages.decode(payload, "host_status"))
 
     def _mark_all_offline(self) -> None:
         now = time.time()

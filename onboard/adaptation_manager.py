@@ -49,6 +49,7 @@ from onboard.adaptation import (
     bands_from_rows,
 )
 from shared import keys, messages
+from shared.hostmonitor import check_status
 from shared.errors import DeploymentError, KgadaptError, MessageError
 
 log = logging.getLogger(__name__)
@@ -123,6 +124,7 @@ class AdaptationManager:
         self._lock = threading.Lock()
         self._probe: DeployerClient | None = None  # short timeout: a lost host is liveliness' business
         self._next_check = 0.0
+        self._last_free: dict[str, float] = {}  # each host's previous free-memory figure
 
     # -- lifecycle -------------------------------------------------------
 
@@ -247,8 +249,19 @@ class AdaptationManager:
                 m = messages.decode(payload, "illumination")
                 return a.on_illumination(float(m["smoothed"]), now)
             if kind == "host_status":
-                m = messages.decode(payload, "host_status")
+                # The knowledge service's own rule (a status it would refuse is not acted on), and
+                # only from a host whose liveliness token is up.
+                m = check_status(keys.last_chunk(key, 2), messages.decode(payload, "host_status"))
                 host = str(m["host"])
+                view = a.hosts.get(host)
+                if view is None or not view.online:
+                    return None
+                # No move on the strength of one status: a shortage counts when this status and
+                # the host's previous one both show it; a host looks as roomy as the lesser of the two.
+                now_free = float(m["memory_free_mb"])
+                before = self._last_free.get(host, now_free)
+                self._last_free[host] = now_free
+                m = {**m, "memory_free_mb": max(before, now_free)}
                 if self.current is not None and self.current.host == host:
                     self._refresh_held(now)
                 # A status received before the last change settled was measured while old and
@@ -264,7 +277,9 @@ class AdaptationManager:
                     running = self.current
                     if running.held_mb < UNMEASURED_MB and now - self._changed_at < MEASURE_WITHIN_S:
                         running = None
-                return a.on_host_status(host, free_mb=free, cpu_load=float(m["cpu_load"]), now=now, running=running)
+                trigger = a.on_host_status(host, free_mb=free, cpu_load=float(m["cpu_load"]), now=now, running=running)
+                view.memory_free_mb = min(before, now_free)
+                return trigger
             if kind == "flight_state":
                 m = messages.decode(payload, "flight_state")
                 self.landing = m.get("landed_state") == "LANDING"

@@ -60,8 +60,9 @@ class FlightPart:
 
     name = "flight"
 
-    def __init__(self, *, robot: str, url: str, camera_model: str) -> None:
+    def __init__(self, *, robot: str, url: str, camera_model: str, manager: Any = None) -> None:
         self.robot, self.url, self.camera_model = robot, url, camera_model
+        self.manager = manager  # the adaptation manager beside it: only its chosen detector steers
         self.bridge: Any = None
 
     def setup(self, session: Any) -> None:
@@ -72,7 +73,13 @@ class FlightPart:
         client = KnowledgeClient(session, self.robot, own=True)
         settings = BridgeSettings(robot=self.robot, link=LinkSettings(url=self.url),
                                   intrinsics=intrinsics_from_graph(client, self.camera_model))
-        self.bridge = FlightBridge(settings, on_state=FlightControlWriter(client))
+        manager = self.manager
+        chosen = None
+        if manager is not None:
+            def chosen() -> str | None:
+                current = manager.current
+                return current.instance if current is not None else None
+        self.bridge = FlightBridge(settings, on_state=FlightControlWriter(client), chosen_detector=chosen)
         self.bridge.setup(session)
 
     def shutdown(self) -> None:
@@ -98,14 +105,17 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
         source = make_source(args.camera_source, width=settings.width, height=settings.height, fps=args.fps,
                              speed=args.scenario_speed)
         parts.append(CameraPart(settings, source))
-    if args.fc:
-        parts.append(FlightPart(robot=args.robot, url=args.fc, camera_model=args.camera_model))
+    manager = None
     if args.adapt:
         from onboard.adaptation_manager import AdaptationManager, AdaptationSettings
 
-        parts.append(AdaptationManager(AdaptationSettings(
+        manager = AdaptationManager(AdaptationSettings(
             robot=args.robot, camera=args.camera, preference=args.prefer, onboard_host=args.host,
-            dwell_s=args.dwell, hysteresis=args.hysteresis)))
+            dwell_s=args.dwell, hysteresis=args.hysteresis))
+    if args.fc:
+        parts.append(FlightPart(robot=args.robot, url=args.fc, camera_model=args.camera_model, manager=manager))
+    if manager is not None:
+        parts.append(manager)
     return parts
 
 
