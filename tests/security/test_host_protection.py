@@ -45,3 +45,22 @@ def test_a_start_beyond_the_hosts_memory_budget_is_refused_with_that_reason(loop
     started = deployers.start("remote", "detector_day", DAY)
     assert started["state"] in ("ready", "running")
     deployers.stop("remote", started["instance"])
+
+
+def _listening(pid: int) -> set[str]:
+    import psutil
+
+    return {c.laddr.ip for c in psutil.Process(pid).net_connections(kind="inet") if c.status == psutil.CONN_LISTEN}
+
+
+def test_agents_and_detectors_listen_on_loopback_only(loopback_robot):
+    robot = loopback_robot(remote_budget="2G")
+    deployers = DeployerClient(robot["session"](), robot["robot"])
+    started = deployers.start("remote", "detector_day", DAY)
+    try:
+        agent = _listening(robot["agent"].process.pid)
+        detector = _listening(int(started["pid"]))
+        assert agent and detector  # they do listen (peers reach each other on this machine) ...
+        assert agent <= {"127.0.0.1"} and detector <= {"127.0.0.1"}, (agent, detector)  # ... but only there
+    finally:
+        deployers.stop("remote", started["instance"])
