@@ -64,3 +64,27 @@ def test_agents_and_detectors_listen_on_loopback_only(loopback_robot):
         assert agent <= {"127.0.0.1"} and detector <= {"127.0.0.1"}, (agent, detector)  # ... but only there
     finally:
         deployers.stop("remote", started["instance"])
+
+
+def test_a_second_knowledge_service_on_the_same_store_refuses_to_start_and_changes_nothing(loopback_robot, tmp_path):
+    import subprocess
+    import sys
+
+    from knowledge.client import KnowledgeClient
+    from tests.conftest import REPO, free_port
+    from tests.support import wait_for
+
+    robot = loopback_robot(remote_budget="2G")
+    own = KnowledgeClient(robot["session"](), robot["robot"], timeout=2.0, own=True)
+    online = lambda: {r["platform"] for r in own.query("platforms", {}) if r["online"]}  # noqa: E731
+    wait_for(lambda: "remote" in online(), 10, "the remote host online")
+    second = subprocess.run(
+        [sys.executable, "-m", "kgadapt", "knowledge", "serve", "--store", f"embedded:{robot['store_dir']}",
+         "--robot", robot["robot"], "--listen", f"tcp/127.0.0.1:{free_port()}"],
+        capture_output=True, text=True, timeout=60, cwd=REPO,
+    )
+    assert second.returncode != 0
+    assert "another knowledge service already serves the store" in second.stderr, second.stderr
+    # Before, the second service marked every platform offline and placement answered nothing.
+    assert "remote" in online()
+    assert own.query("placement", {"config": DAY})
