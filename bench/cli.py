@@ -17,6 +17,7 @@ BENCHES = (
     "bench.perception_bench",
     "bench.adaptation_bench",
     "bench.reliability_bench",
+    "bench.starvation_bench",
 )
 
 
