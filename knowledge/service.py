@@ -67,7 +67,7 @@ from typing import Any, Callable, Mapping
 import zenoh
 
 from knowledge import queries, runtime
-from knowledge.cypher_guard import check_cypher
+from knowledge.cypher_guard import CypherLimits, check_cypher
 from knowledge.falkordb_store import FalkorDBStore
 from knowledge.sandbox import QuerySandbox
 from knowledge.service_lock import ServiceLock
@@ -241,7 +241,12 @@ class KnowledgeService:
         if public or query.time_limit_ms is not None:
             limit_ms = min(self.settings.public_time_limit_ms, query.time_limit_ms or self.settings.public_time_limit_ms)
             values = queries.check_params(name, params)
-            rows = self._run_untrusted(query.text_for(values), values, limit_ms, f"query {name!r}")
+            text = query.text_for(values)
+            if "LIMIT" not in text.rstrip().splitlines()[-1].upper():
+                # Rows are parsed here, under the GIL the robot's own requests need too:
+                # fig4_literal's 21,344 rows cost them tens of ms. Same bound as free Cypher.
+                text = f"{text.rstrip()}\nLIMIT {CypherLimits().max_rows}"
+            rows = self._run_untrusted(text, values, limit_ms, f"query {name!r}")
         else:
             with self._store_lock:
                 rows = queries.run_named(self.store, name, params, timeout_ms=self.settings.query_timeout_ms)
