@@ -98,8 +98,12 @@ class AdaptationManager:
 
     name = "adaptation"
 
-    def __init__(self, settings: AdaptationSettings) -> None:
+    def __init__(self, settings: AdaptationSettings, *, landed_state: Any = None) -> None:
         self.settings = settings
+        # With a flight bridge in the same process: its landed state, read directly. Then
+        # flight_state messages on Zenoh, which anyone holding a host certificate could
+        # forge, are not listened to.
+        self._landed_state = landed_state
         self.current: Placement | None = None
         self.history: list[Outcome] = []
         self.landing = False
@@ -281,6 +285,8 @@ class AdaptationManager:
                 view.memory_free_mb = min(before, now_free)
                 return trigger
             if kind == "flight_state":
+                if self._landed_state is not None:
+                    return None  # the bridge beside us is the one source
                 m = messages.decode(payload, "flight_state")
                 self.landing = m.get("landed_state") == "LANDING"
                 return None
@@ -423,6 +429,8 @@ class AdaptationManager:
             twins = self.reconcile(str(trigger.detail.get("host")))
             if twins:
                 self._record(Outcome(trigger=trigger, outcome=f"stopped twin(s) {', '.join(twins)}"))
+        if self._landed_state is not None:
+            self.landing = self._landed_state() == "LANDING"
         lost = tuple(h.name for h in a.hosts.values() if not h.online)
         running_lost = self.current is not None and (self.current.host in lost or trigger.kind == "detector_gone")
         if self.landing and not (trigger.urgent or running_lost):

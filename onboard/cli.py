@@ -63,6 +63,11 @@ class FlightPart:
     def __init__(self, *, robot: str, url: str, camera_model: str, manager: Any = None) -> None:
         self.robot, self.url, self.camera_model = robot, url, camera_model
         self.manager = manager  # the adaptation manager beside it: only its chosen detector steers
+
+    def landed_state(self) -> str | None:
+        """The flight controller's landed state as the bridge knows it (None before setup)."""
+        bridge = self.bridge
+        return bridge.state.landed_state if bridge is not None else None
         self.bridge: Any = None
 
     def setup(self, session: Any) -> None:
@@ -105,16 +110,20 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
         source = make_source(args.camera_source, width=settings.width, height=settings.height, fps=args.fps,
                              speed=args.scenario_speed)
         parts.append(CameraPart(settings, source))
-    manager = None
+    flight = FlightPart(robot=args.robot, url=args.fc, camera_model=args.camera_model) if args.fc else None
+    if flight is not None:
+        parts.append(flight)
     if args.adapt:
         from onboard.adaptation_manager import AdaptationManager, AdaptationSettings
 
+        # In one process, the manager and the bridge trust each other directly: the bridge follows
+        # the manager's chosen detector, the manager the bridge's landed state (not Zenoh messages).
         manager = AdaptationManager(AdaptationSettings(
             robot=args.robot, camera=args.camera, preference=args.prefer, onboard_host=args.host,
-            dwell_s=args.dwell, hysteresis=args.hysteresis))
-    if args.fc:
-        parts.append(FlightPart(robot=args.robot, url=args.fc, camera_model=args.camera_model, manager=manager))
-    if manager is not None:
+            dwell_s=args.dwell, hysteresis=args.hysteresis),
+            landed_state=flight.landed_state if flight is not None else None)
+        if flight is not None:
+            flight.manager = manager
         parts.append(manager)
     return parts
 

@@ -113,3 +113,22 @@ def test_forged_and_implausible_statuses_never_move_the_detector(tmp_path):
         time.sleep(1.0)
         assert run.running(time.time() - 1.0) == {("marker_detection_dark", "onboard")}
     assert [d.kind for d in run.recorder.decisions] == ["startup"], run.recorder.decisions
+
+
+@pytest.mark.slow
+def test_a_forged_final_descent_does_not_hold_back_a_band_change(tmp_path):
+    # The fake autopilot reports IN_AIR throughout; a forger says LANDING ten times a second.
+    with Run(tmp_path, [[0, 120], [5, 120], [6, 5], [40, 5]]) as run:
+        run.wait_for(run.decision("startup"), 20, "the first detector")
+        forger = open_session(ZenohSettings(mode="peer", connect=(run.cluster.endpoint,)))
+        stop = time.time() + 12
+        try:
+            while time.time() < stop and not run.decision("band_changed")():
+                forger.put(keys.flight_state("quad1"), messages.encode(
+                    "flight_state", {"time": time.time(), "link": True, "armed": True, "landed_state": "LANDING"}))
+                time.sleep(0.1)
+        finally:
+            forger.close()
+        changed = run.wait_for(run.decision("band_changed"), 10, "the band change to dark")
+    assert changed.outcome.startswith("migrated"), changed
+    assert [d.kind for d in run.recorder.decisions] == ["startup", "band_changed"]
