@@ -30,6 +30,7 @@ from knowledge.store import GraphStore
 from shared.errors import NamedQueryError
 
 DEFAULT_FEATURE = "MarkerDetection"
+LITERAL_TIME_LIMIT_MS = 1000  # the paper's unbounded texts: 315 ms at N = 10, unbounded beyond
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,9 @@ class NamedQuery:
     params: dict[str, Param]
     cypher: str
     when_missing: Mapping[str, str] = field(default_factory=dict)
+    # A hard limit for queries that can run for ever (the paper's literal texts):
+    # they always run in a query sandbox, killed when the limit is hit.
+    time_limit_ms: int | None = None
 
     def text_for(self, values: Mapping[str, Any]) -> str:
         """The Cypher text for these (checked) values."""
@@ -269,6 +273,7 @@ WHERE f.name = $feature
 MATCH (p:{S.PLATFORM})-[:{S.EXECUTABLE_ON}]-(d:{S.DEPLOYMENT})
 WHERE p.name = $platform
 RETURN d""",
+        time_limit_ms=LITERAL_TIME_LIMIT_MS,
     ),
     NamedQuery(
         "fig5_literal",
@@ -282,6 +287,7 @@ WITH SUM(c.memory_demand_mb) as MEM
 MATCH (p:{S.PLATFORM}) <-[:{S.EXECUTABLE_ON}]-(d:{S.DEPLOYMENT})
 WHERE p.memory_free_mb >= MEM
 RETURN p""",
+        time_limit_ms=LITERAL_TIME_LIMIT_MS,
     ),
 ]
 

@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
 
         session = open_session(settings_from_args(args).with_defaults(mode="client"))
         try:
-            client = KnowledgeClient(session, args.robot)
+            client = KnowledgeClient(session, args.robot, own=True)
             data = explain(client.query, history=args.history)
         finally:
             session.close()

@@ -101,7 +101,7 @@ def fetch_config(session: Any, robot: str, name: str, *, wait_s: float = 10.0) -
     from onboard.markers import parse_config
 
     keys.check_name(name, "configuration name")
-    client = KnowledgeClient(session, robot)
+    client = KnowledgeClient(session, robot, own=True)
     deadline = time.monotonic() + wait_s
     while True:
         try:

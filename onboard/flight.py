@@ -191,7 +191,8 @@ class FlightBridge:
     published state, so a slow callback never delays a landing target.
     """
 
-    def __init__(self, settings: BridgeSettings, *, on_state: StateCallback | None = None) -> None:
+    def __init__(self, settings: BridgeSettings, *, on_state: StateCallback | None = None,
+                 chosen_detector: Callable[[], str | None] | None = None) -> None:
         keys.check_name(settings.robot, "robot name")
         if settings.detector != "*":
             keys.check_name(settings.detector, "detector instance")
@@ -203,6 +204,9 @@ class FlightBridge:
         self._targets = TargetBuilder(settings.camera or _camera_of(settings.intrinsics), settings.markers)
         self._hold = TargetHold(hold_s=settings.hold_s, resend_hz=settings.resend_hz)
         self._on_state = on_state
+        # With an adaptation manager in the same process: the one instance it chose (None: none).
+        # Detections from any other instance, forged ones included, never steer the landing.
+        self._chosen = chosen_detector
         self.link = FlightLink(settings.link)
         self.link.on_state(self._on_link_state)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
@@ -223,6 +227,7 @@ class FlightBridge:
         self.counters = {
             "detections": 0, "malformed": 0, "no_target": 0, "stale": 0, "duplicate": 0, "rate_limited": 0,
             "targets_sent": 0, "send_failed": 0, "published": 0, "queue_full": 0, "targets_resent": 0,
+            "not_chosen": 0,
         }
 
     # -- lifecycle
@@ -285,6 +290,9 @@ class FlightBridge:
     # -- inputs (called on Zenoh's and the link's threads: only enqueue)
 
     def _on_sample(self, sample) -> None:
+        if self._chosen is not None and keys.last_chunk(str(sample.key_expr), 2) != self._chosen():
+            self.counters["not_chosen"] += 1
+            return
         with self._queued_lock:
             if self._queued >= self.settings.queue_limit:
                 self.counters["queue_full"] += 1
@@ -344,6 +352,9 @@ class FlightBridge:
         self.counters["detections"] += 1
         try:
             detections = messages.decode(payload, "detections")
+            if self._chosen is not None and detections.get("instance") != self._chosen():
+                self.counters["not_chosen"] += 1
+                return
             index = choose_marker(detections, self.settings.target_id)
             if index is None:
                 self.counters["no_target"] += 1
