@@ -71,6 +71,12 @@ SCHEMAS: dict[str, Schema] = {
             "camera": _NAME, "seq": _f(int), "time": _TIME,
             "mean": _f(*NUMBER), "p5": _f(*NUMBER), "p50": _f(*NUMBER), "p95": _f(*NUMBER),
             "smoothed": _f(*NUMBER),
+            # optional, from onboard.illumination.estimate_light: the robust level the band is read
+            # from (smoothed is its EMA), and what it used
+            "level": _f(*NUMBER, required=False), "frame_level": _f(*NUMBER, required=False),
+            "marker_level": _f(*NUMBER, required=False), "source": _OPT_NAME,
+            "usable": _f(*NUMBER, required=False), "saturated": _f(*NUMBER, required=False),
+            "black": _f(*NUMBER, required=False), "markers": _f(int, required=False),
         }),
         Schema("detections", 1, {
             "instance": _NAME, "config": _NAME, "host": _NAME, "seq": _f(int),
