@@ -201,6 +201,24 @@ def configs_from_store(store: Any, feature: str = FEATURE) -> tuple[list[Detecto
     return configs, bands, rows
 
 
+def model_configs(folder: Path | str = REPO / "knowledge" / "models" / "perception") -> list[DetectorConfig]:
+    """The detector configurations of the perception-graph model files, read without a store (tests, bench).
+
+    Each ``*.rpsl`` file's perception graph names the configuration; its
+    processing component with a ``config_json`` gives the settings.
+    """
+    from knowledge.importers.rpsl import parse
+
+    configs = []
+    for path in sorted(Path(folder).glob("*.rpsl")):
+        model = parse(path.read_text(), str(path))
+        graphs = [n.name for n in model.nodes if n.label == "PerceptionGraph"]
+        settings = [n.props["config_json"] for n in model.nodes if n.props.get("config_json")]
+        if len(graphs) == 1 and len(settings) == 1:
+            configs.append(parse_config(graphs[0], settings[0]))
+    return configs
+
+
 def ensure_models(store: Any, feature: str = FEATURE) -> bool:
     """Load the shipped models when the graph has no configuration for ``feature``; True if loaded."""
     from knowledge.queries import run_named

@@ -44,6 +44,8 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
     fc.add_argument("--fc", metavar="URL", help="MAVLink URL of the flight controller, e.g. udpin:0.0.0.0:14550")
     fc.add_argument("--camera-model", default="camera",
                     help="camera component in the graph whose intrinsics aim LANDING_TARGET (default camera)")
+    fc.add_argument("--site", metavar="FILE",
+                    help="site file naming the marker ids there (*.site); other ids never become LANDING_TARGET")
     ad = parser.add_argument_group("adaptation")
     ad.add_argument("--adapt", action="store_true", help="run the adaptation manager on this agent")
     ad.add_argument("--prefer", choices=("onboard-first", "remote-first"), default="onboard-first",
@@ -60,18 +62,20 @@ class FlightPart:
 
     name = "flight"
 
-    def __init__(self, *, robot: str, url: str, camera_model: str) -> None:
-        self.robot, self.url, self.camera_model = robot, url, camera_model
+    def __init__(self, *, robot: str, url: str, camera_model: str, site: str | None = None) -> None:
+        self.robot, self.url, self.camera_model, self.site = robot, url, camera_model, site
         self.bridge: Any = None
 
     def setup(self, session: Any) -> None:
         from knowledge.client import KnowledgeClient
         from onboard.flight import BridgeSettings, FlightBridge, FlightControlWriter, intrinsics_from_graph
+        from onboard.confirmation import ConfirmationSettings, load_site
         from onboard.mavlink import LinkSettings
 
         client = KnowledgeClient(session, self.robot)
+        confirmation = ConfirmationSettings(site=load_site(self.site) if self.site else None)
         settings = BridgeSettings(robot=self.robot, link=LinkSettings(url=self.url),
-                                  intrinsics=intrinsics_from_graph(client, self.camera_model))
+                                  intrinsics=intrinsics_from_graph(client, self.camera_model), confirmation=confirmation)
         self.bridge = FlightBridge(settings, on_state=FlightControlWriter(client))
         self.bridge.setup(session)
 
@@ -98,7 +102,8 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
                              speed=args.scenario_speed)
         parts.append(CameraPart(settings, source))
     if args.fc:
-        parts.append(FlightPart(robot=args.robot, url=args.fc, camera_model=args.camera_model))
+        parts.append(FlightPart(robot=args.robot, url=args.fc, camera_model=args.camera_model,
+                                site=getattr(args, "site", None)))
     if args.adapt:
         from onboard.adaptation_manager import AdaptationManager, AdaptationSettings
 

@@ -28,6 +28,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
+from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
 from onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
 from shared import keys, messages
 from shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
@@ -170,6 +171,7 @@ class BridgeSettings:
     max_detection_age_s: float = 0.5  # older detections would steer towards where the marker was
     max_clock_skew_s: float = 0.5  # a frame time further ahead than this is refused, not trusted
     queue_limit: int = 64
+    confirmation: ConfirmationSettings = ConfirmationSettings()  # no phantom landing targets (onboard.confirmation)
 
 
 StateCallback = Callable[[FlightState], None]
@@ -196,6 +198,7 @@ class FlightBridge:
         self._on_state = on_state
         self.link = FlightLink(settings.link)
         self.link.on_state(self._on_link_state)
+        self.confirmer = MarkerConfirmer(settings.confirmation)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._queued = 0  # detections waiting; SimpleQueue has no bound of its own
         self._queued_lock = threading.Lock()
@@ -213,7 +216,7 @@ class FlightBridge:
         self._last_send_error = ""
         self.counters = {
             "detections": 0, "malformed": 0, "no_target": 0, "stale": 0, "duplicate": 0, "rate_limited": 0,
-            "targets_sent": 0, "send_failed": 0, "published": 0, "queue_full": 0,
+            "targets_sent": 0, "send_failed": 0, "published": 0, "queue_full": 0, "unconfirmed": 0,
         }
 
     # -- lifecycle
@@ -308,6 +311,11 @@ class FlightBridge:
         self.counters["detections"] += 1
         try:
             detections = messages.decode(payload, "detections")
+            confirmed = self._confirmed(detections)
+            if detections["ids"] and not confirmed["ids"]:
+                self.counters["unconfirmed"] += 1
+                return
+            detections = confirmed
             index = choose_marker(detections, self.settings.target_id)
             if index is None:
                 self.counters["no_target"] += 1
@@ -355,6 +363,15 @@ class FlightBridge:
         self._last_frame_time = target.time
         self._tokens -= 1.0
         self.counters["targets_sent"] += 1
+
+    def _confirmed(self, detections: dict) -> dict:
+        """Only confirmed markers (``onboard.confirmation``); frames the checks below refuse pass unchanged."""
+        frame_time = detections["frame_time"]
+        age = time.time() - frame_time
+        if age > self.settings.max_detection_age_s or age < -self.settings.max_clock_skew_s:
+            return detections  # counted as stale or future below
+        kept = self.confirmer.keep(detections, frame_time)
+        return detections if kept is None else kept  # None: a frame already seen, counted as duplicate below
 
     def _publish(self, state: FlightState) -> None:
         publisher = self._publisher

@@ -87,6 +87,8 @@ SCHEMAS: dict[str, Schema] = {
             # dropped so far, and the camera's publication time of the frame (transport = received - frame_sent)
             "camera": _OPT_NAME, "received": _f(*NUMBER, required=False), "decode_ms": _f(*NUMBER, required=False),
             "dropped": _f(int, required=False), "frame_sent": _f(*NUMBER, required=False),
+            # optional: per marker, whether its cells read clean (onboard.markers.cells_are_clean)
+            "clean": _f(list, required=False, max_len=1024),
         }),
         Schema("query_request", 1, {"params": _f(dict, required=False, max_len=64)}),
         Schema("cypher_request", 1, {
