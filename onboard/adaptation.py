@@ -203,12 +203,23 @@ class Analyzer:
 
 @dataclass(kw_only=True)
 class Planner:
-    """Chooses configuration and host from the knowledge graph."""
+    """Chooses configuration and host from the knowledge graph.
+
+    Configurations are ranked by the named query ``config_ranking`` (every
+    configuration of the feature calibrated in the band: detection rate minus
+    ``penalty`` x false markers per frame, none slower than ``max_ms``; within
+    ``tie_rate`` the faster first). The first in the ranking that a host can hold
+    wins. A graph without calibration falls back to the configuration
+    ``SUITED_FOR`` the band.
+    """
 
     ask: KnowledgeAsk
     feature: str = FEATURE
     preference: str = "onboard-first"
     onboard_host: str = "onboard"
+    penalty: float = 1.0
+    max_ms: float = 1000.0
+    tie_rate: float = 0.005
 
     def __post_init__(self) -> None:
         if self.preference not in PREFERENCES:
@@ -217,33 +228,83 @@ class Planner:
     def configs(self) -> list[dict[str, Any]]:
         return self.ask("detector_configs", {"feature": self.feature})
 
-    def choose_config(self, band: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-        """The best configuration for ``band``: highest calibrated rate, then cheapest."""
-        rows = self.configs()
-        candidates = [r for r in rows if r.get("band") == band]
-        if not candidates:
-            raise PlanningError(f"no detector configuration is suited for band {band!r}")
+    def ranking(self, band: str, condition: str = "all") -> list[dict[str, Any]]:
+        """Every calibrated configuration of the feature for ``band``, best first."""
+        from onboard.calibration import rank_rows
 
-        def score(row: Mapping[str, Any]) -> tuple[float, float, str]:
-            rate = row.get("detection_rate")
-            ms = row.get("ms_per_frame")
-            return (-(rate if rate is not None else -1.0), ms if ms is not None else math.inf, str(row["config"]))
+        rows = self.ask("config_ranking", {"feature": self.feature, "band": band, "condition": condition,
+                                           "penalty": self.penalty, "max_ms": self.max_ms})
+        return rank_rows(rows, score=lambda r: float(r.get("score") or 0.0),
+                         ms=lambda r: float(r.get("ms_per_frame") or math.inf), tie_rate=self.tie_rate)
 
-        return min(candidates, key=score), rows
+    def choose_config(self, band: str, *, exclude: Sequence[str] = ()) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+        """The first configuration of the ranking for ``band`` not in ``exclude``, and the ranking."""
+        ranked = self.candidates(band, exclude=exclude)
+        return ranked[0], ranked
+
+    def candidates(self, band: str, *, exclude: Sequence[str] = ()) -> list[dict[str, Any]]:
+        ranked = self.ranking(band)
+        if not ranked:
+            # Not calibrated: the configuration(s) the models say are suited for the band.
+            ranked = [r for r in self.configs() if r.get("band") == band]
+        left = [r for r in ranked if r.get("config") not in exclude]
+        if not left:
+            what = f" other than {', '.join(exclude)}" if exclude and ranked else ""
+            raise PlanningError(f"no detector configuration{what} is calibrated or suited for band {band!r}")
+        return left
 
     def plan(self, *, band: str, running: Placement | None, lost_hosts: Sequence[str] = (),
-             live_free: Mapping[str, float] | None = None) -> Plan:
-        """Configuration for ``band`` and a host that can hold it now.
+             live_free: Mapping[str, float] | None = None, exclude: Sequence[str] = ()) -> Plan:
+        """The best-ranked configuration for ``band`` that a host can hold now, and that host.
 
-        The host running a detector gets back what that detector holds, since a
-        change replaces it there. ``live_free`` is the caller's own, fresher view of
-        free memory (host statuses it just received): a host the graph still thinks
-        fits but that no longer does by that view is left out.
+        ``exclude``: configurations not to choose (the one whose detections
+        collapsed). The host running a detector gets back what that detector
+        holds, since a change replaces it there. ``live_free`` is the caller's own,
+        fresher view of free memory (host statuses it just received): a host the
+        graph still thinks fits but that no longer does by that view is left out.
         """
-        config_row, all_rows = self.choose_config(band)
-        config = str(config_row["config"])
+        ranked = self.candidates(band, exclude=exclude)
+        skipped: list[dict[str, Any]] = []
+        for config_row in ranked:
+            config = str(config_row["config"])
+            demand = float(config_row.get("memory_demand_mb") or 0.0)
+            fits = self._hosts_for(config, demand, running, lost_hosts, live_free)
+            if fits:
+                break
+            skipped.append({"config": config, "why": f"no online platform has {demand:.0f} MiB free"})
+        else:
+            best = ranked[0]
+            raise PlanningError(f"no online platform has {float(best.get('memory_demand_mb') or 0):.0f} MiB free "
+                                f"for {best['config']}" + (f" (nor room for {len(ranked) - 1} other(s))"
+                                                           if len(ranked) > 1 else ""))
+        # The preference decides every time. Plans happen only on triggers (with
+        # hysteresis and dwell on the light), so this cannot flap; it brings the
+        # detector back to the preferred host when that host returns.
+        order = sorted(fits, key=self._host_rank)
+        host = order[0]
+        row = fits[host]
+        target = Placement(config=config, deployment=str(row["deployment"]), host=host, demand_mb=demand)
+        position = ranked.index(config_row) + 1
+        reason = (f"band {band}: {config} is {_ordinal(position)} in the ranking "
+                  f"(rate {_fmt(config_row.get('detection_rate'))}, "
+                  f"false/frame {_fmt(config_row.get('false_per_frame'))}, {_fmt(config_row.get('ms_per_frame'))} ms)"
+                  + (f", {', '.join(exclude)} left out" if exclude else "")
+                  + f"; {host} has {_fmt(row.get('free_mb'))} MiB free for {demand:.0f} MiB ({self.preference})")
+        inputs = {
+            "band": band,
+            "ranking": [{k: r.get(k) for k in ("config", "score", "detection_rate", "false_per_frame",
+                                                "ms_per_frame", "memory_demand_mb")} for r in ranked],
+            "excluded": list(exclude),
+            "skipped": skipped,
+            "expected_rate": config_row.get("detection_rate"),
+            "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in order],
+            "running": None if running is None else {"config": running.config, "host": running.host},
+        }
+        return Plan(target=target, reason=reason, inputs=inputs, queries=("config_ranking", "placement"))
+
+    def _hosts_for(self, config: str, demand: float, running: Placement | None, lost_hosts: Sequence[str],
+                   live_free: Mapping[str, float] | None) -> dict[str, dict[str, Any]]:
         rows = self.ask("placement", {"feature": self.feature, "config": config})
-        demand = float(config_row.get("memory_demand_mb") or 0.0)
         fits: dict[str, dict[str, Any]] = {}
         for row in rows:
             host = str(row["platform"])
@@ -266,31 +327,16 @@ class Planner:
             credit = running.held_mb if running is not None and running.host == host else 0.0
             if free is not None and free + credit < demand:
                 del fits[host]  # the graph has not caught up with a squeeze we already saw
-        if not fits:
-            raise PlanningError(f"no online platform has {demand:.0f} MiB free for {config}")
-        # The preference decides every time. Plans happen only on triggers (with
-        # hysteresis and dwell on the light), so this cannot flap; it brings the
-        # detector back to the preferred host when that host returns.
-        order = sorted(fits, key=self._host_rank)
-        host = order[0]
-        row = fits[host]
-        target = Placement(config=config, deployment=str(row["deployment"]), host=host, demand_mb=demand)
-        reason = (f"band {band}: {config} has the best calibrated rate "
-                  f"({_fmt(config_row.get('detection_rate'))}); {host} has {_fmt(row.get('free_mb'))} MiB free "
-                  f"for {demand:.0f} MiB ({self.preference})")
-        inputs = {
-            "band": band,
-            "candidates": [{k: r.get(k) for k in ("config", "band", "detection_rate", "ms_per_frame")}
-                           for r in all_rows if r.get("band") == band],
-            "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in order],
-            "running": None if running is None else {"config": running.config, "host": running.host},
-        }
-        return Plan(target=target, reason=reason, inputs=inputs, queries=("detector_configs", "placement"))
+        return fits
 
     def _host_rank(self, host: str) -> tuple[int, str]:
         onboard = host == self.onboard_host
         first = onboard if self.preference == "onboard-first" else not onboard
         return (0 if first else 1, host)
+
+
+def _ordinal(n: int) -> str:
+    return {1: "first", 2: "second", 3: "third"}.get(n, f"{n}th")
 
 
 def _fmt(value: Any) -> str:

@@ -276,16 +276,24 @@ class Score:
         return self.hits / self.truth if self.truth else 0.0
 
     @property
-    def false_rate(self) -> float:
-        """False detections per marker shown (same denominator as the detection rate)."""
-        return self.false / self.truth if self.truth else 0.0
+    def false_per_frame(self) -> float:
+        """False markers per frame: what a phantom costs per frame, whatever else is seen."""
+        return self.false / self.frames if self.frames else 0.0
+
+    @property
+    def false_per_reported(self) -> float:
+        """False markers per marker reported: the share of reports that are wrong."""
+        reported = self.hits + self.false
+        return self.false / reported if reported else 0.0
 
 
-def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, tolerance_px: float = 5.0) -> Score:
+def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, tolerance_px: float = 5.0,
+          ignore: Sequence[int] = ()) -> Score:
     """Match detections to truth: same id and mean corner distance within ``tolerance_px``.
 
     ``truth`` items are :class:`onboard.scenario.Truth` or wire maps ``{"id", "corners"}``.
-    A detection that matches nothing (wrong id, wrong place, or a second hit) is false.
+    A detection that matches nothing (wrong id, wrong place, or a second hit) is false;
+    ids in ``ignore`` (markers partly hidden, e.g. by a saturated window) count neither way.
     """
     wanted: dict[int, np.ndarray] = {}
     for item in truth:
@@ -295,7 +303,8 @@ def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, t
     for mid, mc in zip(ids, corners):
         expected = wanted.get(int(mid))
         if expected is None:
-            result.false += 1
+            if int(mid) not in ignore:
+                result.false += 1
             continue
         error = float(np.linalg.norm(np.asarray(mc, np.float32).reshape(4, 2) - expected, axis=1).mean())
         if error <= tolerance_px:

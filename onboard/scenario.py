@@ -670,7 +670,11 @@ class SyntheticScene:
         if profile.light.window > 0:
             # A marker the window covers is not seen: it leaves the truth.
             edge = profile.light.window * self.settings.height + 2
-            truth = [m for m in truth if min(y for _x, y in m.corners) > edge]
+            covered = [m for m in truth if min(y for _x, y in m.corners) <= edge]
+            truth = [m for m in truth if m not in covered]
+            # Partly covered markers may or may not be found: neither a hit nor a false detection.
+            extras = {"hidden": [m.id for m in covered]}
+            return RenderedFrame(exposed, truth, level, t, extras)
         return RenderedFrame(exposed, truth, level, t)
 
     def expose(
