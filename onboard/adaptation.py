@@ -239,10 +239,11 @@ class Planner:
 
     def choose_config(self, band: str, *, exclude: Sequence[str] = ()) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         """The first configuration of the ranking for ``band`` not in ``exclude``, and the ranking."""
-        ranked = self.candidates(band, exclude=exclude)
-        return ranked[0], ranked
+        full, left = self.candidates(band, exclude=exclude)
+        return left[0], full
 
-    def candidates(self, band: str, *, exclude: Sequence[str] = ()) -> list[dict[str, Any]]:
+    def candidates(self, band: str, *, exclude: Sequence[str] = ()) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        """The whole ranking for ``band``, and what is left of it without ``exclude``."""
         ranked = self.ranking(band)
         if not ranked:
             # Not calibrated: the configuration(s) the models say are suited for the band.
@@ -251,7 +252,7 @@ class Planner:
         if not left:
             what = f" other than {', '.join(exclude)}" if exclude and ranked else ""
             raise PlanningError(f"no detector configuration{what} is calibrated or suited for band {band!r}")
-        return left
+        return ranked, left
 
     def plan(self, *, band: str, running: Placement | None, lost_hosts: Sequence[str] = (),
              live_free: Mapping[str, float] | None = None, exclude: Sequence[str] = ()) -> Plan:
@@ -263,7 +264,7 @@ class Planner:
         fresher view of free memory (host statuses it just received): a host the
         graph still thinks fits but that no longer does by that view is left out.
         """
-        ranked = self.candidates(band, exclude=exclude)
+        full, ranked = self.candidates(band, exclude=exclude)
         skipped: list[dict[str, Any]] = []
         for config_row in ranked:
             config = str(config_row["config"])
@@ -284,7 +285,7 @@ class Planner:
         host = order[0]
         row = fits[host]
         target = Placement(config=config, deployment=str(row["deployment"]), host=host, demand_mb=demand)
-        position = ranked.index(config_row) + 1
+        position = full.index(config_row) + 1
         reason = (f"band {band}: {config} is {_ordinal(position)} in the ranking "
                   f"(rate {_fmt(config_row.get('detection_rate'))}, "
                   f"false/frame {_fmt(config_row.get('false_per_frame'))}, {_fmt(config_row.get('ms_per_frame'))} ms)"
@@ -293,7 +294,7 @@ class Planner:
         inputs = {
             "band": band,
             "ranking": [{k: r.get(k) for k in ("config", "score", "detection_rate", "false_per_frame",
-                                                "ms_per_frame", "memory_demand_mb")} for r in ranked],
+                                                "ms_per_frame", "memory_demand_mb")} for r in full],
             "excluded": list(exclude),
             "skipped": skipped,
             "expected_rate": config_row.get("detection_rate"),
