@@ -142,20 +142,81 @@ class HostView:
 
 
 @dataclass(kw_only=True)
+class CollapseWatch:
+    """The running detector's own evidence: has its detection rate collapsed while markers are expected?
+
+    Its rate is the markers it found per frame over the last ``window`` frames,
+    against the most it found in one frame over the last ``memory_s`` seconds
+    (how many markers are in view when detection works). It has collapsed when
+    that falls below ``drop`` x the rate calibration promised for this
+    configuration in this band, while markers are expected (some were seen in
+    the last ``memory_s`` seconds). After it fires it stays quiet (hysteresis)
+    until the rate is back above ``recover`` x the promise or a band change
+    re-arms it, so a marker that simply left the view costs at most one change,
+    not a cascade down the ranking.
+    """
+
+    window: int = 30
+    drop: float = 0.5
+    recover: float = 0.8
+    memory_s: float = 5.0
+    armed: bool = True
+    _recent: list[int] = field(default_factory=list, repr=False)
+    _seen: list[tuple[float, int]] = field(default_factory=list, repr=False)  # (time, count) with markers
+
+    def update(self, markers: int, now: float, expected_rate: float | None) -> dict[str, Any] | None:
+        """Feed one frame's marker count; the evidence (a dict) when the rate has just collapsed, else None."""
+        markers = int(markers)
+        self._recent.append(markers)
+        if len(self._recent) > self.window:
+            del self._recent[0]
+        if markers > 0:
+            self._seen.append((now, markers))
+        while self._seen and now - self._seen[0][0] > self.memory_s:
+            del self._seen[0]
+        if len(self._recent) < self.window or expected_rate is None or expected_rate <= 0:
+            return None
+        in_view = max((n for _t, n in self._seen), default=0)
+        if in_view == 0:
+            return None  # nothing seen for memory_s: no marker is expected, nothing to compare
+        rate = sum(self._recent) / len(self._recent) / in_view
+        if not self.armed:
+            if rate >= self.recover * expected_rate:
+                self.armed = True
+            return None
+        if rate < self.drop * expected_rate:
+            self.armed = False
+            self._recent.clear()
+            return {"rate": round(rate, 3), "expected": round(expected_rate, 3), "in_view": in_view,
+                    "window": self.window, "drop": self.drop, "last_marker_s_ago": round(now - self._seen[-1][0], 2)}
+        return None
+
+    def reset(self) -> None:
+        """A new detector: measure afresh (the hysteresis state and the markers in view stay)."""
+        self._recent.clear()
+
+    def rearm(self) -> None:
+        self.armed = True
+        self._recent.clear()
+
+
+@dataclass(kw_only=True)
 class Analyzer:
     """Turns observations into triggers. Keeps the state it needs (hosts, rates)."""
 
     tracker: BandTracker
-    collapse_rate: float = 0.2  # detection rate below this ...
-    collapse_window: int = 30  # ... over this many frames, in a band where calibration promised more
+    collapse: CollapseWatch = field(default_factory=CollapseWatch)
+    collapsed: set[str] = field(default_factory=set)  # configurations whose detections collapsed in this band
     hosts: dict[str, HostView] = field(default_factory=dict)
-    _recent: list[bool] = field(default_factory=list, repr=False)
 
     def on_illumination(self, level: float, now: float) -> Trigger | None:
         before = self.tracker.current
         band = self.tracker.update(level, now)
         if band is None or before is None:
             return None
+        # A new band: every configuration gets its chance again.
+        self.collapsed.clear()
+        self.collapse.rearm()
         return Trigger("band_changed", now, {"from": before.name, "to": band.name, "level": round(level, 1)})
 
     def on_host_status(self, host: str, *, free_mb: float, cpu_load: float, now: float,
@@ -185,20 +246,22 @@ class Analyzer:
             return Trigger("host_back", now, {"host": host})
         return None
 
-    def on_detection(self, seen: bool, now: float, expected_rate: float | None) -> Trigger | None:
-        self._recent.append(seen)
-        if len(self._recent) > self.collapse_window:
-            del self._recent[0]
-        if len(self._recent) < self.collapse_window or expected_rate is None:
+    def on_detection(self, markers: int, now: float, expected_rate: float | None,
+                     config: str | None = None) -> Trigger | None:
+        """One frame of the running detector (``config``), ``markers`` found (a bool counts as 0 or 1).
+
+        A ``rate_collapsed`` trigger when its rate collapsed (:class:`CollapseWatch`).
+        """
+        evidence = self.collapse.update(markers, now, expected_rate)
+        if evidence is None:
             return None
-        rate = sum(self._recent) / len(self._recent)
-        if rate < self.collapse_rate <= expected_rate:
-            self._recent.clear()
-            return Trigger("rate_collapsed", now, {"rate": round(rate, 2), "expected": round(expected_rate, 2)})
-        return None
+        if config is not None:
+            self.collapsed.add(config)
+            evidence = {"config": config, **evidence}
+        return Trigger("rate_collapsed", now, evidence)
 
     def reset_rate(self) -> None:
-        self._recent.clear()
+        self.collapse.reset()
 
 
 @dataclass(kw_only=True)
