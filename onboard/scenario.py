@@ -252,6 +252,23 @@ class ProfilePoint:
 
 
 @dataclass(frozen=True, kw_only=True)
+class ProfileEvent:
+    """From ``start`` to ``end`` seconds, another camera or light, or markers at another scale (a climb)."""
+
+    start: float
+    end: float
+    camera: CameraModel | None = None
+    light: LightLayout | None = None
+    marker_scale: float | None = None  # multiplies the markers' size while the event lasts
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.start < self.end:
+            raise ConfigError(f"event from {self.start} to {self.end}: need 0 <= from < to")
+        if self.marker_scale is not None and not 0.05 <= self.marker_scale <= 3:
+            raise ConfigError(f"event marker_scale {self.marker_scale} outside [0.05, 3]")
+
+
+@dataclass(frozen=True, kw_only=True)
 class IlluminationProfile:
     """Scene brightness over time: linear between points, flicker on top."""
 
@@ -264,6 +281,7 @@ class IlluminationProfile:
     camera: CameraModel = CameraModel()
     light: LightLayout = LightLayout()
     scene: "SceneOptions" = field(default_factory=lambda: SceneOptions())
+    events: tuple[ProfileEvent, ...] = ()
     source: str = "<inline>"
 
     def __post_init__(self) -> None:
@@ -305,6 +323,18 @@ class IlluminationProfile:
         a, b, u = self._segment(t)
         return a.flicker_depth + (b.flicker_depth - a.flicker_depth) * u, a.flicker_hz
 
+    def event_at(self, t: float) -> ProfileEvent | None:
+        """The event under way at ``t`` (the first listed, if they overlap)."""
+        local = self._local_time(t)
+        return next((e for e in self.events if e.start <= local < e.end), None)
+
+    def at(self, t: float) -> "IlluminationProfile":
+        """This profile with the camera and light of the event under way at ``t``."""
+        event = self.event_at(t)
+        if event is None or (event.camera is None and event.light is None):
+            return self
+        return replace(self, camera=event.camera or self.camera, light=event.light or self.light, events=())
+
     def row_gains(self, t: float, height: int) -> np.ndarray | None:
         """Per-row flicker multipliers for a frame exposed at ``t`` (None when steady)."""
         depth, hz = self.flicker_at(t)
@@ -343,7 +373,7 @@ def parse_profile_json(text: str, *, source: str = "<json>") -> IlluminationProf
     if isinstance(data, list):
         raw_points = data
     elif isinstance(data, dict):
-        unknown = sorted(set(data) - {"points", "loop", *_GLOBALS, *_GROUPS})
+        unknown = sorted(set(data) - {"points", "loop", "events", *_GLOBALS, *_GROUPS})
         if unknown:
             raise ModelError(source, line_of(key=unknown[0]), f"unknown profile key {unknown[0]!r}")
         if "points" not in data:
@@ -360,6 +390,8 @@ def parse_profile_json(text: str, *, source: str = "<json>") -> IlluminationProf
         for key, cls in _GROUPS.items():
             if key in data:
                 options[key] = _group(cls, key, data[key], source, line_of(key=key))
+        if "events" in data:
+            options["events"] = _events(data["events"], source, line_of(key="events"))
         if "loop" in data:
             if not isinstance(data["loop"], bool):
                 raise ModelError(source, line_of(key="loop"), "'loop' must be true or false")
@@ -412,6 +444,31 @@ def _build(rows: Sequence[tuple[int, Any]], source: str, options: dict[str, Any]
             raise ModelError(source, line, f"flicker frequency {hz} Hz is outside 0..500")
         points.append(ProfilePoint(t, level, depth, hz))
     return IlluminationProfile(points=tuple(points), source=source, **options)
+
+
+def _events(raw: Any, source: str, line: int) -> tuple[ProfileEvent, ...]:
+    """``events``: ``[{"from": t0, "to": t1, "camera": {...}, "light": {...}, "marker_scale": s}, ...]``."""
+    if not isinstance(raw, list):
+        raise ModelError(source, line, "'events' must be a list of {from, to, camera?, light?, marker_scale?}")
+    out = []
+    for i, item in enumerate(raw):
+        where = f"events[{i}]"
+        if not isinstance(item, dict):
+            raise ModelError(source, line, f"{where} must be an object")
+        unknown = sorted(set(item) - {"from", "to", "camera", "light", "marker_scale"})
+        if unknown:
+            raise ModelError(source, line, f"{where} has no {unknown[0]!r} (use from, to, camera, light, marker_scale)")
+        start, end, scale = item.get("from"), item.get("to"), item.get("marker_scale")
+        if not _is_number(start) or not _is_number(end) or (scale is not None and not _is_number(scale)):
+            raise ModelError(source, line, f"{where}: from, to (and marker_scale) must be numbers")
+        try:
+            out.append(ProfileEvent(
+                start=float(start), end=float(end), marker_scale=None if scale is None else float(scale),
+                camera=_group(CameraModel, f"{where}.camera", item["camera"], source, line) if "camera" in item else None,
+                light=_group(LightLayout, f"{where}.light", item["light"], source, line) if "light" in item else None))
+        except ConfigError as exc:
+            raise ModelError(source, line, f"{where}: {exc}") from exc
+    return tuple(out)
 
 
 def _group(cls: type, key: str, raw: Any, source: str, line: int) -> Any:
@@ -627,8 +684,8 @@ class SyntheticScene:
             patch = cv2.GaussianBlur(patch, (3, 3), 0) if rng.random() < 0.5 else patch
             place(_BLACK + (_WHITE - _BLACK) * patch)
 
-    def reflectance(self, t: float) -> tuple[np.ndarray, list[Truth]]:
-        """The scene's reflectance (0..1) at time ``t`` and the markers' truth."""
+    def reflectance(self, t: float, *, scale: float = 1.0) -> tuple[np.ndarray, list[Truth]]:
+        """The scene's reflectance (0..1) at time ``t`` and the markers' truth (markers ``scale`` times their size)."""
         import cv2
 
         s = self.settings
@@ -639,7 +696,8 @@ class SyntheticScene:
         truth: list[Truth] = []
         for pose in self._poses:
             patch, quiet, side = self._patches[pose.id]
-            corners = _project(pose, w, h) + np.array([dx, dy], np.float32)
+            shown = pose if scale == 1.0 else replace(pose, size=pose.size * scale)
+            corners = _project(shown, w, h) + np.array([dx, dy], np.float32)
             x0, y0 = np.floor(corners.min(axis=0)).astype(int) - int(quiet) - 2
             x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + int(quiet) + 2
             if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
@@ -665,7 +723,9 @@ class SyntheticScene:
     def render(self, t: float, profile: IlluminationProfile, rng: np.random.Generator | None = None) -> RenderedFrame:
         """The frame a camera sees at ``t`` under ``profile``."""
         level = profile.level_at(t)
-        image, truth = self.reflectance(t)
+        event = profile.event_at(t)
+        profile = profile.at(t)
+        image, truth = self.reflectance(t, scale=event.marker_scale if event and event.marker_scale else 1.0)
         exposed = self.expose(image, level, profile, t=t, rng=rng)
         if profile.light.window > 0:
             # A marker the window covers is not seen: it leaves the truth.

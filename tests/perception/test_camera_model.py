@@ -109,3 +109,22 @@ def test_bad_camera_light_or_scene_objects_name_the_file_line_and_key(tmp_path, 
     with pytest.raises(ModelError, match=words) as info:
         load_profile(path)
     assert "bad.json:2" in str(info.value)
+
+
+def test_events_change_camera_light_and_marker_size_for_a_while(tmp_path):
+    path = tmp_path / "events.json"
+    path.write_text(json.dumps({
+        "points": [[0, 100], [20, 100]],
+        "events": [{"from": 5, "to": 10, "camera": {"blur_px": 9}, "marker_scale": 0.4},
+                   {"from": 12, "to": 14, "light": {"window": 0.2}}],
+    }))
+    profile = load_profile(path)
+    assert profile.at(1.0) is profile and profile.at(6.0).camera.blur_px == 9 and profile.at(13.0).light.window == 0.2
+    scene = SyntheticScene(SceneSettings())
+    before, during = scene.render(1.0, profile), scene.render(6.0, profile)
+    side = lambda f: max(np.linalg.norm(np.subtract(m.corners[0], m.corners[1])) for m in f.truth)  # noqa: E731
+    assert side(during) < 0.5 * side(before)
+    assert (scene.render(13.0, profile).image[:90] == 255).mean() > 0.99
+    path.write_text(json.dumps({"points": [[0, 1]], "events": [{"from": 5, "to": 2}]}))
+    with pytest.raises(ModelError, match=r"events\[0\].*from < to"):
+        load_profile(path)
