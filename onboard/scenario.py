@@ -674,7 +674,9 @@ class SyntheticScene:
             squares = int(rng.integers(4, 7))
             board = cv2.aruco.CharucoBoard((squares, squares - 1), 0.04, 0.03, other)
             side = int(rng.uniform(0.35, 0.55) * h)
-            image = board.generateImage((side, int(side * (squares - 1) / squares)), marginSize=side // 20)
+            # Drawn at a size OpenCV always accepts, then scaled to the one wanted.
+            image = board.generateImage((squares * 40, (squares - 1) * 40), marginSize=10)
+            image = cv2.resize(image, (side, int(side * (squares - 1) / squares)), interpolation=cv2.INTER_AREA)
             place(_BLACK + (_WHITE - _BLACK) * image.astype(np.float32) / 255.0)
         for _ in range(s.texture):
             side = int(rng.uniform(0.2, 0.35) * h)
