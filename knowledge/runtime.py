@@ -144,6 +144,8 @@ def record_calibration(store: GraphStore, *, config: str, band: str, detection_r
     ``false_rate`` is the old name of ``false_per_reported``. ``condition`` is
     ``all`` for the band as a whole, else clean, blur, uneven, window, small.
     """
+    _check("calibration", false_rate=(false_rate, _NUM, True), false_per_frame=(false_per_frame, _NUM, True),
+           false_per_reported=(false_per_reported, _NUM, True))
     if false_per_reported is None:
         false_per_reported = 0.0 if false_rate is None else false_rate
     if false_per_frame is None:

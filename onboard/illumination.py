@@ -70,8 +70,8 @@ class LightSettings:
     """
 
     saturated: int = 250  # at or above: saturated
-    black: int = 2  # at or below: near-black
-    trim: float = 0.1
+    black: int = 0  # at or below: black (clipped at the sensor's floor)
+    trim: float = 0.02
     min_usable: float = 0.2  # below this share of usable pixels, fall back to all unsaturated ones
     marker_weight: float = 0.75  # share of the estimate given to the light around seen markers
     marker_margin: float = 0.5  # the region around a marker: its box widened by this share of its side
