@@ -312,6 +312,9 @@ class FlightBridge:
         try:
             detections = messages.decode(payload, "detections")
             confirmed = self._confirmed(detections)
+            if confirmed is None:  # a frame the confirmation has seen (a second detector in a migration)
+                self.counters["duplicate"] += 1
+                return
             if detections["ids"] and not confirmed["ids"]:
                 self.counters["unconfirmed"] += 1
                 return
@@ -364,14 +367,16 @@ class FlightBridge:
         self._tokens -= 1.0
         self.counters["targets_sent"] += 1
 
-    def _confirmed(self, detections: dict) -> dict:
-        """Only confirmed markers (``onboard.confirmation``); frames the checks below refuse pass unchanged."""
+    def _confirmed(self, detections: dict) -> dict | None:
+        """Only confirmed markers (``onboard.confirmation``); None for a frame already seen.
+
+        Stale and future frames pass unchanged: the checks below count and refuse them.
+        """
         frame_time = detections["frame_time"]
         age = time.time() - frame_time
         if age > self.settings.max_detection_age_s or age < -self.settings.max_clock_skew_s:
-            return detections  # counted as stale or future below
-        kept = self.confirmer.keep(detections, frame_time)
-        return detections if kept is None else kept  # None: a frame already seen, counted as duplicate below
+            return detections
+        return self.confirmer.keep(detections, frame_time)
 
     def _publish(self, state: FlightState) -> None:
         publisher = self._publisher
