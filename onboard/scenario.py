@@ -647,7 +647,9 @@ class SyntheticScene:
             x0 = int(self._rng.uniform(0, w - s))
             y0 = int(self._rng.uniform(0, h - s))
             base[y0:y0 + s, x0:x0 + s] = _BLACK + 0.1
-            inner = s // 3
+            # A dark frame one sixth of the side wide around a light inside: a marker's outline with no
+            # code. (A light centre of a third of the side was DICT_4X4_50's id 17 at some poses.)
+            inner = max(s // 6, 1)
             base[y0 + inner:y0 + s - inner, x0 + inner:x0 + s - inner] = _WHITE * 0.8
         self._add_patterns(cv2, base)
         return np.clip(base, 0.0, 1.0).astype(np.float32)
