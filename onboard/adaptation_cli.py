@@ -65,6 +65,17 @@ def render(data: dict[str, Any]) -> str:
                      f"{d.get('trigger')}:")
         lines.append(f"  {d.get('outcome')}")
         inputs = d.get("inputs") or {}
+        if inputs.get("ranking"):
+            excluded = set(inputs.get("excluded") or [])
+            skipped = {k.get("config"): k.get("why") for k in inputs.get("skipped") or []}
+            lines.append(f"  ranking for band {inputs.get('band')} (named query config_ranking: "
+                         f"rate - false markers per frame, then ms):")
+            for i, c in enumerate(inputs["ranking"], start=1):
+                note = (" (left out: its detections collapsed)" if c.get("config") in excluded
+                        else f" (skipped: {skipped[c.get('config')]})" if c.get("config") in skipped else "")
+                lines.append(f"   {i}. {c.get('config')}: score {_num(c.get('score'))}, rate {_num(c.get('detection_rate'))}, "
+                             f"false/frame {_num(c.get('false_per_frame'))}, {_num(c.get('ms_per_frame'))} ms/frame, "
+                             f"{_num(c.get('memory_demand_mb'))} MiB{note}")
         for c in inputs.get("candidates") or []:
             lines.append(f"  candidate {c.get('config')}: calibrated rate {c.get('detection_rate')}, "
                          f"{c.get('ms_per_frame')} ms/frame")
@@ -80,6 +91,10 @@ def render(data: dict[str, Any]) -> str:
         for h in data["history"]:
             lines.append(f"  {_ago(h.get('time')):>9}  {h.get('trigger')} -> {h.get('config')}@{h.get('host')}")
     return "\n".join(lines)
+
+
+def _num(value: Any) -> str:
+    return f"{value:.3g}" if isinstance(value, (int, float)) else "?"
 
 
 def _ago(t: Any) -> str:

@@ -303,7 +303,9 @@ class AdaptationManager:
                 if self.current is None or m["instance"] != self.current.instance:
                     return None
                 band = a.tracker.current.name if a.tracker.current else None
-                return a.on_detection(bool(m["ids"]), now, self._expected_rate(self.current.config, band))
+                # Only markers whose cells read clean count as evidence (phantoms do not hold up a rate).
+                found = sum(c is not False for c in (m.get("clean") or [True] * len(m["ids"]))[:len(m["ids"])])
+                return a.on_detection(found, now, self._expected_rate(self.current.config, band), self.current.config)
         except MessageError as exc:
             log.info("adaptation: dropped a %s message on %s: %s", kind, key, exc)
         return None
@@ -394,6 +396,9 @@ class AdaptationManager:
                    and r.get("memory_free_mb") is not None for r in rows)
 
     def _expected_rate(self, config: str, band: str | None) -> float | None:
+        planned = getattr(self, "_expected", None)  # (config, band, rate) from the plan's ranking
+        if planned is not None and planned[:2] == (config, band):
+            return planned[2]
         row = self._configs.get(config)
         if row is None or band is None or row.get("band") != band:
             return None
@@ -441,7 +446,9 @@ class AdaptationManager:
         started = time.perf_counter()
         try:
             live = {h.name: h.memory_free_mb for h in a.hosts.values() if h.memory_free_mb is not None}
-            plan = self._planner.plan(band=band.name, running=None if running_lost else self.current,
+            # Configurations whose detections collapsed in this band stay out until the band changes.
+            exclude = tuple(sorted(a.collapsed))
+            plan = self._planner.plan(band=band.name, running=None if running_lost else self.current, exclude=exclude,
                                       lost_hosts=lost, live_free=live)
         except (PlanningError, KgadaptError) as exc:
             self._record(Outcome(trigger=trigger, outcome=f"no plan: {exc}"))
@@ -530,6 +537,8 @@ class AdaptationManager:
         self._changed_at = time.time()
         self._settled_after = self._changed_at + self.settings.settle_s
         self._analyzer.reset_rate()
+        rate = plan.inputs.get("expected_rate")
+        self._expected = (t.config, plan.inputs.get("band"), float(rate) if rate is not None else None)
 
     def _adopt_running(self) -> None:
         """After a restart: adopt one live detector of ours, stop any twin."""

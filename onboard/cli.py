@@ -50,6 +50,8 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
                     help="site marker file (ids and sizes): LANDING_TARGET then carries the marker's position")
     fc.add_argument("--fc-profile", choices=("auto", "ardupilot", "px4"), default="auto",
                     help="LANDING_TARGET frame per autopilot (default: from its heartbeat)")
+    fc.add_argument("--site", metavar="FILE",
+                    help="site file naming the marker ids there (*.site); other ids never become LANDING_TARGET")
     ad = parser.add_argument_group("adaptation")
     ad.add_argument("--adapt", action="store_true", help="run the adaptation manager on this agent")
     ad.add_argument("--prefer", choices=("onboard-first", "remote-first"), default="onboard-first",
@@ -67,8 +69,8 @@ class FlightPart:
     name = "flight"
 
     def __init__(self, *, robot: str, url: str, camera_model: str, camera: Any = None, markers: Any = None,
-                 profile: str = "auto", manager: Any = None) -> None:
-        self.robot, self.url, self.camera_model = robot, url, camera_model
+                 profile: str = "auto", manager: Any = None, site: str | None = None) -> None:
+        self.robot, self.url, self.camera_model, self.site = robot, url, camera_model, site
         self.camera, self.markers, self.profile = camera, markers, profile  # checked files (onboard.landing_targets)
         self.manager = manager  # the adaptation manager beside it: only its chosen detector steers
 
@@ -81,6 +83,7 @@ class FlightPart:
     def setup(self, session: Any) -> None:
         from knowledge.client import KnowledgeClient
         from onboard.flight import BridgeSettings, FlightBridge, FlightControlWriter, intrinsics_from_graph
+        from onboard.confirmation import ConfirmationSettings, load_site
         from onboard.mavlink import LinkSettings
 
         from onboard.flight import CameraIntrinsics
@@ -90,7 +93,8 @@ class FlightPart:
         intrinsics = (CameraIntrinsics(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy) if c is not None
                       else intrinsics_from_graph(client, self.camera_model))
         settings = BridgeSettings(robot=self.robot, link=LinkSettings(url=self.url), intrinsics=intrinsics,
-                                  camera=c, markers=self.markers, profile=self.profile)
+                                  camera=c, markers=self.markers, profile=self.profile,
+                                  confirmation=ConfirmationSettings(site=load_site(self.site) if self.site else None))
         manager = self.manager
         chosen = None
         if manager is not None:
@@ -131,7 +135,7 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
             robot=args.robot, url=args.fc, camera_model=args.camera_model,
             camera=load_camera(args.fc_camera_file) if getattr(args, "fc_camera_file", None) else None,
             markers=load_site_markers(args.fc_markers) if getattr(args, "fc_markers", None) else None,
-            profile=getattr(args, "fc_profile", "auto"))
+            profile=getattr(args, "fc_profile", "auto"), site=getattr(args, "site", None))
         parts.append(flight)
     if args.adapt:
         from onboard.adaptation_manager import AdaptationManager, AdaptationSettings

@@ -191,7 +191,7 @@ class Detector:
             "frame_time": frame["time"], "time": time.time(),
             "ids": result.ids, "corners": result.corners, "processing_ms": round(result.processing_ms, 3),
             "camera": frame["camera"], "received": received, "decode_ms": round(decode_ms, 3),
-            "dropped": self.slot.replaced,
+            "dropped": self.slot.replaced, "clean": result.clean,
         }
         if isinstance(frame.get("sent"), (int, float)):
             body["frame_sent"] = frame["sent"]
