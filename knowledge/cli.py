@@ -99,14 +99,13 @@ def _time_limit_arg(parser: argparse.ArgumentParser) -> None:
 def _run_bounded(store_url: str | None, cypher: str, params: dict[str, Any], limit_s: float) -> list[dict[str, Any]]:
     """Run a read-only query so that it ends by ``limit_s``: on FalkorDB in a QuerySandbox, killed at the
     limit (killing this command alone would leave the store working on it); elsewhere with the store's timeout."""
-    from knowledge.falkordb_store import FalkorDBStore
-    from knowledge.sandbox import QuerySandbox
-
     if limit_s <= 0:
         raise ConfigError(f"--time-limit {limit_s}: must be positive")
     with open_store(store_url) as store:
-        if not isinstance(store, FalkorDBStore):
+        if store.dialect.name != "falkordb" or not store.capabilities.timeouts:  # not FalkorDB over RESP
             return store.execute(cypher, params, read_only=True, timeout_ms=int(limit_s * 1000))
+        from knowledge.sandbox import QuerySandbox
+
         sandbox = QuerySandbox(store)
         sandbox.setup()
         try:
