@@ -287,9 +287,9 @@ class AdaptationManager:
                 view.memory_free_mb = min(before, now_free)
                 return trigger
             if kind == "flight_state":
+                m = messages.decode(payload, "flight_state")  # malformed ones are dropped and logged either way
                 if self._landed_state is not None:
                     return None  # the bridge beside us is the one source
-                m = messages.decode(payload, "flight_state")
                 self.landing = in_final_descent(m)  # landed state unknown in LAND/RTL counts as descent
                 return None
             if kind == "deploy_event":
