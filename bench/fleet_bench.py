@@ -22,7 +22,9 @@ Measured, for each N of ``--sizes``:
 Then, with the largest N, status fan-in: ``--hosts`` simulated hosts (spread
 over the robots) publish ``host_status`` at ``--rate`` Hz from a publisher
 process; the CPU of the router processes (which hold the knowledge services
-that receive and apply them) beside an idle baseline, and the store's CPU.
+that receive and apply them) beside an idle baseline, and the store's CPU;
+then the same statuses again, also received by one process that only
+decodes them (the floor under the services' figure: the rest is the writes).
 
 Records go to ``bench/results/fleet.json``.
 """
@@ -162,6 +164,31 @@ while time.monotonic() - start < duration:
         time.sleep(delay)
 print("sent", sent, flush=True)
 session.close()
+"""
+
+
+# What a knowledge service does with a status before it writes it, and nothing more: the
+# callback hands it to a queue, a worker decodes and checks it. Its CPU is the floor
+# under the services' figure; the rest is the writes to the store.
+_SINK = r"""
+import queue, sys, threading
+from shared import messages
+from shared.session import ZenohSettings, open_session
+session = open_session(ZenohSettings(mode="client", connect=(sys.argv[1],)))
+work = queue.Queue()
+count = [0]
+def worker():
+    while True:
+        key, payload = work.get()
+        body = messages.decode(payload, "host_status")
+        count[0] += body["host"] == key.split("/")[-2]
+threading.Thread(target=worker, daemon=True).start()
+sub = session.declare_subscriber("kgadapt/*/host/*/status", lambda s: work.put((str(s.key_expr), s.payload.to_bytes())))
+print("sink ready", flush=True)
+sys.stdin.read()
+sub.undeclare()
+session.close()
+print("decoded", count[0], flush=True)
 """
 
 
@@ -372,11 +399,41 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
         pub.wait(timeout=60)
     services = 100.0 * sum(after[p] - before[p] for p in pids) / elapsed
     store = 100.0 * sum(after[p] - before[p] for p in store_pids) / elapsed
+    sink = _sink_cpu(fleet, args, per_robot)
     return {"op": "status_fanin", "hosts": hosts, "rate_hz": args.rate, "statuses_per_s": hosts * args.rate,
             "robots": len(fleet.robots), "routers": fleet.routers, "window_s": round(elapsed, 2),
             "services_cpu_pct": round(services, 1), "services_idle_cpu_pct": round(idle, 1),
             "services_cpu_pct_above_idle": round(services - idle, 1), "store_cpu_pct": round(store, 1),
-            "publisher": sent_line.strip()}
+            "publisher": sent_line.strip(), **sink}
+
+
+def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -> dict[str, Any]:
+    """The same statuses again, also received by one process that only decodes them (see _SINK)."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    sink = subprocess.Popen([sys.executable, "-c", _SINK, fleet.endpoints[0]], cwd=REPO, stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True, env=env)
+    assert sink.stdout is not None and sink.stdin is not None
+    try:
+        sink.stdout.readline()  # "sink ready"
+        pub = subprocess.Popen([sys.executable, "-c", _PUBLISHER, fleet.endpoints[0], ",".join(fleet.robots),
+                                str(per_robot), str(args.rate), str(args.fanin_s + 3)],
+                               cwd=REPO, stdout=subprocess.PIPE, text=True, env=env)
+        try:
+            assert pub.stdout is not None
+            pub.stdout.readline()
+            time.sleep(1.0)  # warm-up window, as above
+            cpu = measure_cpu([sink.pid], args.fanin_s)
+        finally:
+            pub.wait(timeout=60)
+        sink.stdin.close()
+        decoded = sink.stdout.readline().strip()
+    finally:
+        try:
+            sink.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            sink.kill()
+            sink.wait()
+    return {"decode_only_receiver_cpu_pct": round(cpu, 1), "decode_only_receiver": decoded}
 
 
 def _store_pids(fleet: SimulatedFleet) -> list[int]:
@@ -447,7 +504,8 @@ def run(args: argparse.Namespace) -> int:
         if r.get("op") == "status_fanin":
             print(f"status fan-in: {r['hosts']} hosts x {r['rate_hz']} Hz into {r['robots']} knowledge services on "
                   f"{r['routers']} routers: {r['services_cpu_pct']} % of one core "
-                  f"({r['services_idle_cpu_pct']} % idle), store {r['store_cpu_pct']} %")
+                  f"({r['services_idle_cpu_pct']} % idle), store {r['store_cpu_pct']} %; a receiver that only "
+                  f"decodes them: {r['decode_only_receiver_cpu_pct']} %")
     print(f"results: {args.out}")
     return 0
 
