@@ -43,7 +43,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from bench.stats import format_table, machine_info, make_record
+from bench.stats import format_table, machine_info, make_record, write_json
 
 log = logging.getLogger(__name__)
 
@@ -447,19 +447,6 @@ def _store_pids(fleet: SimulatedFleet) -> list[int]:
     return found
 
 
-def _write(path: Path, result: dict[str, Any]) -> None:
-    """Write the result atomically (a reader never sees half a file)."""
-    from shared.errors import ConfigError
-
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(result, indent=1) + "\n")
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise ConfigError(f"cannot write results to {path}: {exc}") from exc
-
-
 def register(bench_sub: argparse._SubParsersAction) -> None:
     """Add ``kgadapt bench fleet``."""
     p = bench_sub.add_parser(
@@ -496,7 +483,7 @@ def run(args: argparse.Namespace) -> int:
             for size, routers, q, cpu in run_size(n, args, records, Path(tmp), fanin=(n == max(sizes))):
                 rows.append([size, routers, q["p50_ms"], q["p99_ms"], f"{q['complete']}/{q['reps']}",
                              q["min_answered"], cpu["idle_pct_per_robot"], cpu["asking_pct_per_robot"]])
-    _write(args.out, {"machine": machine_info(), "settings": {k: str(v) for k, v in vars(args).items()
+    write_json(args.out, {"machine": machine_info(), "settings": {k: str(v) for k, v in vars(args).items()
                                                                if k not in ("func",)}, "records": records})
     print(format_table(rows, ["robots", "routers", "p50 ms", "p99 ms", "complete", "min answered",
                               "router %cpu/robot idle", "… asking"]))
