@@ -158,26 +158,31 @@ class FleetClient:
         timeout = self.settings.timeout if timeout is None else timeout
         if not timeout > 0:
             raise ConfigError(f"fleet timeout {timeout!r}: must be more than 0 s")
-        import zenoh
-
+        checked = []
+        for name, params in questions:
+            checked.append((keys.check_name(name, "query name"), dict(params or {}),
+                            messages.encode("query_request", {"params": dict(params or {})})))
         start = time.perf_counter()
-        pending = []
+        deadline = time.monotonic() + timeout
         try:
             hosts = None
             if self.settings.discover_hosts:
                 hosts = self.session.liveliness().get(f"{keys.PREFIX}/*/host/*/alive", timeout=timeout)
-            for name, params in questions:
-                name = keys.check_name(name, "query name")
-                payload = messages.encode("query_request", {"params": dict(params or {})})
-                key = f"{keys.PREFIX}/*/knowledge/query/{name}"
-                handler = self.session.get(key, payload=payload, timeout=timeout,
-                                           consolidation=zenoh.ConsolidationMode.NONE)
-                pending.append((name, dict(params or {}), handler))
-        except (ConfigError, MessageError):
-            raise
+            pending = [(name, params, payload, self._send(name, payload, timeout)) for name, params, payload in checked]
+            answers = [self._collect(name, params, handler, start) for name, params, _, handler in pending]
+            # No reply at all, at once: no queryable was known yet (a session just opened, in peer
+            # mode). Nobody received the question, so asking again is safe; until the timeout.
+            while time.monotonic() + 0.05 < deadline:
+                empty = [i for i, a in enumerate(answers) if not (a.robots or a.refusals or a.malformed)]
+                if not empty:
+                    break
+                time.sleep(0.05)
+                for i in empty:
+                    name, params, payload, _ = pending[i]
+                    handler = self._send(name, payload, max(0.05, deadline - time.monotonic()))
+                    answers[i] = self._collect(name, params, handler, start)
         except Exception as exc:  # zenoh.ZError: session closed
             raise TransportError(f"fleet question: {exc}") from exc
-        answers = [self._collect(name, params, handler, start) for name, params, handler in pending]
         expected = set(self._hosts_robots(hosts)) if hosts is not None else set()
         with self._lock:
             for answer in answers:
@@ -185,6 +190,12 @@ class FleetClient:
             self._known.update(expected)
             known = set(self._known)
         return [_with_silent(answer, known) for answer in answers]
+
+    def _send(self, name: str, payload: bytes, timeout: float) -> Any:
+        import zenoh
+
+        return self.session.get(f"{keys.PREFIX}/*/knowledge/query/{name}", payload=payload, timeout=timeout,
+                                consolidation=zenoh.ConsolidationMode.NONE)
 
     def _collect(self, name: str, params: dict[str, Any], handler: Any, start: float) -> FleetAnswer:
         robots: dict[str, RobotAnswer] = {}

@@ -146,3 +146,14 @@ def _decisions_and_runs(store) -> tuple[int, int]:
     rows = store.execute("MATCH (a:AdaptationDecision) WITH count(a) AS a MATCH (r:ProcessProfile) "
                          "RETURN a, count(r) AS r", read_only=True)
     return rows[0]["a"], rows[0]["r"]
+
+
+def test_a_peer_that_asks_right_after_opening_still_gets_every_robot(fleet):
+    from shared.session import ZenohSettings, open_session
+
+    peer = open_session(ZenohSettings(mode="peer", connect=(fleet.endpoints["a"],), extra={"scouting/delay": 0}))
+    try:
+        answer = FleetClient(peer, FleetSettings(timeout=3.0, expect=tuple(fleet.robots))).ask("current_placement")
+        assert set(fleet.robots) <= set(answer.answered), answer.table()
+    finally:
+        peer.close()
