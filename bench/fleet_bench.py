@@ -208,17 +208,21 @@ class SimulatedFleet:
 
     ``start()`` seeds the graphs and starts the routers (waiting for each to
     print its ready line); ``stop()`` stops them, removes the graphs and stops
-    the server. The first router's endpoint is ``endpoints[0]``.
+    the server. With ``transit``, one more router that hosts no robot comes
+    first (``endpoints[0]``, ``children[0]``): whoever connects there reaches
+    every robot through it, so its CPU is what routing alone costs.
     """
 
-    def __init__(self, workdir: Path, *, robots: int, routers: int, start_timeout: float = 120.0) -> None:
+    def __init__(self, workdir: Path, *, robots: int, routers: int, transit: bool = False,
+                 start_timeout: float = 120.0) -> None:
         if routers < 1 or robots < routers:
             raise ValueError(f"{robots} robots on {routers} routers: need at least one robot per router")
         self.workdir = workdir
         self.robots = [robot_name(i) for i in range(robots)]
         self.routers = routers
+        self.transit = transit
         self.start_timeout = start_timeout
-        self.endpoints = [f"tcp/127.0.0.1:{_free_port()}" for _ in range(routers)]
+        self.endpoints = [f"tcp/127.0.0.1:{_free_port()}" for _ in range(routers + int(transit))]
         self.server: Any = None
         self.children: list[subprocess.Popen[str]] = []
         self.seeded: dict[str, dict[str, Any]] = {}
@@ -228,6 +232,9 @@ class SimulatedFleet:
         return self.server.address.unix_socket
 
     def share(self, k: int) -> list[str]:
+        """The robots served by router ``k`` (index into ``endpoints``)."""
+        if self.transit:
+            return [] if k == 0 else self.robots[k - 1::self.routers]
         return self.robots[k::self.routers]
 
     def start(self) -> None:
@@ -243,7 +250,7 @@ class SimulatedFleet:
                 self.seeded[robot] = seed_robot(store, robot, i, now=now)
             finally:
                 store.shutdown()
-        for k in range(self.routers):
+        for k in range(len(self.endpoints)):
             argv = [sys.executable, "-m", "bench.fleet_bench", "serve", "--listen", self.endpoints[k],
                     "--socket", self.socket, "--robots", ",".join(self.share(k))]
             for j in range(k):
@@ -271,7 +278,11 @@ class SimulatedFleet:
             raise RuntimeError(f"router {k} did not start: {''.join(result[-10:])}")
 
     def pids(self) -> list[int]:
-        return [c.pid for c in self.children]
+        """The processes holding the knowledge services (the transit router excluded)."""
+        return [c.pid for c in self.children[int(self.transit):]]
+
+    def transit_pid(self) -> int | None:
+        return self.children[0].pid if self.transit else None
 
     def stop(self) -> None:
         for child in self.children:
@@ -319,13 +330,18 @@ def cpu_seconds(pids: Sequence[int]) -> float:
 
 def measure_cpu(pids: Sequence[int], seconds: float, during: Any = None) -> float:
     """Percent of one core that ``pids`` used over ``seconds`` (while ``during()`` runs, if given)."""
-    before, t0 = cpu_seconds(pids), time.monotonic()
+    return measure_cpu_groups({"all": pids}, seconds, during)["all"]
+
+
+def measure_cpu_groups(groups: dict[str, Sequence[int]], seconds: float, during: Any = None) -> dict[str, float]:
+    """``measure_cpu`` for several groups of processes over the same window."""
+    before, t0 = {g: cpu_seconds(p) for g, p in groups.items()}, time.monotonic()
     if during is None:
         time.sleep(seconds)  # a measurement window, not a wait for an event
     else:
         during()
     elapsed = time.monotonic() - t0
-    return 100.0 * (cpu_seconds(pids) - before) / elapsed
+    return {g: 100.0 * (cpu_seconds(p) - before[g]) / elapsed for g, p in groups.items()}
 
 
 def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], workdir: Path,
@@ -335,7 +351,7 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
 
     routers = min(args.routers, n)
     out = []
-    with SimulatedFleet(workdir / f"n{n}", robots=n, routers=routers) as fleet:
+    with SimulatedFleet(workdir / f"n{n}", robots=n, routers=routers, transit=True) as fleet:
         session = open_session(ZenohSettings(mode="client", connect=(fleet.endpoints[0],)))
         try:
             client = FleetClient(session, FleetSettings(timeout=args.timeout, expect=tuple(fleet.robots),
@@ -357,8 +373,10 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
                     answered.append(len(answer.answered))
                     full.append(answer.complete and all(a.rows for a in answer.robots))
 
-            idle = measure_cpu(fleet.pids(), args.idle_s)
-            busy = measure_cpu(fleet.pids(), 0, during=ask_all)
+            groups = {"services": fleet.pids(), "transit": [fleet.transit_pid()]}
+            idle_cpu = measure_cpu_groups(groups, args.idle_s)
+            busy_cpu = measure_cpu_groups(groups, 0, during=ask_all)
+            idle, busy = idle_cpu["services"], busy_cpu["services"]
             complete = sum(full)
             records.append(make_record(store="falkordb", n=n, op="fleet_question", samples_ms=walls,
                                        routers=routers, complete=complete, reps=len(walls),
@@ -366,6 +384,9 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
             records.append({"op": "router_cpu", "n": n, "routers": routers, "idle_pct": round(idle, 2),
                             "asking_pct": round(busy, 2), "idle_pct_per_robot": round(idle / n, 4),
                             "asking_pct_per_robot": round(busy / n, 4),
+                            "transit_router_idle_pct": round(idle_cpu["transit"], 2),
+                            "transit_router_asking_pct": round(busy_cpu["transit"], 2),
+                            "transit_router_asking_pct_per_robot": round(busy_cpu["transit"] / n, 4),
                             "questions_per_s": round(len(walls) / (sum(walls) / 1000), 2)})
             out.append((n, routers, records[-2], records[-1]))
             if fanin:
@@ -382,21 +403,31 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
     pids = fleet.pids()
     store_pids = _store_pids(fleet)
     idle = measure_cpu(pids, args.fanin_s / 2)
-    argv = [sys.executable, "-c", _PUBLISHER, ",".join(fleet.endpoints), ",".join(fleet.robots), str(per_robot),
-            str(args.rate), str(args.fanin_s + 3)]
-    pub = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+    # One publisher per robot-hosting router, for the hosts of its robots: a robot's hosts are
+    # clients of its own router, so no status crosses to another router.
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    pubs = []
+    for k, endpoint in enumerate(fleet.endpoints):
+        robots = fleet.share(k)
+        if robots:
+            pubs.append(subprocess.Popen(
+                [sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
+                 str(args.fanin_s + 3)], cwd=REPO, stdout=subprocess.PIPE, text=True, env=env))
     try:
-        assert pub.stdout is not None
-        pub.stdout.readline()  # "publishing N"
+        for pub in pubs:
+            assert pub.stdout is not None
+            pub.stdout.readline()  # "publishing N"
         time.sleep(1.0)  # let the first seconds of declarations settle before measuring (a warm-up window)
         before = {p: cpu_seconds([p]) for p in pids + store_pids}
         t0 = time.monotonic()
         time.sleep(args.fanin_s)  # the measurement window
         elapsed = time.monotonic() - t0
         after = {p: cpu_seconds([p]) for p in pids + store_pids}
-        sent_line = pub.stdout.read()
+        sent = sum(int(pub.stdout.read().split()[-1]) for pub in pubs if pub.stdout is not None)
     finally:
-        pub.wait(timeout=60)
+        for pub in pubs:
+            pub.wait(timeout=60)
+    sent_line = f"sent {sent}"
     services = 100.0 * sum(after[p] - before[p] for p in pids) / elapsed
     store = 100.0 * sum(after[p] - before[p] for p in store_pids) / elapsed
     sink = _sink_cpu(fleet, args, per_robot)
@@ -479,14 +510,16 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     with tempfile.TemporaryDirectory(prefix="kgadapt-fleet-bench-") as tmp:
         for n in sizes:
-            print(f"fleet of {n} robots on {min(args.routers, n)} routers ...", flush=True)
+            print(f"fleet of {n} robots on {min(args.routers, n)} routers, asked through one more ...", flush=True)
             for size, routers, q, cpu in run_size(n, args, records, Path(tmp), fanin=(n == max(sizes))):
                 rows.append([size, routers, q["p50_ms"], q["p99_ms"], f"{q['complete']}/{q['reps']}",
-                             q["min_answered"], cpu["idle_pct_per_robot"], cpu["asking_pct_per_robot"]])
+                             q["min_answered"], cpu["idle_pct_per_robot"], cpu["asking_pct_per_robot"],
+                             cpu["transit_router_idle_pct"], cpu["transit_router_asking_pct_per_robot"]])
     write_json(args.out, {"machine": machine_info(), "settings": {k: str(v) for k, v in vars(args).items()
                                                                if k not in ("func",)}, "records": records})
     print(format_table(rows, ["robots", "routers", "p50 ms", "p99 ms", "complete", "min answered",
-                              "router %cpu/robot idle", "… asking"]))
+                              "services %cpu/robot idle", "… asking", "transit router %cpu idle",
+                              "… /robot asking"]))
     for r in records:
         if r.get("op") == "status_fanin":
             print(f"status fan-in: {r['hosts']} hosts x {r['rate_hz']} Hz into {r['robots']} knowledge services on "
