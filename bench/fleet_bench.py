@@ -508,6 +508,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--sizes and --routers: at least 1")
     records: list[dict[str, Any]] = []
     rows = []
+    load_before = os.getloadavg()  # the machine is shared: say how busy it was
     with tempfile.TemporaryDirectory(prefix="kgadapt-fleet-bench-") as tmp:
         for n in sizes:
             print(f"fleet of {n} robots on {min(args.routers, n)} routers, asked through one more ...", flush=True)
@@ -515,7 +516,8 @@ def run(args: argparse.Namespace) -> int:
                 rows.append([size, routers, q["p50_ms"], q["p99_ms"], f"{q['complete']}/{q['reps']}",
                              q["min_answered"], cpu["idle_pct_per_robot"], cpu["asking_pct_per_robot"],
                              cpu["transit_router_idle_pct"], cpu["transit_router_asking_pct_per_robot"]])
-    write_json(args.out, {"machine": machine_info(), "settings": {k: str(v) for k, v in vars(args).items()
+    write_json(args.out, {"machine": {**machine_info(), "load_avg_1_5_15_before": load_before,
+                                      "load_avg_1_5_15_after": os.getloadavg()}, "settings": {k: str(v) for k, v in vars(args).items()
                                                                if k not in ("func",)}, "records": records})
     print(format_table(rows, ["robots", "routers", "p50 ms", "p99 ms", "complete", "min answered",
                               "services %cpu/robot idle", "… asking", "transit router %cpu idle",
@@ -526,6 +528,8 @@ def run(args: argparse.Namespace) -> int:
                   f"{r['routers']} routers: {r['services_cpu_pct']} % of one core "
                   f"({r['services_idle_cpu_pct']} % idle), store {r['store_cpu_pct']} %; a receiver that only "
                   f"decodes them: {r['decode_only_receiver_cpu_pct']} %")
+    print(f"load average before {load_before[0]:.2f}, after {os.getloadavg()[0]:.2f} (2 cores: others' work "
+          f"shares them)")
     print(f"results: {args.out}")
     return 0
 
