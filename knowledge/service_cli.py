@@ -151,6 +151,9 @@ def _run_fleet_ask(args: argparse.Namespace) -> int:
 
     if args.query or args.cypher:
         raise ConfigError("--fleet QUERY asks a named query of every robot: give no other QUERY and no --cypher")
+    from shared.keys import check_name
+
+    check_name(args.fleet, "query name")  # before any network: a name is one key chunk, no wildcard
     raw = _parse_params(args.param)
     params: dict[str, Any] = coerce_params(args.fleet, raw) if args.fleet in QUERIES else dict(raw)
     settings = FleetSettings(timeout=args.timeout, expect=tuple(args.expect))

@@ -157,3 +157,12 @@ def test_a_peer_that_asks_right_after_opening_still_gets_every_robot(fleet):
         assert set(fleet.robots) <= set(answer.answered), answer.table()
     finally:
         peer.close()
+
+
+def test_bad_fleet_requests_are_refused_naming_the_problem_before_any_network():
+    bad_name = kgadapt("ask", "--fleet", "kgadapt/**", "--connect", "tcp/127.0.0.1:9")
+    assert bad_name.returncode == 1 and "query name 'kgadapt/**'" in bad_name.stderr
+    bad_robot = kgadapt("ask", "--fleet", "platforms", "--expect", "a*b", "--connect", "tcp/127.0.0.1:9")
+    assert bad_robot.returncode == 1 and "robot name 'a*b'" in bad_robot.stderr
+    both = kgadapt("fleet", "--once", "--interval", "0")
+    assert both.returncode == 1 and "--interval" in both.stderr
