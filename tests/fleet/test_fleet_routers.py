@@ -47,6 +47,9 @@ while True:  # the routers' link and declarations take a moment after start
     if {"quad1", "quad2"} <= set(answer.answered) or time.monotonic() > deadline:
         break
 out["fleet"] = answer.as_json()
+from kgadapt.fleet_view import FleetView, FleetViewSettings, as_json
+with FleetView(operator, FleetViewSettings(timeout=3.0)) as view:  # its subscriptions are denied: it asks
+    out["view"] = as_json(view.snapshot())
 def refused(call):
     try:
         call()
@@ -146,6 +149,10 @@ def test_a_fleet_question_crosses_the_router_link_and_nothing_writes_the_other_r
     assert set(by_robot) == {"quad1", "quad2"}, fleet  # quad1 answered through quad2's router and the link
     assert by_robot["quad1"]["config"] == "marker_detection_day" and by_robot["quad2"]["config"] == "marker_detection_dusk"
     assert fleet["silent"] == ["quad3"]  # expected, not on the network: listed, not left out
+    view = {r["robot"]: r for r in out["view"]}
+    assert set(view) == {"quad1", "quad2"} and all(r["answering"] for r in view.values())
+    assert (view["quad1"]["config"], view["quad1"]["band"]) == ("marker_detection_day", "day")
+    assert view["quad1"]["hosts_online"] == []  # seeded online, but quad1's service marked them offline at start
     assert out["write_as_quad2_onboard"] and out["write_as_quad2_operator"] and out["cypher_of_quad1"]
     assert out["wildcard_write_replies"] == []  # a wildcard write reaches no robot, not even quad2's own
     assert out["deployer_replies"] == []
