@@ -25,7 +25,7 @@ from deploy.archive import ArchiveSettings, build, build_wheel, fill_wheelhouse,
 from tests.conftest import free_port
 from tests.support import Child, wait_for
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]  # builds and installs: minutes on a loaded machine
 
 PY = f"{sys.version_info.major}.{sys.version_info.minor}"
 MODELS = Path(__file__).resolve().parents[2] / "knowledge" / "models"
