@@ -160,6 +160,10 @@ class HalfCore:
         (self.path / "cpu.cfs_quota_us").write_text(str(int(100000 * self.quota)))
         return self
 
+    def wrap(self, argv: list[str]) -> list[str]:
+        """``argv`` started inside the group (the process moves itself in, then execs)."""
+        return ["sh", "-c", 'echo $$ > "$0" && exec "$@"', str(self.path / "cgroup.procs"), *argv]
+
     def add(self, pid: int) -> None:
         # Seen once here: EINVAL on a process that had just become ready; a retry moved it.
         for attempt in range(5):
@@ -242,13 +246,13 @@ def measure_onboard(*, seconds: float = 15.0, half_core: bool = False, progress=
         cluster = LocalCluster(ClusterSettings(workdir=Path(tmp), log_level="WARNING", start_timeout=60.0))
         endpoint = f"tcp/127.0.0.1:{_free_port()}"
         group = HalfCore() if half_core else None
+        inside = (lambda argv: group.wrap(argv)) if group is not None else (lambda argv: argv)
         try:
-            agent = cluster.spawn("onboard", cluster.kgadapt(
-                "onboard", "--host", "onboard", "--listen", endpoint, "--connect", endpoint,
-                "--camera-source", "synthetic", "--fps", "30"), ready="agent ready").process.pid
             if group is not None:
                 group.__enter__()
-                group.add(agent)
+            agent = cluster.spawn("onboard", inside(cluster.kgadapt(
+                "onboard", "--host", "onboard", "--listen", endpoint, "--connect", endpoint,
+                "--camera-source", "synthetic", "--fps", "30")), ready="agent ready").process.pid
             progress(f"onboard agent alone, {label}, {seconds:.0f} s ...")
             cpu, rss = _usage(agent, seconds)
             records.append({"process": "onboard agent", "limit": label, "cpu_pct": round(cpu, 1),
@@ -259,12 +263,10 @@ def measure_onboard(*, seconds: float = 15.0, half_core: bool = False, progress=
                     counted: list[int] = []
                     sub = session.declare_subscriber(keys.detector_markers("quad1"), lambda _: counted.append(1))
                     try:
-                        detector = cluster.spawn(config, [
+                        detector = cluster.spawn(config, inside([
                             sys.executable, "-m", "onboard.detector", "--instance", f"fp-{config}", "--host",
-                            "onboard", "--connect", endpoint, "--config-json", _config_json(config)],
+                            "onboard", "--connect", endpoint, "--config-json", _config_json(config)]),
                             ready="KGADAPT_READY").process.pid
-                        if group is not None:
-                            group.add(detector)
                         progress(f"{config} beside the agent, {label}, {seconds:.0f} s ...")
                         counted.clear()
                         start, agent_cpu = time.monotonic(), _cpu(agent)
