@@ -30,6 +30,7 @@ PARTS = (
     "bench.cli",              # kgadapt bench table1|zenoh|deployer|perception|adaptation|reliability
     "kgadapt.demo",           # kgadapt demo
     "kgadapt.certs",          # kgadapt certs (TLS certificate authority and certificates)
+    "kgadapt.status",         # kgadapt status (one screen for the person running the robot)
 )
 
 
