@@ -223,6 +223,13 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
             problems.append(f"detector {instance} ({seen['config']}) finds markers in {rate:.0%} of frames; "
                             f"calibrated {expected:.0%} in band {band}")
     out["detection"] = detectors
+    heard = {d["instance"] for d in detectors}
+    for p in live:
+        if p.get("state") == "ready" and p.get("instance") not in heard and light is not None \
+                and p.get("config") in {r.get("config") for r in configs}:
+            problems.append(f"detector {p.get('instance')} is ready but sent no detections in {listen_s:g} s "
+                            "(on a host with only a loopback interface Zenoh peers cannot reach each other: "
+                            "run the agents with --mode client)")
     if light is not None and not live and processes is not None:
         problems.append("the camera publishes frames but no detector process is running")
 
