@@ -19,6 +19,7 @@ BENCHES = (
     "bench.adaptation_bench",
     "bench.reliability_bench",
     "bench.footprint",
+    "bench.starvation_bench",
 )
 
 

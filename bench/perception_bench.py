@@ -9,8 +9,15 @@ the shared format of bench/stats.py) and summarised for docs/perception.md:
 2. **frame transport** at 30 fps from the camera publisher (this process) to a
    detector in another process over Zenoh on loopback: publication to arrival
    in the detector (target p99 <= 20 ms), and capture to detections published.
-3. **the calibration table**: detection rate, false rate and ms per frame per
-   configuration and band, and the best configuration of each band.
+3. **the calibration table**: detection rate, false markers per 1,000 frames
+   and ms per frame per configuration, band and condition, and the first of
+   each band's ranking.
+4. **quality** (:mod:`bench.perception_quality`, into
+   ``perception.quality.json``): per configuration x band x condition on fresh
+   frames with the oracle gap of the planner's pick; phantom landing targets
+   over frames without the site's markers (real photographs and synthetic
+   patterns); real photographs against the synthetic scene at the same level;
+   the issue's rate targets.
 """
 
 from __future__ import annotations
@@ -43,7 +50,11 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
                     "transport at 30 fps from the camera publisher to a detector process over Zenoh "
                     "(latency p50/p99; target p99 <= 20 ms on loopback).",
     )
-    p.add_argument("--frames", type=int, default=12, help="calibration frames per level (default 12)")
+    p.add_argument("--frames", type=int, default=4, help="calibration frames per level and condition (default 4)")
+    p.add_argument("--eval-frames", type=int, default=6,
+                   help="fresh frames per level and condition for the oracle gap (default 6)")
+    p.add_argument("--phantom-frames", type=int, default=10000,
+                   help="frames without the site's markers for the phantom count (default 10000)")
     p.add_argument("--levels", type=int, default=4, help="calibration levels per band (default 4)")
     p.add_argument("--seconds", type=float, default=10.0, help="transport run length (default 10 s)")
     p.add_argument("--fps", type=float, default=30.0, help="transport frame rate (default 30)")
@@ -57,7 +68,8 @@ def _run(args: argparse.Namespace) -> int:
     import json
 
     summary = run(frames=args.frames, levels=args.levels, seconds=args.seconds, fps=args.fps,
-                  store_url=args.store, out=args.out, progress=None if args.json else _say)
+                  store_url=args.store, out=args.out, progress=None if args.json else _say,
+                  eval_frames=args.eval_frames, phantom_frames=args.phantom_frames)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
@@ -67,6 +79,17 @@ def _run(args: argparse.Namespace) -> int:
               f"publish->detector p50 {t['transport_p50_ms']:.2f} ms p99 {t['transport_p99_ms']:.2f} ms "
               f"(target p99 <= {TRANSPORT_TARGET_P99_MS:g}: {'met' if t['target_met'] else 'NOT met'}); "
               f"capture->detections p50 {t['end_to_end_p50_ms']:.2f} ms p99 {t['end_to_end_p99_ms']:.2f} ms")
+        q = summary["quality"]
+        print("oracle gap (points) per band and condition: " + ", ".join(
+            f"{g['band']}/{g['condition']} {g['oracle_gap_points']}" for g in q["oracle"]["gaps"]))
+        print(f"worst oracle gap {q['oracle']['worst_gap']['oracle_gap_points']} points "
+              f"(target <= 5: {'met' if q['oracle']['target_met'] else 'NOT met'})")
+        ph = q["phantoms"]
+        print(f"phantoms over {ph['frames']} frames without site markers: " + "; ".join(
+            f"{c}: raw {v['raw_false_markers']}, landing targets {v['landing_targets_no_site']} (no site) / "
+            f"{v['landing_targets_with_site']} (site)" for c, v in ph["per_config"].items()))
+        for case, rates in q["targets"].items():
+            print(f"{case}: " + ", ".join(f"{c} {r:.1%}" for c, r in rates.items()))
         print(f"wrote {summary['out']}")
     return 0
 
@@ -75,25 +98,52 @@ def _say(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def run(*, frames: int = 12, levels: int = 4, seconds: float = 10.0, fps: float = 30.0,
+def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float = 30.0,
         store_url: str | None = None, out: Path | str = RESULTS / "perception.json",
-        progress: Any = None) -> dict[str, Any]:
-    """Run all three measurements; write the records; return a summary."""
+        progress: Any = None, eval_frames: int = 6, phantom_frames: int = 10000) -> dict[str, Any]:
+    """Run all four measurements; write the records; return a summary."""
+    import json
+
+    from bench import perception_quality as quality
     from bench import stats
+    from knowledge.queries import run_named
+    from knowledge.store import open_store
     from onboard.calibration import CalibrationSettings, run_calibration
+    from onboard.illumination import bands_from_rows
 
     settings = CalibrationSettings(frames_per_level=frames, levels_per_band=levels)
     with tempfile.TemporaryDirectory(prefix="kgadapt-perception-") as tmp:
         url = store_url or f"embedded:{tmp}/store"
         calibration = run_calibration(url, settings=settings, progress=progress,
                                       json_path=RESULTS / "calibration.json", plot_path=RESULTS / "calibration.png")
+        # The planner's view: the ranking query on the calibrated graph, judged on fresh frames.
+        with open_store(url) as store:
+            ask = lambda name, params: run_named(store, name, params)  # noqa: E731
+            bands = bands_from_rows(ask("detector_configs", {}))
+            if progress:
+                progress("oracle gap: every configuration on fresh frames ...")
+            oracle = quality.oracle_gap(ask, bands, frames=eval_frames, levels=levels)
+    if progress:
+        progress(f"phantoms: {phantom_frames} frames without the site's markers ...")
+    from onboard.confirmation import load_site
+
+    site = load_site(REPO / "knowledge" / "models" / "sites" / "demo.site")
+    phantoms = quality.phantoms(frames=phantom_frames, site_ids=sorted(site.ids), progress=progress)
+    if progress:
+        progress("real photographs against the synthetic scene ...")
+    photos = quality.photo_agreement()
+    target_rates = quality.targets()
+    quality_summary = {"oracle": oracle, "phantoms": phantoms, "photos": photos, "targets": target_rates}
+    (RESULTS / "perception.quality.json").write_text(json.dumps({"machine": stats.machine_info(), **quality_summary},
+                                                               indent=2) + "\n")
     records: list[dict[str, Any]] = []
     for r in calibration["results"]:
         records.append({
-            "store": "none", "n": None, "op": f"detect {r['config']} {r['band']}",
+            "store": "none", "n": None, "op": f"detect {r['config']} {r['band']} {r['condition']}",
             "mean_ms": r["ms_per_frame"], "sd_ms": None, "p50_ms": None, "p99_ms": r["ms_p99"],
-            "reps": r["frames"], "config": r["config"], "band": r["band"],
-            "detection_rate": r["detection_rate"], "false_rate": r["false_rate"], "resolution": "640x480",
+            "reps": r["frames"], "config": r["config"], "band": r["band"], "condition": r["condition"],
+            "detection_rate": r["detection_rate"], "false_per_frame": r["false_per_frame"],
+            "false_per_reported": r["false_per_reported"], "resolution": "640x480",
         })
     if progress:
         progress(f"frame transport: {seconds:g} s at {fps:g} fps to a detector process ...")
@@ -107,13 +157,13 @@ def run(*, frames: int = 12, levels: int = 4, seconds: float = 10.0, fps: float 
         "calibration_best": calibration["best"],
         "calibration_table": calibration["table"],
         "transport": transport,
+        "quality": {"oracle": {k: v for k, v in oracle.items() if k != "rows"}, "phantoms": phantoms,
+                    "targets": target_rates},
         "records": records,
     }
     path = stats.write_records(out, records)
     summary["out"] = str(path)
     side = Path(path).with_suffix(".summary.json")
-    import json
-
     side.write_text(json.dumps({k: v for k, v in summary.items() if k != "records"}, indent=2) + "\n")
     return summary
 

@@ -105,9 +105,12 @@ class Deployer:
 
     name = "deployer"
 
-    def __init__(self, settings: DeployerSettings, *, knowledge: Any = None) -> None:
+    def __init__(self, settings: DeployerSettings, *, knowledge: Any = None,
+                 free_memory: Callable[[], float] | None = None) -> None:
         self.settings = settings
         self._knowledge = knowledge
+        # MiB this host may still give (the host monitor's figure, within its budget); None: no check.
+        self._free_memory = free_memory
         self.supervisor = Supervisor(SupervisorSettings())
         self.recorder: ProfileRecorder | None = None
         self._session: Any = None
@@ -125,7 +128,7 @@ class Deployer:
         if self._knowledge is None:
             from knowledge.client import KnowledgeClient
 
-            self._knowledge = KnowledgeClient(session, s.robot, timeout=s.knowledge_timeout)
+            self._knowledge = KnowledgeClient(session, s.robot, timeout=s.knowledge_timeout, own=True)
         try:
             self.recorder = ProfileRecorder(
                 host=s.host, write=self._knowledge.write, settings=ProfileSettings(sample_interval=s.sample_interval)
@@ -224,10 +227,27 @@ class Deployer:
 
     def start(self, deployment: str, config: str, *, instance: str | None = None,
               wait_ready: bool = True, ready_timeout: float | None = None) -> ProcessInfo:
-        """Check with the knowledge store, then start; see :meth:`Supervisor.start`."""
+        """Check with the knowledge store and the host's memory, then start; see :meth:`Supervisor.start`."""
         spec = self.resolve(deployment, config, instance, ready_timeout=ready_timeout)
+        self._check_memory(config)
         log.info("host %s: starting %s (%s, %s): %s", self.settings.host, spec.instance, deployment, config, " ".join(spec.argv))
         return self.supervisor.start(spec, wait_ready=wait_ready)
+
+    def _check_memory(self, config: str) -> None:
+        """Refuse a start whose declared memory demand exceeds what the host has free."""
+        if self._free_memory is None:
+            return
+        try:
+            rows = self._knowledge.query("detector_config", {"config": config})
+        except (RemoteError, TransportError) as exc:
+            raise DeploymentError(f"cannot look up the memory demand of {config}: {exc}") from exc
+        demand = float((rows[0].get("memory_demand_mb") or 0.0) if rows else 0.0)
+        free = float(self._free_memory())
+        if demand > free:
+            raise DeploymentError(
+                f"start of {config} refused: it needs {demand:.0f} MiB and host {self.settings.host} has "
+                f"{free:.0f} MiB free within its memory budget"
+            )
 
     def stop(self, instance: str) -> ProcessInfo:
         """Stop one instance (SIGINT, SIGTERM, SIGKILL)."""
@@ -260,6 +280,9 @@ class Deployer:
                 if payload is None:
                     raise MessageError(f"{verb} request has no payload; send a deploy_request message")
                 request = messages.decode(payload.to_bytes(), "deploy_request")
+                if verb in ("start", "stop") and str(query.key_expr) != key:
+                    # host/*/deployer/start would reach every host: a change names exactly one.
+                    raise MessageError(f"a {verb} request must name exactly one host; {query.key_expr} does not")
             except MessageError as exc:
                 log.info("host %s: malformed %s request: %s", self.settings.host, verb, exc)
                 query.reply_err(f"deployer {self.settings.host}: {exc}")

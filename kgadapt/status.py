@@ -115,7 +115,7 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     problems: list[str] = []
     out: dict[str, Any] = {"robot": robot, "endpoint": endpoint, "time": time.time()}
     try:
-        client = KnowledgeClient(session, robot, timeout=timeout)
+        client = KnowledgeClient(session, robot, timeout=timeout, own=True)  # a person running this robot: fresh answers
         graph: dict[str, Any] = {}
         try:
             t0 = time.monotonic()

@@ -49,6 +49,7 @@ def register(subparsers: Any) -> None:
     query.add_argument("--param", "-p", action="append", default=[], metavar="KEY=VALUE",
                        help="a parameter (repeat for more); typed as the query declares")
     query.add_argument("--json", action="store_true", help="print the rows as JSON")
+    _time_limit_arg(query)
     _store_arg(query)
     query.set_defaults(func=_query)
 
@@ -58,11 +59,15 @@ def register(subparsers: Any) -> None:
     listing.set_defaults(func=_queries)
 
     cypher = sub.add_parser("cypher", help="run one read-only Cypher query",
-                            description="Run one Cypher query read-only: a query that writes is refused.")
+                            description="Run one read-only Cypher query of the subset other robots may send "
+                                        "(MATCH, OPTIONAL MATCH, WHERE, WITH, UNWIND, RETURN, ORDER BY, SKIP, LIMIT, "
+                                        "UNION; no CALL, no LOAD CSV): anything else is refused before it reaches "
+                                        "the store.")
     cypher.add_argument("text", metavar="QUERY", help="the Cypher text; values as $parameters")
     cypher.add_argument("--param", "-p", action="append", default=[], metavar="KEY=VALUE",
                         help="a parameter; the value is read as JSON when it parses, else as a string")
     cypher.add_argument("--json", action="store_true", help="print the rows as JSON")
+    _time_limit_arg(cypher)
     _store_arg(cypher)
     cypher.set_defaults(func=_cypher)
 
@@ -83,6 +88,30 @@ def register(subparsers: Any) -> None:
         hook = getattr(service_cli, "register_knowledge", None)
         if hook is not None:
             hook(sub)
+
+
+def _time_limit_arg(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--time-limit", type=float, default=10.0, metavar="SECONDS",
+                        help="hard limit: past it the query is stopped and the command fails saying so "
+                             "(default 10; the paper's literal queries keep their own 1 s)")
+
+
+def _run_bounded(store_url: str | None, cypher: str, params: dict[str, Any], limit_s: float) -> list[dict[str, Any]]:
+    """Run a read-only query so that it ends by ``limit_s``: on FalkorDB in a QuerySandbox, killed at the
+    limit (killing this command alone would leave the store working on it); elsewhere with the store's timeout."""
+    if limit_s <= 0:
+        raise ConfigError(f"--time-limit {limit_s}: must be positive")
+    with open_store(store_url) as store:
+        if store.dialect.name != "falkordb" or not store.capabilities.timeouts:  # not FalkorDB over RESP
+            return store.execute(cypher, params, read_only=True, timeout_ms=int(limit_s * 1000))
+        from knowledge.sandbox import QuerySandbox
+
+        sandbox = QuerySandbox(store)
+        sandbox.setup()
+        try:
+            return sandbox.execute(cypher, params, limit_s=limit_s)
+        finally:
+            sandbox.shutdown()
 
 
 def _pairs(items: list[str]) -> dict[str, str]:
@@ -119,11 +148,14 @@ def _load(args: argparse.Namespace) -> int:
 
 
 def _query(args: argparse.Namespace) -> int:
-    from knowledge.queries import coerce_params, run_named
+    from knowledge.queries import check_params, coerce_params, get_query
 
-    params = coerce_params(args.name, _pairs(args.param))
-    with open_store(args.store) as store:
-        rows = run_named(store, args.name, params)
+    query = get_query(args.name)
+    values = check_params(args.name, coerce_params(args.name, _pairs(args.param)))
+    limit_s = args.time_limit
+    if query.time_limit_ms is not None:
+        limit_s = min(limit_s, query.time_limit_ms / 1000)
+    rows = _run_bounded(args.store, query.text_for(values), values, limit_s)
     if args.json:
         _print_json(rows)
     else:
@@ -151,8 +183,9 @@ def _cypher(args: argparse.Namespace) -> int:
             params[key] = json.loads(text)
         except ValueError:
             params[key] = text
-    with open_store(args.store) as store:
-        rows = store.execute(args.text, params, read_only=True)
+    from knowledge.cypher_guard import check_cypher
+
+    rows = _run_bounded(args.store, check_cypher(args.text), params, args.time_limit)
     if args.json:
         _print_json(rows)
     else:

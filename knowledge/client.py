@@ -21,16 +21,20 @@ from shared.errors import MessageError, RemoteError, RequestTimeout, TransportEr
 class KnowledgeClient:
     """Named queries, read-only Cypher and run-time writes on ``robot``'s knowledge service."""
 
-    def __init__(self, session: Any, robot: str, *, timeout: float = 2.0) -> None:
+    def __init__(self, session: Any, robot: str, *, timeout: float = 2.0, own: bool = False) -> None:
         self.session = session
         self.robot = keys.check_name(robot, "robot name")
         self.timeout = timeout
+        # own=True: the robot's own software asks on knowledge/own/query/*, served from the
+        # primary store apart from other robots' questions (which the ACL keeps off that key).
+        self.own = own
         self.last_elapsed_ms: float | None = None  # store time the service reported for the last request
 
     def query(self, name: str, params: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
         """Rows of named query ``name`` with ``params``."""
         payload = messages.encode("query_request", {"params": dict(params or {})})
-        return self._ask(keys.knowledge_query(self.robot, keys.check_name(name, "query name")), payload, f"query {name!r}")
+        key_of = keys.knowledge_own_query if self.own else keys.knowledge_query
+        return self._ask(key_of(self.robot, keys.check_name(name, "query name")), payload, f"query {name!r}")
 
     def cypher(self, text: str, params: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
         """Rows of a read-only Cypher statement (a write is refused by the service)."""

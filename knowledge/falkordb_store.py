@@ -17,7 +17,7 @@ from falkordb.path import Path as GraphPath
 from knowledge.dialect import FALKORDB, Dialect
 from knowledge.embedded import EmbeddedServer
 from knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
-from shared.errors import QueryError, ReadOnlyViolation, StoreUnavailable
+from shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ class FalkorDBStore(GraphStore):
         if self.settings.username:
             kwargs["username"] = self.settings.username
         try:
-            db = FalkorDB(socket_connect_timeout=timeout, **kwargs)
+            db = FalkorDB(socket_connect_timeout=timeout, socket_timeout=self.settings.socket_timeout, **kwargs)
             db.connection.ping()
         except (redis.RedisError, OSError) as exc:
             raise StoreUnavailable(f"cannot reach FalkorDB at {self.settings.url}: {exc}") from exc
@@ -118,7 +118,14 @@ class FalkorDBStore(GraphStore):
                 if "read-only" in message:
                     raise ReadOnlyViolation(f"read-only query refused by the store: {message}") from exc
                 raise QueryError(f"store rejected the query: {message}") from exc
-            except (redis.ConnectionError, redis.TimeoutError, OSError) as exc:
+            except redis.TimeoutError as exc:
+                # The socket timeout is the hard limit: the answer is abandoned (redis-py drops
+                # the connection); the server may still be working on it.
+                limit = self.settings.socket_timeout
+                raise QueryTimeLimit(
+                    f"query abandoned: no answer within the hard limit of {limit if limit is not None else '?'} s"
+                ) from exc
+            except (redis.ConnectionError, OSError) as exc:
                 # The embedded server may have been restarted by another of our
                 # processes; find (or start) it again, once.
                 if attempt == 2 or self.settings.kind != "embedded":

@@ -30,6 +30,7 @@ from knowledge.store import GraphStore
 from shared.errors import NamedQueryError
 
 DEFAULT_FEATURE = "MarkerDetection"
+LITERAL_TIME_LIMIT_MS = 1000  # the paper's unbounded texts: 315 ms at N = 10, unbounded beyond
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,9 @@ class NamedQuery:
     params: dict[str, Param]
     cypher: str
     when_missing: Mapping[str, str] = field(default_factory=dict)
+    # A hard limit for queries that can run for ever (the paper's literal texts):
+    # they always run in a query sandbox, killed when the limit is hit.
+    time_limit_ms: int | None = None
 
     def text_for(self, values: Mapping[str, Any]) -> str:
         """The Cypher text for these (checked) values."""
@@ -175,18 +179,47 @@ MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH}
         "detector_configs",
         "The detector configurations realising a feature: the band each is suited for, its memory "
         "demand, and its calibrated detection rate in that band (null until calibrated). "
-        "ms_per_frame is the calibrated figure, else the design-time estimate.",
-        {"feature": _FEATURE},
+        "ms_per_frame is the calibrated figure, else the design-time estimate. Calibration of the "
+        "band as a whole (condition all) unless another condition is given.",
+        {"feature": _FEATURE, "condition": Param("str", required=False, default="all",
+                                                 help="calibration condition (default all)")},
         f"""
 MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
 OPTIONAL MATCH (g)-[:{S.SUITED_FOR}]->(b:{S.ILLUMINATION_BAND})
-OPTIONAL MATCH (g)-[cal:{S.CALIBRATED}]->(b)
+OPTIONAL MATCH (g)-[cal:{S.CALIBRATED} {{condition: $condition}}]->(b)
 OPTIONAL MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
 WITH g, b, cal, sum(c.memory_demand_mb) AS demand, max(c.ms_per_frame) AS design_ms
 RETURN g.name AS config, b.name AS band, b.min_level AS min_level, b.max_level AS max_level,
-       demand AS memory_demand_mb, cal.detection_rate AS detection_rate, cal.false_rate AS false_rate,
+       demand AS memory_demand_mb, cal.detection_rate AS detection_rate,
+       cal.false_per_frame AS false_per_frame, cal.false_per_reported AS false_per_reported,
        coalesce(cal.ms_per_frame, design_ms) AS ms_per_frame, cal.at AS calibrated_at
 ORDER BY min_level, config""",
+    ),
+    NamedQuery(
+        "config_ranking",
+        "Every configuration realising a feature, ranked by its calibrated figures in a band and "
+        "condition (all = the band as a whole): score = detection rate minus penalty x false markers "
+        "per frame; configurations slower than max_ms per frame are left out. Memory demand is "
+        "returned for the planner's placement. Best first; equal scores go to the faster.",
+        {"feature": _FEATURE, "band": Param("str", help="illumination band, e.g. dark"),
+         "condition": Param("str", required=False, default="all",
+                            help="all, clean, blur, uneven, window or small (default all)"),
+         "penalty": Param("float", required=False, default=1.0,
+                          help="score lost per false marker per frame (default 1.0)"),
+         "max_ms": Param("float", required=False, default=1000.0,
+                         help="leave out configurations slower than this, ms per frame (default 1000)")},
+        f"""
+MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
+      -[cal:{S.CALIBRATED}]->(b:{S.ILLUMINATION_BAND} {{name: $band}})
+WHERE cal.condition = $condition AND cal.ms_per_frame <= $max_ms
+OPTIONAL MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
+WITH g, cal, sum(c.memory_demand_mb) AS demand
+OPTIONAL MATCH (g)-[:{S.SUITED_FOR}]->(s:{S.ILLUMINATION_BAND})
+RETURN g.name AS config, cal.detection_rate AS detection_rate, cal.false_per_frame AS false_per_frame,
+       cal.false_per_reported AS false_per_reported, cal.ms_per_frame AS ms_per_frame,
+       demand AS memory_demand_mb, s.name AS suited_for,
+       cal.detection_rate - $penalty * coalesce(cal.false_per_frame, 0.0) AS score
+ORDER BY score DESC, ms_per_frame ASC, config""",
     ),
     NamedQuery(
         "detector_config",
@@ -269,6 +302,7 @@ WHERE f.name = $feature
 MATCH (p:{S.PLATFORM})-[:{S.EXECUTABLE_ON}]-(d:{S.DEPLOYMENT})
 WHERE p.name = $platform
 RETURN d""",
+        time_limit_ms=LITERAL_TIME_LIMIT_MS,
     ),
     NamedQuery(
         "fig5_literal",
@@ -282,6 +316,7 @@ WITH SUM(c.memory_demand_mb) as MEM
 MATCH (p:{S.PLATFORM}) <-[:{S.EXECUTABLE_ON}]-(d:{S.DEPLOYMENT})
 WHERE p.memory_free_mb >= MEM
 RETURN p""",
+        time_limit_ms=LITERAL_TIME_LIMIT_MS,
     ),
 ]
 

@@ -134,20 +134,40 @@ def record_process_end(store: GraphStore, *, run_id: str, end_time: float, exit_
 
 
 def record_calibration(store: GraphStore, *, config: str, band: str, detection_rate: float,
-                       false_rate: float, ms_per_frame: float, time: float) -> None:
-    """How well a configuration detected markers in a band: one CALIBRATED relation per pair, replaced."""
+                       ms_per_frame: float, time: float, condition: str = "all",
+                       false_per_frame: float | None = None, false_per_reported: float | None = None,
+                       false_rate: float | None = None) -> None:
+    """How well a configuration detected markers in a band and condition: one CALIBRATED relation each, replaced.
+
+    False detections have two named figures: ``false_per_frame`` (false markers
+    per frame) and ``false_per_reported`` (false markers per marker reported).
+    ``false_rate`` is the old name of ``false_per_reported``. ``condition`` is
+    ``all`` for the band as a whole, else clean, blur, uneven, window, small.
+    """
+    _check("calibration", false_rate=(false_rate, _NUM, True), false_per_frame=(false_per_frame, _NUM, True),
+           false_per_reported=(false_per_reported, _NUM, True))
+    if false_per_reported is None:
+        false_per_reported = 0.0 if false_rate is None else false_rate
+    if false_per_frame is None:
+        false_per_frame = 0.0
     _check("calibration", config=(config, (str,), False), band=(band, (str,), False),
-           detection_rate=(detection_rate, _NUM, False), false_rate=(false_rate, _NUM, False),
+           condition=(condition, (str,), False), detection_rate=(detection_rate, _NUM, False),
+           false_per_frame=(false_per_frame, _NUM, False), false_per_reported=(false_per_reported, _NUM, False),
            ms_per_frame=(ms_per_frame, _NUM, False), time=(time, _NUM, False))
-    for key, rate in (("detection_rate", detection_rate), ("false_rate", false_rate)):
+    for key, rate in (("detection_rate", detection_rate), ("false_rate", false_per_reported),
+                      ("false_per_reported", false_per_reported)):
         if not 0.0 <= rate <= 1.0:
             raise NamedQueryError(f"write 'calibration': {key} {rate} is not between 0 and 1")
+    if not 0.0 <= false_per_frame <= 1000.0:
+        raise NamedQueryError(f"write 'calibration': false_per_frame {false_per_frame} is not between 0 and 1000")
     rows = store.execute(
         f"MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}}), (b:{S.ILLUMINATION_BAND} {{name: $band}}) "
-        f"MERGE (g)-[c:{S.CALIBRATED}]->(b) "
-        "SET c.detection_rate = $detection_rate, c.false_rate = $false_rate, c.ms_per_frame = $ms_per_frame, "
+        f"MERGE (g)-[c:{S.CALIBRATED} {{condition: $condition}}]->(b) "
+        "SET c.detection_rate = $detection_rate, c.false_per_frame = $false_per_frame, "
+        "c.false_per_reported = $false_per_reported, c.ms_per_frame = $ms_per_frame, "
         "c.at = $time RETURN count(c) AS n",
-        {"config": config, "band": band, "detection_rate": float(detection_rate), "false_rate": float(false_rate),
+        {"config": config, "band": band, "condition": condition, "detection_rate": float(detection_rate),
+         "false_per_frame": float(false_per_frame), "false_per_reported": float(false_per_reported),
          "ms_per_frame": float(ms_per_frame), "time": float(time)})
     if not rows or not rows[0]["n"]:
         raise NamedQueryError(f"write 'calibration': no detector configuration {config!r} "

@@ -6,7 +6,8 @@ It owns the store and serves, under ``kgadapt/<robot>/knowledge/``:
 key                          request                               reply
 ===========================  ====================================  ==========================
 ``query/<name>``             ``query_request {params}``            ``rows {rows, elapsed_ms}``
-``cypher``                   ``cypher_request {cypher, params}``   ``rows`` (read-only only)
+``own/query/<name>``         ``query_request {params}``            ``rows`` (the robot's own software)
+``cypher``                   ``cypher_request {cypher, params}``   ``rows`` (read-only subset only)
 ``write/<verb>``             ``write_request {params}``            ``rows {rows: []}``
 ===========================  ====================================  ==========================
 
@@ -17,6 +18,20 @@ which is handy from Zenoh's own tools. Every problem (malformed, truncated,
 wrong-typed or oversized payload, unknown query or verb, missing or ill-typed
 parameter, a write sent as Cypher, a store error) is answered with
 ``query.reply_err(text)`` naming it.
+
+Two doors, two paths. ``own/query/*`` (the robot's own agents, manager and
+detectors; the shipped ACL keeps other robots off it) and the write verbs
+are served by their own workers from the primary store. ``query/*`` and
+``cypher`` (anyone allowed to read, other robots included) are served by
+other workers from a :class:`~knowledge.sandbox.QuerySandbox`, a copy of the
+graph in a separate, lower-priority FalkorDB server (one per public worker),
+as fresh as the primary.
+Each of those questions has a hard time limit (``public_time_limit_ms``,
+or a literal paper query's own shorter one): past it the answer is
+abandoned and the sandbox server killed, so the work stops. Free Cypher must
+parse in the subset of :mod:`knowledge.cypher_guard`. A flood of questions
+thus costs other robots their answers, never the robot its own. One service
+per store: :class:`~knowledge.service_lock.ServiceLock`.
 
 Write verbs sit on their own key (``knowledge/write/**``) so that Zenoh access
 control can keep them from other robots while the queries stay open; with
@@ -52,9 +67,12 @@ from typing import Any, Callable, Mapping
 import zenoh
 
 from knowledge import queries, runtime
+from knowledge.cypher_guard import CypherLimits, check_cypher
+from knowledge.service_lock import ServiceLock
 from knowledge.store import GraphStore
 from shared import keys, messages
-from shared.errors import ConfigError, KgadaptError, MessageError, NamedQueryError, QueryError
+from shared.hostmonitor import check_status
+from shared.errors import ConfigError, KgadaptError, MessageError, NamedQueryError, QueryError, QueryTimeLimit
 
 log = logging.getLogger(__name__)
 
@@ -70,19 +88,22 @@ class ServiceSettings:
     writes: bool = True  # declare knowledge/write/<verb>; False = --read-only
     workers: int = 2  # request worker threads (a slow Cypher query then blocks only one)
     query_timeout_ms: int = 5000  # named queries (FalkorDB honours it late for reads)
-    # Free Cypher comes from anyone allowed to read, so it gets its own queue and worker
-    # (our named queries and writes never wait behind it) and a short timeout. Measured
-    # before: a 7.5 ms named query took 2.6 s while two huge UNWINDs held both workers.
-    cypher_timeout_ms: int = 1000
-    max_pending_cypher: int = 32
     max_pending_requests: int = 1000
     max_pending_statuses: int = 10000
     mark_offline_at_start: bool = True
+    # Other robots' questions (query/*, cypher): own workers, a copy of the graph, hard limits.
+    public_workers: int = 2
+    public_time_limit_ms: int = 1000
+    max_pending_public: int = 32
+    sandbox: bool = True  # serve them from a QuerySandbox when the store is FalkorDB
+    lock: bool = True  # refuse to start beside another service on the same store
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
-        if self.workers < 1:
-            raise ConfigError(f"workers {self.workers!r}: at least 1")
+        if self.workers < 1 or self.public_workers < 1:
+            raise ConfigError(f"workers {self.workers!r}, public_workers {self.public_workers!r}: at least 1 each")
+        if self.public_time_limit_ms < 1:
+            raise ConfigError(f"public_time_limit_ms {self.public_time_limit_ms!r}: at least 1")
 
 
 class KnowledgeService:
@@ -96,7 +117,7 @@ class KnowledgeService:
         self.store = store
         self.settings = settings
         self._requests: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_requests)
-        self._cypher_requests: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_cypher)
+        self._public_requests: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_public)
         self._events: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_statuses)
         self._threads: list[threading.Thread] = []
         self._declared: list[Any] = []
@@ -106,17 +127,36 @@ class KnowledgeService:
         self._drop_log = _RateLimitedLog(log, per_second=10)
         self._store_lock = _store_lock(store)
         self._writers: Mapping[str, Callable[..., Any]] = dict(runtime.WRITERS) if settings.writes else {}
+        self._lock = ServiceLock(store) if settings.lock else None
+        self.sandboxes: list[Any] = []  # knowledge.sandbox.QuerySandbox  # one per public worker: a kill costs only its own question
+        self._sandbox_pool: queue.Queue[Any] = queue.Queue()
 
     # -- life cycle ---------------------------------------------------------
 
     def setup(self, session: Any) -> None:
         """Start the workers and declare the queryables and subscribers on ``session``."""
         robot = self.settings.robot
-        if self.settings.mark_offline_at_start:
-            self._mark_all_offline()
+        if self._lock is not None:
+            self._lock.acquire()  # before anything is written: a second service changes nothing
+        try:
+            if self.settings.sandbox and self.store.dialect.name == "falkordb" and self.store.capabilities.timeouts:
+                # A FalkorDB over RESP (the Bolt listener has no DUMP/RESTORE to copy from).
+                from knowledge.sandbox import QuerySandbox
+
+                for _ in range(self.settings.public_workers):
+                    sandbox = QuerySandbox(self.store)
+                    self.sandboxes.append(sandbox)
+                    sandbox.setup()
+                    self._sandbox_pool.put(sandbox)
+            if self.settings.mark_offline_at_start:
+                self._mark_all_offline()
+        except Exception:
+            self.shutdown()
+            raise
         for i in range(self.settings.workers):
             self._start_thread(lambda: self._request_loop(self._requests), f"knowledge-requests-{i}")
-        self._start_thread(lambda: self._request_loop(self._cypher_requests), "knowledge-cypher")
+        for i in range(self.settings.public_workers):
+            self._start_thread(lambda: self._request_loop(self._public_requests), f"knowledge-public-{i}")
         self._start_thread(self._event_loop, "knowledge-status")
         try:
             # Subscribers first: declarations reach others in order, so whoever
@@ -129,14 +169,21 @@ class KnowledgeService:
                 self._declared.append(session.declare_queryable(keys.knowledge_write(robot, "*"), self._on_write))
             self._declared.append(session.declare_queryable(keys.knowledge_cypher(robot), self._on_cypher))
             self._declared.append(session.declare_queryable(keys.knowledge_query(robot, "*"), self._on_named_query))
+            self._declared.append(session.declare_queryable(keys.knowledge_own_query(robot, "*"), self._on_own_query))
         except Exception:
             self.shutdown()
             raise
         log.info(
-            "knowledge service for robot %s: %d named queries, cypher (read-only), %s",
+            "knowledge service for robot %s: %d named queries, cypher (read-only subset), %s; "
+            "other robots' questions from %s, %d ms hard limit",
             robot, len(queries.QUERIES),
             f"write verbs {', '.join(sorted(self._writers))}" if self.settings.writes else "no write verbs (read-only)",
+            f"{len(self.sandboxes)} sandbox copies" if self.sandboxes else "the store itself",
+            self.settings.public_time_limit_ms,
         )
+        if not self.sandboxes and not self.store.capabilities.timeouts:
+            log.warning("the store %s cannot stop a query at a time limit: free Cypher and the literal paper "
+                        "queries from other robots will be refused", self.store.url)
 
     def shutdown(self) -> None:
         """Undeclare everything and stop the workers (pending requests get an error reply)."""
@@ -146,14 +193,21 @@ class KnowledgeService:
             except Exception as exc:  # the session may be closed already
                 log.debug("undeclare failed: %s", exc)
         self._declared.clear()
-        for _ in range(self.settings.workers):
-            _put_blocking(self._requests, _STOP)
-        _put_blocking(self._cypher_requests, _STOP)
-        _put_blocking(self._events, _STOP)
+        if self._threads:
+            for _ in range(self.settings.workers):
+                _put_blocking(self._requests, _STOP)
+            for _ in range(self.settings.public_workers):
+                _put_blocking(self._public_requests, _STOP)
+            _put_blocking(self._events, _STOP)
         for thread in self._threads:
             thread.join(timeout=10)
         self._threads.clear()
-        for pending in (self._requests, self._cypher_requests):
+        for sandbox in self.sandboxes:
+            sandbox.shutdown()
+        self.sandboxes.clear()
+        if self._lock is not None:
+            self._lock.release()
+        for pending in (self._requests, self._public_requests):
             while True:
                 try:
                     item = pending.get_nowait()
@@ -170,8 +224,13 @@ class KnowledgeService:
 
     # -- request handling, Zenoh-free (tests call these directly) -----------
 
-    def answer_named(self, name: str, payload: bytes | None, selector_params: Mapping[str, str] | None = None) -> bytes:
-        """A ``rows`` reply for named query ``name``; raise KgadaptError naming the problem."""
+    def answer_named(self, name: str, payload: bytes | None, selector_params: Mapping[str, str] | None = None,
+                     *, public: bool = False) -> bytes:
+        """A ``rows`` reply for named query ``name``; raise KgadaptError naming the problem.
+
+        ``public``: asked on the door open to other robots, so it runs in the
+        sandbox under the hard limit. The literal paper queries always do.
+        """
         if name not in queries.QUERIES:
             raise NamedQueryError(f"unknown named query {name!r}; known: {', '.join(sorted(queries.QUERIES))}")
         if payload:
@@ -181,9 +240,20 @@ class KnowledgeService:
             params = queries.coerce_params(name, dict(selector_params))
         else:
             params = {}
+        query = queries.QUERIES[name]
         start = time.perf_counter()
-        with self._store_lock:
-            rows = queries.run_named(self.store, name, params, timeout_ms=self.settings.query_timeout_ms)
+        if public or query.time_limit_ms is not None:
+            limit_ms = min(self.settings.public_time_limit_ms, query.time_limit_ms or self.settings.public_time_limit_ms)
+            values = queries.check_params(name, params)
+            text = query.text_for(values)
+            if "LIMIT" not in text.rstrip().splitlines()[-1].upper():
+                # Rows are parsed here, under the GIL the robot's own requests need too:
+                # fig4_literal's 21,344 rows cost them tens of ms. Same bound as free Cypher.
+                text = f"{text.rstrip()}\nLIMIT {CypherLimits().max_rows}"
+            rows = self._run_untrusted(text, values, limit_ms, f"query {name!r}")
+        else:
+            with self._store_lock:
+                rows = queries.run_named(self.store, name, params, timeout_ms=self.settings.query_timeout_ms)
         return _rows_reply(rows, (time.perf_counter() - start) * 1000, f"query {name!r}")
 
     def answer_cypher(self, payload: bytes | None) -> bytes:
@@ -191,13 +261,31 @@ class KnowledgeService:
         if not payload:
             raise MessageError("cypher_request has no payload")
         request = messages.decode(payload, "cypher_request")
+        text = check_cypher(request["cypher"])  # before anything reaches a store
         params = _plain_params(request.get("params") or {}, "cypher")
         start = time.perf_counter()
-        with self._store_lock:
-            rows = self.store.execute(
-                request["cypher"], params, read_only=True, timeout_ms=self.settings.cypher_timeout_ms
-            )
+        rows = self._run_untrusted(text, params, self.settings.public_time_limit_ms, "cypher")
         return _rows_reply(rows, (time.perf_counter() - start) * 1000, "cypher")
+
+    def _run_untrusted(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str) -> list[dict[str, Any]]:
+        """In the sandbox when there is one (killed past the limit), else on the store with its timeout."""
+        try:
+            if self.sandboxes:
+                sandbox = self._sandbox_pool.get()  # as many as public workers: never waits
+                try:
+                    return sandbox.execute(text, params, limit_s=limit_ms / 1000)
+                finally:
+                    self._sandbox_pool.put(sandbox)
+            if not self.store.capabilities.timeouts:
+                # Nothing could cut it off: refuse rather than pretend (said at start-up too).
+                self._count("refused_no_time_limit")
+                raise QueryError(f"{what}: the store {self.store.url} cannot stop a query at a time limit, so "
+                                 "questions from outside the robot that need one are refused; ask a named query")
+            with self._store_lock:
+                return self.store.execute(text, params, read_only=True, timeout_ms=limit_ms)
+        except QueryTimeLimit as exc:
+            self._count("time_limits_hit")
+            raise QueryTimeLimit(f"{what}: {exc}") from exc
 
     def answer_write(self, verb: str, payload: bytes | None) -> bytes:
         """Apply write verb ``verb``; an empty ``rows`` reply, or KgadaptError naming the problem."""
@@ -217,10 +305,13 @@ class KnowledgeService:
     # -- Zenoh callbacks: hand over, nothing else ---------------------------
 
     def _on_named_query(self, query: Any) -> None:
-        self._enqueue_request("query", query)
+        self._enqueue_request("query", query, self._public_requests)
+
+    def _on_own_query(self, query: Any) -> None:
+        self._enqueue_request("own", query)
 
     def _on_cypher(self, query: Any) -> None:
-        self._enqueue_request("cypher", query, self._cypher_requests)
+        self._enqueue_request("cypher", query, self._public_requests)
 
     def _on_write(self, query: Any) -> None:
         self._enqueue_request("write", query)
@@ -229,9 +320,10 @@ class KnowledgeService:
         try:
             (self._requests if pending is None else pending).put_nowait((kind, query))
         except queue.Full:
-            # Dropping the query finalizes it: the caller sees no reply rather than a hang.
+            # Refused at once, so the caller need not wait out its timeout.
             self._count("requests_shed")
-            self._drop_log.warning("request shed: %d requests pending", self.settings.max_pending_requests)
+            self._drop_log.warning("%s request shed: its queue is full", kind)
+            _finish(query, error=f"knowledge service busy: too many {kind} requests pending; ask again later")
 
     def _on_status(self, sample: Any) -> None:
         self._enqueue_event(("status", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
@@ -269,10 +361,10 @@ class KnowledgeService:
         try:
             key = str(query.key_expr)
             payload = query.payload.to_bytes() if query.payload is not None else None
-            if kind == "query":
+            if kind in ("query", "own"):
                 name = keys.last_chunk(key)
-                body = self.answer_named(name, payload, _selector_params(query))
-                reply_key = keys.knowledge_query(robot, name)
+                body = self.answer_named(name, payload, _selector_params(query), public=kind == "query")
+                reply_key = (keys.knowledge_query if kind == "query" else keys.knowledge_own_query)(robot, name)
             elif kind == "cypher":
                 body = self.answer_cypher(payload)
                 reply_key = keys.knowledge_cypher(robot)
@@ -351,17 +443,7 @@ class KnowledgeService:
         self._count(f"{what}_applied")
 
     def _check_status(self, key: str, payload: bytes) -> dict[str, Any]:
-        host = _host_of(key)
-        body = messages.decode(payload, "host_status")
-        if body["host"] != host:
-            raise MessageError(f"host_status on the key of host {host!r} names host {body['host']!r}")
-        for field in ("memory_total_mb", "memory_free_mb", "cpu_load"):
-            if body[field] < 0:
-                raise MessageError(f"host_status field {field!r} is negative ({body[field]})")
-        cores = body.get("cpu_cores")
-        if cores is not None and cores < 1:
-            raise MessageError(f"host_status field 'cpu_cores' must be at least 1, got {cores}")
-        return body
+        return check_status(_host_of(key), messages.decode(payload, "host_status"))
 
     def _mark_all_offline(self) -> None:
         now = time.time()

@@ -74,7 +74,8 @@ def run_serve(args: argparse.Namespace) -> int:
     settings = ServiceSettings(robot=args.robot, writes=not args.read_only, workers=args.workers)
     zenoh = settings_from_args(args).with_defaults(mode="router", listen=[DEFAULT_ENDPOINT])
     with StopSignals() as stop:
-        store = open_store(args.store)
+        # The robot's own path is bounded too: a query unanswered for 10 s is abandoned.
+        store = open_store(args.store, socket_timeout=10.0)
         store.setup()
         try:
             ensure_indexes(store)

@@ -18,20 +18,20 @@ the system's CAs, or against ``?ca=FILE`` (or ``$KGADAPT_STORE_CA``);
 extras: ``kgadapt[store]`` for FalkorDB, ``kgadapt[memgraph]`` for Bolt.
 
 Values always travel as parameters; a caller never formats a value into
-Cypher text. ``read_only=True`` is enforced twice: a lexical check here,
+Cypher text. ``read_only=True`` is enforced twice: a token-level check here,
 and the store's own read-only entry point where it has one.
 """
 
 from __future__ import annotations
 
 import os
-import re
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 from urllib.parse import parse_qs, urlsplit
 
+from knowledge.cypher_guard import writing_clause
 from shared.errors import ConfigError, ReadOnlyViolation
 
 if TYPE_CHECKING:
@@ -65,6 +65,9 @@ class StoreSettings:
     username: str = ""
     password: str = ""
     connect_timeout: float = 10.0
+    # Hard limit on one round trip (s): the client abandons a query whose answer has not
+    # come by then, whatever the store does with its own timeout. None: wait for ever.
+    socket_timeout: float | None = None
     tls: str = ""  # "" (none), "verify" (+s) or "self-signed" (+ssc); Bolt backends only
     ca_file: str | None = None  # CA bundle for "verify"; None: the system's CAs
 
@@ -131,26 +134,18 @@ def parse_store_url(url: str | None = None) -> StoreSettings:
     )
 
 
-# Clauses that change the graph or reach outside it. Matched outside string
-# literals and comments, case-insensitively, as whole words.
-_WRITE_WORDS = re.compile(
-    r"(?<![.\w$])(CREATE|MERGE|SET|DELETE|DETACH|REMOVE|DROP|CALL|LOAD|FOREACH|ALTER|GRANT|REVOKE)\b(?!\s*:)",
-    re.IGNORECASE,
-)
-# An alias may be any word ("... AS load"); it is a name, not a clause.
-_ALIASES = re.compile(r"\bAS\s+\w+", re.IGNORECASE)
-_LITERALS = re.compile(r"'(?:[^'\\]|\\.)*'|\"(?:[^\"\\]|\\.)*\"|`[^`]*`|//[^\n]*|/\*.*?\*/", re.DOTALL)
-
-
 def assert_read_only(cypher: str) -> None:
     """Raise :class:`ReadOnlyViolation` if ``cypher`` contains a writing clause.
 
-    Conservative on purpose: ``CALL`` is refused too, since procedures can write.
+    For our own queries. Conservative on purpose: ``CALL`` and ``LOAD`` are
+    refused too, since procedures can write and LOAD CSV reaches outside the
+    store. The check works on tokens, so neither a string nor a map key nor a
+    property name can hide a clause or fake one. Cypher from outside the robot
+    gets the stricter grammar of :mod:`knowledge.cypher_guard`.
     """
-    stripped = _ALIASES.sub(" AS _", _LITERALS.sub(" ", cypher))
-    match = _WRITE_WORDS.search(stripped)
-    if match:
-        raise ReadOnlyViolation(f"read-only query refused: it contains {match.group(1).upper()}")
+    word = writing_clause(cypher)
+    if word:
+        raise ReadOnlyViolation(f"read-only query refused: it contains {word}")
 
 
 class GraphStore(ABC):

@@ -142,20 +142,81 @@ class HostView:
 
 
 @dataclass(kw_only=True)
+class CollapseWatch:
+    """The running detector's own evidence: has its detection rate collapsed while markers are expected?
+
+    Its rate is the markers it found per frame over the last ``window`` frames,
+    against the most it found in one frame over the last ``memory_s`` seconds
+    (how many markers are in view when detection works). It has collapsed when
+    that falls below ``drop`` x the rate calibration promised for this
+    configuration in this band, while markers are expected (some were seen in
+    the last ``memory_s`` seconds). After it fires it stays quiet (hysteresis)
+    until the rate is back above ``recover`` x the promise or a band change
+    re-arms it, so a marker that simply left the view costs at most one change,
+    not a cascade down the ranking.
+    """
+
+    window: int = 30
+    drop: float = 0.5
+    recover: float = 0.8
+    memory_s: float = 5.0
+    armed: bool = True
+    _recent: list[int] = field(default_factory=list, repr=False)
+    _seen: list[tuple[float, int]] = field(default_factory=list, repr=False)  # (time, count) with markers
+
+    def update(self, markers: int, now: float, expected_rate: float | None) -> dict[str, Any] | None:
+        """Feed one frame's marker count; the evidence (a dict) when the rate has just collapsed, else None."""
+        markers = int(markers)
+        self._recent.append(markers)
+        if len(self._recent) > self.window:
+            del self._recent[0]
+        if markers > 0:
+            self._seen.append((now, markers))
+        while self._seen and now - self._seen[0][0] > self.memory_s:
+            del self._seen[0]
+        if len(self._recent) < self.window or expected_rate is None or expected_rate <= 0:
+            return None
+        in_view = max((n for _t, n in self._seen), default=0)
+        if in_view == 0:
+            return None  # nothing seen for memory_s: no marker is expected, nothing to compare
+        rate = sum(self._recent) / len(self._recent) / in_view
+        if not self.armed:
+            if rate >= self.recover * expected_rate:
+                self.armed = True
+            return None
+        if rate < self.drop * expected_rate:
+            self.armed = False
+            self._recent.clear()
+            return {"rate": round(rate, 3), "expected": round(expected_rate, 3), "in_view": in_view,
+                    "window": self.window, "drop": self.drop, "last_marker_s_ago": round(now - self._seen[-1][0], 2)}
+        return None
+
+    def reset(self) -> None:
+        """A new detector: measure afresh (the hysteresis state and the markers in view stay)."""
+        self._recent.clear()
+
+    def rearm(self) -> None:
+        self.armed = True
+        self._recent.clear()
+
+
+@dataclass(kw_only=True)
 class Analyzer:
     """Turns observations into triggers. Keeps the state it needs (hosts, rates)."""
 
     tracker: BandTracker
-    collapse_rate: float = 0.2  # detection rate below this ...
-    collapse_window: int = 30  # ... over this many frames, in a band where calibration promised more
+    collapse: CollapseWatch = field(default_factory=CollapseWatch)
+    collapsed: set[str] = field(default_factory=set)  # configurations whose detections collapsed in this band
     hosts: dict[str, HostView] = field(default_factory=dict)
-    _recent: list[bool] = field(default_factory=list, repr=False)
 
     def on_illumination(self, level: float, now: float) -> Trigger | None:
         before = self.tracker.current
         band = self.tracker.update(level, now)
         if band is None or before is None:
             return None
+        # A new band: every configuration gets its chance again.
+        self.collapsed.clear()
+        self.collapse.rearm()
         return Trigger("band_changed", now, {"from": before.name, "to": band.name, "level": round(level, 1)})
 
     def on_host_status(self, host: str, *, free_mb: float, cpu_load: float, now: float,
@@ -185,30 +246,43 @@ class Analyzer:
             return Trigger("host_back", now, {"host": host})
         return None
 
-    def on_detection(self, seen: bool, now: float, expected_rate: float | None) -> Trigger | None:
-        self._recent.append(seen)
-        if len(self._recent) > self.collapse_window:
-            del self._recent[0]
-        if len(self._recent) < self.collapse_window or expected_rate is None:
+    def on_detection(self, markers: int, now: float, expected_rate: float | None,
+                     config: str | None = None) -> Trigger | None:
+        """One frame of the running detector (``config``), ``markers`` found (a bool counts as 0 or 1).
+
+        A ``rate_collapsed`` trigger when its rate collapsed (:class:`CollapseWatch`).
+        """
+        evidence = self.collapse.update(markers, now, expected_rate)
+        if evidence is None:
             return None
-        rate = sum(self._recent) / len(self._recent)
-        if rate < self.collapse_rate <= expected_rate:
-            self._recent.clear()
-            return Trigger("rate_collapsed", now, {"rate": round(rate, 2), "expected": round(expected_rate, 2)})
-        return None
+        if config is not None:
+            self.collapsed.add(config)
+            evidence = {"config": config, **evidence}
+        return Trigger("rate_collapsed", now, evidence)
 
     def reset_rate(self) -> None:
-        self._recent.clear()
+        self.collapse.reset()
 
 
 @dataclass(kw_only=True)
 class Planner:
-    """Chooses configuration and host from the knowledge graph."""
+    """Chooses configuration and host from the knowledge graph.
+
+    Configurations are ranked by the named query ``config_ranking`` (every
+    configuration of the feature calibrated in the band: detection rate minus
+    ``penalty`` x false markers per frame, none slower than ``max_ms``; within
+    ``tie_rate`` the faster first). The first in the ranking that a host can hold
+    wins. A graph without calibration falls back to the configuration
+    ``SUITED_FOR`` the band.
+    """
 
     ask: KnowledgeAsk
     feature: str = FEATURE
     preference: str = "onboard-first"
     onboard_host: str = "onboard"
+    penalty: float = 1.0
+    max_ms: float = 1000.0
+    tie_rate: float = 0.005
 
     def __post_init__(self) -> None:
         if self.preference not in PREFERENCES:
@@ -217,33 +291,84 @@ class Planner:
     def configs(self) -> list[dict[str, Any]]:
         return self.ask("detector_configs", {"feature": self.feature})
 
-    def choose_config(self, band: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-        """The best configuration for ``band``: highest calibrated rate, then cheapest."""
-        rows = self.configs()
-        candidates = [r for r in rows if r.get("band") == band]
-        if not candidates:
-            raise PlanningError(f"no detector configuration is suited for band {band!r}")
+    def ranking(self, band: str, condition: str = "all") -> list[dict[str, Any]]:
+        """Every calibrated configuration of the feature for ``band``, best first."""
+        from onboard.calibration import rank_rows
 
-        def score(row: Mapping[str, Any]) -> tuple[float, float, str]:
-            rate = row.get("detection_rate")
-            ms = row.get("ms_per_frame")
-            return (-(rate if rate is not None else -1.0), ms if ms is not None else math.inf, str(row["config"]))
+        rows = self.ask("config_ranking", {"feature": self.feature, "band": band, "condition": condition,
+                                           "penalty": self.penalty, "max_ms": self.max_ms})
+        return rank_rows(rows, score=lambda r: float(r.get("score") or 0.0),
+                         ms=lambda r: float(r.get("ms_per_frame") or math.inf), tie_rate=self.tie_rate)
 
-        return min(candidates, key=score), rows
+    def choose_config(self, band: str, *, exclude: Sequence[str] = ()) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+        """The first configuration of the ranking for ``band`` not in ``exclude``, and the ranking."""
+        full, left = self.candidates(band, exclude=exclude)
+        return left[0], full
+
+    def candidates(self, band: str, *, exclude: Sequence[str] = ()) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        """The whole ranking for ``band``, and what is left of it without ``exclude``."""
+        ranked = self.ranking(band)
+        if not ranked:
+            # Not calibrated: the configuration(s) the models say are suited for the band.
+            ranked = [r for r in self.configs() if r.get("band") == band]
+        left = [r for r in ranked if r.get("config") not in exclude]
+        if not left:
+            what = f" other than {', '.join(exclude)}" if exclude and ranked else ""
+            raise PlanningError(f"no detector configuration{what} is calibrated or suited for band {band!r}")
+        return ranked, left
 
     def plan(self, *, band: str, running: Placement | None, lost_hosts: Sequence[str] = (),
-             live_free: Mapping[str, float] | None = None) -> Plan:
-        """Configuration for ``band`` and a host that can hold it now.
+             live_free: Mapping[str, float] | None = None, exclude: Sequence[str] = ()) -> Plan:
+        """The best-ranked configuration for ``band`` that a host can hold now, and that host.
 
-        The host running a detector gets back what that detector holds, since a
-        change replaces it there. ``live_free`` is the caller's own, fresher view of
-        free memory (host statuses it just received): a host the graph still thinks
-        fits but that no longer does by that view is left out.
+        ``exclude``: configurations not to choose (the one whose detections
+        collapsed). The host running a detector gets back what that detector
+        holds, since a change replaces it there. ``live_free`` is the caller's own,
+        fresher view of free memory (host statuses it just received): a host the
+        graph still thinks fits but that no longer does by that view is left out.
         """
-        config_row, all_rows = self.choose_config(band)
-        config = str(config_row["config"])
+        full, ranked = self.candidates(band, exclude=exclude)
+        skipped: list[dict[str, Any]] = []
+        for config_row in ranked:
+            config = str(config_row["config"])
+            demand = float(config_row.get("memory_demand_mb") or 0.0)
+            fits = self._hosts_for(config, demand, running, lost_hosts, live_free)
+            if fits:
+                break
+            skipped.append({"config": config, "why": f"no online platform has {demand:.0f} MiB free"})
+        else:
+            best = ranked[0]
+            raise PlanningError(f"no online platform has {float(best.get('memory_demand_mb') or 0):.0f} MiB free "
+                                f"for {best['config']}" + (f" (nor room for {len(ranked) - 1} other(s))"
+                                                           if len(ranked) > 1 else ""))
+        # The preference decides every time. Plans happen only on triggers (with
+        # hysteresis and dwell on the light), so this cannot flap; it brings the
+        # detector back to the preferred host when that host returns.
+        order = sorted(fits, key=self._host_rank)
+        host = order[0]
+        row = fits[host]
+        target = Placement(config=config, deployment=str(row["deployment"]), host=host, demand_mb=demand)
+        position = full.index(config_row) + 1
+        reason = (f"band {band}: {config} is {_ordinal(position)} in the ranking "
+                  f"(rate {_fmt(config_row.get('detection_rate'))}, "
+                  f"false/frame {_fmt(config_row.get('false_per_frame'))}, {_fmt(config_row.get('ms_per_frame'))} ms)"
+                  + (f", {', '.join(exclude)} left out" if exclude else "")
+                  + f"; {host} has {_fmt(row.get('free_mb'))} MiB free for {demand:.0f} MiB ({self.preference})")
+        inputs = {
+            "band": band,
+            "ranking": [{k: r.get(k) for k in ("config", "score", "detection_rate", "false_per_frame",
+                                                "ms_per_frame", "memory_demand_mb")} for r in full],
+            "excluded": list(exclude),
+            "skipped": skipped,
+            "expected_rate": config_row.get("detection_rate"),
+            "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in order],
+            "running": None if running is None else {"config": running.config, "host": running.host},
+        }
+        return Plan(target=target, reason=reason, inputs=inputs, queries=("config_ranking", "placement"))
+
+    def _hosts_for(self, config: str, demand: float, running: Placement | None, lost_hosts: Sequence[str],
+                   live_free: Mapping[str, float] | None) -> dict[str, dict[str, Any]]:
         rows = self.ask("placement", {"feature": self.feature, "config": config})
-        demand = float(config_row.get("memory_demand_mb") or 0.0)
         fits: dict[str, dict[str, Any]] = {}
         for row in rows:
             host = str(row["platform"])
@@ -266,31 +391,16 @@ class Planner:
             credit = running.held_mb if running is not None and running.host == host else 0.0
             if free is not None and free + credit < demand:
                 del fits[host]  # the graph has not caught up with a squeeze we already saw
-        if not fits:
-            raise PlanningError(f"no online platform has {demand:.0f} MiB free for {config}")
-        # The preference decides every time. Plans happen only on triggers (with
-        # hysteresis and dwell on the light), so this cannot flap; it brings the
-        # detector back to the preferred host when that host returns.
-        order = sorted(fits, key=self._host_rank)
-        host = order[0]
-        row = fits[host]
-        target = Placement(config=config, deployment=str(row["deployment"]), host=host, demand_mb=demand)
-        reason = (f"band {band}: {config} has the best calibrated rate "
-                  f"({_fmt(config_row.get('detection_rate'))}); {host} has {_fmt(row.get('free_mb'))} MiB free "
-                  f"for {demand:.0f} MiB ({self.preference})")
-        inputs = {
-            "band": band,
-            "candidates": [{k: r.get(k) for k in ("config", "band", "detection_rate", "ms_per_frame")}
-                           for r in all_rows if r.get("band") == band],
-            "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in order],
-            "running": None if running is None else {"config": running.config, "host": running.host},
-        }
-        return Plan(target=target, reason=reason, inputs=inputs, queries=("detector_configs", "placement"))
+        return fits
 
     def _host_rank(self, host: str) -> tuple[int, str]:
         onboard = host == self.onboard_host
         first = onboard if self.preference == "onboard-first" else not onboard
         return (0 if first else 1, host)
+
+
+def _ordinal(n: int) -> str:
+    return {1: "first", 2: "second", 3: "third"}.get(n, f"{n}th")
 
 
 def _fmt(value: Any) -> str:

@@ -68,6 +68,17 @@ def render(data: dict[str, Any]) -> str:
                      f"{d.get('trigger')}:")
         lines.append(f"  {d.get('outcome')}")
         inputs = d.get("inputs") or {}
+        if inputs.get("ranking"):
+            excluded = set(inputs.get("excluded") or [])
+            skipped = {k.get("config"): k.get("why") for k in inputs.get("skipped") or []}
+            lines.append(f"  ranking for band {inputs.get('band')} (named query config_ranking: "
+                         f"rate - false markers per frame, then ms):")
+            for i, c in enumerate(inputs["ranking"], start=1):
+                note = (" (left out: its detections collapsed)" if c.get("config") in excluded
+                        else f" (skipped: {skipped[c.get('config')]})" if c.get("config") in skipped else "")
+                lines.append(f"   {i}. {c.get('config')}: score {_num(c.get('score'))}, rate {_num(c.get('detection_rate'))}, "
+                             f"false/frame {_num(c.get('false_per_frame'))}, {_num(c.get('ms_per_frame'))} ms/frame, "
+                             f"{_num(c.get('memory_demand_mb'))} MiB{note}")
         for c in inputs.get("candidates") or []:
             rate = c.get("detection_rate")
             rate_text = ("not calibrated (run `kgadapt perception calibrate`)" if rate is None
@@ -89,6 +100,10 @@ def render(data: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _num(value: Any) -> str:
+    return f"{value:.3g}" if isinstance(value, (int, float)) else "?"
+
+
 def _ago(t: Any) -> str:
     from shared.timefmt import stamp
 
@@ -107,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
         session = open_session(zenoh)
         try:
-            client = KnowledgeClient(session, args.robot or "quad1")
+            client = KnowledgeClient(session, args.robot or "quad1", own=True)
             data = explain(client.query, history=args.history)
         finally:
             session.close()

@@ -15,6 +15,13 @@ lost, a new detector starts at once on a host that can hold it. During final
 descent (flight state ``LANDING``, or landed state unknown in LAND/RTL:
 :func:`onboard.flight_phase.in_final_descent`) planned changes are deferred; losing the
 running host is still acted on.
+
+Reconciliation: what the manager believes runs is checked against what the
+deployers report, on their events for our instance and every
+``reconcile_s``. A detector stopped, migrated or killed by anyone else, or
+one that ended ``failed``, is a ``detector_gone`` trigger: the planner's
+choice starts afresh (a new instance, so a failed one is no dead end), and
+any other detector of ours still running is stopped as a twin.
 """
 
 from __future__ import annotations
@@ -44,7 +51,8 @@ from onboard.adaptation import (
 )
 from onboard.flight_phase import in_final_descent
 from shared import keys, messages
-from shared.errors import KgadaptError, MessageError
+from shared.hostmonitor import check_status
+from shared.errors import DeploymentError, KgadaptError, MessageError
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +80,7 @@ class AdaptationSettings:
     graph_catch_up_s: float = 2.0  # how long a host_back waits for the graph to show the host online
     settle_s: float = 1.0  # after a change, host statuses this young do not count for memory_short
     retry_s: float = 1.0  # the running host lost and no replacement started: try again this often
+    reconcile_s: float = 0.5  # ask the running detector's deployer how it is at least this often
 
 
 @dataclass(kw_only=True)
@@ -91,8 +100,12 @@ class AdaptationManager:
 
     name = "adaptation"
 
-    def __init__(self, settings: AdaptationSettings) -> None:
+    def __init__(self, settings: AdaptationSettings, *, landed_state: Any = None) -> None:
         self.settings = settings
+        # With a flight bridge in the same process: its landed state, read directly. Then
+        # flight_state messages on Zenoh, which anyone holding a host certificate could
+        # forge, are not listened to.
+        self._landed_state = landed_state
         self.current: Placement | None = None
         self.history: list[Outcome] = []
         self.landing = False
@@ -115,14 +128,18 @@ class AdaptationManager:
         self._retry: Trigger | None = None  # a lost detector not yet replaced (e.g. the knowledge service was down)
         self._retry_at = 0.0
         self._lock = threading.Lock()
+        self._probe: DeployerClient | None = None  # short timeout: a lost host is liveliness' business
+        self._next_check = 0.0
+        self._last_free: dict[str, float] = {}  # each host's previous free-memory figure
 
     # -- lifecycle -------------------------------------------------------
 
     def setup(self, session: Any) -> None:
         s = self.settings
         self._session = session
-        self._knowledge = KnowledgeClient(session, s.robot)
+        self._knowledge = KnowledgeClient(session, s.robot, own=True)
         self._deployers = DeployerClient(session, s.robot)
+        self._probe = DeployerClient(session, s.robot, timeout=min(0.5, s.reconcile_s))
         rows = self._wait_for_knowledge()
         self._configs = {str(r["config"]): r for r in rows}
         bands = bands_from_rows(rows)
@@ -138,6 +155,7 @@ class AdaptationManager:
             session.liveliness().declare_subscriber(keys.host_alive(s.robot), self._on_alive, history=True),
             session.declare_subscriber(keys.flight_state(s.robot), self._on("flight_state")),
             session.declare_subscriber(keys.detector_markers(s.robot), self._on("detections")),
+            session.declare_subscriber(keys.deployer_events(s.robot), self._on("deploy_event")),
         ]
         self._stop.clear()
         self._setup_at = time.monotonic()
@@ -213,6 +231,8 @@ class AdaptationManager:
                     trigger = self._startup_trigger()
                 if trigger is None:
                     trigger = self._due_retry()
+                if trigger is None:
+                    trigger = self._check_running()
                 if trigger is not None:
                     self._act(trigger)
             except Exception:  # the loop must survive any single bad observation or failed action
@@ -235,8 +255,19 @@ class AdaptationManager:
                 m = messages.decode(payload, "illumination")
                 return a.on_illumination(float(m["smoothed"]), now)
             if kind == "host_status":
-                m = messages.decode(payload, "host_status")
+                # The knowledge service's own rule (a status it would refuse is not acted on), and
+                # only from a host whose liveliness token is up.
+                m = check_status(keys.last_chunk(key, 2), messages.decode(payload, "host_status"))
                 host = str(m["host"])
+                view = a.hosts.get(host)
+                if view is None or not view.online:
+                    return None
+                # No move on the strength of one status: a shortage counts when this status and
+                # the host's previous one both show it; a host looks as roomy as the lesser of the two.
+                now_free = float(m["memory_free_mb"])
+                before = self._last_free.get(host, now_free)
+                self._last_free[host] = now_free
+                m = {**m, "memory_free_mb": max(before, now_free)}
                 if self.current is not None and self.current.host == host:
                     self._refresh_held(now)
                 # A status received before the last change settled was measured while old and
@@ -252,20 +283,71 @@ class AdaptationManager:
                     running = self.current
                     if running.held_mb < UNMEASURED_MB and now - self._changed_at < MEASURE_WITHIN_S:
                         running = None
-                return a.on_host_status(host, free_mb=free, cpu_load=float(m["cpu_load"]), now=now, running=running)
+                trigger = a.on_host_status(host, free_mb=free, cpu_load=float(m["cpu_load"]), now=now, running=running)
+                view.memory_free_mb = min(before, now_free)
+                return trigger
             if kind == "flight_state":
-                m = messages.decode(payload, "flight_state")
+                m = messages.decode(payload, "flight_state")  # malformed ones are dropped and logged either way
+                if self._landed_state is not None:
+                    return None  # the bridge beside us is the one source
                 self.landing = in_final_descent(m)  # landed state unknown in LAND/RTL counts as descent
+                return None
+            if kind == "deploy_event":
+                m = messages.decode(payload, "deploy_event")
+                if (self.current is not None and m["instance"] == self.current.instance
+                        and m["event"] in ("exited", "stopped", "failed")):
+                    self._next_check = 0.0  # ask its deployer now, not at the next round
                 return None
             if kind == "detections":
                 m = messages.decode(payload, "detections")
                 if self.current is None or m["instance"] != self.current.instance:
                     return None
                 band = a.tracker.current.name if a.tracker.current else None
-                return a.on_detection(bool(m["ids"]), now, self._expected_rate(self.current.config, band))
+                # Only markers whose cells read clean count as evidence (phantoms do not hold up a rate).
+                found = sum(c is not False for c in (m.get("clean") or [True] * len(m["ids"]))[:len(m["ids"])])
+                return a.on_detection(found, now, self._expected_rate(self.current.config, band), self.current.config)
         except MessageError as exc:
             log.info("adaptation: dropped a %s message on %s: %s", kind, key, exc)
         return None
+
+    def _check_running(self) -> Trigger | None:
+        """A ``detector_gone`` trigger when the deployer says our detector no longer runs."""
+        current = self.current
+        if current is None or not current.instance or time.monotonic() < self._next_check:
+            return None
+        self._next_check = time.monotonic() + self.settings.reconcile_s
+        host = self._analyzer.hosts.get(current.host)
+        if host is not None and not host.online:
+            return None  # host_lost covers it
+        try:
+            state = str(self._probe.status(current.host, current.instance).get("state"))
+        except DeploymentError as exc:  # the deployer does not know it (any more)
+            state = f"unknown to its deployer ({exc})"
+        except KgadaptError as exc:  # no answer: the host's liveliness decides
+            log.debug("adaptation: no status for %s: %s", current.instance, exc)
+            return None
+        if state in LIVE_STATES:
+            return None
+        log.warning("adaptation: detector %s on %s is %s; replacing it", current.instance, current.host, state)
+        return Trigger("detector_gone", time.time(), {"instance": current.instance, "host": current.host,
+                                                       "state": state[:120]})
+
+    def _stop_twins(self) -> list[str]:
+        """Stop every live detector of ours but the current one, on any host."""
+        try:
+            processes = self._deployers.list("*")
+        except KgadaptError:
+            return []
+        stopped = []
+        for p in processes:
+            if (p.get("state") in LIVE_STATES and p.get("config") in self._configs
+                    and self.current is not None and p.get("instance") != self.current.instance):
+                try:
+                    self._deployers.stop(str(p["host"]), str(p["instance"]))
+                    stopped.append(str(p["instance"]))
+                except KgadaptError as exc:
+                    log.warning("adaptation: could not stop twin %s: %s", p.get("instance"), exc)
+        return stopped
 
     def _startup_trigger(self) -> Trigger | None:
         a = self._analyzer
@@ -314,6 +396,9 @@ class AdaptationManager:
                    and r.get("memory_free_mb") is not None for r in rows)
 
     def _expected_rate(self, config: str, band: str | None) -> float | None:
+        planned = getattr(self, "_expected", None)  # (config, band, rate) from the plan's ranking
+        if planned is not None and planned[:2] == (config, band):
+            return planned[2]
         row = self._configs.get(config)
         if row is None or band is None or row.get("band") != band:
             return None
@@ -351,15 +436,19 @@ class AdaptationManager:
             twins = self.reconcile(str(trigger.detail.get("host")))
             if twins:
                 self._record(Outcome(trigger=trigger, outcome=f"stopped twin(s) {', '.join(twins)}"))
+        if self._landed_state is not None:
+            self.landing = self._landed_state() == "LANDING"
         lost = tuple(h.name for h in a.hosts.values() if not h.online)
-        running_lost = self.current is not None and self.current.host in lost
+        running_lost = self.current is not None and (self.current.host in lost or trigger.kind == "detector_gone")
         if self.landing and not (trigger.urgent or running_lost):
             self._record(Outcome(trigger=trigger, outcome="deferred: final descent"))
             return
         started = time.perf_counter()
         try:
             live = {h.name: h.memory_free_mb for h in a.hosts.values() if h.memory_free_mb is not None}
-            plan = self._planner.plan(band=band.name, running=None if running_lost else self.current,
+            # Configurations whose detections collapsed in this band stay out until the band changes.
+            exclude = tuple(sorted(a.collapsed))
+            plan = self._planner.plan(band=band.name, running=None if running_lost else self.current, exclude=exclude,
                                       lost_hosts=lost, live_free=live)
         except (PlanningError, KgadaptError) as exc:
             self._record(Outcome(trigger=trigger, outcome=f"no plan: {exc}"))
@@ -378,6 +467,10 @@ class AdaptationManager:
         except KgadaptError as exc:
             result = Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}")
         result.detail["plan_ms"] = round((time.perf_counter() - started) * 1000.0, 1)
+        if trigger.kind == "detector_gone" and not result.outcome.startswith("failed"):
+            twins = self._stop_twins()  # e.g. what an outside migrate started elsewhere
+            if twins:
+                result.detail["stopped_twins"] = twins
         self._record(result)
         if running_lost and not result.outcome.startswith("failed"):
             a.reset_rate()
@@ -444,6 +537,8 @@ class AdaptationManager:
         self._changed_at = time.time()
         self._settled_after = self._changed_at + self.settings.settle_s
         self._analyzer.reset_rate()
+        rate = plan.inputs.get("expected_rate")
+        self._expected = (t.config, plan.inputs.get("band"), float(rate) if rate is not None else None)
 
     def _adopt_running(self) -> None:
         """After a restart: adopt one live detector of ours, stop any twin."""

@@ -1,22 +1,29 @@
-"""Calibration: how well each detector configuration does in each illumination band.
+"""Calibration: how well each detector configuration does in each illumination band and condition.
 
 Every configuration the knowledge store has for a feature (named queries
 ``detector_configs`` and ``detector_config``) runs over the same synthetic
-frames: for each band, ``levels_per_band`` fixed levels at the midpoints of
-equal slices of the band (so the band's dark end counts as much as its bright
-end), ``frames_per_level`` frames each, JPEG-compressed as on the wire. A
-detection counts when its id is right and its corners are within
-``tolerance_px`` of the truth; anything else it reports is a false detection.
+frames of the realistic camera (sRGB, Poisson-Gaussian noise, 8 bits; see
+:mod:`onboard.scenario`): for each band, ``levels_per_band`` fixed levels at
+the midpoints of equal slices of the band, and for each level every condition
+of :data:`CONDITIONS` (clean, a 7 px motion blur, uneven light with blind
+stripes, a saturated window, small markers), ``frames_per_level`` frames each,
+JPEG-compressed as on the wire. A detection counts when its id is right and
+its corners are within ``tolerance_px`` of the truth; anything else it reports
+is a false detection. Every configuration is calibrated in every band, not
+only the band it is suited for, so the planner can rank them all.
 
-Figures per (configuration, band): ``detection_rate`` (hits / markers shown),
-``false_rate`` (false / all detections reported), ``ms_per_frame`` (mean time
-of pre-processing plus detection). They go into the graph as
-``(PerceptionGraph)-[:CALIBRATED]->(IlluminationBand)`` through
+Figures per (configuration, band, condition), and per (configuration, band)
+over all conditions as condition ``all``: ``detection_rate`` (hits / markers
+shown), ``false_per_frame`` (false markers per frame), ``false_per_reported``
+(false markers / markers reported), ``ms_per_frame`` (mean time of
+pre-processing plus detection). They go into the graph as
+``(PerceptionGraph)-[:CALIBRATED {condition}]->(IlluminationBand)`` through
 ``knowledge.runtime.record_calibration``, and into a JSON file and a PNG plot.
 
-The best configuration of a band is the one with the highest detection rate
-minus false rate; rates within ``tie_rate`` (half a point) of each other are equal, and then
-the faster one wins.
+The ranking of a band and condition (:func:`rank`, and the named query
+``config_ranking`` on the graph) orders configurations by detection rate minus
+``penalty`` x false markers per frame; scores within ``tie_rate`` (half a
+point) of the best are equal, and then the faster one goes first.
 """
 
 from __future__ import annotations
@@ -41,12 +48,44 @@ RESULTS_DIR = REPO / "bench" / "results"
 FEATURE = "MarkerDetection"
 
 
+# condition -> what it changes: profile keyword arguments and scene options.
+CONDITIONS: dict[str, dict[str, Any]] = {
+    "clean": {},
+    "blur": {"camera": {"blur_px": 7.0, "blur_angle": 25.0}},
+    "uneven": {"light": {"stripes": 5, "stripe_depth": 0.6}, "gradient": 0.6},
+    "window": {"light": {"window": 0.15}},
+    "small": {"scene": {"marker_scale": 0.4}},  # 25-50 px markers: 4-8 px per cell
+}
+ALL = "all"
+PENALTY = 1.0  # score lost per false marker per frame
+
+
+def condition_profile(condition: str, level: float) -> Any:
+    """The constant-light profile of ``condition`` at ``level``."""
+    from onboard.scenario import CameraModel, IlluminationProfile, LightLayout, SceneOptions
+
+    spec = CONDITIONS.get(condition)
+    if spec is None:
+        raise ConfigError(f"unknown calibration condition {condition!r} (use {', '.join(CONDITIONS)})")
+    kwargs: dict[str, Any] = {}
+    if "camera" in spec:
+        kwargs["camera"] = CameraModel(**spec["camera"])
+    if "light" in spec:
+        kwargs["light"] = LightLayout(**spec["light"])
+    if "scene" in spec:
+        kwargs["scene"] = SceneOptions(**spec["scene"])
+    if "gradient" in spec:
+        kwargs["gradient"] = spec["gradient"]
+    return IlluminationProfile.constant(level, **kwargs)
+
+
 @dataclass(frozen=True, kw_only=True)
 class CalibrationSettings:
     """How much to render and how to judge it."""
 
-    frames_per_level: int = 10
+    frames_per_level: int = 4  # per condition: 4 frames x 5 conditions = 20 frames per level
     levels_per_band: int = 4
+    conditions: tuple[str, ...] = tuple(CONDITIONS)
     max_level: float = 200.0  # brighter than this saturates the synthetic camera
     jpeg_quality: int = 80
     width: int = 640
@@ -58,21 +97,35 @@ class CalibrationSettings:
     def __post_init__(self) -> None:
         if self.frames_per_level < 1 or self.levels_per_band < 1:
             raise ConfigError("calibration needs at least one level per band and one frame per level")
+        unknown = [c for c in self.conditions if c not in CONDITIONS]
+        if unknown or not self.conditions:
+            raise ConfigError(f"calibration conditions {unknown or '(none)'}: use some of {', '.join(CONDITIONS)}")
 
 
 @dataclass
 class CalibrationResult:
-    """One configuration in one band."""
+    """One configuration in one band and condition (``all``: every condition of the band together)."""
 
     config: str
     band: str
     detection_rate: float
-    false_rate: float
+    false_per_frame: float
+    false_per_reported: float
     ms_per_frame: float
     ms_p99: float
     frames: int
     markers: int
+    condition: str = ALL
     per_level: list[dict[str, float]] = field(default_factory=list)
+
+    @property
+    def score(self) -> float:
+        return score_of(self.detection_rate, self.false_per_frame)
+
+
+def score_of(detection_rate: float, false_per_frame: float | None, penalty: float = PENALTY) -> float:
+    """What a configuration is ranked by: detection rate minus ``penalty`` x false markers per frame."""
+    return round(detection_rate - penalty * (false_per_frame or 0.0), 6)
 
 
 def band_levels(band: Band, count: int, *, max_level: float = 200.0) -> list[float]:
@@ -84,28 +137,71 @@ def band_levels(band: Band, count: int, *, max_level: float = 200.0) -> list[flo
     return [round(low + step * (i + 0.5), 2) for i in range(count)]
 
 
-def render_test_frames(
-    bands: Sequence[Band], settings: CalibrationSettings
-) -> dict[str, list[tuple[float, np.ndarray, list[Any]]]]:
-    """The frames every configuration is judged on: ``band -> [(level, grey, truth), ...]``."""
+Frame = tuple[float, np.ndarray, list[Any], list[int]]  # (level, grey frame, truth, ids partly hidden)
+
+
+def render_test_frames(bands: Sequence[Band], settings: CalibrationSettings) -> dict[tuple[str, str], list[Frame]]:
+    """The frames every configuration is judged on: ``(band, condition) -> [(level, grey, truth), ...]``."""
     import cv2
 
-    from onboard.scenario import IlluminationProfile, SceneSettings, SyntheticScene
+    from onboard.scenario import SceneSettings, SyntheticScene
 
-    scene = SyntheticScene(SceneSettings(width=settings.width, height=settings.height))
+    base = SceneSettings(width=settings.width, height=settings.height)
     rng = np.random.default_rng(settings.seed)
-    out: dict[str, list[tuple[float, np.ndarray, list[Any]]]] = {}
+    out: dict[tuple[str, str], list[Frame]] = {}
+    scenes: dict[Any, Any] = {}
     for band in bands:
-        frames = []
-        for level in band_levels(band, settings.levels_per_band, max_level=settings.max_level):
-            profile = IlluminationProfile.constant(level)
-            for i in range(settings.frames_per_level):
-                frame = scene.render(i * 0.7, profile, rng)  # the sway moves the markers between frames
-                ok, jpeg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, settings.jpeg_quality])
-                gray = cv2.imdecode(jpeg, cv2.IMREAD_GRAYSCALE)
-                frames.append((level, gray, frame.truth))
-        out[band.name] = frames
+        for condition in settings.conditions:
+            frames = []
+            for level in band_levels(band, settings.levels_per_band, max_level=settings.max_level):
+                profile = condition_profile(condition, level)
+                scene = scenes.get(profile.scene)
+                if scene is None:
+                    scene = scenes[profile.scene] = SyntheticScene(base.with_options(profile.scene))
+                for i in range(settings.frames_per_level):
+                    frame = scene.render(i * 0.7, profile, rng)  # the sway moves the markers between frames
+                    ok, jpeg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, settings.jpeg_quality])
+                    frames.append((level, cv2.imdecode(jpeg, cv2.IMREAD_GRAYSCALE), frame.truth,
+                                   frame.extras.get("hidden", [])))
+            out[(band.name, condition)] = frames
     return out
+
+
+def judge(detectors: Sequence[MarkerDetector], frames: Sequence[Frame], *, tolerance_px: float
+          ) -> list[tuple[Score, list[float], dict[float, tuple[Score, list[float]]]]]:
+    """Every frame through every detector in turn: per detector its score, times and per-level figures.
+
+    In turn, so a burst of load from elsewhere on the machine hits all
+    configurations alike instead of one of them.
+    """
+    out = [(Score(), [], {}) for _ in detectors]
+    for level, gray, truth, hidden in frames:
+        for i, detector in enumerate(detectors):
+            found = detector.detect(gray)
+            s = score(found.ids, found.corners, truth, tolerance_px=tolerance_px, ignore=hidden)
+            total, times, per_level = out[i]
+            total.add(s)
+            times.append(found.processing_ms)
+            level_score, level_times = per_level.setdefault(level, (Score(), []))
+            level_score.add(s)
+            level_times.append(found.processing_ms)
+    return out
+
+
+def _result(config: str, band: str, condition: str, total: Score, times: list[float],
+            per_level: dict[float, tuple[Score, list[float]]]) -> CalibrationResult:
+    return CalibrationResult(
+        config=config, band=band, condition=condition,
+        detection_rate=round(total.detection_rate, 4), false_per_frame=round(total.false_per_frame, 4),
+        false_per_reported=round(total.false_per_reported, 4),
+        ms_per_frame=round(float(np.mean(times)), 3), ms_p99=round(float(np.percentile(times, 99)), 3),
+        frames=total.frames, markers=total.truth,
+        per_level=[
+            {"level": lv, "detection_rate": round(sc.detection_rate, 4), "false_per_frame": round(sc.false_per_frame, 4),
+             "ms_per_frame": round(float(np.mean(ts)), 3)}
+            for lv, (sc, ts) in sorted(per_level.items())
+        ],
+    )
 
 
 def calibrate(
@@ -115,7 +211,11 @@ def calibrate(
     *,
     progress: Callable[[str], None] | None = None,
 ) -> list[CalibrationResult]:
-    """Run every configuration over every band's frames; return the figures."""
+    """Run every configuration over every band's and condition's frames; return the figures.
+
+    One result per (configuration, band, condition) and one per (configuration,
+    band) over all its conditions (condition ``all``).
+    """
     if not configs:
         raise ConfigError("nothing to calibrate: no detector configurations")
     if not bands:
@@ -123,61 +223,62 @@ def calibrate(
     frames = render_test_frames(bands, settings)
     detectors = [MarkerDetector(config) for config in configs]
     for detector in detectors:
-        detector.detect(frames[bands[0].name][0][1])  # warm-up: the first call allocates
+        detector.detect(next(iter(frames.values()))[0][1])  # warm-up: the first call allocates
     results = []
     for band in bands:
-        totals = [Score() for _ in detectors]
-        times: list[list[float]] = [[] for _ in detectors]
-        per_level: list[dict[float, tuple[Score, list[float]]]] = [{} for _ in detectors]
-        # Every frame goes through every configuration in turn, so a burst of load from
-        # elsewhere on the machine hits all configurations alike instead of one of them.
-        for level, gray, truth in frames[band.name]:
-            for i, detector in enumerate(detectors):
-                found = detector.detect(gray)
-                s = score(found.ids, found.corners, truth, tolerance_px=settings.tolerance_px)
-                totals[i].add(s)
-                times[i].append(found.processing_ms)
-                level_score, level_times = per_level[i].setdefault(level, (Score(), []))
-                level_score.add(s)
-                level_times.append(found.processing_ms)
+        overall = [(Score(), [], {}) for _ in detectors]
+        for condition in settings.conditions:
+            judged = judge(detectors, frames[(band.name, condition)], tolerance_px=settings.tolerance_px)
+            for i, config in enumerate(configs):
+                total, times, per_level = judged[i]
+                results.append(_result(config.name, band.name, condition, total, times, per_level))
+                all_total, all_times, all_levels = overall[i]
+                all_total.add(total)
+                all_times.extend(times)
+                for level, (sc, ts) in per_level.items():
+                    level_score, level_times = all_levels.setdefault(level, (Score(), []))
+                    level_score.add(sc)
+                    level_times.extend(ts)
         for i, config in enumerate(configs):
-            total = totals[i]
-            result = CalibrationResult(
-                config=config.name, band=band.name,
-                detection_rate=round(total.detection_rate, 4), false_rate=round(_false_rate(total), 4),
-                ms_per_frame=round(float(np.mean(times[i])), 3), ms_p99=round(float(np.percentile(times[i], 99)), 3),
-                frames=total.frames, markers=total.truth,
-                per_level=[
-                    {"level": lv, "detection_rate": round(sc.detection_rate, 4), "false_rate": round(_false_rate(sc), 4),
-                     "ms_per_frame": round(float(np.mean(ts)), 3)}
-                    for lv, (sc, ts) in sorted(per_level[i].items())
-                ],
-            )
+            result = _result(config.name, band.name, ALL, *overall[i])
             results.append(result)
             if progress:
                 progress(f"{config.name:28s} {band.name:6s} rate {result.detection_rate:6.1%} "
-                         f"false {result.false_rate:5.1%} {result.ms_per_frame:6.2f} ms/frame")
+                         f"false/frame {result.false_per_frame:6.3f} {result.ms_per_frame:6.2f} ms/frame")
     return results
 
 
-def _false_rate(s: Score) -> float:
-    reported = s.hits + s.false
-    return s.false / reported if reported else 0.0
+def rank(results: Sequence[CalibrationResult], band: str, condition: str = ALL, *,
+         tie_rate: float = 0.005) -> list[CalibrationResult]:
+    """The configurations of ``band`` and ``condition`` best first (see the module's docstring)."""
+    return rank_rows([r for r in results if r.band == band and r.condition == condition],
+                     score=lambda r: r.score, ms=lambda r: r.ms_per_frame, tie_rate=tie_rate)
 
 
-def best_per_band(results: Sequence[CalibrationResult], *, tie_rate: float = 0.005) -> dict[str, str]:
-    """The winning configuration of each band (rate minus false rate; ties go to the faster)."""
-    best: dict[str, CalibrationResult] = {}
-    for r in results:
-        current = best.get(r.band)
-        if current is None:
-            best[r.band] = r
-            continue
-        # Rounded so that 1.0 - 0.99 compares as 0.01, not 0.010000000000000009.
-        gain = round((r.detection_rate - r.false_rate) - (current.detection_rate - current.false_rate), 6)
-        if gain > tie_rate or (abs(gain) <= tie_rate and r.ms_per_frame < current.ms_per_frame):
-            best[r.band] = r
-    return {band: r.config for band, r in best.items()}
+def rank_rows(rows: Sequence[Any], *, score: Callable[[Any], float], ms: Callable[[Any], float],
+              tie_rate: float = 0.005) -> list[Any]:
+    """``rows`` best first: highest score; scores within ``tie_rate`` of the best left go to the faster."""
+    left = list(rows)
+    ordered = []
+    while left:
+        best = max(score(r) for r in left)
+        tied = [r for r in left if best - score(r) <= tie_rate + 1e-9]
+        pick = min(tied, key=lambda r: (ms(r), -score(r)))
+        ordered.append(pick)
+        left.remove(pick)
+    return ordered
+
+
+def best_per_band(results: Sequence[CalibrationResult], *, tie_rate: float = 0.005,
+                  condition: str = ALL) -> dict[str, str]:
+    """The winning configuration of each band in ``condition`` (see :func:`rank`)."""
+    bands = sorted({r.band for r in results})
+    out = {}
+    for band in bands:
+        ranked = rank(results, band, condition, tie_rate=tie_rate)
+        if ranked:
+            out[band] = ranked[0].config
+    return out
 
 
 # -- the store side -----------------------------------------------------------
@@ -201,6 +302,24 @@ def configs_from_store(store: Any, feature: str = FEATURE) -> tuple[list[Detecto
     return configs, bands, rows
 
 
+def model_configs(folder: Path | str = REPO / "knowledge" / "models" / "perception") -> list[DetectorConfig]:
+    """The detector configurations of the perception-graph model files, read without a store (tests, bench).
+
+    Each ``*.rpsl`` file's perception graph names the configuration; its
+    processing component with a ``config_json`` gives the settings.
+    """
+    from knowledge.importers.rpsl import parse
+
+    configs = []
+    for path in sorted(Path(folder).glob("*.rpsl")):
+        model = parse(path.read_text(), str(path))
+        graphs = [n.name for n in model.nodes if n.label == "PerceptionGraph"]
+        settings = [n.props["config_json"] for n in model.nodes if n.props.get("config_json")]
+        if len(graphs) == 1 and len(settings) == 1:
+            configs.append(parse_config(graphs[0], settings[0]))
+    return configs
+
+
 def ensure_models(store: Any, feature: str = FEATURE) -> bool:
     """Load the shipped models when the graph has no configuration for ``feature``; True if loaded."""
     from knowledge.queries import run_named
@@ -221,8 +340,9 @@ def record(store: Any, results: Sequence[CalibrationResult], *, at: float | None
 
     at = time.time() if at is None else at
     for r in results:
-        record_calibration(store, config=r.config, band=r.band, detection_rate=r.detection_rate,
-                           false_rate=r.false_rate, ms_per_frame=r.ms_per_frame, time=at)
+        record_calibration(store, config=r.config, band=r.band, condition=r.condition,
+                           detection_rate=r.detection_rate, false_per_frame=r.false_per_frame,
+                           false_per_reported=r.false_per_reported, ms_per_frame=r.ms_per_frame, time=at)
     return len(results)
 
 
@@ -243,20 +363,23 @@ def report(results: Sequence[CalibrationResult], bands: Sequence[Band], configs:
 
 
 def table(results: Sequence[CalibrationResult], bands: Sequence[Band]) -> str:
-    """Rate / ms per frame for every configuration (rows) and band (columns)."""
+    """Rate / false markers per 1,000 frames / ms per frame for every configuration, band and condition."""
     configs = sorted({r.config for r in results})
-    by = {(r.config, r.band): r for r in results}
-    best = best_per_band(results)
-    width = max(len(c) for c in configs)
-    lines = ["config".ljust(width) + "".join(f"  {b.name + ' rate/false/ms':>26s}" for b in bands)]
-    for c in configs:
-        cells = []
-        for b in bands:
-            r = by.get((c, b.name))
-            mark = "*" if best.get(b.name) == c else " "
-            cells.append(f"  {mark}{r.detection_rate:7.1%} {r.false_rate:5.1%} {r.ms_per_frame:7.2f} ms" if r else " " * 28)
-        lines.append(c.ljust(width) + "".join(cells))
-    lines.append("* best in band (highest rate minus false rate; within half a point the faster)")
+    conditions = [ALL] + [c for c in CONDITIONS if any(r.condition == c for r in results)]
+    by = {(r.config, r.band, r.condition): r for r in results}
+    width = max(len(c) for c in configs) + 9
+    lines = ["config / condition".ljust(width) + "".join(f"  {b.name + ' rate/false per 1k/ms':>30s}" for b in bands)]
+    for condition in conditions:
+        best = best_per_band(results, condition=condition)
+        for c in configs:
+            cells = []
+            for b in bands:
+                r = by.get((c, b.name, condition))
+                mark = "*" if best.get(b.name) == c else " "
+                cells.append(f"  {mark}{r.detection_rate:7.1%} {r.false_per_frame * 1000:7.0f} {r.ms_per_frame:7.2f} ms"
+                             if r else " " * 32)
+            lines.append(f"{c} {condition}".ljust(width) + "".join(cells))
+    lines.append("* first in the ranking (rate minus false markers per frame; within half a point the faster)")
     return "\n".join(lines)
 
 
@@ -271,7 +394,7 @@ def plot(results: Sequence[CalibrationResult], bands: Sequence[Band], path: Path
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     configs = sorted({r.config for r in results})
-    by = {(r.config, r.band): r for r in results}
+    by = {(r.config, r.band): r for r in results if r.condition == ALL}
     x = np.arange(len(bands))
     width = 0.8 / max(len(configs), 1)
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
@@ -285,7 +408,7 @@ def plot(results: Sequence[CalibrationResult], bands: Sequence[Band], path: Path
     top.set_ylim(0, 125)
     top.set_yticks(range(0, 101, 20))
     top.legend(fontsize=8, loc="upper center", ncol=min(len(configs), 3), frameon=False)
-    top.set_title("ArUco detector configurations per illumination band (synthetic scenario)")
+    top.set_title("ArUco detector configurations per illumination band (sRGB camera model, all conditions)")
     bottom.set_ylabel("ms per frame")
     bottom.set_xticks(x, [f"{b.name}\n[{b.min_level:g}, {b.max_level:g})" for b in bands])
     fig.tight_layout()

@@ -31,7 +31,7 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from onboard.illumination import Luminance, Smoother, luminance
+from onboard.illumination import LightEstimate, LightSettings, Luminance, Smoother, estimate_light, luminance
 from shared import keys, messages
 from shared.errors import ConfigError, KgadaptError, TransportError
 
@@ -102,7 +102,7 @@ class SyntheticSource:
 
         if self._profile_path is not None:
             self.profile = load_profile(self._profile_path)
-        self._scene = SyntheticScene(self._scene_settings)
+        self._scene = SyntheticScene(self._scene_settings.with_options(self.profile.scene))
         self._rng = np.random.default_rng(self._seed)
         self._t0 = None
 
@@ -204,6 +204,9 @@ class CameraSettings:
     height: int = 480
     queue_size: int = 2  # frames between capture and publish; the oldest goes when full
     illumination_tau_s: float = 0.5
+    light: LightSettings = LightSettings()
+    marker_memory_s: float = 1.0  # markers detected this recently weigh the light estimate
+    follow_detections: bool = True  # subscribe to the detectors' markers for that
     publish_truth: bool = True
 
     def __post_init__(self) -> None:
@@ -237,7 +240,8 @@ class IlluminationReading:
     seq: int
     time: float
     figures: Luminance
-    smoothed: float
+    smoothed: float  # EMA of light.level, what bands are read from
+    light: LightEstimate | None = None
 
 
 class CameraPart:
@@ -262,11 +266,31 @@ class CameraPart:
         self._threads: list[threading.Thread] = []
         self._frame_pub: Any = None
         self._light_pub: Any = None
+        self._markers_sub: Any = None
         self._smoother = Smoother(settings.illumination_tau_s)
+        self._markers: tuple[float, list[Any]] = (0.0, [])  # (frame time, corners) of the last markers seen
         self.finished = threading.Event()  # set when the source ended or failed
 
     def add_listener(self, listener: Callable[[IlluminationReading], None]) -> None:
         self._listeners.append(listener)
+
+    def note_markers(self, corners: list[Any], frame_time: float) -> None:
+        """Markers a detector found in the frame taken at ``frame_time``: the light estimate weighs their surroundings."""
+        if corners and frame_time >= self._markers[0]:
+            self._markers = (frame_time, list(corners))
+
+    def _on_detections(self, sample: Any) -> None:
+        # Zenoh callback: decode and keep a reference only (no I/O, no waiting).
+        try:
+            m = messages.decode(sample.payload.to_bytes(), "detections")
+        except Exception as exc:
+            log.debug("camera: detections not used for the light estimate: %s", exc)
+            return
+        self.note_markers(m["corners"], float(m["frame_time"]))
+
+    def _recent_markers(self, now: float) -> list[Any]:
+        at, corners = self._markers
+        return corners if now - at <= self.settings.marker_memory_s else []
 
     def setup(self, session: Any) -> None:
         """Open the source, declare the publishers and start capturing."""
@@ -284,6 +308,8 @@ class CameraPart:
             self._light_pub = session.declare_publisher(
                 keys.camera_illumination(s.robot, s.camera), congestion_control=zenoh.CongestionControl.DROP,
             )
+            if s.follow_detections:
+                self._markers_sub = session.declare_subscriber(keys.detector_markers(s.robot), self._on_detections)
         except Exception as exc:
             self.shutdown()
             raise TransportError(f"camera {s.camera}: cannot declare publishers: {exc}") from exc
@@ -303,13 +329,13 @@ class CameraPart:
         for thread in self._threads:
             thread.join(timeout=5)
         self._threads = []
-        for pub in (self._frame_pub, self._light_pub):
+        for pub in (self._markers_sub, self._frame_pub, self._light_pub):
             if pub is not None:
                 try:
                     pub.undeclare()
                 except Exception as exc:  # the session may be closed already
                     log.debug("camera publisher undeclare: %s", exc)
-        self._frame_pub = self._light_pub = None
+        self._frame_pub = self._light_pub = self._markers_sub = None
         try:
             self.source.close()
         except Exception as exc:
@@ -383,8 +409,9 @@ class CameraPart:
             if truth:
                 truth = [{"id": t["id"], "corners": [[x * sx, y * sy] for x, y in t["corners"]]} for t in truth]
         figures = luminance(gray)
-        smoothed = self._smoother.update(figures.mean, frame.time)
-        reading = IlluminationReading(seq, frame.time, figures, smoothed)
+        light = estimate_light(gray, self._recent_markers(frame.time), s.light)
+        smoothed = self._smoother.update(light.level, frame.time)
+        reading = IlluminationReading(seq, frame.time, figures, smoothed, light)
         self.latest = reading
         start = time.perf_counter()
         ok, jpeg = cv2.imencode(".jpg", gray, [cv2.IMWRITE_JPEG_QUALITY, s.jpeg_quality])
@@ -408,6 +435,7 @@ class CameraPart:
             "camera": s.camera, "seq": seq, "time": frame.time,
             "mean": round(figures.mean, 3), "p5": figures.p5, "p50": figures.p50, "p95": figures.p95,
             "smoothed": round(smoothed, 3),
+            **{k: v for k, v in light.as_wire().items() if v is not None},
         }))
         self.stats.published += 1
         for listener in self._listeners:

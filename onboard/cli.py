@@ -50,6 +50,8 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
                     help="site marker file (ids and sizes): LANDING_TARGET then carries the marker's position")
     fc.add_argument("--fc-profile", choices=("auto", "ardupilot", "px4"), default="auto",
                     help="LANDING_TARGET frame per autopilot (default: from its heartbeat)")
+    fc.add_argument("--site", metavar="FILE",
+                    help="site file naming the marker ids there (*.site); other ids never become LANDING_TARGET")
     ad = parser.add_argument_group("adaptation")
     ad.add_argument("--adapt", action="store_true", help="run the adaptation manager on this agent")
     ad.add_argument("--prefer", choices=("onboard-first", "remote-first"), default="onboard-first",
@@ -67,25 +69,39 @@ class FlightPart:
     name = "flight"
 
     def __init__(self, *, robot: str, url: str, camera_model: str, camera: Any = None, markers: Any = None,
-                 profile: str = "auto") -> None:
-        self.robot, self.url, self.camera_model = robot, url, camera_model
+                 profile: str = "auto", manager: Any = None, site: str | None = None) -> None:
+        self.robot, self.url, self.camera_model, self.site = robot, url, camera_model, site
         self.camera, self.markers, self.profile = camera, markers, profile  # checked files (onboard.landing_targets)
+        self.manager = manager  # the adaptation manager beside it: only its chosen detector steers
+
+    def landed_state(self) -> str | None:
+        """The flight controller's landed state as the bridge knows it (None before setup)."""
+        bridge = self.bridge
+        return bridge.state.landed_state if bridge is not None else None
         self.bridge: Any = None
 
     def setup(self, session: Any) -> None:
         from knowledge.client import KnowledgeClient
         from onboard.flight import BridgeSettings, FlightBridge, FlightControlWriter, intrinsics_from_graph
+        from onboard.confirmation import ConfirmationSettings, load_site
         from onboard.mavlink import LinkSettings
 
         from onboard.flight import CameraIntrinsics
 
-        client = KnowledgeClient(session, self.robot)
+        client = KnowledgeClient(session, self.robot, own=True)
         c = self.camera
         intrinsics = (CameraIntrinsics(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy) if c is not None
                       else intrinsics_from_graph(client, self.camera_model))
         settings = BridgeSettings(robot=self.robot, link=LinkSettings(url=self.url), intrinsics=intrinsics,
-                                  camera=c, markers=self.markers, profile=self.profile)
-        self.bridge = FlightBridge(settings, on_state=FlightControlWriter(client))
+                                  camera=c, markers=self.markers, profile=self.profile,
+                                  confirmation=ConfirmationSettings(site=load_site(self.site) if self.site else None))
+        manager = self.manager
+        chosen = None
+        if manager is not None:
+            def chosen() -> str | None:
+                current = manager.current
+                return current.instance if current is not None else None
+        self.bridge = FlightBridge(settings, on_state=FlightControlWriter(client), chosen_detector=chosen)
         self.bridge.setup(session)
 
     def shutdown(self) -> None:
@@ -99,9 +115,10 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
     from deploy.deployer import Deployer, settings_from_args as deployer_settings
     from shared.hostmonitor import HostMonitor, settings_from_args
 
+    monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))
     parts: list[Any] = [
-        HostMonitor(settings_from_args(args, robot=args.robot, host=args.host)),
-        Deployer(deployer_settings(args, robot=args.robot, host=args.host)),
+        monitor,
+        Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb),
     ]
     if args.camera_source:
         from onboard.camera import CameraPart, CameraSettings, make_source
@@ -110,20 +127,28 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
         source = make_source(args.camera_source, width=settings.width, height=settings.height, fps=args.fps,
                              speed=args.scenario_speed)
         parts.append(CameraPart(settings, source))
+    flight = None
     if args.fc:
         from onboard.landing_targets import load_camera, load_site_markers
 
-        parts.append(FlightPart(  # the files are checked here, before anything starts
+        flight = FlightPart(  # the files are checked here, before anything starts
             robot=args.robot, url=args.fc, camera_model=args.camera_model,
             camera=load_camera(args.fc_camera_file) if getattr(args, "fc_camera_file", None) else None,
             markers=load_site_markers(args.fc_markers) if getattr(args, "fc_markers", None) else None,
-            profile=getattr(args, "fc_profile", "auto")))
+            profile=getattr(args, "fc_profile", "auto"), site=getattr(args, "site", None))
+        parts.append(flight)
     if args.adapt:
         from onboard.adaptation_manager import AdaptationManager, AdaptationSettings
 
-        parts.append(AdaptationManager(AdaptationSettings(
+        # In one process, the manager and the bridge trust each other directly: the bridge follows
+        # the manager's chosen detector, the manager the bridge's landed state (not Zenoh messages).
+        manager = AdaptationManager(AdaptationSettings(
             robot=args.robot, camera=args.camera, preference=args.prefer, onboard_host=args.host,
-            dwell_s=args.dwell, hysteresis=args.hysteresis)))
+            dwell_s=args.dwell, hysteresis=args.hysteresis),
+            landed_state=flight.landed_state if flight is not None else None)
+        if flight is not None:
+            flight.manager = manager
+        parts.append(manager)
     return parts
 
 

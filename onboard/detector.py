@@ -101,7 +101,7 @@ def fetch_config(session: Any, robot: str, name: str, *, wait_s: float = 10.0) -
     from onboard.markers import parse_config
 
     keys.check_name(name, "configuration name")
-    client = KnowledgeClient(session, robot)
+    client = KnowledgeClient(session, robot, own=True)
     deadline = time.monotonic() + wait_s
     while True:
         try:
@@ -191,7 +191,7 @@ class Detector:
             "frame_time": frame["time"], "time": time.time(),
             "ids": result.ids, "corners": result.corners, "processing_ms": round(result.processing_ms, 3),
             "camera": frame["camera"], "received": received, "decode_ms": round(decode_ms, 3),
-            "dropped": self.slot.replaced,
+            "dropped": self.slot.replaced, "clean": result.clean,
         }
         if isinstance(frame.get("sent"), (int, float)):
             body["frame_sent"] = frame["sent"]

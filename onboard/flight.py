@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 from onboard.landing_targets import AutopilotProfile, CameraModel, SiteMarkers, TargetBuilder, TargetHold
+from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
 from onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
 from shared import keys, messages
 from shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
@@ -176,6 +177,7 @@ class BridgeSettings:
     profile: str = "auto"  # ardupilot | px4 | auto (from the autopilot's heartbeat)
     hold_s: float = 1.5  # re-send the last target, predicted, this long after its frame ...
     resend_hz: float = 10.0  # ... at this rate: ArduPilot's estimator wants a measurement every 0.5 s
+    confirmation: ConfirmationSettings = ConfirmationSettings()  # no phantom landing targets (onboard.confirmation)
 
 
 StateCallback = Callable[[FlightState], None]
@@ -191,7 +193,8 @@ class FlightBridge:
     published state, so a slow callback never delays a landing target.
     """
 
-    def __init__(self, settings: BridgeSettings, *, on_state: StateCallback | None = None) -> None:
+    def __init__(self, settings: BridgeSettings, *, on_state: StateCallback | None = None,
+                 chosen_detector: Callable[[], str | None] | None = None) -> None:
         keys.check_name(settings.robot, "robot name")
         if settings.detector != "*":
             keys.check_name(settings.detector, "detector instance")
@@ -203,8 +206,12 @@ class FlightBridge:
         self._targets = TargetBuilder(settings.camera or _camera_of(settings.intrinsics), settings.markers)
         self._hold = TargetHold(hold_s=settings.hold_s, resend_hz=settings.resend_hz)
         self._on_state = on_state
+        # With an adaptation manager in the same process: the one instance it chose (None: none).
+        # Detections from any other instance, forged ones included, never steer the landing.
+        self._chosen = chosen_detector
         self.link = FlightLink(settings.link)
         self.link.on_state(self._on_link_state)
+        self.confirmer = MarkerConfirmer(settings.confirmation)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._queued = 0  # detections waiting; SimpleQueue has no bound of its own
         self._queued_lock = threading.Lock()
@@ -223,6 +230,7 @@ class FlightBridge:
         self.counters = {
             "detections": 0, "malformed": 0, "no_target": 0, "stale": 0, "duplicate": 0, "rate_limited": 0,
             "targets_sent": 0, "send_failed": 0, "published": 0, "queue_full": 0, "targets_resent": 0,
+            "not_chosen": 0, "unconfirmed": 0,
         }
 
     # -- lifecycle
@@ -285,6 +293,9 @@ class FlightBridge:
     # -- inputs (called on Zenoh's and the link's threads: only enqueue)
 
     def _on_sample(self, sample) -> None:
+        if self._chosen is not None and keys.last_chunk(str(sample.key_expr), 2) != self._chosen():
+            self.counters["not_chosen"] += 1
+            return
         with self._queued_lock:
             if self._queued >= self.settings.queue_limit:
                 self.counters["queue_full"] += 1
@@ -344,6 +355,17 @@ class FlightBridge:
         self.counters["detections"] += 1
         try:
             detections = messages.decode(payload, "detections")
+            if self._chosen is not None and detections.get("instance") != self._chosen():
+                self.counters["not_chosen"] += 1
+                return
+            confirmed = self._confirmed(detections)
+            if confirmed is None:  # a frame the confirmation has seen (a second detector in a migration)
+                self.counters["duplicate"] += 1
+                return
+            if detections["ids"] and not confirmed["ids"]:
+                self.counters["unconfirmed"] += 1
+                return
+            detections = confirmed
             index = choose_marker(detections, self.settings.target_id)
             if index is None:
                 self.counters["no_target"] += 1
@@ -401,6 +423,17 @@ class FlightBridge:
         self._tokens -= 1.0
         self.counters["targets_sent"] += 1
         self._hold.confirm(held, time.time())
+
+    def _confirmed(self, detections: dict) -> dict | None:
+        """Only confirmed markers (``onboard.confirmation``); None for a frame already seen.
+
+        Stale and future frames pass unchanged: the checks below count and refuse them.
+        """
+        frame_time = detections["frame_time"]
+        age = time.time() - frame_time
+        if age > self.settings.max_detection_age_s or age < -self.settings.max_clock_skew_s:
+            return detections
+        return self.confirmer.keep(detections, frame_time)
 
     def _publish(self, state: FlightState) -> None:
         publisher = self._publisher

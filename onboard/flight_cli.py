@@ -307,7 +307,7 @@ def _bridge(args: argparse.Namespace) -> int:
         if args.camera or args.write_graph:
             from knowledge.client import KnowledgeClient
 
-            client = KnowledgeClient(session, args.robot)
+            client = KnowledgeClient(session, args.robot, own=True)
         intrinsics = (intrinsics_from_graph(client, args.camera) if args.camera
                       else CameraIntrinsics(fx=args.fx, fy=args.fy, cx=args.cx, cy=args.cy))
         settings = BridgeSettings(robot=args.robot, link=_link_settings(args), detector=args.detector,

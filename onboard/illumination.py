@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping
+from enum import Enum
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -47,6 +48,142 @@ def luminance(gray: np.ndarray, *, step: int = 4) -> Luminance:
         return float(np.searchsorted(cumulative, total * p / 100.0))
 
     return Luminance(mean=mean, p5=pct(5), p50=pct(50), p95=pct(95))
+
+
+class LightSource(str, Enum):
+    """Which pixels a light estimate rests on."""
+
+    FRAME = "frame"  # the usable pixels of the whole frame
+    MARKERS = "markers"  # weighted towards the light around markers seen recently
+    CLIPPED = "clipped"  # too few usable pixels: every unsaturated pixel, the frame is mostly black
+
+
+@dataclass(frozen=True, kw_only=True)
+class LightSettings:
+    """How :func:`estimate_light` reads the light of a frame.
+
+    Saturated pixels (a window, a lamp) say nothing about how bright the scene
+    is beyond "more than the sensor holds", and near-black ones (a shadowed
+    corner, a black object) nothing about the light on the rest, so both are left
+    out; of the rest, a trimmed mean (``trim`` each side) keeps the band scale of
+    the frame mean without being dragged by a few extreme pixels.
+    """
+
+    saturated: int = 250  # at or above: saturated
+    black: int = 0  # at or below: black (clipped at the sensor's floor)
+    trim: float = 0.02
+    min_usable: float = 0.2  # below this share of usable pixels, fall back to all unsaturated ones
+    marker_weight: float = 0.75  # share of the estimate given to the light around seen markers
+    marker_margin: float = 0.5  # the region around a marker: its box widened by this share of its side
+    step: int = 4  # every step-th pixel each way for the frame figure
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.black < self.saturated <= 255:
+            raise ConfigError(f"light estimate: need 0 <= black ({self.black}) < saturated ({self.saturated}) <= 255")
+        if not 0 <= self.trim < 0.5 or not 0 <= self.marker_weight <= 1 or not 0 < self.min_usable <= 1:
+            raise ConfigError("light estimate: trim in [0, 0.5), marker_weight in [0, 1], min_usable in (0, 1]")
+        if self.step < 1 or self.marker_margin < 0:
+            raise ConfigError("light estimate: step >= 1 and marker_margin >= 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LightEstimate:
+    """The light of one frame on the band scale, and what it was read from."""
+
+    level: float  # what the band is read from
+    frame_level: float  # trimmed mean of the frame's usable pixels
+    marker_level: float | None  # the same around the markers seen, None when none were given
+    source: LightSource
+    usable: float  # share of the frame's sampled pixels that were used
+    saturated: float  # share at or above the saturation level
+    black: float  # share at or below the near-black level
+    markers: int  # markers whose surroundings were weighed
+
+    def as_wire(self) -> dict[str, Any]:
+        return {"level": round(self.level, 3), "frame_level": round(self.frame_level, 3),
+                "marker_level": None if self.marker_level is None else round(self.marker_level, 3),
+                "source": self.source.value, "usable": round(self.usable, 4),
+                "saturated": round(self.saturated, 4), "black": round(self.black, 4), "markers": self.markers}
+
+
+def _trimmed_mean(hist: np.ndarray, low: int, high: int, trim: float) -> tuple[float, float]:
+    """Trimmed mean of the histogram's bins ``low..high`` (inclusive) and their share of all pixels."""
+    total = float(hist.sum())
+    part = hist[low:high + 1].astype(np.float64)
+    count = float(part.sum())
+    if count <= 0 or total <= 0:
+        return float("nan"), 0.0
+    values = np.arange(low, high + 1, dtype=np.float64)
+    if trim > 0:
+        # Cut ``trim`` of the pixels from each end, fractional bins included.
+        cum = np.cumsum(part)
+        lo_cut, hi_cut = trim * count, (1.0 - trim) * count
+        keep = np.clip(np.minimum(cum, hi_cut) - np.maximum(cum - part, lo_cut), 0.0, None)
+    else:
+        keep = part
+    kept = float(keep.sum())
+    mean = float(np.dot(keep, values) / kept) if kept > 0 else float(np.dot(part, values) / count)
+    return mean, count / total
+
+
+def _region_light(hist: np.ndarray, settings: LightSettings) -> tuple[float, float, LightSource]:
+    mean, usable = _trimmed_mean(hist, settings.black + 1, settings.saturated - 1, settings.trim)
+    if usable >= settings.min_usable:
+        return mean, usable, LightSource.FRAME
+    mean, _share = _trimmed_mean(hist, 0, settings.saturated - 1, settings.trim)
+    if math.isnan(mean):  # every pixel saturated
+        return float(settings.saturated), usable, LightSource.CLIPPED
+    return mean, usable, LightSource.CLIPPED
+
+
+def marker_mask(shape: tuple[int, int], markers: Sequence[Any], margin: float) -> np.ndarray | None:
+    """A mask of the regions around ``markers`` (each 4 x [x, y] corners); None when none is in the frame."""
+    h, w = shape
+    mask = np.zeros((h, w), np.uint8)
+    found = False
+    for corners in markers:
+        pts = np.asarray(corners, np.float32).reshape(-1, 2)
+        if pts.shape[0] < 3 or not np.isfinite(pts).all():
+            continue
+        (x0, y0), (x1, y1) = pts.min(axis=0), pts.max(axis=0)
+        side = max(x1 - x0, y1 - y0)
+        pad = margin * side
+        xa, ya = int(max(x0 - pad, 0)), int(max(y0 - pad, 0))
+        xb, yb = int(min(x1 + pad + 1, w)), int(min(y1 + pad + 1, h))
+        if xb > xa and yb > ya:
+            mask[ya:yb, xa:xb] = 255
+            found = True
+    return mask if found else None
+
+
+def estimate_light(gray: np.ndarray, markers: Sequence[Any] = (), settings: LightSettings = LightSettings()) -> LightEstimate:
+    """The light of a grey frame that a window, a lamp or a black corner cannot fool.
+
+    ``markers`` are the corners of markers seen recently (detections); when
+    given, the light around them gets ``settings.marker_weight`` of the
+    estimate, because that is the light the detector has to work in.
+    """
+    import cv2
+
+    if gray.ndim != 2 or gray.dtype != np.uint8 or gray.size == 0:
+        raise ConfigError(f"light estimate needs a non-empty grey uint8 image, got {gray.dtype} {gray.shape}")
+    step = settings.step
+    sample = np.ascontiguousarray(gray[::step, ::step])
+    hist = cv2.calcHist([sample], [0], None, [256], [0, 256]).ravel()
+    total = float(hist.sum())
+    saturated = float(hist[settings.saturated:].sum()) / total
+    black = float(hist[:settings.black + 1].sum()) / total
+    frame_level, usable, source = _region_light(hist, settings)
+    level, marker_level, seen = frame_level, None, 0
+    mask = marker_mask(gray.shape, markers, settings.marker_margin) if len(markers) else None
+    if mask is not None:
+        region = cv2.calcHist([gray], [0], mask, [256], [0, 256]).ravel()
+        marker_level, _usable, _how = _region_light(region, settings)
+        seen = len(markers)
+        level = settings.marker_weight * marker_level + (1.0 - settings.marker_weight) * frame_level
+        source = LightSource.MARKERS
+    return LightEstimate(level=level, frame_level=frame_level, marker_level=marker_level, source=source,
+                         usable=usable, saturated=saturated, black=black, markers=seen)
 
 
 class Smoother:

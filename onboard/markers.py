@@ -145,6 +145,44 @@ class Detection:
     corners: list[list[list[float]]]  # per marker: 4 x [x, y]
     processing_ms: float
     preprocess_ms: float = 0.0
+    clean: list[bool] = field(default_factory=list)  # per marker: its cells read clean (cells_are_clean)
+
+
+def cells_are_clean(gray: np.ndarray, corners: Any, *, cells: int = 6, max_mixed: float = 0.2) -> bool:
+    """Whether the marker at ``corners`` reads as ``cells`` x ``cells`` clean cells, each all dark or all light.
+
+    A code that decodes where no marker of this dictionary is (a marker of a
+    dictionary with more cells read on this one's coarser grid, a ChArUco board, a
+    texture) has cells that straddle dark and light; a printed marker of the
+    dictionary does not. Samples a 3 x 3 grid in the middle half of every cell
+    (by the homography of the corners) and calls a cell mixed when its samples
+    span more than half the marker's dark-to-light contrast; at most
+    ``max_mixed`` of the cells may be mixed.
+    """
+    import cv2
+
+    pts = np.asarray(corners, np.float32).reshape(4, 2)
+    square = np.float32([[0, 0], [cells, 0], [cells, cells], [0, cells]])
+    matrix = cv2.getPerspectiveTransform(square, pts)
+    sub = np.float32([0.3, 0.5, 0.7])
+    cx, cy, sx, sy = np.meshgrid(np.arange(cells, dtype=np.float32), np.arange(cells, dtype=np.float32), sub, sub,
+                                 indexing="ij")
+    grid = np.stack([(cx + sx).ravel(), (cy + sy).ravel()], 1)
+    xy = cv2.perspectiveTransform(grid[None], matrix)[0]
+    h, w = gray.shape
+    if xy[:, 0].min() < 0 or xy[:, 1].min() < 0 or xy[:, 0].max() > w - 1 or xy[:, 1].max() > h - 1:
+        return True  # cut by the frame's edge: not enough to judge
+    values = cv2.remap(gray, xy[:, 0].reshape(-1, 1), xy[:, 1].reshape(-1, 1), cv2.INTER_LINEAR).astype(np.float32)
+    values = values.reshape(cells * cells, 3, 3)  # cell, x sample, y sample
+    means = values.mean(axis=(1, 2))
+    contrast = float(np.percentile(means, 90) - np.percentile(means, 10))
+    if contrast <= 0:
+        return False
+    # In a dark, noisy frame the samples of a clean cell spread by noise alone: the cleanest
+    # quarter of the cells (a marker's border cells are clean even on a coarser grid) says how much.
+    spread = values.max(axis=(1, 2)) - values.min(axis=(1, 2))
+    limit = max(0.5 * contrast, 2.5 * float(np.percentile(spread, 25)))
+    return bool((spread > limit).mean() <= max_mixed)
 
 
 class MarkerDetector:
@@ -158,7 +196,9 @@ class MarkerDetector:
         self.config = config
         self._cv2 = cv2
         self._steps: list[Callable[[np.ndarray], np.ndarray]] = [self._step(op, dict(args)) for op, args in config.preprocess]
-        self._detector = cv2.aruco.ArucoDetector(dictionary(config.dictionary), _detector_parameters(config))
+        found = dictionary(config.dictionary)
+        self._cells = int(found.markerSize) + 2  # code cells plus the one-cell black border each side
+        self._detector = cv2.aruco.ArucoDetector(found, _detector_parameters(config))
 
     def _step(self, op: str, args: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
         cv2 = self._cv2
@@ -201,6 +241,7 @@ class MarkerDetector:
         image = self.preprocess(gray)
         mid = time.perf_counter()
         corners, ids, _rejected = self._detector.detectMarkers(image)
+        clean = [cells_are_clean(gray, c, cells=self._cells) for c in corners] if ids is not None else []
         end = time.perf_counter()
         if ids is None:
             return Detection([], [], (end - start) * 1e3, (mid - start) * 1e3)
@@ -209,6 +250,7 @@ class MarkerDetector:
             [[[round(float(x), 2), round(float(y), 2)] for x, y in c.reshape(4, 2)] for c in corners],
             (end - start) * 1e3,
             (mid - start) * 1e3,
+            clean,
         )
 
 
@@ -234,16 +276,24 @@ class Score:
         return self.hits / self.truth if self.truth else 0.0
 
     @property
-    def false_rate(self) -> float:
-        """False detections per marker shown (same denominator as the detection rate)."""
-        return self.false / self.truth if self.truth else 0.0
+    def false_per_frame(self) -> float:
+        """False markers per frame: what a phantom costs per frame, whatever else is seen."""
+        return self.false / self.frames if self.frames else 0.0
+
+    @property
+    def false_per_reported(self) -> float:
+        """False markers per marker reported: the share of reports that are wrong."""
+        reported = self.hits + self.false
+        return self.false / reported if reported else 0.0
 
 
-def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, tolerance_px: float = 5.0) -> Score:
+def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, tolerance_px: float = 5.0,
+          ignore: Sequence[int] = ()) -> Score:
     """Match detections to truth: same id and mean corner distance within ``tolerance_px``.
 
     ``truth`` items are :class:`onboard.scenario.Truth` or wire maps ``{"id", "corners"}``.
-    A detection that matches nothing (wrong id, wrong place, or a second hit) is false.
+    A detection that matches nothing (wrong id, wrong place, or a second hit) is false;
+    ids in ``ignore`` (markers partly hidden, e.g. by a saturated window) count neither way.
     """
     wanted: dict[int, np.ndarray] = {}
     for item in truth:
@@ -253,7 +303,8 @@ def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, t
     for mid, mc in zip(ids, corners):
         expected = wanted.get(int(mid))
         if expected is None:
-            result.false += 1
+            if int(mid) not in ignore:
+                result.false += 1
             continue
         error = float(np.linalg.norm(np.asarray(mc, np.float32).reshape(4, 2) - expected, axis=1).mean())
         if error <= tolerance_px:

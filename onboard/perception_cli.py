@@ -143,7 +143,9 @@ def _register_calibrate(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--store", default=None, help="store URL (default $KGADAPT_STORE or the embedded store)")
     p.add_argument("--feature", default=FEATURE, help=f"feature whose configurations to calibrate (default {FEATURE})")
-    p.add_argument("--frames", type=int, default=10, help="frames per level (default 10)")
+    p.add_argument("--frames", type=int, default=4, help="frames per level and condition (default 4)")
+    p.add_argument("--conditions", default=None,
+                   help="comma-separated conditions (default all: clean,blur,uneven,window,small)")
     p.add_argument("--levels", type=int, default=4, help="levels per band (default 4)")
     p.add_argument("--quality", type=int, default=80, help="JPEG quality of the test frames (default 80)")
     p.add_argument("--out", default=str(RESULTS_DIR / "calibration.json"), help="JSON output (default %(default)s)")
@@ -154,10 +156,11 @@ def _register_calibrate(sub: argparse._SubParsersAction) -> None:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from onboard.calibration import CalibrationSettings, run_calibration
+    from onboard.calibration import CONDITIONS, CalibrationSettings, run_calibration
 
+    conditions = tuple(c.strip() for c in args.conditions.split(",")) if args.conditions else tuple(CONDITIONS)
     settings = CalibrationSettings(frames_per_level=args.frames, levels_per_band=args.levels,
-                                   jpeg_quality=args.quality)
+                                   jpeg_quality=args.quality, conditions=conditions)
     progress = None if args.json else (lambda line: print(line, file=sys.stderr, flush=True))
     data = run_calibration(args.store, feature=args.feature, settings=settings, write_store=not args.no_record,
                            json_path=args.out or None, plot_path=args.plot or None, progress=progress)

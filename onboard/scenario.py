@@ -33,7 +33,8 @@ import json
 import json.decoder
 import json.scanner
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
+from enum import Enum
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
@@ -46,7 +47,196 @@ SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 DEMO_PROFILE = SCENARIO_DIR / "demo.json"
 
 _GLOBALS = {"gradient": (0.0, 0.9), "noise": (0.0, 50.0), "shot": (0.0, 5.0), "readout_s": (0.0, 0.2)}
+_GROUPS: dict[str, type] = {}  # filled below: profile keys holding an object (camera, light, scene)
 
+
+# --------------------------------------------------------------------------- camera model
+
+
+class Response(str, Enum):
+    """How the camera turns light into grey levels."""
+
+    SRGB = "srgb"  # gamma-encoded as real cameras deliver frames
+    LINEAR = "linear"  # the old model: grey level proportional to light, noise in grey levels
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraModel:
+    """A fixed-exposure camera: light -> electrons -> noise -> sRGB -> 8 bits.
+
+    Light reaches the sensor (``full_well`` electrons at full scale), shot noise
+    (Poisson) and read noise (``read_noise`` electrons, Gaussian) are added, and
+    the result is gamma-encoded (sRGB) and quantised to 8 bits. The Poisson part
+    is drawn as a Gaussian of the same variance with the electron count rounded:
+    the usual Poisson-Gaussian approximation, five times faster than exact
+    Poisson draws at 640x480 and indistinguishable to a marker detector. Motion
+    blur (``blur_px`` long at ``blur_angle`` degrees) smears the light before the
+    noise, as the exposure does.
+    """
+
+    response: Response = Response.SRGB
+    full_well: float = 6000.0  # electrons at full scale (a small CMOS sensor at base gain)
+    read_noise: float = 3.0  # electrons, sigma
+    blur_px: float = 0.0
+    blur_angle: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 10 <= self.full_well <= 1e6 or not 0 <= self.read_noise <= 1000:
+            raise ConfigError(f"camera model: full_well {self.full_well} in [10, 1e6], read_noise {self.read_noise} in [0, 1000]")
+        if not 0 <= self.blur_px <= 64:
+            raise ConfigError(f"camera model: blur_px {self.blur_px} outside [0, 64]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LightLayout:
+    """How the light falls across the scene, beyond the profile's gradient.
+
+    ``window``: the top share of the frame is a window far brighter than the
+    sensor holds (saturated); the profile's level is the mean of the rest.
+    ``stripes``: shadows of blinds, ``stripes`` dark diagonal bands of
+    ``stripe_depth``. ``spot``: a lamp at (x, y) with radius r (fractions of the
+    frame), ``spot_gain`` times the ambient light at its centre.
+    """
+
+    window: float = 0.0
+    window_gain: float = 20.0
+    stripes: int = 0
+    stripe_depth: float = 0.6
+    spot: tuple[float, float, float] | None = None
+    spot_gain: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.window <= 0.6 or not 1 <= self.window_gain <= 1000:
+            raise ConfigError(f"light layout: window {self.window} in [0, 0.6], window_gain in [1, 1000]")
+        if not 0 <= self.stripes <= 40 or not 0 <= self.stripe_depth < 1:
+            raise ConfigError("light layout: stripes in [0, 40], stripe_depth in [0, 1)")
+        if self.spot is not None and (len(self.spot) != 3 or not all(0 <= v <= 2 for v in self.spot)):
+            raise ConfigError(f"light layout: spot is [x, y, radius] as fractions of the frame, not {self.spot!r}")
+        if not 0 <= self.spot_gain <= 1000:
+            raise ConfigError("light layout: spot_gain in [0, 1000]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SceneOptions:
+    """What a profile changes in the scene: marker size, and printed patterns that are not the site's markers.
+
+    ``other_dict``: markers of another dictionary (DICT_6X6_250); ``charuco``:
+    ChArUco-like boards (a chessboard with 6x6 markers in its white squares);
+    ``texture``: patches of random high-contrast texture. ``markers: false``
+    leaves the site's markers out (scenes for phantom counts).
+    """
+
+    marker_scale: float = 1.0
+    markers: bool = True
+    other_dict: int = 0
+    charuco: int = 0
+    texture: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.05 <= self.marker_scale <= 3:
+            raise ConfigError(f"scene: marker_scale {self.marker_scale} outside [0.05, 3]")
+        for name in ("other_dict", "charuco", "texture"):
+            if not 0 <= getattr(self, name) <= 20:
+                raise ConfigError(f"scene: {name} {getattr(self, name)} outside [0, 20]")
+
+
+_SRGB_STEPS = 16384
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear light (0..1) to sRGB-encoded uint8, through a fine look-up table."""
+    lut = _srgb_lut()
+    index = np.clip(linear * (_SRGB_STEPS - 1) + 0.5, 0, _SRGB_STEPS - 1).astype(np.uint16)
+    return lut[index]
+
+
+def srgb_decode(encoded: np.ndarray) -> np.ndarray:
+    """sRGB-encoded grey levels (0..255) to linear light (0..1)."""
+    v = np.asarray(encoded, np.float32) / 255.0
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+_LUT: list[np.ndarray] = []
+
+
+def _srgb_lut() -> np.ndarray:
+    if not _LUT:
+        x = np.arange(_SRGB_STEPS, dtype=np.float64) / (_SRGB_STEPS - 1)
+        v = np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+        _LUT.append(np.clip(v * 255.0 + 0.5, 0, 255).astype(np.uint8))
+    return _LUT[0]
+
+
+def motion_kernel(length: float, angle_deg: float) -> np.ndarray:
+    """A normalised line kernel ``length`` pixels long at ``angle_deg``."""
+    import cv2
+
+    size = int(math.ceil(length)) | 1
+    kernel = np.zeros((size, size), np.float32)
+    c = (size - 1) / 2.0
+    dx, dy = math.cos(math.radians(angle_deg)) * (length - 1) / 2, math.sin(math.radians(angle_deg)) * (length - 1) / 2
+    cv2.line(kernel, (int(round(c * 16 - dx * 16)), int(round(c * 16 - dy * 16))),
+             (int(round(c * 16 + dx * 16)), int(round(c * 16 + dy * 16))), 1.0, 1, cv2.LINE_AA, shift=4)
+    total = float(kernel.sum())
+    if total <= 0:
+        kernel[int(c), int(c)] = 1.0
+        total = 1.0
+    return kernel / total
+
+
+def camera_expose(
+    lit: np.ndarray,
+    level: float,
+    camera: CameraModel,
+    rng: np.random.Generator,
+    *,
+    window: np.ndarray | None = None,
+    window_gain: float = 20.0,
+    gain: float | None = None,
+) -> np.ndarray:
+    """Expose relative light ``lit`` so that the encoded frame's mean (outside ``window``) is about ``level``.
+
+    ``window`` is a boolean mask of pixels far brighter than the sensor holds.
+    """
+    import cv2
+
+    if gain is None:
+        sample = lit[::4, ::4] if window is None else lit[::4, ::4][~window[::4, ::4]]
+        gain = _gain_for_level(sample.ravel(), level)
+    linear = lit * gain
+    if window is not None and window.any():
+        linear[window] = window_gain
+    if camera.blur_px > 1:
+        linear = cv2.filter2D(linear, -1, motion_kernel(camera.blur_px, camera.blur_angle), borderType=cv2.BORDER_REFLECT)
+    electrons = np.maximum(linear, 0.0) * camera.full_well
+    sigma = np.sqrt(electrons + camera.read_noise ** 2)
+    # The well clips after the noise: a window far beyond full scale is flat 255, as on a sensor.
+    noisy = np.clip(np.round(electrons + rng.standard_normal(electrons.shape, dtype=np.float32) * sigma),
+                    0.0, camera.full_well)
+    return srgb_encode(noisy / camera.full_well)
+
+
+def _gain_for_level(sample: np.ndarray, level: float) -> float:
+    """The factor that makes ``mean(srgb(clip(sample * f)))`` equal ``level`` (bisection on a log scale)."""
+    if level <= 0 or sample.size == 0 or float(sample.max()) <= 0:
+        return 0.0
+    lut = _srgb_lut().astype(np.float32)
+
+    def mean_at(f: float) -> float:
+        idx = np.clip(sample * f * (_SRGB_STEPS - 1) + 0.5, 0, _SRGB_STEPS - 1).astype(np.int32)
+        return float(lut[idx].mean())
+
+    lo, hi = 1e-6, 1e3
+    for _ in range(40):
+        mid = math.sqrt(lo * hi)
+        if mean_at(mid) < level:
+            lo = mid
+        else:
+            hi = mid
+    return math.sqrt(lo * hi)
+
+
+_GROUPS.update(camera=CameraModel, light=LightLayout, scene=SceneOptions)
 
 # --------------------------------------------------------------------------- profile
 
@@ -62,6 +252,23 @@ class ProfilePoint:
 
 
 @dataclass(frozen=True, kw_only=True)
+class ProfileEvent:
+    """From ``start`` to ``end`` seconds, another camera or light, or markers at another scale (a climb)."""
+
+    start: float
+    end: float
+    camera: CameraModel | None = None
+    light: LightLayout | None = None
+    marker_scale: float | None = None  # multiplies the markers' size while the event lasts
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.start < self.end:
+            raise ConfigError(f"event from {self.start} to {self.end}: need 0 <= from < to")
+        if self.marker_scale is not None and not 0.05 <= self.marker_scale <= 3:
+            raise ConfigError(f"event marker_scale {self.marker_scale} outside [0.05, 3]")
+
+
+@dataclass(frozen=True, kw_only=True)
 class IlluminationProfile:
     """Scene brightness over time: linear between points, flicker on top."""
 
@@ -71,6 +278,10 @@ class IlluminationProfile:
     shot: float = 0.05  # shot noise: variance grows by this times the signal
     readout_s: float = 0.02  # rolling-shutter readout time (row phase of flicker)
     loop: bool = True
+    camera: CameraModel = CameraModel()
+    light: LightLayout = LightLayout()
+    scene: "SceneOptions" = field(default_factory=lambda: SceneOptions())
+    events: tuple[ProfileEvent, ...] = ()
     source: str = "<inline>"
 
     def __post_init__(self) -> None:
@@ -112,6 +323,18 @@ class IlluminationProfile:
         a, b, u = self._segment(t)
         return a.flicker_depth + (b.flicker_depth - a.flicker_depth) * u, a.flicker_hz
 
+    def event_at(self, t: float) -> ProfileEvent | None:
+        """The event under way at ``t`` (the first listed, if they overlap)."""
+        local = self._local_time(t)
+        return next((e for e in self.events if e.start <= local < e.end), None)
+
+    def at(self, t: float) -> "IlluminationProfile":
+        """This profile with the camera and light of the event under way at ``t``."""
+        event = self.event_at(t)
+        if event is None or (event.camera is None and event.light is None):
+            return self
+        return replace(self, camera=event.camera or self.camera, light=event.light or self.light, events=())
+
     def row_gains(self, t: float, height: int) -> np.ndarray | None:
         """Per-row flicker multipliers for a frame exposed at ``t`` (None when steady)."""
         depth, hz = self.flicker_at(t)
@@ -150,7 +373,7 @@ def parse_profile_json(text: str, *, source: str = "<json>") -> IlluminationProf
     if isinstance(data, list):
         raw_points = data
     elif isinstance(data, dict):
-        unknown = sorted(set(data) - {"points", "loop", *_GLOBALS})
+        unknown = sorted(set(data) - {"points", "loop", "events", *_GLOBALS, *_GROUPS})
         if unknown:
             raise ModelError(source, line_of(key=unknown[0]), f"unknown profile key {unknown[0]!r}")
         if "points" not in data:
@@ -164,6 +387,11 @@ def parse_profile_json(text: str, *, source: str = "<json>") -> IlluminationProf
                 if not _is_number(value) or not low <= value <= high:
                     raise ModelError(source, line_of(key=key), f"{key!r} must be a number in [{low}, {high}], not {value!r}")
                 options[key] = float(value)
+        for key, cls in _GROUPS.items():
+            if key in data:
+                options[key] = _group(cls, key, data[key], source, line_of(key=key))
+        if "events" in data:
+            options["events"] = _events(data["events"], source, line_of(key="events"))
         if "loop" in data:
             if not isinstance(data["loop"], bool):
                 raise ModelError(source, line_of(key="loop"), "'loop' must be true or false")
@@ -216,6 +444,66 @@ def _build(rows: Sequence[tuple[int, Any]], source: str, options: dict[str, Any]
             raise ModelError(source, line, f"flicker frequency {hz} Hz is outside 0..500")
         points.append(ProfilePoint(t, level, depth, hz))
     return IlluminationProfile(points=tuple(points), source=source, **options)
+
+
+def _events(raw: Any, source: str, line: int) -> tuple[ProfileEvent, ...]:
+    """``events``: ``[{"from": t0, "to": t1, "camera": {...}, "light": {...}, "marker_scale": s}, ...]``."""
+    if not isinstance(raw, list):
+        raise ModelError(source, line, "'events' must be a list of {from, to, camera?, light?, marker_scale?}")
+    out = []
+    for i, item in enumerate(raw):
+        where = f"events[{i}]"
+        if not isinstance(item, dict):
+            raise ModelError(source, line, f"{where} must be an object")
+        unknown = sorted(set(item) - {"from", "to", "camera", "light", "marker_scale"})
+        if unknown:
+            raise ModelError(source, line, f"{where} has no {unknown[0]!r} (use from, to, camera, light, marker_scale)")
+        start, end, scale = item.get("from"), item.get("to"), item.get("marker_scale")
+        if not _is_number(start) or not _is_number(end) or (scale is not None and not _is_number(scale)):
+            raise ModelError(source, line, f"{where}: from, to (and marker_scale) must be numbers")
+        try:
+            out.append(ProfileEvent(
+                start=float(start), end=float(end), marker_scale=None if scale is None else float(scale),
+                camera=_group(CameraModel, f"{where}.camera", item["camera"], source, line) if "camera" in item else None,
+                light=_group(LightLayout, f"{where}.light", item["light"], source, line) if "light" in item else None))
+        except ConfigError as exc:
+            raise ModelError(source, line, f"{where}: {exc}") from exc
+    return tuple(out)
+
+
+def _group(cls: type, key: str, raw: Any, source: str, line: int) -> Any:
+    """A camera/light/scene object of a profile, checked; errors name the file, line and key."""
+    if not isinstance(raw, dict):
+        raise ModelError(source, line, f"{key!r} must be an object")
+    known = {f.name: f for f in fields(cls)}
+    values: dict[str, Any] = {}
+    for name, value in raw.items():
+        if name not in known:
+            raise ModelError(source, line, f"{key!r} has no {name!r} (use {', '.join(known)})")
+        default = getattr(cls(), name)
+        if name == "response":
+            try:
+                value = Response(value)
+            except ValueError:
+                raise ModelError(source, line, f"{key}.response must be srgb or linear, not {value!r}") from None
+        elif name == "spot":
+            if not (isinstance(value, list) and len(value) == 3 and all(_is_number(v) for v in value)):
+                raise ModelError(source, line, f"{key}.spot must be [x, y, radius], not {value!r}")
+            value = tuple(float(v) for v in value)
+        elif isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ModelError(source, line, f"{key}.{name} must be true or false, not {value!r}")
+        elif isinstance(default, int):
+            if not _is_number(value) or value != int(value):
+                raise ModelError(source, line, f"{key}.{name} must be an integer, not {value!r}")
+            value = int(value)
+        elif not _is_number(value) or not math.isfinite(value):
+            raise ModelError(source, line, f"{key}.{name} must be a number, not {value!r}")
+        values[name] = value
+    try:
+        return cls(**values)
+    except ConfigError as exc:
+        raise ModelError(source, line, str(exc)) from exc
 
 
 def _is_number(value: Any) -> bool:
@@ -285,7 +573,16 @@ class SceneSettings:
     sway_px: float = 6.0
     sway_period_s: float = 7.0
     distractors: int = 6  # dark squares without a valid code: chances for false detections
+    marker_scale: float = 1.0  # multiplies every marker's size (small markers: 0.3 gives 3-6 px per cell)
+    other_dict: int = 0  # markers of DICT_6X6_250 printed in the background
+    charuco: int = 0  # ChArUco-like boards in the background
+    texture: int = 0  # patches of random high-contrast texture
     seed: int = 1
+
+    def with_options(self, options: "SceneOptions") -> "SceneSettings":
+        """These settings as a profile's ``scene`` object changes them."""
+        return replace(self, markers=self.markers if options.markers else (), marker_scale=options.marker_scale,
+                       other_dict=options.other_dict, charuco=options.charuco, texture=options.texture)
 
 
 @dataclass(frozen=True)
@@ -329,8 +626,10 @@ class SyntheticScene:
         ys = np.linspace(0.0, 1.0, h, dtype=np.float32)[:, None]
         xs = np.linspace(0.0, 1.0, w, dtype=np.float32)[None, :]
         self._ramp = (0.6 * xs + 0.4 * ys).astype(np.float32)  # 0 at top-left, 1 at bottom-right
+        self._fields: dict[Any, np.ndarray] = {}
         self._patches: dict[int, tuple[np.ndarray, float, int]] = {}
-        for pose in settings.markers:
+        self._poses = tuple(replace(p, size=p.size * settings.marker_scale) for p in settings.markers)
+        for pose in self._poses:
             side = max(16, int(round(pose.size * h * 1.2)))
             code = cv2.aruco.generateImageMarker(dictionary, pose.id, side).astype(np.float32) / 255.0
             quiet = int(round(side * _QUIET))
@@ -348,12 +647,49 @@ class SyntheticScene:
             x0 = int(self._rng.uniform(0, w - s))
             y0 = int(self._rng.uniform(0, h - s))
             base[y0:y0 + s, x0:x0 + s] = _BLACK + 0.1
-            inner = s // 3
+            # A dark frame one sixth of the side wide around a light inside: a marker's outline with no
+            # code. (A light centre of a third of the side was DICT_4X4_50's id 17 at some poses.)
+            inner = max(s // 6, 1)
             base[y0 + inner:y0 + s - inner, x0 + inner:x0 + s - inner] = _WHITE * 0.8
+        self._add_patterns(cv2, base)
         return np.clip(base, 0.0, 1.0).astype(np.float32)
 
-    def reflectance(self, t: float) -> tuple[np.ndarray, list[Truth]]:
-        """The scene's reflectance (0..1) at time ``t`` and the markers' truth."""
+    def _add_patterns(self, cv2: Any, base: np.ndarray) -> None:
+        """Printed things that are not the site's markers: other dictionaries, ChArUco-like boards, texture."""
+        h, w = base.shape
+        s, rng = self.settings, self._rng
+        other = _dictionary("DICT_6X6_250")
+
+        def place(patch: np.ndarray) -> None:
+            ph, pw = patch.shape
+            if ph >= h or pw >= w:
+                return
+            y0, x0 = int(rng.uniform(0, h - ph)), int(rng.uniform(0, w - pw))
+            base[y0:y0 + ph, x0:x0 + pw] = patch
+
+        for _ in range(s.other_dict):
+            side = int(rng.uniform(0.12, 0.22) * h)
+            code = cv2.aruco.generateImageMarker(other, int(rng.integers(0, 250)), side, borderBits=1)
+            quiet = max(2, side // 6)
+            place(_BLACK + (_WHITE - _BLACK) * np.pad(code.astype(np.float32) / 255.0, quiet, constant_values=1.0))
+        for _ in range(s.charuco):
+            squares = int(rng.integers(4, 7))
+            board = cv2.aruco.CharucoBoard((squares, squares - 1), 0.04, 0.03, other)
+            side = int(rng.uniform(0.35, 0.55) * h)
+            # Drawn at a size OpenCV always accepts, then scaled to the one wanted.
+            image = board.generateImage((squares * 40, (squares - 1) * 40), marginSize=10)
+            image = cv2.resize(image, (side, int(side * (squares - 1) / squares)), interpolation=cv2.INTER_AREA)
+            place(_BLACK + (_WHITE - _BLACK) * image.astype(np.float32) / 255.0)
+        for _ in range(s.texture):
+            side = int(rng.uniform(0.2, 0.35) * h)
+            cells = int(rng.integers(6, 24))
+            blocks = (rng.random((cells, cells)) > 0.5).astype(np.float32)
+            patch = cv2.resize(blocks, (side, side), interpolation=cv2.INTER_NEAREST)
+            patch = cv2.GaussianBlur(patch, (3, 3), 0) if rng.random() < 0.5 else patch
+            place(_BLACK + (_WHITE - _BLACK) * patch)
+
+    def reflectance(self, t: float, *, scale: float = 1.0) -> tuple[np.ndarray, list[Truth]]:
+        """The scene's reflectance (0..1) at time ``t`` and the markers' truth (markers ``scale`` times their size)."""
         import cv2
 
         s = self.settings
@@ -362,9 +698,10 @@ class SyntheticScene:
         phase = 2 * math.pi * t / s.sway_period_s if s.sway_period_s > 0 else 0.0
         dx, dy = s.sway_px * math.sin(phase), 0.6 * s.sway_px * math.sin(2 * phase + 0.7)
         truth: list[Truth] = []
-        for pose in s.markers:
+        for pose in self._poses:
             patch, quiet, side = self._patches[pose.id]
-            corners = _project(pose, w, h) + np.array([dx, dy], np.float32)
+            shown = pose if scale == 1.0 else replace(pose, size=pose.size * scale)
+            corners = _project(shown, w, h) + np.array([dx, dy], np.float32)
             x0, y0 = np.floor(corners.min(axis=0)).astype(int) - int(quiet) - 2
             x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + int(quiet) + 2
             if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
@@ -390,8 +727,18 @@ class SyntheticScene:
     def render(self, t: float, profile: IlluminationProfile, rng: np.random.Generator | None = None) -> RenderedFrame:
         """The frame a camera sees at ``t`` under ``profile``."""
         level = profile.level_at(t)
-        image, truth = self.reflectance(t)
+        event = profile.event_at(t)
+        profile = profile.at(t)
+        image, truth = self.reflectance(t, scale=event.marker_scale if event and event.marker_scale else 1.0)
         exposed = self.expose(image, level, profile, t=t, rng=rng)
+        if profile.light.window > 0:
+            # A marker the window covers is not seen: it leaves the truth.
+            edge = profile.light.window * self.settings.height + 2
+            covered = [m for m in truth if min(y for _x, y in m.corners) <= edge]
+            truth = [m for m in truth if m not in covered]
+            # Partly covered markers may or may not be found: neither a hit nor a false detection.
+            extras = {"hidden": [m.id for m in covered]}
+            return RenderedFrame(exposed, truth, level, t, extras)
         return RenderedFrame(exposed, truth, level, t)
 
     def expose(
@@ -403,18 +750,74 @@ class SyntheticScene:
         t: float = 0.0,
         rng: np.random.Generator | None = None,
     ) -> np.ndarray:
-        """Light ``reflectance`` so that the frame's mean is about ``level``; add flicker and noise."""
+        """Light ``reflectance`` so that the frame's mean is about ``level``; add flicker and noise.
+
+        With the sRGB camera (the default) the level is the mean of the encoded
+        frame outside a window, as a real camera would deliver it.
+        """
         rng = rng or self._rng
-        light = 1.0 - profile.gradient * self._ramp
+        light = self._light_field(profile)
         lit = reflectance * light
-        gain = level / max(float(lit.mean()), 1e-6)
         rows = profile.row_gains(t, lit.shape[0])
+        if profile.camera.response is Response.SRGB:
+            if rows is not None:
+                # Flicker changes the light around the level the profile asks for, not the level itself.
+                window = self._window_mask(profile)
+                sample = lit[::4, ::4] if window is None else lit[::4, ::4][~window[::4, ::4]]
+                gain = _gain_for_level(sample.ravel(), level)
+                lit = lit * gain * rows[:, None]
+                return camera_expose(lit, 0.0, profile.camera, rng, window=window,
+                                     window_gain=profile.light.window_gain, gain=1.0)
+            return camera_expose(lit, level, profile.camera, rng, window=self._window_mask(profile),
+                                 window_gain=profile.light.window_gain)
+        gain = level / max(float(lit.mean()), 1e-6)
         if rows is not None:
             lit *= rows[:, None]
         signal = lit * gain
         sigma = np.sqrt(profile.noise ** 2 + profile.shot * signal) if profile.shot > 0 else profile.noise
         noisy = signal + rng.standard_normal(signal.shape, dtype=np.float32) * sigma
+        window = self._window_mask(profile)
+        if window is not None:
+            noisy[window] = 255.0
         return np.clip(noisy + 0.5, 0, 255).astype(np.uint8)
+
+    def _light_field(self, profile: IlluminationProfile) -> np.ndarray:
+        """The relative light over the frame: gradient, blind stripes, spotlight."""
+        key = (profile.gradient, profile.light)
+        cached = self._fields.get(key)
+        if cached is not None:
+            return cached
+        h, w = self._ramp.shape
+        light = 1.0 - profile.gradient * self._ramp
+        layout = profile.light
+        if layout.stripes > 0:
+            ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+            phase = (xs + ys) / (w + h) * layout.stripes
+            shadow = (np.sin(2 * math.pi * phase) > 0.2).astype(np.float32)
+            light = light * (1.0 - layout.stripe_depth * _smooth(shadow, 7))
+        if layout.spot is not None:
+            x, y, r = layout.spot
+            ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+            d2 = ((xs / w - x) ** 2 + (ys / h - y) ** 2) / max(r * r, 1e-6)
+            light = light * (1.0 + layout.spot_gain * np.exp(-d2))
+        light = light.astype(np.float32)
+        self._fields = {key: light}  # one profile at a time: keep only the last field
+        return light
+
+    def _window_mask(self, profile: IlluminationProfile) -> np.ndarray | None:
+        share = profile.light.window
+        if share <= 0:
+            return None
+        h, w = self._ramp.shape
+        mask = np.zeros((h, w), bool)
+        mask[: int(round(share * h)), :] = True
+        return mask
+
+
+def _smooth(image: np.ndarray, k: int) -> np.ndarray:
+    import cv2
+
+    return cv2.GaussianBlur(image, (k, k), 0)
 
 
 def _project(pose: MarkerPose, width: int, height: int) -> np.ndarray:

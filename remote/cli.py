@@ -53,10 +53,8 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
     from deploy.deployer import Deployer, settings_from_args as deployer_settings
     from shared.hostmonitor import HostMonitor, settings_from_args
 
-    return [
-        HostMonitor(settings_from_args(args, robot=args.robot, host=args.host)),
-        Deployer(deployer_settings(args, robot=args.robot, host=args.host)),
-    ]
+    monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))
+    return [monitor, Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb)]
 
 
 def run(args: argparse.Namespace) -> int:

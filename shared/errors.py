@@ -71,6 +71,10 @@ class QueryError(StoreError):
     """The store rejected a query."""
 
 
+class QueryTimeLimit(QueryError):
+    """A query ran past its hard time limit and was abandoned (its server killed where we own it)."""
+
+
 class ReadOnlyViolation(StoreError):
     """A write was attempted through a read-only path."""
 

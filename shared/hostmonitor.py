@@ -60,6 +60,26 @@ def parse_size_mb(text: str, *, allow_zero: bool = False) -> float:
     return value
 
 
+def check_status(host: str, body: dict[str, Any]) -> dict[str, Any]:
+    """``body`` (a decoded ``host_status`` received on host ``host``'s key) if it is plausible, else MessageError.
+
+    One rule for everyone who acts on statuses (the knowledge service, the
+    adaptation manager): the body names the host of its key, no figure is
+    negative, free memory is within the total, a host has at least one core.
+    """
+    if body["host"] != host:
+        raise MessageError(f"host_status on the key of host {host!r} names host {body['host']!r}")
+    for name in ("memory_total_mb", "memory_free_mb", "cpu_load"):
+        if body[name] < 0:
+            raise MessageError(f"host_status field {name!r} is negative ({body[name]})")
+    if body["memory_free_mb"] > body["memory_total_mb"]:
+        raise MessageError(f"host_status of {host}: {body['memory_free_mb']} MiB free of {body['memory_total_mb']} MiB total")
+    cores = body.get("cpu_cores")
+    if cores is not None and cores < 1:
+        raise MessageError(f"host_status field 'cpu_cores' must be at least 1, got {cores}")
+    return body
+
+
 def squeeze_key(robot: str, host: str) -> str:
     """The squeeze queryable of one host.
 
@@ -126,6 +146,13 @@ class HostMonitor:
             except psutil.Error:  # a child may exit between listing and reading
                 continue
         return total / MIB
+
+    def free_mb(self) -> float:
+        """Free memory now, as ``sample()`` would publish it (for the deployer's start check)."""
+        s = self.settings
+        if s.memory_budget_mb is not None:
+            return max(0.0, s.memory_budget_mb - self.ours_mb() - self._reserved_mb)
+        return max(0.0, psutil.virtual_memory().available / MIB - self._reserved_mb)
 
     def sample(self) -> dict[str, Any]:
         """One ``host_status`` body measured now."""

@@ -16,6 +16,7 @@ key                                             what travels there
 ``kgadapt/<robot>/detector/<instance>/alive``   liveliness token of a detector instance
 ``kgadapt/<robot>/flight/state``                flight state from the MAVLink bridge
 ``kgadapt/<robot>/knowledge/query/<name>``      named queries (queryable)
+``kgadapt/<robot>/knowledge/own/query/<name>``  the same, for the robot's own software only (queryable)
 ``kgadapt/<robot>/knowledge/cypher``            read-only Cypher (queryable)
 ``kgadapt/<robot>/knowledge/write/<verb>``      run-time writes from our agents (queryable)
 ``kgadapt/<robot>/adaptation/events``           adaptation decisions as they happen
@@ -84,6 +85,11 @@ def flight_state(robot: str) -> str:
 
 def knowledge_query(robot: str, name: str = "*") -> str:
     return f"{robot_root(robot)}/knowledge/query/{_name_or_star(name, 'query name')}"
+
+
+def knowledge_own_query(robot: str, name: str = "*") -> str:
+    """Named queries of the robot's own software: served apart from other robots' questions."""
+    return f"{robot_root(robot)}/knowledge/own/query/{_name_or_star(name, 'query name')}"
 
 
 def knowledge_cypher(robot: str) -> str:

@@ -71,6 +71,12 @@ SCHEMAS: dict[str, Schema] = {
             "camera": _NAME, "seq": _f(int), "time": _TIME,
             "mean": _f(*NUMBER), "p5": _f(*NUMBER), "p50": _f(*NUMBER), "p95": _f(*NUMBER),
             "smoothed": _f(*NUMBER),
+            # optional, from onboard.illumination.estimate_light: the robust level the band is read
+            # from (smoothed is its EMA), and what it used
+            "level": _f(*NUMBER, required=False), "frame_level": _f(*NUMBER, required=False),
+            "marker_level": _f(*NUMBER, required=False), "source": _OPT_NAME,
+            "usable": _f(*NUMBER, required=False), "saturated": _f(*NUMBER, required=False),
+            "black": _f(*NUMBER, required=False), "markers": _f(int, required=False),
         }),
         Schema("detections", 1, {
             "instance": _NAME, "config": _NAME, "host": _NAME, "seq": _f(int),
@@ -81,6 +87,8 @@ SCHEMAS: dict[str, Schema] = {
             # dropped so far, and the camera's publication time of the frame (transport = received - frame_sent)
             "camera": _OPT_NAME, "received": _f(*NUMBER, required=False), "decode_ms": _f(*NUMBER, required=False),
             "dropped": _f(int, required=False), "frame_sent": _f(*NUMBER, required=False),
+            # optional: per marker, whether its cells read clean (onboard.markers.cells_are_clean)
+            "clean": _f(list, required=False, max_len=1024),
         }),
         Schema("query_request", 1, {"params": _f(dict, required=False, max_len=64)}),
         Schema("cypher_request", 1, {

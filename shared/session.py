@@ -8,7 +8,8 @@ the file given with ``--zenoh-config`` or ``$KGADAPT_ZENOH_CONFIG``, then
 ``transport/link/tls``, ``access_control``, auth) pass through untouched.
 
 Default on one machine: the knowledge service opens in router mode and
-listens on ``tcp/127.0.0.1:7447``; the agents are peers that connect to it.
+listens on ``tcp/127.0.0.1:7447``; the agents are peers that connect to it
+and listen on loopback only (``LOOPBACK_LISTEN``), never on every interface.
 """
 
 from __future__ import annotations
@@ -27,6 +28,10 @@ from shared.errors import ConfigError, TransportError
 log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+# Where a peer listens when nothing says otherwise. Zenoh's own default is every
+# interface (tcp/[::]:0), which let anyone on the network talk to an agent or a
+# detector directly, past the router's access control: the router is the one door.
+LOOPBACK_LISTEN = "tcp/127.0.0.1:0"
 MODES = ("peer", "client", "router")
 
 
@@ -116,6 +121,8 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
         inserts["connect/endpoints"] = list(settings.connect)
     if settings.listen:
         inserts["listen/endpoints"] = list(settings.listen)
+    elif not settings.config_file and (settings.mode or "peer") == "peer":
+        inserts["listen/endpoints"] = [LOOPBACK_LISTEN]
     if settings.exit_on_failure is not None:
         inserts["connect/exit_on_failure"] = settings.exit_on_failure
     if settings.connect_timeout_ms is not None:

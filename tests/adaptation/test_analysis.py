@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from onboard.adaptation import Analyzer, Band, BandTracker, Placement, bands_from_rows
+from onboard.adaptation import CollapseWatch, Analyzer, Band, BandTracker, Placement, bands_from_rows
 
 BANDS = [Band("dark", 0, 25), Band("dusk", 25, 80), Band("day", 80, 256)]
 
@@ -87,13 +87,85 @@ def test_losing_the_running_host_is_urgent_and_its_return_is_noticed():
     assert a.on_liveliness("remote", False, 1.1, running) is None  # no repeat
 
 
-def test_a_detection_rate_collapse_is_reported_once_per_window():
-    a = Analyzer(tracker=tracker(), collapse_rate=0.2, collapse_window=10)
-    triggers = [a.on_detection(False, float(i), expected_rate=0.9) for i in range(10)]
-    assert [t.kind for t in triggers if t] == ["rate_collapsed"]
-    assert a.on_detection(False, 11.0, expected_rate=0.9) is None  # window restarts
+def test_a_detection_rate_collapse_is_reported_with_its_evidence():
+    a = Analyzer(tracker=tracker(), collapse=CollapseWatch(window=10))
+    t = 0.0
+    for _ in range(20):  # working: markers in every frame
+        t += 0.1
+        assert a.on_detection(True, t, expected_rate=0.9, config="c1") is None
+    triggers = []
+    for _ in range(10):
+        t += 0.1
+        triggers.append(a.on_detection(False, t, expected_rate=0.9, config="c1"))
+    fired = [x for x in triggers if x]
+    assert [x.kind for x in fired] == ["rate_collapsed"]
+    assert fired[0].detail["config"] == "c1" and fired[0].detail["rate"] < 0.45 and fired[0].detail["expected"] == 0.9
+    assert fired[0].detail["last_marker_s_ago"] <= 1.0 and a.collapsed == {"c1"}
+
+
+def test_a_marker_that_left_the_view_costs_one_change_not_a_cascade():
+    a = Analyzer(tracker=tracker(), collapse=CollapseWatch(window=10, memory_s=5.0))
+    t = 0.0
+    for _ in range(20):
+        t += 0.1
+        a.on_detection(True, t, expected_rate=0.9, config="c1")
+    fired = []
+    for config in ("c1", "c2", "c3"):  # the next detectors see nothing either: nothing is in view
+        a.reset_rate()
+        for _ in range(100):
+            t += 0.1
+            trigger = a.on_detection(False, t, expected_rate=0.9, config=config)
+            if trigger:
+                fired.append(trigger.detail["config"])
+    assert fired == ["c1"]
+
+
+def test_after_recovery_a_new_collapse_counts_again_and_a_band_change_rearms():
+    a = Analyzer(tracker=tracker(), collapse=CollapseWatch(window=10))
+    t = 0.0
+
+    def feed(seen, n, config="c1"):
+        nonlocal t
+        out = []
+        for _ in range(n):
+            t += 0.1
+            trigger = a.on_detection(seen, t, expected_rate=0.9, config=config)
+            if trigger:
+                out.append(trigger)
+        return out
+
+    feed(True, 10)
+    assert len(feed(False, 10)) == 1
+    assert feed(False, 10) == []  # quiet until it recovers
+    feed(True, 20)  # recovered: armed again
+    assert len(feed(False, 10)) == 1
+    a.on_illumination(120, t)
+    a.on_illumination(5, t + 0.1)
+    a.on_illumination(5, t + 2.0)  # a band change
+    assert a.collapsed == set() and a.collapse.armed
+
+
+def test_a_flickering_detection_well_above_half_the_promise_is_no_collapse():
+    a = Analyzer(tracker=tracker(), collapse=CollapseWatch(window=10))
+    assert all(a.on_detection(i % 3 != 0, i * 0.1, expected_rate=0.9) is None for i in range(200))
 
 
 def test_no_collapse_is_claimed_where_calibration_promised_little():
-    a = Analyzer(tracker=tracker(), collapse_rate=0.2, collapse_window=10)
-    assert all(a.on_detection(False, float(i), expected_rate=0.1) is None for i in range(20))
+    a = Analyzer(tracker=tracker(), collapse=CollapseWatch(window=10))
+    assert all(a.on_detection(False, float(i), expected_rate=0.0) is None for i in range(20))
+    assert all(a.on_detection(False, float(i), expected_rate=None) is None for i in range(20))
+
+
+def test_a_detector_finding_one_marker_of_six_has_collapsed_though_every_frame_has_one():
+    a = Analyzer(tracker=tracker(), collapse=CollapseWatch(window=10))
+    t = 0.0
+    for _ in range(20):
+        t += 0.1
+        assert a.on_detection(6, t, expected_rate=0.95, config="c1") is None
+    fired = []
+    for _ in range(10):
+        t += 0.1
+        trigger = a.on_detection(1, t, expected_rate=0.95, config="c1")
+        if trigger:
+            fired.append(trigger)
+    assert len(fired) == 1 and fired[0].detail["in_view"] == 6 and fired[0].detail["rate"] < 0.95 / 2

@@ -35,7 +35,7 @@ def test_each_band_gets_the_configuration_suited_for_it(graph):
 def test_onboard_first_keeps_the_detector_onboard_while_it_fits(graph):
     plan = planner(graph).plan(band="dark", running=None)
     assert plan.target.host == "onboard"  # 324 MiB demand, 400 MiB free
-    assert plan.target.deployment and plan.queries == ("detector_configs", "placement")
+    assert plan.target.deployment and plan.queries == ("config_ranking", "placement")
 
 
 def test_remote_first_sends_it_to_the_remote_host(graph):
@@ -67,17 +67,49 @@ def test_no_platform_online_is_a_planning_error(graph):
         planner(graph).plan(band="day", running=None)
 
 
-def test_calibration_decides_between_configurations_of_one_band(graph):
-    # Two configurations calibrated in the dusk band: the higher detection rate wins.
-    record_calibration(graph, config="marker_detection_dusk", band="dusk", detection_rate=0.7,
-                       false_rate=0.0, ms_per_frame=12, time=1.0)
-    record_calibration(graph, config="marker_detection_dark", band="dusk", detection_rate=0.95,
-                       false_rate=0.0, ms_per_frame=35, time=1.0)
-    config, _ = planner(graph).choose_config("dusk")
-    assert config["config"] in ("marker_detection_dusk", "marker_detection_dark")
-    rows = run_named(graph, "detector_configs", {})
-    dusk = {r["config"]: r["detection_rate"] for r in rows if r["band"] == "dusk"}
-    assert config["config"] == max(dusk, key=lambda c: dusk[c] or 0)
+def calibrate(store, band, **rates):
+    """Calibration figures for ``band``: config=(rate, false_per_frame, ms) (condition all)."""
+    for config, (rate, false, ms) in rates.items():
+        record_calibration(store, config=f"marker_detection_{config}", band=band, detection_rate=rate,
+                           false_per_frame=false, ms_per_frame=ms, time=1.0)
+
+
+def test_every_configuration_calibrated_in_the_band_is_ranked_not_only_the_suited_one(graph):
+    calibrate(graph, "dusk", dusk=(0.7, 0.0, 12), dark=(0.95, 0.0, 35), day=(0.5, 0.0, 3))
+    p = planner(graph)
+    assert [r["config"] for r in p.ranking("dusk")] == [
+        "marker_detection_dark", "marker_detection_dusk", "marker_detection_day"]
+    plan = p.plan(band="dusk", running=None)
+    assert plan.target.config == "marker_detection_dark"
+    assert [r["config"] for r in plan.inputs["ranking"]][0] == "marker_detection_dark"
+    assert plan.inputs["expected_rate"] == 0.95 and "first in the ranking" in plan.reason
+
+
+def test_false_markers_are_a_penalty_and_ties_go_to_the_faster(graph):
+    calibrate(graph, "day", day=(0.98, 0.0, 3), dusk=(1.0, 0.10, 9), dark=(0.978, 0.0, 7))
+    ranked = [r["config"] for r in planner(graph).ranking("day")]
+    # dusk: 1.0 - 0.10 = 0.90 (phantoms); day 0.98 and dark 0.978 tie within half a point: the faster first.
+    assert ranked == ["marker_detection_day", "marker_detection_dark", "marker_detection_dusk"]
+
+
+def test_memory_and_time_are_constraints_the_ranking_steps_past(graph):
+    calibrate(graph, "dark", dark=(0.8, 0.0, 20), dusk=(0.5, 0.0, 8), day=(0.02, 0.0, 2))
+    update_platform(graph, name="onboard", time=2.0, memory_free_mb=200)
+    update_platform(graph, name="remote", time=2.0, online=False)
+    plan = planner(graph).plan(band="dark", running=None)  # the dark one needs 324 MiB: nowhere
+    assert plan.target.config == "marker_detection_dusk" and plan.target.host == "onboard"
+    assert plan.inputs["skipped"][0]["config"] == "marker_detection_dark"
+    assert [r["config"] for r in planner(graph, max_ms=10).ranking("dark")] == [
+        "marker_detection_dusk", "marker_detection_day"]
+
+
+def test_a_collapse_excludes_the_running_configuration(graph):
+    calibrate(graph, "day", day=(1.0, 0.0, 3), dusk=(0.99, 0.0, 9), dark=(0.95, 0.0, 7))
+    plan = planner(graph).plan(band="day", running=None, exclude=("marker_detection_day",))
+    assert plan.target.config == "marker_detection_dusk" and plan.inputs["excluded"] == ["marker_detection_day"]
+    with pytest.raises(PlanningError, match="other than"):
+        planner(graph).plan(band="day", running=None, exclude=(
+            "marker_detection_day", "marker_detection_dusk", "marker_detection_dark"))
 
 
 def test_the_plan_explains_itself(graph):
@@ -90,3 +122,20 @@ def test_a_squeeze_seen_live_before_the_graph_shows_it_already_counts(graph):
     # The graph still says 400 MiB free onboard; the status just received says 200.
     plan = planner(graph).plan(band="dark", running=None, live_free={"onboard": 200.0})
     assert plan.target.host == "remote"
+
+
+def test_why_shows_the_ranking_the_plan_used(graph):
+    from onboard.adaptation_cli import render
+
+    calibrate(graph, "dark", dark=(0.8, 0.0, 20), dusk=(0.5, 0.0, 8), day=(0.02, 0.0, 2))
+    plan = planner(graph).plan(band="dark", running=None, exclude=("marker_detection_dark",))
+    text = render({
+        "running": {"instance": "i1", "config": plan.target.config, "host": plan.target.host, "pid": 1},
+        "decision": {"name": "d1", "trigger": "rate_collapsed(rate=0.0)", "outcome": plan.reason,
+                     "inputs": dict(plan.inputs)},
+        "placement_now": [], "history": []})
+    lines = text.splitlines()
+    assert any("ranking for band dark (named query config_ranking" in line for line in lines)
+    first = next(line for line in lines if line.strip().startswith("1."))
+    assert "marker_detection_dark" in first and "left out: its detections collapsed" in first
+    assert any(line.strip().startswith("2. marker_detection_dusk: score 0.5") for line in lines)

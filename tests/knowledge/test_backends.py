@@ -331,3 +331,21 @@ def test_the_bolt_backend_is_the_driver_for_both_schemes():
     assert isinstance(open_store("memgraph://h:7687"), BoltStore)
     assert open_store("memgraph://h:7687").dialect is MEMGRAPH
     assert open_store("bolt://h:7687").dialect is NEO4J
+
+
+def test_a_store_that_cannot_stop_a_query_gets_no_free_cypher_from_other_robots(bolt_store, resp_store):
+    """FalkorDB's Bolt listener ignores tx_timeout: the service refuses rather than pretends."""
+    from knowledge.service import KnowledgeService, ServiceSettings
+    from shared import messages
+
+    request = messages.encode("cypher_request", {"cypher": "MATCH (n) RETURN count(n) AS c", "params": {}})
+    bolt_service = KnowledgeService(bolt_store, ServiceSettings(robot="quad1", lock=False))
+    with pytest.raises(QueryError, match="cannot stop a query at a time limit"):
+        bolt_service.answer_cypher(request)
+    with pytest.raises(QueryError, match="cannot stop a query at a time limit"):
+        bolt_service.answer_named("fig5_literal", None, public=True)
+    # Its own named queries still run there, and a store that honours timeouts answers free Cypher.
+    assert messages.decode(bolt_service.answer_named("platforms", None), "rows")["rows"] == []
+    resp_store.execute("CREATE (:Probe)")
+    resp_service = KnowledgeService(resp_store, ServiceSettings(robot="quad1", lock=False, sandbox=False))
+    assert messages.decode(resp_service.answer_cypher(request), "rows")["rows"] == [{"c": 1}]

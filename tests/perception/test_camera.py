@@ -115,18 +115,47 @@ def test_the_synthetic_source_replays_the_demo_profile_on_its_clock_with_truth()
     source = SyntheticSource(speed=2.0, clock=lambda: now[0])
     source.open()
     try:
-        levels = []
+        levels, seen = [], []
         for wall in (0.0, 9.0, 15.0, 22.0):  # scenario times 0, 18, 30, 44 s
             now[0] = 1000.0 + wall
             frame = source.read()
-            assert frame.time == now[0] and len(frame.truth) == 6
+            assert frame.time == now[0]
             levels.append(frame.level)
+            seen.append(len(frame.truth))
     finally:
         source.close()
     assert levels == [120.0, 16.0, 5.0, 60.0]  # day, dusk, dark, flicker (base level)
+    assert seen == [6, 6, 4, 6]  # at 30 s the window (29-34 s) hides the two top markers it covers
 
 
 def test_a_missing_profile_is_named_when_the_source_opens(tmp_path):
     source = make_source(f"synthetic:{tmp_path}/gone.json")  # nothing read yet
     with pytest.raises(ModelError, match="gone.json"):
         source.open()
+
+
+def test_a_window_lifts_the_published_mean_but_not_the_level_bands_are_read_from(endpoint_session, robot):
+    from onboard.scenario import LightLayout
+    from shared import messages
+
+    _, session = endpoint_session
+    light = Collector(session, keys.camera_illumination(robot, "cam0"), "illumination")
+    part = CameraPart(CameraSettings(robot=robot, fps=60),
+                      SyntheticSource(IlluminationProfile.constant(6.0, light=LightLayout(window=0.15))))
+    publisher = session.declare_publisher(keys.detector_markers(robot, "det1"))
+    try:
+        part.setup(session)
+        first = light.next()
+        assert first["mean"] > 40 and first["level"] < 12 and first["smoothed"] < 12
+        assert first["saturated"] == pytest.approx(0.15, abs=0.01) and first["source"] == "frame"
+        # A detector reports a marker: the estimate weighs the light around it from then on.
+        now = first["time"]  # the frame it was seen in: within marker_memory_s of the next frames
+        publisher.put(messages.encode("detections", {
+            "instance": "det1", "config": "c", "host": "h", "seq": 1, "frame_time": now, "time": now,
+            "ids": [33], "corners": [[[340, 280], [420, 280], [420, 360], [340, 360]]], "processing_ms": 1.0}))
+        weighed = light.wait_for(lambda m: m.get("source") == "markers")
+    finally:
+        part.shutdown()
+        publisher.undeclare()
+        light.close()
+    assert weighed["markers"] == 1 and weighed["marker_level"] is not None and weighed["level"] < 12

@@ -88,3 +88,49 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
 def Child(name: str, args: list[str], log_dir: Path) -> _Child:
     """A ``kgadapt ARGS`` child (see tests/support.py)."""
     return _Child.kgadapt(name, args, log_dir)
+
+
+@pytest.fixture
+def loopback_robot(tmp_path):
+    """Start `kgadapt knowledge serve` on the shipped models and a remote agent, on loopback, no TLS.
+
+    ``loopback_robot(remote_budget="2G")`` returns {robot, endpoint, session(), service, agent, store_dir};
+    everything is stopped at teardown.
+    """
+    from knowledge.loader import load_models
+    from knowledge.store import open_store
+    from shared.session import ZenohSettings, open_session
+    from tests.conftest import free_port
+
+    started: list[_Child] = []
+    sessions: list[Any] = []
+
+    def start(remote_budget: str = "2G") -> dict[str, Any]:
+        store_dir = tmp_path / "store"
+        with open_store(f"embedded:{store_dir}") as store:
+            load_models(store, [REPO / "knowledge" / "models"])
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        robot = f"s{free_port()}"
+        service = _Child.kgadapt("service", ["knowledge", "serve", "--store", f"embedded:{store_dir}",
+                                             "--robot", robot, "--listen", endpoint], tmp_path)
+        started.append(service)
+        service.wait_for_line("knowledge service ready")
+        # A host online with free memory, so that placement has an answer to give.
+        agent = _Child.kgadapt("remote", ["remote", "--robot", robot, "--host", "remote", "--memory-budget",
+                                          remote_budget, "--connect", endpoint], tmp_path)
+        started.append(agent)
+        agent.wait_for_line("agent ready")
+
+        def session():
+            s = open_session(ZenohSettings(mode="client", connect=(endpoint,)))
+            sessions.append(s)
+            return s
+
+        return {"robot": robot, "endpoint": endpoint, "session": session, "service": service, "agent": agent,
+                "store_dir": store_dir}
+
+    yield start
+    for s in sessions:
+        s.close()
+    for child in reversed(started):
+        child.stop()

@@ -315,6 +315,51 @@ def test_a_certificate_of_our_ca_that_no_policy_names_gets_nothing(session_as):
                           messages.encode("deploy_request", {})) == []
 
 
+# -- what this robot's own hosts may do: each only its own ------------------------------------------
+
+
+def test_a_hosts_certificate_publishes_only_its_own_status_liveliness_and_detections(session_as):
+    remote = session_as(f"{ROBOT}-remote")  # the remote agent's identity, inherited by its detectors
+    watcher = session_as(OPERATOR)
+    seen: list[str] = []
+    alive: list[str] = []
+    subscriber = watcher.declare_subscriber(f"kgadapt/{ROBOT}/**", lambda s: seen.append(str(s.key_expr)))
+    tokens = watcher.liveliness().declare_subscriber(keys.host_alive(ROBOT, "*"),
+                                                    lambda s: alive.append(str(s.key_expr)))
+    status = {"time": 1.0, "memory_total_mb": 700.0, "memory_free_mb": 0.0, "cpu_load": 0.0}
+    forged_token = remote.liveliness().declare_token(keys.host_alive(ROBOT, "ghost"))
+    onboard_token = remote.liveliness().declare_token(keys.host_alive(ROBOT, "onboard_twin"))
+    try:
+        for_onboard = keys.host_status(ROBOT, "onboard")
+        own = keys.host_status(ROBOT, "remote")
+        flight = keys.flight_state(ROBOT)
+        wait_for(lambda: (remote.put(own, messages.encode("host_status", {"host": "remote", **status})),
+                          own in seen)[1], 5, "the remote host's own status to be delivered")
+        real_token = remote.liveliness().declare_token(keys.host_alive(ROBOT, "remote"))
+        wait_for(lambda: keys.host_alive(ROBOT, "remote") in alive, 5, "the remote host's own token")
+        real_token.undeclare()
+        remote.put(for_onboard, messages.encode("host_status", {"host": "onboard", **status}))
+        remote.put(flight, messages.encode("flight_state", {"time": 1.0, "link": True, "landed_state": "LANDING"}))
+        remote.put(keys.adaptation_events(ROBOT), b"forged")
+        remote.put(keys.camera_frame(ROBOT, "cam0"), b"forged frame")
+        detections = keys.detector_markers(ROBOT, "on_remote")
+        wait_for(lambda: (remote.put(detections, b"x"), detections in seen)[1], 5, "a remote detector's detections")
+    finally:
+        for entity in (subscriber, tokens, forged_token, onboard_token):
+            entity.undeclare()
+    assert for_onboard not in seen and flight not in seen
+    assert keys.adaptation_events(ROBOT) not in seen and keys.camera_frame(ROBOT, "cam0") not in seen
+    assert not {keys.host_alive(ROBOT, "ghost"), keys.host_alive(ROBOT, "onboard_twin")} & set(alive)
+
+
+def test_a_remote_hosts_certificate_cannot_command_deployers(session_as):
+    remote = DeployerClient(session_as(f"{ROBOT}-remote"), ROBOT, timeout=1.0)
+    with pytest.raises(RequestTimeout):
+        remote.start("onboard", "detector_day", "marker_detection_day", instance="from_remote", wait_ready=False)
+    onboard = DeployerClient(session_as(f"{ROBOT}-onboard"), ROBOT, timeout=3.0)  # the manager's identity may
+    assert onboard.list("onboard") == []
+
+
 # -- what the deployer runs ---------------------------------------------------------------------------
 
 

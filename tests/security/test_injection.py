@@ -141,7 +141,8 @@ def known_graph(store):
 
 # Values the shipped models know, so a query's other parameters are not what keeps its answer empty.
 REAL = {"feature": "MarkerDetection", "platform": "remote", "config": "marker_detection_day", "name": "detector_day",
-        "threshold_mb": 1000.0, "limit": 20, "limit_pct": 80.0}
+        "threshold_mb": 1000.0, "limit": 20, "limit_pct": 80.0, "condition": "all", "band": "day", "penalty": 1.0,
+        "max_ms": 1000.0}
 
 
 def string_params() -> list[tuple[str, str]]:
@@ -195,6 +196,7 @@ def test_a_node_named_with_a_hostile_string_is_found_by_exactly_that_string(stor
 NUMBERS = {"time": 5.0, "memory_total_mb": 100.0, "memory_free_mb": 50.0, "cpu_load": 3.0, "cpu_cores": 2,
            "pid": 4242, "start_time": 6.0, "rss_mb_last": 1.0, "rss_mb_mean": 2.0, "rss_mb_max": 3.0,
            "cpu_percent_mean": 4.0, "end_time": 7.0, "exit_status": 0, "detection_rate": 0.5, "false_rate": 0.1,
+           "false_per_frame": 0.2, "false_per_reported": 0.1,
            "ms_per_frame": 8.0, "duration_ms": 9.0, "battery_pct": 80.0, "battery_v": 12.0,
            "autopilot_load_pct": 30.0, "last_heartbeat": 10.0}
 FLAGS = {"online": True, "link": True, "armed": False}

@@ -90,9 +90,14 @@ def test_cypher_that_writes_is_refused_and_the_graph_is_unchanged(client, resp_s
     assert resp_store.execute("MATCH (p:Platform) RETURN min(p.memory_free_mb) AS m")[0]["m"] == 100.0
 
 
-def test_cypher_the_store_rejects_is_answered_with_the_stores_reason(client):
-    with pytest.raises(RemoteError, match="store rejected"):
+def test_malformed_cypher_is_refused_naming_where(client):
+    with pytest.raises(RemoteError, match=r"offset 9 \('RETURN'\): expected '\)'"):
         client.cypher("MATCH (n RETURN n")
+
+
+def test_cypher_the_store_rejects_is_answered_with_the_stores_reason(client):
+    with pytest.raises(RemoteError, match="store rejected.*[Dd]ivision by zero"):
+        client.cypher("RETURN 1 / 0 AS x")
 
 
 def test_a_write_verb_changes_the_graph(client, resp_store):

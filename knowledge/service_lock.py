@@ -1,0 +1,131 @@
+"""One knowledge service per store.
+
+A second service on the same store would mark every platform offline at
+start and then fight the first over platform state. The first service holds
+this lock; a second one refuses to start, naming the holder.
+
+- Embedded store: an ``flock`` on ``service.lock`` in the store's directory.
+  The kernel releases it when the holder dies, so a restarted service (after
+  ``kill -9``) takes it at once.
+- ``falkordb://`` server: a lease key in the server (``SET NX PX``), renewed
+  by a thread every third of its life. A holder that dies leaves it for at
+  most ``lease_s``; a new service waits that long for it before refusing.
+- Other stores (Bolt): no lock; the docs say to run one service per store.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import os
+import socket
+import threading
+import time
+import uuid
+from typing import Any
+
+from knowledge.store import GraphStore
+from shared.errors import ConfigError, StoreError
+
+log = logging.getLogger(__name__)
+
+
+class ServiceLockHeld(StoreError):
+    """Another knowledge service already serves this store."""
+
+
+class ServiceLock:
+    """``acquire()`` takes the store's service lock or raises ServiceLockHeld; ``release()`` gives it back."""
+
+    def __init__(self, store: GraphStore, *, lease_s: float = 3.0) -> None:
+        if lease_s <= 0:
+            raise ConfigError(f"lease_s {lease_s!r}: must be positive")
+        self.store = store
+        self.lease_s = lease_s
+        self.holder = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "id": uuid.uuid4().hex[:8]})
+        self._file: Any = None
+        self._stop = threading.Event()
+        self._renewer: threading.Thread | None = None
+
+    @property
+    def key(self) -> str:
+        return f"kgadapt:knowledge-service:{self.store.settings.graph}"
+
+    def acquire(self) -> None:
+        settings = self.store.settings
+        if settings.kind == "embedded" and settings.data_dir is not None:
+            self._acquire_file(settings.data_dir / "service.lock")
+        elif settings.kind == "falkordb":
+            self._acquire_lease()
+        else:
+            log.info("store %s: no service lock for this kind of store; run one service per store", settings.url)
+
+    def release(self) -> None:
+        self._stop.set()
+        if self._renewer is not None:
+            self._renewer.join(timeout=5)
+            self._renewer = None
+            try:
+                redis = self.store.redis  # type: ignore[attr-defined]
+                if redis.get(self.key) == self.holder.encode():
+                    redis.delete(self.key)
+            except Exception as exc:  # the store may be gone; the lease then runs out by itself
+                log.debug("service lease not released: %s", exc)
+        if self._file is not None:
+            try:
+                fcntl.flock(self._file, fcntl.LOCK_UN)
+            finally:
+                self._file.close()
+                self._file = None
+
+    # -- embedded: a file lock ----------------------------------------------
+
+    def _acquire_file(self, path: Any) -> None:
+        handle = open(path, "a+")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            held_by = handle.read().strip() or "unknown"
+            handle.close()
+            raise ServiceLockHeld(
+                f"another knowledge service already serves the store {self.store.url} ({held_by}); "
+                "refusing to start a second one"
+            ) from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(self.holder)
+        handle.flush()
+        self._file = handle
+
+    # -- falkordb server: a lease ---------------------------------------------
+
+    def _acquire_lease(self) -> None:
+        redis = self.store.redis  # type: ignore[attr-defined]
+        ttl_ms = int(self.lease_s * 1000)
+        deadline = time.monotonic() + self.lease_s + 0.5
+        while True:
+            if redis.set(self.key, self.holder, nx=True, px=ttl_ms):
+                break
+            if time.monotonic() >= deadline:
+                held_by = redis.get(self.key)
+                raise ServiceLockHeld(
+                    f"another knowledge service already serves the store {self.store.url} "
+                    f"({held_by.decode(errors='replace') if held_by else 'unknown'}); refusing to start a second one"
+                )
+            time.sleep(0.1)
+        self._renewer = threading.Thread(target=self._renew, name="knowledge-service-lease", daemon=True)
+        self._renewer.start()
+
+    def _renew(self) -> None:
+        redis = self.store.redis  # type: ignore[attr-defined]
+        ttl_ms = int(self.lease_s * 1000)
+        while not self._stop.wait(self.lease_s / 3):
+            try:
+                if redis.get(self.key) == self.holder.encode():
+                    redis.pexpire(self.key, ttl_ms)
+                elif not redis.set(self.key, self.holder, nx=True, px=ttl_ms):
+                    log.error("the knowledge service lease on %s is held by another service", self.store.url)
+            except Exception as exc:
+                log.warning("cannot renew the knowledge service lease: %s", exc)

@@ -1,0 +1,185 @@
+"""Marker confirmation: only markers seen steadily, and of the site, become landing targets.
+
+A detector reports every candidate it decodes, and on textures, ChArUco boards
+or markers of another dictionary some candidates are phantoms: a code that
+happens to decode in one frame, somewhere else in the next. A landing target
+built from one would steer the quadcopter towards nothing. :class:`MarkerConfirmer`
+passes a marker id on only once it has been seen in ``frames`` consecutive
+frames at a consistent place (centre within ``max_shift`` of its side, side
+within ``max_scale`` of the last), with its cells reading clean when the
+detector says (``clean``, :func:`onboard.markers.cells_are_clean`: a
+6x6 marker or a ChArUco square that decodes as a 4x4 code does not), and,
+when the site's marker set is known, only ids of that set. Detections themselves still carry every candidate.
+
+A site file (``*.site``, JSON) names the markers at a site::
+
+    {"site": "hall-1", "dictionary": "DICT_4X4_50",
+     "markers": [{"id": 33, "size_m": 0.20}, {"id": 42, "size_m": 0.10}]}
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from shared.errors import ConfigError, MessageError, ModelError
+
+
+@dataclass(frozen=True, kw_only=True)
+class SiteMarkers:
+    """The markers at a site: ids and printed sizes (metres)."""
+
+    site: str
+    dictionary: str
+    sizes_m: Mapping[int, float]
+
+    @property
+    def ids(self) -> frozenset[int]:
+        return frozenset(self.sizes_m)
+
+
+def load_site(path: str | Path) -> SiteMarkers:
+    """Read a site file; ModelError names the file and what is wrong."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as exc:
+        raise ModelError(str(path), None, f"cannot read site file: {exc.strerror or exc}") from exc
+    except ValueError as exc:
+        raise ModelError(str(path), getattr(exc, "lineno", None), f"not valid JSON: {exc}") from exc
+    if not isinstance(data, dict) or not isinstance(data.get("markers"), list) or not data["markers"]:
+        raise ModelError(str(path), 1, "a site file is an object with a non-empty 'markers' list")
+    sizes: dict[int, float] = {}
+    for i, m in enumerate(data["markers"]):
+        mid, size = (m.get("id"), m.get("size_m")) if isinstance(m, dict) else (None, None)
+        if not isinstance(mid, int) or isinstance(mid, bool) or not 0 <= mid < 100000:
+            raise ModelError(str(path), None, f"markers[{i}]: 'id' must be a non-negative integer, not {mid!r}")
+        if not isinstance(size, (int, float)) or isinstance(size, bool) or not 0 < size < 100:
+            raise ModelError(str(path), None, f"markers[{i}] (id {mid}): 'size_m' must be metres in (0, 100), not {size!r}")
+        if mid in sizes:
+            raise ModelError(str(path), None, f"markers[{i}]: id {mid} appears twice")
+        sizes[mid] = float(size)
+    return SiteMarkers(site=str(data.get("site") or path.stem), dictionary=str(data.get("dictionary") or "DICT_4X4_50"),
+                       sizes_m=sizes)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConfirmationSettings:
+    """How steady a marker must be before it counts."""
+
+    frames: int = 3  # consecutive frames with the marker
+    max_shift: float = 0.5  # centre moves at most this share of the marker's side between frames
+    max_scale: float = 1.5  # side changes at most by this factor between frames
+    max_missed: int = 1  # frames a confirmed or confirming marker may be missed without losing its streak
+    site: SiteMarkers | None = None  # when known, other ids never confirm
+
+    def __post_init__(self) -> None:
+        if self.frames < 1 or self.max_shift <= 0 or self.max_scale < 1 or self.max_missed < 0:
+            raise ConfigError("confirmation: frames >= 1, max_shift > 0, max_scale >= 1, max_missed >= 0")
+
+
+@dataclass
+class _Track:
+    centre: tuple[float, float]
+    side: float
+    streak: int
+    last_frame: float
+    missed: int = 0
+
+
+@dataclass
+class MarkerConfirmer:
+    """Follows marker ids over frames; :meth:`update` returns the indices of confirmed markers."""
+
+    settings: ConfirmationSettings = field(default_factory=ConfirmationSettings)
+    _tracks: dict[int, _Track] = field(default_factory=dict, repr=False)
+    _last_frame: float = field(default=-math.inf, repr=False)
+    refused_off_site: int = 0  # candidates of ids the site does not have
+    unconfirmed: int = 0  # candidates not (yet) steady
+    refused_unclean: int = 0  # candidates whose cells did not read clean (the detector says so)
+
+    def update(self, ids: Sequence[Any], corners: Sequence[Any], frame_time: float,
+               clean: Sequence[Any] | None = None) -> list[int] | None:
+        """Feed one frame's detections; the indices of the markers confirmed in it.
+
+        None when the frame is not newer than the last one fed (a second detector
+        answering for the same frame during a migration): it neither confirms
+        nor breaks a streak.
+        """
+        # Check everything before changing any state: a malformed message changes nothing.
+        parsed = []
+        for index, (raw_id, c) in enumerate(zip(ids, corners)):
+            mid = raw_id[0] if isinstance(raw_id, list) and len(raw_id) == 1 else raw_id
+            geometry = _geometry(c)
+            if not isinstance(mid, int) or isinstance(mid, bool) or geometry is None:
+                raise MessageError(f"detections marker {index}: need an integer id and 4 [x, y] corners")
+            parsed.append((index, mid, geometry))
+        if frame_time <= self._last_frame:
+            return None
+        self._last_frame = frame_time
+        site = self.settings.site
+        seen: dict[int, tuple[int, tuple[float, float], float]] = {}
+        for index, mid, (centre, side) in parsed:
+            if site is not None and mid not in site.sizes_m:
+                self.refused_off_site += 1
+                continue
+            if clean is not None and index < len(clean) and clean[index] is False:
+                self.refused_unclean += 1
+                continue  # not counted as seen: its streak, if any, takes a miss
+            if mid in seen:  # the same id twice in one frame: neither is trusted
+                seen[mid] = (-1, centre, side)
+                continue
+            seen[mid] = (index, centre, side)
+        confirmed = []
+        for mid, (index, centre, side) in seen.items():
+            track = self._tracks.get(mid)
+            steady = (track is not None and index >= 0
+                      and math.dist(centre, track.centre) <= self.settings.max_shift * max(side, track.side)
+                      and max(side, track.side) <= self.settings.max_scale * min(side, track.side))
+            streak = track.streak + 1 if steady else (1 if index >= 0 else 0)
+            self._tracks[mid] = _Track(centre, side, streak, frame_time)  # seen: missed starts over
+            if index >= 0 and streak >= self.settings.frames:
+                confirmed.append(index)
+            elif index >= 0:
+                self.unconfirmed += 1
+        for mid in [m for m in self._tracks if m not in seen]:
+            track = self._tracks[mid]
+            track.missed += 1
+            if track.missed > self.settings.max_missed:
+                del self._tracks[mid]  # missed too often: the streak is broken
+        return sorted(confirmed)
+
+    def keep(self, detections: Mapping[str, Any], frame_time: float) -> dict[str, Any] | None:
+        """A ``detections`` message cut down to its confirmed markers (None: not a newer frame).
+
+        ``poses``, when present, is cut the same way.
+        """
+        ids, corners = detections["ids"], detections["corners"]
+        if len(ids) != len(corners):
+            raise MessageError(f"detections has {len(ids)} ids but {len(corners)} corner sets")
+        clean = detections.get("clean")
+        indices = self.update(ids, corners, frame_time, clean if isinstance(clean, list) else None)
+        if indices is None:
+            return None
+        out = dict(detections)
+        out["ids"] = [ids[i] for i in indices]
+        out["corners"] = [corners[i] for i in indices]
+        poses = detections.get("poses")
+        if isinstance(poses, list) and len(poses) == len(ids):
+            out["poses"] = [poses[i] for i in indices]
+        return out
+
+
+def _geometry(corners: Any) -> tuple[tuple[float, float], float] | None:
+    try:
+        pts = [(float(x), float(y)) for x, y in (corners[0] if len(corners) == 1 else corners)]
+    except (TypeError, ValueError):
+        return None
+    if len(pts) != 4 or not all(math.isfinite(v) for p in pts for v in p):
+        return None
+    cx, cy = sum(p[0] for p in pts) / 4, sum(p[1] for p in pts) / 4
+    side = sum(math.dist(pts[i], pts[(i + 1) % 4]) for i in range(4)) / 4
+    return (cx, cy), side

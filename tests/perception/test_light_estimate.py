@@ -1,0 +1,103 @@
+"""The light estimate a window, a lamp or a black corner cannot fool (issue 11)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from onboard.illumination import LightSettings, LightSource, band_for_level, estimate_light, luminance
+from onboard.scenario import IlluminationProfile, LightLayout, SceneSettings, SyntheticScene
+from shared.errors import ConfigError
+
+ROWS = [
+    {"config": "marker_detection_dark", "band": "dark", "min_level": 0, "max_level": 12},
+    {"config": "marker_detection_dusk", "band": "dusk", "min_level": 12, "max_level": 40},
+    {"config": "marker_detection_day", "band": "day", "min_level": 40, "max_level": 255},
+]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return SyntheticScene(SceneSettings())
+
+
+def render(scene, level, **light):
+    return scene.render(0.3, IlluminationProfile.constant(level, light=LightLayout(**light)), np.random.default_rng(3))
+
+
+def test_a_saturated_window_strip_over_a_dark_scene_stays_dark(scene):
+    frame = render(scene, 6, window=0.15)
+    # The whole-frame mean is fooled: the window lifts it from 6 into the day band.
+    assert luminance(frame.image).mean > 40
+    light = estimate_light(frame.image)
+    assert band_for_level(light.level, ROWS) == "dark"
+    assert light.saturated == pytest.approx(0.15, abs=0.01)  # it says what it left out
+    assert light.source is LightSource.FRAME
+
+
+def test_a_bright_scene_with_a_black_corner_stays_day(scene):
+    frame = render(scene, 60)
+    image = frame.image.copy()
+    image[:, : int(0.45 * image.shape[1])] = 0  # a deep shadow over 45 % of the frame, clipped at the floor
+    assert band_for_level(luminance(image).mean, ROWS) == "dusk"  # the mean is fooled
+    light = estimate_light(image)
+    assert band_for_level(light.level, ROWS) == "day"
+    assert light.black > 0.4
+
+
+def test_a_dark_object_over_much_of_a_bright_scene_is_outweighed_by_the_markers_in_the_light(scene):
+    frame = render(scene, 60)
+    image = frame.image.copy()
+    image[:, : int(0.45 * image.shape[1])] = 12  # a dark object, not clipped: it counts in the frame figure
+    seen = [t.corners for t in frame.truth if min(x for x, _ in t.corners) > 0.45 * image.shape[1]]
+    assert len(seen) == 3
+    assert band_for_level(estimate_light(image).level, ROWS) == "dusk"  # the frame alone is fooled here
+    assert band_for_level(estimate_light(image, seen).level, ROWS) == "day"  # the markers' light is not
+
+
+def test_a_spotlight_on_the_markers_reads_the_light_they_are_in(scene):
+    # A dark hall, a lamp on the small marker at the lower right: the frame says dark,
+    # the light around the marker is day.
+    frame = render(scene, 10, spot=(0.88, 0.74, 0.08), spot_gain=300.0)
+    marker = next(t for t in frame.truth if t.id == 42)
+    without = estimate_light(frame.image)
+    with_markers = estimate_light(frame.image, [marker.corners])
+    assert band_for_level(without.level, ROWS) == "dark"
+    assert with_markers.source is LightSource.MARKERS and with_markers.markers == 1
+    assert with_markers.marker_level > 40
+    assert with_markers.level > 3 * without.level
+    assert band_for_level(with_markers.level, ROWS) != "dark"
+
+
+def test_markers_in_shadow_pull_a_bright_frame_down(scene):
+    frame = render(scene, 50, stripes=0)
+    image = frame.image.copy()
+    marker = next(t for t in frame.truth if t.id == 33)
+    xs = [int(x) for x, _ in marker.corners]
+    ys = [int(y) for _, y in marker.corners]
+    y0, y1, x0, x1 = min(ys) - 40, max(ys) + 40, min(xs) - 40, max(xs) + 40
+    image[y0:y1, x0:x1] = (image[y0:y1, x0:x1] * 0.3).astype(np.uint8)  # the marker sits in a shadow
+    assert band_for_level(estimate_light(image).level, ROWS) == "day"
+    assert band_for_level(estimate_light(image, [marker.corners]).level, ROWS) == "dusk"
+
+
+def test_an_evenly_lit_scene_reads_close_to_its_mean(scene):
+    for level in (6, 20, 100):
+        frame = render(scene, level)
+        light = estimate_light(frame.image)
+        # Clipped blacks are left out, so a dark frame reads a little high: within 15 %, 5 % from 20 up.
+        assert level * 0.97 <= light.level <= level * (1.15 if level < 20 else 1.05), (level, light)
+
+
+def test_an_all_black_frame_falls_back_and_says_so():
+    light = estimate_light(np.zeros((48, 64), np.uint8))
+    assert light.level == 0 and light.source is LightSource.CLIPPED and light.usable == 0
+    light = estimate_light(np.full((48, 64), 255, np.uint8))
+    assert light.saturated == 1.0 and light.source is LightSource.CLIPPED
+
+
+def test_bad_settings_and_images_are_refused():
+    with pytest.raises(ConfigError, match="black"):
+        LightSettings(black=250, saturated=200)
+    with pytest.raises(ConfigError, match="grey uint8"):
+        estimate_light(np.zeros((4, 4, 3), np.uint8))
