@@ -63,7 +63,7 @@ class Terminal:
         return subprocess.run(self._argv(line), cwd=self.workdir, env=self.env, capture_output=True, text=True,
                               timeout=timeout, stdin=subprocess.DEVNULL)
 
-    def start(self, line: str, *, prelude: str = "", ready: str = "ready", timeout: float = 60.0) -> Background:
+    def start(self, line: str, *, prelude: str = "", ready: str = "ready:", timeout: float = 60.0) -> Background:
         """Start ``line`` in the background (after the shell commands ``prelude``); wait for a line with
         ``ready`` (case-insensitive) in its output."""
         log = self.workdir / f"bg{len(self.background)}.log"
