@@ -8,6 +8,7 @@ so it is kept for every later line, as in one terminal.
 
 from __future__ import annotations
 
+import pytest
 import json
 import re
 
@@ -44,6 +45,7 @@ def readme_lines() -> list[str]:
     return lines
 
 
+@pytest.mark.timeout(300)  # several robots' processes on a shared 2-core machine
 def test_the_readme_commands_run_in_order_and_say_what_the_readme_says(terminal):
     lines = readme_lines()
     uncovered = [l for l in lines if not any(l.startswith(k) for k in EXPECTED)]

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from knowledge.importers import parse_file
 from knowledge import schema as S
 from tests.support import REPO
@@ -28,6 +30,7 @@ def shipped_deployments() -> list[tuple[str, str, str]]:
     return out
 
 
+@pytest.mark.timeout(300)  # several robots' processes on a shared 2-core machine
 def test_every_shipped_deployment_starts_on_each_host_it_names(terminal):
     pairs = shipped_deployments()
     assert {d for d, _, _ in pairs} >= {"detector_day", "detector_dusk", "detector_dark", "detector_hd", "flight_control"}

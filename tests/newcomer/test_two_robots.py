@@ -8,6 +8,7 @@ would show. A robot nobody runs (quad3) gets errors naming it and the endpoint.
 
 from __future__ import annotations
 
+import pytest
 import json
 
 from tests.support import wait_for
@@ -21,6 +22,7 @@ def _json(terminal, line: str):
     return json.loads(result.stdout)
 
 
+@pytest.mark.timeout(300)  # several robots' processes on a shared 2-core machine
 def test_every_command_answers_for_the_robot_it_is_given_and_never_mixes_two(terminal):
     k = f"{terminal.workdir}/.venv/bin/kgadapt"
     for robot in ("quad1", "quad2"):
@@ -53,6 +55,10 @@ def test_every_command_answers_for_the_robot_it_is_given_and_never_mixes_two(ter
     assert _json(terminal, f"{k} ask --robot quad2 decisions --json") == []
     platforms2 = {r["platform"]: r for r in _json(terminal, f"{k} ask --robot quad2 platforms --json")}
     assert platforms2["remote"]["online"] is True and platforms2["onboard"]["online"] is not True
+
+    misspelt = terminal.run(f"{k} ask --robot quad2 placement -p config=marker_detection_darkk")
+    assert misspelt.returncode == 1
+    assert "no detector configuration 'marker_detection_darkk' in the knowledge service of robot quad2" in misspelt.stderr
 
     # deploy list: quad2's deployer answers with nothing running; quad1's onboard runs the detector.
     assert _json(terminal, f"{k} deploy list --robot quad2 --json") == []
