@@ -139,10 +139,16 @@ def write_records(path: Path | str, records: Iterable[Mapping[str, Any]]) -> Pat
         missing = [k for k in RECORD_KEYS if k not in record]
         if missing:
             raise ValueError(f"record {record.get('op')!r} lacks {', '.join(missing)}")
+    return write_json(path, records)
+
+
+def write_json(path: Path | str, document: Any) -> Path:
+    """Write ``document`` as indented JSON, atomically (a reader never sees half a file)."""
+    path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(records, indent=1) + "\n")
+        tmp.write_text(json.dumps(document, indent=1) + "\n")
         os.replace(tmp, path)
     except OSError as exc:
         raise ConfigError(f"cannot write results to {path}: {exc}") from exc

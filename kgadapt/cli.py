@@ -21,6 +21,7 @@ from shared.errors import KgadaptError
 PARTS = (
     "knowledge.cli",          # kgadapt knowledge load|query|queries|cypher|export (+ serve, via a hook)
     "knowledge.service_cli",  # kgadapt ask
+    "kgadapt.fleet_view",     # kgadapt fleet
     "onboard.cli",            # kgadapt onboard
     "onboard.perception_cli", # kgadapt perception calibrate|camera|detector ...
     "onboard.flight_cli",     # kgadapt flight ... (MAVLink bridge, fake flight controller)

@@ -4,6 +4,11 @@
 >>> client.query("placement", {"feature": "MarkerDetection"})
 [{'config': ..., 'platform': 'remote', ...}]
 
+Every robot at once (one Zenoh get, one table with a robot column; see
+knowledge/fleet.py)::
+
+    FleetClient(session, FleetSettings(timeout=2.0)).ask("current_placement").rows()
+
 Errors: :class:`RemoteError` when the service answers with an error reply
 (its text names the problem), :class:`RequestTimeout` when nothing answers in
 time, :class:`MessageError` when the reply itself is malformed.
@@ -16,6 +21,8 @@ from typing import Any, Mapping
 
 from shared import keys, messages
 from shared.errors import MessageError, RemoteError, RequestTimeout, TransportError
+
+from knowledge.fleet import FleetAnswer, FleetClient, FleetSettings  # noqa: F401 (the fleet's client, re-exported)
 
 
 class KnowledgeClient:

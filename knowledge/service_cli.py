@@ -9,6 +9,7 @@ then undeclares everything and stops the store if it started it.
 
     kgadapt ask placement --param feature=MarkerDetection
     kgadapt ask --robot quad2 --cypher 'MATCH (p:Platform) RETURN p.name AS name' --json
+    kgadapt ask --fleet current_placement --expect quad1 --expect quad2   # every robot (knowledge/fleet.py)
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ def register(subparsers: Any) -> None:
     ask.add_argument("--param", "-p", action="append", default=[], metavar="KEY=VALUE", help="query parameter (repeatable)")
     ask.add_argument("--cypher", metavar="TEXT", help="read-only Cypher instead of a named query")
     ask.add_argument("--robot", default="quad1", help="whose knowledge to ask (default quad1)")
+    ask.add_argument("--fleet", metavar="QUERY",
+                     help="ask named query QUERY of every robot at once; one table with a robot column")
+    ask.add_argument("--expect", action="append", default=[], metavar="ROBOT",
+                     help="with --fleet: a robot that should answer, listed as silent if it does not (repeatable)")
     ask.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the answer (default 3)")
     ask.add_argument("--json", action="store_true", help="print rows as JSON")
     add_zenoh_arguments(ask)
@@ -111,6 +116,10 @@ def run_ask(args: argparse.Namespace) -> int:
     from shared.errors import ConfigError
     from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
+    if args.fleet:
+        return _run_fleet_ask(args)
+    if args.expect:
+        raise ConfigError("--expect goes with --fleet QUERY")
     if bool(args.query) == bool(args.cypher):
         raise ConfigError("give either a named QUERY or --cypher TEXT (not both, not neither)")
     raw = _parse_params(args.param)
@@ -147,6 +156,34 @@ def _why_empty(client: Any, query: str | None, params: dict[str, Any]) -> str:
     if query is None or query not in QUERIES:  # free Cypher, or a query this checkout does not know
         return f"{where} holds no models: nothing is loaded there" if store_is_empty(client.query) else ""
     return explain_empty(query, check_params(query, params), client.query, where=where)
+
+
+def _run_fleet_ask(args: argparse.Namespace) -> int:
+    """``ask --fleet QUERY``: one question to every robot (knowledge/fleet.py); exit 3 when some were silent."""
+    from knowledge.fleet import FleetClient, FleetSettings
+    from knowledge.queries import QUERIES, coerce_params
+    from shared.errors import ConfigError
+    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+
+    if args.query or args.cypher:
+        raise ConfigError("--fleet QUERY asks a named query of every robot: give no other QUERY and no --cypher")
+    from shared.keys import check_name
+
+    check_name(args.fleet, "query name")  # before any network: a name is one key chunk, no wildcard
+    raw = _parse_params(args.param)
+    params: dict[str, Any] = coerce_params(args.fleet, raw) if args.fleet in QUERIES else dict(raw)
+    settings = FleetSettings(timeout=args.timeout, expect=tuple(args.expect))
+    zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
+    session = open_session(zenoh)
+    try:
+        answer = FleetClient(session, settings).ask(args.fleet, params)
+    finally:
+        session.close()
+    if args.json:
+        print(json.dumps(answer.as_json(), default=str))
+    else:
+        print(answer.table())
+    return 0 if answer.complete and not answer.refusals else 3
 
 
 def _parse_params(items: list[str]) -> dict[str, str]:

@@ -73,12 +73,14 @@ class ConfirmationSettings:
     frames: int = 3  # consecutive frames with the marker
     max_shift: float = 0.5  # centre moves at most this share of the marker's side between frames
     max_scale: float = 1.5  # side changes at most by this factor between frames
-    max_missed: int = 1  # frames a confirmed or confirming marker may be missed without losing its streak
+    max_missed: int = 1  # frames a confirmed or confirming marker may be missed without losing its streak ...
+    max_gap_s: float = 1.5  # ... or seconds since it was last seen: a marker seen once a second keeps its streak
     site: SiteMarkers | None = None  # when known, other ids never confirm
 
     def __post_init__(self) -> None:
-        if self.frames < 1 or self.max_shift <= 0 or self.max_scale < 1 or self.max_missed < 0:
-            raise ConfigError("confirmation: frames >= 1, max_shift > 0, max_scale >= 1, max_missed >= 0")
+        if self.frames < 1 or self.max_shift <= 0 or self.max_scale < 1 or self.max_missed < 0 or self.max_gap_s < 0:
+            raise ConfigError("confirmation: frames >= 1, max_shift > 0, max_scale >= 1, max_missed >= 0, "
+                              "max_gap_s >= 0")
 
 
 @dataclass
@@ -148,8 +150,8 @@ class MarkerConfirmer:
         for mid in [m for m in self._tracks if m not in seen]:
             track = self._tracks[mid]
             track.missed += 1
-            if track.missed > self.settings.max_missed:
-                del self._tracks[mid]  # missed too often: the streak is broken
+            if track.missed > self.settings.max_missed and frame_time - track.last_frame > self.settings.max_gap_s:
+                del self._tracks[mid]  # missed too often and too long: the streak is broken
         return sorted(confirmed)
 
     def keep(self, detections: Mapping[str, Any], frame_time: float) -> dict[str, Any] | None:

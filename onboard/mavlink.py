@@ -950,7 +950,9 @@ class FlightLink:
                 if name == "SYS_STATUS" and not self._have_battery_status:
                     fields += STREAM_FIELDS["BATTERY_STATUS"]
                 expired.update({f: None for f in fields})
-                heard = None
+                missing.add(name)  # it stopped: missing now, and asked for again at once
+                again.append(name)
+                continue
             if heard is None:
                 asked = self._asked_mono.get(name, 0.0)
                 if now - asked > max(timeout, self._retry_s.get(name, 0.0)):

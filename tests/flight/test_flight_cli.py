@@ -167,12 +167,14 @@ def test_the_bridge_command_with_camera_and_marker_files_sends_positions_and_hol
         fc.setup()
         # the bridge's link asks for ATTITUDE and LOCAL_POSITION_NED: the held target needs them
         wait_until(lambda: fc.stream_rate("LOCAL_POSITION_NED") and fc.stream_rate("ATTITUDE"), 10, "streams asked")
-        now = time.time()
         corners = scene.corners(((0.0, 0.0, 0.3), vehicle.position_ned))
-        publisher.put(messages.encode("detections", {
-            "instance": "det9", "config": "c", "host": "onboard", "seq": 1, "frame_time": now, "time": now,
-            "ids": [[7]], "corners": [[corners]], "processing_ms": 3.0}))
-        got = fc.wait_for("LANDING_TARGET", 5, timeout=10)  # one detection, then the held target re-sent
+        for seq in (1, 2, 3):  # a marker counts once seen in 3 steady frames (onboard.confirmation)
+            now = time.time()
+            publisher.put(messages.encode("detections", {
+                "instance": "det9", "config": "c", "host": "onboard", "seq": seq, "frame_time": now, "time": now,
+                "ids": [[7]], "corners": [[corners]], "processing_ms": 3.0}))
+            time.sleep(0.05)  # three camera frames apart
+        got = fc.wait_for("LANDING_TARGET", 5, timeout=10)  # the confirmed detection, then the held target re-sent
         from onboard.geometry import ned_to_body
 
         truth = ned_to_body((0.0, 0.0, 0.3), (1.0, 0.5, 8.0))

@@ -91,6 +91,7 @@ EXAMPLES = {
     "current_placement": {},
     "fig4_literal": {"platform": "remote"},
     "fig5_literal": {},
+    "config_ranking": {"band": "dark"},
 }
 
 

@@ -1,0 +1,541 @@
+"""``kgadapt bench fleet``: one question to every robot of a fleet, across several Zenoh routers.
+
+The fleet, all real processes on this machine:
+
+- one FalkorDB server holding one graph per robot (FalkorDB keeps many graphs
+  per server), each loaded with the shipped models and seeded with a running
+  detector, its decision and its hosts' figures (:func:`seed_robot`);
+- ``--routers`` router processes (``python -m bench.fleet_bench serve``), each
+  a Zenoh router linked to every router started before it (a full mesh, so no
+  single process carries the fleet) and hosting the knowledge services of its
+  share of the robots: one :class:`KnowledgeService` per robot, each with its
+  own graph, workers and queryables, as ``kgadapt knowledge serve`` runs them;
+- this process, a Zenoh client of the first router, asking the fleet.
+
+Measured, for each N of ``--sizes``:
+
+``fleet_question``   ``current_placement`` asked of all N robots with one get
+                     (FleetClient.ask): wall time until the last robot answered,
+                     and how many answered (completeness)
+``router_cpu``       CPU of the router processes (percent of one core) while idle
+                     and while asking back to back, divided by N
+Then, with the largest N, status fan-in: ``--hosts`` simulated hosts (spread
+over the robots) publish ``host_status`` at ``--rate`` Hz from a publisher
+process; the CPU of the router processes (which hold the knowledge services
+that receive and apply them) beside an idle baseline, and the store's CPU;
+then the same statuses again, also received by one process that only
+decodes them (the floor under the services' figure: the rest is the writes).
+
+Records go to ``bench/results/fleet.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+from bench.stats import format_table, machine_info, make_record, write_json
+
+log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parent.parent
+MODELS = REPO / "knowledge" / "models"
+DEFAULT_OUT = REPO / "bench" / "results" / "fleet.json"
+CONFIGS = (("marker_detection_day", "day"), ("marker_detection_dusk", "dusk"), ("marker_detection_dark", "dark"))
+HOSTS = ("onboard", "remote")
+READY = "FLEET_ROUTER_READY"
+
+
+def robot_name(i: int) -> str:
+    return f"robot{i:03d}"
+
+
+def seed_robot(store: Any, robot: str, index: int, *, now: float | None = None, models: Path = MODELS) -> dict[str, Any]:
+    """Load the shipped models into ``store`` and give ``robot`` a running detector and the decision behind it.
+
+    Robot ``index`` runs configuration ``CONFIGS[index % 3]`` on host
+    ``HOSTS[index % 2]``; returns what was seeded, for tests to compare.
+    """
+    from knowledge import runtime
+    from knowledge.loader import load_models
+    from knowledge.schema import ensure_indexes
+
+    now = time.time() if now is None else now
+    ensure_indexes(store)
+    load_models(store, [models])
+    config, band = CONFIGS[index % len(CONFIGS)]
+    host = HOSTS[index % len(HOSTS)]
+    deployment = {"day": "detector_day", "dusk": "detector_dusk", "dark": "detector_dark"}[band]
+    for i, name in enumerate(HOSTS):
+        runtime.update_platform(store, name=name, time=now, memory_total_mb=700.0 + 3300.0 * i,
+                                memory_free_mb=400.0 + index + 1000.0 * i, cpu_load=20.0 + index % 50,
+                                cpu_cores=2, online=True)
+    decision = f"{robot}-decision-1"
+    runtime.record_decision(store, name=decision, time=now - 5.0, trigger=f"band_changed(to={band})",
+                            inputs_json=json.dumps({"band": band}), query="placement", config=config, host=host,
+                            duration_ms=300.0 + index, outcome="migrated")
+    runtime.record_process_start(store, run_id=f"{robot}-run-1", instance="det1", deployment=deployment,
+                                 config=config, host=host, pid=10000 + index, start_time=now - 4.0)
+    return {"robot": robot, "config": config, "band": band, "host": host, "decision": decision}
+
+
+def graph_store(socket: str, graph: str) -> Any:
+    """A store on graph ``graph`` of the FalkorDB server at unix socket ``socket``."""
+    from knowledge.falkordb_store import FalkorDBStore
+    from knowledge.store import StoreSettings
+
+    store = FalkorDBStore(StoreSettings(kind="falkordb", url=f"falkordb+unix://{socket}", unix_socket=socket,
+                                       graph=graph))
+    store.setup()
+    return store
+
+
+# -- a router process: a Zenoh router and the knowledge services of its robots ------------------------
+
+
+def serve(argv: Sequence[str]) -> int:
+    """``python -m bench.fleet_bench serve --listen E [--connect E ...] --socket S --robots a,b,...``."""
+    from knowledge.service import KnowledgeService, ServiceSettings
+    from shared.agent import StopSignals
+    from shared.session import ZenohSettings, open_session
+
+    p = argparse.ArgumentParser(prog="fleet_bench serve")
+    p.add_argument("--listen", required=True)
+    p.add_argument("--connect", action="append", default=[])
+    p.add_argument("--socket", required=True)
+    p.add_argument("--robots", default="")
+    p.add_argument("--workers", type=int, default=2)
+    args = p.parse_args(argv)
+    robots = [r for r in args.robots.split(",") if r]
+    with StopSignals() as stop:
+        session = open_session(ZenohSettings(mode="router", listen=(args.listen,), connect=tuple(args.connect)))
+        stores, services = [], []
+        try:
+            for robot in robots:
+                store = graph_store(args.socket, robot)
+                stores.append(store)
+                service = KnowledgeService(store, ServiceSettings(robot=robot, workers=args.workers))
+                service.setup(session)
+                services.append(service)
+            print(f"{READY} {len(services)} robots", flush=True)
+            stop.wait()
+        finally:
+            for service in services:
+                service.shutdown()
+            session.close()
+            for store in stores:
+                store.shutdown()
+    return 0
+
+
+_PUBLISHER = r"""
+import sys, time
+from shared import keys, messages
+from shared.session import ZenohSettings, open_session
+endpoints, robots, per_robot, rate, duration = sys.argv[1].split(","), sys.argv[2].split(","), int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
+session = open_session(ZenohSettings(mode="client", connect=tuple(endpoints)))
+pubs = []
+for r in robots:
+    for h in range(per_robot):
+        host = f"sim{h:03d}"
+        pubs.append((host, session.declare_publisher(keys.host_status(r, host))))
+print("publishing", len(pubs), flush=True)
+period = 1.0 / rate
+start = time.monotonic()
+sent = 0
+tick = 0
+while time.monotonic() - start < duration:
+    for host, pub in pubs:
+        pub.put(messages.encode("host_status", {"host": host, "time": time.time(), "memory_total_mb": 4000.0,
+                                                "memory_free_mb": 1000.0 + tick % 100, "cpu_load": 10.0}))
+        sent += 1
+    tick += 1
+    delay = start + tick * period - time.monotonic()
+    if delay > 0:
+        time.sleep(delay)
+print("sent", sent, flush=True)
+session.close()
+"""
+
+
+# What a knowledge service does with a status before it writes it, and nothing more: the
+# callback hands it to a queue, a worker decodes and checks it. Its CPU is the floor
+# under the services' figure; the rest is the writes to the store.
+_SINK = r"""
+import queue, sys, threading
+from shared import messages
+from shared.session import ZenohSettings, open_session
+session = open_session(ZenohSettings(mode="client", connect=(sys.argv[1],)))
+work = queue.Queue()
+count = [0]
+def worker():
+    while True:
+        key, payload = work.get()
+        body = messages.decode(payload, "host_status")
+        count[0] += body["host"] == key.split("/")[-2]
+threading.Thread(target=worker, daemon=True).start()
+sub = session.declare_subscriber("kgadapt/*/host/*/status", lambda s: work.put((str(s.key_expr), s.payload.to_bytes())))
+print("sink ready", flush=True)
+sys.stdin.read()
+sub.undeclare()
+session.close()
+print("decoded", count[0], flush=True)
+"""
+
+
+# -- the benchmark ----------------------------------------------------------------------------------------
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class SimulatedFleet:
+    """N robots' knowledge services spread over R linked routers, on one FalkorDB server.
+
+    ``start()`` seeds the graphs and starts the routers (waiting for each to
+    print its ready line); ``stop()`` stops them, removes the graphs and stops
+    the server. With ``transit``, one more router that hosts no robot comes
+    first (``endpoints[0]``, ``children[0]``): whoever connects there reaches
+    every robot through it, so its CPU is what routing alone costs.
+    """
+
+    def __init__(self, workdir: Path, *, robots: int, routers: int, transit: bool = False,
+                 start_timeout: float = 120.0) -> None:
+        if routers < 1 or robots < routers:
+            raise ValueError(f"{robots} robots on {routers} routers: need at least one robot per router")
+        self.workdir = workdir
+        self.robots = [robot_name(i) for i in range(robots)]
+        self.routers = routers
+        self.transit = transit
+        self.start_timeout = start_timeout
+        self.endpoints = [f"tcp/127.0.0.1:{_free_port()}" for _ in range(routers + int(transit))]
+        self.server: Any = None
+        self.children: list[subprocess.Popen[str]] = []
+        self.seeded: dict[str, dict[str, Any]] = {}
+
+    @property
+    def socket(self) -> str:
+        return self.server.address.unix_socket
+
+    def share(self, k: int) -> list[str]:
+        """The robots served by router ``k`` (index into ``endpoints``)."""
+        if self.transit:
+            return [] if k == 0 else self.robots[k - 1::self.routers]
+        return self.robots[k::self.routers]
+
+    def start(self) -> None:
+        from knowledge.embedded import EmbeddedServer
+
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self.server = EmbeddedServer(self.workdir / "store", append_only=False)
+        self.server.ensure()
+        now = time.time()
+        for i, robot in enumerate(self.robots):
+            store = graph_store(self.socket, robot)
+            try:
+                self.seeded[robot] = seed_robot(store, robot, i, now=now)
+            finally:
+                store.shutdown()
+        for k in range(len(self.endpoints)):
+            argv = [sys.executable, "-m", "bench.fleet_bench", "serve", "--listen", self.endpoints[k],
+                    "--socket", self.socket, "--robots", ",".join(self.share(k))]
+            for j in range(k):
+                argv += ["--connect", self.endpoints[j]]
+            child = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                     env={**os.environ, "PYTHONPATH": str(REPO)})
+            self.children.append(child)
+            self._wait_ready(child, k)
+
+    def _wait_ready(self, child: subprocess.Popen[str], k: int) -> None:
+        result: list[str] = []
+        done = threading.Event()
+
+        def read() -> None:
+            assert child.stdout is not None
+            for line in child.stdout:
+                if not done.is_set():
+                    result.append(line)
+                    if line.startswith(READY):
+                        done.set()
+            done.set()
+
+        threading.Thread(target=read, daemon=True).start()
+        if not done.wait(self.start_timeout) or not result or not result[-1].startswith(READY):
+            raise RuntimeError(f"router {k} did not start: {''.join(result[-10:])}")
+
+    def pids(self) -> list[int]:
+        """The processes holding the knowledge services (the transit router excluded)."""
+        return [c.pid for c in self.children[int(self.transit):]]
+
+    def transit_pid(self) -> int | None:
+        return self.children[0].pid if self.transit else None
+
+    def stop(self) -> None:
+        for child in self.children:
+            if child.poll() is None:
+                child.terminate()
+        for child in self.children:
+            try:
+                child.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.wait()
+        self.children.clear()
+        if self.server is not None:
+            for robot in self.robots:
+                try:
+                    store = graph_store(self.socket, robot)
+                    store.clear()
+                    store.shutdown()
+                except Exception:  # the graph may be gone already
+                    pass
+            self.server.stop()
+            self.server = None
+
+    def __enter__(self) -> "SimulatedFleet":
+        try:
+            self.start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def cpu_seconds(pids: Sequence[int]) -> float:
+    import psutil
+
+    total = 0.0
+    for pid in pids:
+        times = psutil.Process(pid).cpu_times()
+        total += times.user + times.system
+    return total
+
+
+def measure_cpu(pids: Sequence[int], seconds: float, during: Any = None) -> float:
+    """Percent of one core that ``pids`` used over ``seconds`` (while ``during()`` runs, if given)."""
+    return measure_cpu_groups({"all": pids}, seconds, during)["all"]
+
+
+def measure_cpu_groups(groups: dict[str, Sequence[int]], seconds: float, during: Any = None) -> dict[str, float]:
+    """``measure_cpu`` for several groups of processes over the same window."""
+    before, t0 = {g: cpu_seconds(p) for g, p in groups.items()}, time.monotonic()
+    if during is None:
+        time.sleep(seconds)  # a measurement window, not a wait for an event
+    else:
+        during()
+    elapsed = time.monotonic() - t0
+    return {g: 100.0 * (cpu_seconds(p) - before[g]) / elapsed for g, p in groups.items()}
+
+
+def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], workdir: Path,
+             fanin: bool) -> list[Any]:
+    from knowledge.fleet import FleetClient, FleetSettings
+    from shared.session import ZenohSettings, open_session
+
+    routers = min(args.routers, n)
+    out = []
+    with SimulatedFleet(workdir / f"n{n}", robots=n, routers=routers, transit=True) as fleet:
+        session = open_session(ZenohSettings(mode="client", connect=(fleet.endpoints[0],)))
+        try:
+            client = FleetClient(session, FleetSettings(timeout=args.timeout, expect=tuple(fleet.robots),
+                                                        discover_hosts=False))
+            # Until every robot answers once: the routers' declarations take a moment to spread.
+            deadline = time.monotonic() + 30
+            while not client.ask("current_placement").complete and time.monotonic() < deadline:
+                pass
+            for _ in range(3):
+                client.ask("current_placement")
+            walls: list[float] = []
+            answered: list[int] = []
+            full: list[bool] = []
+
+            def ask_all() -> None:
+                for _ in range(args.reps):
+                    answer = client.ask("current_placement")
+                    walls.append(answer.wall_ms)
+                    answered.append(len(answer.answered))
+                    full.append(answer.complete and all(a.rows for a in answer.robots))
+
+            groups = {"services": fleet.pids(), "transit": [fleet.transit_pid()]}
+            idle_cpu = measure_cpu_groups(groups, args.idle_s)
+            busy_cpu = measure_cpu_groups(groups, 0, during=ask_all)
+            idle, busy = idle_cpu["services"], busy_cpu["services"]
+            complete = sum(full)
+            records.append(make_record(store="falkordb", n=n, op="fleet_question", samples_ms=walls,
+                                       routers=routers, complete=complete, reps=len(walls),
+                                       min_answered=min(answered), query="current_placement"))
+            records.append({"op": "router_cpu", "n": n, "routers": routers, "idle_pct": round(idle, 2),
+                            "asking_pct": round(busy, 2), "idle_pct_per_robot": round(idle / n, 4),
+                            "asking_pct_per_robot": round(busy / n, 4),
+                            "transit_router_idle_pct": round(idle_cpu["transit"], 2),
+                            "transit_router_asking_pct": round(busy_cpu["transit"], 2),
+                            "transit_router_asking_pct_per_robot": round(busy_cpu["transit"] / n, 4),
+                            "questions_per_s": round(len(walls) / (sum(walls) / 1000), 2)})
+            out.append((n, routers, records[-2], records[-1]))
+            if fanin:
+                records.append(run_fanin(fleet, args))
+        finally:
+            session.close()
+    return out
+
+
+def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]:
+
+    per_robot = max(1, args.hosts // len(fleet.robots))
+    hosts = per_robot * len(fleet.robots)
+    pids = fleet.pids()
+    store_pids = _store_pids(fleet)
+    idle = measure_cpu(pids, args.fanin_s / 2)
+    # One publisher per robot-hosting router, for the hosts of its robots: a robot's hosts are
+    # clients of its own router, so no status crosses to another router.
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    pubs = []
+    for k, endpoint in enumerate(fleet.endpoints):
+        robots = fleet.share(k)
+        if robots:
+            pubs.append(subprocess.Popen(
+                [sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
+                 str(args.fanin_s + 3)], cwd=REPO, stdout=subprocess.PIPE, text=True, env=env))
+    try:
+        for pub in pubs:
+            assert pub.stdout is not None
+            pub.stdout.readline()  # "publishing N"
+        time.sleep(1.0)  # let the first seconds of declarations settle before measuring (a warm-up window)
+        before = {p: cpu_seconds([p]) for p in pids + store_pids}
+        t0 = time.monotonic()
+        time.sleep(args.fanin_s)  # the measurement window
+        elapsed = time.monotonic() - t0
+        after = {p: cpu_seconds([p]) for p in pids + store_pids}
+        sent = sum(int(pub.stdout.read().split()[-1]) for pub in pubs if pub.stdout is not None)
+    finally:
+        for pub in pubs:
+            pub.wait(timeout=60)
+    sent_line = f"sent {sent}"
+    services = 100.0 * sum(after[p] - before[p] for p in pids) / elapsed
+    store = 100.0 * sum(after[p] - before[p] for p in store_pids) / elapsed
+    sink = _sink_cpu(fleet, args, per_robot)
+    return {"op": "status_fanin", "hosts": hosts, "rate_hz": args.rate, "statuses_per_s": hosts * args.rate,
+            "robots": len(fleet.robots), "routers": fleet.routers, "window_s": round(elapsed, 2),
+            "services_cpu_pct": round(services, 1), "services_idle_cpu_pct": round(idle, 1),
+            "services_cpu_pct_above_idle": round(services - idle, 1), "store_cpu_pct": round(store, 1),
+            "publisher": sent_line.strip(), **sink}
+
+
+def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -> dict[str, Any]:
+    """The same statuses again, also received by one process that only decodes them (see _SINK)."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    sink = subprocess.Popen([sys.executable, "-c", _SINK, fleet.endpoints[0]], cwd=REPO, stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True, env=env)
+    assert sink.stdout is not None and sink.stdin is not None
+    try:
+        sink.stdout.readline()  # "sink ready"
+        pub = subprocess.Popen([sys.executable, "-c", _PUBLISHER, fleet.endpoints[0], ",".join(fleet.robots),
+                                str(per_robot), str(args.rate), str(args.fanin_s + 3)],
+                               cwd=REPO, stdout=subprocess.PIPE, text=True, env=env)
+        try:
+            assert pub.stdout is not None
+            pub.stdout.readline()
+            time.sleep(1.0)  # warm-up window, as above
+            cpu = measure_cpu([sink.pid], args.fanin_s)
+        finally:
+            pub.wait(timeout=60)
+        sink.stdin.close()
+        decoded = sink.stdout.readline().strip()
+    finally:
+        try:
+            sink.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            sink.kill()
+            sink.wait()
+    return {"decode_only_receiver_cpu_pct": round(cpu, 1), "decode_only_receiver": decoded}
+
+
+def _store_pids(fleet: SimulatedFleet) -> list[int]:
+    import psutil
+
+    found = []
+    for proc in psutil.process_iter(["pid", "cmdline"]):
+        cmd = " ".join(proc.info.get("cmdline") or [])
+        if fleet.socket in cmd:
+            found.append(proc.info["pid"])
+    return found
+
+
+def register(bench_sub: argparse._SubParsersAction) -> None:
+    """Add ``kgadapt bench fleet``."""
+    p = bench_sub.add_parser(
+        "fleet",
+        help="a fleet question to N robots across several Zenoh routers; router CPU; status fan-in",
+        description=__doc__.split("\n\n")[1] if __doc__ else None,
+    )
+    p.add_argument("--sizes", default="10,30,100", help="robot counts, comma-separated (default 10,30,100)")
+    p.add_argument("--routers", type=int, default=3, help="Zenoh routers (default 3)")
+    p.add_argument("--reps", type=int, default=50, help="fleet questions per size (default 50)")
+    p.add_argument("--timeout", type=float, default=5.0, help="fleet question timeout, s (default 5)")
+    p.add_argument("--idle-s", type=float, default=5.0, help="idle CPU window, s (default 5)")
+    p.add_argument("--hosts", type=int, default=1000, help="simulated hosts for status fan-in (default 1000)")
+    p.add_argument("--rate", type=float, default=2.0, help="status rate per host, Hz (default 2)")
+    p.add_argument("--fanin-s", type=float, default=10.0, help="fan-in window, s (default 10)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"result file (default {DEFAULT_OUT})")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from shared.errors import ConfigError
+
+    try:
+        sizes = [int(s) for s in str(args.sizes).split(",") if s.strip()]
+    except ValueError as exc:
+        raise ConfigError(f"--sizes {args.sizes!r}: give whole numbers, comma-separated") from exc
+    if not sizes or min(sizes) < 1 or args.routers < 1:
+        raise ConfigError("--sizes and --routers: at least 1")
+    records: list[dict[str, Any]] = []
+    rows = []
+    load_before = os.getloadavg()  # the machine is shared: say how busy it was
+    with tempfile.TemporaryDirectory(prefix="kgadapt-fleet-bench-") as tmp:
+        for n in sizes:
+            print(f"fleet of {n} robots on {min(args.routers, n)} routers, asked through one more ...", flush=True)
+            for size, routers, q, cpu in run_size(n, args, records, Path(tmp), fanin=(n == max(sizes))):
+                rows.append([size, routers, q["p50_ms"], q["p99_ms"], f"{q['complete']}/{q['reps']}",
+                             q["min_answered"], cpu["idle_pct_per_robot"], cpu["asking_pct_per_robot"],
+                             cpu["transit_router_idle_pct"], cpu["transit_router_asking_pct_per_robot"]])
+    write_json(args.out, {"machine": {**machine_info(), "load_avg_1_5_15_before": load_before,
+                                      "load_avg_1_5_15_after": os.getloadavg()}, "settings": {k: str(v) for k, v in vars(args).items()
+                                                               if k not in ("func",)}, "records": records})
+    print(format_table(rows, ["robots", "routers", "p50 ms", "p99 ms", "complete", "min answered",
+                              "services %cpu/robot idle", "… asking", "transit router %cpu idle",
+                              "… /robot asking"]))
+    for r in records:
+        if r.get("op") == "status_fanin":
+            print(f"status fan-in: {r['hosts']} hosts x {r['rate_hz']} Hz into {r['robots']} knowledge services on "
+                  f"{r['routers']} routers: {r['services_cpu_pct']} % of one core "
+                  f"({r['services_idle_cpu_pct']} % idle), store {r['store_cpu_pct']} %; a receiver that only "
+                  f"decodes them: {r['decode_only_receiver_cpu_pct']} %")
+    print(f"load average before {load_before[0]:.2f}, after {os.getloadavg()[0]:.2f} (2 cores: others' work "
+          f"shares them)")
+    print(f"results: {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "serve":
+        logging.basicConfig(level=logging.WARNING)
+        sys.exit(serve(sys.argv[2:]))
+    sys.exit("usage: python -m bench.fleet_bench serve ... (or kgadapt bench fleet)")

@@ -1,0 +1,27 @@
+"""``kgadapt bench fleet`` in small: every robot answers across three routers, and the fan-in is measured."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from tests.conftest import REPO
+
+
+def test_a_small_fleet_bench_gets_every_robots_answer_and_measures_the_fan_in(tmp_path):
+    out = tmp_path / "fleet.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "kgadapt", "bench", "fleet", "--sizes", "6", "--routers", "3", "--reps", "3",
+         "--hosts", "60", "--fanin-s", "1", "--idle-s", "0.5", "--out", str(out)],
+        capture_output=True, text=True, cwd=REPO, timeout=180)
+    assert done.returncode == 0, done.stderr
+    records = {r["op"]: r for r in json.loads(out.read_text())["records"]}
+    question = records["fleet_question"]
+    assert (question["n"], question["routers"], question["complete"], question["min_answered"]) == (6, 3, 3, 6)
+    fanin = records["status_fanin"]
+    assert fanin["hosts"] == 60 and fanin["services_cpu_pct"] > 0
+    sent = int(fanin["publisher"].split()[-1])
+    decoded = int(fanin["decode_only_receiver"].split()[-1])
+    assert sent >= 60 * 2 and decoded > 0  # the statuses flowed through the routers
+    assert "status fan-in: 60 hosts" in done.stdout
