@@ -140,6 +140,14 @@ def run_status(args: argparse.Namespace) -> int:
 def run_list(args: argparse.Namespace) -> int:
     with _Client(args) as (_, client):
         processes = client.list(args.host)
+    if not client.answered:  # silence is not "no processes": say whom we asked, and fail
+        from shared.errors import RequestTimeout
+        from shared.session import DEFAULT_ENDPOINT, settings_from_args
+
+        via = ", ".join(settings_from_args(args).connect) or args.zenoh_config or DEFAULT_ENDPOINT
+        where = "no deployer" if args.host == "*" else f"no deployer on host {args.host}"
+        raise RequestTimeout(f"{where} of robot {args.robot} answered within {args.timeout:g} s via {via} "
+                             f"(is `kgadapt onboard` or `kgadapt remote --robot {args.robot}` running there?)")
     if args.live:
         processes = [p for p in processes if p.get("state") in ("starting", "ready", "running", "restarting", "stopping")]
     processes.sort(key=lambda p: (str(p.get("host")), str(p.get("instance"))))

@@ -33,6 +33,7 @@ class DeployerClient:
         self.robot = keys.check_name(robot, "robot name")
         self.timeout = timeout
         self.start_timeout = start_timeout
+        self.answered: list[str] = []  # hosts whose deployers answered the last list()
 
     def start(self, host: str, deployment: str, config: str, *, instance: str | None = None,
               wait_ready: bool = True, ready_timeout: float | None = None) -> dict[str, Any]:
@@ -57,7 +58,9 @@ class DeployerClient:
     def list(self, host: str = "*") -> list[dict[str, Any]]:
         """Processes on ``host`` (``*``: every deployer that answers), each with its ``host``."""
         processes: list[dict[str, Any]] = []
-        for detail in self._ask(host, "list", {}, self.timeout):
+        details = self._ask(host, "list", {}, self.timeout)
+        self.answered = sorted(str(d.get("host")) for d in details)
+        for detail in details:
             processes.extend(detail.get("processes") or [])
         return processes
 

@@ -85,7 +85,9 @@ class CertSettings:
     def sans(self, role: str) -> tuple[str, ...]:
         """The DNS names and IP addresses this role's certificate is valid for."""
         if role == "knowledge":
-            base = self.router_addresses or (f"knowledge.{self.robot}.local", "localhost", "127.0.0.1")
+            # knowledge.<robot>.local always: it is the name the shipped client configs dial
+            # (deploy/zenoh/onboard.json5, remote.json5); --router-address adds to it.
+            base = (f"knowledge.{self.robot}.local", *(self.router_addresses or ("localhost", "127.0.0.1")))
         else:
             base = (f"{role}.{self.robot}.local",)
         return tuple(dict.fromkeys((*base, *self.addresses.get(role, ()))))
@@ -299,7 +301,8 @@ def register(subparsers: Any) -> None:
                         help=f"issue only this role's certificate (repeatable; default all: {', '.join(ROLES)})")
     parser.add_argument("--router-address", action="append", metavar="NAME",
                         help="DNS name or IP address the hosts dial the router by, for the knowledge certificate's "
-                        "SAN (repeatable; default knowledge.<robot>.local, localhost, 127.0.0.1)")
+                        "SAN, besides knowledge.<robot>.local, which the shipped configs dial (repeatable; default: "
+                        "localhost, 127.0.0.1)")
     parser.add_argument("--address", action="append", default=[], metavar="ROLE=NAME",
                         help="an extra SAN for one role's certificate, e.g. remote=10.0.0.3 (repeatable)")
     parser.add_argument("--days", type=int, default=825, help="validity of the certificates in days (default 825)")

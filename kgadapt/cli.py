@@ -31,6 +31,7 @@ PARTS = (
     "bench.cli",              # kgadapt bench table1|zenoh|deployer|perception|adaptation|reliability
     "kgadapt.demo",           # kgadapt demo
     "kgadapt.certs",          # kgadapt certs (TLS certificate authority and certificates)
+    "kgadapt.status",         # kgadapt status (one screen for the person running the robot)
 )
 
 
@@ -48,7 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="kgadapt",
         description="Graph-based software knowledge for run-time adaptation of a quadcopter's marker detection.",
     )
-    parser.add_argument("--log-level", default="WARNING", help="DEBUG, INFO, WARNING (default) or ERROR")
+    parser.add_argument("--log-level", default=None,
+                        help="DEBUG, INFO, WARNING or ERROR (default: INFO for the long-running services and "
+                             "agents, one line per decision, host change and process start/stop; WARNING for the rest)")
     parser.add_argument("--version", action="version", version=f"kgadapt {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
@@ -63,9 +66,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _long_running(args: argparse.Namespace) -> bool:
+    """The commands a person leaves running and watches: they say what they decide and do."""
+    sub = getattr(args, "knowledge_command", None) or getattr(args, "deploy_command", None)
+    return args.command in ("onboard", "remote") or (args.command in ("knowledge", "deploy") and sub == "serve")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.log_level is None:
+        args.log_level = "INFO" if _long_running(args) else "WARNING"
     level = getattr(logging, str(args.log_level).upper(), None)
     if not isinstance(level, int):
         parser.error(f"--log-level {args.log_level!r}: use DEBUG, INFO, WARNING or ERROR")

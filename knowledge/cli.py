@@ -156,11 +156,34 @@ def _query(args: argparse.Namespace) -> int:
     if query.time_limit_ms is not None:
         limit_s = min(limit_s, query.time_limit_ms / 1000)
     rows = _run_bounded(args.store, query.text_for(values), values, limit_s)
-    if args.json:
-        _print_json(rows)
-    else:
-        print(rows_as_table(rows))
+    reason = _why_empty(args.store, args.name, values) if not rows else ""
+    _print_rows(rows, args.json, reason)
     return 0
+
+
+def _why_empty(store_url: str | None, name: str | None, values: dict[str, Any]) -> str:
+    """Why the answer is empty (or NamedQueryError when the question names what is not there)."""
+    from knowledge.empty_answers import explain_empty, store_is_empty
+    from knowledge.queries import run_named
+
+    with open_store(store_url) as store:
+        where = f"store {store.url}"
+        run = lambda n, p: run_named(store, n, p)  # noqa: E731
+        if name is None:  # free Cypher: only an empty store is a reason we can know
+            if store_is_empty(run):
+                raise ConfigError(f"{where} holds no models: nothing is loaded there (kgadapt knowledge load "
+                                  "knowledge/models; a mistyped --store opens a new, empty store)")
+            return ""
+        return explain_empty(name, values, run, where=where)
+
+
+def _print_rows(rows: list[dict[str, Any]], as_json: bool, reason: str) -> None:
+    if as_json:
+        _print_json(rows)
+        if reason:
+            print(f"kgadapt: no rows: {reason}", file=sys.stderr)
+    else:
+        print(rows_as_table(rows) if rows or not reason else f"(no rows: {reason})")
 
 
 def _queries(args: argparse.Namespace) -> int:
@@ -186,10 +209,7 @@ def _cypher(args: argparse.Namespace) -> int:
     from knowledge.cypher_guard import check_cypher
 
     rows = _run_bounded(args.store, check_cypher(args.text), params, args.time_limit)
-    if args.json:
-        _print_json(rows)
-    else:
-        print(rows_as_table(rows))
+    _print_rows(rows, args.json, _why_empty(args.store, None, params) if not rows else "")
     return 0
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from typing import Any
 
 
@@ -134,13 +135,27 @@ def run_ask(args: argparse.Namespace) -> int:
     try:
         client = KnowledgeClient(session, args.robot, timeout=args.timeout)
         rows = client.query(args.query, params) if args.query else client.cypher(args.cypher, params)
+        reason = _why_empty(client, args.query, params) if not rows else ""
     finally:
         session.close()
     if args.json:
         print(json.dumps(rows, default=str))
+        if reason:
+            print(f"kgadapt: no rows: {reason}", file=sys.stderr)
     else:
-        print(rows_as_table(rows))
+        print(rows_as_table(rows) if rows or not reason else f"(no rows: {reason})")
     return 0
+
+
+def _why_empty(client: Any, query: str | None, params: dict[str, Any]) -> str:
+    """Why the service answered nothing (knowledge/empty_answers.py), asked over the same Zenoh session."""
+    from knowledge.empty_answers import explain_empty, store_is_empty
+    from knowledge.queries import QUERIES, check_params
+
+    where = f"the knowledge service of robot {client.robot}"
+    if query is None or query not in QUERIES:  # free Cypher, or a query this checkout does not know
+        return f"{where} holds no models: nothing is loaded there" if store_is_empty(client.query) else ""
+    return explain_empty(query, check_params(query, params), client.query, where=where)
 
 
 def _run_fleet_ask(args: argparse.Namespace) -> int:

@@ -227,7 +227,7 @@ def rows_as_table(rows: Iterable[Row]) -> str:
     if not rows:
         return "(no rows)"
     columns = list(rows[0].keys())
-    cells = [[_cell(r.get(c)) for c in columns] for r in rows]
+    cells = [[_time_cell(r.get(c)) if _is_time_column(c) else _cell(r.get(c)) for c in columns] for r in rows]
     widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
     line = "  ".join(c.ljust(w) for c, w in zip(columns, widths))
     sep = "  ".join("-" * w for w in widths)
@@ -235,11 +235,24 @@ def rows_as_table(rows: Iterable[Row]) -> str:
     return "\n".join([line, sep, *body])
 
 
+def _is_time_column(column: str) -> bool:
+    from shared.timefmt import TIME_COLUMNS
+
+    name = column.rsplit(".", 1)[-1]  # `RETURN p.last_seen` names its column p.last_seen
+    return name in TIME_COLUMNS or name.endswith(("_time", "_at"))
+
+
+def _time_cell(value: Any) -> str:
+    from shared.timefmt import is_epoch, stamp
+
+    return stamp(value) if is_epoch(value) else _cell(value)  # epoch seconds as 14:02:31 UTC (12 s ago)
+
+
 def _cell(value: Any) -> str:
     if value is None:
         return "-"
     if isinstance(value, float):
-        return f"{value:.4g}"
+        return f"{value:.0f}" if abs(value) >= 1e5 else f"{value:.4g}"  # never 1.795e+09
     if isinstance(value, (list, tuple)):
         return ", ".join(_cell(v) for v in value)
     return str(value)

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from typing import Any, Callable
+
+from shared.errors import ConfigError
 
 Ask = Callable[[str, dict[str, Any]], list[dict[str, Any]]]
 
@@ -23,7 +24,9 @@ def register(subparsers: Any) -> None:
         description="Explain the current detector placement from the knowledge graph: the decision that "
                     "chose it, the inputs it used, and whether the placement query still agrees.")
     parser.add_argument("--store", metavar="URL", help="store URL (default $KGADAPT_STORE or embedded:)")
-    parser.add_argument("--robot", default="quad1", help="robot name, for --connect (default quad1)")
+    parser.add_argument("--robot", default=None,
+                        help="ask this robot's knowledge service over Zenoh (default: read --store directly, "
+                             "or robot quad1 with --connect)")
     parser.add_argument("--history", type=int, default=5, metavar="N", help="also list the last N decisions (default 5)")
     parser.add_argument("--json", action="store_true", help="print the explanation as JSON")
     from shared.session import add_arguments
@@ -77,8 +80,12 @@ def render(data: dict[str, Any]) -> str:
                              f"false/frame {_num(c.get('false_per_frame'))}, {_num(c.get('ms_per_frame'))} ms/frame, "
                              f"{_num(c.get('memory_demand_mb'))} MiB{note}")
         for c in inputs.get("candidates") or []:
-            lines.append(f"  candidate {c.get('config')}: calibrated rate {c.get('detection_rate')}, "
-                         f"{c.get('ms_per_frame')} ms/frame")
+            rate = c.get("detection_rate")
+            rate_text = ("not calibrated (run `kgadapt perception calibrate`)" if rate is None
+                         else f"calibrated rate {rate:.0%}" if isinstance(rate, (int, float)) else f"calibrated rate {rate}")
+            ms = c.get("ms_per_frame")
+            lines.append(f"  candidate {c.get('config')}: {rate_text}, "
+                         f"{ms if not isinstance(ms, float) else round(ms, 1)} ms/frame")
         for p in inputs.get("platforms") or []:
             lines.append(f"  platform {p.get('platform')}: {p.get('free_mb')} MiB free then")
     else:
@@ -89,7 +96,7 @@ def render(data: dict[str, Any]) -> str:
     if data.get("history"):
         lines.append("Recent decisions:")
         for h in data["history"]:
-            lines.append(f"  {_ago(h.get('time')):>9}  {h.get('trigger')} -> {h.get('config')}@{h.get('host')}")
+            lines.append(f"  {_ago(h.get('time'))}  {h.get('trigger')} -> {h.get('config')}@{h.get('host')}")
     return "\n".join(lines)
 
 
@@ -98,28 +105,35 @@ def _num(value: Any) -> str:
 
 
 def _ago(t: Any) -> str:
-    if not isinstance(t, (int, float)):
-        return "?"
-    seconds = max(0.0, time.time() - t)
-    return f"{seconds:.0f} s ago" if seconds < 120 else f"{seconds / 60:.0f} min ago"
+    from shared.timefmt import stamp
+
+    return stamp(t)  # 14:02:31 UTC (12 s ago)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.connect or args.zenoh_config:
+    if args.robot or args.connect or args.zenoh_config:
+        # A store holds one robot's knowledge and does not say whose: --robot always asks that robot's service.
+        if args.store:
+            raise ConfigError("give --store (read a store directly) or --robot/--connect (ask a robot's "
+                              "knowledge service over Zenoh), not both")
         from knowledge.client import KnowledgeClient
-        from shared.session import open_session, settings_from_args
+        from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
-        session = open_session(settings_from_args(args).with_defaults(mode="client"))
+        zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
+        session = open_session(zenoh)
         try:
-            client = KnowledgeClient(session, args.robot, own=True)
+            client = KnowledgeClient(session, args.robot or "quad1", own=True)
             data = explain(client.query, history=args.history)
         finally:
             session.close()
+        source = f"the knowledge service of robot {client.robot} via {', '.join(zenoh.connect) or zenoh.config_file}"
     else:
         from knowledge.queries import run_named
         from knowledge.store import open_store
 
         with open_store(args.store) as store:
             data = explain(lambda name, params: run_named(store, name, params), history=args.history)
-    print(json.dumps(data, default=str, indent=2) if args.json else render(data))
+            source = f"store {store.url}"
+    data["source"] = source
+    print(json.dumps(data, default=str, indent=2) if args.json else f"{render(data)}\n(asked {source})")
     return 0

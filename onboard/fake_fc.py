@@ -226,6 +226,7 @@ class FakeFlightController:
         self._vehicle = vehicle
         self._lock = threading.Condition()
         self._received: dict[str, collections.deque[Received]] = {}
+        self._counts: collections.Counter[str] = collections.Counter()  # all ever received (the deques are capped)
         self._paused = threading.Event()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -372,9 +373,15 @@ class FakeFlightController:
                 return list(self._received.get(kind, ()))
             return sorted((m for q in self._received.values() for m in q), key=lambda m: m.time)
 
+    def received_count(self, kind: str) -> int:
+        """How many messages of ``kind`` arrived since start (``received()`` keeps only the last 10,000)."""
+        with self._lock:
+            return self._counts[kind]
+
     def clear_received(self) -> None:
         with self._lock:
             self._received.clear()
+            self._counts.clear()
 
     def wait_for(self, kind: str, count: int = 1, timeout: float = 5.0) -> list[Received]:
         """Block until ``count`` messages of ``kind`` were received; raise FlightLinkError after ``timeout``."""
@@ -417,6 +424,7 @@ class FakeFlightController:
                         mavlink2=is_mavlink2(message),
                     )
                     self._received.setdefault(record.type, collections.deque(maxlen=_RECORD_LIMIT)).append(record)
+                    self._counts[record.type] += 1
                 self._lock.notify_all()
             for message in messages:
                 kind = message.get_type()

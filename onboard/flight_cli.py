@@ -186,6 +186,9 @@ def _fake_fc(args: argparse.Namespace) -> int:
     fc.setup()
     started = time.monotonic()
     landing = {"started": False}
+    print(f"fake flight controller ready: system {args.system_id} on {args.url}, {vehicle.mode}, "
+          f"{'armed' if vehicle.armed else 'disarmed'}, {vehicle.landed_state}; one line a second follows "
+          "(the next line tells scripts it is ready)", flush=True)
     print("KGADAPT_READY", flush=True)
 
     def tick() -> None:
@@ -193,7 +196,7 @@ def _fake_fc(args: argparse.Namespace) -> int:
             landing["started"] = True
             fc.land(args.descent)
         v = fc.vehicle
-        counts = {kind: len(fc.received(kind)) for kind in ("HEARTBEAT", "LANDING_TARGET")}
+        counts = {kind: fc.received_count(kind) for kind in ("HEARTBEAT", "LANDING_TARGET")}
         last = fc.received("LANDING_TARGET")[-1:]
         report = {"time": time.time(), "armed": v.armed, "mode": v.mode, "landed_state": v.landed_state,
                   "battery_pct": round(v.battery_pct, 1), "received": counts,

@@ -17,14 +17,16 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Protocol
 
 from shared import keys
-from shared.errors import KgadaptError
+from shared.errors import KgadaptError, TransportError
 from shared.session import DEFAULT_ENDPOINT, ZenohSettings, add_arguments as add_zenoh_arguments
 from shared.session import open_session, settings_from_args as zenoh_settings_from_args
 
@@ -53,10 +55,68 @@ class AgentSettings:
     host: str
     role: str  # "onboard" | "remote": what the logs call it
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+    give_up_s: float | None = None  # exit after this long without reaching the router (None: keep trying)
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
         keys.check_name(self.host, "host name")
+
+
+class ConnectionWatch:
+    """Says, every ``every_s``, when the session reaches no router and no peer, and when it does again.
+
+    A peer session opens even when its router is not there (``kgadapt remote --connect`` to a
+    port nobody listens on used to print "ready" and wait forever, silently). With ``give_up_s``
+    the agent is told to stop after that long unreachable (``on_give_up``).
+    """
+
+    def __init__(self, *, what: str, endpoints: Iterable[str], every_s: float = 5.0, grace_s: float = 2.0,
+                 give_up_s: float | None = None, on_give_up: Callable[[], None] | None = None) -> None:
+        self.what, self.endpoints = what, list(endpoints)
+        self.every_s, self.grace_s, self.give_up_s, self.on_give_up = every_s, grace_s, give_up_s, on_give_up
+        self.unreachable_s = 0.0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def setup(self, session: Any) -> None:
+        self._thread = threading.Thread(target=self._run, args=(session,), name="connection-watch", daemon=True)
+        self._thread.start()
+
+    def _connected(self, session: Any) -> bool:
+        try:
+            return bool(list(session.info.routers_zid()) or list(session.info.peers_zid()))
+        except Exception:  # session closing
+            return True
+
+    def _run(self, session: Any) -> None:
+        import time
+
+        lost_at: float | None = None
+        said_at = 0.0
+        while not self._stop.wait(0.25):
+            now = time.monotonic()
+            if self._connected(session):
+                if lost_at is not None and now - lost_at >= self.grace_s:
+                    log.warning("%s: reached %s again", self.what, ", ".join(self.endpoints) or "the network")
+                lost_at, self.unreachable_s = None, 0.0
+                continue
+            lost_at = now if lost_at is None else lost_at
+            self.unreachable_s = now - lost_at
+            if self.unreachable_s >= self.grace_s and now - said_at >= self.every_s:
+                said_at = now
+                log.warning("%s: cannot reach the router at %s for %.0f s (is `kgadapt knowledge serve` running "
+                            "there?); still trying", self.what, ", ".join(self.endpoints) or "(none configured)",
+                            self.unreachable_s)
+            if self.give_up_s is not None and self.unreachable_s >= self.give_up_s and self.on_give_up is not None:
+                log.error("%s: giving up after %.0f s without the router (--give-up-after)", self.what, self.unreachable_s)
+                self.on_give_up()
+                return
+
+    def shutdown(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
 
 
 class Agent:
@@ -68,6 +128,12 @@ class Agent:
         self.session: Any = None
         self._token: Any = None
         self._ready: list[Part] = []
+        self._watch: ConnectionWatch | None = None
+        self.gave_up = threading.Event()
+
+    def _give_up(self) -> None:
+        self.gave_up.set()
+        os.kill(os.getpid(), signal.SIGTERM)  # the main thread's StopSignals ends the agent as on a stop
 
     def add(self, part: Part) -> None:
         """Add a part before ``setup()``."""
@@ -82,6 +148,10 @@ class Agent:
         """
         s = self.settings
         self.session = open_session(s.zenoh)
+        # Started before the parts: a part waiting for the knowledge service is then not silent.
+        self._watch = ConnectionWatch(what=f"{s.role} agent {s.host} of robot {s.robot}", endpoints=s.zenoh.connect,
+                                      give_up_s=s.give_up_s, on_give_up=self._give_up)
+        self._watch.setup(self.session)
         try:
             for part in self.parts:
                 log.info("%s agent %s: setting up %s", s.role, s.host, part.name)
@@ -107,12 +177,19 @@ class Agent:
             except Exception as exc:  # session already closed
                 log.debug("token undeclare failed: %s", exc)
             self._token = None
+        if self._watch is not None:
+            self._watch.shutdown()
+            self._watch = None
         while self._ready:
             part = self._ready.pop()
+            t0 = time.monotonic()
             try:
                 part.shutdown()
             except Exception:  # one part's failure must not keep the others running
                 log.exception("%s agent %s: shutting down %s failed", self.settings.role, self.settings.host, part.name)
+            else:
+                log.info("%s agent %s: stopped %s in %.2f s", self.settings.role, self.settings.host, part.name,
+                         time.monotonic() - t0)
         if self.session is not None:
             try:
                 self.session.close()
@@ -157,13 +234,17 @@ def add_agent_arguments(parser: argparse.ArgumentParser, *, default_host: str) -
     """``--robot``, ``--host`` and the Zenoh flags of an agent command."""
     parser.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name, the key namespace (default {DEFAULT_ROBOT})")
     parser.add_argument("--host", default=default_host, help=f"this host's name, as the models call its Platform (default {default_host})")
+    parser.add_argument("--give-up-after", type=float, default=None, metavar="S",
+                        help="exit (status 1) after S seconds without reaching the router (default: keep trying, "
+                             "saying so every 5 s)")
     add_zenoh_arguments(parser)
 
 
 def agent_settings_from_args(args: argparse.Namespace, *, role: str) -> AgentSettings:
     """Agents are peers connecting to the knowledge service's router unless told otherwise."""
     zenoh = zenoh_settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
-    return AgentSettings(robot=args.robot, host=args.host, role=role, zenoh=zenoh)
+    return AgentSettings(robot=args.robot, host=args.host, role=role, zenoh=zenoh,
+                         give_up_s=getattr(args, "give_up_after", None))
 
 
 def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) -> int:
@@ -193,8 +274,13 @@ def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) ->
             stop.wait(tick=tick)
             log.info("%s agent %s: signal %s, stopping", s.role, s.host, stop.received)
         finally:
+            t0 = time.monotonic()
             notifier.stopping()
             agent.shutdown()
+            log.info("%s agent %s stopped everything in %.2f s", s.role, s.host, time.monotonic() - t0)
+    if agent.gave_up.is_set():
+        raise TransportError(f"{s.role} agent {s.host} of robot {s.robot}: no router reached at "
+                             f"{', '.join(s.zenoh.connect) or '(none configured)'} within {s.give_up_s:g} s")
     return 0
 
 

@@ -98,8 +98,14 @@ for f in "$here"/zenoh/*.json5; do
 done
 if [ ! -e "$etc/kgadapt.env" ]; then
     cat > "$etc/kgadapt.env" <<ENV
-# Read by the kgadapt units (EnvironmentFile). For example:
+# Read by the kgadapt units (EnvironmentFile); a value here wins over the unit's.
+# The store of the knowledge service (default embedded:$state/store):
 # KGADAPT_STORE=memgraph+s://127.0.0.1:7687?ca=$etc/tls/ca.pem
+# What the onboard agent runs (the unit's default: adapt, camera 0, flight controller on USB):
+# KGADAPT_ONBOARD_ARGS=--adapt --camera-source device:0 --fc /dev/ttyACM0:921600
+# Extra arguments of the remote agent and of the knowledge service:
+# KGADAPT_REMOTE_ARGS=--memory-budget 2G
+# KGADAPT_KNOWLEDGE_ARGS=--workers 3
 ENV
 fi
 if [ "$make_user" = yes ]; then

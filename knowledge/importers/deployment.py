@@ -9,8 +9,11 @@ The executable and arguments may use only the deployer's placeholders
 
 from __future__ import annotations
 
+import importlib.util
+import os
 import re
 import shlex
+import sys
 from dataclasses import dataclass
 
 from knowledge import schema as S
@@ -71,6 +74,59 @@ def check_text(word: str, origin: Origin, what: str) -> None:
         raise origin.error(f"{what} {word!r} may not contain ' or \\")
 
 
+# What the placeholders stand for when a command is tried at load time (check_runnable).
+_SAMPLE = {"python": sys.executable, "robot": "quad1", "host": "onboard", "instance": "probe",
+           "config": "probe", "connect": "tcp/127.0.0.1:7447"}
+
+
+def check_runnable(command: list[str], origin: Origin) -> None:
+    """Refuse now what would fail at start: a missing absolute executable, a module Python cannot
+    find (``{python} -m MODULE``), or a ``kgadapt`` command line its parser refuses.
+
+    A bare executable name is looked up on the target host's PATH at start; the loading
+    host's PATH says nothing about it, so it is not checked here.
+    """
+    exe = command[0]
+    if exe.startswith("/") and "{" not in exe and not (os.path.isfile(exe) and os.access(exe, os.X_OK)):
+        raise origin.error(f"executable {exe!r} does not exist or is not executable")
+    try:
+        at = command.index("{python}")
+    except ValueError:
+        return
+    if command[at + 1:at + 2] != ["-m"] or len(command) < at + 3:
+        return
+    module = command[at + 2]
+    if "{" in module:
+        return
+    try:
+        spec = importlib.util.find_spec(module)
+        if spec is not None and spec.submodule_search_locations is not None:  # a package runs its __main__
+            spec = importlib.util.find_spec(f"{module}.__main__")
+    except (ImportError, ValueError):
+        spec = None
+    if spec is None:
+        raise origin.error(f"module {module!r} (run as {{python}} -m {module}) cannot be found by this Python")
+    if module == "kgadapt":
+        _check_kgadapt_arguments(command[at + 3:], origin)
+
+
+def _check_kgadapt_arguments(words: list[str], origin: Origin) -> None:
+    import contextlib
+    import io
+
+    from kgadapt.cli import build_parser
+
+    argv = [_PLACEHOLDER.sub(lambda m: _SAMPLE[m.group(1)], w) for w in words]
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            build_parser().parse_args(argv)
+    except SystemExit as exc:
+        if exc.code:
+            why = err.getvalue().strip().splitlines()[-1:] or ["refused"]
+            raise origin.error(why[0].replace("error: ", "", 1)) from None  # "kgadapt flight bridge: <what>"
+
+
 def environment_entries(text: str, origin: Origin) -> list[str]:
     """``K=V K2="v 2"`` into ``["K=V", "K2=v 2"]``."""
     entries = split_command(text, origin, "environment")
@@ -95,6 +151,7 @@ def emit(model: ParsedModel, draft: DeploymentDraft, file_origin: Origin) -> Non
     for word in draft.command:
         check_placeholders(word, draft.command_origin)
         check_text(word, draft.command_origin, "command word")
+    check_runnable(draft.command, draft.command_origin)
     seen: set[str] = set()
     for platform, origin in draft.platforms:
         if platform in seen:

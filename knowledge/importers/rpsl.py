@@ -189,6 +189,7 @@ def _statement(b: _Block, st: Statement) -> None:
         value = name_arg(st, st.args[0], "dictionary")
         if not value.startswith("DICT_"):
             raise st.origin.error(f"dictionary {value!r} is not an ArUco dictionary name (DICT_...)")
+        _check_dictionary(st, value)
         _once(b, st, "dictionary", value)
     elif b.kind == "rpsl.processing_component" and kw == "parameter":
         expect_args(st, 2, 'parameter "DetectorParametersAttribute", NUMBER')
@@ -254,6 +255,52 @@ def _parameter_value(st: Statement, key: str, value: Any) -> Any:
     return value
 
 
+def _check_dictionary(st: Statement, name: str) -> None:
+    """OpenCV's own list decides (``DICT_4X4_5O`` is refused here, not when a detector starts)."""
+    try:
+        import cv2
+    except ImportError:
+        return  # no OpenCV here: the detector program checks at start
+    if not isinstance(getattr(cv2.aruco, name, None), int):
+        known = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
+        raise st.origin.error(f"dictionary {name!r} is not one of OpenCV's ArUco dictionaries "
+                              f"({', '.join(known[:4])}, ... {len(known)} in all)")
+
+
+# cornerRefinementMethod is an enum OpenCV does not check: CORNER_REFINE_NONE, SUBPIX, CONTOUR, APRILTAG.
+_PARAMETER_RANGES = {"cornerRefinementMethod": (0, 3)}
+
+
+def _check_detector(b: _Block, config_json: str) -> None:
+    """Build the detector the deployer would start and run it once, so OpenCV judges names, types and ranges.
+
+    The detector program does the same at start (onboard.markers.parse_config); doing it here
+    turns a model that would fail at start into a FILE:LINE error at load time.
+    """
+    try:
+        import cv2
+        import numpy as np
+
+        from onboard.markers import MarkerDetector, parse_config
+    except ImportError:
+        return  # no OpenCV here: the detector program checks at start
+    from shared.errors import ConfigError
+
+    for key, (low, high) in _PARAMETER_RANGES.items():
+        value = b.parameters.get(key)
+        if isinstance(value, (int, float)) and not low <= value <= high:
+            raise b.origin.error(f"{b.name}: parameter {key} = {value} is outside [{low}, {high}]")
+    try:
+        detector = MarkerDetector(parse_config(b.name, config_json))
+        marker = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, b.props["dictionary"])), 0, 40)
+        detector.detect(np.pad(marker, 12, constant_values=255))  # a real marker: the full detection path runs
+    except ConfigError as exc:
+        raise b.origin.error(str(exc)) from exc
+    except cv2.error as exc:
+        why = next((line for line in str(exc).splitlines() if "error:" in line), str(exc)).split("error:", 1)[-1].strip()
+        raise b.origin.error(f"{b.name}: OpenCV refuses these detector parameters: {why}") from exc
+
+
 def _emit(model: ParsedModel, b: _Block) -> None:
     label, extra = BLOCKS[b.kind]
     assert b.name is not None
@@ -264,6 +311,7 @@ def _emit(model: ParsedModel, b: _Block) -> None:
         if "dictionary" in props:
             props["config_json"] = json.dumps(
                 {"dictionary": props["dictionary"], "preprocess": b.preprocess, "parameters": b.parameters})
+            _check_detector(b, props["config_json"])
         elif b.parameters or b.preprocess:
             raise b.origin.error(f"{b.name}: detector parameters or preprocess steps need a dictionary statement")
     if b.kind == "rpsl.sensor_component" and "width" not in props and any(k in props for k in ("fx", "fps")):

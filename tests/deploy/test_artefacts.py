@@ -14,10 +14,40 @@ from kgadapt.cli import build_parser
 UNITS = sorted((Path(__file__).resolve().parents[2] / "deploy" / "systemd").glob("*.service"))
 
 
-def exec_start(unit: Path) -> list[str]:
+def unit_environment(unit: Path) -> dict[str, str]:
+    """The unit's own Environment= values (what applies without /etc/kgadapt/kgadapt.env)."""
+    env: dict[str, str] = {}
+    for line in unit.read_text().splitlines():
+        if line.startswith("Environment="):
+            for word in shlex.split(line[len("Environment="):]):
+                key, _, value = word.partition("=")
+                env[key] = value
+    return env
+
+
+def exec_start(unit: Path, env_file: dict[str, str] | None = None) -> list[str]:
+    """ExecStart= as systemd runs it: ``${X}`` is one word, ``$X`` split at whitespace; the env file wins."""
+    env = {**unit_environment(unit), **(env_file or {})}
     text = unit.read_text().replace("\\\n", " ")
     line = next(l for l in text.splitlines() if l.startswith("ExecStart="))
-    return shlex.split(line[len("ExecStart="):])
+    argv: list[str] = []
+    for word in shlex.split(line[len("ExecStart="):]):
+        if word.startswith("$") and not word.startswith("${"):
+            argv.extend(env.get(word[1:], "").split())
+        else:
+            argv.append(word.replace("${KGADAPT_STORE}", env.get("KGADAPT_STORE", "")))
+    return argv
+
+
+def test_the_onboard_unit_adapts_with_camera_and_flight_controller_and_the_env_file_can_change_them():
+    unit = next(u for u in UNITS if u.name == "kgadapt-onboard.service")
+    parsed = build_parser().parse_args(exec_start(unit)[1:])
+    assert parsed.adapt and parsed.camera_source == "device:0" and parsed.fc == "/dev/ttyACM0:921600"
+    changed = build_parser().parse_args(exec_start(unit, {
+        "KGADAPT_ONBOARD_ARGS": "--adapt --camera-source device:1 --fc udpin:0.0.0.0:14550 --prefer remote-first"})[1:])
+    assert (changed.camera_source, changed.fc, changed.prefer) == ("device:1", "udpin:0.0.0.0:14550", "remote-first")
+    remote = next(u for u in UNITS if u.name == "kgadapt-remote.service")
+    assert build_parser().parse_args(exec_start(remote, {"KGADAPT_REMOTE_ARGS": "--memory-budget 2G"})[1:]).memory_budget
 
 
 def test_units_for_the_knowledge_service_and_both_agents_are_shipped():
@@ -39,6 +69,5 @@ def test_each_unit_restarts_its_service_and_runs_a_kgadapt_command_that_parses(u
     assert "Restart=always" in text and "RestartSec=" in text
     argv = exec_start(unit)
     assert argv[0].endswith("/kgadapt")
-    args = [a.replace("${KGADAPT_STORE}", "embedded:/var/lib/kgadapt/store") for a in argv[1:]]
-    parsed = build_parser().parse_args(args)
+    parsed = build_parser().parse_args(argv[1:])
     assert parsed.robot == "quad1" and parsed.zenoh_config.startswith("/etc/kgadapt/zenoh/")

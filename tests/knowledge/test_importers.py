@@ -95,9 +95,9 @@ def test_a_systemd_unit_names_the_deployment_after_its_file_and_splits_execstart
 
 
 def test_a_systemd_line_continuation_joins_the_command():
-    text = "[Service]\nExecStart={python} -m x \\\n  --flag {robot}\n[X-Kgadapt]\nDeploys=g\nExecutableOn=a\n"
+    text = "[Service]\nExecStart={python} -m json.tool \\\n  --flag {robot}\n[X-Kgadapt]\nDeploys=g\nExecutableOn=a\n"
     node = systemd.parse(text, "u.service").nodes[0]
-    assert node.props["arguments"] == ["-m", "x", "--flag", "{robot}"]
+    assert node.props["arguments"] == ["-m", "json.tool", "--flag", "{robot}"]
 
 
 def test_a_plain_deployment_file_becomes_a_deployment_file_node():

@@ -90,7 +90,7 @@ def test_each_certificate_is_signed_by_the_ca_and_valid_for_the_addresses_given(
         days = (cert.not_valid_after_utc - cert.not_valid_before_utc).days
         assert 29 <= days <= 30
     router = load(tmp_path / "quad7-knowledge.pem")
-    assert sans(router) == {"knowledge.example.org", "10.0.0.2"}
+    assert sans(router) == {"knowledge.example.org", "10.0.0.2", "knowledge.quad7.local"}  # the name shipped configs dial
     ip_names = router.extensions.get_extension_for_class(x509.SubjectAlternativeName).value.get_values_for_type(
         x509.IPAddress)
     assert ip_names == [ipaddress.ip_address("10.0.0.2")]  # an IP SAN, not a DNS name "10.0.0.2"
@@ -158,7 +158,7 @@ def test_the_shipped_script_is_a_wrapper_of_the_command_and_reuses_an_existing_c
                                     cwd=REPO, env=env, check=True)
     run(str(tmp_path), "quad3", "knowledge.quad3.example", "192.168.7.1")
     ca = (tmp_path / "ca.pem").read_bytes()
-    assert sans(load(tmp_path / "quad3-knowledge.pem")) == {"knowledge.quad3.example", "192.168.7.1"}
+    assert sans(load(tmp_path / "quad3-knowledge.pem")) == {"knowledge.quad3.example", "192.168.7.1", "knowledge.quad3.local"}
     run(str(tmp_path), "quad3")
     assert (tmp_path / "ca.pem").read_bytes() == ca  # reused, as the script always did
     load(tmp_path / "quad3-knowledge.pem").verify_directly_issued_by(load(tmp_path / "ca.pem"))

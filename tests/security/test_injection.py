@@ -353,7 +353,7 @@ SLOTS: dict[str, tuple[str, Callable[[str], str | None], Callable[[str], str]]] 
     "component_property": ("zz note", dsl, str),
     "port_name": ("zz_out", dsl, str),
     "data_type": ("zz_image", dsl, str),
-    "dictionary": ("zz_dict", lambda v: dsl("DICT_" + v), lambda v: "DICT_" + v),
+    "dictionary": ("4X4_50", lambda v: dsl("DICT_" + v), lambda v: "DICT_" + v),  # OpenCV's names only
     "detector_parameter": ("adaptiveThreshConstant", dsl, str),
     "graph_name": ("zz_graph", dsl, str),
     "platform_name": ("zz_platform", dsl, str),
@@ -369,7 +369,7 @@ SLOTS: dict[str, tuple[str, Callable[[str], str | None], Callable[[str], str]]] 
 # Names a deployment refers to go through a strict name check, and a detector parameter must be an
 # attribute of cv2.aruco.DetectorParameters: every hostile string is refused there.
 STRICT = {"graph_name", "platform_name"}
-REFUSE_ALL = STRICT | {"detector_parameter"}
+REFUSE_ALL = STRICT | {"detector_parameter", "dictionary"}
 
 TEMPLATES = {
     "features.features": """
@@ -421,7 +421,7 @@ name: probe
 description: {deploy_description}
 deploys: {graph_name}
 executable: {deploy_executable}
-arguments: -m x {deploy_argument}
+arguments: -m json.tool {deploy_argument}
 environment: {deploy_environment}
 executable_on: {platform_name}
 """,
@@ -430,7 +430,7 @@ executable_on: {platform_name}
 Description={unit_description}
 
 [Service]
-ExecStart={{python}} -m y {unit_argument}
+ExecStart={{python}} -m http.server {unit_argument}
 Environment={unit_environment}
 
 [X-Kgadapt]
