@@ -174,7 +174,8 @@ class Recorder:
         return sum(1 for seq in frames if seq not in done)
 
     def attribute_losses(self, margin_s: float = 0.5) -> None:
-        """Per migration: the coverage gap (frames lost) and busy drops around it.
+        """Per planned change (migration or in-place reconfiguration): the coverage gap (frames lost)
+        and busy drops around it.
 
         A planned migration loses a frame when no detector covers it: captured
         after the old instance's last answered frame and before the new one's
@@ -185,15 +186,24 @@ class Recorder:
         with self._lock:
             frames = [seq for _, _, seq in self.light]
             answered: dict[str, list[int]] = {}
-            for _, instance, _, _, seq, _ in self.detections:
+            by_config: dict[tuple[str, str], list[int]] = {}
+            for _, instance, config, _, seq, _ in self.detections:
                 answered.setdefault(instance, []).append(seq)
+                by_config.setdefault((instance, config), []).append(seq)
         for d in self.decisions:
-            if not (d.outcome.startswith("migrated") and d.latency_ms is not None):
+            if not (d.outcome.startswith(("migrated", "reconfigured")) and d.latency_ms is not None):
                 continue
             start = d.time - d.latency_ms / 1000.0 - margin_s
             d.frames_dropped = self.frames_unprocessed(start, d.time + margin_s)
-            old = answered.get(d.previous_instance or "", [])
-            new = answered.get(d.instance or "", [])
+            if d.outcome.startswith("reconfigured"):
+                # One process: the gap is between its last answer with another configuration and
+                # its first with the new one.
+                new = by_config.get((d.instance or "", d.config or ""), [])
+                old = [seq for (inst, cfg), seqs in by_config.items() if inst == d.instance and cfg != d.config
+                       for seq in seqs if not new or seq < min(new)]
+            else:
+                old = answered.get(d.previous_instance or "", [])
+                new = answered.get(d.instance or "", [])
             if not old or not new:
                 d.frames_lost = None  # not observed (e.g. the recorder joined late)
                 continue

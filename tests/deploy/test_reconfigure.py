@@ -18,6 +18,7 @@ from shared import keys
 from shared.errors import DeploymentError
 from tests.deploy.conftest import ROBOT, Collector, FrameSource
 from tests.deploy.test_real_detector import MODELS, marker_jpeg
+from tests.support import wait_for
 
 
 @pytest.fixture
@@ -54,6 +55,10 @@ def test_the_detector_takes_another_configuration_between_two_frames(hosts, clie
         assert now["pid"] == started["pid"] and now["state"] in ("ready", "running")
         assert (now["config"], now["deployment"]) == ("marker_detection_dark", "detector_dark")
         assert "marker_detection_dark" in now["argv"]  # a restart runs what runs now
+        # The graph's profile of the run follows too (kgadapt why reads it).
+        ran = "MATCH (r:ProcessProfile {name: $run})-[:RAN_CONFIG]->(g) RETURN collect(g.name) AS configs"
+        wait_for(lambda: graph.execute(ran, {"run": started["run_id"]})[0]["configs"] == ["marker_detection_dark"],
+                 10, "the process profile to name the new configuration")
 
         # detector_hd is not executable on the onboard host: the graph says no, nothing changes.
         with pytest.raises(DeploymentError, match="in place on host onboard"):
