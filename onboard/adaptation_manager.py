@@ -9,7 +9,7 @@ Callbacks only queue observations; one worker thread analyses and acts, so a
 migration never runs inside a Zenoh callback and decisions happen one at a time.
 
 Execution: a planned change on the same host whose deployments the graph
-says may be changed in place (named query ``in_place_change``) reconfigures
+says may be changed in place (the planner asks ``in_place_change``) reconfigures
 the running detector between two frames (:func:`deploy.migration.reconfigure`);
 otherwise, or when that is refused, it is make-before-break: start the new
 detector, wait for its first detections, and only then stop the old one
@@ -151,7 +151,7 @@ class AdaptationManager:
             raise KgadaptError(f"the knowledge graph has no detector configuration with a band for {s.feature}")
         self._analyzer = Analyzer(tracker=BandTracker(bands=bands, hysteresis=s.hysteresis, dwell_s=s.dwell_s))
         self._planner = Planner(ask=self._knowledge.query, feature=s.feature, preference=s.preference,
-                                onboard_host=s.onboard_host)
+                                onboard_host=s.onboard_host, in_place=s.in_place)
         self._events_pub = session.declare_publisher(keys.adaptation_events(s.robot))
         self._handles = [
             session.declare_subscriber(keys.camera_illumination(s.robot, s.camera), self._on("illumination")),
@@ -467,7 +467,8 @@ class AdaptationManager:
             if self.current is None or running_lost:
                 result = self._start_fresh(plan, trigger)
             else:
-                change, why = self._change_kind(plan)
+                change = plan.inputs.get("change", "migrate")  # the planner's choice, from the graph
+                why = plan.inputs.get("change_why", "")
                 result = None
                 if change == "reconfigure":
                     try:
@@ -523,23 +524,6 @@ class AdaptationManager:
         latency = (first.wall - trigger.time) * 1000.0 if got and first.wall else None
         return Outcome(trigger=trigger, plan=plan, outcome="started" if got else "started, no detections yet",
                        latency_ms=latency, detail={"instance": instance, "pid": snapshot.get("pid")})
-
-    def _change_kind(self, plan: Plan) -> tuple[str, str]:
-        """("reconfigure" | "migrate", why), from the graph's ``in_place_change``."""
-        t, old = plan.target, self.current
-        if not self.settings.in_place:
-            return "migrate", "in-place changes are switched off on this agent (--no-in-place)"
-        if t.host != old.host:
-            return "migrate", f"another host ({old.host} -> {t.host})"
-        try:
-            rows = self._knowledge.query("in_place_change", {"from": old.deployment, "to": t.deployment,
-                                                             "host": t.host})
-        except KgadaptError as exc:
-            return "migrate", f"in_place_change not answered: {exc}"
-        if not rows:
-            return "migrate", f"the graph does not let {old.deployment} take {t.deployment} in place on {t.host}"
-        return "reconfigure", (f"same host, {old.deployment} and {t.deployment} are both "
-                               f"{rows[0].get('family')} (in_place_change)")
 
     def _reconfigure(self, plan: Plan, trigger: Trigger) -> Outcome:
         t, old = plan.target, self.current
