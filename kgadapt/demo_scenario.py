@@ -84,14 +84,16 @@ def run_scenario(args: argparse.Namespace) -> int:
     lost, steady = recorder.baseline_loss()
     say("\nSummary of adaptations")
     say(rows_as_table(rows))
-    migrations = [r for r in rows if r["outcome"] == "migrated"]
+    migrations = [r for r in rows if r["outcome"] in ("migrated", "reconfigured")]
+    in_place = sum(r["outcome"] == "reconfigured" for r in rows)
     latencies = sorted(r["latency_ms"] for r in rows if r["latency_ms"] is not None)
     if latencies:
-        say(f"\n{len(rows)} decisions, {len(migrations)} planned migrations; latency from trigger to the new "
-            f"detector's first detection: median {latencies[len(latencies) // 2]:.0f} ms, max {latencies[-1]:.0f} ms")
-    say(f"frames lost in planned migrations (between the old detector's last answer and the new one's first): "
-        f"{sum(r['frames_lost'] or 0 for r in migrations)}; frames dropped by busy detectors around migrations: "
-        f"{sum(r['busy_drops'] or 0 for r in migrations)}, outside migrations: {lost} of {steady}")
+        say(f"\n{len(rows)} decisions, {len(migrations)} planned changes ({in_place} in place, "
+            f"{len(migrations) - in_place} new processes); latency from trigger to the first detection with the "
+            f"new configuration: median {latencies[len(latencies) // 2]:.0f} ms, max {latencies[-1]:.0f} ms")
+    say(f"frames lost in planned changes (between the last answer with the old configuration and the first with "
+        f"the new one): {sum(r['frames_lost'] or 0 for r in migrations)}; frames dropped by busy detectors around "
+        f"them: {sum(r['busy_drops'] or 0 for r in migrations)}, outside them: {lost} of {steady}")
     bands = _bands(cluster)
     steps = recorder.light_steps(_classifier(bands)) if bands else []
     if steps:
