@@ -14,7 +14,7 @@ key                                             what travels there
 ``kgadapt/<robot>/camera/<cam>/illumination``   luminance figures per frame
 ``kgadapt/<robot>/detector/<instance>/markers`` detections of one detector instance
 ``kgadapt/<robot>/detector/<instance>/alive``   liveliness token of a detector instance
-``kgadapt/<robot>/host/<host>/detector/<instance>/configure``  queryable: reconfigure that detector in place
+``kgadapt/<robot>/host/<host>/detector/<i>/..`` ``.../configure``: queryable, reconfigure detector <i> in place
 ``kgadapt/<robot>/flight/state``                flight state from the MAVLink bridge
 ``kgadapt/<robot>/knowledge/query/<name>``      named queries (queryable)
 ``kgadapt/<robot>/knowledge/own/query/<name>``  the same, for the robot's own software only (queryable)
