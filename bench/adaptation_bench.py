@@ -2,11 +2,19 @@
 
 Two runs of the robot on this machine (kgadapt/cluster.py):
 
-1. light alternating between day and dark every few seconds: every band change
-   is a planned make-before-break migration between configurations. Measured:
-   latency from the trigger being observed (the band change decided, after
-   the dwell) to the new detector's first detection, as the adaptation manager
-   records it, and frames that no detector answered around each migration.
+1. light stepping day -> dark -> day -> window-lit dark -> day ... (steps of
+   1 ms, each level held a few seconds): every band change is a planned
+   change of configuration. Measured: the blind time a pilot feels, from the
+   capture of the first frame of the new light to the publication of the
+   first detections containing a marker that frame shows (the scenario's
+   ground truth), per kind of step; the part of it before the band change is
+   decided (light EMA, hysteresis, dwell) separately; the adaptation latency
+   (band change decided -> first detection with the new configuration) and
+   frames no detector answered around each change. Run twice side by side:
+   changes in place (the running detector reconfigured, where the graph
+   allows it) and as new processes (``--no-in-place``, make-before-break);
+   with ``--onboard-cpu 0.5`` again with the onboard agent and its detectors
+   limited to half a core (a Pi-class companion computer).
 2. failover: the detector runs on the remote host (``--prefer remote-first``);
    the remote agent is killed with ``kill -9`` (its detector dies with it);
    measured: kill to the first detection from the new onboard detector. The
@@ -23,12 +31,13 @@ import json
 import os
 import shutil
 import signal
+import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-from bench.stats import format_table, machine_info, make_record, summarize, write_records
+from bench.stats import format_table, machine_info, make_record, write_records
 
 RESULTS = Path(__file__).resolve().parent / "results" / "adaptation.json"
 PAPER = {"start_ms": 1.602, "stop_ms": 0.072, "query_ms": 7.323, "insert_ms": 27.766}  # Table I, N = 100
@@ -36,48 +45,109 @@ PAPER = {"start_ms": 1.602, "stop_ms": 0.072, "query_ms": 7.323, "insert_ms": 27
 
 def register(bench_subparsers: Any) -> None:
     p = bench_subparsers.add_parser(
-        "adaptation", help="adaptation latency, frames lost per migration, failover time (real processes)",
+        "adaptation", help="blind time after light steps, adaptation latency, frames lost, failover (real processes)",
         description=__doc__.split("\n\n")[1])
-    p.add_argument("--adaptations", type=int, default=20, help="planned migrations to measure (default 20)")
+    p.add_argument("--cycles", type=int, default=10,
+                   help="light cycles day, dark, day, window-lit dark per setting; 4 steps each (default 10: "
+                   "40 steps, 20 of them from day into the dark band)")
     p.add_argument("--failovers", type=int, default=5, help="kill -9 failovers to measure (default 5)")
-    p.add_argument("--hold", type=float, default=4.0, metavar="S", help="seconds per light level (default 4)")
+    p.add_argument("--hold", type=float, default=5.0, metavar="S",
+                   help="seconds per light level (default 5: the band's wait is ~2.5 s into the dark)")
+    p.add_argument("--onboard-cpu", type=float, action="append", metavar="CORES",
+                   help="also run with the onboard agent and its detectors limited to this share of a core "
+                   "(cgroup cpu.cfs_quota_us, root); repeatable, e.g. 0.5")
+    p.add_argument("--changes", choices=("both", "in-place", "new-process"), default="both",
+                   help="how a same-host configuration change is done: both side by side (default)")
     p.add_argument("--out", default=str(RESULTS), help="results file (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the records as JSON")
     p.set_defaults(func=run)
 
 
-def _robot(workdir: Path, profile: list[list[float]], **settings: Any) -> Any:
-    from kgadapt.cluster import ClusterSettings, WatchedRobot, write_profile
-
-    return WatchedRobot(ClusterSettings(workdir=workdir, profile=write_profile(workdir / "profile.json", profile, loop=True),
-                                        calibrate=False, fake_fc=False, log_level="WARNING", **settings))
+DAY, DARK, WINDOW_DARK = 120.0, 5.0, 7.0  # the window-lit dark phase's own level tells its frames apart
 
 
-def measure_migrations(workdir: Path, count: int, hold: float) -> tuple[list[float], list[int], int, tuple[int, int],
-                                                                     list[int]]:
-    """(latencies ms, frames lost per migration (coverage gap), decisions that were not migrations,
-    (frames no detector answered, frames) in steady state outside migrations, busy drops per migration)."""
-    profile, t = [], 0.0
-    for _ in range(count // 2 + 2):
-        profile += [[t, 120], [t + hold, 120], [t + hold + 0.3, 5], [t + 2 * hold + 0.3, 5]]
-        t += 2 * hold + 0.6
-    profile.append([t, 120])
-    with _robot(workdir, profile) as robot:
-        migrated = lambda: [d for d in robot.recorder.decisions if d.outcome.startswith("migrated")]
-        robot.wait(lambda: len(migrated()) >= count, count * (hold + 1.5) + 30)
-        time.sleep(1.0)
-    robot.recorder.attribute_losses()
-    done = migrated()[:count]
-    others = [d for d in robot.recorder.decisions if d.kind != "startup" and not d.outcome.startswith("migrated")]
-    return ([d.latency_ms for d in done if d.latency_ms is not None],
-            [d.frames_lost for d in done if d.frames_lost is not None],
-            len(others), robot.recorder.baseline_loss(), [d.frames_dropped or 0 for d in done])
+def classify(level: float) -> str | None:
+    """The bench profile's light classes by frame level (None: between, never in this profile)."""
+    if level >= 60:
+        return "day"
+    if abs(level - DARK) < 0.5:
+        return "dark"
+    if abs(level - WINDOW_DARK) < 0.5:
+        return "window-dark"
+    return None
+
+
+def step_profile(path: Path, cycles: int, hold: float) -> str:
+    """Day, dark, day, window-lit dark, ...: steps of 1 ms, each level held ``hold`` seconds."""
+    points, events, t = [[0.0, DAY]], [], 0.0
+    for _ in range(cycles + 1):
+        for level in (DARK, DAY, WINDOW_DARK, DAY):
+            t += hold
+            points += [[t, points[-1][1]], [t + 0.001, level]]
+            if level == WINDOW_DARK:
+                events.append({"from": t, "to": t + hold, "light": {"window": 0.3, "window_gain": 40.0}})
+    points.append([t + 3600.0, DAY])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"points": points, "events": events, "noise": 2.0, "gradient": 0.2}))
+    return str(path)
+
+
+def _robot(workdir: Path, profile: str, **settings: Any) -> Any:
+    from kgadapt.cluster import ClusterSettings, WatchedRobot
+
+    return WatchedRobot(ClusterSettings(workdir=workdir, profile=profile, calibrate=False, fake_fc=False,
+                                        log_level=settings.pop("log_level", "WARNING"), **settings))
+
+
+def _tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (from /proc)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                todo += [int(c) for c in (task / "children").read_text().split()]
+            except OSError:
+                pass
+    return out
+
+
+def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cpu: float | None) -> dict[str, Any]:
+    """One run through ``cycles`` light cycles: the light steps with their blind time, and the decisions."""
+    from bench.footprint import HalfCore
+
+    profile = step_profile(workdir / "profile.json", cycles, hold)
+    limit = HalfCore(cpu) if cpu else None
+    with _robot(workdir, profile, in_place=in_place) as robot:
+        if limit is not None:
+            limit.__enter__()
+        try:
+            if limit is not None:
+                for pid in _tree(robot.cluster.children["onboard"].process.pid):
+                    limit.add(pid)  # the detectors it starts later are born inside
+            rec = robot.recorder
+            steps_wanted = 4 * cycles
+            robot.wait(lambda: len(rec.light_steps(classify)) > steps_wanted, (4 * cycles + 2) * (hold + 1) + 30)
+            time.sleep(0.5)
+        finally:
+            if limit is not None:
+                limit.__exit__()
+    rec = robot.recorder
+    rec.attribute_losses()
+    steps = rec.light_steps(classify)[:4 * cycles]
+    changes = [d for d in rec.decisions if d.outcome.startswith(("migrated", "reconfigured"))]
+    others = [d for d in rec.decisions if d.kind != "startup" and d not in changes and not d.outcome.startswith("kept")]
+    return {"steps": steps, "changes": changes, "others": others, "baseline": rec.baseline_loss()}
 
 
 def measure_failovers(workdir: Path, count: int) -> list[float]:
     """Milliseconds from kill -9 of the remote agent to the first detection onboard."""
     times: list[float] = []
-    with _robot(workdir, [[0, 120], [3600, 120]], prefer="remote-first") as robot:
+    from kgadapt.cluster import write_profile
+
+    profile = write_profile(workdir / "profile.json", [[0, 120], [3600, 120]])
+    with _robot(workdir, profile, prefer="remote-first") as robot:
         rec = robot.recorder
         for _ in range(count):
             # Only the remote detector answers (a handover back to remote must be finished:
@@ -86,14 +156,21 @@ def measure_failovers(workdir: Path, count: int) -> list[float]:
                 recent = {h for t, _, _, h, _, _ in rec.detections[-60:] if t > time.time() - 1.0}
                 return recent == {"remote"}
 
-            on_remote = robot.wait(only_remote, 30)
+            # Settled: the placement recorded and a second of remote-only detections. (Killed within
+            # ~20 ms of the placement, the manager was seen to miss the loss for 10 s and more: a race
+            # reported, not covered here.)
+            on_remote = robot.wait(only_remote, 30) and time.sleep(1.0) is None and robot.wait(only_remote, 5)
             if not on_remote:
+                print(f"failover: the detector did not settle on the remote host; decisions {rec.decisions[-3:]}",
+                      file=sys.stderr)
                 break
             killed = time.time()
             robot.cluster.kill("remote", signal.SIGKILL)
             first = robot.wait(lambda: next((t for t, _, _, h, _, _ in rec.detections if t > killed and h == "onboard"),
                                             None), 10)
             if first is None:
+                print(f"failover: no detections onboard within 10 s of the kill; decisions {rec.decisions[-3:]}",
+                      file=sys.stderr)
                 break
             times.append((first - killed) * 1000.0)
             robot.cluster.respawn("remote")  # remote-first: the manager moves the detector back
@@ -101,44 +178,99 @@ def measure_failovers(workdir: Path, count: int) -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from bench.footprint import HalfCore
+
     workdir = Path(tempfile.mkdtemp(prefix="kgadapt-bench-adaptation-"))
     started = time.time()
+    store = "embedded (FalkorDB, fsync always)"
+    modes = {"both": (False, True), "in-place": (True,), "new-process": (False,)}[args.changes]
+    cpus: list[float | None] = [None, *(args.onboard_cpu or [])]
+    if any(cpus[1:]) and HalfCore.unavailable_reason():
+        raise SystemExit(f"kgadapt bench adaptation: --onboard-cpu: {HalfCore.unavailable_reason()}")
+    records: list[dict[str, Any]] = []
+    lines: list[str] = []
     try:
-        latencies, lost, other, (base_lost, base_frames), dropped = measure_migrations(
-            workdir / "migrations", args.adaptations, args.hold)
-        failovers = measure_failovers(workdir / "failover", args.failovers) if args.failovers else []
+        for cpu in cpus:
+            onboard = "unlimited" if cpu is None else f"{cpu:g} core"
+            for in_place in modes:
+                how = "in place" if in_place else "new process"
+                name = f"{'inplace' if in_place else 'newproc'}-{onboard.replace(' ', '')}"
+                result = measure_steps(workdir / name, args.cycles, args.hold, in_place=in_place, cpu=cpu)
+                records += _records(result, store=store, how=how, onboard=onboard)
+                lines += _lines(result, how=how, onboard=onboard)
+        if args.failovers:
+            failovers = measure_failovers(workdir / "failover", args.failovers)
+            if failovers:
+                records.append(make_record(store=store, n=None, op="failover_after_kill9", samples_ms=failovers,
+                                           target_ms=150, onboard="unlimited"))
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
-    store = "embedded (FalkorDB, fsync always)"
-    records = []
-    if latencies:
-        records.append(make_record(store=store, n=None, op="adaptation_latency", samples_ms=latencies,
-                                   target="none (paper: start 1.6 ms + query 7.3 ms + insert 27.8 ms, no handover)"))
-    if lost:
-        records.append(make_record(store=store, n=None, op="frames_lost_per_migration", samples_ms=[float(x) for x in lost],
-                                   unit="frames", total=sum(lost), target=0, other_decisions=other,
-                                   steady_state_unanswered=base_lost, steady_state_frames=base_frames,
-                                   busy_drops_around_migrations=sum(dropped),
-                                   load_average=os.getloadavg()[0]))
-    if failovers:
-        records.append(make_record(store=store, n=None, op="failover_after_kill9", samples_ms=failovers,
-                                   target_ms=1500))
     for r in records:
-        r.update(machine_info(), measured_at=time.strftime("%Y-%m-%d %H:%M", time.gmtime(started)))
+        r.update(machine_info(), measured_at=time.strftime("%Y-%m-%d %H:%M", time.gmtime(started)),
+                 load_average=round(os.getloadavg()[0], 2))
     write_records(args.out, records)
     if args.json:
         print(json.dumps(records, indent=1))
     else:
-        rows = [[r["op"], r["reps"], r["p50_ms"], r["p99_ms"], r["max_ms"]] for r in records]
-        print(format_table(rows, ["measure", "n", "p50", "p99", "max"]))
-        if lost:
-            print(f"frames lost in {len(lost)} planned migrations (between the old detector's last answer and "
-                  f"the new one's first): {sum(lost)} (target 0); busy drops around them {sum(dropped)}; outside migrations "
-                  f"{base_lost} of {base_frames} frames went unanswered (detectors drop stale frames when busy); "
-                  f"load average {os.getloadavg()[0]:.2f}")
-        if failovers:
-            s = summarize(failovers)
-            print(f"failover after kill -9 of the remote agent: p50 {s.p50_ms:.0f} ms, max {s.max_ms:.0f} ms "
-                  f"(target 1500 ms)")
-        print(f"wrote {args.out}")
+        rows = [[r["op"], r.get("changes", ""), r.get("onboard", ""), r["reps"], r["p50_ms"], r["p99_ms"], r["max_ms"]]
+                for r in records]
+        print(format_table(rows, ["measure", "changes", "onboard", "n", "p50", "p99", "max"]))
+        for line in lines:
+            print(line)
+        print(f"load average {os.getloadavg()[0]:.2f}; wrote {args.out}")
     return 0
+
+
+def _records(result: dict[str, Any], *, store: str, how: str, onboard: str) -> list[dict[str, Any]]:
+    out = []
+    common = {"changes": how, "onboard": onboard}
+    by_kind: dict[str, list[Any]] = {}
+    for step in result["steps"]:
+        by_kind.setdefault(step.kind, []).append(step)
+        if step.kind.endswith("dark"):  # both steps into the dark band, pooled
+            by_kind.setdefault("day->any dark", []).append(step)
+    for kind, steps in sorted(by_kind.items()):
+        blind = [s.blind_ms for s in steps if s.blind_ms is not None]
+        unseen = sum(1 for s in steps if s.blind_ms is None)
+        if blind:
+            out.append(make_record(store=store, n=None, op=f"blind_time {kind}", samples_ms=blind, steps=len(steps),
+                                   never_seen=unseen, **common,
+                                   target_ms="100 beyond the band's wait" if kind.startswith("day->") else None))
+        band = [s.band_ms for s in steps if s.band_ms is not None]
+        if band:
+            out.append(make_record(store=store, n=None, op=f"band_decided {kind}", samples_ms=band,
+                                   what="first frame of the new light -> band change decided (EMA, hysteresis, dwell)",
+                                   **common))
+        # 0 where the old configuration still saw markers before the band changed.
+        beyond = [max(0.0, s.blind_ms - s.band_ms) for s in steps if s.blind_ms is not None and s.band_ms is not None]
+        if beyond:
+            out.append(make_record(store=store, n=None, op=f"blind_beyond_band {kind}", samples_ms=beyond,
+                                   what="blind time minus the band's wait (steps with a decision)",
+                                   target_ms=100 if kind.startswith("day->") else None, **common))
+    changes = result["changes"]
+    latencies = [d.latency_ms for d in changes if d.latency_ms is not None]
+    if latencies:
+        out.append(make_record(store=store, n=None, op="adaptation_latency", samples_ms=latencies,
+                               what="band change decided -> first detection with the new configuration",
+                               kinds=sorted({d.outcome.split(":")[0] for d in changes}),
+                               target_ms=50 if how == "in place" else None, **common))
+    lost = [d.frames_lost for d in changes if d.frames_lost is not None]
+    base_lost, base_frames = result["baseline"]
+    if lost:
+        out.append(make_record(store=store, n=None, op="frames_lost_per_change", samples_ms=[float(x) for x in lost],
+                               unit="frames", total=sum(lost), target=0, other_decisions=len(result["others"]),
+                               steady_state_unanswered=base_lost, steady_state_frames=base_frames,
+                               busy_drops_around_changes=sum(d.frames_dropped or 0 for d in changes), **common))
+    return out
+
+
+def _lines(result: dict[str, Any], *, how: str, onboard: str) -> list[str]:
+    changes = result["changes"]
+    kinds: dict[str, int] = {}
+    for d in changes:
+        kinds[d.outcome.split(":")[0]] = kinds.get(d.outcome.split(":")[0], 0) + 1
+    unseen = [s.kind for s in result["steps"] if s.blind_ms is None]
+    return [f"{how}, onboard {onboard}: {len(result['steps'])} light steps, changes {kinds or 'none'}, "
+            f"frames lost in changes {sum(d.frames_lost or 0 for d in changes)}, other decisions "
+            f"{[d.outcome.split(':')[0] for d in result['others']]}"
+            + (f"; never saw markers after {unseen}" if unseen else "")]

@@ -55,9 +55,11 @@ class MigrationReport:
 
 
 class FirstOutput:
-    """Notes the arrival of the first valid detections message (callback only sets an event)."""
+    """Notes the arrival of the first valid detections message (callback only sets an event);
+    with ``config``, the first one made with that configuration."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, config: str | None = None) -> None:
+        self.config = config
         self.event = threading.Event()
         self.at: float | None = None  # perf_counter() of the first output, for durations
         self.wall: float | None = None  # time.time() of it, to compare with other hosts' times
@@ -66,9 +68,11 @@ class FirstOutput:
         if self.event.is_set():
             return
         try:
-            messages.decode(sample.payload.to_bytes(), "detections")
+            body = messages.decode(sample.payload.to_bytes(), "detections")
         except MessageError as exc:
             log.info("migration: dropped a malformed detections message: %s", exc)
+            return
+        if self.config is not None and body["config"] != self.config:
             return
         self.at = time.perf_counter()
         self.wall = time.time()
@@ -157,3 +161,54 @@ def _abandon(client: DeployerClient, host: str, instance: str) -> None:
         client.stop(host, instance)
     except KgadaptError as exc:
         log.debug("migration cleanup of %s on %s: %s", instance, host, exc)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReconfigurationReport:
+    """What an in-place reconfiguration did (the detector's own reply, and the round trip)."""
+
+    instance: str
+    host: str
+    config: str
+    previous: str
+    deployment: str
+    first_seq: int | None  # the first frame processed with the new configuration
+    check_ms: float  # the detector asking the graph (configuration, in_place_change)
+    build_ms: float  # building the new configuration's detector
+    reply_ms: float  # request sent -> reply (includes waiting for the first frame with it)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def reconfigure(session: Any, robot: str, host: str, instance: str, config: str, *,
+                timeout: float = 5.0) -> ReconfigurationReport:
+    """Ask the running detector ``instance`` on ``host`` to take ``config`` in place.
+
+    The detector checks with the graph that its deployment may take the new
+    configuration's in place; refused or unanswered, the running configuration
+    stays and :class:`DeploymentError` says why (the caller may then migrate).
+    """
+    from shared.errors import RequestTimeout, TransportError
+
+    key = keys.detector_configure(robot, host, instance)
+    payload = messages.encode("configure_request", {"config": config})
+    sent = time.perf_counter()
+    try:
+        replies = list(session.get(key, payload=payload, timeout=timeout))
+    except Exception as exc:  # zenoh.ZError
+        raise TransportError(f"reconfigure {instance} on {host}: {exc}") from exc
+    reply_ms = (time.perf_counter() - sent) * 1e3
+    if not replies:
+        raise RequestTimeout(f"detector {instance} on host {host} has no configure queryable (not reconfigurable)")
+    reply = replies[0]
+    if reply.ok is None:
+        raise DeploymentError(f"reconfigure {instance} on {host}: {reply.err.payload.to_string()}")
+    try:
+        body = messages.decode(reply.ok.payload.to_bytes(), "configure_reply")
+    except MessageError as exc:
+        raise DeploymentError(f"reconfigure {instance} on {host}: bad reply: {exc}") from exc
+    return ReconfigurationReport(instance=instance, host=host, config=str(body["config"]),
+                                 previous=str(body["previous"]), deployment=str(body["deployment"]),
+                                 first_seq=body.get("first_seq"), check_ms=float(body["check_ms"]),
+                                 build_ms=float(body["build_ms"]), reply_ms=reply_ms)

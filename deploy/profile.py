@@ -8,6 +8,8 @@ A :class:`ProfileRecorder` listens to the supervisor. For every run it writes
   memory (MiB: last, mean, max) and CPU (mean percent of one core over the
   run: CPU time over wall time), sampled with psutil every
   ``sample_interval`` seconds, the first right after start;
+- when it took another configuration in place: ``process_reconfigured``
+  (the profile then RAN_CONFIG the new configuration);
 - when it exits: ``process_end`` (end time, exit status).
 
 Writes go through a callable ``write(verb, params)`` -- in an agent that is
@@ -146,6 +148,10 @@ class ProfileRecorder:
             with self._lock:
                 self._tracked[event.run_id] = _Tracked(event.run_id, event.pid)
                 self._wake.notify_all()  # first sample right away
+        elif event.event == "reconfigured":
+            self._enqueue("process_reconfigured", {
+                "run_id": event.run_id, "config": event.config, "deployment": event.deployment, "time": event.time,
+            }, event.run_id)
         elif event.event == "exited":
             with self._lock:
                 tracked = self._tracked.pop(event.run_id, None)

@@ -38,7 +38,7 @@ import subprocess
 import threading
 import time
 from concurrent.futures import Future
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable
 
 from shared.errors import DeploymentError, ReadinessTimeout
@@ -47,6 +47,7 @@ from shared.keys import check_name
 log = logging.getLogger(__name__)
 
 READY_LINE = "KGADAPT_READY"
+CONFIGURED_LINE = "KGADAPT_CONFIGURED"  # "<line> <config> <deployment>": the child reconfigured itself in place
 
 # Instance states. "ready" and "running" are live; the last four are final.
 STARTING, READY, RUNNING, RESTARTING, STOPPING = "starting", "ready", "running", "restarting", "stopping"
@@ -530,9 +531,30 @@ class Supervisor:
                 if is_current:
                     self._emit(inst, "ready")
                 continue
+            if line.startswith(CONFIGURED_LINE + " ") and inst.spec.config:
+                self._reconfigured(inst, line.split()[1:])
             run.tail.append(line)
             child_log.debug("%s", line)
         run.proc.stdout.close()
+
+    def _reconfigured(self, inst: _Instance, words: list[str]) -> None:
+        """The child took another configuration in place: its record, and the argv of a
+        restart, name the new one (a child only does so after the graph allowed it)."""
+        if len(words) != 2:
+            return
+        config, deployment = words
+        try:
+            check_name(config, "configuration")
+            check_name(deployment, "deployment")
+        except Exception:
+            return
+        argv = list(inst.spec.argv)
+        for i, word in enumerate(argv[:-1]):
+            if word == "--config" and argv[i + 1] == inst.spec.config:
+                argv[i + 1] = config
+        with self._lock:
+            inst.spec = replace(inst.spec, config=config, deployment=deployment, argv=tuple(argv))
+        self._emit(inst, "reconfigured")
 
     def _watch_readiness(self, inst: _Instance, run: _Run) -> None:
         if run.ready.wait(inst.spec.ready_timeout) or run.done.is_set():

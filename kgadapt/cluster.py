@@ -60,6 +60,7 @@ class ClusterSettings:
     adapt: bool = True
     prefer: str = "onboard-first"
     dwell_s: float = 1.0
+    in_place: bool = True  # False: the onboard agent's --no-in-place (every change a new process)
     calibrate: bool = True
     fake_fc: bool = True
     land_after_s: float | None = None  # fake FC starts a final descent after this many seconds
@@ -157,6 +158,8 @@ class LocalCluster:
                 onboard += ["--fc", f"udpin:127.0.0.1:{self.fc_port}"]
             if s.adapt:
                 onboard += ["--adapt", "--prefer", s.prefer, "--dwell", str(s.dwell_s)]
+                if not s.in_place:
+                    onboard.append("--no-in-place")
             self._spawn("onboard", self.kgadapt(*onboard, *s.extra_onboard_args), ready="agent ready", host="onboard")
         except BaseException:
             self.stop()

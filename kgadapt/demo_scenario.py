@@ -84,21 +84,35 @@ def run_scenario(args: argparse.Namespace) -> int:
     lost, steady = recorder.baseline_loss()
     say("\nSummary of adaptations")
     say(rows_as_table(rows))
-    migrations = [r for r in rows if r["outcome"] == "migrated"]
+    migrations = [r for r in rows if r["outcome"] in ("migrated", "reconfigured")]
+    in_place = sum(r["outcome"] == "reconfigured" for r in rows)
     latencies = sorted(r["latency_ms"] for r in rows if r["latency_ms"] is not None)
     if latencies:
-        say(f"\n{len(rows)} decisions, {len(migrations)} planned migrations; latency from trigger to the new "
-            f"detector's first detection: median {latencies[len(latencies) // 2]:.0f} ms, max {latencies[-1]:.0f} ms")
-    say(f"frames lost in planned migrations (between the old detector's last answer and the new one's first): "
-        f"{sum(r['frames_lost'] or 0 for r in migrations)}; frames dropped by busy detectors around migrations: "
-        f"{sum(r['busy_drops'] or 0 for r in migrations)}, outside migrations: {lost} of {steady}")
+        say(f"\n{len(rows)} decisions, {len(migrations)} planned changes ({in_place} in place, "
+            f"{len(migrations) - in_place} new processes); latency from trigger to the first detection with the "
+            f"new configuration: median {latencies[len(latencies) // 2]:.0f} ms, max {latencies[-1]:.0f} ms")
+    say(f"frames lost in planned changes (between the last answer with the old configuration and the first with "
+        f"the new one): {sum(r['frames_lost'] or 0 for r in migrations)}; frames dropped by busy detectors around "
+        f"them: {sum(r['busy_drops'] or 0 for r in migrations)}, outside them: {lost} of {steady}")
     bands = _bands(cluster)
+    steps = recorder.light_steps(_classifier(bands)) if bands else []
+    if steps:
+        say("\nBlind time after each change of the scenario's light band (first frame in the new band -> "
+            "first detections showing a marker of the frame; the band's wait is the light monitor's EMA, "
+            "hysteresis and dwell):")
+        say(rows_as_table([{"t_s": round(st.frame_time - recorder.t0, 1), "step": st.kind,
+                            "blind_ms": None if st.blind_ms is None else round(st.blind_ms),
+                            "band_wait_ms": None if st.band_ms is None else round(st.band_ms),
+                            "beyond_band_ms": (None if st.blind_ms is None or st.band_ms is None
+                                               else round(max(0.0, st.blind_ms - st.band_ms))),
+                            "change": st.change} for st in steps]))
     png = recorder.plot(workdir / "timeline.png", bands)
     say(f"timeline plot: {png}")
     if bad:
         say(f"processes that did not stop cleanly: {bad}")
     if args.json:
-        print(json.dumps({"decisions": rows, "baseline_lost": lost, "baseline_frames": steady, "exit_codes": codes}))
+        print(json.dumps({"decisions": rows, "baseline_lost": lost, "baseline_frames": steady, "exit_codes": codes,
+                          "light_steps": [vars(st) for st in steps]}))
     return 1 if bad or not rows else 0
 
 
@@ -113,6 +127,14 @@ def _bands(cluster: LocalCluster) -> list[tuple[str, float, float]]:
         return []
     return sorted({(r["band"], float(r["min_level"]), float(r["max_level"])) for r in rows if r.get("band")},
                   key=lambda b: b[1])
+
+
+def _classifier(bands: list[tuple[str, float, float]]):
+    """Frame level -> the band it lies in (by the graph's band edges; the scenario's level has no flicker)."""
+    def classify(level: float) -> str | None:
+        return next((name for name, low, high in bands if low <= level < high), bands[-1][0] if level >= bands[-1][2]
+                    else None)
+    return classify
 
 
 def _printer():

@@ -32,6 +32,21 @@ class Decision:
     frames_dropped: int | None = None  # frames no detector answered around the migration (busy detectors)
     instance: str | None = None
     previous_instance: str | None = None
+    trigger_time: float | None = None  # when the manager observed the trigger (the band decided, after the dwell)
+    change: str | None = None  # "reconfigure" or "migrate"
+
+
+@dataclass
+class LightStep:
+    """A step of the scenario's light and how long the robot was blind after it."""
+
+    kind: str  # e.g. "day->dark"
+    frame_seq: int  # the first frame of the new light
+    frame_time: float  # its capture time
+    seen_seq: int | None  # the first frame of the new light whose detections contain a marker it shows
+    blind_ms: float | None  # capture of the first new-light frame -> publication of those detections
+    band_ms: float | None  # capture of the first new-light frame -> the band change decided (EMA, hysteresis, dwell)
+    change: str | None = None  # what the decision after the step did (reconfigure / migrate / kept)
 
 
 @dataclass
@@ -47,6 +62,9 @@ class Recorder:
     detections: list[tuple[float, str, str, str, int, int]] = field(default_factory=list)
     decisions: list[Decision] = field(default_factory=list)
     marks: list[tuple[float, str]] = field(default_factory=list)  # scripted actions (squeeze, kill)
+    # per frame: seq -> (capture time, the scenario's light level, marker ids it shows)
+    frames: dict[int, tuple[float, float | None, frozenset[int]]] = field(default_factory=dict)
+    found: list[tuple[int, float, frozenset[int]]] = field(default_factory=list)  # (seq, published, ids)
 
     def __post_init__(self) -> None:
         self._lock = threading.Lock()
@@ -60,6 +78,7 @@ class Recorder:
             session.declare_subscriber(keys.host_status(r), self._on_status),
             session.declare_subscriber(keys.adaptation_events(r), self._on_event),
             session.declare_subscriber(keys.detector_markers(r), self._on_detections),
+            session.declare_subscriber(keys.camera_frame(r, self.camera), self._on_frame),
         ]
 
     def shutdown(self) -> None:
@@ -101,6 +120,16 @@ class Recorder:
                 self.detections.append((time.time(), str(m["instance"]), str(m["config"]), str(m["host"]),
                                         int(m["seq"]), len(m["ids"])))
                 self._detected_seqs.add(int(m["seq"]))
+                if m["ids"]:
+                    self.found.append((int(m["seq"]), float(m["time"]), frozenset(int(i) for i in m["ids"])))
+
+    def _on_frame(self, sample: Any) -> None:
+        m = self._decode(sample, "frame")
+        if m:
+            ids = frozenset(int(t["id"]) for t in m.get("truth") or [] if isinstance(t, dict) and "id" in t)
+            level = m.get("level")
+            with self._lock:
+                self.frames[int(m["seq"])] = (float(m["time"]), None if level is None else float(level), ids)
 
     def _on_event(self, sample: Any) -> None:
         m = self._decode(sample, "adaptation_event")
@@ -110,7 +139,8 @@ class Recorder:
         decision = Decision(time=float(m["time"]), trigger=str(m["trigger"]), kind=str(d.get("trigger_kind") or ""),
                             config=d.get("config"), host=d.get("host"), outcome=str(m.get("outcome") or ""),
                             latency_ms=d.get("latency_ms"), instance=d.get("instance"),
-                            previous_instance=d.get("previous_instance"))
+                            previous_instance=d.get("previous_instance"), trigger_time=d.get("trigger_time"),
+                            change=d.get("change"))
         with self._lock:
             self.decisions.append(decision)
         if self.on_decision:
@@ -144,7 +174,8 @@ class Recorder:
         return sum(1 for seq in frames if seq not in done)
 
     def attribute_losses(self, margin_s: float = 0.5) -> None:
-        """Per migration: the coverage gap (frames lost) and busy drops around it.
+        """Per planned change (migration or in-place reconfiguration): the coverage gap (frames lost)
+        and busy drops around it.
 
         A planned migration loses a frame when no detector covers it: captured
         after the old instance's last answered frame and before the new one's
@@ -155,20 +186,70 @@ class Recorder:
         with self._lock:
             frames = [seq for _, _, seq in self.light]
             answered: dict[str, list[int]] = {}
-            for _, instance, _, _, seq, _ in self.detections:
+            by_config: dict[tuple[str, str], list[int]] = {}
+            for _, instance, config, _, seq, _ in self.detections:
                 answered.setdefault(instance, []).append(seq)
+                by_config.setdefault((instance, config), []).append(seq)
         for d in self.decisions:
-            if not (d.outcome.startswith("migrated") and d.latency_ms is not None):
+            if not (d.outcome.startswith(("migrated", "reconfigured")) and d.latency_ms is not None):
                 continue
             start = d.time - d.latency_ms / 1000.0 - margin_s
             d.frames_dropped = self.frames_unprocessed(start, d.time + margin_s)
-            old = answered.get(d.previous_instance or "", [])
-            new = answered.get(d.instance or "", [])
+            if d.outcome.startswith("reconfigured"):
+                # One process: the gap is between its last answer with another configuration and
+                # its first with the new one.
+                new = by_config.get((d.instance or "", d.config or ""), [])
+                old = [seq for (inst, cfg), seqs in by_config.items() if inst == d.instance and cfg != d.config
+                       for seq in seqs if not new or seq < min(new)]
+            else:
+                old = answered.get(d.previous_instance or "", [])
+                new = answered.get(d.instance or "", [])
             if not old or not new:
                 d.frames_lost = None  # not observed (e.g. the recorder joined late)
                 continue
             old_last, new_first = max(old), min(new)
             d.frames_lost = sum(1 for seq in frames if old_last < seq < new_first)
+
+    def light_steps(self, classify: Callable[[float], str | None]) -> list[LightStep]:
+        """Every step of the scenario's light between the classes ``classify`` gives levels
+        (None: a level in between, e.g. a ramp), with the blind time after it.
+
+        Blind time: from the capture of the first frame of the new light to the
+        publication of the first detections, of a frame of the new light, that
+        contain a marker that frame shows (the camera's ground truth). It is
+        what a pilot waiting for a position fix feels; ``band_ms`` is the part
+        the light monitor and the band's dwell take before anything is decided.
+        """
+        with self._lock:
+            frames = sorted(self.frames.items())
+            found = sorted(self.found)
+            decisions = sorted((d for d in self.decisions if d.trigger_time is not None), key=lambda d: d.trigger_time)
+        steps: list[LightStep] = []
+        previous: str | None = None
+        for seq, (t, level, _) in frames:
+            kind = classify(level) if level is not None else None
+            if kind is None:
+                continue
+            if previous is not None and kind != previous:
+                steps.append(LightStep(kind=f"{previous}->{kind}", frame_seq=seq, frame_time=t,
+                                       seen_seq=None, blind_ms=None, band_ms=None))
+            previous = kind
+        truth = {seq: ids for seq, (_, _, ids) in frames}
+        for i, step in enumerate(steps):
+            end = steps[i + 1].frame_seq if i + 1 < len(steps) else None
+            for seq, published, ids in found:
+                if seq < step.frame_seq or (end is not None and seq >= end):
+                    continue
+                if ids & truth.get(seq, frozenset()):
+                    step.seen_seq, step.blind_ms = seq, (published - step.frame_time) * 1000.0
+                    break
+            until = steps[i + 1].frame_time if i + 1 < len(steps) else float("inf")
+            after = next((d for d in decisions if step.frame_time <= d.trigger_time < until
+                          and d.kind not in ("startup", "host_back")), None)
+            if after is not None:
+                step.band_ms = (after.trigger_time - step.frame_time) * 1000.0
+                step.change = after.change or after.outcome.split(":")[0]
+        return steps
 
     def baseline_loss(self) -> tuple[int, int]:
         """(frames no detector answered, frames) while a detector ran, outside migrations."""

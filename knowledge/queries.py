@@ -252,6 +252,21 @@ RETURN d.name AS name, d.kind AS kind, d.executable AS executable, d.arguments A
        d.environment AS environment, platforms, collect(t.name) AS deploys""",
     ),
     NamedQuery(
+        "in_place_change",
+        "Whether a running process of deployment `from` may take the configuration of deployment "
+        "`to` in place on `host` (no restart): both executable there, the same executable, and the "
+        "same program family (reconfigurable_as). One row when it may, none when a new process is needed.",
+        {"from": Param("str", help="deployment of the running process"),
+         "to": Param("str", help="deployment of the planned configuration"),
+         "host": Param("str", help="platform both would run on")},
+        f"""
+MATCH (a:{S.DEPLOYMENT} {{name: $from}})-[:{S.EXECUTABLE_ON}]->(p:{S.PLATFORM} {{name: $host}})
+MATCH (b:{S.DEPLOYMENT} {{name: $to}})-[:{S.EXECUTABLE_ON}]->(p)
+WHERE a.reconfigurable_as IS NOT NULL AND a.reconfigurable_as = b.reconfigurable_as
+      AND a.executable = b.executable
+RETURN a.reconfigurable_as AS family, a.name AS from_deployment, b.name AS to_deployment, p.name AS host""",
+    ),
+    NamedQuery(
         "platforms",
         "Every platform with its design-time size and its latest run-time figures (null until known).",
         {},

@@ -124,6 +124,25 @@ def record_process_sample(store: GraphStore, *, run_id: str, rss_mb_last: float,
          "rss_mb_max": float(rss_mb_max), "cpu_percent_mean": float(cpu_percent_mean)})
 
 
+def record_process_reconfigured(store: GraphStore, *, run_id: str, config: str, deployment: str,
+                                time: float) -> None:
+    """A running process took another configuration in place: its profile now RAN_CONFIG that one
+    (and is PROFILE_OF its deployment); ``reconfigured_at`` says since when. Unknown names link nothing."""
+    _check("process_reconfigured", run_id=(run_id, (str,), False), config=(config, (str,), False),
+           deployment=(deployment, (str,), False), time=(time, _NUM, False))
+    params = {"run_id": run_id, "config": config, "deployment": deployment, "time": float(time)}
+    store.execute(
+        f"MATCH (r:{S.PROCESS_PROFILE} {{name: $run_id}}) "
+        "SET r.config = $config, r.deployment = $deployment, r.reconfigured_at = $time "
+        f"WITH r OPTIONAL MATCH (r)-[e:{S.RAN_CONFIG}|{S.PROFILE_OF}]->() DELETE e", params)
+    store.execute(
+        f"MATCH (r:{S.PROCESS_PROFILE} {{name: $run_id}}) "
+        f"OPTIONAL MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}}) "
+        f"FOREACH (x IN CASE WHEN g IS NULL THEN [] ELSE [g] END | MERGE (r)-[:{S.RAN_CONFIG}]->(x)) "
+        f"WITH r OPTIONAL MATCH (d:{S.DEPLOYMENT} {{name: $deployment}}) "
+        f"FOREACH (x IN CASE WHEN d IS NULL THEN [] ELSE [d] END | MERGE (r)-[:{S.PROFILE_OF}]->(x))", params)
+
+
 def record_process_end(store: GraphStore, *, run_id: str, end_time: float, exit_status: int | None) -> None:
     """A process ended (``exit_status`` negative for a signal, None when unknown)."""
     _check("process_end", run_id=(run_id, (str,), False), end_time=(end_time, _NUM, False),
@@ -226,6 +245,7 @@ WRITERS: dict[str, Callable[..., None]] = {
     "process_start": record_process_start,
     "process_sample": record_process_sample,
     "process_end": record_process_end,
+    "process_reconfigured": record_process_reconfigured,
     "calibration": record_calibration,
     "decision": record_decision,
     "flight_state": update_flight_control,

@@ -283,6 +283,7 @@ class Planner:
     penalty: float = 1.0
     max_ms: float = 1000.0
     tie_rate: float = 0.005
+    in_place: bool = True  # False: every change is a new process (for comparison)
 
     def __post_init__(self) -> None:
         if self.preference not in PREFERENCES:
@@ -364,7 +365,28 @@ class Planner:
             "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in order],
             "running": None if running is None else {"config": running.config, "host": running.host},
         }
-        return Plan(target=target, reason=reason, inputs=inputs, queries=("config_ranking", "placement"))
+        queries: tuple[str, ...] = ("config_ranking", "placement")
+        if running is not None and running.instance and (running.config, running.host) != (config, host):
+            inputs["change"], inputs["change_why"] = self.change(running, target)
+            queries += ("in_place_change",)
+        return Plan(target=target, reason=reason, inputs=inputs, queries=queries)
+
+    def change(self, running: Placement, target: Placement) -> tuple[str, str]:
+        """How to get from ``running`` to ``target``: ("reconfigure" | "migrate", why).
+
+        Reconfigure in place when the graph says the running deployment may take
+        the target's on that host (named query ``in_place_change``); else migrate.
+        """
+        if not self.in_place:
+            return "migrate", "in-place changes are switched off on this agent (--no-in-place)"
+        if target.host != running.host:
+            return "migrate", f"another host ({running.host} -> {target.host})"
+        rows = self.ask("in_place_change", {"from": running.deployment, "to": target.deployment, "host": target.host})
+        if not rows:
+            return "migrate", (f"the graph does not let {running.deployment} take {target.deployment} in place "
+                               f"on {target.host} (in_place_change)")
+        return "reconfigure", (f"same host, {running.deployment} and {target.deployment} are both "
+                               f"{rows[0].get('family')} (in_place_change)")
 
     def _hosts_for(self, config: str, demand: float, running: Placement | None, lost_hosts: Sequence[str],
                    live_free: Mapping[str, float] | None) -> dict[str, dict[str, Any]]:

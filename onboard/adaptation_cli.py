@@ -88,6 +88,11 @@ def render(data: dict[str, Any]) -> str:
                          f"{ms if not isinstance(ms, float) else round(ms, 1)} ms/frame")
         for p in inputs.get("platforms") or []:
             lines.append(f"  platform {p.get('platform')}: {p.get('free_mb')} MiB free then")
+        if inputs.get("change") == "reconfigure":
+            lines.append(f"  carried out in place: the running detector took the configuration between two frames "
+                         f"(first frame {inputs.get('first_seq')}); {inputs.get('change_why')}")
+        elif inputs.get("change") == "migrate":
+            lines.append(f"  carried out as a new process (make-before-break): {inputs.get('change_why')}")
     else:
         lines.append("No adaptation decision chose this placement (started by hand?).")
     now = data.get("placement_now") or []

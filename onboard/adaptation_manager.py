@@ -8,9 +8,12 @@ deployers) -> knowledge (every decision written into the graph).
 Callbacks only queue observations; one worker thread analyses and acts, so a
 migration never runs inside a Zenoh callback and decisions happen one at a time.
 
-Execution is make-before-break: a planned change starts the new detector,
-waits for its first detections, and only then stops the old one
-(:func:`deploy.migration.migrate`). When the host running the detector is
+Execution: a planned change on the same host whose deployments the graph
+says may be changed in place (the planner asks ``in_place_change``) reconfigures
+the running detector between two frames (:func:`deploy.migration.reconfigure`);
+otherwise, or when that is refused, it is make-before-break: start the new
+detector, wait for its first detections, and only then stop the old one
+(:func:`deploy.migration.migrate`). The decision records which and why. When the host running the detector is
 lost, a new detector starts at once on a host that can hold it. During final
 descent (flight state ``LANDING``, or landed state unknown in LAND/RTL:
 :func:`onboard.flight_phase.in_final_descent`) planned changes are deferred; losing the
@@ -36,7 +39,7 @@ from typing import Any
 
 from deploy.client import DeployerClient
 from deploy.deployer import new_instance_name
-from deploy.migration import FirstOutput, migrate
+from deploy.migration import FirstOutput, migrate, reconfigure
 from knowledge.client import KnowledgeClient
 from onboard.adaptation import (
     FEATURE,
@@ -81,6 +84,7 @@ class AdaptationSettings:
     settle_s: float = 1.0  # after a change, host statuses this young do not count for memory_short
     retry_s: float = 1.0  # the running host lost and no replacement started: try again this often
     reconcile_s: float = 0.5  # ask the running detector's deployer how it is at least this often
+    in_place: bool = True  # reconfigure in place where the graph allows it (False: always migrate)
 
 
 @dataclass(kw_only=True)
@@ -147,7 +151,7 @@ class AdaptationManager:
             raise KgadaptError(f"the knowledge graph has no detector configuration with a band for {s.feature}")
         self._analyzer = Analyzer(tracker=BandTracker(bands=bands, hysteresis=s.hysteresis, dwell_s=s.dwell_s))
         self._planner = Planner(ask=self._knowledge.query, feature=s.feature, preference=s.preference,
-                                onboard_host=s.onboard_host)
+                                onboard_host=s.onboard_host, in_place=s.in_place)
         self._events_pub = session.declare_publisher(keys.adaptation_events(s.robot))
         self._handles = [
             session.declare_subscriber(keys.camera_illumination(s.robot, s.camera), self._on("illumination")),
@@ -463,7 +467,18 @@ class AdaptationManager:
             if self.current is None or running_lost:
                 result = self._start_fresh(plan, trigger)
             else:
-                result = self._switch(plan, trigger)
+                change = plan.inputs.get("change", "migrate")  # the planner's choice, from the graph
+                why = plan.inputs.get("change_why", "")
+                result = None
+                if change == "reconfigure":
+                    try:
+                        result = self._reconfigure(plan, trigger)
+                    except KgadaptError as exc:  # refused or unanswered: the old one still runs; migrate
+                        why = f"in-place change refused ({exc}); migrated instead"
+                if result is None:
+                    result = self._switch(plan, trigger)
+                result.detail["change"] = "reconfigure" if result.outcome == "reconfigured" else "migrate"
+                result.detail["change_why"] = why
         except KgadaptError as exc:
             result = Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}")
         result.detail["plan_ms"] = round((time.perf_counter() - started) * 1000.0, 1)
@@ -509,6 +524,35 @@ class AdaptationManager:
         latency = (first.wall - trigger.time) * 1000.0 if got and first.wall else None
         return Outcome(trigger=trigger, plan=plan, outcome="started" if got else "started, no detections yet",
                        latency_ms=latency, detail={"instance": instance, "pid": snapshot.get("pid")})
+
+    def _reconfigure(self, plan: Plan, trigger: Trigger) -> Outcome:
+        t, old = plan.target, self.current
+        first = FirstOutput(config=t.config)
+        sub = self._session.declare_subscriber(keys.detector_markers(self.settings.robot, old.instance), first)
+        report = None
+        try:
+            try:
+                report = reconfigure(self._session, self.settings.robot, old.host, old.instance, t.config,
+                                     timeout=self.settings.output_timeout)
+            except KgadaptError:
+                # Unanswered is not refused: if its deployer's record names the new configuration,
+                # the detector took it (a migration now would find nothing to change).
+                if self._deployers.status(old.host, old.instance).get("config") != t.config:
+                    raise
+            got = first.event.wait(self.settings.output_timeout)
+        finally:
+            sub.undeclare()
+        self.current = Placement(config=t.config, deployment=t.deployment, host=t.host, instance=old.instance,
+                                 demand_mb=t.demand_mb, held_mb=old.held_mb)
+        run_id = getattr(self, "_run_id", None)
+        self._set_current(plan, old.instance, run_id)
+        latency = (first.wall - trigger.time) * 1000.0 if got and first.wall else None
+        return Outcome(trigger=trigger, plan=plan, outcome="reconfigured", latency_ms=latency, frames_lost=0,
+                       detail={"instance": old.instance, "previous_instance": old.instance,
+                               "from": f"{old.config}@{old.host}",
+                               **({} if report is None else {
+                                   "first_seq": report.first_seq, "check_ms": report.check_ms,
+                                   "build_ms": report.build_ms, "reply_ms": round(report.reply_ms, 1)})})
 
     def _switch(self, plan: Plan, trigger: Trigger) -> Outcome:
         t, old = plan.target, self.current
@@ -610,6 +654,7 @@ class AdaptationManager:
                 "trigger_kind": trigger.kind, "frames_lost": outcome.frames_lost, "name": name,
                 "instance": self.current.instance if self.current else None,
                 "previous_instance": outcome.detail.get("previous_instance"),
+                "trigger_time": trigger.time, "change": outcome.detail.get("change"),
             },
         }
         try:

@@ -61,6 +61,9 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
                     help="seconds a new illumination band must hold before the detector changes (default 1)")
     ad.add_argument("--hysteresis", type=float, default=4.0, metavar="LEVELS",
                     help="luminance levels beyond a band edge before a change counts (default 4)")
+    ad.add_argument("--no-in-place", dest="in_place", action="store_false",
+                    help="always start a new detector for a change, even where the graph allows an in-place "
+                    "reconfiguration (for comparison)")
 
 
 class FlightPart:
@@ -144,7 +147,7 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
         # the manager's chosen detector, the manager the bridge's landed state (not Zenoh messages).
         manager = AdaptationManager(AdaptationSettings(
             robot=args.robot, camera=args.camera, preference=args.prefer, onboard_host=args.host,
-            dwell_s=args.dwell, hysteresis=args.hysteresis),
+            dwell_s=args.dwell, hysteresis=args.hysteresis, in_place=args.in_place),
             landed_state=flight.landed_state if flight is not None else None)
         if flight is not None:
             flight.manager = manager

@@ -11,6 +11,16 @@ of it, subscribes to ``kgadapt/<R>/camera/<cam>/frame`` and publishes
 ``detections`` on ``kgadapt/<R>/detector/<I>/markers``; then prints
 ``KGADAPT_READY`` on stdout. SIGINT or SIGTERM stop it cleanly (status 0).
 
+In-place reconfiguration: a detector started with ``--config`` also answers
+``kgadapt/<R>/host/<H>/detector/<I>/configure`` (a ``configure_request``
+naming another configuration). It takes the configuration from the graph,
+checks there (named query ``in_place_change``) that its deployment may take
+the new one's in place on this host, builds the new detector off the frame
+path and swaps it in between two frames; the reply names the first frame
+processed with it. It then prints ``KGADAPT_CONFIGURED <config> <deployment>``
+so its deployer's record (and a restart) follow. Anything refused leaves the
+running configuration untouched.
+
 Stale frames are dropped, never queued: the Zenoh callback only puts the
 payload into a one-frame slot (replacing an unprocessed one) and a worker
 thread takes the newest frame when it is free. Memory stays bounded whatever
@@ -24,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import queue
 import sys
 import threading
 import time
@@ -31,11 +42,19 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 from shared import keys, messages
-from shared.errors import ConfigError, KgadaptError, MessageError, RequestTimeout, TransportError
+from shared.errors import (
+    ConfigError,
+    DeploymentError,
+    KgadaptError,
+    MessageError,
+    RequestTimeout,
+    TransportError,
+)
 
 log = logging.getLogger("onboard.detector")
 
 READY_LINE = "KGADAPT_READY"
+CONFIGURED_LINE = "KGADAPT_CONFIGURED"  # followed by the new configuration and its deployment
 EXIT_UNKNOWN_CONFIG = 2
 INLINE_CONFIG = "inline"
 
@@ -91,6 +110,10 @@ class DetectorSettings:
 
 
 def fetch_config(session: Any, robot: str, name: str, *, wait_s: float = 10.0) -> Any:
+    return fetch_config_row(session, robot, name, wait_s=wait_s)[0]
+
+
+def fetch_config_row(session: Any, robot: str, name: str, *, wait_s: float = 10.0) -> tuple[Any, dict[str, Any]]:
     """The configuration ``name`` from the knowledge service, as a checked DetectorConfig.
 
     Retries while nothing answers (the service may be starting) for up to
@@ -119,7 +142,7 @@ def fetch_config(session: Any, robot: str, name: str, *, wait_s: float = 10.0) -
     row = rows[0]
     if row.get("config_json") is None:
         raise ConfigError(f"detector configuration {name!r} has no config_json in the knowledge store")
-    return parse_config(name, row["config_json"], dictionary=row.get("dictionary"))
+    return parse_config(name, row["config_json"], dictionary=row.get("dictionary")), row
 
 
 class Detector:
@@ -129,8 +152,11 @@ class Detector:
         from onboard.markers import MarkerDetector
 
         self.settings = settings
-        self.config = config
-        self.core = MarkerDetector(config)
+        # (configuration, its detector, generation): replaced whole, read once per frame by the worker,
+        # so a reconfiguration lands between two frames.
+        self._active = (config, MarkerDetector(config), 0)
+        self._first_frame: dict[int, int] = {}  # generation -> seq of the first frame it processed
+        self._generation_seen = threading.Condition()
         self.slot = LatestSlot()
         self.processed = 0
         self.malformed = 0
@@ -139,6 +165,29 @@ class Detector:
         self._subscriber: Any = None
         self._publisher: Any = None
         self._token: Any = None
+
+    @property
+    def config(self) -> Any:
+        return self._active[0]
+
+    @property
+    def core(self) -> Any:
+        return self._active[1]
+
+    def swap(self, config: Any) -> int:
+        """Take ``config`` from the next frame on; returns its generation (see ``first_frame``)."""
+        from onboard.markers import MarkerDetector
+
+        core = MarkerDetector(config)  # built here, off the frame path
+        generation = self._active[2] + 1
+        self._active = (config, core, generation)
+        return generation
+
+    def first_frame(self, generation: int, timeout: float) -> int | None:
+        """The sequence number of the first frame processed with ``generation``, waiting up to ``timeout``."""
+        with self._generation_seen:
+            self._generation_seen.wait_for(lambda: generation in self._first_frame, timeout)
+            return self._first_frame.get(generation)
 
     def setup(self, session: Any) -> None:
         import zenoh
@@ -184,10 +233,11 @@ class Detector:
         if gray is None:
             raise MessageError(f"frame {frame['seq']} of camera {frame['camera']}: JPEG does not decode")
         decode_ms = (time.perf_counter() - start) * 1e3
-        result = self.core.detect(gray)
+        config, core, generation = self._active
+        result = core.detect(gray)
         s = self.settings
         body = {
-            "instance": s.instance, "config": self.config.name, "host": s.host, "seq": frame["seq"],
+            "instance": s.instance, "config": config.name, "host": s.host, "seq": frame["seq"],
             "frame_time": frame["time"], "time": time.time(),
             "ids": result.ids, "corners": result.corners, "processing_ms": round(result.processing_ms, 3),
             "camera": frame["camera"], "received": received, "decode_ms": round(decode_ms, 3),
@@ -197,6 +247,10 @@ class Detector:
             body["frame_sent"] = frame["sent"]
         self._publisher.put(messages.encode("detections", body))
         self.processed += 1
+        if generation not in self._first_frame:
+            with self._generation_seen:
+                self._first_frame[generation] = int(frame["seq"])
+                self._generation_seen.notify_all()
 
     def shutdown(self) -> None:
         for name in ("_token", "_subscriber"):
@@ -218,6 +272,120 @@ class Detector:
             except Exception as exc:
                 log.debug("undeclare publisher: %s", exc)
             self._publisher = None
+
+
+class Reconfigurer:
+    """Answers in-place reconfiguration requests for one detector (see the module's docstring).
+
+    The queryable's callback only queues the query; a worker thread asks the
+    graph, builds and swaps, and replies, so nothing blocks inside Zenoh.
+    """
+
+    def __init__(self, detector: Detector, *, deployment: str, first_frame_s: float = 2.0) -> None:
+        self.detector = detector
+        self.deployment = deployment
+        self.first_frame_s = first_frame_s
+        self._queue: "queue.Queue[Any]" = queue.Queue(maxsize=8)
+        self._queryable: Any = None
+        self._worker: threading.Thread | None = None
+        self._session: Any = None
+
+    def setup(self, session: Any) -> None:
+        s = self.detector.settings
+        self._session = session
+        self._worker = threading.Thread(target=self._work, name="detector-reconfigure", daemon=True)
+        self._worker.start()
+        try:
+            self._queryable = session.declare_queryable(keys.detector_configure(s.robot, s.host, s.instance),
+                                                        self._on_query)
+        except Exception as exc:
+            self.shutdown()
+            raise TransportError(f"detector {s.instance}: cannot declare its configure queryable: {exc}") from exc
+
+    def _on_query(self, query: Any) -> None:
+        try:
+            self._queue.put_nowait(query)
+        except queue.Full:
+            query.reply_err(f"detector {self.detector.settings.instance}: busy with other reconfigurations")
+
+    def _work(self) -> None:
+        while True:
+            query = self._queue.get()
+            if query is None:
+                return
+            self._answer(query)
+            # Dropping the query finalises it: the asker's get() ends now, not at its timeout.
+            del query
+
+    def _answer(self, query: Any) -> None:
+        try:
+            reply = self.handle(query.payload.to_bytes() if query.payload is not None else b"")
+        except KgadaptError as exc:
+            log.info("detector %s: reconfiguration refused: %s", self.detector.settings.instance, exc)
+            self._reply_err(query, str(exc))
+            return
+        except Exception as exc:  # the running configuration stays; the asker hears why
+            log.exception("detector %s: reconfiguration failed", self.detector.settings.instance)
+            self._reply_err(query, f"internal error: {exc}")
+            return
+        try:
+            query.reply(str(query.key_expr), messages.encode("configure_reply", reply))
+        except Exception as exc:
+            log.warning("detector %s: cannot reply to a reconfiguration: %s", self.detector.settings.instance, exc)
+
+    def _reply_err(self, query: Any, text: str) -> None:
+        try:
+            query.reply_err(f"detector {self.detector.settings.instance}: {text}")
+        except Exception as exc:
+            log.debug("reply_err: %s", exc)
+
+    def handle(self, payload: bytes) -> dict[str, Any]:
+        """Check, build, swap; the reply body. Raises KgadaptError (nothing changed) when refused."""
+        from knowledge.client import KnowledgeClient
+
+        d, s = self.detector, self.detector.settings
+        name = str(messages.decode(payload, "configure_request")["config"])
+        keys.check_name(name, "configuration name")
+        previous = d.config.name
+        started = time.perf_counter()
+        config, row = fetch_config_row(self._session, s.robot, name, wait_s=1.0)
+        target = row.get("deployment")
+        if not target:
+            raise DeploymentError(f"configuration {name!r} has no deployment in the knowledge graph")
+        if target != self.deployment:
+            rows = KnowledgeClient(self._session, s.robot, own=True).query(
+                "in_place_change", {"from": self.deployment, "to": target, "host": s.host})
+            if not rows:
+                raise DeploymentError(f"the knowledge graph does not let deployment {self.deployment} take "
+                                      f"{target} ({name}) in place on host {s.host}: start a new detector")
+        check_ms = (time.perf_counter() - started) * 1e3
+        built = time.perf_counter()
+        generation = d.swap(config)
+        build_ms = (time.perf_counter() - built) * 1e3
+        self.deployment = str(target)
+        print(f"{CONFIGURED_LINE} {name} {target}", flush=True)  # the deployer's record follows
+        log.info("detector %s: %s -> %s in place", s.instance, previous, name)
+        swapped = time.perf_counter()
+        first = d.first_frame(generation, self.first_frame_s)
+        body: dict[str, Any] = {"instance": s.instance, "config": name, "previous": previous,
+                                "deployment": str(target), "check_ms": round(check_ms, 3),
+                                "build_ms": round(build_ms, 3)}
+        if first is not None:
+            body["first_seq"] = first
+            body["first_frame_ms"] = round((time.perf_counter() - swapped) * 1e3, 3)
+        return body
+
+    def shutdown(self) -> None:
+        if self._queryable is not None:
+            try:
+                self._queryable.undeclare()
+            except Exception as exc:
+                log.debug("undeclare configure queryable: %s", exc)
+            self._queryable = None
+        if self._worker is not None:
+            self._queue.put(None)
+            self._worker.join(timeout=5)
+            self._worker = None
 
 
 def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
@@ -262,6 +430,7 @@ def run(args: argparse.Namespace) -> int:
 
     session = None
     detector: Detector | None = None
+    reconfigurer: Reconfigurer | None = None
     with StopSignals() as stop:
         try:
             settings = DetectorSettings(robot=args.robot, host=args.host, instance=args.instance, camera=args.camera)
@@ -271,10 +440,14 @@ def run(args: argparse.Namespace) -> int:
                 config = parse_config(INLINE_CONFIG, args.config_json)
             zenoh_settings = settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
             session = open_session(zenoh_settings)
+            row: dict[str, Any] = {}
             if args.config is not None:
-                config = fetch_config(session, args.robot, args.config, wait_s=args.config_wait)
+                config, row = fetch_config_row(session, args.robot, args.config, wait_s=args.config_wait)
             detector = Detector(settings, config)
             detector.setup(session)
+            if row.get("deployment"):  # only a configuration from the graph can be changed from the graph
+                reconfigurer = Reconfigurer(detector, deployment=str(row["deployment"]))
+                reconfigurer.setup(session)
             print(READY_LINE, flush=True)
             log.info("detector %s ready: config %s, camera %s", args.instance, config.name, args.camera)
             stop.wait()
@@ -287,6 +460,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"onboard.detector: error: {exc}", file=sys.stderr, flush=True)
             return 1
         finally:
+            if reconfigurer is not None:
+                reconfigurer.shutdown()
             if detector is not None:
                 detector.shutdown()
             if session is not None:

@@ -14,6 +14,7 @@ key                                             what travels there
 ``kgadapt/<robot>/camera/<cam>/illumination``   luminance figures per frame
 ``kgadapt/<robot>/detector/<instance>/markers`` detections of one detector instance
 ``kgadapt/<robot>/detector/<instance>/alive``   liveliness token of a detector instance
+``kgadapt/<robot>/host/<host>/detector/<i>/..`` ``.../configure``: queryable, reconfigure detector <i> in place
 ``kgadapt/<robot>/flight/state``                flight state from the MAVLink bridge
 ``kgadapt/<robot>/knowledge/query/<name>``      named queries (queryable)
 ``kgadapt/<robot>/knowledge/own/query/<name>``  the same, for the robot's own software only (queryable)
@@ -73,6 +74,12 @@ def camera_illumination(robot: str, camera: str = "*") -> str:
 
 def detector_markers(robot: str, instance: str = "*") -> str:
     return f"{robot_root(robot)}/detector/{_name_or_star(instance, 'instance')}/markers"
+
+
+def detector_configure(robot: str, host: str, instance: str = "*") -> str:
+    """A running detector's in-place reconfiguration queryable. Under its host's key space, so
+    only those allowed to command that host's deployer may ask (deploy/zenoh/router.json5)."""
+    return f"{robot_root(robot)}/host/{check_name(host, 'host')}/detector/{_name_or_star(instance, 'instance')}/configure"
 
 
 def detector_alive(robot: str, instance: str = "*") -> str:

@@ -102,6 +102,13 @@ SCHEMAS: dict[str, Schema] = {
             "instance": _f(str, required=False, max_len=64),
             "wait_ready": _f(bool, required=False), "ready_timeout": _f(*NUMBER, required=False),
         }),
+        # In-place reconfiguration of a running detector (onboard.detector): ask, and what it did.
+        Schema("configure_request", 1, {"config": _NAME}),
+        Schema("configure_reply", 1, {
+            "instance": _NAME, "config": _NAME, "previous": _NAME, "deployment": _f(str, max_len=64),
+            "first_seq": _f(int, required=False), "check_ms": _f(*NUMBER), "build_ms": _f(*NUMBER),
+            "first_frame_ms": _f(*NUMBER, required=False),
+        }),
         Schema("deploy_reply", 1, {"ok": _f(bool), "detail": _f(dict, required=False)}),
         Schema("deploy_event", 1, {
             "event": _f(str, max_len=32), "host": _NAME, "instance": _NAME, "time": _TIME,

@@ -38,6 +38,9 @@ class DeploymentDraft:
     platforms: list[tuple[str, Origin]] | None = None
     environment: list[tuple[str, Origin]] | None = None
     description: str | None = None
+    # Deployments naming the same program family may take each other's configuration in
+    # place (the running process reconfigured between two frames, no restart).
+    reconfigurable_as: tuple[str, Origin] | None = None
 
 
 def split_command(text: str, origin: Origin, what: str) -> list[str]:
@@ -166,6 +169,8 @@ def emit(model: ParsedModel, draft: DeploymentDraft, file_origin: Origin) -> Non
     }
     if draft.description:
         props["description"] = draft.description
+    if draft.reconfigurable_as:
+        props["reconfigurable_as"] = draft.reconfigurable_as[0]
     model.nodes.append(NodeSpec(S.DEPLOYMENT, draft.name, props, draft.name_origin, (draft.kind,)))
     me = Ref((S.DEPLOYMENT,), draft.name, "deployment")
     for target, origin in draft.deploys:

@@ -10,10 +10,13 @@
     arguments: -m onboard.detector --robot {robot} --host {host} --instance {instance} --config {config} --connect {connect}
     environment: OPENCV_LOG_LEVEL=ERROR
     executable_on: onboard, remote
+    reconfigurable_as: marker-detector
 
 ``name`` defaults to the file name without ``.deploy``. ``arguments`` are split
 like a shell would (quotes respected, nothing expanded). ``environment`` may
-repeat. Every other key is refused.
+repeat. ``reconfigurable_as`` names a program family: a running process of one
+deployment may be reconfigured in place into another deployment of the same
+family on the same host (no restart). Every other key is refused.
 """
 
 from __future__ import annotations
@@ -25,7 +28,8 @@ from knowledge.importers import deployment as D
 from knowledge.importers.model import Origin, ParsedModel
 
 NOTATION = "deployment file"
-KEYS = ("name", "description", "deploys", "executable", "arguments", "environment", "executable_on")
+KEYS = ("name", "description", "deploys", "executable", "arguments", "environment", "executable_on",
+        "reconfigurable_as")
 
 
 def parse(text: str, path: str) -> ParsedModel:
@@ -72,6 +76,8 @@ def parse(text: str, path: str) -> ParsedModel:
             draft.command_origin = origin
         elif key == "environment":
             draft.environment = (draft.environment or []) + [(e, origin) for e in D.environment_entries(value, origin)]
+        elif key == "reconfigurable_as":
+            draft.reconfigurable_as = (D.check_name(value, origin, "reconfigurable_as"), origin)
         else:
             draft.platforms = D.name_list(value, origin, "executable_on")
     if executable is not None:

@@ -15,6 +15,7 @@ into an ``[X-Kgadapt]`` section, which systemd ignores::
     [X-Kgadapt]
     Deploys=marker_detection_day
     ExecutableOn=onboard remote
+    ReconfigurableAs=marker-detector
 
     [Install]
     WantedBy=multi-user.target
@@ -22,7 +23,8 @@ into an ``[X-Kgadapt]`` section, which systemd ignores::
 ``ExecStart`` gives the executable and its arguments (split like a shell,
 placeholders as in docs/CONTRACTS.md; a real unit gets them filled in by the
 deployer). ``Environment=`` may repeat. Other keys of ``[Unit]``, ``[Service]``
-and ``[Install]`` are systemd's own and are kept out of the graph.
+and ``[Install]`` are systemd's own and are kept out of the graph. ``ReconfigurableAs=``: see
+:mod:`knowledge.importers.deployment_file`.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from knowledge.importers.model import Origin, ParsedModel
 
 NOTATION = "systemd service file"
 SECTIONS = ("Unit", "Service", "Install", "X-Kgadapt")
-KGADAPT_KEYS = ("Name", "Deploys", "ExecutableOn")
+KGADAPT_KEYS = ("Name", "Deploys", "ExecutableOn", "ReconfigurableAs")
 
 
 def parse(text: str, path: str) -> ParsedModel:
@@ -100,6 +102,10 @@ def _entry(draft: D.DeploymentDraft, section: str, key: str, value: str, origin:
             if draft.deploys is not None:
                 raise origin.error("Deploys= given twice")
             draft.deploys = D.name_list(value, origin, "Deploys=")
+        elif key == "ReconfigurableAs":  # program family: see deployment_file.py
+            if draft.reconfigurable_as is not None:
+                raise origin.error("ReconfigurableAs= given twice")
+            draft.reconfigurable_as = (D.check_name(value, origin, "ReconfigurableAs="), origin)
         else:
             if draft.platforms is not None:
                 raise origin.error("ExecutableOn= given twice")

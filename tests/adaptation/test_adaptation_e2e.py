@@ -69,7 +69,12 @@ def test_the_detector_follows_the_light_through_the_bands_without_losing_frames(
     assert [p["platform"] for p in explained["placement_now"]] == ["remote", "onboard"]  # most free memory first
     startup = run.recorder.decisions[0]
     assert (startup.config, startup.host) == ("marker_detection_day", "onboard")
-    assert dusk.outcome == "migrated" and dark.outcome == "migrated"
+    # Same host, and the graph says the detector deployments may change in place: no new process.
+    assert (dusk.outcome, dark.outcome) == ("reconfigured", "reconfigured"), run.recorder.decisions
+    assert (dusk.change, dark.change) == ("reconfigure", "reconfigure")
+    assert dusk.instance == dark.instance == startup.instance
+    assert explained["decision"]["inputs"]["change"] == "reconfigure"
+    assert "in_place_change" in explained["decision"]["inputs"]["change_why"]
     run.recorder.attribute_losses()
     assert [d.frames_lost for d in (dusk, dark)] == [0, 0]
     # Exactly one planned change per band change: no extra decisions.
@@ -95,6 +100,7 @@ def test_a_memory_squeeze_moves_the_detector_remote_and_losing_the_remote_host_b
         squeeze(run.session, "quad1", "onboard", 350.0)
         moved = run.wait_for(run.decision("memory_short"), 10, "the squeeze to be noticed")
         assert (moved.config, moved.host, moved.outcome) == ("marker_detection_dark", "remote", "migrated")
+        assert moved.change == "migrate"  # another host: a new process there
         run.wait_for(lambda: run.running(moved.time) == {("marker_detection_dark", "remote")}, 5,
                      "detections from the remote host only")
         squeeze(run.session, "quad1", "onboard", 0.0)  # room again onboard; nothing moves for that alone

@@ -139,3 +139,18 @@ def test_why_shows_the_ranking_the_plan_used(graph):
     first = next(line for line in lines if line.strip().startswith("1."))
     assert "marker_detection_dark" in first and "left out: its detections collapsed" in first
     assert any(line.strip().startswith("2. marker_detection_dusk: score 0.5") for line in lines)
+
+
+def test_the_planner_reconfigures_in_place_on_the_same_host_and_migrates_across_hosts(graph):
+    day = Placement(config="marker_detection_day", deployment="detector_day", host="onboard", instance="d1",
+                    demand_mb=72.0, held_mb=80.0)
+    plan = planner(graph).plan(band="dark", running=day)
+    assert (plan.target.host, plan.inputs["change"]) == ("onboard", "reconfigure")
+    assert "marker-detector" in plan.inputs["change_why"] and "in_place_change" in plan.queries
+    moved = planner(graph, preference="remote-first").plan(band="dark", running=day)
+    assert (moved.target.host, moved.inputs["change"]) == ("remote", "migrate")
+    assert planner(graph, in_place=False).plan(band="dark", running=day).inputs["change"] == "migrate"
+    # The graph decides: without the family on the running deployment, a new process.
+    graph.execute("MATCH (d:Deployment {name: 'detector_day'}) REMOVE d.reconfigurable_as")
+    refused = planner(graph).plan(band="dark", running=day)
+    assert refused.inputs["change"] == "migrate" and "does not let detector_day" in refused.inputs["change_why"]

@@ -143,6 +143,8 @@ def write_params(verb: str) -> dict[str, Any]:
         "process_sample": {"run_id": "forged-run", "rss_mb_last": 1.0, "rss_mb_mean": 1.0, "rss_mb_max": 1.0,
                            "cpu_percent_mean": 1.0},
         "process_end": {"run_id": "forged-run", "end_time": 2.0, "exit_status": 0},
+        "process_reconfigured": {"run_id": "forged-run", "config": "marker_detection_dark",
+                                 "deployment": "detector_dark", "time": 2.0},
         "calibration": {"config": "marker_detection_day", "band": "dark", "detection_rate": 1.0, "false_rate": 0.0,
                         "ms_per_frame": 1.0, "time": 1.0},
         "decision": {"name": "forged-decision", "time": 1.0, "trigger": "forged"},

@@ -1,0 +1,76 @@
+"""In-place reconfiguration of the real detector (onboard.detector) under a real deployer.
+
+One detector process, real Zenoh, the shipped models in a real FalkorDB: it
+takes the dark configuration between two frames without a restart (same pid),
+says which frame was first with it, its deployer's record follows; a
+configuration the graph does not let it take in place is refused with the
+reason and the running one keeps detecting.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from deploy.client import DeployerClient
+from deploy.migration import reconfigure
+from knowledge.loader import load_models
+from shared import keys
+from shared.errors import DeploymentError
+from tests.deploy.conftest import ROBOT, Collector, FrameSource
+from tests.deploy.test_real_detector import MODELS, marker_jpeg
+from tests.support import wait_for
+
+
+@pytest.fixture
+def graph(resp_store):
+    load_models(resp_store, [MODELS])
+    return resp_store
+
+
+def test_the_detector_takes_another_configuration_between_two_frames(hosts, client_session, graph):
+    frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
+    markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
+    events = Collector(client_session, keys.deployer_events(ROBOT, "*"), "deploy_event")
+    try:
+        client = DeployerClient(client_session, ROBOT)
+        started = client.start("onboard", "detector_day", "marker_detection_day", instance="det1")
+        markers.wait_for(lambda d: d["instance"] == "det1" and d["ids"])
+
+        report = reconfigure(client_session, ROBOT, "onboard", "det1", "marker_detection_dark")
+
+        assert (report.previous, report.config, report.deployment) == (
+            "marker_detection_day", "marker_detection_dark", "detector_dark")
+        assert report.first_seq is not None
+        # Frames before first_seq were made with the old configuration, first_seq and after with the new.
+        _, first_new = markers.wait_for(lambda d: d["instance"] == "det1" and d["seq"] == report.first_seq)
+        assert first_new["config"] == "marker_detection_dark"
+        seen = [d for _, d in list(markers.items) if d["instance"] == "det1"]
+        assert all(d["config"] == "marker_detection_day" for d in seen if d["seq"] < report.first_seq)
+        assert all(d["config"] == "marker_detection_dark" for d in seen if d["seq"] >= report.first_seq)
+        markers.wait_for(lambda d: d["instance"] == "det1" and d["config"] == "marker_detection_dark" and d["ids"])
+
+        # No restart: the same process, and its deployer's record names the new configuration.
+        events.wait_for(lambda e: e["instance"] == "det1" and e["event"] == "reconfigured")
+        now = client.status("onboard", "det1")
+        assert now["pid"] == started["pid"] and now["state"] in ("ready", "running")
+        assert (now["config"], now["deployment"]) == ("marker_detection_dark", "detector_dark")
+        assert "marker_detection_dark" in now["argv"]  # a restart runs what runs now
+        # The graph's profile of the run follows too (kgadapt why reads it).
+        ran = "MATCH (r:ProcessProfile {name: $run})-[:RAN_CONFIG]->(g) RETURN collect(g.name) AS configs"
+        wait_for(lambda: graph.execute(ran, {"run": started["run_id"]})[0]["configs"] == ["marker_detection_dark"],
+                 10, "the process profile to name the new configuration")
+
+        # detector_hd is not executable on the onboard host: the graph says no, nothing changes.
+        with pytest.raises(DeploymentError, match="in place on host onboard"):
+            reconfigure(client_session, ROBOT, "onboard", "det1", "marker_detection_hd")
+        with pytest.raises(DeploymentError, match="not in the knowledge store"):
+            reconfigure(client_session, ROBOT, "onboard", "det1", "no_such_config")
+        last = max(d["seq"] for _, d in markers.items)
+        markers.wait_for(lambda d: d["instance"] == "det1" and d["seq"] > last and d["ids"]
+                         and d["config"] == "marker_detection_dark")
+        assert client.status("onboard", "det1")["pid"] == started["pid"]
+        client.stop("onboard", "det1")
+    finally:
+        events.close()
+        markers.close()
+        frames.close()
