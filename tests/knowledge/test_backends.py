@@ -93,7 +93,6 @@ EXAMPLES = {
     "current_placement": {},
     "fig4_literal": {"platform": "remote"},
     "fig5_literal": {},
-    "config_ranking": {"band": "dark"},
 }
 
 
