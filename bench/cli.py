@@ -20,6 +20,7 @@ BENCHES = (
     "bench.reliability_bench",
     "bench.footprint",
     "bench.starvation_bench",
+    "bench.soak_bench",
 )
 
 

@@ -81,7 +81,7 @@ class AdaptationSettings:
     settle_s: float = 1.0  # after a change, host statuses this young do not count for memory_short
     retry_s: float = 1.0  # the running host lost and no replacement started: try again this often
     reconcile_s: float = 0.5  # ask the running detector's deployer how it is at least this often
-    status_window_s: float = 2.5  # a host's free memory counts when its statuses of this window agree
+    status_window_s: float = 1.5  # a host's free memory counts when its statuses of this window (>= 2) agree
 
 
 @dataclass(kw_only=True)
@@ -365,8 +365,12 @@ class AdaptationManager:
         if not self._own_host_known():
             return None
         now = time.time()
-        if not any(h.online and self._trust.confirmed_free(h.name, now) is not None for h in a.hosts.values()):
-            return None  # no host's figures are confirmed yet: a plan now could only fail
+        # Our own host's figures confirmed first (within the grace period): the remote agent, up
+        # earlier, would otherwise be the only candidate.
+        wanted = ([self.settings.onboard_host] if time.monotonic() - self._setup_at <= self.settings.startup_grace_s
+                  else [h.name for h in a.hosts.values() if h.online])
+        if not any(self._trust.confirmed_free(h, now) is not None for h in wanted):
+            return None  # no figures confirmed yet: a plan now could only fail or go elsewhere
         return Trigger("startup", time.time(), {"band": a.tracker.current.name})
 
     def _log_refusal(self, host: str, exc: Exception) -> None:
