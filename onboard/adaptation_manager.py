@@ -365,12 +365,12 @@ class AdaptationManager:
         if not self._own_host_known():
             return None
         now = time.time()
-        # Our own host's figures confirmed first (within the grace period): the remote agent, up
-        # earlier, would otherwise be the only candidate.
-        wanted = ([self.settings.onboard_host] if time.monotonic() - self._setup_at <= self.settings.startup_grace_s
-                  else [h.name for h in a.hosts.values() if h.online])
-        if not any(self._trust.confirmed_free(h, now) is not None for h in wanted):
-            return None  # no figures confirmed yet: a plan now could only fail or go elsewhere
+        # Within the grace period, every online host's figures confirmed (else the first plan
+        # would see only the host confirmed first); after it, any host's.
+        confirmed = [self._trust.confirmed_free(h.name, now) is not None for h in a.hosts.values() if h.online]
+        within_grace = time.monotonic() - self._setup_at <= self.settings.startup_grace_s
+        if not (all(confirmed) if within_grace else any(confirmed)):
+            return None  # a plan now could only fail or go elsewhere
         return Trigger("startup", time.time(), {"band": a.tracker.current.name})
 
     def _log_refusal(self, host: str, exc: Exception) -> None:
