@@ -85,7 +85,7 @@ class TrustSettings:
     """How much a consumer of statuses believes them (see :class:`StatusTrust`)."""
 
     window_s: float = 2.5  # a figure counts when every accepted status of this window agrees with it
-    min_statuses: int = 2  # ... and the window holds at least this many
+    min_statuses: int = 2  # ... and the window holds at least this many (else the last this many of stale_s)
     stale_s: float = 5.0  # a status this much older than the host's newest accepted one is refused
     total_slack: float = 0.05  # a total this much above the host's first total since its token came up is refused
     profile_slack: float = 0.25  # free memory may overlap its processes' recorded RSS this much (shared pages)
@@ -165,15 +165,22 @@ class StatusTrust:
         if record.total_mb is None:
             record.total_mb = total
         record.newest = stamp if record.newest is None else max(record.newest, stamp)
-        record.recent = [(t, f) for t, f in record.recent if t > received - s.window_s] + [(received, free)]
+        keep = max(s.window_s, s.stale_s)
+        record.recent = [(t, f) for t, f in record.recent if t > received - keep] + [(received, free)]
         return body
 
     def _window(self, host: str, now: float) -> list[float] | None:
         record = self._hosts.get(host)
         if record is None or (self.settings.require_alive and not record.alive):
             return None
-        frees = [f for t, f in record.recent if t > now - self.settings.window_s]
-        return frees if len(frees) >= self.settings.min_statuses else None
+        s = self.settings
+        frees = [f for t, f in record.recent if t > now - s.window_s]
+        if len(frees) < s.min_statuses:
+            # Statuses come late on a loaded machine: then the last ``min_statuses`` of the last
+            # ``stale_s`` seconds. Still never one status alone.
+            recent = [f for t, f in record.recent if t > now - s.stale_s]
+            frees = recent[-s.min_statuses:]
+        return frees if len(frees) >= s.min_statuses else None
 
     def confirmed_free(self, host: str, now: float) -> float | None:
         """The least free memory the host's statuses of the window show; None: not confirmed."""

@@ -70,6 +70,7 @@ def test_no_single_status_decides_room_or_shortage():
     assert trust.confirmed_free("remote", 11.0) == 100.0  # and room is only what every status shows
     trust.admit("remote", status(free=900.0), received=12.0)
     assert trust.confirmed_free("remote", 12.6) == 900.0  # the forgery left the window
+    assert trust.confirmed_free("remote", 14.0) == 900.0  # late statuses (a loaded machine): the last two
     assert trust.confirmed_free("remote", 20.0) is None  # nothing recent: not confirmed
     trust.alive("remote", False)
     trust.alive("remote", True)  # a new session of the host starts afresh
