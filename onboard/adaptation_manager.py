@@ -51,7 +51,7 @@ from onboard.adaptation import (
 )
 from onboard.flight_phase import in_final_descent
 from shared import keys, messages
-from shared.hostmonitor import StatusTrust, TrustSettings
+from shared.hostmonitor import StatusTrust, TrustSettings, check_status
 from shared.errors import DeploymentError, KgadaptError, MessageError
 
 log = logging.getLogger(__name__)
@@ -262,9 +262,9 @@ class AdaptationManager:
                 # a stale status, free memory its running detector's profile shows as used.
                 host = keys.last_chunk(key, 2)
                 held = self.current.held_mb if self.current is not None and self.current.host == host else 0.0
+                m = check_status(host, messages.decode(payload, "host_status"))  # malformed: dropped below
                 try:
-                    m = self._trust.admit(host, messages.decode(payload, "host_status"), received=received,
-                                          used_mb=held)
+                    m = self._trust.admit(host, m, received=received, used_mb=held)
                 except MessageError as exc:
                     self._log_refusal(host, exc)
                     return None

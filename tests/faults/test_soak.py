@@ -18,6 +18,7 @@ from bench.soak_bench import Soak, SoakSettings
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 
 
+@pytest.mark.timeout(600)  # 3 minutes of soak, plus the robot's start and stop on a loaded machine
 def test_three_minutes_of_random_faults_break_no_invariant(tmp_path, needs_namespaces):
     lines: list[str] = []
     report = Soak(SoakSettings(minutes=3.0, seed=18, warmup_s=60.0, subnet="10.213.11"), tmp_path / "soak",
