@@ -460,9 +460,13 @@ class AdaptationManager:
                 self._record(Outcome(trigger=trigger, outcome=f"stopped twin(s) {', '.join(twins)}"))
         if (trigger.kind == "host_back" and self._retry is None and not trigger.detail.get("confirming")
                 and self._trust.confirmed_free(str(trigger.detail.get("host")), time.time()) is None):
-            # The host is back but none of its statuses is confirmed yet: plan once they can be.
+            # The host is back but none of its statuses is confirmed yet: plan once they can be, not
+            # now without it (the soak saw a needless migration to the other host that way).
             self._retry = Trigger(trigger.kind, trigger.time, {**trigger.detail, "confirming": True})
             self._retry_at = time.monotonic() + self.settings.status_window_s
+            if not (self.current is not None and self.current.host in
+                    tuple(h.name for h in a.hosts.values() if not h.online)):
+                return
         if self._landed_state is not None:
             self.landing = self._landed_state() == "LANDING"
         lost = tuple(h.name for h in a.hosts.values() if not h.online)
