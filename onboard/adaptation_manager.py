@@ -479,8 +479,12 @@ class AdaptationManager:
             # Only confirmed figures place a detector: a host whose statuses of the window do not
             # all show room (or that has too few yet) is no target, whatever the graph says.
             now = time.time()
+            # The running detector's host keeps it unless every status of the window shows it short
+            # (a forged "full" between real statuses must not move the detector off it).
+            here = self.current.host if self.current is not None else None
             live = {h.name: free for h in a.hosts.values() if h.online
-                    and (free := self._trust.confirmed_free(h.name, now)) is not None}
+                    and (free := (self._trust.roomiest if h.name == here else self._trust.confirmed_free)(
+                        h.name, now)) is not None}
             # Configurations whose detections collapsed in this band stay out until the band changes.
             exclude = tuple(sorted(a.collapsed))
             plan = self._planner.plan(band=band.name, running=None if running_lost else self.current, exclude=exclude,
