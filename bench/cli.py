@@ -21,6 +21,7 @@ BENCHES = (
     "bench.footprint",
     "bench.starvation_bench",
     "bench.fleet_bench",
+    "bench.soak_bench",
 )
 
 

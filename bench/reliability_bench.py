@@ -371,7 +371,21 @@ class _Probe:
         if op == "fuzz":
             return fuzz(self.session, self.robot, examples=int(request.get("examples", 20)),
                         hosts=tuple(request.get("hosts") or ("onboard", "remote")))
-        raise ConfigError(f"unknown probe op {op!r}: use query, cypher, list, active, since or fuzz")
+        if op == "write":  # the soak's acknowledged writes (this robot's write API: no ACL on a plain cluster)
+            return KnowledgeClient(self.session, self.robot, timeout=float(request.get("timeout", 3.0))).write(
+                request["verb"], request.get("params") or {})
+        if op == "squeeze":
+            from shared.hostmonitor import squeeze
+
+            return squeeze(self.session, self.robot, request["host"], float(request["reserve_mb"]))
+        if op == "forge":  # host statuses on this robot's own keys, as a process holding its certificate could
+            from shared import keys, messages
+
+            for body in request["statuses"]:
+                self.session.put(keys.host_status(self.robot, body["host"]), messages.encode("host_status", body))
+            return len(request["statuses"])
+        raise ConfigError(f"unknown probe op {op!r}: use query, cypher, list, active, since, fuzz, write, squeeze "
+                          "or forge")
 
 
 class ProbeHandle:
@@ -384,6 +398,7 @@ class ProbeHandle:
         self.events: list[dict[str, Any]] = []
         self._cond = threading.Condition()
         self._ids = itertools.count(1)
+        self._write_lock = threading.Lock()  # requests may come from several threads (the soak's)
 
     def start(self, timeout: float = 20.0) -> None:
         log_file = open(self.log_path, "w")
@@ -429,9 +444,10 @@ class ProbeHandle:
         """Ask the probe (answer within ``wait`` s); returns its result or raises TransportError with its error."""
         if self.process is None or self.process.stdin is None or self.process.poll() is not None:
             raise TransportError("the probe is not running")
-        rid = next(self._ids)
-        self.process.stdin.write(json.dumps({"id": rid, "op": op, **fields}) + "\n")
-        self.process.stdin.flush()
+        with self._write_lock:
+            rid = next(self._ids)
+            self.process.stdin.write(json.dumps({"id": rid, "op": op, **fields}) + "\n")
+            self.process.stdin.flush()
         reply = self.wait_event(lambda e: e["ev"] == "reply" and e.get("id") == rid, wait, f"the probe's {op}")
         if not reply["ok"]:
             raise TransportError(f"probe {op}: {reply['error']}")

@@ -119,7 +119,10 @@ def record_process_sample(store: GraphStore, *, run_id: str, rss_mb_last: float,
     store.execute(
         f"MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}}) "
         "SET r.rss_mb_last = $rss_mb_last, r.rss_mb_mean = $rss_mb_mean, r.rss_mb_max = $rss_mb_max, "
-        "r.cpu_percent_mean = $cpu_percent_mean",
+        "r.cpu_percent_mean = $cpu_percent_mean, "
+        # A sample from a process whose profile was closed with its host's token: it outlived the partition.
+        "r.end_time = CASE WHEN r.end_reason = 'host_lost' THEN null ELSE r.end_time END, "
+        "r.end_reason = CASE WHEN r.end_reason = 'host_lost' THEN null ELSE r.end_reason END",
         {"run_id": run_id, "rss_mb_last": float(rss_mb_last), "rss_mb_mean": float(rss_mb_mean),
          "rss_mb_max": float(rss_mb_max), "cpu_percent_mean": float(cpu_percent_mean)})
 
@@ -143,12 +146,35 @@ def record_process_reconfigured(store: GraphStore, *, run_id: str, config: str, 
         f"FOREACH (x IN CASE WHEN d IS NULL THEN [] ELSE [d] END | MERGE (r)-[:{S.PROFILE_OF}]->(x))", params)
 
 
+def close_host_profiles(store: GraphStore, *, name: str, time: float) -> None:
+    """Host ``name``'s liveliness was lost: its open profiles end now (``end_reason`` 'host_lost', no exit status).
+
+    Not a write verb: the knowledge service calls it on the token's loss. A process
+    that outlived a partition reopens its profile with its next sample.
+    """
+    _check("close_host_profiles", name=(name, (str,), False), time=(time, _NUM, False))
+    store.execute(
+        f"MATCH (r:{S.PROCESS_PROFILE})-[:{S.RAN_ON}]->(:{S.PLATFORM} {{name: $name}}) WHERE r.end_time IS NULL "
+        "SET r.end_time = $time, r.end_reason = 'host_lost'",
+        {"name": name, "time": float(time)})
+
+
+def held_by_processes(store: GraphStore, *, host: str) -> float:
+    """The RSS (MiB) the open profiles of ``host``'s processes last recorded; 0 when none."""
+    rows = store.execute(
+        f"MATCH (r:{S.PROCESS_PROFILE})-[:{S.RAN_ON}]->(:{S.PLATFORM} {{name: $host}}) "
+        "WHERE r.end_time IS NULL AND r.rss_mb_last IS NOT NULL RETURN sum(r.rss_mb_last) AS used",
+        {"host": host})
+    return float(rows[0]["used"] or 0.0) if rows else 0.0
+
+
 def record_process_end(store: GraphStore, *, run_id: str, end_time: float, exit_status: int | None) -> None:
     """A process ended (``exit_status`` negative for a signal, None when unknown)."""
     _check("process_end", run_id=(run_id, (str,), False), end_time=(end_time, _NUM, False),
            exit_status=(exit_status, (int,), True))
     store.execute(
-        f"MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}}) SET r.end_time = $end_time, r.exit_status = $exit_status",
+        f"MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}}) SET r.end_time = $end_time, r.exit_status = $exit_status, "
+        "r.end_reason = 'exited'",
         {"run_id": run_id, "end_time": float(end_time), "exit_status": exit_status})
 
 

@@ -71,7 +71,7 @@ from knowledge.cypher_guard import CypherLimits, check_cypher
 from knowledge.service_lock import ServiceLock
 from knowledge.store import GraphStore
 from shared import keys, messages
-from shared.hostmonitor import check_status
+from shared.hostmonitor import StatusTrust, TrustSettings, check_status
 from shared.errors import ConfigError, KgadaptError, MessageError, NamedQueryError, QueryError, QueryTimeLimit
 
 log = logging.getLogger(__name__)
@@ -125,6 +125,9 @@ class KnowledgeService:
         self._stats: collections.Counter[str] = collections.Counter()
         self._last_drop = ""
         self._drop_log = _RateLimitedLog(log, per_second=10)
+        # Statuses contradicting what is known are refused here too (the graph never holds them). Those of
+        # a host without a token are still recorded: the placement query takes only online platforms.
+        self._trust = StatusTrust(TrustSettings(require_alive=False))
         self._store_lock = _store_lock(store)
         self._writers: Mapping[str, Callable[..., Any]] = dict(runtime.WRITERS) if settings.writes else {}
         self._lock = ServiceLock(store) if settings.lock else None
@@ -411,20 +414,30 @@ class KnowledgeService:
     def _apply_events(self, batch: list[tuple[Any, ...]]) -> None:
         statuses: dict[str, tuple[dict[str, Any], float]] = {}
         alive: dict[str, tuple[bool, float]] = {}
+        used: dict[str, float] = {}  # what each host's open profiles hold, read once per batch
         for kind, key, value, received in batch:
             try:
                 if kind == "status":
-                    body = self._check_status(key, value)
+                    host = _host_of(key)
+                    if host not in used:
+                        used[host] = self._held_by_processes(host)
+                    body = self._trust.admit(host, self._check_status(key, value), received=received,
+                                             used_mb=used[host])
                     statuses[body["host"]] = (body, received)
                 else:
                     host = _host_of(key)
                     alive[host] = (value, received)
+                    self._trust.alive(host, value)
             except KgadaptError as exc:
                 self._drop(f"{kind} on {key}: {exc}")
         self._count("events_received", len(batch))
         for host, (online, received) in alive.items():
             self._apply(runtime.set_platform_online, host, "liveliness", name=host, online=online, time=received)
             log.info("host %s is %s", host, "online" if online else "offline")
+            if not online:
+                # Its processes are beyond reach: their profiles end with the token. A process that
+                # outlived a partition reopens its profile with its next sample.
+                self._apply(runtime.close_host_profiles, host, "profile closing", name=host, time=received)
         for host, (body, received) in statuses.items():
             self._apply(
                 runtime.update_platform, host, "status",
@@ -444,6 +457,14 @@ class KnowledgeService:
 
     def _check_status(self, key: str, payload: bytes) -> dict[str, Any]:
         return check_status(_host_of(key), messages.decode(payload, "host_status"))
+
+    def _held_by_processes(self, host: str) -> float:
+        try:
+            with self._store_lock:
+                return runtime.held_by_processes(self.store, host=host)
+        except KgadaptError as exc:  # e.g. FalkorDB's "empty key" before anything was written
+            log.debug("no profile figures for %s: %s", host, exc)
+            return 0.0
 
     def _mark_all_offline(self) -> None:
         now = time.time()

@@ -325,8 +325,9 @@ class Planner:
         ``exclude``: configurations not to choose (the one whose detections
         collapsed). The host running a detector gets back what that detector
         holds, since a change replaces it there. ``live_free`` is the caller's own,
-        fresher view of free memory (host statuses it just received): a host the
-        graph still thinks fits but that no longer does by that view is left out.
+        fresher view of free memory (host statuses it confirmed): a host the
+        graph still thinks fits but that no longer does by that view is left out,
+        and so is a host missing from it (other than the running one).
         """
         full, ranked = self.candidates(band, exclude=exclude)
         skipped: list[dict[str, Any]] = []
@@ -410,9 +411,12 @@ class Planner:
                                               "deployment": deployment[0]["deployment"]}
         for host in list(fits):
             free = (live_free or {}).get(host)
-            credit = running.held_mb if running is not None and running.host == host else 0.0
+            running_here = running is not None and running.host == host
+            credit = running.held_mb if running_here else 0.0
             if free is not None and free + credit < demand:
                 del fits[host]  # the graph has not caught up with a squeeze we already saw
+            elif free is None and live_free is not None and not running_here:
+                del fits[host]  # the caller has no confirmed figure of this host: the graph's alone moves nothing
         return fits
 
     def _host_rank(self, host: str) -> tuple[int, str]:

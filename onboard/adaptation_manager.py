@@ -54,7 +54,7 @@ from onboard.adaptation import (
 )
 from onboard.flight_phase import in_final_descent
 from shared import keys, messages
-from shared.hostmonitor import check_status
+from shared.hostmonitor import StatusTrust, TrustSettings, check_status
 from shared.errors import DeploymentError, KgadaptError, MessageError
 
 log = logging.getLogger(__name__)
@@ -85,6 +85,7 @@ class AdaptationSettings:
     retry_s: float = 1.0  # the running host lost and no replacement started: try again this often
     reconcile_s: float = 0.5  # ask the running detector's deployer how it is at least this often
     in_place: bool = True  # reconfigure in place where the graph allows it (False: always migrate)
+    status_window_s: float = 1.5  # a host's free memory counts when its statuses of this window (>= 2) agree
 
 
 @dataclass(kw_only=True)
@@ -134,7 +135,8 @@ class AdaptationManager:
         self._lock = threading.Lock()
         self._probe: DeployerClient | None = None  # short timeout: a lost host is liveliness' business
         self._next_check = 0.0
-        self._last_free: dict[str, float] = {}  # each host's previous free-memory figure
+        self._trust = StatusTrust(TrustSettings(window_s=settings.status_window_s))
+        self._refusal_logged: dict[str, float] = {}
 
     # -- lifecycle -------------------------------------------------------
 
@@ -247,6 +249,7 @@ class AdaptationManager:
         a = self._analyzer
         if kind == "alive":
             host, alive = data
+            self._trust.alive(host, alive)
             if host == self.settings.onboard_host and not alive:
                 # Our own token goes first when our agent shuts down; we go with it.
                 return None
@@ -259,19 +262,25 @@ class AdaptationManager:
                 m = messages.decode(payload, "illumination")
                 return a.on_illumination(float(m["smoothed"]), now)
             if kind == "host_status":
-                # The knowledge service's own rule (a status it would refuse is not acted on), and
-                # only from a host whose liveliness token is up.
-                m = check_status(keys.last_chunk(key, 2), messages.decode(payload, "host_status"))
-                host = str(m["host"])
+                # Refused: what the knowledge service refuses, a host without a liveliness token,
+                # a stale status, free memory its running detector's profile shows as used.
+                host = keys.last_chunk(key, 2)
+                held = self.current.held_mb if self.current is not None and self.current.host == host else 0.0
+                m = check_status(host, messages.decode(payload, "host_status"))  # malformed: dropped below
+                try:
+                    m = self._trust.admit(host, m, received=received, used_mb=held)
+                except MessageError as exc:
+                    self._log_refusal(host, exc)
+                    return None
                 view = a.hosts.get(host)
                 if view is None or not view.online:
                     return None
-                # No move on the strength of one status: a shortage counts when this status and
-                # the host's previous one both show it; a host looks as roomy as the lesser of the two.
-                now_free = float(m["memory_free_mb"])
-                before = self._last_free.get(host, now_free)
-                self._last_free[host] = now_free
-                m = {**m, "memory_free_mb": max(before, now_free)}
+                # No move on the strength of one status: a shortage counts when every status of the
+                # window shows it, and a host looks as roomy as the least of them (None: not yet confirmed).
+                roomiest = self._trust.roomiest(host, received)
+                if roomiest is None:
+                    return None
+                m = {**m, "memory_free_mb": roomiest}
                 if self.current is not None and self.current.host == host:
                     self._refresh_held(now)
                 # A status received before the last change settled was measured while old and
@@ -288,7 +297,7 @@ class AdaptationManager:
                     if running.held_mb < UNMEASURED_MB and now - self._changed_at < MEASURE_WITHIN_S:
                         running = None
                 trigger = a.on_host_status(host, free_mb=free, cpu_load=float(m["cpu_load"]), now=now, running=running)
-                view.memory_free_mb = min(before, now_free)
+                view.memory_free_mb = self._trust.confirmed_free(host, received)
                 return trigger
             if kind == "flight_state":
                 m = messages.decode(payload, "flight_state")  # malformed ones are dropped and logged either way
@@ -359,7 +368,20 @@ class AdaptationManager:
             return None
         if not self._own_host_known():
             return None
+        now = time.time()
+        # Within the grace period, every online host's figures confirmed (else the first plan
+        # would see only the host confirmed first); after it, any host's.
+        confirmed = [self._trust.confirmed_free(h.name, now) is not None for h in a.hosts.values() if h.online]
+        within_grace = time.monotonic() - self._setup_at <= self.settings.startup_grace_s
+        if not (all(confirmed) if within_grace else any(confirmed)):
+            return None  # a plan now could only fail or go elsewhere
         return Trigger("startup", time.time(), {"band": a.tracker.current.name})
+
+    def _log_refusal(self, host: str, exc: Exception) -> None:
+        now = time.monotonic()
+        if now - self._refusal_logged.get(host, -1e9) >= 5.0:  # a flood of forgeries logs once per host per 5 s
+            self._refusal_logged[host] = now
+            log.warning("adaptation: refused %s (%d refused so far)", exc, self._trust.refused)
 
     def _graph_shows_online(self, host: str, timeout: float) -> bool:
         """Wait (bounded) until the graph shows ``host`` online with a free-memory figure.
@@ -440,6 +462,15 @@ class AdaptationManager:
             twins = self.reconcile(str(trigger.detail.get("host")))
             if twins:
                 self._record(Outcome(trigger=trigger, outcome=f"stopped twin(s) {', '.join(twins)}"))
+        if (trigger.kind == "host_back" and self._retry is None and not trigger.detail.get("confirming")
+                and self._trust.confirmed_free(str(trigger.detail.get("host")), time.time()) is None):
+            # The host is back but none of its statuses is confirmed yet: plan once they can be, not
+            # now without it (the soak saw a needless migration to the other host that way).
+            self._retry = Trigger(trigger.kind, trigger.time, {**trigger.detail, "confirming": True})
+            self._retry_at = time.monotonic() + self.settings.status_window_s
+            if not (self.current is not None and self.current.host in
+                    tuple(h.name for h in a.hosts.values() if not h.online)):
+                return
         if self._landed_state is not None:
             self.landing = self._landed_state() == "LANDING"
         lost = tuple(h.name for h in a.hosts.values() if not h.online)
@@ -449,7 +480,15 @@ class AdaptationManager:
             return
         started = time.perf_counter()
         try:
-            live = {h.name: h.memory_free_mb for h in a.hosts.values() if h.memory_free_mb is not None}
+            # Only confirmed figures place a detector: a host whose statuses of the window do not
+            # all show room (or that has too few yet) is no target, whatever the graph says.
+            now = time.time()
+            # The running detector's host keeps it unless every status of the window shows it short
+            # (a forged "full" between real statuses must not move the detector off it).
+            here = self.current.host if self.current is not None else None
+            live = {h.name: free for h in a.hosts.values() if h.online
+                    and (free := (self._trust.roomiest if h.name == here else self._trust.confirmed_free)(
+                        h.name, now)) is not None}
             # Configurations whose detections collapsed in this band stay out until the band changes.
             exclude = tuple(sorted(a.collapsed))
             plan = self._planner.plan(band=band.name, running=None if running_lost else self.current, exclude=exclude,

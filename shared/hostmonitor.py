@@ -34,7 +34,7 @@ import queue
 import re
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import psutil
@@ -78,6 +78,119 @@ def check_status(host: str, body: dict[str, Any]) -> dict[str, Any]:
     if cores is not None and cores < 1:
         raise MessageError(f"host_status field 'cpu_cores' must be at least 1, got {cores}")
     return body
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrustSettings:
+    """How much a consumer of statuses believes them (see :class:`StatusTrust`)."""
+
+    window_s: float = 2.5  # a figure counts when every accepted status of this window agrees with it
+    min_statuses: int = 2  # ... and the window holds at least this many (else the last this many of stale_s)
+    stale_s: float = 5.0  # a status this much older than the host's newest accepted one is refused
+    total_slack: float = 0.05  # a total this much above the host's first total since its token came up is refused
+    profile_slack: float = 0.25  # free memory may overlap its processes' recorded RSS this much (shared pages)
+    require_alive: bool = True  # refuse statuses of a host whose liveliness token is absent
+
+    def __post_init__(self) -> None:
+        if not self.window_s > 0 or self.min_statuses < 1 or not self.stale_s > 0:
+            raise ConfigError(f"status trust: window {self.window_s!r} s, {self.min_statuses!r} statuses and "
+                              f"staleness {self.stale_s!r} s must all be positive")
+
+
+@dataclass
+class _HostTrust:
+    alive: bool = False
+    total_mb: float | None = None  # the first total since the token came up: a host's total does not grow
+    newest: float | None = None  # the newest accepted status's own time
+    recent: list[tuple[float, float]] = field(default_factory=list)  # (received, free) of accepted statuses
+
+
+class StatusTrust:
+    """What one consumer (knowledge service, adaptation manager) believes of each host's statuses.
+
+    A host status is only a claim: a bug, a stale clock or a process holding
+    this robot's certificate can say anything on a host's key. :meth:`admit`
+    refuses (MessageError) a status that contradicts what is known: besides
+    :func:`check_status`, a status of a host without a liveliness token, a
+    status far older than the host's newest, a total above the host's total,
+    free memory that the RSS of the host's own running processes (their
+    profiles) shows as used. And no single status decides: :meth:`confirmed_free`
+    is the least free memory of the last ``window_s`` (so one roomy forgery
+    between real statuses is outvoted), :meth:`roomiest` the most (so one
+    "full" forgery is), each only with ``min_statuses`` statuses in the window.
+    Not thread-safe: one worker owns it.
+    """
+
+    def __init__(self, settings: TrustSettings = TrustSettings()) -> None:
+        self.settings = settings
+        self._hosts: dict[str, _HostTrust] = {}
+        self.refused = 0
+
+    def alive(self, host: str, alive: bool) -> None:
+        """The host's liveliness token came (a new session: its figures start afresh) or went."""
+        record = self._hosts.setdefault(host, _HostTrust())
+        if alive and not record.alive:
+            self._hosts[host] = _HostTrust(alive=True)
+        else:
+            record.alive = alive
+            if not alive:
+                record.recent.clear()
+
+    def admit(self, host: str, body: dict[str, Any], *, received: float, used_mb: float = 0.0) -> dict[str, Any]:
+        """``body`` if it is believable, else MessageError saying why (counted in ``refused``).
+
+        ``used_mb``: what the host's running processes are recorded to hold (their profiles' RSS).
+        """
+        s = self.settings
+        try:
+            check_status(host, body)
+            record = self._hosts.setdefault(host, _HostTrust())
+            if s.require_alive and not record.alive:
+                raise MessageError(f"host_status of {host}: the host has no liveliness token")
+            stamp = float(body["time"])
+            if record.newest is not None and stamp < record.newest - s.stale_s:
+                raise MessageError(f"host_status of {host}: measured {record.newest - stamp:.1f} s before its "
+                                   f"newest status (stale or replayed)")
+            total, free = float(body["memory_total_mb"]), float(body["memory_free_mb"])
+            if record.total_mb is not None and total > record.total_mb * (1 + s.total_slack):
+                raise MessageError(f"host_status of {host}: total {total:.0f} MiB above the host's "
+                                   f"{record.total_mb:.0f} MiB")
+            known_total = total if record.total_mb is None else record.total_mb
+            if used_mb > 0 and free > known_total - used_mb * (1 - s.profile_slack):
+                raise MessageError(f"host_status of {host}: {free:.0f} MiB free of {known_total:.0f} MiB, but its "
+                                   f"running processes hold {used_mb:.0f} MiB")
+        except MessageError:
+            self.refused += 1
+            raise
+        if record.total_mb is None:
+            record.total_mb = total
+        record.newest = stamp if record.newest is None else max(record.newest, stamp)
+        keep = max(s.window_s, s.stale_s)
+        record.recent = [(t, f) for t, f in record.recent if t > received - keep] + [(received, free)]
+        return body
+
+    def _window(self, host: str, now: float) -> list[float] | None:
+        record = self._hosts.get(host)
+        if record is None or (self.settings.require_alive and not record.alive):
+            return None
+        s = self.settings
+        frees = [f for t, f in record.recent if t > now - s.window_s]
+        if len(frees) < s.min_statuses:
+            # Statuses come late on a loaded machine: then the last ``min_statuses`` of the last
+            # ``stale_s`` seconds. Still never one status alone.
+            recent = [f for t, f in record.recent if t > now - s.stale_s]
+            frees = recent[-s.min_statuses:]
+        return frees if len(frees) >= s.min_statuses else None
+
+    def confirmed_free(self, host: str, now: float) -> float | None:
+        """The least free memory the host's statuses of the window show; None: not confirmed."""
+        frees = self._window(host, now)
+        return min(frees) if frees else None
+
+    def roomiest(self, host: str, now: float) -> float | None:
+        """The most free memory the host's statuses of the window show (a shortage must hold in all); None: not confirmed."""
+        frees = self._window(host, now)
+        return max(frees) if frees else None
 
 
 def squeeze_key(robot: str, host: str) -> str:

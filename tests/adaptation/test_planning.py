@@ -120,8 +120,18 @@ def test_the_plan_explains_itself(graph):
 
 def test_a_squeeze_seen_live_before_the_graph_shows_it_already_counts(graph):
     # The graph still says 400 MiB free onboard; the status just received says 200.
-    plan = planner(graph).plan(band="dark", running=None, live_free={"onboard": 200.0})
+    plan = planner(graph).plan(band="dark", running=None, live_free={"onboard": 200.0, "remote": 4000.0})
     assert plan.target.host == "remote"
+
+
+def test_a_host_without_a_confirmed_figure_is_no_target_whatever_the_graph_says(graph):
+    # The graph says remote has 4000 MiB (one status may have put it there); the caller has confirmed
+    # only onboard's figures, which are too small for the dark detector.
+    with pytest.raises(PlanningError, match="no online platform"):
+        planner(graph).plan(band="dark", running=None, live_free={"onboard": 200.0})
+    # The running host keeps its own detector without a confirmed figure (it gets its memory back).
+    running = Placement(config="marker_detection_dark", deployment="x", host="remote", demand_mb=324, held_mb=300)
+    assert planner(graph).plan(band="dark", running=running, live_free={"onboard": 200.0}).target.host == "remote"
 
 
 def test_why_shows_the_ranking_the_plan_used(graph):

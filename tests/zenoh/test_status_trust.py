@@ -1,0 +1,143 @@
+"""Statuses that cannot lie the detector off the drone: what a consumer of host statuses refuses.
+
+The rules (:class:`shared.hostmonitor.StatusTrust`) alone, then the knowledge
+service applying them to forged statuses put on this robot's own keys over real
+Zenoh, with ProcessProfiles in a real FalkorDB, and closing the profiles of a
+host whose liveliness token is lost.
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from knowledge import runtime
+from shared import keys, messages
+from shared.errors import MessageError
+from shared.hostmonitor import StatusTrust, TrustSettings
+from tests.zenoh.conftest import platform_row, wait_for
+
+
+def status(host: str = "remote", *, free: float = 500.0, total: float = 1000.0, at: float | None = None) -> dict:
+    return {"host": host, "time": time.time() if at is None else at, "memory_total_mb": total,
+            "memory_free_mb": free, "cpu_load": 10.0, "cpu_cores": 2}
+
+
+def test_a_status_of_a_host_without_liveliness_is_refused():
+    trust = StatusTrust()
+    with pytest.raises(MessageError, match="no liveliness token"):
+        trust.admit("remote", status(), received=1.0)
+    trust.alive("remote", True)
+    assert trust.admit("remote", status(), received=1.0)["memory_free_mb"] == 500.0
+    trust.alive("remote", False)
+    with pytest.raises(MessageError, match="no liveliness token"):
+        trust.admit("remote", status(), received=2.0)
+    assert trust.refused == 2
+
+
+def test_a_status_far_older_than_the_newest_is_refused_and_a_slightly_late_one_is_not():
+    trust = StatusTrust(TrustSettings(stale_s=5.0))
+    trust.alive("remote", True)
+    trust.admit("remote", status(at=1000.0), received=1.0)
+    trust.admit("remote", status(at=998.0), received=1.1)  # reordered on the way: within bounds
+    with pytest.raises(MessageError, match="before its newest status"):
+        trust.admit("remote", status(at=990.0), received=1.2)
+
+
+def test_free_memory_above_the_hosts_total_or_held_by_its_processes_is_refused():
+    trust = StatusTrust()
+    trust.alive("remote", True)
+    with pytest.raises(MessageError, match="free of"):
+        trust.admit("remote", status(free=1200.0, total=1000.0), received=1.0)  # check_status's rule
+    trust.admit("remote", status(free=500.0, total=1000.0), received=1.0)
+    with pytest.raises(MessageError, match="above the host's 1000 MiB"):
+        trust.admit("remote", status(free=60000.0, total=60000.0), received=1.1)  # a host does not grow
+    # Its running processes' profiles hold 400 MiB: at most ~700 of 1000 can be free (shared pages allowed for).
+    trust.admit("remote", status(free=650.0), received=1.2, used_mb=400.0)
+    with pytest.raises(MessageError, match="running processes hold 400 MiB"):
+        trust.admit("remote", status(free=900.0), received=1.3, used_mb=400.0)
+
+
+def test_no_single_status_decides_room_or_shortage():
+    trust = StatusTrust(TrustSettings(window_s=2.0, min_statuses=2))
+    trust.alive("remote", True)
+    trust.admit("remote", status(free=900.0), received=10.0)
+    assert trust.confirmed_free("remote", 10.0) is None  # one status confirms nothing
+    trust.admit("remote", status(free=100.0), received=10.5)  # a forged "full" between real ones
+    trust.admit("remote", status(free=900.0), received=11.0)
+    assert trust.roomiest("remote", 11.0) == 900.0  # the shortage does not hold over the window
+    assert trust.confirmed_free("remote", 11.0) == 100.0  # and room is only what every status shows
+    trust.admit("remote", status(free=900.0), received=12.0)
+    assert trust.confirmed_free("remote", 12.6) == 900.0  # the forgery left the window
+    assert trust.confirmed_free("remote", 14.0) == 900.0  # late statuses (a loaded machine): the last two
+    assert trust.confirmed_free("remote", 20.0) is None  # nothing recent: not confirmed
+    trust.alive("remote", False)
+    trust.alive("remote", True)  # a new session of the host starts afresh
+    assert trust.confirmed_free("remote", 11.0) is None
+
+
+# -- the knowledge service on real Zenoh ----------------------------------------------
+
+
+def _put(session, robot: str, body: dict) -> None:
+    session.put(keys.host_status(robot, body["host"]), messages.encode("host_status", body))
+
+
+def _applied(client, host: str, free: float):
+    return lambda: (platform_row(client, host) or {}).get("memory_free_mb") == free
+
+
+def test_the_service_refuses_forged_statuses_that_contradict_the_graph(zenoh_pair, client, service, robot, resp_store):
+    _, session = zenoh_pair
+    token = session.liveliness().declare_token(keys.host_alive(robot, "remote"))
+    try:
+        wait_for(lambda: (platform_row(client, "remote") or {}).get("online") is True, 5, "remote online")
+        _put(session, robot, status(free=300.0, total=1000.0))
+        wait_for(_applied(client, "remote", 300.0), 5, "the first real status")
+        # A detector on remote whose profile holds 500 MiB.
+        runtime.record_process_start(resp_store, run_id="run-1", instance="det-1", deployment="d", config=None,
+                                     host="remote", pid=4242, start_time=time.time())
+        runtime.record_process_sample(resp_store, run_id="run-1", rss_mb_last=500.0, rss_mb_mean=400.0,
+                                      rss_mb_max=500.0, cpu_percent_mean=20.0)
+        forgeries = [
+            (status(free=60000.0, total=60000.0), "above the host's 1000 MiB"),  # a host larger than it was
+            (status(free=900.0, total=1000.0), "running processes hold 500 MiB"),  # room the profile shows used
+            (status(free=350.0, at=time.time() - 60.0), "before its newest status"),  # a replay
+        ]
+        for body, why in forgeries:
+            before = service.stats().get("events_dropped", 0)
+            _put(session, robot, body)
+            wait_for(lambda: service.stats().get("events_dropped", 0) > before, 5, f"the refusal of {body}")
+            assert why in service.stats()["last_drop"]
+            assert platform_row(client, "remote")["memory_free_mb"] == 300.0
+        _put(session, robot, status(free=280.0, total=1000.0))  # real statuses still go through
+        wait_for(_applied(client, "remote", 280.0), 5, "the next real status")
+        row = platform_row(client, "remote")
+        assert row["memory_total_mb"] == 1000.0
+    finally:
+        token.undeclare()
+
+
+def test_a_hosts_profiles_close_when_its_liveliness_is_lost_and_reopen_if_its_process_outlived_it(
+        zenoh_pair, client, service, robot, resp_store):
+    _, session = zenoh_pair
+    token = session.liveliness().declare_token(keys.host_alive(robot, "remote"))
+    wait_for(lambda: (platform_row(client, "remote") or {}).get("online") is True, 5, "remote online")
+    for run in ("run-a", "run-b"):
+        runtime.record_process_start(resp_store, run_id=run, instance=run, deployment="d", config=None,
+                                     host="remote", pid=1, start_time=time.time())
+    runtime.record_process_end(resp_store, run_id="run-b", end_time=123.0, exit_status=0)
+    profile = "MATCH (r:ProcessProfile {name: $run}) RETURN r.end_time AS end, r.end_reason AS why"
+    lost_at = time.time()
+    token.undeclare()
+    row = wait_for(lambda: (r := resp_store.execute(profile, {"run": "run-a"})[0])["end"] is not None and r,
+                   5, "run-a's profile closed")
+    assert row["why"] == "host_lost" and row["end"] >= lost_at - 1.0
+    assert resp_store.execute(profile, {"run": "run-b"})[0] == {"end": 123.0, "why": "exited"}  # untouched
+    assert runtime.held_by_processes(resp_store, host="remote") == 0.0
+    # The process outlived a partition: its next sample reopens the profile.
+    runtime.record_process_sample(resp_store, run_id="run-a", rss_mb_last=50.0, rss_mb_mean=50.0,
+                                  rss_mb_max=50.0, cpu_percent_mean=1.0)
+    assert resp_store.execute(profile, {"run": "run-a"})[0] == {"end": None, "why": None}
+    assert runtime.held_by_processes(resp_store, host="remote") == 50.0
