@@ -128,7 +128,7 @@ class Deployer:
         if self._knowledge is None:
             from knowledge.client import KnowledgeClient
 
-            self._knowledge = KnowledgeClient(session, s.robot, timeout=s.knowledge_timeout, own=True)
+            self._knowledge = KnowledgeClient(session, s.robot, timeout=s.knowledge_timeout, own=True, host=s.host)
         try:
             self.recorder = ProfileRecorder(
                 host=s.host, write=self._knowledge.write, settings=ProfileSettings(sample_interval=s.sample_interval)

@@ -143,7 +143,7 @@ class AdaptationManager:
     def setup(self, session: Any) -> None:
         s = self.settings
         self._session = session
-        self._knowledge = KnowledgeClient(session, s.robot, own=True)
+        self._knowledge = KnowledgeClient(session, s.robot, own=True, host=s.onboard_host)  # writes as its host's
         self._deployers = DeployerClient(session, s.robot)
         self._probe = DeployerClient(session, s.robot, timeout=min(0.5, s.reconcile_s))
         rows = self._wait_for_knowledge()

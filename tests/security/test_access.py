@@ -324,11 +324,19 @@ def test_a_hosts_certificate_publishes_only_its_own_status_liveliness_and_detect
     remote = session_as(f"{ROBOT}-remote")  # the remote agent's identity, inherited by its detectors
     watcher = session_as(OPERATOR)
     seen: list[str] = []
+    forged_seen: list[str] = []  # the onboard agent's own status travels meanwhile: only the forged one counts
     alive: list[str] = []
-    subscriber = watcher.declare_subscriber(f"kgadapt/{ROBOT}/**", lambda s: seen.append(str(s.key_expr)))
+
+    def on_sample(sample: Any) -> None:
+        seen.append(str(sample.key_expr))
+        if b"forged" in sample.payload.to_bytes() or sample.payload.to_bytes() == forged_status:
+            forged_seen.append(str(sample.key_expr))
+
+    subscriber = watcher.declare_subscriber(f"kgadapt/{ROBOT}/**", on_sample)
     tokens = watcher.liveliness().declare_subscriber(keys.host_alive(ROBOT, "*"),
                                                     lambda s: alive.append(str(s.key_expr)))
     status = {"time": 1.0, "memory_total_mb": 700.0, "memory_free_mb": 0.0, "cpu_load": 0.0}
+    forged_status = messages.encode("host_status", {"host": "onboard", **status})
     forged_token = remote.liveliness().declare_token(keys.host_alive(ROBOT, "ghost"))
     onboard_token = remote.liveliness().declare_token(keys.host_alive(ROBOT, "onboard_twin"))
     try:
@@ -340,7 +348,7 @@ def test_a_hosts_certificate_publishes_only_its_own_status_liveliness_and_detect
         real_token = remote.liveliness().declare_token(keys.host_alive(ROBOT, "remote"))
         wait_for(lambda: keys.host_alive(ROBOT, "remote") in alive, 5, "the remote host's own token")
         real_token.undeclare()
-        remote.put(for_onboard, messages.encode("host_status", {"host": "onboard", **status}))
+        remote.put(for_onboard, forged_status)
         remote.put(flight, messages.encode("flight_state", {"time": 1.0, "link": True, "landed_state": "LANDING"}))
         remote.put(keys.adaptation_events(ROBOT), b"forged")
         remote.put(keys.camera_frame(ROBOT, "cam0"), b"forged frame")
@@ -349,7 +357,7 @@ def test_a_hosts_certificate_publishes_only_its_own_status_liveliness_and_detect
     finally:
         for entity in (subscriber, tokens, forged_token, onboard_token):
             entity.undeclare()
-    assert for_onboard not in seen and flight not in seen
+    assert for_onboard not in forged_seen and flight not in seen
     assert keys.adaptation_events(ROBOT) not in seen and keys.camera_frame(ROBOT, "cam0") not in seen
     assert not {keys.host_alive(ROBOT, "ghost"), keys.host_alive(ROBOT, "onboard_twin")} & set(alive)
 
@@ -379,3 +387,79 @@ def test_commands_from_the_models_run_without_a_shell_and_their_words_arrive_ver
     assert argv == [w.format(m=marker) for w in SHELL_WORDS]
     assert probe == f"$(touch {marker})"
     assert not network.marker.exists()
+
+
+# -- write verbs: each host only about itself, only plausible figures ----------------------------------
+
+
+def test_a_hosts_write_verbs_act_only_on_what_that_host_owns(session_as):
+    remote_session = session_as(f"{ROBOT}-remote")
+    remote = KnowledgeClient(remote_session, ROBOT, timeout=3.0, host="remote")
+    onboard = KnowledgeClient(session_as(f"{ROBOT}-onboard"), ROBOT, timeout=3.0, host="onboard")
+    operator = KnowledgeClient(session_as(OPERATOR), ROBOT, timeout=3.0)
+    operator.write("platform_online", {"name": "onboard", "online": True, "time": 5.0})  # (an earlier test's write)
+    # Keys the remote certificate may not ask on at all: dropped by the router, so asked at once.
+    dropped = concurrently({
+        "onboard's key": lambda: KnowledgeClient(remote_session, ROBOT, timeout=1.0, host="onboard").write(
+            "platform_online", {"name": "onboard", "online": False, "time": 1.0}),
+        "robot-wide key": lambda: KnowledgeClient(remote_session, ROBOT, timeout=1.0).write(
+            "platform_online", {"name": "onboard", "online": False, "time": 1.0}),
+    })
+    assert {what: type(outcome) for what, outcome in dropped.items()} == dict.fromkeys(dropped, RequestTimeout)
+    # On its own key, the service refuses what is not the remote host's, naming the parameter.
+    assert remote.write("platform", {"name": "remote", "time": 2.0, "memory_total_mb": 2048.0,
+                                     "memory_free_mb": 1000.0}) == []
+    for verb, params, reason in [
+        ("platform", {"name": "onboard", "time": 2.0, "memory_free_mb": 0.0}, "'name' is 'onboard'"),
+        ("platform_online", {"name": "onboard", "online": False, "time": 2.0}, "'name' is 'onboard'"),
+        ("process_start", {**write_params("process_start"), "run_id": "remote-run", "host": "onboard"},
+         "'host' is 'onboard'"),
+        ("decision", write_params("decision"), "only the adaptation manager's host 'onboard'"),
+        ("flight_state", {**write_params("flight_state"), "landed_state": "LANDING"},
+         "only the adaptation manager's host"),
+        ("calibration", {**write_params("calibration"), "detection_rate": 0.0}, "no host's to write"),
+    ]:
+        with pytest.raises(RemoteError, match=reason):
+            remote.write(verb, params)
+    # A process belongs to the host that started it: nobody else may sample, end or take its profile.
+    onboard_run = {**write_params("process_start"), "run_id": "onboard-run", "host": "onboard"}
+    assert onboard.write("process_start", onboard_run) == []
+    for verb, params in [
+        ("process_sample", {**write_params("process_sample"), "run_id": "onboard-run", "rss_mb_last": 60000.0}),
+        ("process_end", {**write_params("process_end"), "run_id": "onboard-run"}),
+        ("process_start", {**onboard_run, "host": "remote"}),
+        ("process_sample", {**write_params("process_sample"), "run_id": "nobody-started-this"}),
+    ]:
+        with pytest.raises(RemoteError, match="'run_id'"):
+            remote.write(verb, params)
+    assert onboard.write("process_sample", {**write_params("process_sample"), "run_id": "onboard-run"}) == []
+    assert onboard.write("decision", {**write_params("decision"), "name": "onboard-decision"}) == []
+    profile = operator.cypher("MATCH (r:ProcessProfile {name: 'onboard-run'}) RETURN r.host AS host, "
+                              "r.rss_mb_last AS rss, r.end_time AS ended")
+    assert profile == [{"host": "onboard", "rss": 1.0, "ended": None}]
+    platforms = {r["platform"]: r for r in operator.query("platforms", {})}
+    assert platforms["onboard"]["online"] is True  # the forged platform_online never reached it
+
+
+def test_implausible_figures_are_refused_naming_the_field(session_as):
+    onboard = KnowledgeClient(session_as(f"{ROBOT}-onboard"), ROBOT, timeout=3.0, host="onboard")
+    operator = KnowledgeClient(session_as(OPERATOR), ROBOT, timeout=3.0)
+    assert onboard.write("process_start", {**write_params("process_start"), "run_id": "plausible-run",
+                                           "host": "onboard"}) == []
+    for client, verb, params, field in [
+        (onboard, "platform", {"name": "onboard", "time": 3.0, "memory_free_mb": 1e12}, "memory_free_mb"),
+        (onboard, "platform", {"name": "onboard", "time": 3.0, "memory_free_mb": -100000.0}, "memory_free_mb"),
+        (onboard, "platform", {"name": "onboard", "time": 3.0, "memory_total_mb": 700.0, "memory_free_mb": 800.0},
+         "memory_free_mb"),
+        (onboard, "platform", {"name": "onboard", "time": 3.0, "cpu_load": -1.0}, "cpu_load"),
+        (onboard, "process_sample", {**write_params("process_sample"), "run_id": "plausible-run",
+                                     "rss_mb_last": 1e12}, "rss_mb_last"),
+        (onboard, "flight_state", {**write_params("flight_state"), "battery_pct": 250.0}, "battery_pct"),
+        (operator, "calibration", {**write_params("calibration"), "detection_rate": 1.5}, "detection_rate"),
+        (operator, "platform", {"name": "forged_host", "time": 3.0, "memory_free_mb": 1e12}, "memory_free_mb"),
+    ]:
+        with pytest.raises(RemoteError, match=field):
+            client.write(verb, params)
+    rows = operator.cypher("MATCH (p:Platform) WHERE p.memory_free_mb > 1e9 OR p.memory_free_mb < 0 "
+                           "RETURN p.name AS name")
+    assert rows == []
