@@ -80,8 +80,12 @@ class Network:
         self.children.append(service)
         service.wait_for_line("knowledge service ready")
         onboard = self.config(f"{ROBOT}-onboard")
+        # The detectors the deployer starts get their own identity, as the shipped units give them.
+        self.detector_config = shipped_config("onboard-detector.json5", self.pki.tls, self.work, **{
+            "connect/endpoints": [f"tls/localhost:{self.port}"], **FAST_OPEN})
         agent = Child("onboard", ["onboard", "--robot", ROBOT, "--host", "onboard", "--memory-budget", "700M",
-                                  "--zenoh-config", str(onboard), "--mode", "client", "--ready-timeout", "10"],
+                                  "--zenoh-config", str(onboard), "--mode", "client", "--ready-timeout", "10",
+                                  "--detector-zenoh-config", str(self.detector_config)],
                       self.work)
         self.children.append(agent)
         agent.wait_for_line("agent ready")
@@ -463,3 +467,85 @@ def test_implausible_figures_are_refused_naming_the_field(session_as):
     rows = operator.cypher("MATCH (p:Platform) WHERE p.memory_free_mb > 1e9 OR p.memory_free_mb < 0 "
                            "RETURN p.name AS name")
     assert rows == []
+
+
+# -- detectors: their own identity, none of their host's rights -----------------------------------------
+
+
+def test_a_detector_runs_with_its_own_identity(network, session_as):
+    operator_session = session_as(OPERATOR)
+    operator = DeployerClient(operator_session, ROBOT, timeout=3.0, start_timeout=30.0)
+    alive: list[str] = []
+    tokens = operator_session.liveliness().declare_subscriber(keys.detector_alive(ROBOT, "*"),
+                                                             lambda s: alive.append(str(s.key_expr)))
+    try:
+        # Ready means it read its configuration from the knowledge service through the router.
+        info = operator.start("onboard", "detector_dusk", "marker_detection_dusk", instance="own_identity")
+        try:
+            assert info["state"] == "ready"
+            environ = Path(f"/proc/{info['pid']}/environ").read_bytes().split(b"\0")
+            assert f"KGADAPT_ZENOH_CONFIG={network.detector_config}".encode() in environ
+            wait_for(lambda: keys.detector_alive(ROBOT, "own_identity") in alive, 5, "the detector's token")
+            # Its reconfiguration queryable, declared with its own identity, answers the operator.
+            configure = keys.detector_configure(ROBOT, "onboard", "own_identity")
+            assert len(reply_payloads(operator_session, configure, b"not a request")) == 1
+        finally:
+            operator.stop("onboard", "own_identity")
+    finally:
+        tokens.undeclare()
+
+
+def test_a_detectors_certificate_cannot_start_write_or_speak_for_its_host(session_as):
+    detector = session_as(f"{ROBOT}-onboard-detector")
+    watcher = session_as(OPERATOR)
+    seen: list[tuple[str, bytes]] = []
+    alive: list[str] = []
+    subscriber = watcher.declare_subscriber(f"kgadapt/{ROBOT}/**",
+                                            lambda s: seen.append((str(s.key_expr), s.payload.to_bytes())))
+    tokens = watcher.liveliness().declare_subscriber(f"kgadapt/{ROBOT}/**", lambda s: alive.append(str(s.key_expr)))
+    host_token = detector.liveliness().declare_token(keys.host_alive(ROBOT, "detector_ghost"))
+    other_side = detector.declare_queryable(keys.detector_configure(ROBOT, "remote", "forged"),
+                                            lambda q: q.reply(q.key_expr, b"forged"))
+    deny = dict(timeout=1.0)
+    try:
+        # What it may: its configuration, its detections, its liveliness.
+        rows = KnowledgeClient(detector, ROBOT, timeout=3.0, own=True).query(
+            "detector_config", {"config": "marker_detection_day"})
+        assert rows and rows[0]["config"] == "marker_detection_day"
+        own = keys.detector_markers(ROBOT, "det_a")
+        wait_for(lambda: (detector.put(own, b"detections"), any(k == own for k, _ in seen))[1], 5,
+                 "the detector's own detections")
+        token = detector.liveliness().declare_token(keys.detector_alive(ROBOT, "det_a"))
+        wait_for(lambda: keys.detector_alive(ROBOT, "det_a") in alive, 5, "the detector's own token")
+        token.undeclare()
+        # What it may not: nothing answers, nothing is delivered.
+        status = messages.encode("host_status", {"host": "onboard", "time": 1.0, "memory_total_mb": 700.0,
+                                                 "memory_free_mb": 0.0, "cpu_load": 0.0})
+        detector.put(keys.host_status(ROBOT, "onboard"), status)
+        detector.put(keys.flight_state(ROBOT), messages.encode("flight_state", {
+            "time": 1.0, "link": True, "landed_state": "LANDING"}))
+        detector.put(keys.adaptation_events(ROBOT), b"forged")
+        deployer = DeployerClient(detector, ROBOT, **deny)
+        outcomes = concurrently({
+            "start": lambda: deployer.start("onboard", "detector_day", "marker_detection_day", instance="by_det",
+                                            wait_ready=False),
+            "squeeze": lambda: squeeze(detector, ROBOT, "onboard", 600.0, timeout=1.0),
+            "own write": lambda: KnowledgeClient(detector, ROBOT, host="onboard", **deny).write(
+                "platform_online", {"name": "onboard", "online": False, "time": 9.0}),
+            "robot-wide write": lambda: KnowledgeClient(detector, ROBOT, **deny).write(
+                "decision", write_params("decision")),
+            "cypher": lambda: KnowledgeClient(detector, ROBOT, **deny).cypher("RETURN 1 AS one"),
+        })
+        assert {what: type(outcome) for what, outcome in outcomes.items()} == dict.fromkeys(outcomes, RequestTimeout)
+        forged_configure = reply_payloads(watcher, keys.detector_configure(ROBOT, "remote", "forged"))
+        wait_for(lambda: (watcher.put(keys.adaptation_events(ROBOT), b"marker"),
+                          any(p == b"marker" for _, p in seen))[1], 5, "the watcher's own put to come back")
+    finally:
+        for entity in (subscriber, tokens, host_token, other_side):
+            entity.undeclare()
+    assert (keys.host_status(ROBOT, "onboard"), status) not in seen
+    assert keys.flight_state(ROBOT) not in {k for k, _ in seen}
+    assert (keys.adaptation_events(ROBOT), b"forged") not in seen
+    assert b"forged" not in forged_configure
+    assert keys.host_alive(ROBOT, "detector_ghost") not in alive
+    assert "by_det" not in {p["instance"] for p in DeployerClient(watcher, ROBOT, timeout=3.0).list("onboard")}
