@@ -79,6 +79,9 @@ class DeployerSettings:
     host: str
     connect: str = DEFAULT_ENDPOINT
     zenoh_config: str | None = None  # handed to children as $KGADAPT_ZENOH_CONFIG (TLS, ACL)
+    # The children's own configuration instead (the shipped ones: the host's detector certificate,
+    # so a detector cannot use the agent's rights); None: the agent's.
+    child_zenoh_config: str | None = None
     zenoh_mode: str | None = None  # handed to children as $KGADAPT_ZENOH_MODE
     python: str = sys.executable
     ready_timeout: float = 15.0
@@ -128,7 +131,7 @@ class Deployer:
         if self._knowledge is None:
             from knowledge.client import KnowledgeClient
 
-            self._knowledge = KnowledgeClient(session, s.robot, timeout=s.knowledge_timeout, own=True)
+            self._knowledge = KnowledgeClient(session, s.robot, timeout=s.knowledge_timeout, own=True, host=s.host)
         try:
             self.recorder = ProfileRecorder(
                 host=s.host, write=self._knowledge.write, settings=ProfileSettings(sample_interval=s.sample_interval)
@@ -208,8 +211,8 @@ class Deployer:
         for i, arg in enumerate(_as_list(row.get("arguments"), deployment, "arguments")):
             argv.append(fill_placeholders(str(arg), values, f"deployment {deployment} argument {i}"))
         env: list[tuple[str, str]] = []
-        if s.zenoh_config:
-            env.append(("KGADAPT_ZENOH_CONFIG", s.zenoh_config))
+        if s.child_zenoh_config or s.zenoh_config:
+            env.append(("KGADAPT_ZENOH_CONFIG", s.child_zenoh_config or s.zenoh_config))
         if s.zenoh_mode:
             env.append(("KGADAPT_ZENOH_MODE", s.zenoh_mode))
         for item in _as_list(row.get("environment"), deployment, "environment"):
@@ -401,6 +404,7 @@ def settings_from_args(args: argparse.Namespace, *, robot: str, host: str) -> De
     stop = getattr(args, "stop_timeout", 3.0)
     return DeployerSettings(
         robot=robot, host=host, connect=connect, zenoh_config=zenoh.config_file, zenoh_mode=zenoh.mode,
+        child_zenoh_config=getattr(args, "detector_zenoh_config", None),
         ready_timeout=getattr(args, "ready_timeout", 15.0),
         restart=RestartPolicy(max_restarts=getattr(args, "max_restarts", 3)),
         stop=StopPolicy(sigint_timeout=stop, sigterm_timeout=stop),

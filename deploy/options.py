@@ -19,5 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="restarts of a crashed process before it is reported failed (default 3)")
     group.add_argument("--stop-timeout", type=float, default=3.0, metavar="S",
                        help="seconds after SIGINT, and again after SIGTERM, before escalating (default 3)")
+    group.add_argument("--detector-zenoh-config", metavar="FILE",
+                       help="Zenoh configuration of the processes this deployer starts (the shipped "
+                       "<host>-detector.json5: the host's detector certificate); default: the agent's own")
     group.add_argument("--profile-interval", type=float, default=1.0, metavar="S",
                        help="seconds between memory/CPU samples of each process (default 1)")

@@ -9,8 +9,10 @@ exactly the files those configurations reference under ``/etc/kgadapt/tls/``::
     ca.pem                      the CA certificate (every host needs it)
     ca-key.pem                  the CA's private key (keep it offline; 0600)
     <robot>-knowledge.pem/-key.pem   the router in the knowledge service (SAN: the names hosts dial)
-    <robot>-onboard.pem/-key.pem     the onboard agent and the detectors it starts
-    <robot>-remote.pem/-key.pem      the remote agent and the detectors it starts
+    <robot>-onboard.pem/-key.pem     the onboard agent (host monitor, deployer, manager, flight bridge)
+    <robot>-remote.pem/-key.pem      the remote agent
+    <robot>-onboard-detector.pem/-key.pem  the detectors the onboard deployer starts
+    <robot>-remote-detector.pem/-key.pem   the detectors the remote deployer starts
     <robot>-operator.pem/-key.pem    people's tools (kgadapt deploy / ask / why)
 
 Keys are ECDSA P-256, written with mode 0600 (certificates 0644), each file
@@ -40,7 +42,9 @@ from typing import Any, Mapping, Sequence
 from shared import keys
 from shared.errors import ConfigError
 
-ROLES = ("knowledge", "onboard", "remote", "operator")
+# A detector has its own identity, not its host's: the router lets it publish detections, serve its
+# reconfiguration and read its configuration, nothing else (deploy/zenoh/router.json5).
+ROLES = ("knowledge", "onboard", "remote", "operator", "onboard-detector", "remote-detector")
 CA_CERT = "ca.pem"
 CA_KEY = "ca-key.pem"
 KEY_MODE = 0o600

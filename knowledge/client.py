@@ -28,9 +28,13 @@ from knowledge.fleet import FleetAnswer, FleetClient, FleetSettings  # noqa: F40
 class KnowledgeClient:
     """Named queries, read-only Cypher and run-time writes on ``robot``'s knowledge service."""
 
-    def __init__(self, session: Any, robot: str, *, timeout: float = 2.0, own: bool = False) -> None:
+    def __init__(self, session: Any, robot: str, *, timeout: float = 2.0, own: bool = False,
+                 host: str | None = None) -> None:
         self.session = session
         self.robot = keys.check_name(robot, "robot name")
+        # host: the host whose agent this is. Its writes go to knowledge/write/<host>/<verb>, where the
+        # service accepts only what that host owns (None: the robot-wide write/<verb>, operators only).
+        self.host = None if host is None else keys.check_name(host, "host name")
         self.timeout = timeout
         # own=True: the robot's own software asks on knowledge/own/query/*, served from the
         # primary store apart from other robots' questions (which the ACL keeps off that key).
@@ -51,7 +55,10 @@ class KnowledgeClient:
     def write(self, verb: str, params: Mapping[str, Any]) -> list[dict[str, Any]]:
         """Apply run-time write ``verb`` (see knowledge.runtime.WRITERS)."""
         payload = messages.encode("write_request", {"params": dict(params)})
-        return self._ask(keys.knowledge_write(self.robot, keys.check_name(verb, "write verb")), payload, f"write {verb!r}")
+        verb = keys.check_name(verb, "write verb")
+        key = (keys.knowledge_write(self.robot, verb) if self.host is None
+               else keys.knowledge_host_write(self.robot, self.host, verb))
+        return self._ask(key, payload, f"write {verb!r}")
 
     def _ask(self, key: str, payload: bytes, what: str) -> list[dict[str, Any]]:
         deadline = time.monotonic() + self.timeout

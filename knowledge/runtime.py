@@ -24,6 +24,10 @@ from knowledge.store import GraphStore
 from shared.errors import NamedQueryError
 
 _NUM = (int, float)
+# Bounds of what a real host can report: a value outside them is a forgery or a bug, refused naming the field.
+MAX_MEMORY_MB = 64 * 1024 * 1024  # 64 TiB
+MAX_CORES = 4096
+MAX_PID = 2**31 - 1
 
 
 def _check(verb: str, **values: tuple[Any, tuple[type, ...], bool]) -> None:
@@ -44,6 +48,13 @@ def _check(verb: str, **values: tuple[Any, tuple[type, ...], bool]) -> None:
             raise NamedQueryError(f"write {verb!r}: parameter {key!r} is empty")
 
 
+def _within(verb: str, **values: tuple[Any, float, float]) -> None:
+    """Each value as (value, lowest, highest); None is not checked (checked for presence elsewhere)."""
+    for key, (value, low, high) in values.items():
+        if value is not None and not low <= value <= high:
+            raise NamedQueryError(f"write {verb!r}: {key} {value!r} is not between {low:g} and {high:g}")
+
+
 def update_platform(store: GraphStore, *, name: str, time: float, memory_total_mb: float | None = None,
                     memory_free_mb: float | None = None, cpu_load: float | None = None,
                     cpu_cores: int | None = None, online: bool | None = None) -> None:
@@ -51,6 +62,15 @@ def update_platform(store: GraphStore, *, name: str, time: float, memory_total_m
     _check("platform", name=(name, (str,), False), time=(time, _NUM, False),
            memory_total_mb=(memory_total_mb, _NUM, True), memory_free_mb=(memory_free_mb, _NUM, True),
            cpu_load=(cpu_load, _NUM, True), cpu_cores=(cpu_cores, (int,), True), online=(online, (bool,), True))
+    _within("platform", time=(time, 0, math.inf), memory_total_mb=(memory_total_mb, 1, MAX_MEMORY_MB),
+            cpu_cores=(cpu_cores, 1, MAX_CORES), cpu_load=(cpu_load, 0, 100 * (cpu_cores or MAX_CORES)))
+    if memory_free_mb is not None:
+        total = memory_total_mb
+        if total is None:  # free memory alone: bounded by the total the host reported before
+            rows = store.execute(f"MATCH (p:{S.PLATFORM} {{name: $name}}) RETURN p.memory_total_mb AS total",
+                                 {"name": name})
+            total = rows[0]["total"] if rows and rows[0]["total"] is not None else MAX_MEMORY_MB
+        _within("platform", memory_free_mb=(memory_free_mb, 0, total))
     figures = {k: v for k, v in {"memory_total_mb": memory_total_mb, "memory_free_mb": memory_free_mb,
                                  "cpu_load": cpu_load, "cpu_cores": cpu_cores, "online": online}.items()
                if v is not None}
@@ -78,6 +98,7 @@ def record_process_start(store: GraphStore, *, run_id: str, instance: str, deplo
     _check("process_start", run_id=(run_id, (str,), False), instance=(instance, (str,), False),
            deployment=(deployment, (str,), False), config=(config, (str,), True), host=(host, (str,), False),
            pid=(pid, (int,), False), start_time=(start_time, _NUM, False))
+    _within("process_start", pid=(pid, 1, MAX_PID), start_time=(start_time, 0, math.inf))
     params = {"run_id": run_id, "instance": instance, "deployment": deployment, "config": config, "host": host,
               "pid": pid, "start_time": float(start_time)}
     # The common case in one cheap statement: everything it links to is known and the
@@ -116,6 +137,8 @@ def record_process_sample(store: GraphStore, *, run_id: str, rss_mb_last: float,
     _check("process_sample", run_id=(run_id, (str,), False), rss_mb_last=(rss_mb_last, _NUM, False),
            rss_mb_mean=(rss_mb_mean, _NUM, False), rss_mb_max=(rss_mb_max, _NUM, False),
            cpu_percent_mean=(cpu_percent_mean, _NUM, False))
+    _within("process_sample", rss_mb_last=(rss_mb_last, 0, MAX_MEMORY_MB), rss_mb_mean=(rss_mb_mean, 0, MAX_MEMORY_MB),
+            rss_mb_max=(rss_mb_max, 0, MAX_MEMORY_MB), cpu_percent_mean=(cpu_percent_mean, 0, 100 * MAX_CORES))
     store.execute(
         f"MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}}) "
         "SET r.rss_mb_last = $rss_mb_last, r.rss_mb_mean = $rss_mb_mean, r.rss_mb_max = $rss_mb_max, "
@@ -172,6 +195,7 @@ def record_process_end(store: GraphStore, *, run_id: str, end_time: float, exit_
     """A process ended (``exit_status`` negative for a signal, None when unknown)."""
     _check("process_end", run_id=(run_id, (str,), False), end_time=(end_time, _NUM, False),
            exit_status=(exit_status, (int,), True))
+    _within("process_end", end_time=(end_time, 0, math.inf), exit_status=(exit_status, -255, 255))
     store.execute(
         f"MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}}) SET r.end_time = $end_time, r.exit_status = $exit_status, "
         "r.end_reason = 'exited'",
@@ -199,6 +223,7 @@ def record_calibration(store: GraphStore, *, config: str, band: str, detection_r
            condition=(condition, (str,), False), detection_rate=(detection_rate, _NUM, False),
            false_per_frame=(false_per_frame, _NUM, False), false_per_reported=(false_per_reported, _NUM, False),
            ms_per_frame=(ms_per_frame, _NUM, False), time=(time, _NUM, False))
+    _within("calibration", ms_per_frame=(ms_per_frame, 0, 3_600_000), time=(time, 0, math.inf))
     for key, rate in (("detection_rate", detection_rate), ("false_rate", false_per_reported),
                       ("false_per_reported", false_per_reported)):
         if not 0.0 <= rate <= 1.0:
@@ -226,6 +251,7 @@ def record_decision(store: GraphStore, *, name: str, time: float, trigger: str, 
     _check("decision", name=(name, (str,), False), time=(time, _NUM, False), trigger=(trigger, (str,), False),
            inputs_json=(inputs_json, (str,), True), query=(query, (str,), True), config=(config, (str,), True),
            host=(host, (str,), True), duration_ms=(duration_ms, _NUM, True), outcome=(outcome, (str,), True))
+    _within("decision", time=(time, 0, math.inf), duration_ms=(duration_ms, 0, math.inf))
     store.execute(
         f"""MERGE (a:{S.ADAPTATION_DECISION} {{name: $name}})
 SET a.time = $time, a.trigger = $trigger, a.inputs_json = $inputs_json, a.query = $query,
@@ -256,6 +282,8 @@ def update_flight_control(store: GraphStore, *, name: str, time: float, link: bo
            armed=(armed, (bool,), True), mode=(mode, (str,), True), landed_state=(landed_state, (str,), True),
            battery_pct=(battery_pct, _NUM, True), battery_v=(battery_v, _NUM, True),
            autopilot_load_pct=(autopilot_load_pct, _NUM, True), last_heartbeat=(last_heartbeat, _NUM, True))
+    _within("flight_state", time=(time, 0, math.inf), battery_pct=(battery_pct, 0, 100), battery_v=(battery_v, 0, 1000),
+            autopilot_load_pct=(autopilot_load_pct, 0, 100))
     # null in SET += removes the property (FalkorDB, Neo4j and Memgraph alike)
     figures = {"link": link, "armed": armed, "mode": mode, "landed_state": landed_state,
                "battery_pct": battery_pct, "battery_v": battery_v,

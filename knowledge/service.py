@@ -8,7 +8,8 @@ key                          request                               reply
 ``query/<name>``             ``query_request {params}``            ``rows {rows, elapsed_ms}``
 ``own/query/<name>``         ``query_request {params}``            ``rows`` (the robot's own software)
 ``cypher``                   ``cypher_request {cypher, params}``   ``rows`` (read-only subset only)
-``write/<verb>``             ``write_request {params}``            ``rows {rows: []}``
+``write/<verb>``             ``write_request {params}``            ``rows {rows: []}`` (operators)
+``write/<host>/<verb>``      ``write_request {params}``            ``rows {rows: []}`` (host's own)
 ===========================  ====================================  ==========================
 
 ``<name>`` is any of ``knowledge.queries.QUERIES``, ``<verb>`` any of
@@ -36,7 +37,13 @@ per store: :class:`~knowledge.service_lock.ServiceLock`.
 Write verbs sit on their own key (``knowledge/write/**``) so that Zenoh access
 control can keep them from other robots while the queries stay open; with
 ``writes=False`` (``kgadapt knowledge serve --read-only``) they are not
-declared at all.
+declared at all. A host's agent writes on ``write/<host>/<verb>``, which the
+shipped ACL opens to that host's certificate only, and the service accepts
+there only what that host owns (:func:`check_owner`): its own platform, its
+own processes (by ``host``, or by the ``run_id`` of a profile it started), and
+on the ``manager_host`` the decisions and the flight state. ``write/<verb>``
+(any verb, about anything) is for operators and the service's own identity.
+Every write's figures must be plausible (``knowledge.runtime``'s bounds).
 
 It also keeps each ``Platform``'s run-time figures current: host statuses
 (``host/<host>/status``) update free memory, CPU load and ``last_seen``
@@ -67,6 +74,7 @@ from typing import Any, Callable, Mapping
 import zenoh
 
 from knowledge import queries, runtime
+from knowledge import schema as S
 from knowledge.cypher_guard import CypherLimits, check_cypher
 from knowledge.service_lock import ServiceLock
 from knowledge.store import GraphStore
@@ -97,11 +105,15 @@ class ServiceSettings:
     max_pending_public: int = 32
     sandbox: bool = True  # serve them from a QuerySandbox when the store is FalkorDB
     lock: bool = True  # refuse to start beside another service on the same store
+    # The host whose agent runs the adaptation manager and the flight bridge: the one that may write
+    # decisions and the flight state on its write/<host>/<verb> key.
+    manager_host: str = "onboard"
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
         if self.workers < 1 or self.public_workers < 1:
             raise ConfigError(f"workers {self.workers!r}, public_workers {self.public_workers!r}: at least 1 each")
+        keys.check_name(self.manager_host, "manager host")
         if self.public_time_limit_ms < 1:
             raise ConfigError(f"public_time_limit_ms {self.public_time_limit_ms!r}: at least 1")
 
@@ -170,6 +182,8 @@ class KnowledgeService:
             self._declared.append(session.declare_subscriber(keys.host_status(robot, "*"), self._on_status))
             if self.settings.writes:
                 self._declared.append(session.declare_queryable(keys.knowledge_write(robot, "*"), self._on_write))
+                self._declared.append(session.declare_queryable(keys.knowledge_host_write(robot, "*", "*"),
+                                                                self._on_write))
             self._declared.append(session.declare_queryable(keys.knowledge_cypher(robot), self._on_cypher))
             self._declared.append(session.declare_queryable(keys.knowledge_query(robot, "*"), self._on_named_query))
             self._declared.append(session.declare_queryable(keys.knowledge_own_query(robot, "*"), self._on_own_query))
@@ -290,8 +304,11 @@ class KnowledgeService:
             self._count("time_limits_hit")
             raise QueryTimeLimit(f"{what}: {exc}") from exc
 
-    def answer_write(self, verb: str, payload: bytes | None) -> bytes:
-        """Apply write verb ``verb``; an empty ``rows`` reply, or KgadaptError naming the problem."""
+    def answer_write(self, verb: str, payload: bytes | None, *, host: str | None = None) -> bytes:
+        """Apply write verb ``verb``; an empty ``rows`` reply, or KgadaptError naming the problem.
+
+        ``host``: asked on ``write/<host>/<verb>``, so only what ``host`` owns is accepted.
+        """
         if not self.settings.writes:
             raise NamedQueryError("this knowledge service is read-only: no write verbs")
         if verb not in self._writers:
@@ -302,7 +319,9 @@ class KnowledgeService:
         params = _plain_params(request["params"], f"write verb {verb!r}")
         start = time.perf_counter()
         with self._store_lock:
-            runtime.run_write(self.store, verb, params)  # checks names and types, naming them
+            if host is not None:
+                check_owner(self.store, verb, params, host=host, manager_host=self.settings.manager_host)
+            runtime.run_write(self.store, verb, params)  # checks names, types and bounds, naming them
         return _rows_reply([], (time.perf_counter() - start) * 1000, f"write verb {verb!r}")
 
     # -- Zenoh callbacks: hand over, nothing else ---------------------------
@@ -373,8 +392,14 @@ class KnowledgeService:
                 reply_key = keys.knowledge_cypher(robot)
             else:
                 verb = keys.last_chunk(key)
-                body = self.answer_write(verb, payload)
-                reply_key = keys.knowledge_write(robot, verb)
+                chunks = key.split("/")
+                if chunks[-3] == "write":  # write/<host>/<verb>: a host's own
+                    host = _host_of(key)
+                    body = self.answer_write(verb, payload, host=host)
+                    reply_key = keys.knowledge_host_write(robot, host, verb)
+                else:
+                    body = self.answer_write(verb, payload)
+                    reply_key = keys.knowledge_write(robot, verb)
         except KgadaptError as exc:
             self._count("requests_refused")
             log.info("%s request on %s refused: %s", kind, query.key_expr, exc)
@@ -491,6 +516,47 @@ class KnowledgeService:
             self._stats["events_dropped"] += 1
             self._last_drop = reason
         self._drop_log.warning("dropped %s", reason)
+
+
+# -- ownership of writes ----------------------------------------------------
+
+# The parameter naming the host a write is about, for the verbs a host writes about itself.
+_HOST_PARAM = {"platform": "name", "platform_online": "name", "process_start": "host"}
+_RUN_VERBS = ("process_sample", "process_end", "process_reconfigured")  # about a profile, by run_id
+_MANAGER_VERBS = ("decision", "flight_state")  # the adaptation manager's and the flight bridge's
+
+
+def check_owner(store: GraphStore, verb: str, params: Mapping[str, Any], *, host: str, manager_host: str) -> None:
+    """Refuse (NamedQueryError naming the parameter) a write on ``write/<host>/<verb>`` about anything
+    ``host`` does not own. A process profile belongs to the host its ``process_start`` named."""
+    where = f"write {verb!r} from host {host!r}"
+    if verb in _HOST_PARAM:
+        named = params.get(_HOST_PARAM[verb])
+        if named != host:
+            raise NamedQueryError(f"{where}: parameter {_HOST_PARAM[verb]!r} is {named!r}; "
+                                  f"a host writes only about itself")
+    if verb in _RUN_VERBS or verb == "process_start":
+        run_id = params.get("run_id")
+        if not isinstance(run_id, str):
+            return  # the writer names the missing or ill-typed parameter
+        rows = store.execute(f"MATCH (r:{S.PROCESS_PROFILE} {{name: $run_id}}) RETURN r.host AS host LIMIT 1",
+                             {"run_id": run_id})
+        owner = rows[0]["host"] if rows else None
+        if verb == "process_start":
+            if rows and owner != host:
+                raise NamedQueryError(f"{where}: parameter 'run_id' {run_id!r} is a process of host {owner!r}")
+        elif owner != host:
+            raise NamedQueryError(f"{where}: parameter 'run_id' {run_id!r} is "
+                                  + ("no process this host started" if not rows
+                                     else f"a process of host {owner!r}"))
+        return
+    if verb in _MANAGER_VERBS:
+        if host != manager_host:
+            raise NamedQueryError(f"{where}: only the adaptation manager's host {manager_host!r} writes {verb!r}")
+        return
+    if verb not in _HOST_PARAM:
+        raise NamedQueryError(f"{where}: {verb!r} is no host's to write (operators write it on "
+                              f"knowledge/write/{verb})")
 
 
 # -- helpers ----------------------------------------------------------------

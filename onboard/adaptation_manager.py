@@ -114,6 +114,7 @@ class AdaptationManager:
         self.current: Placement | None = None
         self.history: list[Outcome] = []
         self.landing = False
+        self._deferred: set[str] = set()  # kinds of change deferred in this descent: each recorded once
         self._queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=4096)
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
@@ -143,7 +144,7 @@ class AdaptationManager:
     def setup(self, session: Any) -> None:
         s = self.settings
         self._session = session
-        self._knowledge = KnowledgeClient(session, s.robot, own=True)
+        self._knowledge = KnowledgeClient(session, s.robot, own=True, host=s.onboard_host)  # writes as its host's
         self._deployers = DeployerClient(session, s.robot)
         self._probe = DeployerClient(session, s.robot, timeout=min(0.5, s.reconcile_s))
         rows = self._wait_for_knowledge()
@@ -303,7 +304,7 @@ class AdaptationManager:
                 m = messages.decode(payload, "flight_state")  # malformed ones are dropped and logged either way
                 if self._landed_state is not None:
                     return None  # the bridge beside us is the one source
-                self.landing = in_final_descent(m)  # landed state unknown in LAND/RTL counts as descent
+                self._set_landing(in_final_descent(m))  # landed state unknown in LAND/RTL counts as descent
                 return None
             if kind == "deploy_event":
                 m = messages.decode(payload, "deploy_event")
@@ -313,7 +314,10 @@ class AdaptationManager:
                 return None
             if kind == "detections":
                 m = messages.decode(payload, "detections")
-                if self.current is None or m["instance"] != self.current.instance:
+                # Key and body must both name the instance we started: any detector may put on
+                # detector/*/markers, under any name in the body.
+                if (self.current is None or m["instance"] != self.current.instance
+                        or keys.last_chunk(key, 2) != self.current.instance):
                     return None
                 band = a.tracker.current.name if a.tracker.current else None
                 # Only markers whose cells read clean count as evidence (phantoms do not hold up a rate).
@@ -322,6 +326,11 @@ class AdaptationManager:
         except MessageError as exc:
             log.info("adaptation: dropped a %s message on %s: %s", kind, key, exc)
         return None
+
+    def _set_landing(self, landing: bool) -> None:
+        if not landing:
+            self._deferred.clear()  # the next descent records its deferrals again
+        self.landing = landing
 
     def _check_running(self) -> Trigger | None:
         """A ``detector_gone`` trigger when the deployer says our detector no longer runs."""
@@ -472,11 +481,17 @@ class AdaptationManager:
                     tuple(h.name for h in a.hosts.values() if not h.online)):
                 return
         if self._landed_state is not None:
-            self.landing = self._landed_state() == "LANDING"
+            self._set_landing(self._landed_state() == "LANDING")
         lost = tuple(h.name for h in a.hosts.values() if not h.online)
         running_lost = self.current is not None and (self.current.host in lost or trigger.kind == "detector_gone")
         if self.landing and not (trigger.urgent or running_lost):
-            self._record(Outcome(trigger=trigger, outcome="deferred: final descent"))
+            # One decision per kind of change and descent: a descent (forged or not) with a flapping
+            # light or repeated triggers must not write a decision per message.
+            if trigger.kind not in self._deferred:
+                self._deferred.add(trigger.kind)
+                self._record(Outcome(trigger=trigger, outcome="deferred: final descent"))
+            else:
+                log.info("adaptation: %s deferred again (final descent)", trigger.describe())
             return
         started = time.perf_counter()
         try:

@@ -72,8 +72,9 @@ class FlightPart:
     name = "flight"
 
     def __init__(self, *, robot: str, url: str, camera_model: str, camera: Any = None, markers: Any = None,
-                 profile: str = "auto", manager: Any = None, site: str | None = None) -> None:
+                 profile: str = "auto", manager: Any = None, site: str | None = None, host: str = "onboard") -> None:
         self.robot, self.url, self.camera_model, self.site = robot, url, camera_model, site
+        self.host = host  # its flight state is written as this host's (knowledge/write/<host>/flight_state)
         self.camera, self.markers, self.profile = camera, markers, profile  # checked files (onboard.landing_targets)
         self.manager = manager  # the adaptation manager beside it: only its chosen detector steers
 
@@ -91,7 +92,7 @@ class FlightPart:
 
         from onboard.flight import CameraIntrinsics
 
-        client = KnowledgeClient(session, self.robot, own=True)
+        client = KnowledgeClient(session, self.robot, own=True, host=self.host)
         c = self.camera
         intrinsics = (CameraIntrinsics(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy) if c is not None
                       else intrinsics_from_graph(client, self.camera_model))
@@ -138,7 +139,7 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
             robot=args.robot, url=args.fc, camera_model=args.camera_model,
             camera=load_camera(args.fc_camera_file) if getattr(args, "fc_camera_file", None) else None,
             markers=load_site_markers(args.fc_markers) if getattr(args, "fc_markers", None) else None,
-            profile=getattr(args, "fc_profile", "auto"), site=getattr(args, "site", None))
+            profile=getattr(args, "fc_profile", "auto"), site=getattr(args, "site", None), host=args.host)
         parts.append(flight)
     if args.adapt:
         from onboard.adaptation_manager import AdaptationManager, AdaptationSettings

@@ -120,6 +120,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="re-send the last target, predicted, up to S s after its frame (default 1.5; 0 = off)")
     bridge.add_argument("--write-graph", action="store_true",
                         help="write the flight state into the FlightControl component through the knowledge service")
+    bridge.add_argument("--host", default="onboard",
+                        help="the host this bridge runs on, whose write key it uses (default onboard: the knowledge "
+                        "service takes the flight state only from the adaptation manager's host)")
     zsession.add_arguments(bridge)
     bridge.set_defaults(func=_bridge)
 
@@ -307,7 +310,7 @@ def _bridge(args: argparse.Namespace) -> int:
         if args.camera or args.write_graph:
             from knowledge.client import KnowledgeClient
 
-            client = KnowledgeClient(session, args.robot, own=True)
+            client = KnowledgeClient(session, args.robot, own=True, host=args.host)
         intrinsics = (intrinsics_from_graph(client, args.camera) if args.camera
                       else CameraIntrinsics(fx=args.fx, fy=args.fy, cx=args.cx, cy=args.cy))
         settings = BridgeSettings(robot=args.robot, link=_link_settings(args), detector=args.detector,

@@ -19,7 +19,8 @@ key                                             what travels there
 ``kgadapt/<robot>/knowledge/query/<name>``      named queries (queryable)
 ``kgadapt/<robot>/knowledge/own/query/<name>``  the same, for the robot's own software only (queryable)
 ``kgadapt/<robot>/knowledge/cypher``            read-only Cypher (queryable)
-``kgadapt/<robot>/knowledge/write/<verb>``      run-time writes from our agents (queryable)
+``kgadapt/<robot>/knowledge/write/<verb>``      run-time writes from operators (queryable)
+``kgadapt/<robot>/knowledge/write/<host>/<v>``  run-time writes of host <host>'s agent about itself
 ``kgadapt/<robot>/adaptation/events``           adaptation decisions as they happen
 ==============================================  ===========================================
 
@@ -105,6 +106,12 @@ def knowledge_cypher(robot: str) -> str:
 
 def knowledge_write(robot: str, verb: str = "*") -> str:
     return f"{robot_root(robot)}/knowledge/write/{_name_or_star(verb, 'write verb')}"
+
+
+def knowledge_host_write(robot: str, host: str = "*", verb: str = "*") -> str:
+    """Write verbs of host ``host``'s own software: the service accepts only what that host owns, and the
+    shipped ACL lets only that host's certificate ask here (deploy/zenoh/router.json5)."""
+    return f"{robot_root(robot)}/knowledge/write/{_name_or_star(host, 'host')}/{_name_or_star(verb, 'write verb')}"
 
 
 def adaptation_events(robot: str) -> str:

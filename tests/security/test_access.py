@@ -80,8 +80,12 @@ class Network:
         self.children.append(service)
         service.wait_for_line("knowledge service ready")
         onboard = self.config(f"{ROBOT}-onboard")
+        # The detectors the deployer starts get their own identity, as the shipped units give them.
+        self.detector_config = shipped_config("onboard-detector.json5", self.pki.tls, self.work, **{
+            "connect/endpoints": [f"tls/localhost:{self.port}"], **FAST_OPEN})
         agent = Child("onboard", ["onboard", "--robot", ROBOT, "--host", "onboard", "--memory-budget", "700M",
-                                  "--zenoh-config", str(onboard), "--mode", "client", "--ready-timeout", "10"],
+                                  "--zenoh-config", str(onboard), "--mode", "client", "--ready-timeout", "10",
+                                  "--detector-zenoh-config", str(self.detector_config)],
                       self.work)
         self.children.append(agent)
         agent.wait_for_line("agent ready")
@@ -324,11 +328,19 @@ def test_a_hosts_certificate_publishes_only_its_own_status_liveliness_and_detect
     remote = session_as(f"{ROBOT}-remote")  # the remote agent's identity, inherited by its detectors
     watcher = session_as(OPERATOR)
     seen: list[str] = []
+    forged_seen: list[str] = []  # the onboard agent's own status travels meanwhile: only the forged one counts
     alive: list[str] = []
-    subscriber = watcher.declare_subscriber(f"kgadapt/{ROBOT}/**", lambda s: seen.append(str(s.key_expr)))
+
+    def on_sample(sample: Any) -> None:
+        seen.append(str(sample.key_expr))
+        if b"forged" in sample.payload.to_bytes() or sample.payload.to_bytes() == forged_status:
+            forged_seen.append(str(sample.key_expr))
+
+    subscriber = watcher.declare_subscriber(f"kgadapt/{ROBOT}/**", on_sample)
     tokens = watcher.liveliness().declare_subscriber(keys.host_alive(ROBOT, "*"),
                                                     lambda s: alive.append(str(s.key_expr)))
     status = {"time": 1.0, "memory_total_mb": 700.0, "memory_free_mb": 0.0, "cpu_load": 0.0}
+    forged_status = messages.encode("host_status", {"host": "onboard", **status})
     forged_token = remote.liveliness().declare_token(keys.host_alive(ROBOT, "ghost"))
     onboard_token = remote.liveliness().declare_token(keys.host_alive(ROBOT, "onboard_twin"))
     try:
@@ -340,7 +352,7 @@ def test_a_hosts_certificate_publishes_only_its_own_status_liveliness_and_detect
         real_token = remote.liveliness().declare_token(keys.host_alive(ROBOT, "remote"))
         wait_for(lambda: keys.host_alive(ROBOT, "remote") in alive, 5, "the remote host's own token")
         real_token.undeclare()
-        remote.put(for_onboard, messages.encode("host_status", {"host": "onboard", **status}))
+        remote.put(for_onboard, forged_status)
         remote.put(flight, messages.encode("flight_state", {"time": 1.0, "link": True, "landed_state": "LANDING"}))
         remote.put(keys.adaptation_events(ROBOT), b"forged")
         remote.put(keys.camera_frame(ROBOT, "cam0"), b"forged frame")
@@ -349,7 +361,7 @@ def test_a_hosts_certificate_publishes_only_its_own_status_liveliness_and_detect
     finally:
         for entity in (subscriber, tokens, forged_token, onboard_token):
             entity.undeclare()
-    assert for_onboard not in seen and flight not in seen
+    assert for_onboard not in forged_seen and flight not in seen
     assert keys.adaptation_events(ROBOT) not in seen and keys.camera_frame(ROBOT, "cam0") not in seen
     assert not {keys.host_alive(ROBOT, "ghost"), keys.host_alive(ROBOT, "onboard_twin")} & set(alive)
 
@@ -379,3 +391,161 @@ def test_commands_from_the_models_run_without_a_shell_and_their_words_arrive_ver
     assert argv == [w.format(m=marker) for w in SHELL_WORDS]
     assert probe == f"$(touch {marker})"
     assert not network.marker.exists()
+
+
+# -- write verbs: each host only about itself, only plausible figures ----------------------------------
+
+
+def test_a_hosts_write_verbs_act_only_on_what_that_host_owns(session_as):
+    remote_session = session_as(f"{ROBOT}-remote")
+    remote = KnowledgeClient(remote_session, ROBOT, timeout=3.0, host="remote")
+    onboard = KnowledgeClient(session_as(f"{ROBOT}-onboard"), ROBOT, timeout=3.0, host="onboard")
+    operator = KnowledgeClient(session_as(OPERATOR), ROBOT, timeout=3.0)
+    operator.write("platform_online", {"name": "onboard", "online": True, "time": 5.0})  # (an earlier test's write)
+    # Keys the remote certificate may not ask on at all: dropped by the router, so asked at once.
+    dropped = concurrently({
+        "onboard's key": lambda: KnowledgeClient(remote_session, ROBOT, timeout=1.0, host="onboard").write(
+            "platform_online", {"name": "onboard", "online": False, "time": 1.0}),
+        "robot-wide key": lambda: KnowledgeClient(remote_session, ROBOT, timeout=1.0).write(
+            "platform_online", {"name": "onboard", "online": False, "time": 1.0}),
+    })
+    assert {what: type(outcome) for what, outcome in dropped.items()} == dict.fromkeys(dropped, RequestTimeout)
+    # On its own key, the service refuses what is not the remote host's, naming the parameter.
+    assert remote.write("platform", {"name": "remote", "time": 2.0, "memory_total_mb": 2048.0,
+                                     "memory_free_mb": 1000.0}) == []
+    for verb, params, reason in [
+        ("platform", {"name": "onboard", "time": 2.0, "memory_free_mb": 0.0}, "'name' is 'onboard'"),
+        ("platform_online", {"name": "onboard", "online": False, "time": 2.0}, "'name' is 'onboard'"),
+        ("process_start", {**write_params("process_start"), "run_id": "remote-run", "host": "onboard"},
+         "'host' is 'onboard'"),
+        ("decision", write_params("decision"), "only the adaptation manager's host 'onboard'"),
+        ("flight_state", {**write_params("flight_state"), "landed_state": "LANDING"},
+         "only the adaptation manager's host"),
+        ("calibration", {**write_params("calibration"), "detection_rate": 0.0}, "no host's to write"),
+    ]:
+        with pytest.raises(RemoteError, match=reason):
+            remote.write(verb, params)
+    # A process belongs to the host that started it: nobody else may sample, end or take its profile.
+    onboard_run = {**write_params("process_start"), "run_id": "onboard-run", "host": "onboard"}
+    assert onboard.write("process_start", onboard_run) == []
+    for verb, params in [
+        ("process_sample", {**write_params("process_sample"), "run_id": "onboard-run", "rss_mb_last": 60000.0}),
+        ("process_end", {**write_params("process_end"), "run_id": "onboard-run"}),
+        ("process_start", {**onboard_run, "host": "remote"}),
+        ("process_sample", {**write_params("process_sample"), "run_id": "nobody-started-this"}),
+    ]:
+        with pytest.raises(RemoteError, match="'run_id'"):
+            remote.write(verb, params)
+    assert onboard.write("process_sample", {**write_params("process_sample"), "run_id": "onboard-run"}) == []
+    assert onboard.write("decision", {**write_params("decision"), "name": "onboard-decision"}) == []
+    profile = operator.cypher("MATCH (r:ProcessProfile {name: 'onboard-run'}) RETURN r.host AS host, "
+                              "r.rss_mb_last AS rss, r.end_time AS ended")
+    assert profile == [{"host": "onboard", "rss": 1.0, "ended": None}]
+    platforms = {r["platform"]: r for r in operator.query("platforms", {})}
+    assert platforms["onboard"]["online"] is True  # the forged platform_online never reached it
+
+
+def test_implausible_figures_are_refused_naming_the_field(session_as):
+    onboard = KnowledgeClient(session_as(f"{ROBOT}-onboard"), ROBOT, timeout=3.0, host="onboard")
+    operator = KnowledgeClient(session_as(OPERATOR), ROBOT, timeout=3.0)
+    assert onboard.write("process_start", {**write_params("process_start"), "run_id": "plausible-run",
+                                           "host": "onboard"}) == []
+    for client, verb, params, field in [
+        (onboard, "platform", {"name": "onboard", "time": 3.0, "memory_free_mb": 1e12}, "memory_free_mb"),
+        (onboard, "platform", {"name": "onboard", "time": 3.0, "memory_free_mb": -100000.0}, "memory_free_mb"),
+        (onboard, "platform", {"name": "onboard", "time": 3.0, "memory_total_mb": 700.0, "memory_free_mb": 800.0},
+         "memory_free_mb"),
+        (onboard, "platform", {"name": "onboard", "time": 3.0, "cpu_load": -1.0}, "cpu_load"),
+        (onboard, "process_sample", {**write_params("process_sample"), "run_id": "plausible-run",
+                                     "rss_mb_last": 1e12}, "rss_mb_last"),
+        (onboard, "flight_state", {**write_params("flight_state"), "battery_pct": 250.0}, "battery_pct"),
+        (operator, "calibration", {**write_params("calibration"), "detection_rate": 1.5}, "detection_rate"),
+        (operator, "platform", {"name": "forged_host", "time": 3.0, "memory_free_mb": 1e12}, "memory_free_mb"),
+    ]:
+        with pytest.raises(RemoteError, match=field):
+            client.write(verb, params)
+    rows = operator.cypher("MATCH (p:Platform) WHERE p.memory_free_mb > 1e9 OR p.memory_free_mb < 0 "
+                           "RETURN p.name AS name")
+    assert rows == []
+
+
+# -- detectors: their own identity, none of their host's rights -----------------------------------------
+
+
+def test_a_detector_runs_with_its_own_identity(network, session_as):
+    operator_session = session_as(OPERATOR)
+    operator = DeployerClient(operator_session, ROBOT, timeout=3.0, start_timeout=30.0)
+    alive: list[str] = []
+    tokens = operator_session.liveliness().declare_subscriber(keys.detector_alive(ROBOT, "*"),
+                                                             lambda s: alive.append(str(s.key_expr)))
+    try:
+        # Ready means it read its configuration from the knowledge service through the router.
+        info = operator.start("onboard", "detector_dusk", "marker_detection_dusk", instance="own_identity")
+        try:
+            assert info["state"] == "ready"
+            environ = Path(f"/proc/{info['pid']}/environ").read_bytes().split(b"\0")
+            assert f"KGADAPT_ZENOH_CONFIG={network.detector_config}".encode() in environ
+            wait_for(lambda: keys.detector_alive(ROBOT, "own_identity") in alive, 5, "the detector's token")
+            # Its reconfiguration queryable, declared with its own identity, answers the operator.
+            configure = keys.detector_configure(ROBOT, "onboard", "own_identity")
+            assert len(reply_payloads(operator_session, configure, b"not a request")) == 1
+        finally:
+            operator.stop("onboard", "own_identity")
+    finally:
+        tokens.undeclare()
+
+
+def test_a_detectors_certificate_cannot_start_write_or_speak_for_its_host(session_as):
+    detector = session_as(f"{ROBOT}-onboard-detector")
+    watcher = session_as(OPERATOR)
+    seen: list[tuple[str, bytes]] = []
+    alive: list[str] = []
+    subscriber = watcher.declare_subscriber(f"kgadapt/{ROBOT}/**",
+                                            lambda s: seen.append((str(s.key_expr), s.payload.to_bytes())))
+    tokens = watcher.liveliness().declare_subscriber(f"kgadapt/{ROBOT}/**", lambda s: alive.append(str(s.key_expr)))
+    host_token = detector.liveliness().declare_token(keys.host_alive(ROBOT, "detector_ghost"))
+    other_side = detector.declare_queryable(keys.detector_configure(ROBOT, "remote", "forged"),
+                                            lambda q: q.reply(q.key_expr, b"forged"))
+    deny = dict(timeout=1.0)
+    try:
+        # What it may: its configuration, its detections, its liveliness.
+        rows = KnowledgeClient(detector, ROBOT, timeout=3.0, own=True).query(
+            "detector_config", {"config": "marker_detection_day"})
+        assert rows and rows[0]["config"] == "marker_detection_day"
+        own = keys.detector_markers(ROBOT, "det_a")
+        wait_for(lambda: (detector.put(own, b"detections"), any(k == own for k, _ in seen))[1], 5,
+                 "the detector's own detections")
+        token = detector.liveliness().declare_token(keys.detector_alive(ROBOT, "det_a"))
+        wait_for(lambda: keys.detector_alive(ROBOT, "det_a") in alive, 5, "the detector's own token")
+        token.undeclare()
+        # What it may not: nothing answers, nothing is delivered.
+        status = messages.encode("host_status", {"host": "onboard", "time": 1.0, "memory_total_mb": 700.0,
+                                                 "memory_free_mb": 0.0, "cpu_load": 0.0})
+        detector.put(keys.host_status(ROBOT, "onboard"), status)
+        detector.put(keys.flight_state(ROBOT), messages.encode("flight_state", {
+            "time": 1.0, "link": True, "landed_state": "LANDING"}))
+        detector.put(keys.adaptation_events(ROBOT), b"forged")
+        deployer = DeployerClient(detector, ROBOT, **deny)
+        outcomes = concurrently({
+            "start": lambda: deployer.start("onboard", "detector_day", "marker_detection_day", instance="by_det",
+                                            wait_ready=False),
+            "squeeze": lambda: squeeze(detector, ROBOT, "onboard", 600.0, timeout=1.0),
+            "own write": lambda: KnowledgeClient(detector, ROBOT, host="onboard", **deny).write(
+                "platform_online", {"name": "onboard", "online": False, "time": 9.0}),
+            "robot-wide write": lambda: KnowledgeClient(detector, ROBOT, **deny).write(
+                "decision", write_params("decision")),
+            "cypher": lambda: KnowledgeClient(detector, ROBOT, **deny).cypher("RETURN 1 AS one"),
+        })
+        assert {what: type(outcome) for what, outcome in outcomes.items()} == dict.fromkeys(outcomes, RequestTimeout)
+        forged_configure = reply_payloads(watcher, keys.detector_configure(ROBOT, "remote", "forged"))
+        wait_for(lambda: (watcher.put(keys.adaptation_events(ROBOT), b"marker"),
+                          any(p == b"marker" for _, p in seen))[1], 5, "the watcher's own put to come back")
+    finally:
+        for entity in (subscriber, tokens, host_token, other_side):
+            entity.undeclare()
+    assert (keys.host_status(ROBOT, "onboard"), status) not in seen
+    assert keys.flight_state(ROBOT) not in {k for k, _ in seen}
+    assert (keys.adaptation_events(ROBOT), b"forged") not in seen
+    assert b"forged" not in forged_configure
+    assert keys.host_alive(ROBOT, "detector_ghost") not in alive
+    assert "by_det" not in {p["instance"] for p in DeployerClient(watcher, ROBOT, timeout=3.0).list("onboard")}

@@ -51,15 +51,16 @@ def test_the_command_writes_every_file_the_shipped_configurations_reference(tmp_
     assert referenced_tls_files() <= written
     assert referenced_tls_files() >= {"ca.pem", "quad1-knowledge.pem", "quad1-onboard-key.pem", "quad1-remote.pem"}
     assert report["ca_created"] is True
-    assert {c["common_name"] for c in report["issued"]} == {f"{ROBOT}-{r}" for r in
-                                                             ("knowledge", "onboard", "remote", "operator")}
+    assert {c["common_name"] for c in report["issued"]} == {f"{ROBOT}-{r}" for r in (
+        "knowledge", "onboard", "remote", "operator", "onboard-detector", "remote-detector")}
 
 
 def test_the_common_names_are_the_subjects_the_router_grants_this_robots_rights_to(tmp_path):
     kgadapt("certs", str(tmp_path))
     issued = {common_name(load(p)) for p in tmp_path.glob("quad1-*.pem") if not p.name.endswith("-key.pem")}
     subjects = router_subjects()
-    own = ("quad1-onboard", "quad1-remote", "quad1-knowledge", "quad1-operators")  # one subject per host since issue 13
+    own = ("quad1-onboard", "quad1-remote", "quad1-knowledge", "quad1-operators",  # one subject per host
+           "quad1-onboard-detectors", "quad1-remote-detectors")  # and per host's detectors
     assert set().union(*(subjects[s] for s in own)) == issued
 
 
@@ -67,7 +68,7 @@ def test_private_keys_are_written_0600_and_certificates_0644(tmp_path):
     kgadapt("certs", str(tmp_path / "tls"))
     files = list((tmp_path / "tls").iterdir())
     keys = [p for p in files if p.name.endswith("-key.pem")]
-    assert len(keys) == 5  # the CA's and four identities'
+    assert len(keys) == 7  # the CA's and six identities'
     for path in files:
         mode = stat.S_IMODE(path.stat().st_mode)
         assert mode == (0o600 if path in keys else 0o644), f"{path.name} has mode {oct(mode)}"

@@ -132,3 +132,47 @@ def test_a_forged_final_descent_does_not_hold_back_a_band_change(tmp_path):
         changed = run.wait_for(run.decision("band_changed"), 10, "the band change to dark")
     assert changed.outcome.startswith(("migrated", "reconfigured")), changed  # carried out, not deferred
     assert [d.kind for d in run.recorder.decisions] == ["startup", "band_changed"]
+
+
+@pytest.mark.slow
+def test_forged_detections_and_a_forged_descent_heard_on_zenoh(tmp_path):
+    """No flight bridge in the manager's process (it hears flight states on Zenoh, which the shipped ACL
+    lets only the onboard certificate, the bridge's, and operators put). A forger holding such a
+    certificate first sends empty detections fifty a second in the running instance's name on another
+    instance's key: the manager counts only frames whose key and body name the instance it started, so
+    the rate it watches does not collapse. Then it says LANDING twenty times a second while the light
+    flaps between dusk and day every 3 s: each kind of change is deferred, and recorded, once."""
+    from knowledge.client import KnowledgeClient
+
+    light = [[0, 120], [7, 120], [8, 16], [15, 16], [16, 120], [18, 120], [19, 16], [21, 16], [22, 120],
+             [24, 120], [25, 16], [60, 16]]
+    with Run(tmp_path, light, fake_fc=False) as run:
+        started = time.monotonic()  # about when the light profile began
+        run.wait_for(run.decision("startup"), 20, "the first detector")
+        forger = open_session(ZenohSettings(mode="peer", connect=(run.cluster.endpoint,)))
+        try:
+            # A promise to compare the rate with (the run is not calibrated), planned at the change to dusk.
+            KnowledgeClient(forger, "quad1", timeout=5.0).write("calibration", {
+                "config": "marker_detection_dusk", "band": "dusk", "detection_rate": 0.6, "ms_per_frame": 10.0,
+                "time": time.time()})
+            dusk = run.wait_for(run.decision("band_changed"), 20, "the change to dusk")
+            assert dusk.config == "marker_detection_dusk", run.recorder.decisions
+            run.wait_for(lambda: any(n for t, i, *_, n in run.recorder.detections
+                                     if i == dusk.instance and t > dusk.time), 10, "markers found at dusk")
+            for seq in range(150):
+                forger.put(keys.detector_markers("quad1", "outsider"), messages.encode("detections", {
+                    "instance": dusk.instance, "config": dusk.config, "host": dusk.host, "seq": 10**6 + seq,
+                    "frame_time": time.time(), "time": time.time(), "ids": [], "corners": [],
+                    "processing_ms": 1.0}))
+                time.sleep(0.02)
+            assert run.running(time.time() - 1.0) == {(dusk.config, dusk.host)}
+            assert [d.kind for d in run.recorder.decisions] == ["startup", "band_changed"], run.recorder.decisions
+            while time.monotonic() < started + 29:  # past the last flap and its dwell
+                forger.put(keys.flight_state("quad1"), messages.encode(
+                    "flight_state", {"time": time.time(), "link": True, "armed": True, "landed_state": "LANDING"}))
+                time.sleep(0.05)
+        finally:
+            forger.close()
+    kinds = [(d.kind, d.outcome) for d in run.recorder.decisions]
+    assert "rate_collapsed" not in [k for k, _ in kinds], kinds
+    assert [k for k, o in kinds if o.startswith("deferred")] == ["band_changed"], kinds  # once, not per change
