@@ -12,8 +12,7 @@ import json
 from typing import Any
 
 from shared.errors import ConfigError
-
-DEFAULT_ROBOT = "quad1"  # shared.agent.DEFAULT_ROBOT; not imported here, it would load Zenoh at start-up
+from shared.keys import DEFAULT_ROBOT
 
 
 def register(subparsers: Any) -> None:

@@ -2,14 +2,13 @@
 
 Every subcommand takes ``--store URL`` (default ``$KGADAPT_STORE``, else the
 embedded store in the user's data directory); ``--json`` where the output is
-data. ``kgadapt knowledge serve`` is added by ``knowledge.service_cli`` when
-that module exists.
+data. ``kgadapt knowledge serve`` is added by ``knowledge.service_cli`` (it
+needs Zenoh, and lives with the service's other commands).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import sys
 from pathlib import Path
@@ -79,15 +78,9 @@ def register(subparsers: Any) -> None:
     _store_arg(export)
     export.set_defaults(func=_export)
 
-    try:
-        service_cli = importlib.import_module("knowledge.service_cli")
-    except ModuleNotFoundError as exc:
-        if exc.name != "knowledge.service_cli":
-            raise
-    else:
-        hook = getattr(service_cli, "register_knowledge", None)
-        if hook is not None:
-            hook(sub)
+    from knowledge.service_cli import register_knowledge
+
+    register_knowledge(sub)
 
 
 def _time_limit_arg(parser: argparse.ArgumentParser) -> None:

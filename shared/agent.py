@@ -32,7 +32,7 @@ from shared.session import open_session, settings_from_args as zenoh_settings_fr
 
 log = logging.getLogger(__name__)
 
-DEFAULT_ROBOT = "quad1"
+DEFAULT_ROBOT = keys.DEFAULT_ROBOT  # kept here: deploy/deployer.py, onboard/ import it from shared.agent
 
 
 class Part(Protocol):
