@@ -415,12 +415,10 @@ def _batch_for(store: GraphStore, settings: Table1Settings) -> int:
 
 
 def _fig5_max_n(store: GraphStore, settings: Table1Settings) -> int:
-    from knowledge.falkordb_store import FalkorDBStore
-
-    if isinstance(store, FalkorDBStore):
+    if store.capabilities.timeouts:
         return settings.fig5_max_n
-    # The Bolt backends do not pass timeout_ms on, so the unbounded query could
-    # run for minutes: keep it to graphs where it ends in well under a second.
+    # A store that cannot stop a query at timeout_ms (FalkorDB's Bolt listener) could run the
+    # unbounded query for minutes: keep it to graphs where it ends in well under a second.
     limit = min(settings.fig5_max_n, 10)
     if settings.fig5_max_n > limit:
         log.warning("%s does not enforce query timeouts: Fig. 5 literal only up to N=%d", store.url, limit)

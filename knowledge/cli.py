@@ -95,7 +95,7 @@ def _run_bounded(store_url: str | None, cypher: str, params: dict[str, Any], lim
     if limit_s <= 0:
         raise ConfigError(f"--time-limit {limit_s}: must be positive")
     with open_store(store_url) as store:
-        if store.dialect.name != "falkordb" or not store.capabilities.timeouts:  # not FalkorDB over RESP
+        if not store.capabilities.sandbox:
             return store.execute(cypher, params, read_only=True, timeout_ms=int(limit_s * 1000))
         from knowledge.sandbox import QuerySandbox
 

@@ -40,7 +40,7 @@ import redis
 from knowledge.embedded import EmbeddedServer
 from knowledge.falkordb_store import FalkorDBStore
 from knowledge.store import Row, StoreSettings
-from shared.errors import ConfigError, QueryError, QueryTimeLimit, StoreUnavailable
+from shared.errors import ConfigError, QueryTimeLimit, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -118,10 +118,8 @@ class QuerySandbox:
                     f"query stopped at its hard time limit of {limit_s * 1000:.0f} ms "
                     "(it did not stop when asked: abandoned, and the server running it was killed)"
                 ) from exc
-            except QueryError as exc:
-                if "timed out" in str(exc).lower():  # the store's own timeout came first
-                    raise QueryTimeLimit(f"query stopped at its hard time limit of {limit_s * 1000:.0f} ms (by the store)") from exc
-                raise
+            except StoreTimeout as exc:  # the store's own timeout came first
+                raise QueryTimeLimit(f"query stopped at its hard time limit of {limit_s * 1000:.0f} ms (by the store)") from exc
             except (StoreUnavailable, ValueError, OSError, redis.RedisError):
                 # Killed under us (another query's limit: its client was closed, hence ValueError
                 # too), or crashed: once more on a new server.
