@@ -97,7 +97,8 @@ def phantom_scenes(total: int, *, run: int = 20):
 
 def phantoms(*, frames: int, site_ids: Sequence[int], progress: Progress = None) -> dict[str, Any]:
     """Every configuration over ``frames`` frames without the site's markers: raw phantoms and landing targets."""
-    from onboard.confirmation import ConfirmationSettings, MarkerConfirmer, SiteMarkers
+    from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
+    from onboard.site import SiteMarkers
 
     configs = shipped_configs()
     detectors = [MarkerDetector(c) for c in configs]

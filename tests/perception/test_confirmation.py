@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from onboard.calibration import model_configs
-from onboard.confirmation import ConfirmationSettings, MarkerConfirmer, SiteMarkers, load_site
+from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
+from onboard.site import SiteMarkers, load_site
 from onboard.markers import MarkerDetector
 from onboard.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
 from onboard.scenario import IlluminationProfile, SceneSettings, SyntheticScene
