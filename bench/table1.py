@@ -409,8 +409,8 @@ def measure_updates(probe: Probe, insert: Op, sample: Op, insert_create: Op, n: 
 def _batch_for(store: GraphStore, settings: Table1Settings) -> int:
     if settings.batch:
         return settings.batch
-    # FalkorDB's Bolt listener crashed on parameters above ~4 KB (DESIGN.md
-    # section 7); four models are ~1.7 KB.
+    # FalkorDB's Bolt listener crashed on parameters above ~4 KB (measured with
+    # FalkorDB 4.16); four models are ~1.7 KB.
     return 4 if store.settings.kind == "bolt" else 1000
 
 

@@ -6,8 +6,8 @@ values, never text (``run_named`` checks names and types first and raises
 
 The production queries follow the meaningful relations in their direction,
 with bounded patterns, starting from the most selective named (indexed) node,
-so their cost does not grow with the number of models (DESIGN.md sections 3
-and 7). The paper's own texts are kept as ``fig4_literal`` and
+so their cost does not grow with the number of models (docs/bench-table1.md
+has the figures). The paper's own texts are kept as ``fig4_literal`` and
 ``fig5_literal``: their unbounded ``-[*]-`` walks the whole graph once many
 models share platforms, and Fig. 4's second MATCH is not joined to its first
 (it returns every deployment executable on the platform whenever the feature
