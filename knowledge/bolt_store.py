@@ -16,6 +16,7 @@ handshake that follows a disconnect, so one session is kept for every query.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -175,7 +176,8 @@ class BoltStore(GraphStore):
         if self._splices_params:
             _refuse_quotes(clean)
         seconds = timeout_ms / 1000.0 if timeout_ms and self.capabilities.timeouts else None
-        return self._with_errors(lambda: self._fetch(cypher, clean, seconds), timeout_ms)
+        rows: list[Row] = self._with_errors(lambda: self._fetch(cypher, clean, seconds), timeout_ms)
+        return rows
 
     def execute_atomic(self, statements: Sequence[Statement]) -> None:
         """One explicit transaction, rolled back on any error.
@@ -189,7 +191,7 @@ class BoltStore(GraphStore):
                 _refuse_quotes(params)
         if not self.capabilities.transactions:
             for cypher, params in batch:
-                self._with_errors(lambda c=cypher, p=params: self._fetch(c, p, None), None)
+                self._with_errors(functools.partial(self._fetch, cypher, params, None), None)
             return
 
         def run_batch() -> None:
@@ -213,7 +215,7 @@ class BoltStore(GraphStore):
     def _fetch(self, cypher: str, params: dict[str, Any], timeout_s: float | None) -> list[Row]:
         session = self._current_session()
         result = session.run(neo4j.Query(cypher, timeout=timeout_s), params)
-        return [{key: plain(value) for key, value in record.items()} for record in result]
+        return [{key: plain(record[key]) for key in record.keys()} for record in result]
 
     def _with_errors(self, work: Callable[[], Any], timeout_ms: int | None) -> Any:
         """Run ``work`` under the store lock; translate the driver's errors into ours."""

@@ -41,6 +41,8 @@ class FalkorDBStore(GraphStore):
         timeout = timeout or self.settings.connect_timeout
         if self.settings.kind == "embedded":
             if self.server is None:
+                if self.settings.data_dir is None:
+                    raise StoreUnavailable(f"store {self.settings.url}: an embedded store needs a data directory")
                 self.server = EmbeddedServer(self.settings.data_dir, start_timeout=timeout)
             address = self.server.ensure()
             kwargs: dict[str, Any] = {"unix_socket_path": address.unix_socket}
@@ -89,7 +91,8 @@ class FalkorDBStore(GraphStore):
         """The underlying redis client (for admin commands such as ``GRAPH.CONFIG``)."""
         if self._db is None:
             raise StoreUnavailable("store is not set up; call setup() first")
-        return self._db.connection
+        client: redis.Redis = self._db.connection
+        return client
 
     def execute(
         self,
@@ -160,7 +163,7 @@ class FalkorDBStore(GraphStore):
         time, so callers validate before writing (the importers do); an
         error in any reply is raised.
         """
-        if self._graph is None:
+        if self._graph is None or self._db is None:
             raise StoreUnavailable("store is not set up; call setup() first")
         pipe = self._db.connection.pipeline(transaction=True)
         batch = [params_header(params) + cypher for cypher, params in statements]  # all checked before any is sent
@@ -177,6 +180,8 @@ class FalkorDBStore(GraphStore):
                 raise QueryError(f"store rejected a statement of the batch ({cypher[:60]}...): {reply}")
 
     def clear(self) -> None:
+        if self._graph is None or self._db is None:
+            raise StoreUnavailable("store is not set up; call setup() first")
         try:
             self._graph.delete()
         except redis.ResponseError:

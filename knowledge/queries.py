@@ -388,7 +388,7 @@ def _typed(name: str, key: str, kind: str, value: Any) -> Any:
 
 
 def run_named(store: GraphStore, name: str, params: Mapping[str, Any] | None = None, *,
-              timeout_ms: int | None = None) -> list[dict]:
+              timeout_ms: int | None = None) -> list[dict[str, Any]]:
     """Check the parameters, then run named query ``name`` read-only; return its rows."""
     values = check_params(name, params)
     return store.execute(get_query(name).text_for(values), values, read_only=True, timeout_ms=timeout_ms)

@@ -33,13 +33,13 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, cast
 
 import redis
 
 from knowledge.embedded import EmbeddedServer
 from knowledge.falkordb_store import FalkorDBStore
-from knowledge.store import Row, StoreSettings
+from knowledge.store import GraphStore, Row, StoreSettings
 from shared.errors import ConfigError, QueryTimeLimit, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
@@ -74,8 +74,11 @@ class QuerySandbox:
     first copy; ``shutdown()`` stops it and removes its directory.
     """
 
-    def __init__(self, source: FalkorDBStore, settings: SandboxSettings = SandboxSettings()) -> None:
-        self.source = source
+    def __init__(self, source: GraphStore, settings: SandboxSettings = SandboxSettings()) -> None:
+        if not source.capabilities.sandbox:
+            raise ConfigError(f"store {source.url}: its graph cannot be copied into a query sandbox "
+                              "(only FalkorDB over RESP can)")
+        self.source = cast(FalkorDBStore, source)  # the one backend declaring capabilities.sandbox
         self.settings = settings
         self.restarts = 0  # servers killed for running past a limit (or found dead)
         self._lock = threading.Lock()

@@ -114,7 +114,7 @@ def parse_store_url(url: str | None = None) -> StoreSettings:
     unknown = sorted(set(query) - {"ca"})
     if unknown:
         raise ConfigError(f"store URL {url!r}: unknown option {unknown[0]!r} (only ?ca=FILE)")
-    ca_file = (query.get("ca") or [None])[-1] or os.environ.get(STORE_CA_ENV) or None
+    ca_file = (query.get("ca") or [""])[-1] or os.environ.get(STORE_CA_ENV) or None
     if ca_file and tls != "verify":
         raise ConfigError(f"store URL {url!r}: a CA file needs a +s:// scheme (memgraph+s or bolt+s)")
     if ca_file and not Path(ca_file).is_file():
@@ -225,11 +225,14 @@ def open_store(url: str | None = None, **overrides: Any) -> GraphStore:
         settings = StoreSettings(**{**settings.__dict__, **overrides})
     from shared.extras import require
 
+    store: GraphStore
     if settings.kind in ("embedded", "falkordb"):
         module = require("knowledge.falkordb_store", extra="store", what=f"store {settings.url}")
-        return module.FalkorDBStore(settings)
-    module = require("knowledge.bolt_store", extra="memgraph", what=f"store {settings.url}")
-    return module.BoltStore(settings)
+        store = module.FalkorDBStore(settings)
+    else:
+        module = require("knowledge.bolt_store", extra="memgraph", what=f"store {settings.url}")
+        store = module.BoltStore(settings)
+    return store
 
 
 def rows_as_table(rows: Iterable[Row]) -> str:
