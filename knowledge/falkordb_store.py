@@ -27,6 +27,7 @@ from shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreTi
 
 log = logging.getLogger(__name__)
 
+
 class FalkorDBStore(GraphStore):
     """A FalkorDB graph, embedded (started by us) or already running."""
 
