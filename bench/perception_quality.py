@@ -22,14 +22,12 @@ Used by ``kgadapt bench perception``:
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from onboard.calibration import (ALL, CONDITIONS, CalibrationSettings, calibrate, condition_profile, model_configs,
-                                 rank_rows)
+from onboard.calibration import ALL, CONDITIONS, CalibrationSettings, calibrate, model_configs, rank_rows
 from onboard.illumination import Band
 from onboard.markers import DetectorConfig, MarkerDetector, Score, score
 

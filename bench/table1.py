@@ -46,15 +46,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-from bench.stats import (
-    format_table,
-    gc_paused,
-    machine_info,
-    make_record,
-    read_records,
-    time_once,
-    write_records,
-)
+from bench.stats import format_table, gc_paused, machine_info, make_record, read_records, time_once, write_records
 from knowledge import queries, runtime
 from knowledge import schema as S
 from knowledge.store import GraphStore, parse_store_url
@@ -860,7 +852,9 @@ def command(args: argparse.Namespace) -> int:
             allow_clear=args.allow_clear, data_dir=args.data_dir, seed=args.seed,
             mode="full" if args.full and not args.n else ("custom" if args.n else "quick"),
         )
-        progress = (lambda line: print(line, file=sys.stderr, flush=True))
+        def progress(line: str) -> None:
+            print(line, file=sys.stderr, flush=True)
+
         records = run_table1(settings, progress=progress)
         out = args.out
         write_records(out, records)

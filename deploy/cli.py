@@ -168,8 +168,8 @@ def run_migrate(args: argparse.Namespace) -> int:
         client = DeployerClient(session, args.robot, timeout=args.timeout,
                                 start_timeout=args.ready_timeout + args.timeout)
         report = migrate(session, args.robot, args.instance, args.target, source_host=args.source,
-                         deployment=args.deployment, config=args.config, new_instance=args.new_instance, ready_timeout=args.ready_timeout,
-                         output_timeout=args.output_timeout, client=client)
+                         deployment=args.deployment, config=args.config, new_instance=args.new_instance,
+                         ready_timeout=args.ready_timeout, output_timeout=args.output_timeout, client=client)
     if args.json:
         print(json.dumps(report.to_dict(), indent=2))
     else:
@@ -182,7 +182,8 @@ def run_migrate(args: argparse.Namespace) -> int:
 def run_serve(args: argparse.Namespace) -> int:
     from deploy.deployer import Deployer, settings_from_args
     from shared.agent import Agent, AgentSettings, run_agent
-    from shared.session import DEFAULT_ENDPOINT, settings_from_args as zenoh_settings_from_args
+    from shared.session import DEFAULT_ENDPOINT
+    from shared.session import settings_from_args as zenoh_settings_from_args
 
     zenoh = zenoh_settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
     if zenoh.mode == "client" and not zenoh.connect and not zenoh.config_file:

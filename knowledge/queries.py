@@ -359,7 +359,8 @@ def check_params(name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
         value = params.get(key)
         if value is None:
             if spec.required:
-                raise NamedQueryError(f"query {name!r} needs parameter {key!r} ({spec.type}{': ' + spec.help if spec.help else ''})")
+                what = f"{spec.type}: {spec.help}" if spec.help else spec.type
+                raise NamedQueryError(f"query {name!r} needs parameter {key!r} ({what})")
             value = spec.default
         if value is not None:
             value = _typed(name, key, spec.type, value)

@@ -30,8 +30,8 @@ from typing import Any, Callable, Sequence
 
 from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
 from onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, TargetHold
-from onboard.site import SiteMarkers
 from onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
+from onboard.site import SiteMarkers
 from shared import keys, messages
 from shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
 

@@ -284,14 +284,12 @@ def _monitor(args: argparse.Namespace) -> int:
 
 
 def _bridge(args: argparse.Namespace) -> int:
-    from onboard.flight import (BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter,
-                                intrinsics_from_graph)
-    from shared import session as zsession
-    from shared.errors import ConfigError
-
     from onboard.confirmation import ConfirmationSettings
+    from onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter, intrinsics_from_graph
     from onboard.landing_targets import load_camera
     from onboard.site import load_site
+    from shared import session as zsession
+    from shared.errors import ConfigError
 
     given = [args.fx, args.fy, args.cx, args.cy]
     camera_file = load_camera(args.camera_file) if args.camera_file else None
@@ -361,10 +359,12 @@ def status_lines(state, timeouts: dict[str, float], now: float) -> list[str]:
                                f"lat {_num(state.lat_deg, '{:.7f}')} lon {_num(state.lon_deg, '{:.7f}')}",
         "ATTITUDE": "attitude " + ("-" if state.attitude is None else
                                    "roll {:.1f} pitch {:.1f} yaw {:.1f} deg".format(*map(math.degrees, state.attitude)))
-                    + ("" if state.rates is None else "  rates {:.1f} {:.1f} {:.1f} deg/s".format(*map(math.degrees, state.rates))),
+                    + ("" if state.rates is None
+                       else "  rates {:.1f} {:.1f} {:.1f} deg/s".format(*map(math.degrees, state.rates))),
         "LOCAL_POSITION_NED": "local NED " + ("-" if state.position_ned is None else
                                               "{:.2f} {:.2f} {:.2f} m".format(*state.position_ned))
-                              + ("" if state.velocity_ned is None else "  v {:.2f} {:.2f} {:.2f} m/s".format(*state.velocity_ned)),
+                              + ("" if state.velocity_ned is None
+                                 else "  v {:.2f} {:.2f} {:.2f} m/s".format(*state.velocity_ned)),
         "DISTANCE_SENSOR": f"rangefinder {_num(state.rangefinder_m)} m",
         "HOME_POSITION": "home " + ("-" if state.home is None else "{:.7f} {:.7f} {:.1f} m AMSL".format(*state.home)),
     }

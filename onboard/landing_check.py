@@ -19,9 +19,9 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.landing_scene import MarkerScene, fake_pose, horizontal_error, link_pose, run_detections
 from onboard.landing_targets import CameraModel
-from onboard.site import SiteMarkers
 from onboard.mavlink import LinkSettings
 from onboard.mavlink_commands import CommandOutcome
+from onboard.site import SiteMarkers
 from shared.errors import FlightLinkError
 
 log = logging.getLogger(__name__)

@@ -186,7 +186,8 @@ class TargetBuilder:
         self.counters = {"position": 0, "rangefinder": 0, "angles": 0}
 
     def build(self, corners: Sequence[Sequence[float]], *, marker_id: int, frame_time: float,
-              profile: AutopilotProfile, state: FlightState, pose_at: PoseAt | None = None) -> tuple[LandingTarget, "HeldTarget | None"]:
+              profile: AutopilotProfile, state: FlightState,
+              pose_at: PoseAt | None = None) -> tuple[LandingTarget, "HeldTarget | None"]:
         """The target to send now, and what to hold for re-sending (None if it cannot be predicted)."""
         cam = self.camera
         u = sum(p[0] for p in corners) / 4.0

@@ -51,9 +51,7 @@ from typing import Any
 from knowledge import schema as S
 from knowledge.importers import detector_check
 from knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
-from knowledge.importers.tokens import (
-    Statement, Symbol, expect_args, name_arg, number_arg, read_statements, text_arg,
-)
+from knowledge.importers.tokens import Statement, Symbol, expect_args, name_arg, number_arg, read_statements, text_arg
 from shared import preprocessing
 
 NOTATION = "perception graph DSL (rpsl)"

@@ -8,15 +8,9 @@ import math
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from onboard.geometry import body_to_ned, camera_to_body, body_to_camera, ned_to_body
+from onboard.geometry import body_to_camera, body_to_ned, camera_to_body, ned_to_body
 from onboard.landing_scene import MarkerScene
-from onboard.landing_targets import (
-    AutopilotProfile,
-    CameraModel,
-    TargetBuilder,
-    load_camera,
-    load_site_markers,
-)
+from onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, load_camera, load_site_markers
 from onboard.mavlink import FlightState
 from onboard.site import SiteMarkers
 from shared.errors import ConfigError, ModelError
