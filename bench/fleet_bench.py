@@ -141,7 +141,8 @@ _PUBLISHER = r"""
 import sys, time
 from shared import keys, messages
 from shared.session import ZenohSettings, open_session
-endpoints, robots, per_robot, rate, duration = sys.argv[1].split(","), sys.argv[2].split(","), int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
+endpoints, robots = sys.argv[1].split(","), sys.argv[2].split(",")
+per_robot, rate, duration = int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
 session = open_session(ZenohSettings(mode="client", connect=tuple(endpoints)))
 pubs = []
 for r in robots:
@@ -516,9 +517,9 @@ def run(args: argparse.Namespace) -> int:
                 rows.append([size, routers, q["p50_ms"], q["p99_ms"], f"{q['complete']}/{q['reps']}",
                              q["min_answered"], cpu["idle_pct_per_robot"], cpu["asking_pct_per_robot"],
                              cpu["transit_router_idle_pct"], cpu["transit_router_asking_pct_per_robot"]])
+    settings = {k: str(v) for k, v in vars(args).items() if k not in ("func",)}
     write_json(args.out, {"machine": {**machine_info(), "load_avg_1_5_15_before": load_before,
-                                      "load_avg_1_5_15_after": os.getloadavg()}, "settings": {k: str(v) for k, v in vars(args).items()
-                                                               if k not in ("func",)}, "records": records})
+                                      "load_avg_1_5_15_after": os.getloadavg()}, "settings": settings, "records": records})
     print(format_table(rows, ["robots", "routers", "p50 ms", "p99 ms", "complete", "min answered",
                               "services %cpu/robot idle", "… asking", "transit router %cpu idle",
                               "… /robot asking"]))

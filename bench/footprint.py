@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from shared.errors import ConfigError
+from shared.keys import DEFAULT_ROBOT
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -261,7 +262,7 @@ def measure_onboard(*, seconds: float = 15.0, half_core: bool = False, progress=
             try:
                 for config in CONFIGS:
                     counted: list[int] = []
-                    sub = session.declare_subscriber(keys.detector_markers("quad1"), lambda _: counted.append(1))
+                    sub = session.declare_subscriber(keys.detector_markers(DEFAULT_ROBOT), lambda _: counted.append(1))
                     try:
                         detector = cluster.spawn(config, inside([
                             sys.executable, "-m", "onboard.detector", "--instance", f"fp-{config}", "--host",

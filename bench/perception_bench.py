@@ -125,7 +125,7 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
             oracle = quality.oracle_gap(ask, bands, frames=eval_frames, levels=levels)
     if progress:
         progress(f"phantoms: {phantom_frames} frames without the site's markers ...")
-    from onboard.confirmation import load_site
+    from onboard.site import load_site
 
     site = load_site(REPO / "knowledge" / "models" / "sites" / "demo.site")
     phantoms = quality.phantoms(frames=phantom_frames, site_ids=sorted(site.ids), progress=progress)

@@ -22,14 +22,12 @@ Used by ``kgadapt bench perception``:
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from onboard.calibration import (ALL, CONDITIONS, CalibrationSettings, calibrate, condition_profile, model_configs,
-                                 rank_rows)
+from onboard.calibration import ALL, CONDITIONS, CalibrationSettings, calibrate, model_configs, rank_rows
 from onboard.illumination import Band
 from onboard.markers import DetectorConfig, MarkerDetector, Score, score
 
@@ -97,7 +95,8 @@ def phantom_scenes(total: int, *, run: int = 20):
 
 def phantoms(*, frames: int, site_ids: Sequence[int], progress: Progress = None) -> dict[str, Any]:
     """Every configuration over ``frames`` frames without the site's markers: raw phantoms and landing targets."""
-    from onboard.confirmation import ConfirmationSettings, MarkerConfirmer, SiteMarkers
+    from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
+    from onboard.site import SiteMarkers
 
     configs = shipped_configs()
     detectors = [MarkerDetector(c) for c in configs]

@@ -183,7 +183,8 @@ class Soak:
             record["end"] = time.time()
             self.faults.append(record)
             self._current_fault_start = None
-            self.say(f"fault {len(self.faults)} {kind} {json.dumps({k: v for k, v in record.items() if k not in ('kind', 'start', 'end')})[:160]}")
+            details = json.dumps({k: v for k, v in record.items() if k not in ("kind", "start", "end")})
+            self.say(f"fault {len(self.faults)} {kind} {details[:160]}")
 
     def _fault_store_kill(self) -> dict[str, Any]:
         pid = self.store_pid()

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from bench.stats import format_table, machine_info, make_record, write_records
+from shared.keys import DEFAULT_ROBOT
 
 RESULTS = Path(__file__).resolve().parent / "results" / "starvation.json"
 DARK = "marker_detection_dark"
@@ -96,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         with WatchedRobot(ClusterSettings(workdir=workdir / "run", profile=profile, calibrate=False, fake_fc=False,
                                           log_level="WARNING")) as robot:
             robot.wait(lambda: robot.recorder.decisions, 30)
-            own = KnowledgeClient(robot.session, "quad1", timeout=2.0, own=True)
+            own = KnowledgeClient(robot.session, DEFAULT_ROBOT, timeout=2.0, own=True)
             quiet, quiet_lost = _probe(own, args.baseline)
             attacks = _attacks(listener.getsockname()[1])
             answers = {name: [] for name in attacks}
@@ -105,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
                         for _ in range(args.attackers)]
 
             def attacker(i: int) -> None:
-                outsider = Outsider(sessions[i], "quad1")
+                outsider = Outsider(sessions[i], DEFAULT_ROBOT)
                 names = ["heavy", "literal", "nested", "heavy", "bypass", "literal4", "heavy", "load_csv", "flood"]
                 k = i * 2
                 while not stop.is_set():

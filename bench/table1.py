@@ -46,15 +46,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-from bench.stats import (
-    format_table,
-    gc_paused,
-    machine_info,
-    make_record,
-    read_records,
-    time_once,
-    write_records,
-)
+from bench.stats import format_table, gc_paused, machine_info, make_record, read_records, time_once, write_records
 from knowledge import queries, runtime
 from knowledge import schema as S
 from knowledge.store import GraphStore, parse_store_url
@@ -409,18 +401,16 @@ def measure_updates(probe: Probe, insert: Op, sample: Op, insert_create: Op, n: 
 def _batch_for(store: GraphStore, settings: Table1Settings) -> int:
     if settings.batch:
         return settings.batch
-    # FalkorDB's Bolt listener crashed on parameters above ~4 KB (DESIGN.md
-    # section 7); four models are ~1.7 KB.
+    # FalkorDB's Bolt listener crashed on parameters above ~4 KB (measured with
+    # FalkorDB 4.16); four models are ~1.7 KB.
     return 4 if store.settings.kind == "bolt" else 1000
 
 
 def _fig5_max_n(store: GraphStore, settings: Table1Settings) -> int:
-    from knowledge.falkordb_store import FalkorDBStore
-
-    if isinstance(store, FalkorDBStore):
+    if store.capabilities.timeouts:
         return settings.fig5_max_n
-    # The Bolt backends do not pass timeout_ms on, so the unbounded query could
-    # run for minutes: keep it to graphs where it ends in well under a second.
+    # A store that cannot stop a query at timeout_ms (FalkorDB's Bolt listener) could run the
+    # unbounded query for minutes: keep it to graphs where it ends in well under a second.
     limit = min(settings.fig5_max_n, 10)
     if settings.fig5_max_n > limit:
         log.warning("%s does not enforce query timeouts: Fig. 5 literal only up to N=%d", store.url, limit)
@@ -862,7 +852,9 @@ def command(args: argparse.Namespace) -> int:
             allow_clear=args.allow_clear, data_dir=args.data_dir, seed=args.seed,
             mode="full" if args.full and not args.n else ("custom" if args.n else "quick"),
         )
-        progress = (lambda line: print(line, file=sys.stderr, flush=True))
+        def progress(line: str) -> None:
+            print(line, file=sys.stderr, flush=True)
+
         records = run_table1(settings, progress=progress)
         out = args.out
         write_records(out, records)

@@ -73,7 +73,7 @@ def _pip(*args: str, what: str) -> None:
     done = subprocess.run([sys.executable, "-m", "pip", *args, "--disable-pip-version-check"],
                           capture_output=True, text=True)
     if done.returncode != 0:
-        lines = [l for l in done.stderr.splitlines() if "is ignored: it is neither a file" not in l]
+        lines = [line for line in done.stderr.splitlines() if "is ignored: it is neither a file" not in line]
         raise ConfigError(f"{what} failed: {' '.join(lines)[-1500:]}")
 
 

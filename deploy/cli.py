@@ -12,8 +12,7 @@ import json
 from typing import Any
 
 from shared.errors import ConfigError
-
-DEFAULT_ROBOT = "quad1"  # shared.agent.DEFAULT_ROBOT; not imported here, it would load Zenoh at start-up
+from shared.keys import DEFAULT_ROBOT
 
 
 def register(subparsers: Any) -> None:
@@ -169,8 +168,8 @@ def run_migrate(args: argparse.Namespace) -> int:
         client = DeployerClient(session, args.robot, timeout=args.timeout,
                                 start_timeout=args.ready_timeout + args.timeout)
         report = migrate(session, args.robot, args.instance, args.target, source_host=args.source,
-                         deployment=args.deployment, config=args.config, new_instance=args.new_instance, ready_timeout=args.ready_timeout,
-                         output_timeout=args.output_timeout, client=client)
+                         deployment=args.deployment, config=args.config, new_instance=args.new_instance,
+                         ready_timeout=args.ready_timeout, output_timeout=args.output_timeout, client=client)
     if args.json:
         print(json.dumps(report.to_dict(), indent=2))
     else:
@@ -183,7 +182,8 @@ def run_migrate(args: argparse.Namespace) -> int:
 def run_serve(args: argparse.Namespace) -> int:
     from deploy.deployer import Deployer, settings_from_args
     from shared.agent import Agent, AgentSettings, run_agent
-    from shared.session import DEFAULT_ENDPOINT, settings_from_args as zenoh_settings_from_args
+    from shared.session import DEFAULT_ENDPOINT
+    from shared.session import settings_from_args as zenoh_settings_from_args
 
     zenoh = zenoh_settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
     if zenoh.mode == "client" and not zenoh.connect and not zenoh.config_file:

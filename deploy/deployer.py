@@ -41,15 +41,7 @@ from typing import Any, Callable, Mapping
 
 from deploy.options import add_arguments  # noqa: F401  (re-exported for agents)
 from deploy.profile import ProfileRecorder, ProfileSettings
-from deploy.supervisor import (
-    ProcessEvent,
-    ProcessInfo,
-    ProcessSpec,
-    RestartPolicy,
-    StopPolicy,
-    Supervisor,
-    SupervisorSettings,
-)
+from deploy.supervisor import ProcessEvent, ProcessInfo, ProcessSpec, RestartPolicy, StopPolicy, Supervisor, SupervisorSettings
 from shared import keys, messages
 from shared.agent import DEFAULT_ROBOT
 from shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RemoteError, TransportError

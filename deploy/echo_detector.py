@@ -77,7 +77,7 @@ def _serve(args: argparse.Namespace, unblock_signals) -> int:
     frames: queue.Queue = queue.Queue(maxsize=64)
     try:
         publisher = session.declare_publisher(keys.detector_markers(args.robot, args.instance))
-        token = session.liveliness().declare_token(keys.detector_alive(args.robot, args.instance))
+        _token = session.liveliness().declare_token(keys.detector_alive(args.robot, args.instance))  # held while we run
         if args.tick <= 0:
             # The callback only queues: no Zenoh call inside it.
             def on_frame(sample) -> None:
@@ -86,7 +86,7 @@ def _serve(args: argparse.Namespace, unblock_signals) -> int:
                 except queue.Full:
                     pass
 
-            subscriber = session.declare_subscriber(keys.camera_frame(args.robot, args.camera), on_frame)
+            _subscriber = session.declare_subscriber(keys.camera_frame(args.robot, args.camera), on_frame)  # held
         print("KGADAPT_READY", flush=True)
         seq = 0
         while True:

@@ -566,7 +566,8 @@ class Supervisor:
             inst.stop_requested = True  # no restart: a program that cannot get ready will not by retrying
             inst.state = STOPPING
             inst.detail = f"not ready within {inst.spec.ready_timeout:g} s"
-        log.warning("instance %s (pid %s) not ready within %.1f s; stopping it", inst.spec.instance, run.pid, inst.spec.ready_timeout)
+        log.warning("instance %s (pid %s) not ready within %.1f s; stopping it",
+                    inst.spec.instance, run.pid, inst.spec.ready_timeout)
         policy = inst.spec.stop
         for sig, wait in ((signal.SIGTERM, policy.sigterm_timeout), (signal.SIGKILL, policy.sigkill_timeout)):
             self._signal_group(run, sig)

@@ -2,9 +2,13 @@
 
 Each part owns a module with ``register(subparsers)`` that adds its
 subcommand and sets ``func`` (called with the parsed args; returns an exit
-status or None). Modules are imported only to register; heavy imports (cv2,
-zenoh) belong inside the functions. Any :class:`KgadaptError` ends the
-command with exit status 1 and one line on stderr naming the problem.
+status or None). The table below is static: every module in it is part of
+kgadapt, so one that cannot be imported is a broken installation and the
+command says so, instead of quietly lacking a subcommand. Modules are
+imported only to register; heavy imports (cv2, the store drivers) belong
+inside the functions, which run only for the chosen subcommand. Any
+:class:`KgadaptError` ends the command with exit status 1 and one line on
+stderr naming the problem.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from typing import Sequence
 
 from shared.errors import KgadaptError
 
-# (module, what it adds). A part not written yet is simply absent.
+# The modules that register subcommands, in the order of `kgadapt --help`.
 PARTS = (
     "knowledge.cli",          # kgadapt knowledge load|query|queries|cypher|export (+ serve, via a hook)
     "knowledge.service_cli",  # kgadapt ask
@@ -56,13 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in PARTS:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name == name:
-                continue
-            raise
-        module.register(sub)
+        importlib.import_module(name).register(sub)
     return parser
 
 

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Sequence
 
 from shared.errors import KgadaptError, TransportError
+from shared.keys import DEFAULT_ROBOT
 
 REPO = Path(__file__).resolve().parent.parent
 MODELS = REPO / "knowledge" / "models"
@@ -51,7 +52,7 @@ class ClusterSettings:
     """What to run. Budgets make two agents on one machine behave as two hosts."""
 
     workdir: Path
-    robot: str = "quad1"
+    robot: str = DEFAULT_ROBOT
     profile: str | None = None  # synthetic camera profile file; None: the shipped demo scenario
     scenario_speed: float = 1.0
     onboard_budget: str = "700M"

@@ -28,9 +28,8 @@ import threading
 import time
 from typing import Any
 
+from shared.keys import DEFAULT_ROBOT
 from shared.timefmt import ago, duration, stamp
-
-DEFAULT_ROBOT = "quad1"
 
 
 def register(subparsers: Any) -> None:

@@ -16,8 +16,8 @@ handshake that follows a disconnect, so one session is kept for every query.
 
 from __future__ import annotations
 
+import functools
 import logging
-import math
 import threading
 import time
 from typing import Any, Callable, Mapping, Sequence
@@ -27,8 +27,9 @@ from neo4j import exceptions as neo4j_errors
 from neo4j import graph as neo4j_graph
 
 from knowledge.dialect import FALKORDB, MEMGRAPH, NEO4J, Dialect
+from knowledge.params import check_params
 from knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
-from shared.errors import QueryError, ReadOnlyViolation, StoreUnavailable
+from shared.errors import QueryError, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +65,8 @@ class BoltStore(GraphStore):
             timeouts=not stand_in,
             tls=True,
             read_only="check",
+            thread_safe=True,  # every call holds self._lock around the one session
+            sandbox=False,  # no DUMP/RESTORE over Bolt
         )
 
     # --- life cycle -----------------------------------------------------------
@@ -169,11 +172,12 @@ class BoltStore(GraphStore):
     ) -> list[Row]:
         if read_only:
             assert_read_only(cypher)
-        clean = _check_params(params)
+        clean = check_params(params)
         if self._splices_params:
             _refuse_quotes(clean)
         seconds = timeout_ms / 1000.0 if timeout_ms and self.capabilities.timeouts else None
-        return self._with_errors(lambda: self._fetch(cypher, clean, seconds), timeout_ms)
+        rows: list[Row] = self._with_errors(lambda: self._fetch(cypher, clean, seconds), timeout_ms)
+        return rows
 
     def execute_atomic(self, statements: Sequence[Statement]) -> None:
         """One explicit transaction, rolled back on any error.
@@ -181,13 +185,13 @@ class BoltStore(GraphStore):
         FalkorDB's Bolt listener has no explicit transactions; there the
         statements run one by one after the importers' validation.
         """
-        batch = [(cypher, _check_params(params)) for cypher, params in statements]
+        batch = [(cypher, check_params(params)) for cypher, params in statements]
         if self._splices_params:
             for _, params in batch:
                 _refuse_quotes(params)
         if not self.capabilities.transactions:
             for cypher, params in batch:
-                self._with_errors(lambda c=cypher, p=params: self._fetch(c, p, None), None)
+                self._with_errors(functools.partial(self._fetch, cypher, params, None), None)
             return
 
         def run_batch() -> None:
@@ -211,7 +215,7 @@ class BoltStore(GraphStore):
     def _fetch(self, cypher: str, params: dict[str, Any], timeout_s: float | None) -> list[Row]:
         session = self._current_session()
         result = session.run(neo4j.Query(cypher, timeout=timeout_s), params)
-        return [{key: plain(value) for key, value in record.items()} for record in result]
+        return [{key: plain(record[key]) for key in record.keys()} for record in result]
 
     def _with_errors(self, work: Callable[[], Any], timeout_ms: int | None) -> Any:
         """Run ``work`` under the store lock; translate the driver's errors into ours."""
@@ -223,8 +227,8 @@ class BoltStore(GraphStore):
                     return work()
                 except neo4j_errors.TransientError as exc:
                     if _is_timeout(exc):
-                        raise QueryError(f"query cut off by the store at its {timeout_ms} ms limit: "
-                                         f"{exc.message or exc}") from exc
+                        raise StoreTimeout(f"query cut off by the store at its {timeout_ms} ms limit: "
+                                           f"{exc.message or exc}") from exc
                     if pause is None:
                         raise QueryError(f"store kept reporting a conflict after {attempt} retries: "
                                          f"{exc.message or exc}") from exc
@@ -236,8 +240,8 @@ class BoltStore(GraphStore):
                 except neo4j_errors.Neo4jError as exc:
                     message = exc.message or str(exc) or type(exc).__name__
                     if _is_timeout(exc):
-                        raise QueryError(f"query cut off by the store at its {timeout_ms} ms limit: "
-                                         f"{message}") from exc
+                        raise StoreTimeout(f"query cut off by the store at its {timeout_ms} ms limit: "
+                                           f"{message}") from exc
                     if exc.code and "Forbidden" in exc.code and "ReadOnly" in exc.code:
                         raise ReadOnlyViolation(f"read-only query refused by the store: {message}") from exc
                     raise QueryError(f"store rejected the query: {message}") from exc
@@ -264,27 +268,6 @@ def _is_timeout(exc: neo4j_errors.Neo4jError) -> bool:
     """The server's own timeout codes (Neo4j: TransactionTimedOut*; Memgraph reports it as a transient error)."""
     code = exc.code or ""
     return "TimedOut" in code or "Timeout" in code
-
-
-def _check_params(params: Mapping[str, Any] | None) -> dict[str, Any]:
-    clean = dict(params or {})
-    for key, value in clean.items():
-        _check_value(key, value)
-    return clean
-
-
-def _check_value(key: str, value: Any) -> None:
-    if isinstance(value, float) and not math.isfinite(value):
-        raise QueryError(f"parameter {key!r}: {value} is not a finite number")
-    if isinstance(value, str) and "\x00" in value:
-        # FalkorDB's Bolt listener cuts strings at NUL; no store here should keep half a value.
-        raise QueryError(f"parameter {key!r}: a NUL character is not allowed in a string")
-    if isinstance(value, (list, tuple)):
-        for item in value:
-            _check_value(key, item)
-    if isinstance(value, dict):
-        for item in value.values():
-            _check_value(key, item)
 
 
 def _refuse_quotes(params: Mapping[str, Any], where: str = "") -> None:

@@ -2,14 +2,13 @@
 
 Every subcommand takes ``--store URL`` (default ``$KGADAPT_STORE``, else the
 embedded store in the user's data directory); ``--json`` where the output is
-data. ``kgadapt knowledge serve`` is added by ``knowledge.service_cli`` when
-that module exists.
+data. ``kgadapt knowledge serve`` is added by ``knowledge.service_cli`` (it
+needs Zenoh, and lives with the service's other commands).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import sys
 from pathlib import Path
@@ -79,15 +78,9 @@ def register(subparsers: Any) -> None:
     _store_arg(export)
     export.set_defaults(func=_export)
 
-    try:
-        service_cli = importlib.import_module("knowledge.service_cli")
-    except ModuleNotFoundError as exc:
-        if exc.name != "knowledge.service_cli":
-            raise
-    else:
-        hook = getattr(service_cli, "register_knowledge", None)
-        if hook is not None:
-            hook(sub)
+    from knowledge.service_cli import register_knowledge
+
+    register_knowledge(sub)
 
 
 def _time_limit_arg(parser: argparse.ArgumentParser) -> None:
@@ -102,7 +95,7 @@ def _run_bounded(store_url: str | None, cypher: str, params: dict[str, Any], lim
     if limit_s <= 0:
         raise ConfigError(f"--time-limit {limit_s}: must be positive")
     with open_store(store_url) as store:
-        if store.dialect.name != "falkordb" or not store.capabilities.timeouts:  # not FalkorDB over RESP
+        if not store.capabilities.sandbox:
             return store.execute(cypher, params, read_only=True, timeout_ms=int(limit_s * 1000))
         from knowledge.sandbox import QuerySandbox
 

@@ -19,10 +19,9 @@ from __future__ import annotations
 import time
 from typing import Any, Mapping
 
-from shared import keys, messages
-from shared.errors import MessageError, RemoteError, RequestTimeout, TransportError
-
 from knowledge.fleet import FleetAnswer, FleetClient, FleetSettings  # noqa: F401 (the fleet's client, re-exported)
+from shared import keys, messages
+from shared.errors import RemoteError, RequestTimeout, TransportError
 
 
 class KnowledgeClient:

@@ -1,10 +1,15 @@
-"""FalkorDB over RESP: the embedded default and ``falkordb://`` servers."""
+"""FalkorDB over RESP: the embedded default and ``falkordb://`` servers.
+
+Parameters travel in FalkorDB's ``CYPHER name=value ...`` prefix of the query
+text, built here (:func:`params_header`) for single statements and MULTI/EXEC
+batches alike, after :func:`knowledge.params.check_params`; the falkordb
+client is used only through its public ``query``/``ro_query``/``connection``.
+"""
 
 from __future__ import annotations
 
 import logging
 import math
-import re
 import threading
 from typing import Any, Mapping, Sequence
 
@@ -16,12 +21,11 @@ from falkordb.path import Path as GraphPath
 
 from knowledge.dialect import FALKORDB, Dialect
 from knowledge.embedded import EmbeddedServer
+from knowledge.params import check_params
 from knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
-from shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreUnavailable
+from shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
-
-_PARAM_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
 class FalkorDBStore(GraphStore):
@@ -38,6 +42,8 @@ class FalkorDBStore(GraphStore):
         timeout = timeout or self.settings.connect_timeout
         if self.settings.kind == "embedded":
             if self.server is None:
+                if self.settings.data_dir is None:
+                    raise StoreUnavailable(f"store {self.settings.url}: an embedded store needs a data directory")
                 self.server = EmbeddedServer(self.settings.data_dir, start_timeout=timeout)
             address = self.server.ensure()
             kwargs: dict[str, Any] = {"unix_socket_path": address.unix_socket}
@@ -76,15 +82,18 @@ class FalkorDBStore(GraphStore):
     @property
     def capabilities(self) -> Capabilities:
         # MULTI/EXEC batches; GRAPH.QUERY's TIMEOUT; GRAPH.RO_QUERY refuses writes. No TLS on
-        # the unix socket of the embedded store.
-        return Capabilities(transactions=True, timeouts=True, tls=False, read_only="store")
+        # the unix socket of the embedded store. redis-py's connection pool serves many threads;
+        # DUMP/RESTORE copies the graph into a QuerySandbox.
+        return Capabilities(transactions=True, timeouts=True, tls=False, read_only="store",
+                            thread_safe=True, sandbox=True)
 
     @property
     def redis(self) -> redis.Redis:
         """The underlying redis client (for admin commands such as ``GRAPH.CONFIG``)."""
         if self._db is None:
             raise StoreUnavailable("store is not set up; call setup() first")
-        return self._db.connection
+        client: redis.Redis = self._db.connection
+        return client
 
     def execute(
         self,
@@ -96,27 +105,28 @@ class FalkorDBStore(GraphStore):
     ) -> list[Row]:
         if read_only:
             assert_read_only(cypher)
-        clean = _check_params(params)
-        result = self._run(cypher, clean, read_only, timeout_ms)
+        result = self._run(params_header(params) + cypher, read_only, timeout_ms)
         if result is None:
             return []
         columns = [name for _, name in result.header] if result.header else []
         return [{c: _plain(v) for c, v in zip(columns, row)} for row in result.result_set]
 
-    def _run(self, cypher: str, params: dict[str, Any] | None, read_only: bool, timeout_ms: int | None) -> Any:
+    def _run(self, query: str, read_only: bool, timeout_ms: int | None) -> Any:
         if self._graph is None:
             raise StoreUnavailable("store is not set up; call setup() first")
         for attempt in (1, 2):
             try:
                 if read_only:
-                    return self._graph.ro_query(cypher, params, timeout=timeout_ms)
-                return self._graph.query(cypher, params, timeout=timeout_ms)
+                    return self._graph.ro_query(query, timeout=timeout_ms)
+                return self._graph.query(query, timeout=timeout_ms)
             except redis.ResponseError as exc:
                 message = str(exc)
                 if read_only and "empty key" in message:
                     return None  # FalkorDB: a read on a graph never written to; no rows
                 if "read-only" in message:
                     raise ReadOnlyViolation(f"read-only query refused by the store: {message}") from exc
+                if "timed out" in message:  # GRAPH.QUERY ... TIMEOUT: "Query timed out"
+                    raise StoreTimeout(f"store rejected the query: {message}") from exc
                 raise QueryError(f"store rejected the query: {message}") from exc
             except redis.TimeoutError as exc:
                 # The socket timeout is the hard limit: the answer is abandoned (redis-py drops
@@ -154,12 +164,12 @@ class FalkorDBStore(GraphStore):
         time, so callers validate before writing (the importers do); an
         error in any reply is raised.
         """
-        if self._graph is None:
+        if self._graph is None or self._db is None:
             raise StoreUnavailable("store is not set up; call setup() first")
         pipe = self._db.connection.pipeline(transaction=True)
-        for cypher, params in statements:
-            header = self._graph._build_params_header(_check_params(params))
-            pipe.execute_command("GRAPH.QUERY", self.settings.graph, header + cypher, "--compact")
+        batch = [params_header(params) + cypher for cypher, params in statements]  # all checked before any is sent
+        for query in batch:
+            pipe.execute_command("GRAPH.QUERY", self.settings.graph, query, "--compact")
         try:
             replies = pipe.execute(raise_on_error=False)
         except (redis.ConnectionError, redis.TimeoutError, OSError) as exc:
@@ -171,6 +181,8 @@ class FalkorDBStore(GraphStore):
                 raise QueryError(f"store rejected a statement of the batch ({cypher[:60]}...): {reply}")
 
     def clear(self) -> None:
+        if self._graph is None or self._db is None:
+            raise StoreUnavailable("store is not set up; call setup() first")
         try:
             self._graph.delete()
         except redis.ResponseError:
@@ -178,32 +190,41 @@ class FalkorDBStore(GraphStore):
         self._graph = self._db.select_graph(self.settings.graph)
 
 
-def _check_params(params: Mapping[str, Any] | None) -> dict[str, Any] | None:
-    if not params:
-        return None
-    clean: dict[str, Any] = {}
-    for key, value in params.items():
-        if not isinstance(key, str) or not _PARAM_NAME.match(key):
-            raise QueryError(f"bad parameter name {key!r}: use letters, digits and _")
-        clean[key] = _check_value(key, value)
-    return clean
+def params_header(params: Mapping[str, Any] | None) -> str:
+    """FalkorDB's parameter prefix ``CYPHER a=1 b="x" `` for ``params`` ("" when there are none).
+
+    Strings are double-quoted with ``\\`` and ``"`` escaped (FalkorDB reads the
+    rest of a string verbatim, newlines included); map keys are back-quoted and
+    may not contain a backquote, which FalkorDB cannot escape.
+    """
+    clean = check_params(params)
+    if not clean:
+        return ""
+    return "CYPHER " + "".join(f"{name}={_literal(name, value)} " for name, value in clean.items())
 
 
-def _check_value(key: str, value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        raise QueryError(f"parameter {key!r}: {value} is not a finite number")
-    if isinstance(value, tuple):
-        value = list(value)
+def _literal(name: str, value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):  # check_params refuses these already; never write "inf" as a literal
+            raise QueryError(f"parameter {name!r}: {value} is not a finite number")
+        return repr(value)  # shortest round trip: 0.1, 1e-07, 1e+20 (FalkorDB reads them all)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(value, list):
-        return [_check_value(key, v) for v in value]
+        return "[" + ",".join(_literal(name, item) for item in value) + "]"
     if isinstance(value, dict):
-        return {str(k): _check_value(key, v) for k, v in value.items()}
-    if isinstance(value, bytes):
-        raise QueryError(f"parameter {key!r}: bytes are not a graph value")
-    if isinstance(value, str) and "\x00" in value:
-        # FalkorDB rejects the statement, and in a MULTI/EXEC batch the others would still apply.
-        raise QueryError(f"parameter {key!r}: a NUL character is not allowed in a string")
-    return value
+        for key in value:
+            if not key or "`" in key:
+                raise QueryError(f"parameter {name!r}: map key {key!r} cannot be written for FalkorDB "
+                                 "(empty, or with a backquote)")
+        return "{" + ",".join(f"`{key}`:{_literal(name, item)}" for key, item in value.items()) + "}"
+    raise QueryError(f"parameter {name!r}: a {type(value).__name__} is not a graph value")
 
 
 def _plain(value: Any) -> Any:

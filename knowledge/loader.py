@@ -33,7 +33,7 @@ from knowledge.importers import IMPORTERS, parse_file
 from knowledge.importers.model import EdgeSpec, NodeSpec, ParsedModel, Ref
 from knowledge.importers.rpsl import COMPONENT_KINDS
 from knowledge.store import GraphStore, Statement
-from shared.errors import ModelError, QueryError
+from shared.errors import ModelError
 
 log = logging.getLogger(__name__)
 
@@ -145,17 +145,10 @@ def _names_in_store(store: GraphStore | None, models: list[ParsedModel], nodes: 
                         wanted.setdefault(label, set()).add(ref.name)
     found: set[tuple[str, str]] = set()
     for label, names in wanted.items():
-        try:
-            rows = store.execute(
-                f"MATCH (n:{label}) WHERE n.name IN $names AND n.model_file IS NOT NULL "
-                "AND NOT n.model_file IN $files RETURN n.name AS name, n.model_file AS file",
-                {"names": sorted(names), "files": files}, read_only=True)
-        except QueryError as exc:
-            # FalkorDB refuses a read-only query on a graph never written to ("empty key"):
-            # then no model is defined there yet.
-            if "empty key" not in str(exc):
-                raise
-            return set()
+        rows = store.execute(  # no rows from a graph never written to (GraphStore.execute)
+            f"MATCH (n:{label}) WHERE n.name IN $names AND n.model_file IS NOT NULL "
+            "AND NOT n.model_file IN $files RETURN n.name AS name, n.model_file AS file",
+            {"names": sorted(names), "files": files}, read_only=True)
         for row in rows:
             if not any(str(row["file"]).startswith(root + os.sep) for root in roots):  # swept by this load
                 found.add((label, row["name"]))
@@ -230,14 +223,9 @@ def previous_model_keys(store: GraphStore, resolved: ResolvedModels) -> dict[tup
         wanted.setdefault(label, []).append(name)
     found: dict[tuple[str, str], list[str]] = {}
     for label, names in wanted.items():
-        try:
-            rows = store.execute(f"MATCH (n:{label}) WHERE n.name IN $names AND n.{MODEL_KEYS} IS NOT NULL "
-                                 f"RETURN n.name AS name, n.{MODEL_KEYS} AS keys", {"names": sorted(names)},
-                                 read_only=True)
-        except QueryError as exc:
-            if "empty key" not in str(exc):  # FalkorDB: no graph yet
-                raise
-            return {}
+        rows = store.execute(f"MATCH (n:{label}) WHERE n.name IN $names AND n.{MODEL_KEYS} IS NOT NULL "
+                             f"RETURN n.name AS name, n.{MODEL_KEYS} AS keys", {"names": sorted(names)},
+                             read_only=True)
         for row in rows:
             found[(label, row["name"])] = list(row["keys"] or [])
     return found

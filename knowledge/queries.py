@@ -6,8 +6,8 @@ values, never text (``run_named`` checks names and types first and raises
 
 The production queries follow the meaningful relations in their direction,
 with bounded patterns, starting from the most selective named (indexed) node,
-so their cost does not grow with the number of models (DESIGN.md sections 3
-and 7). The paper's own texts are kept as ``fig4_literal`` and
+so their cost does not grow with the number of models (docs/bench-table1.md
+has the figures). The paper's own texts are kept as ``fig4_literal`` and
 ``fig5_literal``: their unbounded ``-[*]-`` walks the whole graph once many
 models share platforms, and Fig. 4's second MATCH is not joined to its first
 (it returns every deployment executable on the platform whenever the feature
@@ -359,7 +359,8 @@ def check_params(name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
         value = params.get(key)
         if value is None:
             if spec.required:
-                raise NamedQueryError(f"query {name!r} needs parameter {key!r} ({spec.type}{': ' + spec.help if spec.help else ''})")
+                what = f"{spec.type}: {spec.help}" if spec.help else spec.type
+                raise NamedQueryError(f"query {name!r} needs parameter {key!r} ({what})")
             value = spec.default
         if value is not None:
             value = _typed(name, key, spec.type, value)
@@ -388,7 +389,7 @@ def _typed(name: str, key: str, kind: str, value: Any) -> Any:
 
 
 def run_named(store: GraphStore, name: str, params: Mapping[str, Any] | None = None, *,
-              timeout_ms: int | None = None) -> list[dict]:
+              timeout_ms: int | None = None) -> list[dict[str, Any]]:
     """Check the parameters, then run named query ``name`` read-only; return its rows."""
     values = check_params(name, params)
     return store.execute(get_query(name).text_for(values), values, read_only=True, timeout_ms=timeout_ms)

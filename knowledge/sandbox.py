@@ -33,14 +33,14 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, cast
 
 import redis
 
 from knowledge.embedded import EmbeddedServer
 from knowledge.falkordb_store import FalkorDBStore
-from knowledge.store import Row, StoreSettings
-from shared.errors import ConfigError, QueryError, QueryTimeLimit, StoreUnavailable
+from knowledge.store import GraphStore, Row, StoreSettings
+from shared.errors import ConfigError, QueryTimeLimit, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -74,8 +74,11 @@ class QuerySandbox:
     first copy; ``shutdown()`` stops it and removes its directory.
     """
 
-    def __init__(self, source: FalkorDBStore, settings: SandboxSettings = SandboxSettings()) -> None:
-        self.source = source
+    def __init__(self, source: GraphStore, settings: SandboxSettings = SandboxSettings()) -> None:
+        if not source.capabilities.sandbox:
+            raise ConfigError(f"store {source.url}: its graph cannot be copied into a query sandbox "
+                              "(only FalkorDB over RESP can)")
+        self.source = cast(FalkorDBStore, source)  # the one backend declaring capabilities.sandbox
         self.settings = settings
         self.restarts = 0  # servers killed for running past a limit (or found dead)
         self._lock = threading.Lock()
@@ -118,10 +121,8 @@ class QuerySandbox:
                     f"query stopped at its hard time limit of {limit_s * 1000:.0f} ms "
                     "(it did not stop when asked: abandoned, and the server running it was killed)"
                 ) from exc
-            except QueryError as exc:
-                if "timed out" in str(exc).lower():  # the store's own timeout came first
-                    raise QueryTimeLimit(f"query stopped at its hard time limit of {limit_s * 1000:.0f} ms (by the store)") from exc
-                raise
+            except StoreTimeout as exc:  # the store's own timeout came first
+                raise QueryTimeLimit(f"query stopped at its hard time limit of {limit_s * 1000:.0f} ms (by the store)") from exc
             except (StoreUnavailable, ValueError, OSError, redis.RedisError):
                 # Killed under us (another query's limit: its client was closed, hence ValueError
                 # too), or crashed: once more on a new server.

@@ -79,8 +79,8 @@ from knowledge.cypher_guard import CypherLimits, check_cypher
 from knowledge.service_lock import ServiceLock
 from knowledge.store import GraphStore
 from shared import keys, messages
-from shared.hostmonitor import StatusTrust, TrustSettings, check_status
 from shared.errors import ConfigError, KgadaptError, MessageError, NamedQueryError, QueryError, QueryTimeLimit
+from shared.hostmonitor import StatusTrust, TrustSettings, check_status
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +143,8 @@ class KnowledgeService:
         self._store_lock = _store_lock(store)
         self._writers: Mapping[str, Callable[..., Any]] = dict(runtime.WRITERS) if settings.writes else {}
         self._lock = ServiceLock(store) if settings.lock else None
-        self.sandboxes: list[Any] = []  # knowledge.sandbox.QuerySandbox  # one per public worker: a kill costs only its own question
+        # knowledge.sandbox.QuerySandbox, one per public worker: a kill costs only its own question
+        self.sandboxes: list[Any] = []
         self._sandbox_pool: queue.Queue[Any] = queue.Queue()
 
     # -- life cycle ---------------------------------------------------------

@@ -19,6 +19,8 @@ import json
 import sys
 from typing import Any
 
+from shared.keys import DEFAULT_ROBOT
+
 
 def register(subparsers: Any) -> None:
     """Add ``kgadapt ask``."""
@@ -33,7 +35,7 @@ def register(subparsers: Any) -> None:
     ask.add_argument("query", nargs="?", metavar="QUERY", help="named query (see `kgadapt knowledge queries`)")
     ask.add_argument("--param", "-p", action="append", default=[], metavar="KEY=VALUE", help="query parameter (repeatable)")
     ask.add_argument("--cypher", metavar="TEXT", help="read-only Cypher instead of a named query")
-    ask.add_argument("--robot", default="quad1", help="whose knowledge to ask (default quad1)")
+    ask.add_argument("--robot", default=DEFAULT_ROBOT, help=f"whose knowledge to ask (default {DEFAULT_ROBOT})")
     ask.add_argument("--fleet", metavar="QUERY",
                      help="ask named query QUERY of every robot at once; one table with a robot column")
     ask.add_argument("--expect", action="append", default=[], metavar="ROBOT",
@@ -56,7 +58,7 @@ def register_knowledge(knowledge_subparsers: Any) -> None:
         "Opens Zenoh as a router on tcp/127.0.0.1:7447 unless told otherwise.",
     )
     serve.add_argument("--store", metavar="URL", help="graph store URL (default $KGADAPT_STORE or embedded:)")
-    serve.add_argument("--robot", default="quad1", help="robot name, the key namespace (default quad1)")
+    serve.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name, the key namespace (default {DEFAULT_ROBOT})")
     serve.add_argument(
         "--read-only", action="store_true",
         help="do not declare the write verbs (knowledge/write/*); queries and Cypher stay available",

@@ -74,12 +74,17 @@ class StoreSettings:
 
 @dataclass(frozen=True, kw_only=True)
 class Capabilities:
-    """What a backend guarantees (docs/knowledge.md has the table)."""
+    """What a backend guarantees (docs/knowledge.md has the table).
+
+    Callers decide by these, never by the store's class or its error texts.
+    """
 
     transactions: bool  # execute_atomic is all or nothing
     timeouts: bool  # the store itself cuts a query off at timeout_ms
     tls: bool  # the connection can be encrypted
     read_only: str  # "store": the store's read-only entry point too; "check": our check only
+    thread_safe: bool  # one store object may be called from several threads at once
+    sandbox: bool  # the graph can be copied into a knowledge.sandbox.QuerySandbox (FalkorDB over RESP)
 
 
 def parse_store_url(url: str | None = None) -> StoreSettings:
@@ -109,7 +114,7 @@ def parse_store_url(url: str | None = None) -> StoreSettings:
     unknown = sorted(set(query) - {"ca"})
     if unknown:
         raise ConfigError(f"store URL {url!r}: unknown option {unknown[0]!r} (only ?ca=FILE)")
-    ca_file = (query.get("ca") or [None])[-1] or os.environ.get(STORE_CA_ENV) or None
+    ca_file = (query.get("ca") or [""])[-1] or os.environ.get(STORE_CA_ENV) or None
     if ca_file and tls != "verify":
         raise ConfigError(f"store URL {url!r}: a CA file needs a +s:// scheme (memgraph+s or bolt+s)")
     if ca_file and not Path(ca_file).is_file():
@@ -185,7 +190,13 @@ class GraphStore(ABC):
         read_only: bool = False,
         timeout_ms: int | None = None,
     ) -> list[Row]:
-        """Run one Cypher statement with parameters; return its rows."""
+        """Run one Cypher statement with parameters; return its rows.
+
+        Parameters are checked by :func:`knowledge.params.check_params` (QueryError
+        naming the parameter). A read-only query on a graph nothing was written to
+        yet has no rows on every backend. A query the store stops at ``timeout_ms``
+        raises :class:`StoreTimeout`.
+        """
 
     @abstractmethod
     def execute_atomic(self, statements: Sequence[Statement]) -> None:
@@ -214,11 +225,14 @@ def open_store(url: str | None = None, **overrides: Any) -> GraphStore:
         settings = StoreSettings(**{**settings.__dict__, **overrides})
     from shared.extras import require
 
+    store: GraphStore
     if settings.kind in ("embedded", "falkordb"):
         module = require("knowledge.falkordb_store", extra="store", what=f"store {settings.url}")
-        return module.FalkorDBStore(settings)
-    module = require("knowledge.bolt_store", extra="memgraph", what=f"store {settings.url}")
-    return module.BoltStore(settings)
+        store = module.FalkorDBStore(settings)
+    else:
+        module = require("knowledge.bolt_store", extra="memgraph", what=f"store {settings.url}")
+        store = module.BoltStore(settings)
+    return store
 
 
 def rows_as_table(rows: Iterable[Row]) -> str:

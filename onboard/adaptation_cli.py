@@ -14,6 +14,7 @@ import json
 from typing import Any, Callable
 
 from shared.errors import ConfigError
+from shared.keys import DEFAULT_ROBOT
 
 Ask = Callable[[str, dict[str, Any]], list[dict[str, Any]]]
 
@@ -127,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
         session = open_session(zenoh)
         try:
-            client = KnowledgeClient(session, args.robot or "quad1", own=True)
+            client = KnowledgeClient(session, args.robot or DEFAULT_ROBOT, own=True)
             data = explain(client.query, history=args.history)
         finally:
             session.close()

@@ -41,21 +41,11 @@ from deploy.client import DeployerClient
 from deploy.deployer import new_instance_name
 from deploy.migration import FirstOutput, migrate, reconfigure
 from knowledge.client import KnowledgeClient
-from onboard.adaptation import (
-    FEATURE,
-    Analyzer,
-    BandTracker,
-    Placement,
-    Plan,
-    Planner,
-    PlanningError,
-    Trigger,
-    bands_from_rows,
-)
+from onboard.adaptation import FEATURE, Analyzer, BandTracker, Placement, Plan, Planner, PlanningError, Trigger, bands_from_rows
 from onboard.flight_phase import in_final_descent
 from shared import keys, messages
-from shared.hostmonitor import StatusTrust, TrustSettings, check_status
 from shared.errors import DeploymentError, KgadaptError, MessageError
+from shared.hostmonitor import StatusTrust, TrustSettings, check_status
 
 log = logging.getLogger(__name__)
 

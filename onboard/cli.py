@@ -86,11 +86,9 @@ class FlightPart:
 
     def setup(self, session: Any) -> None:
         from knowledge.client import KnowledgeClient
-        from onboard.flight import BridgeSettings, FlightBridge, FlightControlWriter, intrinsics_from_graph
         from onboard.confirmation import ConfirmationSettings, load_site
+        from onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter, intrinsics_from_graph
         from onboard.mavlink import LinkSettings
-
-        from onboard.flight import CameraIntrinsics
 
         client = KnowledgeClient(session, self.robot, own=True, host=self.host)
         c = self.camera
@@ -116,7 +114,8 @@ class FlightPart:
 
 def build_parts(args: argparse.Namespace) -> list[Any]:
     """The onboard agent's parts, in setup order."""
-    from deploy.deployer import Deployer, settings_from_args as deployer_settings
+    from deploy.deployer import Deployer
+    from deploy.deployer import settings_from_args as deployer_settings
     from shared.hostmonitor import HostMonitor, settings_from_args
 
     monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))

@@ -11,59 +11,17 @@ detector says (``clean``, :func:`onboard.markers.cells_are_clean`: a
 6x6 marker or a ChArUco square that decodes as a 4x4 code does not), and,
 when the site's marker set is known, only ids of that set. Detections themselves still carry every candidate.
 
-A site file (``*.site``, JSON) names the markers at a site::
-
-    {"site": "hall-1", "dictionary": "DICT_4X4_50",
-     "markers": [{"id": 33, "size_m": 0.20}, {"id": 42, "size_m": 0.10}]}
+The site's markers come from a site file (:mod:`onboard.site`).
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from shared.errors import ConfigError, MessageError, ModelError
-
-
-@dataclass(frozen=True, kw_only=True)
-class SiteMarkers:
-    """The markers at a site: ids and printed sizes (metres)."""
-
-    site: str
-    dictionary: str
-    sizes_m: Mapping[int, float]
-
-    @property
-    def ids(self) -> frozenset[int]:
-        return frozenset(self.sizes_m)
-
-
-def load_site(path: str | Path) -> SiteMarkers:
-    """Read a site file; ModelError names the file and what is wrong."""
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except OSError as exc:
-        raise ModelError(str(path), None, f"cannot read site file: {exc.strerror or exc}") from exc
-    except ValueError as exc:
-        raise ModelError(str(path), getattr(exc, "lineno", None), f"not valid JSON: {exc}") from exc
-    if not isinstance(data, dict) or not isinstance(data.get("markers"), list) or not data["markers"]:
-        raise ModelError(str(path), 1, "a site file is an object with a non-empty 'markers' list")
-    sizes: dict[int, float] = {}
-    for i, m in enumerate(data["markers"]):
-        mid, size = (m.get("id"), m.get("size_m")) if isinstance(m, dict) else (None, None)
-        if not isinstance(mid, int) or isinstance(mid, bool) or not 0 <= mid < 100000:
-            raise ModelError(str(path), None, f"markers[{i}]: 'id' must be a non-negative integer, not {mid!r}")
-        if not isinstance(size, (int, float)) or isinstance(size, bool) or not 0 < size < 100:
-            raise ModelError(str(path), None, f"markers[{i}] (id {mid}): 'size_m' must be metres in (0, 100), not {size!r}")
-        if mid in sizes:
-            raise ModelError(str(path), None, f"markers[{i}]: id {mid} appears twice")
-        sizes[mid] = float(size)
-    return SiteMarkers(site=str(data.get("site") or path.stem), dictionary=str(data.get("dictionary") or "DICT_4X4_50"),
-                       sizes_m=sizes)
+from onboard.site import SiteMarkers, load_site  # noqa: F401  (load_site: where callers find it with the confirmer)
+from shared.errors import ConfigError, MessageError
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -42,14 +42,7 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 from shared import keys, messages
-from shared.errors import (
-    ConfigError,
-    DeploymentError,
-    KgadaptError,
-    MessageError,
-    RequestTimeout,
-    TransportError,
-)
+from shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
 
 log = logging.getLogger("onboard.detector")
 

@@ -62,6 +62,7 @@ from dataclasses import dataclass, field, replace
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from onboard.geometry import body_to_ned
 from onboard.mavlink import (
     COPTER_MODE_NUMBERS,
     COPTER_MODES,
@@ -73,7 +74,6 @@ from onboard.mavlink import (
     new_mavlink,
     open_transport,
 )
-from onboard.geometry import body_to_ned
 from shared.errors import FlightLinkError
 
 log = logging.getLogger(__name__)

@@ -28,9 +28,10 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
-from onboard.landing_targets import AutopilotProfile, CameraModel, SiteMarkers, TargetBuilder, TargetHold
 from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
+from onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, TargetHold
 from onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
+from onboard.site import SiteMarkers
 from shared import keys, messages
 from shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
 
@@ -173,7 +174,7 @@ class BridgeSettings:
     max_clock_skew_s: float = 0.5  # a frame time further ahead than this is refused, not trusted
     queue_limit: int = 64
     camera: CameraModel | None = None  # intrinsics + mounting (a camera file); None: ``intrinsics``, mounted straight
-    markers: SiteMarkers | None = None  # marker sizes: with them the target goes with its position
+    markers: SiteMarkers | None = None  # the site's marker sizes: with them the target goes with its position
     profile: str = "auto"  # ardupilot | px4 | auto (from the autopilot's heartbeat)
     hold_s: float = 1.5  # re-send the last target, predicted, this long after its frame ...
     resend_hz: float = 10.0  # ... at this rate: ArduPilot's estimator wants a measurement every 0.5 s

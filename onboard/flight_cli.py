@@ -113,7 +113,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     for name in ("fx", "fy", "cx", "cy"):
         bridge.add_argument(f"--{name}", type=float, help=f"camera intrinsic {name}, pixels (instead of --camera)")
     bridge.add_argument("--camera-file", help="camera file (JSON: intrinsics, distortion, mounting), checked on load")
-    bridge.add_argument("--markers", help="site marker file (JSON: marker ids and sizes): targets go with positions")
+    bridge.add_argument("--site", "--markers", dest="site", metavar="FILE",
+                        help="site file (*.site, JSON: marker ids and sizes, onboard/site.py): only its ids become "
+                             "targets, and they go with positions (--markers: the same)")
     bridge.add_argument("--profile", default="auto", choices=("auto", "ardupilot", "px4"),
                         help="LANDING_TARGET frame: ardupilot = body FRD, px4 = local NED (default: from the heartbeat)")
     bridge.add_argument("--hold", type=float, default=1.5, metavar="S",
@@ -285,16 +287,16 @@ def _monitor(args: argparse.Namespace) -> int:
 
 
 def _bridge(args: argparse.Namespace) -> int:
-    from onboard.flight import (BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter,
-                                intrinsics_from_graph)
+    from onboard.confirmation import ConfirmationSettings
+    from onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter, intrinsics_from_graph
+    from onboard.landing_targets import load_camera
+    from onboard.site import load_site
     from shared import session as zsession
     from shared.errors import ConfigError
 
-    from onboard.landing_targets import load_camera, load_site_markers
-
     given = [args.fx, args.fy, args.cx, args.cy]
     camera_file = load_camera(args.camera_file) if args.camera_file else None
-    markers = load_site_markers(args.markers) if args.markers else None
+    site = load_site(args.site) if args.site else None  # read once: sizes for the targets, ids for the confirmer
     if camera_file is not None:
         if args.camera is not None or None not in given:
             raise ConfigError("give one of --camera-file, --camera NAME or --fx --fy --cx --cy")
@@ -315,7 +317,8 @@ def _bridge(args: argparse.Namespace) -> int:
                       else CameraIntrinsics(fx=args.fx, fy=args.fy, cx=args.cx, cy=args.cy))
         settings = BridgeSettings(robot=args.robot, link=_link_settings(args), detector=args.detector,
                                   target_id=args.target_id, intrinsics=intrinsics, camera=camera_file,
-                                  markers=markers, profile=args.profile, hold_s=args.hold)
+                                  markers=site, confirmation=ConfirmationSettings(site=site),
+                                  profile=args.profile, hold_s=args.hold)
         bridge = FlightBridge(settings, on_state=FlightControlWriter(client) if args.write_graph else None)
         bridge.setup(session)
         print("KGADAPT_READY", flush=True)
@@ -359,10 +362,12 @@ def status_lines(state, timeouts: dict[str, float], now: float) -> list[str]:
                                f"lat {_num(state.lat_deg, '{:.7f}')} lon {_num(state.lon_deg, '{:.7f}')}",
         "ATTITUDE": "attitude " + ("-" if state.attitude is None else
                                    "roll {:.1f} pitch {:.1f} yaw {:.1f} deg".format(*map(math.degrees, state.attitude)))
-                    + ("" if state.rates is None else "  rates {:.1f} {:.1f} {:.1f} deg/s".format(*map(math.degrees, state.rates))),
+                    + ("" if state.rates is None
+                       else "  rates {:.1f} {:.1f} {:.1f} deg/s".format(*map(math.degrees, state.rates))),
         "LOCAL_POSITION_NED": "local NED " + ("-" if state.position_ned is None else
                                               "{:.2f} {:.2f} {:.2f} m".format(*state.position_ned))
-                              + ("" if state.velocity_ned is None else "  v {:.2f} {:.2f} {:.2f} m/s".format(*state.velocity_ned)),
+                              + ("" if state.velocity_ned is None
+                                 else "  v {:.2f} {:.2f} {:.2f} m/s".format(*state.velocity_ned)),
         "DISTANCE_SENSOR": f"rangefinder {_num(state.rangefinder_m)} m",
         "HOME_POSITION": "home " + ("-" if state.home is None else "{:.7f} {:.7f} {:.1f} m AMSL".format(*state.home)),
     }

@@ -18,9 +18,10 @@ from dataclasses import dataclass, field
 from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.landing_scene import MarkerScene, fake_pose, horizontal_error, link_pose, run_detections
-from onboard.landing_targets import CameraModel, SiteMarkers
+from onboard.landing_targets import CameraModel
 from onboard.mavlink import LinkSettings
 from onboard.mavlink_commands import CommandOutcome
+from onboard.site import SiteMarkers
 from shared.errors import FlightLinkError
 
 log = logging.getLogger(__name__)
@@ -90,7 +91,7 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
     cam = CHECK_CAMERA
     bridge = FlightBridge(BridgeSettings(
         robot=robot, intrinsics=CameraIntrinsics(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy), camera=cam,
-        markers=SiteMarkers("check", {7: s.marker_size_m}) if s.sizes_known else None,
+        markers=SiteMarkers(site="check", sizes_m={7: s.marker_size_m}) if s.sizes_known else None,
         link=LinkSettings(url=url), hold_s=s.hold_s, resend_hz=s.resend_hz,
     ))
     stop = threading.Event()

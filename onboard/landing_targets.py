@@ -1,13 +1,13 @@
 """Landing targets the autopilot accepts: the marker's position from its size, in each autopilot's frame.
 
-Inputs: a **camera file** (intrinsics and how the camera is mounted) and a
-**site marker file** (the markers of a site with their printed sizes), both
-JSON, checked on load::
+Inputs: a **camera file** (intrinsics and how the camera is mounted) and the
+**site file** (the markers of a site with their printed sizes, :mod:`onboard.site`,
+the same file the confirmer reads), both JSON, checked on load::
 
     camera.json   {"fx": 615.0, "fy": 615.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480,
                    "distortion": [k1, k2, p1, p2, k3],          # optional, OpenCV's order
                    "mount": {"yaw_deg": 0.0, "offset_m": [0.05, 0.0, 0.02]}}   # optional
-    markers.json  {"site": "pad-a", "dictionary": "DICT_4X4_50",
+    pad-a.site    {"site": "pad-a", "dictionary": "DICT_4X4_50",
                    "markers": [{"id": 7, "size_m": 0.30}, {"id": 8, "size_m": 0.15}]}
 
 :class:`TargetBuilder` turns one detected marker into a :class:`LandingTarget`:
@@ -45,6 +45,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.geometry import body_to_ned, camera_to_body, ned_to_body, norm
 from onboard.mavlink import FlightState, LandingTarget
+from onboard.site import SiteMarkers, load_site
 from shared.errors import ConfigError
 
 
@@ -124,40 +125,9 @@ def load_camera(path: str | Path) -> CameraModel:
     return CameraModel.from_dict(_read_json(path, "camera file"), where=f"camera file {path}")
 
 
-@dataclass(frozen=True)
-class SiteMarkers:
-    """The markers of a site: id -> printed size (m, the black square's side)."""
-
-    site: str
-    sizes: dict[int, float]
-
-    @classmethod
-    def from_dict(cls, data: dict, where: str = "markers") -> "SiteMarkers":
-        markers = data.get("markers")
-        if not isinstance(markers, list) or not markers:
-            raise ConfigError(f"{where}: needs a non-empty list \"markers\" of {{\"id\": N, \"size_m\": S}}")
-        sizes: dict[int, float] = {}
-        for i, m in enumerate(markers):
-            if not isinstance(m, dict) or set(m) - {"id", "size_m", "name"}:
-                raise ConfigError(f"{where}: marker {i} must be {{\"id\": N, \"size_m\": S}}, not {m!r:.80}")
-            marker_id = m.get("id")
-            if isinstance(marker_id, bool) or not isinstance(marker_id, int) or not 0 <= marker_id <= 1023:
-                raise ConfigError(f"{where}: marker {i} id must be 0..1023, not {marker_id!r}")
-            if marker_id in sizes:
-                raise ConfigError(f"{where}: marker id {marker_id} listed twice")
-            size = _number(where, f"marker {marker_id} size_m", m.get("size_m"), positive=True)
-            if size > 10:
-                raise ConfigError(f"{where}: marker {marker_id} size_m {size} m is not a marker's size")
-            sizes[marker_id] = size
-        return cls(str(data.get("site", "")), sizes)
-
-    def size_of(self, marker_id: int) -> float | None:
-        return self.sizes.get(marker_id)
-
-
-def load_site_markers(path: str | Path) -> SiteMarkers:
-    """A site marker file, checked; ConfigError names the file and the marker."""
-    return SiteMarkers.from_dict(_read_json(path, "site marker file"), where=f"site marker file {path}")
+# One site file format for the confirmer and the landing targets (onboard/site.py); the old name stays
+# for callers that load a site for its marker sizes.
+load_site_markers = load_site
 
 
 def marker_pose(corners: Sequence[Sequence[float]], size_m: float, camera: CameraModel) -> tuple[float, float, float] | None:
@@ -216,7 +186,8 @@ class TargetBuilder:
         self.counters = {"position": 0, "rangefinder": 0, "angles": 0}
 
     def build(self, corners: Sequence[Sequence[float]], *, marker_id: int, frame_time: float,
-              profile: AutopilotProfile, state: FlightState, pose_at: PoseAt | None = None) -> tuple[LandingTarget, "HeldTarget | None"]:
+              profile: AutopilotProfile, state: FlightState,
+              pose_at: PoseAt | None = None) -> tuple[LandingTarget, "HeldTarget | None"]:
         """The target to send now, and what to hold for re-sending (None if it cannot be predicted)."""
         cam = self.camera
         u = sum(p[0] for p in corners) / 4.0

@@ -17,7 +17,6 @@ compares detections with a frame's ground truth.
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
@@ -25,14 +24,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from shared.errors import ConfigError
-
-# op name -> {argument: (type, default, low, high)}
-_OPS: dict[str, dict[str, tuple[type, Any, float, float]]] = {
-    "gamma": {"gamma": (float, 1.0, 0.05, 10.0)},
-    "clahe": {"clip_limit": (float, 2.0, 0.1, 100.0), "tile": (int, 8, 1, 64)},
-    "stretch": {"low_pct": (float, 1.0, 0.0, 49.0), "high_pct": (float, 99.0, 51.0, 100.0)},
-    "blur": {"ksize": (int, 3, 1, 31)},
-}
+from shared.preprocessing import OPS as _OPS
 
 
 @dataclass(frozen=True)
@@ -94,15 +86,12 @@ def parse_config(name: str, raw: str | Mapping[str, Any], *, dictionary: str | N
                 continue
             if key not in spec:
                 raise ConfigError(f"{where}: preprocess[{i}] op {op!r} has no argument {key!r} (use {', '.join(spec)})")
-        for key, (kind, default, low, high) in spec.items():
-            value = step.get(key, default)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and value != int(value)):
-                raise ConfigError(f"{where}: preprocess[{i}] {op}.{key} must be {kind.__name__}, not {value!r}")
-            if not low <= value <= high or not math.isfinite(value):
-                raise ConfigError(f"{where}: preprocess[{i}] {op}.{key} = {value} is outside [{low}, {high}]")
-            if op == "blur" and key == "ksize" and int(value) % 2 == 0:
-                raise ConfigError(f"{where}: preprocess[{i}] blur.ksize must be odd, not {value}")
-            args.append((key, kind(value)))
+        for key, setting in spec.items():
+            value = step.get(key, setting.default)
+            problem = setting.problem(value)
+            if problem:
+                raise ConfigError(f"{where}: preprocess[{i}] {op}.{key} {problem}")
+            args.append((key, setting.kind(value)))
         preprocess.append((op, tuple(args)))
 
     params = data.get("parameters") or {}

@@ -50,7 +50,8 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
 
 def build_parts(args: argparse.Namespace) -> list[Any]:
     """The remote agent's parts, in setup order: host monitor, deployer."""
-    from deploy.deployer import Deployer, settings_from_args as deployer_settings
+    from deploy.deployer import Deployer
+    from deploy.deployer import settings_from_args as deployer_settings
     from shared.hostmonitor import HostMonitor, settings_from_args
 
     monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))

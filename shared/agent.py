@@ -27,12 +27,13 @@ from typing import Any, Callable, Iterable, Protocol
 
 from shared import keys
 from shared.errors import KgadaptError, TransportError
-from shared.session import DEFAULT_ENDPOINT, ZenohSettings, add_arguments as add_zenoh_arguments
-from shared.session import open_session, settings_from_args as zenoh_settings_from_args
+from shared.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
+from shared.session import add_arguments as add_zenoh_arguments
+from shared.session import settings_from_args as zenoh_settings_from_args
 
 log = logging.getLogger(__name__)
 
-DEFAULT_ROBOT = "quad1"
+DEFAULT_ROBOT = keys.DEFAULT_ROBOT  # kept here: deploy/deployer.py, onboard/ import it from shared.agent
 
 
 class Part(Protocol):
@@ -233,7 +234,8 @@ class StopSignals:
 def add_agent_arguments(parser: argparse.ArgumentParser, *, default_host: str) -> None:
     """``--robot``, ``--host`` and the Zenoh flags of an agent command."""
     parser.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name, the key namespace (default {DEFAULT_ROBOT})")
-    parser.add_argument("--host", default=default_host, help=f"this host's name, as the models call its Platform (default {default_host})")
+    parser.add_argument("--host", default=default_host,
+                        help=f"this host's name, as the models call its Platform (default {default_host})")
     parser.add_argument("--give-up-after", type=float, default=None, metavar="S",
                         help="exit (status 1) after S seconds without reaching the router (default: keep trying, "
                              "saying so every 5 s)")

@@ -11,6 +11,8 @@ translated at the boundary where we call it, with ``raise ... from exc``.
      ├── StoreError               the graph store failed
      │    ├── StoreUnavailable    cannot start, reach or connect to the store
      │    ├── QueryError          the store rejected a query (syntax, runtime)
+     │    │    ├── StoreTimeout   the store itself stopped the query at its timeout_ms
+     │    │    └── QueryTimeLimit past its hard limit: abandoned (its server killed where ours)
      │    └── ReadOnlyViolation   a write was sent through a read-only path
      ├── NamedQueryError          unknown named query, missing or ill-typed parameter
      ├── MessageError             a wire message is malformed, of an unknown version, or too big
@@ -69,6 +71,10 @@ class StoreUnavailable(StoreError):
 
 class QueryError(StoreError):
     """The store rejected a query."""
+
+
+class StoreTimeout(QueryError):
+    """The store itself stopped a query at the ``timeout_ms`` it was given (every backend that has timeouts)."""
 
 
 class QueryTimeLimit(QueryError):

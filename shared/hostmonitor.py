@@ -265,7 +265,8 @@ class HostMonitor:
         s = self.settings
         if s.memory_budget_mb is not None:
             return max(0.0, s.memory_budget_mb - self.ours_mb() - self._reserved_mb)
-        return max(0.0, psutil.virtual_memory().available / MIB - self._reserved_mb)
+        available: float = psutil.virtual_memory().available
+        return max(0.0, available / MIB - self._reserved_mb)
 
     def sample(self) -> dict[str, Any]:
         """One ``host_status`` body measured now."""
@@ -363,7 +364,7 @@ class HostMonitor:
         last = self._last
         if last is None:
             return True
-        return (
+        return bool(
             abs(body["memory_free_mb"] - last["memory_free_mb"]) >= self.settings.memory_change_mb
             or abs(body["cpu_load"] - last["cpu_load"]) >= self.settings.cpu_change
         )

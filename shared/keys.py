@@ -34,6 +34,10 @@ import re
 
 from shared.errors import ConfigError
 
+# The robot every command and settings object means when none is named: the shipped
+# configurations (deploy/zenoh, deploy/systemd) are written for it.
+DEFAULT_ROBOT = "quad1"
+
 PREFIX = "kgadapt"
 _CHUNK = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 

@@ -146,7 +146,7 @@ def encode(kind: str, body: Mapping[str, Any]) -> bytes:
     schema = _schema(kind)
     message = {"kind": kind, "v": schema.version, **body}
     _check(schema, message)
-    payload = msgpack.packb(message, use_bin_type=True)
+    payload: bytes = msgpack.packb(message, use_bin_type=True)
     if len(payload) > schema.max_size:
         raise MessageError(f"{kind} message of {len(payload)} bytes exceeds {schema.max_size}")
     return payload

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 from knowledge import schema as S
 from knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
+from shared.keys import DEFAULT_ROBOT
 
 PLACEHOLDERS = ("python", "robot", "host", "instance", "config", "connect")
 _PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
@@ -78,7 +79,7 @@ def check_text(word: str, origin: Origin, what: str) -> None:
 
 
 # What the placeholders stand for when a command is tried at load time (check_runnable).
-_SAMPLE = {"python": sys.executable, "robot": "quad1", "host": "onboard", "instance": "probe",
+_SAMPLE = {"python": sys.executable, "robot": DEFAULT_ROBOT, "host": "onboard", "instance": "probe",
            "config": "probe", "connect": "tcp/127.0.0.1:7447"}
 
 

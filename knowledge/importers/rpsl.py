@@ -49,10 +49,10 @@ import json
 from typing import Any
 
 from knowledge import schema as S
+from knowledge.importers import detector_check
 from knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
-from knowledge.importers.tokens import (
-    Statement, Symbol, expect_args, name_arg, number_arg, read_statements, text_arg,
-)
+from knowledge.importers.tokens import Statement, Symbol, expect_args, name_arg, number_arg, read_statements, text_arg
+from shared import preprocessing
 
 NOTATION = "perception graph DSL (rpsl)"
 
@@ -65,25 +65,19 @@ BLOCKS = {
 # The other sub-labels of Component, removed when a component changes kind.
 COMPONENT_KINDS = (S.SENSOR_COMPONENT, S.PROCESSING_COMPONENT, S.FLIGHT_CONTROL, S.CAMERA)
 
-# Pre-processing steps the detector program implements (docs/CONTRACTS.md), each setting
-# with the range onboard/markers.py accepts: (low, high, whole number).
-PREPROCESS_OPS: dict[str, dict[str, tuple[float, float, bool]]] = {
-    "gamma": {"gamma": (0.05, 10.0, False)},
-    "clahe": {"clip_limit": (0.1, 100.0, False), "tile": (1, 64, True)},
-    "stretch": {"low_pct": (0.0, 49.0, False), "high_pct": (51.0, 100.0, False)},
-    "blur": {"ksize": (1, 31, True)},
-}
+# Pre-processing steps the detector program implements, with their settings' ranges: one table
+# shared with onboard/markers.py.
+PREPROCESS_OPS = preprocessing.OPS
 RESERVED = {"name", "model_file", "config_json", "width", "height", "fx", "fy", "cx", "cy", "fps",
             "memory_demand_mb", "cpu_load", "ms_per_frame", "dictionary", "description"}
 
 
 def _setting(st: Statement, op: str, key: str, value: Any) -> Any:
-    low, high, whole = PREPROCESS_OPS[op][key]
-    value = number_arg(st, value, key, integer=whole)
-    if not low <= value <= high:
-        raise st.origin.error(f"preprocess :{op}: {key} {value} is outside [{low:g}, {high:g}]")
-    if op == "blur" and value % 2 != 1:
-        raise st.origin.error(f"preprocess :blur: ksize must be odd, not {value}")
+    setting = PREPROCESS_OPS[op][key]
+    value = number_arg(st, value, key, integer=setting.kind is int)
+    problem = setting.problem(value)
+    if problem:
+        raise st.origin.error(f"preprocess :{op}: {key} {problem}")
     return value
 
 
@@ -96,6 +90,7 @@ class _Block:
         self.ports: list[tuple[str, str, str, Origin]] = []  # (name, direction, data type)
         self.parameters: dict[str, Any] = {}
         self.preprocess: list[dict[str, Any]] = []
+        self.origins: dict[str, Origin] = {}  # "dictionary", "parameter:KEY": where OpenCV's verdict points
         self.realizes: list[tuple[str, Origin]] = []
         self.suited_for: list[tuple[str, Origin]] = []
         self.contains: list[tuple[str, Origin]] = []
@@ -130,6 +125,9 @@ def parse(text: str, path: str) -> ParsedModel:
             _statement(block, st)
     if block is not None:
         raise block.origin.error(f"{block.kind} block has no 'end'")
+    for b in blocks:
+        _config_json(b)
+    _check_detectors(blocks, path)
     for b in blocks:
         _emit(model, b)
     return model
@@ -189,8 +187,8 @@ def _statement(b: _Block, st: Statement) -> None:
         value = name_arg(st, st.args[0], "dictionary")
         if not value.startswith("DICT_"):
             raise st.origin.error(f"dictionary {value!r} is not an ArUco dictionary name (DICT_...)")
-        _check_dictionary(st, value)
         _once(b, st, "dictionary", value)
+        b.origins["dictionary"] = st.origin
     elif b.kind == "rpsl.processing_component" and kw == "parameter":
         expect_args(st, 2, 'parameter "DetectorParametersAttribute", NUMBER')
         key = name_arg(st, st.args[0], "parameter name")
@@ -199,6 +197,7 @@ def _statement(b: _Block, st: Statement) -> None:
         if key in b.parameters:
             raise st.origin.error(f"parameter {key!r} set twice")
         b.parameters[key] = _parameter_value(st, key, st.args[1])
+        b.origins[f"parameter:{key}"] = st.origin
     elif b.kind == "rpsl.processing_component" and kw == "preprocess":
         if len(st.args) != 1 or not isinstance(st.args[0], Symbol):
             raise st.origin.error(f"preprocess: expected :OP followed by its settings "
@@ -234,71 +233,46 @@ def _once(b: _Block, st: Statement, key: str, value: Any) -> None:
     b.props[key] = value
 
 
-_DETECTOR_ATTRIBUTES: set[str] | None = None
-
-
 def _parameter_value(st: Statement, key: str, value: Any) -> Any:
-    """Check the name against cv2.aruco.DetectorParameters, so a typo fails at load time."""
-    global _DETECTOR_ATTRIBUTES
+    """A number; whether OpenCV has such a parameter is asked with the rest (:func:`_check_detectors`)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise st.origin.error(f"parameter {key}: value must be a number, not {value!r}")
-    if _DETECTOR_ATTRIBUTES is None:
-        try:
-            import cv2  # only when a model sets detector parameters
-
-            params = cv2.aruco.DetectorParameters()
-            _DETECTOR_ATTRIBUTES = {a for a in dir(params) if not a.startswith("_")}
-        except (ImportError, AttributeError):
-            _DETECTOR_ATTRIBUTES = set()  # no OpenCV here: the detector program checks at start
-    if _DETECTOR_ATTRIBUTES and key not in _DETECTOR_ATTRIBUTES:
-        raise st.origin.error(f"parameter {key!r} is not an attribute of cv2.aruco.DetectorParameters")
     return value
-
-
-def _check_dictionary(st: Statement, name: str) -> None:
-    """OpenCV's own list decides (``DICT_4X4_5O`` is refused here, not when a detector starts)."""
-    try:
-        import cv2
-    except ImportError:
-        return  # no OpenCV here: the detector program checks at start
-    if not isinstance(getattr(cv2.aruco, name, None), int):
-        known = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
-        raise st.origin.error(f"dictionary {name!r} is not one of OpenCV's ArUco dictionaries "
-                              f"({', '.join(known[:4])}, ... {len(known)} in all)")
 
 
 # cornerRefinementMethod is an enum OpenCV does not check: CORNER_REFINE_NONE, SUBPIX, CONTOUR, APRILTAG.
 _PARAMETER_RANGES = {"cornerRefinementMethod": (0, 3)}
 
 
-def _check_detector(b: _Block, config_json: str) -> None:
-    """Build the detector the deployer would start and run it once, so OpenCV judges names, types and ranges.
+def _config_json(b: _Block) -> None:
+    if b.kind != "rpsl.processing_component":
+        return
+    if "dictionary" in b.props:
+        b.props["config_json"] = json.dumps(
+            {"dictionary": b.props["dictionary"], "preprocess": b.preprocess, "parameters": b.parameters})
+    elif b.parameters or b.preprocess:
+        raise b.origin.error(f"{b.name}: detector parameters or preprocess steps need a dictionary statement")
 
-    The detector program does the same at start (onboard.markers.parse_config); doing it here
-    turns a model that would fail at start into a FILE:LINE error at load time.
+
+def _check_detectors(blocks: list[_Block], path: str) -> None:
+    """Judge every detector configuration of the file as the detector program would at start.
+
+    The names, types and ranges OpenCV accepts are OpenCV's to say, but this
+    process must not load it: :mod:`knowledge.importers.detector_check` asks a
+    child process, for all of the file's configurations at once. Where OpenCV
+    is not installed the detector program checks at start.
     """
-    try:
-        import cv2
-        import numpy as np
-
-        from onboard.markers import MarkerDetector, parse_config
-    except ImportError:
-        return  # no OpenCV here: the detector program checks at start
-    from shared.errors import ConfigError
-
-    for key, (low, high) in _PARAMETER_RANGES.items():
-        value = b.parameters.get(key)
-        if isinstance(value, (int, float)) and not low <= value <= high:
-            raise b.origin.error(f"{b.name}: parameter {key} = {value} is outside [{low}, {high}]")
-    try:
-        detector = MarkerDetector(parse_config(b.name, config_json))
-        marker = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, b.props["dictionary"])), 0, 40)
-        detector.detect(np.pad(marker, 12, constant_values=255))  # a real marker: the full detection path runs
-    except ConfigError as exc:
-        raise b.origin.error(str(exc)) from exc
-    except cv2.error as exc:
-        why = next((line for line in str(exc).splitlines() if "error:" in line), str(exc)).split("error:", 1)[-1].strip()
-        raise b.origin.error(f"{b.name}: OpenCV refuses these detector parameters: {why}") from exc
+    detectors = [b for b in blocks if "config_json" in b.props]
+    for b in detectors:
+        for key, (low, high) in _PARAMETER_RANGES.items():
+            value = b.parameters.get(key)
+            if isinstance(value, (int, float)) and not low <= value <= high:
+                raise b.origin.error(f"{b.name}: parameter {key} = {value} is outside [{low}, {high}]")
+    asked = [(str(b.name), b.props["config_json"]) for b in detectors]
+    for b, verdict in zip(detectors, detector_check.verdicts(asked, path)):
+        if verdict is not None:
+            at = verdict["at"] if verdict["at"] == "dictionary" else f"parameter:{verdict['key']}"
+            raise b.origins.get(at, b.origin).error(verdict["message"])
 
 
 def _emit(model: ParsedModel, b: _Block) -> None:
@@ -307,13 +281,6 @@ def _emit(model: ParsedModel, b: _Block) -> None:
     props = {"name": b.name, **b.props}
     if b.kind == "rpsl.sensor_component" and "width" in props:
         extra = extra + (S.CAMERA,)
-    if b.kind == "rpsl.processing_component":
-        if "dictionary" in props:
-            props["config_json"] = json.dumps(
-                {"dictionary": props["dictionary"], "preprocess": b.preprocess, "parameters": b.parameters})
-            _check_detector(b, props["config_json"])
-        elif b.parameters or b.preprocess:
-            raise b.origin.error(f"{b.name}: detector parameters or preprocess steps need a dictionary statement")
     if b.kind == "rpsl.sensor_component" and "width" not in props and any(k in props for k in ("fx", "fps")):
         raise b.origin.error(f"{b.name}: intrinsics or fps without a resolution statement")
     model.nodes.append(NodeSpec(label, b.name, props, b.origin, extra))

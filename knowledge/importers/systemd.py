@@ -8,7 +8,8 @@ into an ``[X-Kgadapt]`` section, which systemd ignores::
     Description=ArUco marker detector, daylight configuration
 
     [Service]
-    ExecStart={python} -m onboard.detector --robot {robot} --host {host} --instance {instance} --config {config} --connect {connect}
+    ExecStart={python} -m onboard.detector --robot {robot} --host {host} --instance {instance} \\
+              --config {config} --connect {connect}
     Environment=OPENCV_LOG_LEVEL=ERROR
     Restart=on-failure
 

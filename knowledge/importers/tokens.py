@@ -70,14 +70,13 @@ def tokenize(text: str, origin: Origin) -> list[Token]:
         elif ch == ";":
             tokens.append(Token("semicolon", ";", col))
             i += 1
-        elif ch == ":" and i + 1 < n and _WORD.match(text, i + 1):
-            m = _WORD.match(text, i + 1)
-            tokens.append(Token("symbol", Symbol(m.group()), col))
-            i = m.end()
+        elif ch == ":" and i + 1 < n and (symbol := _WORD.match(text, i + 1)):
+            tokens.append(Token("symbol", Symbol(symbol.group()), col))
+            i = symbol.end()
         elif (m := _NUMBER.match(text, i)) and (ch.isdigit() or ch in "+-." ):
             literal = m.group()
-            value: Any = float(literal) if any(c in literal for c in ".eE") else int(literal)
-            tokens.append(Token("number", value, col))
+            number: float = float(literal) if any(c in literal for c in ".eE") else int(literal)
+            tokens.append(Token("number", number, col))
             i = m.end()
         elif m := _WORD.match(text, i):
             word = m.group()

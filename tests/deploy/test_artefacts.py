@@ -29,7 +29,7 @@ def exec_start(unit: Path, env_file: dict[str, str] | None = None) -> list[str]:
     """ExecStart= as systemd runs it: ``${X}`` is one word, ``$X`` split at whitespace; the env file wins."""
     env = {**unit_environment(unit), **(env_file or {})}
     text = unit.read_text().replace("\\\n", " ")
-    line = next(l for l in text.splitlines() if l.startswith("ExecStart="))
+    line = next(line for line in text.splitlines() if line.startswith("ExecStart="))
     argv: list[str] = []
     for word in shlex.split(line[len("ExecStart="):]):
         if word.startswith("$") and not word.startswith("${"):
@@ -58,8 +58,8 @@ def test_units_for_the_knowledge_service_and_both_agents_are_shipped():
 @pytest.mark.parametrize("unit", UNITS, ids=lambda u: u.name)
 def test_systemd_finds_nothing_wrong_in_the_unit_but_the_missing_install(unit):
     done = subprocess.run(["systemd-analyze", "verify", "--man=no", str(unit)], capture_output=True, text=True, timeout=60)
-    complaints = [l for l in (done.stdout + done.stderr).splitlines()
-                  if l.strip() and "/opt/kgadapt/venv/bin/kgadapt is not executable" not in l]
+    complaints = [line for line in (done.stdout + done.stderr).splitlines()
+                  if line.strip() and "/opt/kgadapt/venv/bin/kgadapt is not executable" not in line]
     assert complaints == []
 
 

@@ -60,11 +60,16 @@ decision = {"name": "forged", "time": 1.0, "trigger": "forged", "config": "marke
 onboard = open_session(ZenohSettings(config_file=onboard_cfg))
 out["write_as_quad2_onboard"] = refused(lambda: KnowledgeClient(onboard, "quad1", timeout=1.5).write("decision", decision))
 out["write_as_quad2_operator"] = refused(lambda: KnowledgeClient(operator, "quad1", timeout=1.5).write("decision", decision))
-out["cypher_of_quad1"] = refused(lambda: KnowledgeClient(operator, "quad1", timeout=1.5).cypher("MATCH (n) RETURN count(n) AS n"))
+out["cypher_of_quad1"] = refused(
+    lambda: KnowledgeClient(operator, "quad1", timeout=1.5).cypher("MATCH (n) RETURN count(n) AS n"))
 payload = messages.encode("write_request", {"params": decision})
-out["wildcard_write_replies"] = [r.ok is not None for r in operator.get("kgadapt/*/knowledge/write/decision", payload=payload, timeout=1.5)]
-out["deployer_replies"] = [r.ok is not None for r in operator.get("kgadapt/quad1/host/*/deployer/list", payload=messages.encode("deploy_request", {}), timeout=1.5)]
-out["own_write"] = not refused(lambda: KnowledgeClient(operator, "quad2", timeout=3).write("decision", {**decision, "name": "quad2-own"}))
+out["wildcard_write_replies"] = [
+    r.ok is not None for r in operator.get("kgadapt/*/knowledge/write/decision", payload=payload, timeout=1.5)]
+out["deployer_replies"] = [
+    r.ok is not None for r in operator.get("kgadapt/quad1/host/*/deployer/list",
+                                           payload=messages.encode("deploy_request", {}), timeout=1.5)]
+out["own_write"] = not refused(
+    lambda: KnowledgeClient(operator, "quad2", timeout=3).write("decision", {**decision, "name": "quad2-own"}))
 print(json.dumps(out), flush=True)
 """
 

@@ -10,7 +10,6 @@ from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from onboard.mavlink import FlightLink, LinkSettings
 from tests.support import wait_for as wait_until  # noqa: F401 (the tests import it from here)
 
-
 # What the tests' links ask of the fake autopilot (the defaults, 1-2 Hz, would slow the tests down).
 FAST_STREAMS = (("SYS_STATUS", 10.0), ("BATTERY_STATUS", 10.0), ("EXTENDED_SYS_STATE", 10.0))
 

@@ -6,7 +6,6 @@ Each test names the ArduPilot function whose behaviour it checks.
 from __future__ import annotations
 
 import math
-import threading
 import time
 
 import pytest

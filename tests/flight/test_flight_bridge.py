@@ -14,7 +14,7 @@ from shared import keys, messages
 from shared.session import ZenohSettings, open_session
 from tests.conftest import free_port
 from tests.flight.conftest import FAST_STREAMS, free_udp_port, wait_until
-from tests.flight.test_landing_target import ANGLE_X, ANGLE_Y, K, SQUARE
+from tests.flight.test_landing_target import ANGLE_X, ANGLE_Y, SQUARE, K
 
 ROBOT = "quadtest"
 

@@ -8,21 +8,15 @@ import math
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from onboard.geometry import body_to_ned, camera_to_body, body_to_camera, ned_to_body
+from onboard.geometry import body_to_camera, body_to_ned, camera_to_body, ned_to_body
 from onboard.landing_scene import MarkerScene
-from onboard.landing_targets import (
-    AutopilotProfile,
-    CameraModel,
-    SiteMarkers,
-    TargetBuilder,
-    load_camera,
-    load_site_markers,
-)
+from onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, load_camera, load_site_markers
 from onboard.mavlink import FlightState
-from shared.errors import ConfigError
+from onboard.site import SiteMarkers
+from shared.errors import ConfigError, ModelError
 
 CAMERA = CameraModel(fx=615.0, fy=615.0, cx=320.0, cy=240.0, width=640, height=480)
-MARKERS = SiteMarkers("pad", {7: 0.5})
+MARKERS = SiteMarkers(site="pad", sizes_m={7: 0.5})
 
 
 def _state(attitude=(0.0, 0.0, 0.0), position=(0.0, 0.0, -8.0), rangefinder=None) -> FlightState:
@@ -133,14 +127,14 @@ def test_a_site_marker_file_is_checked_on_load(tmp_path):
     for bad, says in [
         ({"markers": []}, "non-empty"),
         ({"markers": [{"id": 7, "size_m": 0.3}, {"id": 7, "size_m": 0.2}]}, "listed twice"),
-        ({"markers": [{"id": -1, "size_m": 0.3}]}, "id must be"),
+        ({"markers": [{"id": -1, "size_m": 0.3}]}, "'id' must be"),
         ({"markers": [{"id": 1, "size_m": 0}]}, "size_m must be positive"),
         ({"markers": [{"id": 1, "size_m": 30}]}, "not a marker's size"),
         ({"markers": [{"id": 1, "size": 0.3}]}, "marker 0 must be"),
     ]:
         path = tmp_path / "bad.json"
         path.write_text(json.dumps(bad))
-        with pytest.raises(ConfigError, match=says):
+        with pytest.raises(ModelError, match=says):  # the one site file format (onboard/site.py)
             load_site_markers(path)
 
 

@@ -162,12 +162,12 @@ MALFORMED = [
      3, r"direction must be :in or :out"),
     ("string.rpsl", 'rpsl.processing_component do\n  name "x\nend\n', 2, r"string opened at column 8 is not closed"),
     ("bad_char.rpsl", 'rpsl.processing_component do\n  name "x"\n  cpu_load 3 @\nend\n', 3, r"unexpected character '@'"),
-    ("bad_op.rpsl", 'rpsl.processing_component do\n  name "x"\n  dictionary "DICT_4X4_50"\n  preprocess :sharpen, amount: 2\nend\n',
-     4, r"unknown step :sharpen"),
-    ("bad_range.rpsl", 'rpsl.processing_component do\n  name "x"\n  dictionary "DICT_4X4_50"\n  preprocess :gamma, gamma: 20\nend\n',
-     4, r"gamma 20 is outside \[0.05, 10\]"),
-    ("even_blur.rpsl", 'rpsl.processing_component do\n  name "x"\n  dictionary "DICT_4X4_50"\n  preprocess :blur, ksize: 4\nend\n',
-     4, r"ksize must be odd"),
+    ("bad_op.rpsl", 'rpsl.processing_component do\n  name "x"\n  dictionary "DICT_4X4_50"\n'
+     '  preprocess :sharpen, amount: 2\nend\n', 4, r"unknown step :sharpen"),
+    ("bad_range.rpsl", 'rpsl.processing_component do\n  name "x"\n  dictionary "DICT_4X4_50"\n'
+     '  preprocess :gamma, gamma: 20\nend\n', 4, r"gamma 20 is outside \[0.05, 10\]"),
+    ("even_blur.rpsl", 'rpsl.processing_component do\n  name "x"\n  dictionary "DICT_4X4_50"\n'
+     '  preprocess :blur, ksize: 4\nend\n', 4, r"ksize must be odd"),
     ("bad_param.rpsl", 'rpsl.processing_component do\n  name "x"\n  dictionary "DICT_4X4_50"\n'
      '  parameter "adaptiveThreshWinSizMax", 5\nend\n', 4, r"not an attribute of cv2.aruco.DetectorParameters"),
     ("unknown_component.rpsl", GRAPH_HEAD + '  connect "cam", "out_port", "ghost", "in_port"\nend\n',
@@ -198,7 +198,8 @@ MALFORMED = [
     ("noequals.service", "[Service]\nExecStart=/bin/true\njust words here\n", 3, r"unknown statement 'just words here'"),
     ("unknown_platform.service", "[Service]\nExecStart=/bin/true\n[X-Kgadapt]\nDeploys=g_a\nExecutableOn=alpha mars\n",
      5, r"unknown platform 'mars'"),
-    ("unknown_key.deploy", "deploys: g_a\nexecutable: /bin/true\nexecutable_on: alpha\nreplicas: 3\n", 4, r"unknown key 'replicas'"),
+    ("unknown_key.deploy", "deploys: g_a\nexecutable: /bin/true\nexecutable_on: alpha\nreplicas: 3\n", 4,
+     r"unknown key 'replicas'"),
     ("no_deploys.deploy", "executable: /bin/true\nexecutable_on: alpha\n", 1, r"does not say what it deploys"),
     ("ghost_graph.deploy", "deploys: g_ghost\nexecutable: /bin/true\nexecutable_on: alpha\n",
      1, r"unknown perception graph or component 'g_ghost'"),

@@ -77,3 +77,30 @@ def test_a_systemd_unit_with_an_unknown_module_names_its_execstart_line():
     text = "[Service]\nExecStart={python} -m no_such_module --x\n[X-Kgadapt]\nDeploys=g\nExecutableOn=a\n"
     with pytest.raises(ModelError, match=re.escape("u.service:2: module 'no_such_module'")):
         systemd.parse(text, "u.service")
+
+
+def test_loading_the_models_judges_detectors_with_opencv_in_a_child_and_never_imports_it(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[2]
+    code = ("import json, sys; from knowledge.loader import check_models; "
+            "resolved = check_models([sys.argv[1]]); "
+            "print(json.dumps({'nodes': len(resolved.nodes), 'cv2': 'cv2' in sys.modules}))")
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}  # a cold cache: the child must answer
+    done = subprocess.run([sys.executable, "-c", code, str(repo / "knowledge" / "models")], cwd=repo, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["nodes"] > 0 and out["cv2"] is False
+    assert list((tmp_path / "cache" / "kgadapt" / "detector-verdicts").glob("*.json"))  # the child's verdicts, kept
+
+
+def test_one_preprocessing_table_for_the_importer_and_the_detector():
+    from onboard import markers
+    from shared import preprocessing
+
+    assert rpsl.PREPROCESS_OPS is preprocessing.OPS and markers._OPS is preprocessing.OPS

@@ -23,7 +23,9 @@ def test_an_agent_without_its_router_says_so_until_it_comes_then_stops_on_ctrl_c
     service = None
     try:
         agent.wait_for_line("remote agent ready")
-        stderr = lambda: agent.stderr_path.read_text()
+        def stderr() -> str:
+            return agent.stderr_path.read_text()
+
         from tests.support import wait_for
 
         wait_for(lambda: f"cannot reach the router at {endpoint}" in stderr(), 20, "the agent to say it is alone")

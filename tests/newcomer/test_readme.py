@@ -8,9 +8,10 @@ so it is kept for every later line, as in one terminal.
 
 from __future__ import annotations
 
-import pytest
 import json
 import re
+
+import pytest
 
 from tests.support import REPO, wait_for
 
@@ -48,7 +49,7 @@ def readme_lines() -> list[str]:
 @pytest.mark.timeout(300)  # several robots' processes on a shared 2-core machine
 def test_the_readme_commands_run_in_order_and_say_what_the_readme_says(terminal):
     lines = readme_lines()
-    uncovered = [l for l in lines if not any(l.startswith(k) for k in EXPECTED)]
+    uncovered = [line for line in lines if not any(line.startswith(k) for k in EXPECTED)]
     assert not uncovered, f"README lines this test does not check: {uncovered}"
     shell_state: list[str] = []
     for line in lines:

@@ -8,8 +8,9 @@ would show. A robot nobody runs (quad3) gets errors naming it and the endpoint.
 
 from __future__ import annotations
 
-import pytest
 import json
+
+import pytest
 
 from tests.support import wait_for
 

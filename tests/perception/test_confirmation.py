@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-import json
 import time
 
-import numpy as np
 import pytest
 
 from onboard.calibration import model_configs
-from onboard.confirmation import ConfirmationSettings, MarkerConfirmer, SiteMarkers, load_site
+from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
 from onboard.markers import MarkerDetector
 from onboard.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
 from onboard.scenario import IlluminationProfile, SceneSettings, SyntheticScene
+from onboard.site import SiteMarkers, load_site
 from shared.errors import ConfigError, MessageError, ModelError
 from tests.conftest import REPO
 

@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 import pytest
 
-from onboard.calibration import (CONDITIONS, CalibrationSettings, rank, band_levels, best_per_band, calibrate, configs_from_store,
-                                 ensure_models, record)
+from onboard.calibration import (
+    CONDITIONS,
+    CalibrationSettings,
+    band_levels,
+    best_per_band,
+    calibrate,
+    configs_from_store,
+    ensure_models,
+    rank,
+    record,
+)
 from onboard.illumination import Band
 from onboard.markers import MarkerDetector, parse_config, score
 from onboard.scenario import IlluminationProfile, SyntheticScene

@@ -21,7 +21,7 @@ from shared.session import ZenohSettings, open_session
 from tests.adaptation.test_adaptation_e2e import Run
 from tests.conftest import free_port
 from tests.flight.conftest import FAST_STREAMS, free_udp_port, wait_until
-from tests.flight.test_landing_target import ANGLE_X, ANGLE_Y, K, SQUARE
+from tests.flight.test_landing_target import ANGLE_X, ANGLE_Y, SQUARE, K
 
 ROBOT = "quadforge"
 FAR = [[10.0, 10.0], [50.0, 10.0], [50.0, 50.0], [10.0, 50.0]]  # a marker in the corner: very different angles

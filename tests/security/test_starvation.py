@@ -17,13 +17,10 @@ import sys
 import threading
 import time
 
-import pytest
-
 from bench import table1
 from knowledge.client import KnowledgeClient
 from knowledge.store import open_store
 from shared.errors import KgadaptError
-from shared.session import ZenohSettings, open_session
 from tests.conftest import REPO
 from tests.security.outsider import Outsider
 from tests.support import wait_for

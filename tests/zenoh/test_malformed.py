@@ -218,7 +218,8 @@ def test_a_flood_of_statuses_is_coalesced_to_the_newest_per_host(zenoh_pair, cli
     publishers = {h: session.declare_publisher(keys.host_status(robot, h)) for h in ("h1", "h2")}
     for i in range(500):
         for host, pub in publishers.items():
-            pub.put(messages.encode("host_status", {**GOOD["host_status"], "host": host, "memory_total_mb": 1000.0, "memory_free_mb": float(i)}))
+            pub.put(messages.encode("host_status", {**GOOD["host_status"], "host": host, "memory_total_mb": 1000.0,
+                                                    "memory_free_mb": float(i)}))
     for host in publishers:
         wait_for(lambda h=host: (platform_row(client, h) or {}).get("memory_free_mb") == 499.0, 5, f"{host}'s last status")
     stats = service.stats()

@@ -1,0 +1,115 @@
+"""OpenCV's verdict on detector configurations, asked without loading OpenCV here.
+
+The model loader runs where no camera is (the knowledge service, ``kgadapt
+knowledge load``) and must not import OpenCV; yet a configuration OpenCV
+would refuse should fail at load time with its file and line. So the
+configurations go to :mod:`onboard.config_check` in a child process, which
+answers what the detector program would say at start.
+
+A child costs an interpreter and an OpenCV import (~0.3 s idle, seconds on a
+busy machine), and the same models are loaded again and again (every agent
+start, every test cluster), so verdicts are kept: in this process, and on disk
+under ``$XDG_CACHE_HOME/kgadapt/detector-verdicts/``, keyed by the
+configuration, the OpenCV build (its file's path, size and time) and the
+source of the checking code, so a new OpenCV or a changed check asks again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from shared.errors import ModelError
+
+log = logging.getLogger(__name__)
+
+Verdict = dict[str, Any] | None
+# What the verdict depends on besides the configuration: the checking program and what it imports.
+_CHECK_MODULES = ("onboard.config_check", "onboard.markers", "onboard.scenario", "shared.preprocessing")
+_memory: dict[str, Verdict] = {}
+
+
+def cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(Path.home(), ".cache")
+    return Path(base) / "kgadapt" / "detector-verdicts"
+
+
+def verdicts(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
+    """One verdict per ``(name, config_json)``: None when OpenCV takes it (or is not installed here)."""
+    if not configs:
+        return []
+    opencv = importlib.util.find_spec("cv2")
+    if opencv is None or not opencv.origin:
+        return [None] * len(configs)  # no OpenCV here: the detector program checks at start
+    identity = _identity(opencv.origin)
+    keys = [hashlib.sha256(json.dumps([identity, name, config]).encode()).hexdigest() for name, config in configs]
+    for key in keys:
+        if key not in _memory:
+            found = _read(key)
+            if found is not None:
+                _memory[key] = found[0]
+    unknown = [(key, config) for key, config in zip(keys, configs) if key not in _memory]
+    if unknown:
+        asked = dict(unknown)  # one question per distinct configuration
+        for key, verdict in zip(asked, _ask(list(asked.values()), path)):
+            _memory[key] = verdict
+            _write(key, verdict)
+    return [_memory[key] for key in keys]
+
+
+def _identity(opencv_origin: str) -> list[Any]:
+    stat = os.stat(opencv_origin)
+    digest = hashlib.sha256()
+    for module in _CHECK_MODULES:
+        spec = importlib.util.find_spec(module)
+        if spec is not None and spec.origin:
+            digest.update(Path(spec.origin).read_bytes())
+    return [opencv_origin, stat.st_size, stat.st_mtime_ns, digest.hexdigest()]
+
+
+def _read(key: str) -> tuple[Verdict] | None:
+    try:
+        return (json.loads((cache_dir() / f"{key}.json").read_text())["verdict"],)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _write(key: str, verdict: Verdict) -> None:
+    directory = cache_dir()
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=directory, suffix=".tmp")
+        with os.fdopen(fd, "w") as out:
+            json.dump({"verdict": verdict}, out)
+        os.replace(tmp, directory / f"{key}.json")  # whole or absent, with concurrent loaders
+    except OSError as exc:
+        log.debug("cannot keep a detector verdict in %s: %s", directory, exc)
+
+
+def _ask(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
+    spec = importlib.util.find_spec("onboard")
+    root = str(Path(next(iter(spec.submodule_search_locations or []))).parent) if spec else ""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)}
+    request = json.dumps([{"name": name, "config_json": config} for name, config in configs])
+    try:
+        done = subprocess.run([sys.executable, "-m", "onboard.config_check"], input=request, capture_output=True,
+                              text=True, timeout=120, env=env)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise ModelError(path, None, f"cannot check the detector configurations with OpenCV: {exc}") from exc
+    try:
+        answer = json.loads(done.stdout) if done.returncode == 0 else None
+    except ValueError:
+        answer = None
+    if not isinstance(answer, list) or len(answer) != len(configs):
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise ModelError(path, None, f"cannot check the detector configurations with OpenCV "
+                                     f"(onboard.config_check exited {done.returncode}: {last})")
+    return answer

@@ -1,0 +1,68 @@
+"""Query parameters: the one check every backend (and the knowledge service) applies.
+
+A parameter is a name of letters, digits and ``_`` (not starting with a
+digit) and a graph value: None, a bool, a 64-bit integer, a finite float, a
+string without NUL, or a list or string-keyed map of those, nested at most
+:data:`MAX_DEPTH` deep. Anything else is refused before it reaches a store,
+with an error naming the parameter: stores differ in what they do with the
+rest (FalkorDB reads query text as a C string, so a NUL would cut a value;
+inf and nan have no Cypher literal; the Bolt drivers refuse bytes), and a
+batch must fail before its first statement, not half way.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import re
+from typing import Any, Mapping
+
+from shared.errors import KgadaptError, QueryError
+
+MAX_DEPTH = 8
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_INT64 = (-(2**63), 2**63)
+
+
+def check_params(
+    params: Mapping[Any, Any] | None, *, what: str = "", error: type[KgadaptError] = QueryError
+) -> dict[str, Any]:
+    """A plain copy of ``params`` (tuples as lists, numbers as int/float), or ``error`` naming what is wrong.
+
+    ``what`` prefixes the messages (e.g. ``"query 'deployment'"``); the store
+    raises :class:`QueryError`, the service :class:`MessageError`.
+    """
+    prefix = f"{what}: " if what else ""
+    clean: dict[str, Any] = {}
+    for name, value in (params or {}).items():
+        if not isinstance(name, str) or not _NAME.match(name):
+            raise error(f"{prefix}bad parameter name {name!r}: use letters, digits and _")
+        clean[name] = _value(value, f"{prefix}parameter {name!r}", error, 0)
+    return clean
+
+
+def _value(value: Any, where: str, error: type[KgadaptError], depth: int) -> Any:
+    if depth > MAX_DEPTH:
+        raise error(f"{where}: nested more than {MAX_DEPTH} deep")
+    if value is None or isinstance(value, (bool, str)):
+        if isinstance(value, str) and "\x00" in value:
+            raise error(f"{where}: a NUL character is not allowed in a string")
+        return value
+    if isinstance(value, numbers.Integral):  # int, and numpy's integers
+        if not _INT64[0] <= int(value) < _INT64[1]:
+            raise error(f"{where}: {value} does not fit in 64 bits")
+        return int(value)
+    if isinstance(value, numbers.Real):  # float, and numpy's floats
+        if not math.isfinite(value):
+            raise error(f"{where}: {value} is not a finite number")
+        return float(value)
+    if isinstance(value, (list, tuple)):
+        return [_value(item, where, error, depth + 1) for item in value]
+    if isinstance(value, Mapping):
+        out: dict[str, Any] = {}
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise error(f"{where}: map key {key!r} is not a string")
+            out[key] = _value(item, where, error, depth + 1)
+        return out
+    raise error(f"{where}: a {type(value).__name__} is not a graph value")

@@ -1,0 +1,62 @@
+"""``python -m onboard.config_check``: OpenCV's verdict on detector configurations, for the model loader.
+
+Loading models must not load OpenCV (the knowledge service and ``kgadapt
+knowledge load`` run where no camera is), yet a configuration OpenCV would
+refuse should fail at load time with its file and line, not when a detector
+starts. So the loader (``knowledge/importers/rpsl.py``) asks this program, in a
+process of its own, what the detector program would say at start
+(:func:`onboard.markers.parse_config`, then one detection of a real marker).
+
+Input on stdin: a JSON list of ``{"name": ..., "config_json": ...}``. Output
+on stdout: a JSON list, one entry per configuration: ``null`` when OpenCV takes
+it, else ``{"at": "dictionary" | "parameter" | "detector", "key": ..., "message": ...}``
+(``at`` tells the loader which statement to name).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from typing import Any
+
+
+def verdict(name: str, config_json: str) -> dict[str, Any] | None:
+    """None if the detector program would start with this configuration, else what OpenCV refuses."""
+    import cv2
+    import numpy as np
+
+    from onboard.markers import MarkerDetector, parse_config
+    from shared.errors import ConfigError
+
+    data = json.loads(config_json)
+    dictionary = data.get("dictionary")
+    if not isinstance(getattr(cv2.aruco, str(dictionary), None), int):
+        known = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
+        return {"at": "dictionary", "key": dictionary,
+                "message": f"dictionary {dictionary!r} is not one of OpenCV's ArUco dictionaries "
+                           f"({', '.join(known[:4])}, ... {len(known)} in all)"}
+    attributes = {a for a in dir(cv2.aruco.DetectorParameters()) if not a.startswith("_")}
+    for key in data.get("parameters") or {}:
+        if key not in attributes:
+            return {"at": "parameter", "key": key,
+                    "message": f"parameter {key!r} is not an attribute of cv2.aruco.DetectorParameters"}
+    try:
+        detector = MarkerDetector(parse_config(name, config_json))
+        marker = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)), 0, 40)
+        detector.detect(np.pad(marker, 12, constant_values=255))  # a real marker: the full detection path runs
+    except ConfigError as exc:
+        return {"at": "detector", "key": None, "message": str(exc)}
+    except cv2.error as exc:
+        why = next((line for line in str(exc).splitlines() if "error:" in line), str(exc)).split("error:", 1)[-1].strip()
+        return {"at": "detector", "key": None, "message": f"{name}: OpenCV refuses these detector parameters: {why}"}
+    return None
+
+
+def main() -> int:
+    configs = json.load(sys.stdin)
+    json.dump([verdict(c["name"], c["config_json"]) for c in configs], sys.stdout)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
