@@ -21,7 +21,8 @@ import pytest
 import zenoh
 
 from tests.conftest import REPO
-from tests.support import Child as _Child  # noqa: F401 (the tests import wait_for from here)
+from tests.support import Child as _Child  # noqa: F401
+from tests.support import wait_for  # noqa: F401 (the tests import wait_for from here)
 
 ZENOH_DIR = REPO / "deploy" / "zenoh"
 SHIPPED_TLS_DIR = "/etc/kgadapt/tls"
