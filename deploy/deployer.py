@@ -88,6 +88,8 @@ class DeployerSettings:
     sample_interval: float = 1.0
     knowledge_timeout: float = 2.0
     workers: int = 4
+    # Fork detectors from the host's launcher (deploy/launcher.py); a plain start when it is absent.
+    launcher: bool = True
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
@@ -111,7 +113,7 @@ class Deployer:
         self._knowledge = knowledge
         # MiB this host may still give (the host monitor's figure, within its budget); None: no check.
         self._free_memory = free_memory
-        self.supervisor = Supervisor(SupervisorSettings())
+        self.supervisor = Supervisor(SupervisorSettings(use_launcher=settings.launcher, python=settings.python))
         self.recorder: ProfileRecorder | None = None
         self._session: Any = None
         self._queryables: list[Any] = []
@@ -405,6 +407,7 @@ def settings_from_args(args: argparse.Namespace, *, robot: str, host: str) -> De
         restart=RestartPolicy(max_restarts=getattr(args, "max_restarts", 3)),
         stop=StopPolicy(sigint_timeout=stop, sigterm_timeout=stop),
         sample_interval=getattr(args, "profile_interval", 1.0),
+        launcher=not getattr(args, "no_launcher", False),
     )
 
 
