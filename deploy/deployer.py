@@ -10,7 +10,8 @@ parts. It answers four queryables (``shared.keys.deployer_verb``)::
     kgadapt/<robot>/host/<host>/deployer/list     deploy_request {}
 
 and replies ``deploy_reply {ok, detail}``: ``detail`` is the process snapshot
-(``ProcessInfo.to_dict()`` plus ``host``), for ``list`` ``{host, processes}``;
+(``ProcessInfo.to_dict()`` plus ``host``), for ``list`` ``{host, processes, launcher}``
+(``launcher``: ``{pid, ready}`` of the host's launcher, or null without one);
 a refusal or failure is ``ok: false`` with ``detail {error, error_type}``. A
 request that is not a valid ``deploy_request`` gets ``query.reply_err``.
 Events (``started``, ``ready``, ``exited``, ``restarted``, ``stopped``,
@@ -314,7 +315,9 @@ class Deployer:
             )
         host = self.settings.host
         if verb == "list":
-            return {"host": host, "processes": [_info_dict(i, host) for i in self.list()]}
+            launcher = self.supervisor.launcher
+            return {"host": host, "processes": [_info_dict(i, host) for i in self.list()],
+                    "launcher": {"pid": launcher.pid, "ready": launcher.ready} if launcher is not None else None}
         if verb in ("stop", "status"):
             instance = request.get("instance")
             if not instance:

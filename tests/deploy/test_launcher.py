@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import psutil
@@ -19,8 +21,8 @@ from knowledge import schema as S
 from knowledge.loader import load_models
 from shared import keys
 from shared.errors import DeploymentError
-from tests.deploy.conftest import ROBOT, Collector, FrameSource
-from tests.deploy.test_deployer import alive, wait_until
+from tests.deploy.conftest import ROBOT, Collector, FrameSource, wait_for_deployers
+from tests.deploy.test_deployer import REPO, alive, wait_until
 from tests.deploy.test_real_detector import marker_jpeg
 
 MODELS = Path(S.__file__).resolve().parent / "models"
@@ -141,3 +143,24 @@ def test_the_launcher_forks_only_modules_it_preloaded(hosts):
     assert launcher.fork([python, "-m", "http.server"], dict(os.environ), None) is None
     assert launcher.fork(["/bin/sh", "-m", "onboard.detector"], dict(os.environ), None) is None
     assert launcher.ready  # a refusal is not a failure of the launcher
+
+
+def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launcher(knowledge, endpoint, test_session):
+    agent = subprocess.Popen(
+        [sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
+         "--connect", endpoint], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert "agent ready" in agent.stdout.readline()
+        wait_for_deployers(test_session, ["onboard"])
+        client = DeployerClient(test_session, ROBOT)
+        launcher = wait_until(lambda: (found := client.launcher("onboard")) and found["ready"] and found,
+                              timeout=60.0, what="the agent's launcher ready")
+        info = client.start("onboard", "detector_day", DAY)
+        assert info["via"] == "launcher" and psutil.Process(info["pid"]).ppid() == agent.pid
+        os.kill(agent.pid, signal.SIGKILL)
+        agent.wait()
+        wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="forked detector gone after kill -9 of its agent")
+        wait_until(lambda: not alive(launcher["pid"]), timeout=5.0, what="launcher gone after kill -9 of its agent")
+    finally:
+        agent.kill()
+        agent.wait()
