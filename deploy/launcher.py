@@ -61,6 +61,9 @@ RUNNABLE = ("onboard.detector", "deploy.echo_detector")
 PRELOAD = ("numpy", "cv2", "zenoh", "onboard.markers", "knowledge.client", "shared.session", "shared.agent",
            *RUNNABLE)
 _MAX_MESSAGE = 1 << 20
+# The launcher's argv carries this much room: a forked detector writes its own command line there,
+# so ps, psutil and the tools that find detectors by their command line see it as a plain-started one.
+TITLE_ROOM = 2048
 _PR_SET_PDEATHSIG = 1
 PR_SET_CHILD_SUBREAPER = 36
 
@@ -214,6 +217,7 @@ def _detector_child(middle: int, parent: int, death_signal: int, fds: list[int],
         os.environ.update(env)
         if cwd:
             os.chdir(cwd)
+        set_title(argv)
         logging.root.handlers.clear()  # the detector configures its own logging
         sys.stdout.reconfigure(line_buffering=True)
         code = _run_module(module, argv)
@@ -227,6 +231,29 @@ def _detector_child(middle: int, parent: int, death_signal: int, fds: list[int],
             sys.stderr.flush()
         finally:
             os._exit(code)
+
+
+def set_title(argv: Sequence[str]) -> bool:
+    """Show ``argv`` as this process's command line (/proc/PID/cmdline), within the room of its own argv.
+
+    Written over the original argv area (what setproctitle does): the kernel reads an area whose
+    last byte is not NUL up to its first NUL, and psutil splits such a title at the spaces. False
+    when it does not fit or the area cannot be written.
+    """
+    try:
+        with open("/proc/self/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        start, end = int(fields[45]), int(fields[46])  # arg_start, arg_end (fields 48 and 49)
+        title = " ".join(argv).encode()
+        if len(title) + 2 > end - start:
+            return False
+        data = title + b"\0" + b" " * (end - start - len(title) - 1)
+        with open("/proc/self/mem", "r+b", buffering=0) as mem:
+            mem.seek(start)
+            mem.write(data)
+        return True
+    except (OSError, ValueError, IndexError):
+        return False
 
 
 def _run_module(module: str, argv: list[str]) -> int:
@@ -249,7 +276,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m deploy.launcher",
                                      description="Fork detectors for the agent that started this (see deploy/launcher.py).")
     parser.add_argument("--fd", type=int, required=True, help="descriptor of the socket to the agent")
+    parser.add_argument("--title-room", default="", help="room for the forked detectors' command lines")
     args = parser.parse_args(argv)
+    set_title([sys.executable, "-m", "deploy.launcher", "--fd", str(args.fd)])
     # OpenBLAS starts a thread pool at import; the launcher must stay single-threaded to fork safely.
     for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
         os.environ.setdefault(name, "1")
@@ -343,7 +372,7 @@ class LauncherClient:
         env["PYTHONUNBUFFERED"] = "1"
         try:
             proc = subprocess.Popen(
-                [self.python, "-m", "deploy.launcher", "--fd", str(theirs.fileno())],
+                [self.python, "-m", "deploy.launcher", "--fd", str(theirs.fileno()), "--title-room", "." * TITLE_ROOM],
                 stdin=subprocess.DEVNULL, pass_fds=(theirs.fileno(),), env=env, start_new_session=True,
                 preexec_fn=self._preexec(),
             )

@@ -164,3 +164,13 @@ def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launche
     finally:
         agent.kill()
         agent.wait()
+
+
+def test_a_forked_detector_shows_its_own_command_line(hosts, client_session):
+    launcher = launcher_of(hosts)
+    info = DeployerClient(client_session, ROBOT).start("onboard", "detector_day", DAY, instance="titled")
+    try:
+        assert psutil.Process(info["pid"]).cmdline() == info["argv"]  # what ps and the fault tools look for
+        assert psutil.Process(launcher.pid).cmdline()[1:3] == ["-m", "deploy.launcher"]
+    finally:
+        DeployerClient(client_session, ROBOT).stop("onboard", "titled")
