@@ -7,6 +7,8 @@ deployers) -> knowledge (every decision written into the graph).
 
 Callbacks only queue observations; one worker thread analyses and acts, so a
 migration never runs inside a Zenoh callback and decisions happen one at a time.
+Host liveliness changes have their own queue, served first: a host lost during a
+long action is acted on next, not after the observations queued meanwhile.
 
 Execution: a planned change on the same host whose deployments the graph
 says may be changed in place (the planner asks ``in_place_change``) reconfigures
