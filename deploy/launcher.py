@@ -280,8 +280,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     set_title([sys.executable, "-m", "deploy.launcher", "--fd", str(args.fd)])
     # OpenBLAS starts a thread pool at import; the launcher must stay single-threaded to fork safely.
-    for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
-        os.environ.setdefault(name, "1")
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sock = socket.socket(fileno=args.fd)
     import importlib
 
@@ -290,6 +289,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if _threads() != 1:
         print(f"deploy.launcher: error: {_threads()} threads after the imports; cannot fork safely", file=sys.stderr)
         return 1
+    import gc
+
+    # The imported objects go to the permanent generation: a child's collections then neither walk
+    # them (a full one in a detector cost frames at a reconfiguration) nor write to their pages (copy-on-write).
+    gc.collect()
+    gc.freeze()
     try:
         return serve(sock)
     finally:
