@@ -17,8 +17,9 @@ Two runs of the robot on this machine (kgadapt/cluster.py):
    limited to half a core (a Pi-class companion computer).
 2. failover: the detector runs on the remote host (``--prefer remote-first``);
    the remote agent is killed with ``kill -9`` (its detector dies with it);
-   measured: kill to the first detection from the new onboard detector. The
-   remote agent is then restarted, the detector goes back, and again.
+   measured: kill to the first detection from the new onboard detector (forked by
+   the onboard host's launcher). The remote agent is then restarted, the detector
+   goes back, and again; with ``--onboard-cpu`` also with the onboard side limited.
 
 Results to ``bench/results/adaptation.json``, beside the paper's Table I
 start/stop figures (the paper's adaptation was only start and stop).
@@ -27,6 +28,7 @@ start/stop figures (the paper's adaptation was only start and stop).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -141,13 +143,18 @@ def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cp
     return {"steps": steps, "changes": changes, "others": others, "baseline": rec.baseline_loss()}
 
 
-def measure_failovers(workdir: Path, count: int) -> list[float]:
+def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None) -> list[float]:
     """Milliseconds from kill -9 of the remote agent to the first detection onboard."""
     times: list[float] = []
+    from bench.footprint import HalfCore
     from kgadapt.cluster import write_profile
 
     profile = write_profile(workdir / "profile.json", [[0, 120], [3600, 120]])
-    with _robot(workdir, profile, prefer="remote-first") as robot:
+    with _robot(workdir, profile, prefer="remote-first") as robot, contextlib.ExitStack() as stack:
+        if cpu:
+            limit = stack.enter_context(HalfCore(cpu))
+            for pid in _tree(robot.cluster.children["onboard"].process.pid):
+                limit.add(pid)  # the agent, its launcher; the detectors they start later are born inside
         rec = robot.recorder
         for _ in range(count):
             # Only the remote detector answers (a handover back to remote must be finished:
@@ -198,11 +205,12 @@ def run(args: argparse.Namespace) -> int:
                 result = measure_steps(workdir / name, args.cycles, args.hold, in_place=in_place, cpu=cpu)
                 records += _records(result, store=store, how=how, onboard=onboard)
                 lines += _lines(result, how=how, onboard=onboard)
-        if args.failovers:
-            failovers = measure_failovers(workdir / "failover", args.failovers)
+        for cpu in cpus if args.failovers else []:
+            onboard = "unlimited" if cpu is None else f"{cpu:g} core"
+            failovers = measure_failovers(workdir / f"failover-{onboard.replace(' ', '')}", args.failovers, cpu=cpu)
             if failovers:
                 records.append(make_record(store=store, n=None, op="failover_after_kill9", samples_ms=failovers,
-                                           target_ms=150, onboard="unlimited"))
+                                           target_ms=150, onboard=onboard))
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
     for r in records:

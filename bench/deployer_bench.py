@@ -10,12 +10,17 @@ Three measurements, all on this machine with real processes:
      the knowledge service),
    side by side with the paper's figures (1.6 ms start, 0.07 ms stop). *spawn* is fork+exec
    until ``Popen`` returns; *ready* is until the readiness line is read; *stop* is SIGINT until
-   the exit is reaped.
+   the exit is reaped. The two detectors again forked by the host's launcher
+   (deploy/launcher.py; *spawn* is then the fork request's round trip).
 2. **Deployer over Zenoh**: a ``start`` request (knowledge lookup, spawn, readiness) and a
-   ``stop`` request, as the adaptation manager or ``kgadapt deploy`` sends them.
+   ``stop`` request, as the adaptation manager or ``kgadapt deploy`` sends them: on the host
+   ``onboard`` with its launcher, on ``remote`` without (``--no-launcher``).
 3. **Planned migration** between two deployers with frames at 30 fps: frames that got no
    detections from any instance while the migration ran (target: 0), beside the same count
    over a quiet window of the same length (the baseline of frames a detector drops anyway).
+
+With ``--onboard-cpu 0.5`` everything is measured again with this process (and so every
+process it starts) in a cgroup limited to half a core (a Pi-class companion computer).
 
 Results: ``bench/results/deployer.json`` (records as bench/stats.py writes them).
 """
@@ -24,7 +29,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import logging
+import os
 import shutil
 import subprocess
 import sys
@@ -70,6 +77,10 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--migrations", type=int, default=6, help="planned migrations per detector (default 6)")
     p.add_argument("--fps", type=float, default=30.0, help="camera frame rate during migrations (default 30)")
     p.add_argument("--skip-real-detector", action="store_true", help="only the echo detector (no OpenCV, no models)")
+    p.add_argument("--onboard-cpu", type=float, metavar="CORES",
+                   help="measure again inside a cgroup limited to this share of a core (cpu.cfs_quota_us, root), "
+                        "e.g. 0.5")
+    p.add_argument("--inside-cgroup", type=float, help=argparse.SUPPRESS)  # the limited run's own process
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"records as JSON (default {DEFAULT_OUT})")
     p.add_argument("--markdown", action="store_true", help="print the tables as Markdown (for docs/deploy.md)")
     p.set_defaults(func=run)
@@ -78,12 +89,36 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.reps < 1 or args.detector_reps < 1 or args.migrations < 1:
         raise ConfigError("--reps, --detector-reps and --migrations must be at least 1")
+    from bench.footprint import HalfCore
+
+    if args.onboard_cpu and HalfCore.unavailable_reason():
+        raise ConfigError(f"kgadapt bench deployer: --onboard-cpu: {HalfCore.unavailable_reason()}")
     with _Rig(real_detector=not args.skip_real_detector) as rig:
         records = supervisor_latencies(rig, args)
         records += deployer_latencies(rig, args)
         records += migration_gaps(rig, args)
+    onboard = f"{args.inside_cgroup:g} core" if args.inside_cgroup else "unlimited"
+    for record in records:
+        record["onboard"] = onboard
+        if args.inside_cgroup:
+            record["program"] = f"{record['program']}, {onboard}"
+    if args.onboard_cpu:
+        # Again in a new process born inside the limited group, so are all the processes it starts
+        # (moving a running process with Zenoh's threads in was refused with EINVAL here).
+        with HalfCore(args.onboard_cpu) as limit, tempfile.TemporaryDirectory() as tmp:
+            out = Path(tmp) / "limited.json"
+            argv = [sys.executable, "-m", "bench.deployer_bench", "--reps", str(args.reps), "--detector-reps",
+                    str(args.detector_reps), "--migrations", str(args.migrations), "--fps", str(args.fps),
+                    "--out", str(out), "--inside-cgroup", str(args.onboard_cpu)]
+            if args.skip_real_detector:
+                argv.append("--skip-real-detector")
+            done = subprocess.run(limit.wrap(argv), cwd=Path(__file__).resolve().parent.parent)
+            if done.returncode:
+                raise ConfigError(f"the run limited to {args.onboard_cpu:g} core failed (status {done.returncode})")
+            records += json.loads(out.read_text())
     for record in records:
         record["machine"] = machine_info()
+        record["load_average"] = round(os.getloadavg()[0], 2)
     path = write_records(args.out, records)
     print(render(records, markdown=args.markdown))
     print(f"\nresults: {path}")
@@ -132,7 +167,7 @@ class _Rig:
             session = open_session(ZenohSettings(mode="peer", connect=(self.endpoint,), extra=fast))
             stack.callback(session.close)
             deployer = Deployer(DeployerSettings(robot=ROBOT, host=host, connect=self.endpoint, ready_timeout=30.0,
-                                                 restart=RestartPolicy(max_restarts=0)))
+                                                 restart=RestartPolicy(max_restarts=0), launcher=host == "onboard"))
             deployer.setup(session)
             stack.callback(deployer.shutdown)
             self.deployers[host] = deployer
@@ -144,6 +179,12 @@ class _Rig:
             self.supervisor_setpriv = Supervisor(SupervisorSettings(launcher="setpriv"))
             self.supervisor_setpriv.setup()
             stack.callback(self.supervisor_setpriv.shutdown)
+        self.supervisor_launcher = Supervisor(SupervisorSettings(use_launcher=True))
+        self.supervisor_launcher.setup()
+        stack.callback(self.supervisor_launcher.shutdown)
+        for supervisor in (self.supervisor_launcher, self.deployers["onboard"].supervisor):
+            if supervisor.launcher is None or not supervisor.launcher.wait_ready(120.0):
+                raise ConfigError("the launcher did not get ready within 120 s")
         _wait_for_deployers(self.session, list(self.deployers))
         return self
 
@@ -222,16 +263,18 @@ def supervisor_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, 
             ("C program (trivial), setpriv launcher", (str(rig.c_program),), args.reps, rig.supervisor_setpriv),
             ("python -c (bare), setpriv launcher", bare, args.reps, rig.supervisor_setpriv),
         ]
-    programs += [
-        ("echo detector (Python + Zenoh)",
-         (py, "-m", "deploy.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
-          "--config", "echo_config", "--connect", rig.endpoint), args.reps, rig.supervisor),
-    ]
+    echo = (py, "-m", "deploy.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
+            "--config", "echo_config", "--connect", rig.endpoint)
+    detector = (py, "-m", "onboard.detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
+                "--config", "marker_detection_day", "--connect", rig.endpoint)
+    programs += [("echo detector (Python + Zenoh)", echo, args.reps, rig.supervisor)]
     if rig.real_detector:
-        programs.append((
-            "onboard.detector (OpenCV + Zenoh + config query)",
-            (py, "-m", "onboard.detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
-             "--config", "marker_detection_day", "--connect", rig.endpoint), args.detector_reps, rig.supervisor))
+        programs.append(("onboard.detector (OpenCV + Zenoh + config query)", detector, args.detector_reps,
+                         rig.supervisor))
+    programs += [("echo detector, forked by the launcher", echo, args.reps, rig.supervisor_launcher)]
+    if rig.real_detector:
+        programs.append(("onboard.detector, forked by the launcher", detector, args.detector_reps,
+                         rig.supervisor_launcher))
     records = []
     for label, argv, reps, supervisor in programs:
         spawn, ready, stop, rss = [], [], [], []
@@ -241,6 +284,8 @@ def supervisor_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, 
             p0 = time.perf_counter()
             info = supervisor.start(spec)
             ready_ms = (time.perf_counter() - p0) * 1000.0
+            if supervisor is rig.supervisor_launcher and info.via != "launcher":
+                raise ConfigError(f"{label}: started the plain way, not by the launcher")
             rss_mb = _rss_mb(info.pid)
             p1 = time.perf_counter()
             final = supervisor.stop(spec.instance)
@@ -281,22 +326,23 @@ def deployer_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, An
     if rig.real_detector:
         cases.append(("detector_day", "marker_detection_day", args.detector_reps))
     records = []
-    for deployment, config, reps in cases:
+    for (deployment, config, reps), host in [(c, h) for c in cases for h in ("onboard", "remote")]:
         start, stop = [], []
         for i in range(reps + 1):
             p0 = time.perf_counter()
-            client.start("onboard", deployment, config, instance=f"zbench{i}")
+            client.start(host, deployment, config, instance=f"zbench{i}")
             start_ms = (time.perf_counter() - p0) * 1000.0
             p1 = time.perf_counter()
-            client.stop("onboard", f"zbench{i}")
+            client.stop(host, f"zbench{i}")
             stop_ms = (time.perf_counter() - p1) * 1000.0
             if i:
                 start.append(start_ms)
                 stop.append(stop_ms)
-        common = {"store": "deployer over Zenoh", "n": None, "program": f"{deployment} ({config})"}
+        how = "launcher" if host == "onboard" else "no launcher"
+        common = {"store": "deployer over Zenoh", "n": None, "program": f"{deployment} ({config}), {how}"}
         records.append(make_record(op="start_request_to_ready", samples_ms=start, **common))
         records.append(make_record(op="stop_request", samples_ms=stop, **common))
-        print(f"  deployer: {deployment}: start p50 {summarize(start).p50_ms:.1f} ms, stop p50 "
+        print(f"  deployer: {deployment}, {how}: start p50 {summarize(start).p50_ms:.1f} ms, stop p50 "
               f"{summarize(stop).p50_ms:.1f} ms", flush=True)
     return records
 

@@ -64,6 +64,13 @@ class DeployerClient:
             processes.extend(detail.get("processes") or [])
         return processes
 
+    def launcher(self, host: str) -> dict[str, Any] | None:
+        """``{pid, ready}`` of ``host``'s launcher, None when its deployer runs none."""
+        details = self._ask(host, "list", {}, self.timeout)
+        if not details:
+            raise DeploymentError(f"no deployer of host {host} answered")
+        return details[0].get("launcher")
+
     def find(self, instance: str) -> dict[str, Any]:
         """The snapshot of ``instance`` on whichever host runs it (a live one first)."""
         found = [p for p in self.list("*") if p.get("instance") == instance]

@@ -10,7 +10,8 @@ parts. It answers four queryables (``shared.keys.deployer_verb``)::
     kgadapt/<robot>/host/<host>/deployer/list     deploy_request {}
 
 and replies ``deploy_reply {ok, detail}``: ``detail`` is the process snapshot
-(``ProcessInfo.to_dict()`` plus ``host``), for ``list`` ``{host, processes}``;
+(``ProcessInfo.to_dict()`` plus ``host``), for ``list`` ``{host, processes, launcher}``
+(``launcher``: ``{pid, ready}`` of the host's launcher, or null without one);
 a refusal or failure is ``ok: false`` with ``detail {error, error_type}``. A
 request that is not a valid ``deploy_request`` gets ``query.reply_err``.
 Events (``started``, ``ready``, ``exited``, ``restarted``, ``stopped``,
@@ -83,6 +84,8 @@ class DeployerSettings:
     sample_interval: float = 1.0
     knowledge_timeout: float = 2.0
     workers: int = 4
+    # Fork detectors from the host's launcher (deploy/launcher.py); a plain start when it is absent.
+    launcher: bool = True
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
@@ -106,7 +109,7 @@ class Deployer:
         self._knowledge = knowledge
         # MiB this host may still give (the host monitor's figure, within its budget); None: no check.
         self._free_memory = free_memory
-        self.supervisor = Supervisor(SupervisorSettings())
+        self.supervisor = Supervisor(SupervisorSettings(use_launcher=settings.launcher, python=settings.python))
         self.recorder: ProfileRecorder | None = None
         self._session: Any = None
         self._queryables: list[Any] = []
@@ -307,7 +310,9 @@ class Deployer:
             )
         host = self.settings.host
         if verb == "list":
-            return {"host": host, "processes": [_info_dict(i, host) for i in self.list()]}
+            launcher = self.supervisor.launcher
+            return {"host": host, "processes": [_info_dict(i, host) for i in self.list()],
+                    "launcher": {"pid": launcher.pid, "ready": launcher.ready} if launcher is not None else None}
         if verb in ("stop", "status"):
             instance = request.get("instance")
             if not instance:
@@ -401,6 +406,7 @@ def settings_from_args(args: argparse.Namespace, *, robot: str, host: str) -> De
         restart=RestartPolicy(max_restarts=getattr(args, "max_restarts", 3)),
         stop=StopPolicy(sigint_timeout=stop, sigterm_timeout=stop),
         sample_interval=getattr(args, "profile_interval", 1.0),
+        launcher=not getattr(args, "no_launcher", False),
     )
 
 

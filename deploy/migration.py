@@ -49,6 +49,7 @@ class MigrationReport:
     source_stopped_ms: float
     source_returncode: int | None
     new_pid: int | None
+    new_run_id: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -152,6 +153,7 @@ def migrate(
         source_host=source_host, target_host=target_host, target_ready_ms=round(ready_ms, 3),
         first_output_ms=round(output_ms, 3), source_stopped_ms=round(stopped_ms, 3),
         source_returncode=stopped.get("returncode"), new_pid=started.get("pid"),
+        new_run_id=started.get("run_id"),
     )
 
 

@@ -24,3 +24,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        "<host>-detector.json5: the host's detector certificate); default: the agent's own")
     group.add_argument("--profile-interval", type=float, default=1.0, metavar="S",
                        help="seconds between memory/CPU samples of each process (default 1)")
+    group.add_argument("--no-launcher", action="store_true",
+                       help="start every detector as a new interpreter instead of forking it from the host's "
+                            "launcher (a process with the detector's code already imported)")

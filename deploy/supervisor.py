@@ -17,6 +17,14 @@ What happens is reported to listeners as :class:`ProcessEvent` values
 Listeners run on the supervisor's threads: they must be quick and must not
 call back into the supervisor.
 
+With ``use_launcher`` the supervisor also runs the host's launcher
+(deploy/launcher.py): a process that has imported the detector's code and
+forks a detector on request, much faster than a new interpreter starts. The
+supervisor then adopts those detectors as a child subreaper, so it waits for,
+signals and restarts them exactly like the ones it started itself; a program
+the launcher cannot run, or any start while the launcher is absent or
+restarting, is started the plain way.
+
 Threads: every fork happens on one long-lived *spawner* thread, because
 ``PR_SET_PDEATHSIG`` fires when the forking *thread* ends, not the process;
 a child forked from a short-lived thread would be killed with it. Each run
@@ -35,12 +43,14 @@ import secrets
 import shutil
 import signal
 import subprocess
+import sys
 import threading
 import time
 from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field, replace
 from typing import Callable
 
+from deploy.launcher import ForkedProcess, LauncherClient, become_subreaper
 from shared.errors import DeploymentError, ReadinessTimeout
 from shared.keys import check_name
 
@@ -174,6 +184,7 @@ class ProcessInfo:
     argv: tuple[str, ...]
     detail: str | None = None
     output: tuple[str, ...] = ()  # the last lines the current (or last) run printed
+    via: str = ""  # how the current (or last) run was started: "launcher" (forked) or "exec"
 
     @property
     def live(self) -> bool:
@@ -202,6 +213,9 @@ class SupervisorSettings:
     # ``setpriv --pdeathsig`` first, which lets Python use vfork. Measured here
     # (bench/deployer_bench.py): a few ms saved per start in a large agent.
     launcher: str = "preexec"
+    # Fork programs the host's launcher preloads (deploy/launcher.py) instead of starting a new interpreter.
+    use_launcher: bool = False
+    python: str = sys.executable  # the interpreter the launcher runs in; only "<python> -m ..." is forked
 
     def __post_init__(self) -> None:
         if self.launcher not in ("preexec", "setpriv"):
@@ -211,9 +225,10 @@ class SupervisorSettings:
 class _Run:
     """One execution of an instance's program."""
 
-    def __init__(self, proc: subprocess.Popen[bytes], run_id: str) -> None:
+    def __init__(self, proc: subprocess.Popen[bytes] | ForkedProcess, run_id: str) -> None:
         self.proc = proc
         self.run_id = run_id
+        self.via = "launcher" if isinstance(proc, ForkedProcess) else "exec"
         self.pid = proc.pid
         self.started_at = time.time()
         self.ready_at: float | None = None
@@ -250,6 +265,7 @@ class Supervisor:
         self._spawn_queue: queue.Queue = queue.Queue()
         self._spawner: threading.Thread | None = None
         self._closing = False
+        self.launcher: LauncherClient | None = None
 
     # -- life cycle ---------------------------------------------------------------
 
@@ -262,6 +278,28 @@ class Supervisor:
         self._closing = False
         self._spawner = threading.Thread(target=self._spawn_loop, name="supervisor-spawner", daemon=True)
         self._spawner.start()
+        if self.settings.use_launcher:
+            try:
+                become_subreaper()  # a forked detector is re-parented to us, so we can wait for it
+            except DeploymentError as exc:
+                log.warning("%s; detectors start the plain way", exc)
+            else:
+                parent = os.getpid()
+                self.launcher = LauncherClient(
+                    python=self.settings.python, death_signal=self.settings.death_signal,
+                    preexec=lambda: _child_setup(parent, self.settings.death_signal),
+                    schedule_restart=self._schedule_launcher)
+                self._spawn_queue.put("launcher")
+
+    def _schedule_launcher(self, delay: float) -> None:
+        """Start the launcher again after ``delay`` seconds (on the spawner thread)."""
+        def put() -> None:
+            if not self._closing and self._spawner is not None:
+                self._spawn_queue.put("launcher")
+
+        timer = threading.Timer(delay, put)
+        timer.daemon = True
+        timer.start()
 
     def shutdown(self) -> None:
         """Stop every live instance (escalating as configured), then the spawner thread."""
@@ -273,6 +311,8 @@ class Supervisor:
             t.start()
         for t in stoppers:
             t.join()
+        if self.launcher is not None:
+            self.launcher.shutdown()
         if self._spawner is not None:
             self._spawn_queue.put(None)
             self._spawner.join(timeout=5)
@@ -421,6 +461,7 @@ class Supervisor:
             argv=inst.spec.argv,
             detail=inst.detail,
             output=tuple(list(run.tail)[-5:]) if run else (),
+            via=run.via if run else "",
         )
 
     def _remember_finished(self, name: str) -> None:
@@ -487,6 +528,10 @@ class Supervisor:
             item = self._spawn_queue.get()
             if item is None:
                 return
+            if item == "launcher":
+                if self.launcher is not None and not self._closing:
+                    self.launcher.launch()
+                continue
             spec, future = item
             if not future.set_running_or_notify_cancel():
                 continue
@@ -494,6 +539,10 @@ class Supervisor:
                 env = dict(os.environ)
                 env["PYTHONUNBUFFERED"] = "1"  # a Python child's readiness line must not sit in a pipe buffer
                 env.update(dict(spec.env))
+                forked = self.launcher.fork(spec.argv, env, spec.cwd) if self.launcher is not None else None
+                if forked is not None:
+                    future.set_result((forked, f"{spec.instance}-{secrets.token_hex(4)}"))
+                    continue
                 argv, preexec = list(spec.argv), _child_setup(parent, self.settings.death_signal)
                 if self.settings.launcher == "setpriv":
                     name = signal.Signals(self.settings.death_signal).name.removeprefix("SIG")

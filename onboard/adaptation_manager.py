@@ -7,6 +7,8 @@ deployers) -> knowledge (every decision written into the graph).
 
 Callbacks only queue observations; one worker thread analyses and acts, so a
 migration never runs inside a Zenoh callback and decisions happen one at a time.
+Host liveliness changes have their own queue, served first: a host lost during a
+long action is acted on next, not after the observations queued meanwhile.
 
 Execution: a planned change on the same host whose deployments the graph
 says may be changed in place (the planner asks ``in_place_change``) reconfigures
@@ -29,6 +31,7 @@ any other detector of ours still running is stopped as a twin.
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import queue
@@ -106,6 +109,9 @@ class AdaptationManager:
         self.landing = False
         self._deferred: set[str] = set()  # kinds of change deferred in this descent: each recorded once
         self._queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=4096)
+        # Liveliness changes, in their order, handled before the queue's backlog: after a long action
+        # (a migration) hundreds of observations may wait there, and a lost host must not wait behind them.
+        self._alive: collections.deque[tuple[str, bool]] = collections.deque()
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         self._session: Any = None
@@ -204,7 +210,8 @@ class AdaptationManager:
 
     def _on_alive(self, sample: Any) -> None:
         alive = str(sample.kind).endswith("PUT")
-        self._put(("alive", (keys.last_chunk(str(sample.key_expr), 2), alive)))
+        self._alive.append((keys.last_chunk(str(sample.key_expr), 2), alive))
+        self._put(("wake", None))
 
     def _put(self, item: tuple[str, Any]) -> None:
         try:
@@ -217,10 +224,13 @@ class AdaptationManager:
     def _run(self) -> None:
         self._adopt_running()
         while not self._stop.is_set():
-            try:
-                kind, data = self._queue.get(timeout=0.2)
-            except queue.Empty:
-                kind, data = "tick", None
+            if self._alive:
+                kind, data = "alive", self._alive.popleft()
+            else:
+                try:
+                    kind, data = self._queue.get(timeout=0.2)
+                except queue.Empty:
+                    kind, data = "tick", None
             try:
                 trigger = self._observe(kind, data)
                 if self.current is None:
@@ -245,7 +255,7 @@ class AdaptationManager:
                 # Our own token goes first when our agent shuts down; we go with it.
                 return None
             return a.on_liveliness(host, alive, now, self.current)
-        if kind == "tick":
+        if kind in ("tick", "wake"):
             return None
         key, payload, received = data
         try:
@@ -327,7 +337,6 @@ class AdaptationManager:
         current = self.current
         if current is None or not current.instance or time.monotonic() < self._next_check:
             return None
-        self._next_check = time.monotonic() + self.settings.reconcile_s
         host = self._analyzer.hosts.get(current.host)
         if host is not None and not host.online:
             return None  # host_lost covers it
@@ -338,6 +347,10 @@ class AdaptationManager:
         except KgadaptError as exc:  # no answer: the host's liveliness decides
             log.debug("adaptation: no status for %s: %s", current.instance, exc)
             return None
+        finally:
+            # Counted from the answer (or the timeout): unanswered probes back to back would leave
+            # the loop no time for the observations waiting in the queue.
+            self._next_check = time.monotonic() + self.settings.reconcile_s
         if state in LIVE_STATES:
             return None
         log.warning("adaptation: detector %s on %s is %s; replacing it", current.instance, current.host, state)
@@ -604,12 +617,8 @@ class AdaptationManager:
         report = migrate(self._session, self.settings.robot, old.instance, t.host, source_host=old.host,
                          deployment=t.deployment, config=t.config, client=self._deployers,
                          ready_timeout=self.settings.ready_timeout, output_timeout=self.settings.output_timeout)
-        snapshot = {}
-        try:
-            snapshot = self._deployers.status(t.host, report.new_instance)
-        except KgadaptError:
-            pass
-        self._set_current(plan, report.new_instance, snapshot.get("run_id"))
+        # The start's own snapshot names the run: no request to a host that may be gone by now.
+        self._set_current(plan, report.new_instance, report.new_run_id)
         # migrate() measures from its own start; add the time from the trigger to that start.
         latency = (called_at - trigger.time) * 1000.0 + report.first_output_ms
         return Outcome(trigger=trigger, plan=plan, outcome="migrated", latency_ms=latency,

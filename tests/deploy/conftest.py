@@ -92,7 +92,8 @@ class DeployerHost:
             restart=RestartPolicy(max_restarts=1, backoff_initial=0.05),
             stop=StopPolicy(sigint_timeout=2.0, sigterm_timeout=2.0), sample_interval=0.2,
         )
-        settings = replace(settings, **changes)
+        # The launcher costs an interpreter's imports per deployer; the echo tests do not need it.
+        settings = replace(settings, **{"launcher": False, **changes})
         self.session = peer_session(endpoint)
         self.deployer = Deployer(settings)
         self.deployer.setup(self.session)
@@ -103,9 +104,15 @@ class DeployerHost:
 
 
 @pytest.fixture
-def hosts(knowledge, endpoint) -> Iterator[dict[str, DeployerHost]]:
+def launcher() -> bool:
+    """Whether the ``hosts`` deployers run a launcher; a test module overrides this fixture."""
+    return False
+
+
+@pytest.fixture
+def hosts(knowledge, endpoint, launcher) -> Iterator[dict[str, DeployerHost]]:
     """Deployers for the hosts ``onboard`` and ``remote``, both on this machine."""
-    made = {name: DeployerHost(endpoint, name) for name in ("onboard", "remote")}
+    made = {name: DeployerHost(endpoint, name, launcher=launcher) for name in ("onboard", "remote")}
     yield made
     for host in made.values():
         host.close()

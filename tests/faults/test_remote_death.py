@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import signal
+import time
+
 import pytest
 
 pytestmark = pytest.mark.netns
 
 
-def test_a_detector_runs_onboard_within_2_s_of_kill_9_of_the_remote_agent(robot):
+def test_a_detector_runs_onboard_within_2_s_of_kill_9_of_the_remote_agent_also_right_after_a_placement_there(robot):
     result = robot.kill_remote()
 
     assert result["failover_ms"] < 2000, result  # kill -> first detections of the new onboard detector
@@ -19,3 +22,19 @@ def test_a_detector_runs_onboard_within_2_s_of_kill_9_of_the_remote_agent(robot)
     platforms = robot.platforms()  # as another robot on the network sees the graph
     assert platforms["remote"]["online"] is False
     assert platforms["onboard"]["online"] is True
+
+
+    # The remote host comes back and, remote-first, gets the detector back; its agent is killed
+    # the moment that placement shows (the new remote detector's first detections, while the
+    # migration still stops the onboard one). The manager is busy migrating and observations
+    # queue up meanwhile: the loss of the host now running the detector must still be acted on.
+    back_at = time.time()
+    robot.cluster.respawn("remote")
+    placed = robot.wait_detecting(host="remote", since=back_at, timeout=30.0)
+    killed_at = time.time()
+    robot.cluster.kill("remote", signal.SIGKILL)
+    again = robot.wait_detecting(host="onboard", since=killed_at, timeout=15.0)
+    assert again["instance"] != placed["instance"]
+    running = robot.settle()
+    assert running["host"] == "onboard"
+    assert running["via"] == "launcher"  # the takeover was forked by the onboard host's launcher

@@ -1,0 +1,490 @@
+"""The per-host launcher: a process that has imported the detector's code and forks detectors on request.
+
+A detector started the plain way is a new Python interpreter that imports
+OpenCV, NumPy, Zenoh and the project's code before it can open its session:
+hundreds of milliseconds on a small computer. The launcher pays that once.
+Its agent's :class:`~deploy.supervisor.Supervisor` starts it
+(``python -m deploy.launcher --fd N``) and talks to it over a private unix
+socket pair (``SOCK_SEQPACKET``, one JSON message each way per request), never
+over Zenoh: the launcher stays single-threaded and opens no session, so every
+fork copies one thread and no runtime. The forked detector opens its own
+Zenoh session, exactly as a plain-started one does.
+
+What runs stays decided by the deployer: the launcher only takes an argv the
+deployer resolved from the graph, and only ``<python> -m <module> ...`` for a
+module it preloaded (:data:`RUNNABLE`); anything else the supervisor starts
+the plain way.
+
+Supervision is unchanged because the detector is the *agent's* child, not the
+launcher's: the launcher forks an intermediate process that forks the
+detector and exits at once; the orphaned detector is re-parented to the agent,
+which declared itself a child subreaper (``PR_SET_CHILD_SUBREAPER``). Only
+then does the detector ask for its parent-death signal (re-parenting would
+fire it), check that its parent is the agent, start its own session and
+process group, take the standard streams the agent sent (``SCM_RIGHTS``:
+stdin, and the pipe whose other end the supervisor reads for
+``KGADAPT_READY``), take the environment and working directory of the request
+and run the module as ``__main__``. The agent waits for it, signals its group
+and restarts it like any other child.
+
+Protocol (JSON, one message per datagram)::
+
+    launcher -> agent   {"ready": true, "pid": P, "python": EXE, "runnable": [modules]}   once, after the imports
+    agent -> launcher   {"argv": [...], "env": {...}, "cwd": str|null, "parent": AGENT_PID, "death_signal": N}
+                        + two descriptors: stdin, stdout (stderr goes to stdout)
+    launcher -> agent   {"pid": DETECTOR_PID} or {"error": "..."}
+
+The launcher exits when the agent closes its end of the socket (or dies).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from typing import Any, Callable, Sequence
+
+from shared.errors import DeploymentError
+
+log = logging.getLogger(__name__)
+
+# Modules a launcher may run with ``-m``; PRELOAD is what it imports first (the heavy parts).
+RUNNABLE = ("onboard.detector", "deploy.echo_detector")
+PRELOAD = ("numpy", "cv2", "zenoh", "onboard.markers", "knowledge.client", "shared.session", "shared.agent",
+           *RUNNABLE)
+_MAX_MESSAGE = 1 << 20
+# The launcher's argv carries this much room: a forked detector writes its own command line there,
+# so ps, psutil and the tools that find detectors by their command line see it as a plain-started one.
+TITLE_ROOM = 2048
+_PR_SET_PDEATHSIG = 1
+PR_SET_CHILD_SUBREAPER = 36
+
+
+def _libc_prctl() -> Callable[..., int] | None:
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        return None
+    prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
+    prctl.restype = ctypes.c_int
+    return prctl
+
+
+_prctl = _libc_prctl()
+
+
+def become_subreaper() -> None:
+    """Make this process adopt its orphaned descendants (a forked detector). DeploymentError if it cannot."""
+    if _prctl is None:
+        raise DeploymentError("the launcher needs Linux prctl(PR_SET_CHILD_SUBREAPER)")
+    if _prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
+        errno = ctypes.get_errno()
+        raise DeploymentError(f"prctl(PR_SET_CHILD_SUBREAPER) failed: {os.strerror(errno)}")
+
+
+def runnable_module(argv: Sequence[str], python: str, modules: Sequence[str]) -> str | None:
+    """The module of ``argv`` when it is ``<python> -m <module> ...`` with a module the launcher runs, else None."""
+    if len(argv) < 3 or argv[1] != "-m" or argv[2] not in modules:
+        return None
+    if os.path.realpath(argv[0]) != os.path.realpath(python) and argv[0] != python:
+        return None
+    return argv[2]
+
+
+# -- the launcher process ---------------------------------------------------------------
+
+
+def _threads() -> int:
+    try:
+        return len(os.listdir("/proc/self/task"))
+    except OSError:  # pragma: no cover - no procfs: trust threading
+        return threading.active_count()
+
+
+def serve(sock: socket.socket, *, runnable: Sequence[str] = RUNNABLE) -> int:
+    """Answer fork requests on ``sock`` until the agent closes it; the launcher's main loop."""
+    hello = {"ready": True, "pid": os.getpid(), "python": sys.executable, "runnable": list(runnable)}
+    sock.send(json.dumps(hello).encode())
+    while True:
+        try:
+            data, fds, _flags, _addr = socket.recv_fds(sock, _MAX_MESSAGE, 4)
+        except InterruptedError:
+            continue
+        except OSError as exc:
+            log.debug("launcher: socket closed: %s", exc)
+            return 0
+        if not data:
+            for fd in fds:
+                os.close(fd)
+            return 0  # the agent closed its end or died
+        try:
+            reply = _fork_request(data, fds, runnable, sock)
+        except DeploymentError as exc:
+            reply = {"error": str(exc)}
+        finally:
+            for fd in fds:
+                os.close(fd)
+        try:
+            sock.send(json.dumps(reply).encode())
+        except OSError:
+            return 0
+
+
+def _fork_request(data: bytes, fds: list[int], runnable: Sequence[str], sock: socket.socket) -> dict[str, Any]:
+    try:
+        request = json.loads(data)
+        argv = [str(a) for a in request["argv"]]
+        env = {str(k): str(v) for k, v in dict(request["env"]).items()}
+        cwd = request.get("cwd")
+        parent = int(request["parent"])
+        death_signal = int(request["death_signal"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise DeploymentError(f"malformed fork request: {exc}") from exc
+    if len(fds) != 2:
+        raise DeploymentError(f"a fork request carries stdin and stdout, not {len(fds)} descriptors")
+    module = runnable_module(argv, sys.executable, runnable)
+    if module is None:
+        raise DeploymentError(f"the launcher runs only {sys.executable} -m one of {', '.join(runnable)}; not {argv[:3]}")
+    if _threads() != 1:  # a fork copies one thread: locks held by others would stay locked in the child
+        raise DeploymentError(f"the launcher has {_threads()} threads; it forks only single-threaded")
+    sys.stdout.flush()
+    sys.stderr.flush()
+    r, w = os.pipe()
+    middle = os.fork()
+    if middle == 0:  # the intermediate process: fork the detector, say its pid, exit so it is re-parented
+        code = 1
+        try:
+            me = os.getpid()
+            pid = os.fork()
+            if pid == 0:
+                _detector_child(me, parent, death_signal, fds, module, argv, env, cwd, (r, w, sock.fileno()))
+            os.write(w, str(pid).encode())
+            code = 0
+        finally:
+            os._exit(code)
+    os.close(w)
+    _, status = os.waitpid(middle, 0)
+    try:
+        text = os.read(r, 32) if os.waitstatus_to_exitcode(status) == 0 else b""
+    finally:
+        os.close(r)
+    if not text:
+        raise DeploymentError("the launcher could not fork a detector")
+    return {"pid": int(text)}
+
+
+def _detector_child(middle: int, parent: int, death_signal: int, fds: list[int], module: str, argv: list[str],
+                    env: dict[str, str], cwd: str | None, close: tuple[int, ...]) -> None:
+    """In the forked detector: become the agent's supervised child, then run ``module`` as ``__main__``. Never returns."""
+    code = 1
+    try:
+        for fd in close:
+            os.close(fd)
+        deadline = time.monotonic() + 5.0
+        while os.getppid() == middle:  # the intermediate process exits right after the fork
+            if time.monotonic() > deadline:
+                os._exit(1)
+            time.sleep(0.0002)
+        # After the re-parenting: set before, the intermediate's exit would already have fired it.
+        if _prctl is not None:
+            _prctl(_PR_SET_PDEATHSIG, death_signal, 0, 0, 0)
+        if os.getppid() != parent:  # the agent died, or is not our subreaper: nobody would supervise us
+            os.kill(os.getpid(), death_signal)
+            os._exit(1)
+        os.setsid()  # own session and process group: the supervisor signals the group
+        stdin, stdout = fds
+        os.dup2(stdin, 0)
+        os.dup2(stdout, 1)
+        os.dup2(stdout, 2)
+        for name in os.listdir("/proc/self/fd"):
+            fd = int(name)
+            if fd > 2:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # as a fresh interpreter has them
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.environ.clear()
+        os.environ.update(env)
+        if cwd:
+            os.chdir(cwd)
+        set_title(argv)
+        logging.root.handlers.clear()  # the detector configures its own logging
+        sys.stdout.reconfigure(line_buffering=True)
+        code = _run_module(module, argv)
+    except BaseException:  # noqa: BLE001 - whatever happens, this process must end here
+        import traceback
+
+        traceback.print_exc()
+    finally:
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+        finally:
+            os._exit(code)
+
+
+def set_title(argv: Sequence[str]) -> bool:
+    """Show ``argv`` as this process's command line (/proc/PID/cmdline), within the room of its own argv.
+
+    Written over the original argv area (what setproctitle does): the kernel reads an area whose
+    last byte is not NUL up to its first NUL, and psutil splits such a title at the spaces. False
+    when it does not fit or the area cannot be written.
+    """
+    try:
+        with open("/proc/self/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        start, end = int(fields[45]), int(fields[46])  # arg_start, arg_end (fields 48 and 49)
+        title = " ".join(argv).encode()
+        if len(title) + 2 > end - start:
+            return False
+        data = title + b"\0" + b" " * (end - start - len(title) - 1)
+        with open("/proc/self/mem", "r+b", buffering=0) as mem:
+            mem.seek(start)
+            mem.write(data)
+        return True
+    except (OSError, ValueError, IndexError):
+        return False
+
+
+def _run_module(module: str, argv: list[str]) -> int:
+    import runpy
+
+    sys.argv = [argv[0], *argv[3:]]
+    try:
+        runpy.run_module(module, run_name="__main__", alter_sys=True)
+    except SystemExit as exc:
+        if exc.code is None:
+            return 0
+        if isinstance(exc.code, int):
+            return exc.code
+        print(exc.code, file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m deploy.launcher",
+                                     description="Fork detectors for the agent that started this (see deploy/launcher.py).")
+    parser.add_argument("--fd", type=int, required=True, help="descriptor of the socket to the agent")
+    parser.add_argument("--title-room", default="", help="room for the forked detectors' command lines")
+    args = parser.parse_args(argv)
+    set_title([sys.executable, "-m", "deploy.launcher", "--fd", str(args.fd)])
+    # OpenBLAS starts a thread pool at import; the launcher must stay single-threaded to fork safely.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    sock = socket.socket(fileno=args.fd)
+    import importlib
+
+    for name in PRELOAD:
+        importlib.import_module(name)
+    if _threads() != 1:
+        print(f"deploy.launcher: error: {_threads()} threads after the imports; cannot fork safely", file=sys.stderr)
+        return 1
+    import gc
+
+    # The imported objects go to the permanent generation: a child's collections then neither walk
+    # them (a full one in a detector cost frames at a reconfiguration) nor write to their pages (copy-on-write).
+    gc.collect()
+    gc.freeze()
+    try:
+        return serve(sock)
+    finally:
+        sock.close()
+
+
+# -- the agent's side ------------------------------------------------------------------
+
+
+class ForkedProcess:
+    """A detector forked by the launcher, as the supervisor sees it (the parts of ``subprocess.Popen`` it uses)."""
+
+    def __init__(self, pid: int, stdout: Any) -> None:
+        self.pid = pid
+        self.stdout = stdout
+        self.returncode: int | None = None
+
+    def wait(self) -> int:
+        if self.returncode is None:
+            while True:
+                try:
+                    _, status = os.waitpid(self.pid, 0)
+                    break
+                except InterruptedError:
+                    continue
+            self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+
+class LauncherClient:
+    """The agent's end: starts the launcher, forks through it, notices its death and starts it again.
+
+    ``launch`` and ``fork`` are called on the supervisor's spawner thread (the
+    launcher gets its parent-death signal from that thread). ``fork`` returns
+    None whenever the launcher cannot do it (not ready yet, dead, refused);
+    the caller then starts the program the plain way.
+    """
+
+    def __init__(self, *, python: str, death_signal: int, preexec: Callable[[], Callable[[], None]],
+                 schedule_restart: Callable[[float], None], hello_timeout: float = 60.0,
+                 reply_timeout: float = 5.0, restart_delay: float = 0.5) -> None:
+        self.python = python
+        self.death_signal = death_signal
+        self._preexec = preexec
+        self._schedule_restart = schedule_restart
+        self.hello_timeout = hello_timeout
+        self.reply_timeout = reply_timeout
+        self.restart_delay = restart_delay
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._sock: socket.socket | None = None
+        self._runnable: tuple[str, ...] = ()
+        self._ready = False
+        self._closing = False
+        self.starts = 0  # launcher processes started so far
+
+    @property
+    def pid(self) -> int | None:
+        with self._lock:
+            return self._proc.pid if self._proc is not None else None
+
+    @property
+    def ready(self) -> bool:
+        with self._lock:
+            return self._ready
+
+    def wait_ready(self, timeout: float) -> bool:
+        """True once a launcher is ready to fork (within ``timeout`` seconds)."""
+        with self._changed:
+            return self._changed.wait_for(lambda: self._ready or self._closing, timeout) and self._ready
+
+    def launch(self) -> None:
+        """Start a launcher process (on the spawner thread); its greeting is awaited on another thread."""
+        with self._lock:
+            if self._closing or self._proc is not None:
+                return
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        env = dict(os.environ)
+        env["PYTHONUNBUFFERED"] = "1"
+        try:
+            proc = subprocess.Popen(
+                [self.python, "-m", "deploy.launcher", "--fd", str(theirs.fileno()), "--title-room", "." * TITLE_ROOM],
+                stdin=subprocess.DEVNULL, pass_fds=(theirs.fileno(),), env=env, start_new_session=True,
+                preexec_fn=self._preexec(),
+            )
+        except (OSError, subprocess.SubprocessError) as exc:
+            ours.close()
+            log.warning("cannot start the launcher (%s); detectors start the plain way", exc)
+            self._schedule_restart(self.restart_delay * 10)
+            return
+        finally:
+            theirs.close()
+        with self._lock:
+            self._proc, self._sock, self._ready = proc, ours, False
+            self.starts += 1
+        threading.Thread(target=self._await_hello, args=(proc, ours), name="launcher-hello", daemon=True).start()
+        threading.Thread(target=self._watch, args=(proc,), name="launcher-wait", daemon=True).start()
+
+    def _await_hello(self, proc: subprocess.Popen[bytes], sock: socket.socket) -> None:
+        sock.settimeout(self.hello_timeout)
+        try:
+            hello = json.loads(sock.recv(_MAX_MESSAGE) or b"{}")
+        except (OSError, ValueError) as exc:
+            log.warning("launcher (pid %s) did not greet: %s", proc.pid, exc)
+            hello = {}
+        with self._lock:
+            if self._proc is not proc:
+                return
+            if hello.get("ready") and hello.get("python"):
+                self._runnable = tuple(hello.get("runnable") or ())
+                self._ready = True
+                self._changed.notify_all()
+                log.info("launcher ready (pid %s): forks %s", proc.pid, ", ".join(self._runnable))
+                return
+        self._kill(proc)
+
+    def _watch(self, proc: subprocess.Popen[bytes]) -> None:
+        code = proc.wait()
+        with self._lock:
+            if self._proc is not proc:
+                return
+            self._proc, self._ready = None, False
+            sock, self._sock = self._sock, None
+            closing = self._closing
+            self._changed.notify_all()
+        if sock is not None:
+            sock.close()
+        if closing:
+            return
+        log.warning("launcher (pid %s) ended with status %s; starting another, plain starts meanwhile", proc.pid, code)
+        self._schedule_restart(self.restart_delay)
+
+    def _kill(self, proc: subprocess.Popen[bytes]) -> None:
+        try:
+            proc.kill()  # its watcher thread notices the exit and starts another
+        except OSError:
+            pass
+
+    def fork(self, argv: Sequence[str], env: dict[str, str], cwd: str | None) -> ForkedProcess | None:
+        """Fork ``argv`` through the launcher; None when it cannot (the caller starts it the plain way)."""
+        with self._lock:
+            if not self._ready or self._sock is None or self._proc is None:
+                return None
+            if runnable_module(argv, self.python, self._runnable) is None:
+                return None
+            sock, proc = self._sock, self._proc
+            stdin = os.open(os.devnull, os.O_RDONLY | os.O_CLOEXEC)
+            r, w = os.pipe2(os.O_CLOEXEC)
+            request = {"argv": list(argv), "env": env, "cwd": cwd, "parent": os.getpid(),
+                       "death_signal": int(self.death_signal)}
+            try:
+                sock.settimeout(self.reply_timeout)
+                socket.send_fds(sock, [json.dumps(request).encode()], [stdin, w])
+                reply = json.loads(sock.recv(_MAX_MESSAGE) or b"{}")
+            except (OSError, ValueError) as exc:
+                reply = {"error": f"no answer: {exc}"}
+                self._ready = False
+                dead = True
+            else:
+                dead = not reply
+            finally:
+                os.close(stdin)
+                os.close(w)
+        pid = reply.get("pid") if isinstance(reply, dict) else None
+        if not isinstance(pid, int):
+            os.close(r)
+            log.warning("launcher (pid %s) did not fork %s: %s", proc.pid, argv[2] if len(argv) > 2 else argv,
+                        reply.get("error") if isinstance(reply, dict) else reply)
+            if dead:
+                self._kill(proc)
+            return None
+        return ForkedProcess(pid, os.fdopen(r, "rb"))
+
+    def shutdown(self) -> None:
+        """Close the socket (the launcher exits on it) and wait for the launcher; forked detectors are not touched."""
+        with self._lock:
+            self._closing = True
+            proc, sock = self._proc, self._sock
+            self._sock, self._ready = None, False
+            self._changed.notify_all()
+        if sock is not None:
+            sock.close()
+        if proc is not None:
+            try:
+                proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,176 @@
+"""The per-host launcher (deploy/launcher.py) with the shipped models and the real marker detector.
+
+Real processes throughout: the deployers run in this test process (which
+becomes their child subreaper), the launcher is their child, and the forked
+detectors are adopted by them.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import psutil
+import pytest
+
+from deploy.client import DeployerClient
+from knowledge import schema as S
+from knowledge.loader import load_models
+from shared import keys
+from shared.errors import DeploymentError
+from tests.deploy.conftest import ROBOT, Collector, FrameSource, wait_for_deployers
+from tests.deploy.test_deployer import REPO, alive, wait_until
+from tests.deploy.test_real_detector import marker_jpeg
+
+MODELS = Path(S.__file__).resolve().parent / "models"
+DAY = "marker_detection_day"
+
+
+@pytest.fixture
+def launcher() -> bool:
+    return True
+
+
+@pytest.fixture
+def graph(resp_store):
+    load_models(resp_store, [MODELS])
+    return resp_store
+
+
+def launcher_of(hosts, name: str = "onboard"):
+    launcher = hosts[name].deployer.supervisor.launcher
+    assert launcher is not None, "the deployer runs no launcher"
+    assert launcher.wait_ready(60.0), "the launcher did not get ready"
+    return launcher
+
+
+def test_a_detector_forked_by_the_launcher_is_the_agents_child_gets_ready_and_detects(hosts, client_session):
+    launcher = launcher_of(hosts)
+    frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
+    markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
+    try:
+        client = DeployerClient(client_session, ROBOT)
+        info = client.start("onboard", "detector_day", DAY, instance="forked1")
+        assert info["via"] == "launcher" and info["state"] in ("ready", "running")
+        process = psutil.Process(info["pid"])
+        assert process.ppid() == os.getpid()  # adopted by the deployer, not left with the launcher
+        assert os.getpgid(info["pid"]) == info["pid"]  # its own process group, as a plain start
+        assert info["pid"] not in [c.pid for c in psutil.Process(launcher.pid).children()]
+        _, first = markers.wait_for(lambda d: d["instance"] == "forked1" and d["ids"])
+        assert first["ids"] == [7] and first["config"] == DAY and first["host"] == "onboard"
+        stopped = client.stop("onboard", "forked1")
+        assert stopped["state"] == "stopped" and stopped["returncode"] == 0  # SIGINT stops it cleanly
+    finally:
+        markers.close()
+        frames.close()
+
+
+def test_a_forked_detector_killed_with_sigkill_is_noticed_and_restarted(hosts, client_session):
+    launcher_of(hosts)
+    events = Collector(client_session, keys.deployer_events(ROBOT, "onboard"), "deploy_event")
+    try:
+        client = DeployerClient(client_session, ROBOT)
+        info = client.start("onboard", "detector_day", DAY, instance="crashy")
+        assert info["via"] == "launcher"
+        os.kill(info["pid"], signal.SIGKILL)
+        _, exited = events.wait_for(lambda e: e["instance"] == "crashy" and e["event"] == "exited")
+        assert exited["returncode"] == -signal.SIGKILL and exited["pid"] == info["pid"]
+        events.wait_for(lambda e: e["instance"] == "crashy" and e["event"] == "restarted")
+        _, ready = events.wait_for(lambda e: e["instance"] == "crashy" and e["event"] == "ready"
+                                   and e["pid"] != info["pid"])
+        again = client.status("onboard", "crashy")
+        assert again["pid"] == ready["pid"] and again["restarts"] == 1 and again["via"] == "launcher"
+        assert not alive(info["pid"])  # reaped by the deployer: no zombie left
+        client.stop("onboard", "crashy")
+    finally:
+        events.close()
+
+
+def test_a_killed_launcher_means_a_plain_start_then_a_new_launcher(hosts, client_session):
+    launcher = launcher_of(hosts)
+    first_pid, starts = launcher.pid, launcher.starts
+    client = DeployerClient(client_session, ROBOT)
+    kept = client.start("onboard", "detector_day", DAY, instance="kept")
+    assert kept["via"] == "launcher"
+    os.kill(first_pid, signal.SIGKILL)
+    wait_until(lambda: launcher.pid != first_pid, what="the deployer noticed its launcher died")
+    # The next start does not wait for the new launcher: the plain way, if it is not ready yet.
+    plain = client.start("onboard", "detector_day", DAY, instance="plain")
+    assert plain["via"] in ("exec", "launcher")
+    wait_until(lambda: launcher.starts == starts + 1 and launcher.ready, timeout=60.0, what="a new launcher")
+    assert launcher.pid != first_pid
+    assert client.status("onboard", "kept")["state"] in ("ready", "running")  # the launcher's death killed no detector
+    forked = client.start("onboard", "detector_day", DAY, instance="forked2")
+    assert forked["via"] == "launcher"
+    for name in ("kept", "plain", "forked2"):
+        client.stop("onboard", name)
+
+
+def test_a_dead_launcher_falls_back_to_a_plain_start(hosts, client_session):
+    launcher = launcher_of(hosts)
+    os.kill(launcher.pid, signal.SIGSTOP)  # hung: no answer, then killed by its deployer
+    launcher.reply_timeout = 0.5
+    try:
+        info = DeployerClient(client_session, ROBOT).start("onboard", "detector_day", DAY, instance="fallback")
+        assert info["via"] == "exec" and info["state"] in ("ready", "running")
+    finally:
+        pid = launcher.pid
+        if pid is not None:
+            try:
+                os.kill(pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+    DeployerClient(client_session, ROBOT).stop("onboard", "fallback")
+
+
+def test_the_launcher_runs_nothing_the_graph_does_not_deploy(hosts, client_session):
+    launcher_of(hosts)
+    client = DeployerClient(client_session, ROBOT)
+    with pytest.raises(DeploymentError, match="not in the knowledge store"):
+        client.start("onboard", "no_such_deployment", DAY)
+    with pytest.raises(DeploymentError, match="does not deploy"):
+        client.start("onboard", "detector_day", "marker_detection_dark")
+    assert hosts["onboard"].deployer.list() == []
+
+
+def test_the_launcher_forks_only_modules_it_preloaded(hosts):
+    launcher = launcher_of(hosts)
+    python = hosts["onboard"].deployer.settings.python
+    assert launcher.fork([python, "-c", "print('KGADAPT_READY')"], dict(os.environ), None) is None
+    assert launcher.fork([python, "-m", "http.server"], dict(os.environ), None) is None
+    assert launcher.fork(["/bin/sh", "-m", "onboard.detector"], dict(os.environ), None) is None
+    assert launcher.ready  # a refusal is not a failure of the launcher
+
+
+def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launcher(knowledge, endpoint, test_session):
+    agent = subprocess.Popen(
+        [sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
+         "--connect", endpoint], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert "agent ready" in agent.stdout.readline()
+        wait_for_deployers(test_session, ["onboard"])
+        client = DeployerClient(test_session, ROBOT)
+        launcher = wait_until(lambda: (found := client.launcher("onboard")) and found["ready"] and found,
+                              timeout=60.0, what="the agent's launcher ready")
+        info = client.start("onboard", "detector_day", DAY)
+        assert info["via"] == "launcher" and psutil.Process(info["pid"]).ppid() == agent.pid
+        os.kill(agent.pid, signal.SIGKILL)
+        agent.wait()
+        wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="forked detector gone after kill -9 of its agent")
+        wait_until(lambda: not alive(launcher["pid"]), timeout=5.0, what="launcher gone after kill -9 of its agent")
+    finally:
+        agent.kill()
+        agent.wait()
+
+
+def test_a_forked_detector_shows_its_own_command_line(hosts, client_session):
+    launcher = launcher_of(hosts)
+    info = DeployerClient(client_session, ROBOT).start("onboard", "detector_day", DAY, instance="titled")
+    try:
+        assert psutil.Process(info["pid"]).cmdline() == info["argv"]  # what ps and the fault tools look for
+        assert psutil.Process(launcher.pid).cmdline()[1:3] == ["-m", "deploy.launcher"]
+    finally:
+        DeployerClient(client_session, ROBOT).stop("onboard", "titled")
