@@ -732,6 +732,34 @@ class RobotOnHosts:
         return {"fault": "store_and_remote_death", "failover_ms": round((first["t"] - killed_at) * 1000.0, 1),
                 "new_instance": first["instance"]}
 
+    def kill_detector(self, *, timeout: float = 30.0) -> dict[str, Any]:
+        """``kill -9`` of the running detector process; time until a detector detects again.
+
+        Its deployer sees the exit, the adaptation manager places a new one; the killed
+        run's ProcessProfile must be closed and no second detector may be left.
+        """
+        before = self.settle()
+        victims = [d for d in self.detector_processes() if d.instance == before["instance"]]
+        if len(victims) != 1:
+            raise KgadaptError(f"expected one process of {before['instance']}, found {victims}")
+        killed_at = time.time()
+        os.kill(victims[0].pid, signal.SIGKILL)
+        assert self.probe is not None
+        # The deployer may start the same instance again, so wait for its exit, then for detections.
+        exited = self.probe.wait_event(lambda e: e["ev"] == "deploy" and e["instance"] == before["instance"]
+                                       and e["event"] in ("exited", "failed", "stopped") and e["t"] >= killed_at,
+                                       timeout, f"the deployer to see {before['instance']} exit")
+        firsts = self.detections_since(exited["t"], timeout=timeout)
+        after = self.settle(since=exited["t"], timeout=timeout)
+        # The killed run's profile is closed: the old instance keeps an open one only if it runs again.
+        still_open = 1 if after["instance"] == before["instance"] else 0
+        closed = _wait_until(lambda: sum(r.get("end_time") is None for r in self.profile(before["instance"]))
+                             == still_open, 10.0)
+        return {"fault": "detector_kill", "host": victims[0].host, "old_instance": before["instance"],
+                "new_instance": after["instance"], "new_host": after["host"], "exit_event": exited["event"],
+                "resume_ms": round((min(firsts.values()) - killed_at) * 1000.0, 1),
+                "profile_closed": closed, "orphans": len(self.orphans()), "running_after": after["instance"]}
+
     def restart_onboard(self, sig: int = signal.SIGTERM, *, timeout: float = 30.0) -> dict[str, Any]:
         """Stop the onboard agent with ``sig``, start it again, and see what became of its detector.
 
@@ -892,6 +920,8 @@ def register(bench_subparsers: Any) -> None:
                         help="onboard agent restarts per signal, SIGTERM and SIGKILL (default 1)")
     parser.add_argument("--compound-trials", type=int, default=1, metavar="N",
                         help="kill -9 of the knowledge store and the remote agent at once (default 1)")
+    parser.add_argument("--detector-trials", type=int, default=2, metavar="N",
+                        help="kill -9 of the running detector process (default 2)")
     parser.add_argument("--cut", type=float, default=5.0, metavar="S", help="length of a link cut (default 5 s)")
     parser.add_argument("--fuzz", type=int, default=25, metavar="N",
                         help="malformed payloads per queryable (default 25; 0: none)")
@@ -908,7 +938,7 @@ def run_bench(args: argparse.Namespace) -> int:
     from kgadapt.cluster import HostNetwork
 
     for name in ("store_trials", "store_self_trials", "failover_trials", "partition_trials", "restart_trials",
-                 "compound_trials", "fuzz"):
+                 "compound_trials", "detector_trials", "fuzz"):
         if getattr(args, name) < 0:
             raise ConfigError(f"--{name.replace('_', '-')} {getattr(args, name)}: use 0 or more")
     if args.cut <= 0:
@@ -928,7 +958,7 @@ def run_bench(args: argparse.Namespace) -> int:
             say(f"store kill -9 ({mode} restarts) {trial + 1}: {r['acked']} acknowledged, {r['lost']} lost, "
                 f"restart {r['restart_ms']} ms, outage {r['outage_ms']} ms")
         wants_hosts = (args.failover_trials + args.partition_trials + args.restart_trials + args.compound_trials
-                       + (args.fuzz > 0))
+                       + args.detector_trials + (args.fuzz > 0))
         reason = HostNetwork.unavailable_reason() if wants_hosts else None
         if reason:
             report["skipped"]["namespaces"] = reason
@@ -952,7 +982,8 @@ def run_bench(args: argparse.Namespace) -> int:
 
 def _host_trials(args: argparse.Namespace, workdir: Path, report: dict[str, Any], say: Callable[[str], None]) -> None:
     trials = report["trials"]
-    for name in ("remote_death", "partition", "onboard_restart", "store_and_remote_death", "bad_inputs"):
+    for name in ("remote_death", "partition", "onboard_restart", "store_and_remote_death", "detector_kill",
+                 "bad_inputs"):
         trials[name] = []
     robot = RobotOnHosts(RobotSettings(workdir=workdir))
     with robot:
@@ -975,6 +1006,10 @@ def _host_trials(args: argparse.Namespace, workdir: Path, report: dict[str, Any]
             trials["store_and_remote_death"].append(_attempt(robot.kill_store_and_remote))
             say(f"store and remote kill -9 {i + 1}: {_brief(trials['store_and_remote_death'][-1], 'failover_ms')}")
             robot.cluster.respawn("remote")
+            _back_to_remote(robot)
+        for i in range(args.detector_trials):
+            trials["detector_kill"].append(_attempt(robot.kill_detector))
+            say(f"detector kill -9 {i + 1}: {_brief(trials['detector_kill'][-1], 'resume_ms', 'new_host')}")
             _back_to_remote(robot)
         if args.fuzz:
             pids = robot.pids()
@@ -1053,6 +1088,13 @@ def summarize(report: dict[str, Any]) -> list[dict[str, Any]]:
                      "failed": sum(1 for r in both if "error" in r), "measure": "detector onboard again",
                      "value": f"{sum(1 for r in both if 'error' not in r)} of {len(both)}", "p50_ms": p50,
                      "max_ms": worst, "timed": "kill to first detections onboard"})
+    killed = trials.get("detector_kill") or []
+    if killed:
+        p50, worst = times(killed, "resume_ms")
+        good = [r for r in killed if "error" not in r and r.get("profile_closed") and not r.get("orphans")]
+        rows.append({"fault": "detector kill -9", "trials": len(killed), "failed": len(killed) - len(good),
+                     "measure": "one detector again, profile closed", "value": f"{len(good)} of {len(killed)}",
+                     "p50_ms": p50, "max_ms": worst, "timed": "kill to first detections again"})
     restart = trials.get("onboard_restart") or []
     for sig in ("SIGTERM", "SIGKILL"):
         runs = [r for r in restart if r.get("signal") == sig]
@@ -1082,7 +1124,8 @@ def summarize(report: dict[str, Any]) -> list[dict[str, Any]]:
 def totals(report: dict[str, Any]) -> dict[str, Any]:
     """Trials run, faults injected, writes acknowledged and lost, malformed requests and crashes."""
     trials = report["trials"]
-    faults = {"store_crash": 1, "remote_death": 1, "partition": 1, "onboard_restart": 1, "store_and_remote_death": 2}
+    faults = {"store_crash": 1, "remote_death": 1, "partition": 1, "onboard_restart": 1, "store_and_remote_death": 2,
+              "detector_kill": 1}
     store = trials.get("store_crash") or []
     bad = [t for r in trials.get("bad_inputs") or [] for t in (r.get("targets") or {}).values()]
     return {

@@ -27,7 +27,7 @@ from typing import Any
 from deploy.client import DeployerClient
 from deploy.deployer import new_instance_name
 from shared import keys, messages
-from shared.errors import DeploymentError, KgadaptError, MessageError, ReadinessTimeout
+from shared.errors import DeploymentError, KgadaptError, MessageError, ReadinessTimeout, SourceNotStopped
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ class MigrationReport:
     target_host: str
     target_ready_ms: float
     first_output_ms: float
-    source_stopped_ms: float
+    source_stopped_ms: float | None  # None: the source could not be stopped (SourceNotStopped)
     source_returncode: int | None
     new_pid: int | None
     new_run_id: str | None = None
@@ -141,9 +141,17 @@ def migrate(
     try:
         stopped = client.stop(source_host, instance)
     except KgadaptError as exc:
-        raise DeploymentError(
+        # The new instance runs and detects: the caller must know it (the soak saw it left
+        # running unknown to the adaptation manager, a second detector for minutes).
+        report = MigrationReport(
+            instance=instance, new_instance=new_instance, deployment=deployment, config=config,
+            source_host=source_host, target_host=target_host, target_ready_ms=round(ready_ms, 3),
+            first_output_ms=round(output_ms, 3), source_stopped_ms=None, source_returncode=None,
+            new_pid=started.get("pid"), new_run_id=started.get("run_id"),
+        )
+        raise SourceNotStopped(
             f"migration of {instance}: {new_instance} runs on {target_host}, but stopping {instance} on "
-            f"{source_host} failed: {exc}"
+            f"{source_host} failed: {exc}", report=report,
         ) from exc
     stopped_ms = (time.perf_counter() - t0) * 1000.0
     log.info("migrated %s (%s) from %s to %s as %s in %.0f ms", instance, config, source_host, target_host,

@@ -132,22 +132,30 @@ FOREACH (x IN CASE WHEN g IS NULL THEN [] ELSE [g] END | MERGE (r)-[:{S.RAN_CONF
 
 
 def record_process_sample(store: GraphStore, *, run_id: str, rss_mb_last: float, rss_mb_mean: float,
-                          rss_mb_max: float, cpu_percent_mean: float) -> None:
-    """A process's memory and CPU figures so far (MERGE: a sample may arrive before its start)."""
+                          rss_mb_max: float, cpu_percent_mean: float, received: float | None = None) -> None:
+    """A process's memory and CPU figures so far (MERGE: a sample may arrive before its start).
+
+    ``received``: when the knowledge service received the sample (it sets it, over any
+    client's value). A sample received after its host was lost means the process outlived
+    a partition and reopens its profile; one received before (and applied late, e.g.
+    queued while the store restarted) does not: the soak saw such a sample reopen the
+    profile of a detector that had died with its agent, for good.
+    """
     _check("process_sample", run_id=(run_id, (str,), False), rss_mb_last=(rss_mb_last, _NUM, False),
            rss_mb_mean=(rss_mb_mean, _NUM, False), rss_mb_max=(rss_mb_max, _NUM, False),
-           cpu_percent_mean=(cpu_percent_mean, _NUM, False))
+           cpu_percent_mean=(cpu_percent_mean, _NUM, False), received=(received, _NUM, True))
     _within("process_sample", rss_mb_last=(rss_mb_last, 0, MAX_MEMORY_MB), rss_mb_mean=(rss_mb_mean, 0, MAX_MEMORY_MB),
             rss_mb_max=(rss_mb_max, 0, MAX_MEMORY_MB), cpu_percent_mean=(cpu_percent_mean, 0, 100 * MAX_CORES))
     store.execute(
         f"MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}}) "
+        "WITH r, (r.end_reason = 'host_lost' AND ($received IS NULL OR r.end_time < $received)) AS reopen "
         "SET r.rss_mb_last = $rss_mb_last, r.rss_mb_mean = $rss_mb_mean, r.rss_mb_max = $rss_mb_max, "
         "r.cpu_percent_mean = $cpu_percent_mean, "
-        # A sample from a process whose profile was closed with its host's token: it outlived the partition.
-        "r.end_time = CASE WHEN r.end_reason = 'host_lost' THEN null ELSE r.end_time END, "
-        "r.end_reason = CASE WHEN r.end_reason = 'host_lost' THEN null ELSE r.end_reason END",
+        "r.end_time = CASE WHEN reopen THEN null ELSE r.end_time END, "
+        "r.end_reason = CASE WHEN reopen THEN null ELSE r.end_reason END",
         {"run_id": run_id, "rss_mb_last": float(rss_mb_last), "rss_mb_mean": float(rss_mb_mean),
-         "rss_mb_max": float(rss_mb_max), "cpu_percent_mean": float(cpu_percent_mean)})
+         "rss_mb_max": float(rss_mb_max), "cpu_percent_mean": float(cpu_percent_mean),
+         "received": None if received is None else float(received)})
 
 
 def record_process_reconfigured(store: GraphStore, *, run_id: str, config: str, deployment: str,

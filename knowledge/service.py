@@ -232,7 +232,7 @@ class KnowledgeService:
                 except queue.Empty:
                     break
                 if item is not _STOP:
-                    _, query = item
+                    _, query, _ = item
                     _finish(query, error="knowledge service is shutting down")
 
     def stats(self) -> dict[str, Any]:
@@ -305,10 +305,12 @@ class KnowledgeService:
             self._count("time_limits_hit")
             raise QueryTimeLimit(f"{what}: {exc}") from exc
 
-    def answer_write(self, verb: str, payload: bytes | None, *, host: str | None = None) -> bytes:
+    def answer_write(self, verb: str, payload: bytes | None, *, host: str | None = None,
+                     received: float | None = None) -> bytes:
         """Apply write verb ``verb``; an empty ``rows`` reply, or KgadaptError naming the problem.
 
         ``host``: asked on ``write/<host>/<verb>``, so only what ``host`` owns is accepted.
+        ``received``: when the request arrived (stamped on process samples).
         """
         if not self.settings.writes:
             raise NamedQueryError("this knowledge service is read-only: no write verbs")
@@ -318,6 +320,8 @@ class KnowledgeService:
             raise MessageError(f"write_request for {verb!r} has no payload")
         request = messages.decode(payload, "write_request")
         params = _plain_params(request["params"], f"write verb {verb!r}")
+        if verb == "process_sample":  # ours, not the sender's: a late sample must not reopen a lost host's profile
+            params["received"] = time.time() if received is None else received
         start = time.perf_counter()
         with self._store_lock:
             if host is not None:
@@ -341,7 +345,7 @@ class KnowledgeService:
 
     def _enqueue_request(self, kind: str, query: Any, pending: "queue.Queue[Any] | None" = None) -> None:
         try:
-            (self._requests if pending is None else pending).put_nowait((kind, query))
+            (self._requests if pending is None else pending).put_nowait((kind, query, time.time()))
         except queue.Full:
             # Refused at once, so the caller need not wait out its timeout.
             self._count("requests_shed")
@@ -373,13 +377,13 @@ class KnowledgeService:
             item = pending.get()
             if item is _STOP:
                 return
-            kind, query = item
+            kind, query, received = item
             try:
-                self._serve(kind, query)
+                self._serve(kind, query, received)
             except Exception:  # never let one request end the worker
                 log.exception("request worker: unexpected failure")
 
-    def _serve(self, kind: str, query: Any) -> None:
+    def _serve(self, kind: str, query: Any, received: float | None = None) -> None:
         robot = self.settings.robot
         try:
             key = str(query.key_expr)
@@ -396,10 +400,10 @@ class KnowledgeService:
                 chunks = key.split("/")
                 if chunks[-3] == "write":  # write/<host>/<verb>: a host's own
                     host = _host_of(key)
-                    body = self.answer_write(verb, payload, host=host)
+                    body = self.answer_write(verb, payload, host=host, received=received)
                     reply_key = keys.knowledge_host_write(robot, host, verb)
                 else:
-                    body = self.answer_write(verb, payload)
+                    body = self.answer_write(verb, payload, received=received)
                     reply_key = keys.knowledge_write(robot, verb)
         except KgadaptError as exc:
             self._count("requests_refused")

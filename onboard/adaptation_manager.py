@@ -47,7 +47,7 @@ from knowledge.client import KnowledgeClient
 from onboard.adaptation import FEATURE, Analyzer, BandTracker, Placement, Plan, Planner, PlanningError, Trigger, bands_from_rows
 from onboard.flight_phase import in_final_descent
 from shared import keys, messages
-from shared.errors import DeploymentError, KgadaptError, MessageError
+from shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
 from shared.hostmonitor import StatusTrust, TrustSettings, check_status
 
 log = logging.getLogger(__name__)
@@ -132,6 +132,9 @@ class AdaptationManager:
         self._lock = threading.Lock()
         self._probe: DeployerClient | None = None  # short timeout: a lost host is liveliness' business
         self._next_check = 0.0
+        # (host, instance) of migration sources that could not be stopped (host cut off): twins to stop.
+        self._leftovers: list[tuple[str, str]] = []
+        self._next_leftover_check = 0.0
         self._trust = StatusTrust(TrustSettings(window_s=settings.status_window_s))
         self._refusal_logged: dict[str, float] = {}
 
@@ -240,6 +243,8 @@ class AdaptationManager:
                     trigger = self._due_retry()
                 if trigger is None:
                     trigger = self._check_running()
+                if trigger is None and self._leftovers:
+                    self._stop_leftovers()
                 if trigger is not None:
                     self._act(trigger)
             except Exception:  # the loop must survive any single bad observation or failed action
@@ -356,6 +361,25 @@ class AdaptationManager:
         log.warning("adaptation: detector %s on %s is %s; replacing it", current.instance, current.host, state)
         return Trigger("detector_gone", time.time(), {"instance": current.instance, "host": current.host,
                                                        "state": state[:120]})
+
+    def _stop_leftovers(self) -> None:
+        """Stop the sources of migrations that could not be stopped, once their deployers answer."""
+        if time.monotonic() < self._next_leftover_check:
+            return
+        self._next_leftover_check = time.monotonic() + self.settings.reconcile_s
+        for host, instance in list(self._leftovers):
+            state = self._analyzer.hosts.get(host)
+            if state is not None and not state.online:
+                continue  # host_back's reconcile or the next round
+            try:
+                self._deployers.stop(host, instance)
+                log.info("adaptation: stopped %s on %s, left running by a migration", instance, host)
+            except DeploymentError as exc:  # not running or unknown there any more: nothing to stop
+                log.info("adaptation: %s on %s is gone: %s", instance, host, exc)
+            except KgadaptError as exc:  # no answer: try again next round
+                log.debug("adaptation: %s on %s not stopped yet: %s", instance, host, exc)
+                continue
+            self._leftovers.remove((host, instance))
 
     def _stop_twins(self) -> list[str]:
         """Stop every live detector of ours but the current one, on any host."""
@@ -614,16 +638,27 @@ class AdaptationManager:
     def _switch(self, plan: Plan, trigger: Trigger) -> Outcome:
         t, old = plan.target, self.current
         called_at = time.time()
-        report = migrate(self._session, self.settings.robot, old.instance, t.host, source_host=old.host,
-                         deployment=t.deployment, config=t.config, client=self._deployers,
-                         ready_timeout=self.settings.ready_timeout, output_timeout=self.settings.output_timeout)
+        left_running = ""
+        try:
+            report = migrate(self._session, self.settings.robot, old.instance, t.host, source_host=old.host,
+                             deployment=t.deployment, config=t.config, client=self._deployers,
+                             ready_timeout=self.settings.ready_timeout, output_timeout=self.settings.output_timeout)
+        except SourceNotStopped as exc:
+            # The new detector runs and detects: it is ours now. The old one is a twin, stopped
+            # as soon as its deployer answers (or by host_back's reconcile).
+            report = exc.report
+            left_running = str(exc)
+            self._leftovers.append((old.host, old.instance))
+            log.warning("adaptation: %s; %s is the detector now, %s will be stopped when %s answers",
+                        exc, report.new_instance, old.instance, old.host)
         # The start's own snapshot names the run: no request to a host that may be gone by now.
         self._set_current(plan, report.new_instance, report.new_run_id)
         # migrate() measures from its own start; add the time from the trigger to that start.
         latency = (called_at - trigger.time) * 1000.0 + report.first_output_ms
         return Outcome(trigger=trigger, plan=plan, outcome="migrated", latency_ms=latency,
                        detail={"instance": report.new_instance, "previous_instance": old.instance,
-                               "from": f"{old.config}@{old.host}", "target_ready_ms": report.target_ready_ms})
+                               "from": f"{old.config}@{old.host}", "target_ready_ms": report.target_ready_ms,
+                               **({"source_not_stopped": left_running[:200]} if left_running else {})})
 
     def _set_current(self, plan: Plan, instance: str, run_id: str | None) -> None:
         t = plan.target

@@ -113,5 +113,17 @@ class ReadinessTimeout(DeploymentError):
     """A started process did not say it was ready within its timeout."""
 
 
+class SourceNotStopped(DeploymentError):
+    """A migration's new instance runs and detects, but its source could not be stopped.
+
+    ``report`` is the migration's report (``source_returncode`` None); the source
+    is a twin to stop once its host answers again.
+    """
+
+    def __init__(self, message: str, *, report: object) -> None:
+        super().__init__(message)
+        self.report = report
+
+
 class FlightLinkError(KgadaptError):
     """The MAVLink link to the flight controller could not be opened or used."""

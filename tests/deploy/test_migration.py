@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import threading
 
 import pytest
 
 from deploy.client import DeployerClient
 from deploy.migration import migrate
 from shared import keys
-from shared.errors import DeploymentError, ReadinessTimeout
+from shared.errors import DeploymentError, ReadinessTimeout, SourceNotStopped
 from tests.deploy.conftest import CONFIG, CONFIG_DUSK, ROBOT, Collector, FrameSource
 from tests.deploy.test_deployer import REPO, alive
 
@@ -105,3 +106,24 @@ def test_the_command_line_starts_lists_migrates_and_stops(hosts, client_session,
         [sys.executable, "-m", "kgadapt", "deploy", "start", "nope", CONFIG, "--host", "onboard", "--robot", ROBOT,
          "--connect", endpoint], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert refused.returncode == 1 and "'nope' is not in the knowledge store" in refused.stderr
+
+
+def test_a_source_whose_host_stops_answering_is_reported_with_the_target_that_runs(hosts, client_session, frames):
+    """The soak's case: a link cut between the target's start and the source's stop."""
+    client = DeployerClient(client_session, ROBOT)
+    client.start("remote", "echo", CONFIG, instance="cut_off")
+    events = Collector(client_session, keys.deployer_events(ROBOT, "onboard"), "deploy_event")
+
+    def cut_remote() -> None:  # the remote deployer stops answering once the target's process starts
+        events.wait_for(lambda e: e["instance"] == "moved" and e["event"] == "started", timeout=60)
+        hosts["remote"].deployer.shutdown()
+
+    cutter = threading.Thread(target=cut_remote, daemon=True)
+    cutter.start()
+    with pytest.raises(SourceNotStopped, match="moved runs on onboard, but stopping cut_off on remote failed") as caught:
+        migrate(client_session, ROBOT, "cut_off", "onboard", new_instance="moved")
+    cutter.join(60)
+    report = caught.value.report
+    assert (report.new_instance, report.target_host, report.source_stopped_ms) == ("moved", "onboard", None)
+    assert client.status("onboard", "moved")["state"] in ("ready", "running")
+    events.close()

@@ -136,8 +136,13 @@ def test_a_hosts_profiles_close_when_its_liveliness_is_lost_and_reopen_if_its_pr
     assert row["why"] == "host_lost" and row["end"] >= lost_at - 1.0
     assert resp_store.execute(profile, {"run": "run-b"})[0] == {"end": 123.0, "why": "exited"}  # untouched
     assert runtime.held_by_processes(resp_store, host="remote") == 0.0
-    # The process outlived a partition: its next sample reopens the profile.
+    # A sample received before the loss but applied after it (queued while the store restarted)
+    # does not reopen it: the process may have died with its host's agent.
+    runtime.record_process_sample(resp_store, run_id="run-a", rss_mb_last=40.0, rss_mb_mean=40.0,
+                                  rss_mb_max=40.0, cpu_percent_mean=1.0, received=row["end"] - 0.5)
+    assert resp_store.execute(profile, {"run": "run-a"})[0] == row
+    # The process outlived a partition: its next sample, received after the loss, reopens the profile.
     runtime.record_process_sample(resp_store, run_id="run-a", rss_mb_last=50.0, rss_mb_mean=50.0,
-                                  rss_mb_max=50.0, cpu_percent_mean=1.0)
+                                  rss_mb_max=50.0, cpu_percent_mean=1.0, received=time.time())
     assert resp_store.execute(profile, {"run": "run-a"})[0] == {"end": None, "why": None}
     assert runtime.held_by_processes(resp_store, host="remote") == 50.0
