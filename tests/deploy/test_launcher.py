@@ -174,3 +174,18 @@ def test_a_forked_detector_shows_its_own_command_line(hosts, client_session):
         assert psutil.Process(launcher.pid).cmdline()[1:3] == ["-m", "deploy.launcher"]
     finally:
         DeployerClient(client_session, ROBOT).stop("onboard", "titled")
+
+
+def test_a_forked_detector_runs_with_the_environment_of_the_request_not_the_launchers(hosts, tmp_path):
+    # The deployer hands each detector its own Zenoh config (its own certificate) in the
+    # environment; a fork has no exec, so the launcher must install it in the child itself.
+    launcher = launcher_of(hosts)
+    python = hosts["onboard"].deployer.settings.python
+    missing = tmp_path / "no-such-zenoh.json5"
+    argv = [python, "-m", "deploy.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "env_probe",
+            "--config", "{}"]
+    forked = launcher.fork(argv, {**os.environ, "KGADAPT_ZENOH_CONFIG": str(missing)}, None)
+    assert forked is not None, "the launcher refused a preloaded module"
+    assert forked.wait() != 0  # its session was built from the request's config file, which is missing
+    output = forked.stdout.read() if forked.stdout is not None else b""
+    assert b"KGADAPT_READY" not in (output if isinstance(output, bytes) else output.encode())
