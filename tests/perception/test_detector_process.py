@@ -98,8 +98,8 @@ def test_a_burst_of_frames_is_dropped_not_queued_and_memory_stays_bounded(endpoi
     key = keys.camera_frame(robot, "cam0")
     try:
         put_until(session, key, lambda seq: frame_payload(seq, frame.image), markers, lambda d: len(d["ids"]) == 6)
-        for seq in range(100, 121):  # settle OpenCV's buffers before measuring
-            session.put(key, frame_payload(seq, frame.image))
+        for seq in range(100, 121):  # settle OpenCV's buffers before measuring; none may be dropped on the way
+            session.put(key, frame_payload(seq, frame.image), congestion_control=zenoh.CongestionControl.BLOCK)
         # The newest frame is always processed: once 120 is done, the warm-up has drained.
         markers.wait_for(lambda d: d["seq"] == 120, timeout=10, what="the warm-up's last frame")
         process = psutil.Process(child.process.pid)
