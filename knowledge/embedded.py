@@ -162,6 +162,7 @@ class EmbeddedServer:
         log_path = self.data_dir / "server.log"
         try:
             with open(log_path, "ab") as log_file:
+                written_before = log_file.tell()  # the log is kept across starts: report only this one's
                 process = subprocess.Popen(
                     args,
                     stdout=log_file,
@@ -176,8 +177,8 @@ class EmbeddedServer:
         while time.monotonic() < deadline:
             if process.poll() is not None:
                 raise StoreUnavailable(
-                    f"FalkorDB exited with status {process.returncode} while starting; "
-                    f"last log lines:\n{_tail(log_path)}"
+                    f"FalkorDB exited with status {process.returncode} while starting (log {log_path}):\n"
+                    f"{_tail(log_path, written_before)}"
                 )
             if os.path.exists(sock) and _answers_ping(sock):
                 break
@@ -228,8 +229,16 @@ def _answers_ping(sock: str) -> bool:
         client.close()
 
 
-def _tail(path: Path, lines: int = 8) -> str:
+def _tail(path: Path, offset: int = 0, lines: int = 8) -> str:
+    """The last lines written from ``offset`` on; after a crash, the head of redis' bug report (signal,
+    assertion, stack) instead, since its last lines only advise a memory test."""
     try:
-        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+        with open(path, "rb") as log_file:
+            log_file.seek(offset)
+            text = log_file.read().decode(errors="replace").splitlines()
     except OSError:
         return "(no log)"
+    starts = [i for i, line in enumerate(text) if "BUG REPORT START" in line]
+    if starts:
+        return "\n".join(text[starts[-1]:starts[-1] + 24])
+    return "\n".join(text[-lines:])
