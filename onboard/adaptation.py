@@ -61,6 +61,21 @@ class BandTracker:
         # Outside every band: the nearest one (levels beyond the extremes).
         return min(self.bands, key=lambda b: min(abs(level - b.min_level), abs(level - b.max_level)))
 
+    def neighbour(self, level: float | None) -> Band | None:
+        """The band the light most likely goes to next: of the current band's neighbours, the one
+        whose shared edge is nearest ``level`` (where the light is heading when it nears an edge)."""
+        if self.current is None or self.current not in self.bands:
+            return None
+        ordered = sorted(self.bands, key=lambda b: b.min_level)
+        i = ordered.index(self.current)
+        around = [b for b in (ordered[i - 1] if i > 0 else None, ordered[i + 1] if i + 1 < len(ordered) else None) if b]
+        if not around:
+            return None
+        if level is None or not math.isfinite(level):
+            return around[0]
+        return min(around, key=lambda b: abs(level - (b.max_level if b.max_level <= self.current.min_level
+                                                        else b.min_level)))
+
     def update(self, level: float, now: float) -> Band | None:
         """Feed one smoothed level; return the new band when it changes, else None."""
         if not math.isfinite(level):
@@ -208,8 +223,10 @@ class Analyzer:
     collapse: CollapseWatch = field(default_factory=CollapseWatch)
     collapsed: set[str] = field(default_factory=set)  # configurations whose detections collapsed in this band
     hosts: dict[str, HostView] = field(default_factory=dict)
+    level: float | None = None  # the last smoothed illumination level
 
     def on_illumination(self, level: float, now: float) -> Trigger | None:
+        self.level = level
         before = self.tracker.current
         band = self.tracker.update(level, now)
         if band is None or before is None:
@@ -388,6 +405,38 @@ class Planner:
                                f"on {target.host} (in_place_change)")
         return "reconfigure", (f"same host, {running.deployment} and {target.deployment} are both "
                                f"{rows[0].get('family')} (in_place_change)")
+
+    def standby(self, *, band: str, running: Placement, lost_hosts: Sequence[str] = (),
+                live_free: Mapping[str, float] | None = None) -> Plan | None:
+        """A warm standby for ``band`` (the neighbouring one) beside ``running``, or None.
+
+        The best-ranked configuration for ``band`` that a host has room for *as
+        well* (the ``placement`` query with today's free memory, which the
+        running detector already uses: no credit for it). None when that
+        configuration is the running one (a band change would keep it) or no
+        host has room.
+        """
+        try:
+            _full, ranked = self.candidates(band)
+        except PlanningError:
+            return None
+        row = ranked[0]
+        config = str(row["config"])
+        if config == running.config:
+            return None
+        demand = float(row.get("memory_demand_mb") or 0.0)
+        fits = self._hosts_for(config, demand, None, lost_hosts, live_free)
+        if not fits:
+            return None
+        host = sorted(fits, key=self._host_rank)[0]
+        target = Placement(config=config, deployment=str(fits[host]["deployment"]), host=host, demand_mb=demand)
+        reason = (f"standby for band {band}: {config} (first in its ranking) kept idle; {host} has "
+                  f"{_fmt(fits[host].get('free_mb'))} MiB free for {demand:.0f} MiB beside the running "
+                  f"{running.config}@{running.host} (placement)")
+        inputs = {"band": band, "standby": True,
+                  "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in sorted(fits, key=self._host_rank)],
+                  "running": {"config": running.config, "host": running.host}}
+        return Plan(target=target, reason=reason, inputs=inputs, queries=("config_ranking", "placement"))
 
     def _hosts_for(self, config: str, demand: float, running: Placement | None, lost_hosts: Sequence[str],
                    live_free: Mapping[str, float] | None) -> dict[str, dict[str, Any]]:

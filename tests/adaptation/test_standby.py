@@ -1,0 +1,94 @@
+"""The warm standby (``kgadapt onboard --standby``), end to end with real processes.
+
+The manager keeps the neighbouring band's configuration started but idle where
+the graph says a host has room for it as well: a band change to it is a switch
+(no new process), its memory is in the graph like any process's, and it is the
+first thing stopped when memory gets short.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+from deploy.client import DeployerClient
+from knowledge.store import open_store
+from shared.hostmonitor import squeeze
+from tests.adaptation.test_adaptation_e2e import Run
+
+pytestmark = pytest.mark.slow
+
+LIVE = ("starting", "ready", "running", "restarting")
+
+
+def detectors(run: Run) -> dict[str, tuple[str, int]]:
+    """instance -> (host, pid) of every live detector process."""
+    return {p["instance"]: (p["host"], p["pid"]) for p in DeployerClient(run.session, "quad1").list("*")
+            if p.get("state") in LIVE}
+
+
+def open_profile(run: Run, config: str) -> dict | None:
+    """The open ProcessProfile of a process running ``config``, with a measured RSS."""
+    with open_store(run.cluster.store_url) as store:
+        rows = store.query(
+            "MATCH (r:ProcessProfile)-[:RAN_CONFIG]->(:PerceptionGraph {name: $config}) "
+            "WHERE r.end_time IS NULL AND r.rss_mb_max > 5 RETURN r.name AS run_id, r.rss_mb_max AS rss",
+            {"config": config})
+    return rows[0] if rows else None
+
+
+def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path):
+    points = [[0, 120], [14, 120], [15, 16], [30, 16]]  # day, then dusk
+    with Run(tmp_path, points, standby=True) as run:
+        start = run.wait_for(run.decision("startup"), 20, "the first detector")
+        ready = run.wait_for(run.decision("standby"), 10, "the standby")
+        assert (ready.config, ready.host) == ("marker_detection_dusk", "onboard"), run.recorder.decisions
+        # Idle: its memory is in the graph (open profile) though it publishes nothing.
+        profile = run.wait_for(lambda: open_profile(run, "marker_detection_dusk"), 10, "the standby's profile")
+        before = detectors(run)
+        assert len(before) == 2 and start.instance in before, before
+        time.sleep(1.0)
+        assert run.running(ready.time + 0.5) == {("marker_detection_day", "onboard")}
+        switch = run.wait_for(run.decision("band_changed"), 20, "the band change to dusk")
+        run.wait_for(lambda: ("marker_detection_dusk", "onboard") in run.running(switch.time), 5, "dusk detections")
+        after = detectors(run)
+        time.sleep(1.0)
+        since = time.time()
+        time.sleep(1.0)
+        running = run.running(since)
+        why = subprocess.run([sys.executable, "-m", "kgadapt", "why", "--connect", run.cluster.endpoint],
+                             capture_output=True, text=True, timeout=30)
+        why_json = subprocess.run([sys.executable, "-m", "kgadapt", "why", "--json", "--connect",
+                                   run.cluster.endpoint], capture_output=True, text=True, timeout=30)
+    assert (switch.change, switch.config, switch.host) == ("standby", "marker_detection_dusk", "onboard"), switch
+    assert switch.outcome.startswith("switched to the standby"), switch
+    assert switch.instance != start.instance and switch.previous_instance == start.instance
+    assert after == before, "a switch starts no process and stops none (the old one is the standby now)"
+    assert running == {("marker_detection_dusk", "onboard")}, "the old detector, idle, publishes nothing"
+    assert profile["rss"] > 5
+    assert why.returncode == 0, why.stderr
+    assert "standby" in why.stdout, why.stdout
+    explained = json.loads(why_json.stdout)
+    assert explained["decision"]["inputs"]["change"] == "standby"
+
+
+def test_a_squeeze_stops_the_standby_before_anything_moves(tmp_path):
+    with Run(tmp_path, [[0, 5], [120, 5]], standby=True) as run:  # dark: the 300 MiB detector
+        first = run.wait_for(run.decision("startup"), 20, "the first detector")
+        ready = run.wait_for(run.decision("standby"), 10, "the standby")
+        assert (first.host, ready.config, ready.host) == ("onboard", "marker_detection_dusk", "onboard")
+        standby = next(i for i in detectors(run) if i != first.instance)
+        squeeze(run.session, "quad1", "onboard", 350.0)
+        short = run.wait_for(run.decision("memory_short"), 10, "the squeeze to be noticed")
+        assert short.change == "standby_stopped" and short.outcome.startswith("stopped the standby"), short
+        assert standby not in detectors(run)
+        assert first.instance in detectors(run)
+        # Still short without the standby: then, and only then, the detector moves.
+        moved = run.wait_for(run.decision("memory_short", outcome="migrated"), 10, "the migration")
+        assert (moved.config, moved.host) == ("marker_detection_dark", "remote")
+    kinds = [(d.kind, d.change) for d in run.recorder.decisions]
+    assert kinds.index(("memory_short", "standby_stopped")) < kinds.index(("memory_short", "migrate")), kinds
