@@ -34,15 +34,15 @@ def detectors(run: Run) -> dict[str, tuple[str, int]]:
 def open_profile(run: Run, config: str) -> dict | None:
     """The open ProcessProfile of a process running ``config``, with a measured RSS."""
     with open_store(run.cluster.store_url) as store:
-        rows = store.query(
+        rows = store.execute(
             "MATCH (r:ProcessProfile)-[:RAN_CONFIG]->(:PerceptionGraph {name: $config}) "
             "WHERE r.end_time IS NULL AND r.rss_mb_max > 5 RETURN r.name AS run_id, r.rss_mb_max AS rss",
-            {"config": config})
+            {"config": config}, read_only=True)
     return rows[0] if rows else None
 
 
 def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path):
-    points = [[0, 120], [14, 120], [15, 16], [30, 16]]  # day, then dusk
+    points = [[0, 120], [10, 120], [11, 30], [30, 30]]  # day, then dusk near the day edge (day stays the neighbour)
     with Run(tmp_path, points, standby=True) as run:
         start = run.wait_for(run.decision("startup"), 20, "the first detector")
         ready = run.wait_for(run.decision("standby"), 10, "the standby")
@@ -51,12 +51,11 @@ def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path
         profile = run.wait_for(lambda: open_profile(run, "marker_detection_dusk"), 10, "the standby's profile")
         before = detectors(run)
         assert len(before) == 2 and start.instance in before, before
-        time.sleep(1.0)
-        assert run.running(ready.time + 0.5) == {("marker_detection_day", "onboard")}
+        run.wait_for(lambda: time.time() > ready.time + 1.5, 3, "a second of frames with the standby idle")
+        assert run.running(ready.time + 0.5) == {("marker_detection_day", "onboard")}, "an idle standby publishes nothing"
         switch = run.wait_for(run.decision("band_changed"), 20, "the band change to dusk")
         run.wait_for(lambda: ("marker_detection_dusk", "onboard") in run.running(switch.time), 5, "dusk detections")
         after = detectors(run)
-        time.sleep(1.0)
         since = time.time()
         time.sleep(1.0)
         running = run.running(since)
