@@ -412,7 +412,7 @@ class Planner:
 
         The best-ranked configuration for ``band`` that a host has room for *as
         well* (the ``placement`` query with today's free memory, which the
-        running detector already uses: no credit for it). None when that
+        running detector already uses: no credit for it), onboard first. None when that
         configuration is the running one (a band change would keep it) or no
         host has room.
         """
@@ -428,13 +428,16 @@ class Planner:
         fits = self._hosts_for(config, demand, None, lost_hosts, live_free)
         if not fits:
             return None
-        host = sorted(fits, key=self._host_rank)[0]
+        # Onboard first whatever the preference: an idle standby costs memory, not CPU, and onboard it
+        # also covers losing the link to the remote host (the manager's own host is never lost to it).
+        order = sorted(fits, key=lambda h: (h != self.onboard_host, h))
+        host = order[0]
         target = Placement(config=config, deployment=str(fits[host]["deployment"]), host=host, demand_mb=demand)
         reason = (f"standby for band {band}: {config} (first in its ranking) kept idle; {host} has "
                   f"{_fmt(fits[host].get('free_mb'))} MiB free for {demand:.0f} MiB beside the running "
                   f"{running.config}@{running.host} (placement)")
         inputs = {"band": band, "standby": True,
-                  "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in sorted(fits, key=self._host_rank)],
+                  "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in order],
                   "running": {"config": running.config, "host": running.host}}
         return Plan(target=target, reason=reason, inputs=inputs, queries=("config_ranking", "placement"))
 

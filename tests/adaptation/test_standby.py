@@ -9,6 +9,7 @@ first thing stopped when memory gets short.
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -91,3 +92,18 @@ def test_a_squeeze_stops_the_standby_before_anything_moves(tmp_path):
         assert (moved.config, moved.host) == ("marker_detection_dark", "remote")
     kinds = [(d.kind, d.change) for d in run.recorder.decisions]
     assert kinds.index(("memory_short", "standby_stopped")) < kinds.index(("memory_short", "migrate")), kinds
+
+
+def test_losing_the_remote_host_activates_the_onboard_standby_instead_of_starting_a_process(tmp_path):
+    with Run(tmp_path, [[0, 120], [120, 120]], prefer="remote-first", standby=True) as run:
+        first = run.wait_for(run.decision("startup"), 20, "the first detector")
+        ready = run.wait_for(run.decision("standby"), 10, "the standby")
+        # Remote-first runs the detector remote; the standby (memory, no CPU) stays onboard.
+        assert (first.host, ready.config, ready.host) == ("remote", "marker_detection_dusk", "onboard")
+        onboard_before = {i: p for i, (h, p) in detectors(run).items() if h == "onboard"}
+        run.cluster.kill("remote", signal.SIGKILL)
+        lost = run.wait_for(run.decision("host_lost"), 5, "the lost host")
+        run.wait_for(lambda: ("marker_detection_day", "onboard") in run.running(lost.time), 5, "day detections onboard")
+        onboard_after = {i: p for i, (h, p) in detectors(run).items() if h == "onboard"}
+    assert (lost.change, lost.config, lost.host) == ("standby", "marker_detection_day", "onboard"), lost
+    assert lost.instance in onboard_before and onboard_after == onboard_before, "no new process onboard"
