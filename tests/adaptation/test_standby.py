@@ -18,6 +18,7 @@ import pytest
 
 from deploy.client import DeployerClient
 from knowledge.store import open_store
+from onboard.adaptation_cli import render
 from shared.hostmonitor import squeeze
 from tests.adaptation.test_adaptation_e2e import Run
 
@@ -43,7 +44,7 @@ def open_profile(run: Run, config: str) -> dict | None:
 
 
 def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path):
-    points = [[0, 120], [10, 120], [11, 30], [30, 30]]  # day, then dusk near the day edge (day stays the neighbour)
+    points = [[0, 120], [8, 120], [9, 30], [30, 30]]  # day, then dusk near the day edge (day stays the neighbour)
     with Run(tmp_path, points, standby=True) as run:
         start = run.wait_for(run.decision("startup"), 20, "the first detector")
         ready = run.wait_for(run.decision("standby"), 10, "the standby")
@@ -60,8 +61,6 @@ def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path
         since = time.time()
         time.sleep(1.0)
         running = run.running(since)
-        why = subprocess.run([sys.executable, "-m", "kgadapt", "why", "--connect", run.cluster.endpoint],
-                             capture_output=True, text=True, timeout=30)
         why_json = subprocess.run([sys.executable, "-m", "kgadapt", "why", "--json", "--connect",
                                    run.cluster.endpoint], capture_output=True, text=True, timeout=30)
     assert (switch.change, switch.config, switch.host) == ("standby", "marker_detection_dusk", "onboard"), switch
@@ -70,10 +69,11 @@ def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path
     assert after == before, "a switch starts no process and stops none (the old one is the standby now)"
     assert running == {("marker_detection_dusk", "onboard")}, "the old detector, idle, publishes nothing"
     assert profile["rss"] > 5
-    assert why.returncode == 0, why.stderr
-    assert "standby" in why.stdout, why.stdout
+    assert why_json.returncode == 0, why_json.stderr
     explained = json.loads(why_json.stdout)
+    assert explained["running"]["instance"] == switch.instance  # not the old one, idle beside it
     assert explained["decision"]["inputs"]["change"] == "standby"
+    assert "switch to the warm standby" in render(explained), render(explained)
 
 
 def test_a_squeeze_stops_the_standby_before_anything_moves(tmp_path):
