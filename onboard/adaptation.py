@@ -49,6 +49,7 @@ class BandTracker:
     hysteresis: float = 4.0  # luminance levels beyond the edge before a change counts
     dwell_s: float = 1.0  # how long the new band must hold
     current: Band | None = None
+    previous: Band | None = None  # the band before the last change
     _pending: Band | None = field(default=None, repr=False)
     _pending_since: float = field(default=0.0, repr=False)
 
@@ -62,10 +63,13 @@ class BandTracker:
         return min(self.bands, key=lambda b: min(abs(level - b.min_level), abs(level - b.max_level)))
 
     def neighbour(self, level: float | None) -> Band | None:
-        """The band the light most likely goes to next: of the current band's neighbours, the one
-        whose shared edge is nearest ``level`` (where the light is heading when it nears an edge)."""
+        """The band the light most likely goes to next: the one it left at the last change (light
+        comes back: a shadow, a doorway, a window); before any change, of the current band's
+        neighbours the one whose shared edge is nearest ``level`` (where the light heads near an edge)."""
         if self.current is None or self.current not in self.bands:
             return None
+        if self.previous is not None and self.previous != self.current:
+            return self.previous
         ordered = sorted(self.bands, key=lambda b: b.min_level)
         i = ordered.index(self.current)
         around = [b for b in (ordered[i - 1] if i > 0 else None, ordered[i + 1] if i + 1 < len(ordered) else None) if b]
@@ -93,7 +97,7 @@ class BandTracker:
         if candidate != self._pending:
             self._pending, self._pending_since = candidate, now
         if now - self._pending_since >= self.dwell_s:
-            self.current, self._pending = candidate, None
+            self.previous, self.current, self._pending = self.current, candidate, None
             return candidate
         return None
 

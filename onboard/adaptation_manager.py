@@ -23,7 +23,9 @@ running host is still acted on.
 
 Warm standby (``standby=True``, ``kgadapt onboard --standby``; off by default):
 when the ``placement`` query says a host has room for the configuration of the
-neighbouring band as well (:meth:`onboard.adaptation.BandTracker.neighbour`), the
+band the light most likely goes to next as well (the band it left at the last
+change, else the neighbour whose edge it is nearest:
+:meth:`onboard.adaptation.BandTracker.neighbour`), the
 manager starts that configuration there through the deployer (supervised and
 profiled like any detector, its memory in the graph) and makes it idle
 (:func:`onboard.detector.set_active`). A change whose target configuration is the
