@@ -832,6 +832,12 @@ class AdaptationManager:
         sb = self.standby
         if band is None:
             return
+        view = a.hosts.get(sb.host) if sb is not None else None
+        if sb is not None and view is not None and not view.online:
+            # Gone with its host; should it come back from a partition, host_back's reconcile stops it.
+            log.info("adaptation: the standby %s went with %s", sb.instance, sb.host)
+            self.standby = self._standby_run_id = None
+            return
         if sb is not None:
             try:
                 _full, left = self._planner.candidates(band.name)
