@@ -782,7 +782,7 @@ class AdaptationManager:
                     detail["old"] = f"left running: {err}"[:200]
         latency = (first.wall - trigger.time) * 1000.0 if got and first.wall else None
         return Outcome(trigger=trigger, plan=plan, outcome="switched to the standby" if got
-                       else "switched to the standby, no detections yet", latency_ms=latency, frames_lost=0,
+                       else "switched to the standby, no detections yet", latency_ms=latency,
                        detail=detail)
 
     def _stop_standby(self) -> bool:
