@@ -44,7 +44,7 @@ def open_profile(run: Run, config: str) -> dict | None:
 
 
 def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path):
-    points = [[0, 120], [8, 120], [9, 30], [30, 30]]  # day, then dusk near the day edge (day stays the neighbour)
+    points = [[0, 120], [10, 120], [11, 30], [30, 30]]  # day, then dusk near the day edge (day stays the neighbour)
     with Run(tmp_path, points, standby=True) as run:
         start = run.wait_for(run.decision("startup"), 20, "the first detector")
         ready = run.wait_for(run.decision("standby"), 10, "the standby")
