@@ -74,3 +74,31 @@ def test_the_detector_takes_another_configuration_between_two_frames(hosts, clie
         events.close()
         markers.close()
         frames.close()
+
+
+
+def test_an_idle_detector_publishes_nothing_until_made_active(hosts, client_session, graph):
+    from onboard.detector import set_active
+
+    frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
+    markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
+    try:
+        client = DeployerClient(client_session, ROBOT)
+        started = client.start("onboard", "detector_day", "marker_detection_day", instance="idle1")
+        markers.wait_for(lambda d: d["instance"] == "idle1" and d["ids"])
+        reply = set_active(client_session, ROBOT, "onboard", "idle1", False)
+        idle_at = frames.seq
+        assert (reply["instance"], reply["active"]) == ("idle1", False)
+        wait_for(lambda: frames.seq >= idle_at + 15, 5, "half a second of frames while idle")
+        # One frame may be in detection and one in the slot when the request lands; none after.
+        assert not [d for _, d in list(markers.items) if d["seq"] > idle_at + 2], "an idle detector publishes nothing"
+        assert set_active(client_session, ROBOT, "onboard", "idle1", True)["active"] is True
+        markers.wait_for(lambda d: d["instance"] == "idle1" and d["seq"] > idle_at + 15 and d["ids"])
+        assert client.status("onboard", "idle1")["pid"] == started["pid"]  # the same process throughout
+        bad = list(client_session.get(keys.detector_activity(ROBOT, "onboard", "idle1"),
+                                      payload=b"not a request", timeout=2))
+        assert bad and bad[0].ok is None and "idle1" in bad[0].err.payload.to_string()  # refused, named
+        client.stop("onboard", "idle1")
+    finally:
+        markers.close()
+        frames.close()
