@@ -46,17 +46,17 @@ def open_profile(run: Run, config: str) -> dict | None:
 def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path):
     points = [[0, 120], [10, 120], [11, 30], [30, 30]]  # day, then dusk near the day edge (day stays the neighbour)
     with Run(tmp_path, points, standby=True) as run:
-        start = run.wait_for(run.decision("startup"), 20, "the first detector")
-        ready = run.wait_for(run.decision("standby"), 10, "the standby")
+        start = run.wait_for(run.decision("startup"), 40, "the first detector")
+        ready = run.wait_for(run.decision("standby"), 30, "the standby")
         assert (ready.config, ready.host) == ("marker_detection_dusk", "onboard"), run.recorder.decisions
         # Idle: its memory is in the graph (open profile) though it publishes nothing.
-        profile = run.wait_for(lambda: open_profile(run, "marker_detection_dusk"), 10, "the standby's profile")
+        profile = run.wait_for(lambda: open_profile(run, "marker_detection_dusk"), 30, "the standby's profile")
         before = detectors(run)
         assert len(before) == 2 and start.instance in before, before
         run.wait_for(lambda: time.time() > ready.time + 1.5, 3, "a second of frames with the standby idle")
         assert run.running(ready.time + 0.5) == {("marker_detection_day", "onboard")}, "an idle standby publishes nothing"
-        switch = run.wait_for(run.decision("band_changed"), 20, "the band change to dusk")
-        run.wait_for(lambda: ("marker_detection_dusk", "onboard") in run.running(switch.time), 5, "dusk detections")
+        switch = run.wait_for(run.decision("band_changed"), 40, "the band change to dusk")
+        run.wait_for(lambda: ("marker_detection_dusk", "onboard") in run.running(switch.time), 20, "dusk detections")
         after = detectors(run)
         since = time.time()
         time.sleep(1.0)
@@ -78,17 +78,17 @@ def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path
 
 def test_a_squeeze_stops_the_standby_before_anything_moves(tmp_path):
     with Run(tmp_path, [[0, 5], [120, 5]], standby=True) as run:  # dark: the 300 MiB detector
-        first = run.wait_for(run.decision("startup"), 20, "the first detector")
-        ready = run.wait_for(run.decision("standby"), 10, "the standby")
+        first = run.wait_for(run.decision("startup"), 40, "the first detector")
+        ready = run.wait_for(run.decision("standby"), 30, "the standby")
         assert (first.host, ready.config, ready.host) == ("onboard", "marker_detection_dusk", "onboard")
         standby = next(i for i in detectors(run) if i != first.instance)
         squeeze(run.session, "quad1", "onboard", 350.0)
-        short = run.wait_for(run.decision("memory_short"), 10, "the squeeze to be noticed")
+        short = run.wait_for(run.decision("memory_short"), 30, "the squeeze to be noticed")
         assert short.change == "standby_stopped" and short.outcome.startswith("stopped the standby"), short
-        assert standby not in detectors(run)
+        run.wait_for(lambda: standby not in detectors(run), 10, "the standby's process gone")
         assert first.instance in detectors(run)
         # Still short without the standby: then, and only then, the detector moves.
-        moved = run.wait_for(run.decision("memory_short", outcome="migrated"), 10, "the migration")
+        moved = run.wait_for(run.decision("memory_short", outcome="migrated"), 30, "the migration")
         assert (moved.config, moved.host) == ("marker_detection_dark", "remote")
     kinds = [(d.kind, d.change) for d in run.recorder.decisions]
     assert kinds.index(("memory_short", "standby_stopped")) < kinds.index(("memory_short", "migrate")), kinds
@@ -96,14 +96,14 @@ def test_a_squeeze_stops_the_standby_before_anything_moves(tmp_path):
 
 def test_losing_the_remote_host_activates_the_onboard_standby_instead_of_starting_a_process(tmp_path):
     with Run(tmp_path, [[0, 120], [120, 120]], prefer="remote-first", standby=True) as run:
-        first = run.wait_for(run.decision("startup"), 20, "the first detector")
-        ready = run.wait_for(run.decision("standby"), 10, "the standby")
+        first = run.wait_for(run.decision("startup"), 40, "the first detector")
+        ready = run.wait_for(run.decision("standby"), 30, "the standby")
         # Remote-first runs the detector remote; the standby (memory, no CPU) stays onboard.
         assert (first.host, ready.config, ready.host) == ("remote", "marker_detection_dusk", "onboard")
         onboard_before = {i: p for i, (h, p) in detectors(run).items() if h == "onboard"}
         run.cluster.kill("remote", signal.SIGKILL)
-        lost = run.wait_for(run.decision("host_lost"), 5, "the lost host")
-        run.wait_for(lambda: ("marker_detection_day", "onboard") in run.running(lost.time), 5, "day detections onboard")
+        lost = run.wait_for(run.decision("host_lost"), 20, "the lost host")
+        run.wait_for(lambda: ("marker_detection_day", "onboard") in run.running(lost.time), 20, "day detections onboard")
         onboard_after = {i: p for i, (h, p) in detectors(run).items() if h == "onboard"}
     assert (lost.change, lost.config, lost.host) == ("standby", "marker_detection_day", "onboard"), lost
     assert lost.instance in onboard_before and onboard_after == onboard_before, "no new process onboard"
