@@ -59,9 +59,10 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from shared.errors import ConfigError, KgadaptError, TransportError
+from shared.keys import DEFAULT_ROBOT
 
 RESULTS = Path(__file__).resolve().parent / "results" / "reliability.json"
-ROBOT = "quad1"
+ROBOT = DEFAULT_ROBOT
 LIVE_STATES = ("starting", "ready", "running", "restarting")
 DETECTOR_MODULE = "onboard.detector"
 # Measured here (Zenoh 1.10): a TCP link that dies with unsent data is closed with SO_LINGER 10 s,

@@ -46,9 +46,10 @@ from pathlib import Path
 from typing import Any, Callable
 
 from shared.errors import ConfigError, KgadaptError
+from shared.keys import DEFAULT_ROBOT
 
 RESULTS = Path(__file__).resolve().parent / "results"
-ROBOT = "quad1"
+ROBOT = DEFAULT_ROBOT
 FAULTS = ("store_kill", "remote_kill", "onboard_kill", "detector_kill", "link_cut", "squeeze", "forged_status")
 # After a fault ends, detections may stay away this long and still be explained by it (agent restarts
 # with a new detector, failover after a cut): measured bounds, reported beside the figures.

@@ -41,6 +41,7 @@ from typing import Any, Mapping, Sequence
 
 from shared import keys
 from shared.errors import ConfigError
+from shared.keys import DEFAULT_ROBOT
 
 # A detector has its own identity, not its host's: the router lets it publish detections, serve its
 # reconfiguration and read its configuration, nothing else (deploy/zenoh/router.json5).
@@ -57,7 +58,7 @@ class CertSettings:
     """What ``make_certificates`` writes. Empty ``router_addresses`` means the defaults."""
 
     directory: Path
-    robot: str = "quad1"
+    robot: str = DEFAULT_ROBOT
     roles: tuple[str, ...] = ROLES
     router_addresses: tuple[str, ...] = ()
     addresses: Mapping[str, tuple[str, ...]] = field(default_factory=dict)  # role -> extra SANs
@@ -300,7 +301,8 @@ def register(subparsers: Any) -> None:
         "is kept: --use-ca issues with it, --force replaces it.",
     )
     parser.add_argument("directory", metavar="DIR", help="where to write the PEM files (created 0700 if missing)")
-    parser.add_argument("--robot", default="quad1", help="robot name: the CNs are <robot>-<role> (default quad1)")
+    parser.add_argument("--robot", default=DEFAULT_ROBOT,
+                        help=f"robot name: the CNs are <robot>-<role> (default {DEFAULT_ROBOT})")
     parser.add_argument("--role", action="append", choices=ROLES, metavar="ROLE",
                         help=f"issue only this role's certificate (repeatable; default all: {', '.join(ROLES)})")
     parser.add_argument("--router-address", action="append", metavar="NAME",

@@ -92,7 +92,7 @@ _PLAIN = (str, int, float, bool, type(None))
 class ServiceSettings:
     """How the knowledge service serves."""
 
-    robot: str = "quad1"
+    robot: str = keys.DEFAULT_ROBOT
     writes: bool = True  # declare knowledge/write/<verb>; False = --read-only
     workers: int = 2  # request worker threads (a slow Cypher query then blocks only one)
     query_timeout_ms: int = 5000  # named queries (FalkorDB honours it late for reads)

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import psutil
 import pytest
+import zenoh
 
 from onboard.camera import CameraPart, CameraSettings, SyntheticSource
 from onboard.markers import score
@@ -97,26 +98,30 @@ def test_a_burst_of_frames_is_dropped_not_queued_and_memory_stays_bounded(endpoi
     key = keys.camera_frame(robot, "cam0")
     try:
         put_until(session, key, lambda seq: frame_payload(seq, frame.image), markers, lambda d: len(d["ids"]) == 6)
-        for seq in range(100, 121):  # settle OpenCV's buffers before measuring
-            session.put(key, frame_payload(seq, frame.image))
+        for seq in range(100, 121):  # settle OpenCV's buffers before measuring; none may be dropped on the way
+            session.put(key, frame_payload(seq, frame.image), congestion_control=zenoh.CongestionControl.BLOCK)
         # The newest frame is always processed: once 120 is done, the warm-up has drained.
         markers.wait_for(lambda d: d["seq"] == 120, timeout=10, what="the warm-up's last frame")
         process = psutil.Process(child.process.pid)
         before = process.memory_info().rss
         payloads = [frame_payload(1000 + i, frame.image) for i in range(300)]
         start = time.monotonic()
-        for payload in payloads:  # as fast as Zenoh takes them
+        for payload in payloads[:-1]:  # as fast as Zenoh takes them (it may drop some itself when congested)
             session.put(key, payload)
+        # The last one must reach the detector: without shared memory a loaded machine's transport
+        # drops congested puts, and the point here is what the detector does with what it gets.
+        session.put(key, payloads[-1], congestion_control=zenoh.CongestionControl.BLOCK)
         burst_s = time.monotonic() - start
-        last = markers.wait_for(lambda d: d["seq"] == 1299, timeout=10, what="the burst's last frame")
+        last = markers.wait_for(lambda d: d["seq"] == 1299, timeout=30, what="the burst's last frame")
         after = process.memory_info().rss
     finally:
         markers.close()
     assert last["dropped"] > 0, "the detector processed every frame of the burst: it queued instead of dropping"
     burst_mib = sum(len(p) for p in payloads) / 2**20
     growth_mib = (after - before) / 2**20
-    # Queuing the burst would hold at least its payloads (about 12 MiB); the slot holds one frame.
-    assert growth_mib < burst_mib / 4, (
+    # Queuing the burst would hold at least its payloads (about 9 MiB); the slot holds one frame,
+    # plus Zenoh's receive buffers (up to 3.9 MiB seen with shared memory off).
+    assert growth_mib < burst_mib / 2, (
         f"RSS grew by {growth_mib:.1f} MiB over a {burst_s * 1e3:.0f} ms burst of {burst_mib:.1f} MiB")
     assert child.process.poll() is None
 
