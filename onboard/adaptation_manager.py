@@ -769,7 +769,7 @@ class AdaptationManager:
             detail["from"] = f"{old.config}@{old.host}"
             old_run_id = getattr(self, "_old_run_id", None)
             try:
-                set_active(self._session, s.robot, old.host, old.instance, False)
+                set_active(self._session, s.robot, old.host, old.instance, False, timeout=s.output_timeout)
                 self.standby, self._standby_run_id = old, old_run_id
                 detail["old"] = "idle: the standby now"
             except KgadaptError as exc:
@@ -869,7 +869,10 @@ class AdaptationManager:
             self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}", detail={"change": "standby_start"}))
             return
         try:
-            set_active(self._session, self.settings.robot, t.host, instance, False)
+            # Its deployer said ready; the activity queryable's declaration may still be on its way
+            # (set_active asks again until then). A standby not made idle is stopped, and the
+            # decision says so: it is no standby the failover could count on.
+            set_active(self._session, self.settings.robot, t.host, instance, False, timeout=self.settings.output_timeout)
         except KgadaptError as exc:
             try:
                 self._deployers.stop(t.host, instance)

@@ -323,18 +323,35 @@ class ActivitySwitch:
 
 def set_active(session: Any, robot: str, host: str, instance: str, active: bool, *,
                timeout: float = 2.0) -> dict[str, Any]:
-    """Make the running detector ``instance`` on ``host`` idle or active; its reply (instance, active, processed)."""
+    """Make the running detector ``instance`` on ``host`` idle or active; its reply (instance, active, processed).
+
+    No reply at once means no matching queryable is known yet: a detector's
+    deployer says it is ready before every session has its declaration (a
+    standby idled right after its start found none under load). Nobody got the
+    request, so it is asked again until ``timeout``.
+    """
     key = keys.detector_activity(robot, host, instance)
-    try:
-        replies = list(session.get(key, payload=messages.encode("activity_request", {"active": bool(active)}),
-                                   timeout=timeout))
-    except Exception as exc:  # zenoh.ZError
-        raise TransportError(f"{'activate' if active else 'idle'} {instance} on {host}: {exc}") from exc
-    if not replies:
-        raise RequestTimeout(f"detector {instance} on host {host} did not answer its activity switch")
+    payload = messages.encode("activity_request", {"active": bool(active)})
+    deadline = time.monotonic() + timeout
+    while True:
+        left = max(deadline - time.monotonic(), 0.05)
+        try:
+            replies = list(session.get(key, payload=payload, timeout=left))
+        except Exception as exc:  # zenoh.ZError
+            raise TransportError(f"{'activate' if active else 'idle'} {instance} on {host}: {exc}") from exc
+        if replies:
+            break
+        if time.monotonic() >= deadline:
+            raise RequestTimeout(f"detector {instance} on host {host} did not answer its activity switch "
+                                 f"within {timeout:g} s")
+        time.sleep(0.05)
     reply = replies[0]
     if reply.ok is None:
-        raise DeploymentError(f"activity of {instance} on {host}: {reply.err.payload.to_string()}")
+        text = reply.err.payload.to_string()
+        if text.strip().lower() == "timeout":
+            raise RequestTimeout(f"detector {instance} on host {host} did not answer its activity switch "
+                                 f"within {timeout:g} s")
+        raise DeploymentError(f"activity of {instance} on {host}: {text}")
     try:
         return messages.decode(reply.ok.payload.to_bytes(), "activity_reply")
     except MessageError as exc:

@@ -27,10 +27,18 @@ pytestmark = pytest.mark.slow
 LIVE = ("starting", "ready", "running", "restarting")
 
 
-def detectors(run: Run) -> dict[str, tuple[str, int]]:
-    """instance -> (host, pid) of every live detector process."""
-    return {p["instance"]: (p["host"], p["pid"]) for p in DeployerClient(run.session, "quad1").list("*")
+def detectors(run: Run, host: str = "*") -> dict[str, tuple[str, int]]:
+    """instance -> (host, pid) of every live detector process (on ``host``).
+
+    A loaded machine can keep a deployer from answering for seconds: a generous bound, not a tight one.
+    """
+    return {p["instance"]: (p["host"], p["pid"]) for p in DeployerClient(run.session, "quad1", timeout=20.0).list(host)
             if p.get("state") in LIVE}
+
+
+def idle_standby(run: Run):
+    """The first standby started and made idle (a failed start is a decision of the same kind)."""
+    return run.decision("standby", outcome="standby started (idle)")
 
 
 def open_profile(run: Run, config: str) -> dict | None:
@@ -47,7 +55,7 @@ def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path
     points = [[0, 120], [10, 120], [11, 30], [30, 30]]  # day, then dusk near the day edge (day stays the neighbour)
     with Run(tmp_path, points, standby=True) as run:
         start = run.wait_for(run.decision("startup"), 40, "the first detector")
-        ready = run.wait_for(run.decision("standby"), 30, "the standby")
+        ready = run.wait_for(idle_standby(run), 30, "the standby")
         assert (ready.config, ready.host) == ("marker_detection_dusk", "onboard"), run.recorder.decisions
         # Idle: its memory is in the graph (open profile) though it publishes nothing.
         profile = run.wait_for(lambda: open_profile(run, "marker_detection_dusk"), 30, "the standby's profile")
@@ -79,13 +87,13 @@ def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path
 def test_a_squeeze_stops_the_standby_before_anything_moves(tmp_path):
     with Run(tmp_path, [[0, 5], [120, 5]], standby=True) as run:  # dark: the 300 MiB detector
         first = run.wait_for(run.decision("startup"), 40, "the first detector")
-        ready = run.wait_for(run.decision("standby"), 30, "the standby")
+        ready = run.wait_for(idle_standby(run), 30, "the standby")
         assert (first.host, ready.config, ready.host) == ("onboard", "marker_detection_dusk", "onboard")
         standby = next(i for i in detectors(run) if i != first.instance)
         squeeze(run.session, "quad1", "onboard", 350.0)
         short = run.wait_for(run.decision("memory_short"), 30, "the squeeze to be noticed")
         assert short.change == "standby_stopped" and short.outcome.startswith("stopped the standby"), short
-        run.wait_for(lambda: standby not in detectors(run), 10, "the standby's process gone")
+        run.wait_for(lambda: standby not in detectors(run), 30, "the standby's process gone")
         assert first.instance in detectors(run)
         # Still short without the standby: then, and only then, the detector moves.
         moved = run.wait_for(run.decision("memory_short", outcome="migrated"), 30, "the migration")
@@ -97,13 +105,13 @@ def test_a_squeeze_stops_the_standby_before_anything_moves(tmp_path):
 def test_losing_the_remote_host_activates_the_onboard_standby_instead_of_starting_a_process(tmp_path):
     with Run(tmp_path, [[0, 120], [120, 120]], prefer="remote-first", standby=True) as run:
         first = run.wait_for(run.decision("startup"), 40, "the first detector")
-        ready = run.wait_for(run.decision("standby"), 30, "the standby")
+        ready = run.wait_for(idle_standby(run), 30, "the standby")
         # Remote-first runs the detector remote; the standby (memory, no CPU) stays onboard.
         assert (first.host, ready.config, ready.host) == ("remote", "marker_detection_dusk", "onboard")
-        onboard_before = {i: p for i, (h, p) in detectors(run).items() if h == "onboard"}
+        onboard_before = detectors(run, "onboard")
         run.cluster.kill("remote", signal.SIGKILL)
-        lost = run.wait_for(run.decision("host_lost"), 20, "the lost host")
-        run.wait_for(lambda: ("marker_detection_day", "onboard") in run.running(lost.time), 20, "day detections onboard")
-        onboard_after = {i: p for i, (h, p) in detectors(run).items() if h == "onboard"}
+        lost = run.wait_for(run.decision("host_lost"), 30, "the lost host")
+        run.wait_for(lambda: ("marker_detection_day", "onboard") in run.running(lost.time), 30, "day detections onboard")
+        onboard_after = detectors(run, "onboard")  # only the onboard deployer: the remote one is dead
     assert (lost.change, lost.config, lost.host) == ("standby", "marker_detection_day", "onboard"), lost
     assert lost.instance in onboard_before and onboard_after == onboard_before, "no new process onboard"

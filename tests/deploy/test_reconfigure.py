@@ -9,6 +9,8 @@ reason and the running one keeps detecting.
 
 from __future__ import annotations
 
+import threading
+
 import pytest
 
 from deploy.client import DeployerClient
@@ -102,3 +104,23 @@ def test_an_idle_detector_publishes_nothing_until_made_active(hosts, client_sess
     finally:
         markers.close()
         frames.close()
+
+
+def test_an_activity_switch_asked_before_the_detector_is_up_reaches_it_once_it_is(hosts, client_session, graph):
+    # The adaptation manager idles a standby as soon as its deployer says ready; the activity
+    # queryable's declaration may reach the manager's session later than that. set_active asks
+    # again until its timeout rather than failing on the first empty answer (which left a failover
+    # with no standby and a new process under load).
+    from onboard.detector import set_active
+
+    replies: list = []
+    asking = threading.Thread(target=lambda: replies.append(
+        set_active(client_session, ROBOT, "onboard", "early1", False, timeout=30.0)), daemon=True)
+    asking.start()  # before the detector exists: no queryable matches yet
+    client = DeployerClient(client_session, ROBOT)
+    client.start("onboard", "detector_day", "marker_detection_day", instance="early1")
+    try:
+        asking.join(35)
+        assert replies and (replies[0]["instance"], replies[0]["active"]) == ("early1", False), replies
+    finally:
+        client.stop("onboard", "early1")
