@@ -1,30 +1,33 @@
 """The warm standby (``kgadapt onboard --standby``), end to end with real processes.
 
-The manager keeps the neighbouring band's configuration started but idle where
-the graph says a host has room for it as well: a band change to it is a switch
-(no new process), its memory is in the graph like any process's, and it is the
-first thing stopped when memory gets short.
+One robot (remote-first, light near the dusk/dark edge, then dark) goes through
+everything the standby is for, so the whole robot starts once: the manager keeps
+the neighbouring band's configuration started but idle where the graph says a
+host has room for it as well; its memory is in the graph like any process's;
+losing the remote host activates it (reconfigured in place) instead of starting
+a process; a band change to it is a switch (no process started or stopped); and
+it is the first thing stopped when memory gets short.
 """
 
 from __future__ import annotations
 
-import json
 import signal
-import subprocess
-import sys
 import time
 
 import pytest
 
 from deploy.client import DeployerClient
+from knowledge.client import KnowledgeClient
 from knowledge.store import open_store
-from onboard.adaptation_cli import render
+from onboard.adaptation_cli import explain, render
 from shared.hostmonitor import squeeze
 from tests.adaptation.test_adaptation_e2e import Run
 
 pytestmark = pytest.mark.slow
 
 LIVE = ("starting", "ready", "running", "restarting")
+DUSK, DARK = "marker_detection_dusk", "marker_detection_dark"
+STEP_S = 14.0  # dusk until then: startup, the standby, the failover and the next standby all come before it
 
 
 def detectors(run: Run, host: str = "*") -> dict[str, tuple[str, int]]:
@@ -36,82 +39,71 @@ def detectors(run: Run, host: str = "*") -> dict[str, tuple[str, int]]:
             if p.get("state") in LIVE}
 
 
-def idle_standby(run: Run):
-    """The first standby started and made idle (a failed start is a decision of the same kind)."""
-    return run.decision("standby", outcome="standby started (idle)")
+def idle_standbys(run: Run) -> list:
+    """The standbys started and made idle so far (a failed start is a decision of the same kind)."""
+    return [d for d in run.recorder.decisions if d.kind == "standby" and d.outcome == "standby started (idle)"]
 
 
 def open_profile(run: Run, config: str) -> dict | None:
-    """The open ProcessProfile of a process running ``config``, with a measured RSS."""
+    """The open ProcessProfile of a process running ``config``, with a measured RSS, and its host."""
     with open_store(run.cluster.store_url) as store:
         rows = store.execute(
-            "MATCH (r:ProcessProfile)-[:RAN_CONFIG]->(:PerceptionGraph {name: $config}) "
-            "WHERE r.end_time IS NULL AND r.rss_mb_max > 5 RETURN r.name AS run_id, r.rss_mb_max AS rss",
+            "MATCH (p:Platform)<-[:RAN_ON]-(r:ProcessProfile)-[:RAN_CONFIG]->(:PerceptionGraph {name: $config}) "
+            "WHERE r.end_time IS NULL AND r.rss_mb_max > 5 RETURN r.name AS run_id, r.rss_mb_max AS rss, p.name AS host",
             {"config": config}, read_only=True)
     return rows[0] if rows else None
 
 
-def test_a_band_change_to_the_standby_is_a_switch_without_a_new_process(tmp_path):
-    points = [[0, 120], [10, 120], [11, 30], [30, 30]]  # day, then dusk near the day edge (day stays the neighbour)
-    with Run(tmp_path, points, standby=True) as run:
-        start = run.wait_for(run.decision("startup"), 40, "the first detector")
-        ready = run.wait_for(idle_standby(run), 30, "the standby")
-        assert (ready.config, ready.host) == ("marker_detection_dusk", "onboard"), run.recorder.decisions
-        # Idle: its memory is in the graph (open profile) though it publishes nothing.
-        profile = run.wait_for(lambda: open_profile(run, "marker_detection_dusk"), 30, "the standby's profile")
-        before = detectors(run)
-        assert len(before) == 2 and start.instance in before, before
-        run.wait_for(lambda: time.time() > ready.time + 1.5, 3, "a second of frames with the standby idle")
-        assert run.running(ready.time + 0.5) == {("marker_detection_day", "onboard")}, "an idle standby publishes nothing"
-        switch = run.wait_for(run.decision("band_changed"), 40, "the band change to dusk")
-        run.wait_for(lambda: ("marker_detection_dusk", "onboard") in run.running(switch.time), 20, "dusk detections")
-        after = detectors(run)
+def test_the_standby_is_counted_takes_over_a_lost_host_is_switched_to_and_goes_first_in_a_squeeze(tmp_path):
+    points = [[0, 16], [STEP_S, 16], [STEP_S + 1, 5], [STEP_S + 60, 5]]
+    with Run(tmp_path, points, prefer="remote-first", standby=True) as run:
+        first = run.wait_for(run.decision("startup"), 40, "the first detector")
+        ready = run.wait_for(lambda: idle_standbys(run), 30, "the standby")[0]
+        # Remote-first runs the detector remote; the standby (memory, no CPU) goes onboard, for the
+        # band whose edge the light is nearest (dark).
+        assert (first.config, first.host, ready.config, ready.host) == (DUSK, "remote", DARK, "onboard"), (first, ready)
+        profile = run.wait_for(lambda: open_profile(run, DARK), 30, "the standby's profile")
+        standby = detectors(run, "onboard")
+        run.wait_for(lambda: time.time() > ready.time + 1.5, 5, "a second of frames with the standby idle")
+        idle_running = run.running(ready.time + 0.5)
+
+        run.cluster.kill("remote", signal.SIGKILL)
+        lost = run.wait_for(run.decision("host_lost"), 30, "the lost host")
+        run.wait_for(lambda: (DUSK, "onboard") in run.running(lost.time), 30, "dusk detections onboard")
+        after_failover = detectors(run, "onboard")  # only the onboard deployer: the remote one is dead
+
+        second = run.wait_for(lambda: idle_standbys(run)[1:], 30, "the next standby")[0]
+        before_switch = detectors(run, "onboard")
+        switch = run.wait_for(run.decision("band_changed"), 60, "the band change to dark")
+        run.wait_for(lambda: (DARK, "onboard") in run.running(switch.time), 30, "dark detections")
+        after_switch = detectors(run, "onboard")
         since = time.time()
-        time.sleep(1.0)
+        time.sleep(1.0)  # a second of detections: only the new running detector's
         running = run.running(since)
-        why_json = subprocess.run([sys.executable, "-m", "kgadapt", "why", "--json", "--connect",
-                                   run.cluster.endpoint], capture_output=True, text=True, timeout=30)
-    assert (switch.change, switch.config, switch.host) == ("standby", "marker_detection_dusk", "onboard"), switch
-    assert switch.outcome.startswith("switched to the standby"), switch
-    assert switch.instance != start.instance and switch.previous_instance == start.instance
-    assert after == before, "a switch starts no process and stops none (the old one is the standby now)"
-    assert running == {("marker_detection_dusk", "onboard")}, "the old detector, idle, publishes nothing"
-    assert profile["rss"] > 5
-    assert why_json.returncode == 0, why_json.stderr
-    explained = json.loads(why_json.stdout)
+        explained = explain(KnowledgeClient(run.session, "quad1", own=True, timeout=10.0).query)
+
+        squeeze(run.session, "quad1", "onboard", 350.0, timeout=10.0)  # dark needs 300 MiB: short now
+        short = run.wait_for(run.decision("memory_short"), 30, "the squeeze to be noticed")
+        run.wait_for(lambda: lost.instance not in detectors(run, "onboard"), 30, "the standby's process gone")
+        after_squeeze = detectors(run, "onboard")
+
+    # Its memory counts in the graph like any process's, though it publishes nothing.
+    assert (profile["host"], profile["rss"] > 5) == ("onboard", True), profile
+    assert len(standby) == 1 and idle_running == {(DUSK, "remote")}, (standby, idle_running)
+    # Failover: the standby, reconfigured in place to dusk, is the detector; no process started.
+    assert (lost.change, lost.config, lost.host) == ("standby", DUSK, "onboard"), lost
+    assert lost.outcome.startswith("switched to the standby"), lost
+    assert lost.instance in standby and after_failover == standby, "no new process onboard"
+    # A standby again (dark beside the running dusk, a process of its own), then the band change: a switch.
+    assert (second.config, second.host) == (DARK, "onboard"), second
+    assert (switch.change, switch.config, switch.host) == ("standby", DARK, "onboard"), switch
+    assert switch.instance not in standby and switch.instance in before_switch, switch
+    assert switch.previous_instance == lost.instance
+    assert after_switch == before_switch, "a switch starts no process and stops none (the old one is the standby now)"
+    assert running == {(DARK, "onboard")}, "the old detector, idle, publishes nothing"
     assert explained["running"]["instance"] == switch.instance  # not the old one, idle beside it
     assert explained["decision"]["inputs"]["change"] == "standby"
     assert "switch to the warm standby" in render(explained), render(explained)
-
-
-def test_a_squeeze_stops_the_standby_before_anything_moves(tmp_path):
-    with Run(tmp_path, [[0, 5], [120, 5]], standby=True) as run:  # dark: the 300 MiB detector
-        first = run.wait_for(run.decision("startup"), 40, "the first detector")
-        ready = run.wait_for(idle_standby(run), 30, "the standby")
-        assert (first.host, ready.config, ready.host) == ("onboard", "marker_detection_dusk", "onboard")
-        standby = next(i for i in detectors(run) if i != first.instance)
-        squeeze(run.session, "quad1", "onboard", 350.0)
-        short = run.wait_for(run.decision("memory_short"), 30, "the squeeze to be noticed")
-        assert short.change == "standby_stopped" and short.outcome.startswith("stopped the standby"), short
-        run.wait_for(lambda: standby not in detectors(run), 30, "the standby's process gone")
-        assert first.instance in detectors(run)
-        # Still short without the standby: then, and only then, the detector moves.
-        moved = run.wait_for(run.decision("memory_short", outcome="migrated"), 30, "the migration")
-        assert (moved.config, moved.host) == ("marker_detection_dark", "remote")
-    kinds = [(d.kind, d.change) for d in run.recorder.decisions]
-    assert kinds.index(("memory_short", "standby_stopped")) < kinds.index(("memory_short", "migrate")), kinds
-
-
-def test_losing_the_remote_host_activates_the_onboard_standby_instead_of_starting_a_process(tmp_path):
-    with Run(tmp_path, [[0, 120], [120, 120]], prefer="remote-first", standby=True) as run:
-        first = run.wait_for(run.decision("startup"), 40, "the first detector")
-        ready = run.wait_for(idle_standby(run), 30, "the standby")
-        # Remote-first runs the detector remote; the standby (memory, no CPU) stays onboard.
-        assert (first.host, ready.config, ready.host) == ("remote", "marker_detection_dusk", "onboard")
-        onboard_before = detectors(run, "onboard")
-        run.cluster.kill("remote", signal.SIGKILL)
-        lost = run.wait_for(run.decision("host_lost"), 30, "the lost host")
-        run.wait_for(lambda: ("marker_detection_day", "onboard") in run.running(lost.time), 30, "day detections onboard")
-        onboard_after = detectors(run, "onboard")  # only the onboard deployer: the remote one is dead
-    assert (lost.change, lost.config, lost.host) == ("standby", "marker_detection_day", "onboard"), lost
-    assert lost.instance in onboard_before and onboard_after == onboard_before, "no new process onboard"
+    # Memory short: the standby is stopped first, the running detector stays.
+    assert short.change == "standby_stopped" and short.outcome.startswith(f"stopped the standby {lost.instance}"), short
+    assert list(after_squeeze) == [switch.instance], after_squeeze
