@@ -176,7 +176,8 @@ def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, st
             # reported, not covered here.)
             on_remote = robot.wait(only_remote, 30) and time.sleep(1.0) is None and robot.wait(only_remote, 5)
             if on_remote and standby:  # the onboard standby started again after the detector went back
-                on_remote = robot.wait(lambda: any(d.kind == "standby" and d.time > placed for d in rec.decisions), 20)
+                on_remote = robot.wait(lambda: any(d.kind == "standby" and d.outcome == "standby started (idle)"
+                                                   and d.time > placed for d in rec.decisions), 20)
             if not on_remote:
                 print(f"failover: the detector did not settle on the remote host; decisions {rec.decisions[-3:]}",
                       file=sys.stderr)
