@@ -13,6 +13,9 @@ Two runs of the robot on this machine (kgadapt/cluster.py):
    frames no detector answered around each change. Run twice side by side:
    changes in place (the running detector reconfigured, where the graph
    allows it) and as new processes (``--no-in-place``, make-before-break);
+   with ``--standby`` also a third run with the warm standby (``kgadapt onboard
+   --standby``: the band the light left kept started but idle, a change to it a
+   switch of whose detections count);
    with ``--onboard-cpu 0.5`` again with the onboard agent and its detectors
    limited to half a core (a Pi-class companion computer).
 2. failover: the detector runs on the remote host (``--prefer remote-first``);
@@ -60,6 +63,8 @@ def register(bench_subparsers: Any) -> None:
                    "(cgroup cpu.cfs_quota_us, root); repeatable, e.g. 0.5")
     p.add_argument("--changes", choices=("both", "in-place", "new-process"), default="both",
                    help="how a same-host configuration change is done: both side by side (default)")
+    p.add_argument("--standby", action="store_true",
+                   help="also run with the warm standby (in-place changes allowed, a change to the standby a switch)")
     p.add_argument("--out", default=str(RESULTS), help="results file (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the records as JSON")
     p.set_defaults(func=run)
@@ -115,13 +120,14 @@ def _tree(pid: int) -> list[int]:
     return out
 
 
-def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cpu: float | None) -> dict[str, Any]:
+def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cpu: float | None,
+                  standby: bool = False) -> dict[str, Any]:
     """One run through ``cycles`` light cycles: the light steps with their blind time, and the decisions."""
     from bench.footprint import HalfCore
 
     profile = step_profile(workdir / "profile.json", cycles, hold)
     limit = HalfCore(cpu) if cpu else None
-    with _robot(workdir, profile, in_place=in_place) as robot:
+    with _robot(workdir, profile, in_place=in_place, standby=standby) as robot:
         if limit is not None:
             limit.__enter__()
         try:
@@ -138,24 +144,26 @@ def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cp
     rec = robot.recorder
     rec.attribute_losses()
     steps = rec.light_steps(classify)[:4 * cycles]
-    changes = [d for d in rec.decisions if d.outcome.startswith(("migrated", "reconfigured"))]
-    others = [d for d in rec.decisions if d.kind != "startup" and d not in changes and not d.outcome.startswith("kept")]
+    changes = [d for d in rec.decisions if d.outcome.startswith(("migrated", "reconfigured", "switched"))]
+    others = [d for d in rec.decisions if d.kind not in ("startup", "standby") and d not in changes
+              and not d.outcome.startswith("kept")]
     return {"steps": steps, "changes": changes, "others": others, "baseline": rec.baseline_loss()}
 
 
-def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None) -> list[float]:
+def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, standby: bool = False) -> list[float]:
     """Milliseconds from kill -9 of the remote agent to the first detection onboard."""
     times: list[float] = []
     from bench.footprint import HalfCore
     from kgadapt.cluster import write_profile
 
     profile = write_profile(workdir / "profile.json", [[0, 120], [3600, 120]])
-    with _robot(workdir, profile, prefer="remote-first") as robot, contextlib.ExitStack() as stack:
+    with _robot(workdir, profile, prefer="remote-first", standby=standby) as robot, contextlib.ExitStack() as stack:
         if cpu:
             limit = stack.enter_context(HalfCore(cpu))
             for pid in _tree(robot.cluster.children["onboard"].process.pid):
                 limit.add(pid)  # the agent, its launcher; the detectors they start later are born inside
         rec = robot.recorder
+        placed = 0.0
         for _ in range(count):
             # Only the remote detector answers (a handover back to remote must be finished:
             # until then the old onboard detector still runs and would hide the failover).
@@ -167,6 +175,9 @@ def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None) ->
             # ~20 ms of the placement, the manager was seen to miss the loss for 10 s and more: a race
             # reported, not covered here.)
             on_remote = robot.wait(only_remote, 30) and time.sleep(1.0) is None and robot.wait(only_remote, 5)
+            if on_remote and standby:  # the onboard standby started again after the detector went back
+                on_remote = robot.wait(lambda: any(d.kind == "standby" and d.outcome == "standby started (idle)"
+                                                   and d.time > placed for d in rec.decisions), 20)
             if not on_remote:
                 print(f"failover: the detector did not settle on the remote host; decisions {rec.decisions[-3:]}",
                       file=sys.stderr)
@@ -180,6 +191,7 @@ def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None) ->
                       file=sys.stderr)
                 break
             times.append((first - killed) * 1000.0)
+            placed = time.time()
             robot.cluster.respawn("remote")  # remote-first: the manager moves the detector back
     return times
 
@@ -190,7 +202,10 @@ def run(args: argparse.Namespace) -> int:
     workdir = Path(tempfile.mkdtemp(prefix="kgadapt-bench-adaptation-"))
     started = time.time()
     store = "embedded (FalkorDB, fsync always)"
-    modes = {"both": (False, True), "in-place": (True,), "new-process": (False,)}[args.changes]
+    modes: list[tuple[bool, bool]] = [(m, False) for m in
+                                      {"both": (False, True), "in-place": (True,), "new-process": (False,)}[args.changes]]
+    if args.standby:
+        modes.append((True, True))
     cpus: list[float | None] = [None, *(args.onboard_cpu or [])]
     if any(cpus[1:]) and HalfCore.unavailable_reason():
         raise SystemExit(f"kgadapt bench adaptation: --onboard-cpu: {HalfCore.unavailable_reason()}")
@@ -199,18 +214,22 @@ def run(args: argparse.Namespace) -> int:
     try:
         for cpu in cpus:
             onboard = "unlimited" if cpu is None else f"{cpu:g} core"
-            for in_place in modes:
-                how = "in place" if in_place else "new process"
-                name = f"{'inplace' if in_place else 'newproc'}-{onboard.replace(' ', '')}"
-                result = measure_steps(workdir / name, args.cycles, args.hold, in_place=in_place, cpu=cpu)
+            for in_place, standby in modes:
+                how = "standby" if standby else "in place" if in_place else "new process"
+                name = f"{'standby' if standby else 'inplace' if in_place else 'newproc'}-{onboard.replace(' ', '')}"
+                result = measure_steps(workdir / name, args.cycles, args.hold, in_place=in_place, cpu=cpu,
+                                       standby=standby)
                 records += _records(result, store=store, how=how, onboard=onboard)
                 lines += _lines(result, how=how, onboard=onboard)
         for cpu in cpus if args.failovers else []:
             onboard = "unlimited" if cpu is None else f"{cpu:g} core"
-            failovers = measure_failovers(workdir / f"failover-{onboard.replace(' ', '')}", args.failovers, cpu=cpu)
-            if failovers:
-                records.append(make_record(store=store, n=None, op="failover_after_kill9", samples_ms=failovers,
-                                           target_ms=150, onboard=onboard))
+            for standby in (False, True) if args.standby else (False,):
+                failovers = measure_failovers(workdir / f"failover-{'standby-' if standby else ''}"
+                                              f"{onboard.replace(' ', '')}", args.failovers, cpu=cpu, standby=standby)
+                if failovers:
+                    records.append(make_record(store=store, n=None, op="failover_after_kill9", samples_ms=failovers,
+                                               target_ms=150, onboard=onboard,
+                                               **({"changes": "standby"} if standby else {})))
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
     for r in records:
@@ -261,7 +280,7 @@ def _records(result: dict[str, Any], *, store: str, how: str, onboard: str) -> l
         out.append(make_record(store=store, n=None, op="adaptation_latency", samples_ms=latencies,
                                what="band change decided -> first detection with the new configuration",
                                kinds=sorted({d.outcome.split(":")[0] for d in changes}),
-                               target_ms=50 if how == "in place" else None, **common))
+                               target_ms=50 if how in ("in place", "standby") else None, **common))
     lost = [d.frames_lost for d in changes if d.frames_lost is not None]
     base_lost, base_frames = result["baseline"]
     if lost:

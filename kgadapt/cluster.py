@@ -62,6 +62,7 @@ class ClusterSettings:
     prefer: str = "onboard-first"
     dwell_s: float = 1.0
     in_place: bool = True  # False: the onboard agent's --no-in-place (every change a new process)
+    standby: bool = False  # the onboard agent's --standby (a warm standby for the neighbouring band)
     calibrate: bool = True
     fake_fc: bool = True
     land_after_s: float | None = None  # fake FC starts a final descent after this many seconds
@@ -161,6 +162,8 @@ class LocalCluster:
                 onboard += ["--adapt", "--prefer", s.prefer, "--dwell", str(s.dwell_s)]
                 if not s.in_place:
                     onboard.append("--no-in-place")
+                if s.standby:
+                    onboard.append("--standby")
             self._spawn("onboard", self.kgadapt(*onboard, *s.extra_onboard_args), ready="agent ready", host="onboard")
         except BaseException:
             self.stop()

@@ -174,7 +174,7 @@ class Recorder:
         return sum(1 for seq in frames if seq not in done)
 
     def attribute_losses(self, margin_s: float = 0.5) -> None:
-        """Per planned change (migration or in-place reconfiguration): the coverage gap (frames lost)
+        """Per planned change (migration, in-place reconfiguration, switch to a standby): the coverage gap (frames lost)
         and busy drops around it.
 
         A planned migration loses a frame when no detector covers it: captured
@@ -191,7 +191,7 @@ class Recorder:
                 answered.setdefault(instance, []).append(seq)
                 by_config.setdefault((instance, config), []).append(seq)
         for d in self.decisions:
-            if not (d.outcome.startswith(("migrated", "reconfigured")) and d.latency_ms is not None):
+            if not (d.outcome.startswith(("migrated", "reconfigured", "switched")) and d.latency_ms is not None):
                 continue
             start = d.time - d.latency_ms / 1000.0 - margin_s
             d.frames_dropped = self.frames_unprocessed(start, d.time + margin_s)

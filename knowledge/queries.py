@@ -291,15 +291,25 @@ LIMIT $limit""",
     ),
     NamedQuery(
         "current_placement",
-        "The newest running detector process (a process profile with no end time that ran a "
-        "detector configuration), and the newest decision that chose that configuration and host.",
-        {},
+        "The running detector process (a process profile with no end time that ran a detector "
+        "configuration; of several, the one a decision chose last, then the newest), and the newest "
+        "decision that chose that configuration and host. A warm standby (started idle by a "
+        "'standby' decision) is not the running detector until a later decision chooses it.",
+        {"standby": Param("str", required=False, default="standby",
+                          help="the trigger that starts a standby (decisions whose trigger starts with it)")},
         f"""
 MATCH (r:{S.PROCESS_PROFILE})-[:{S.RAN_CONFIG}]->(g:{S.PERCEPTION_GRAPH})
 WHERE r.end_time IS NULL
-WITH r, g ORDER BY r.start_time DESC, r.name DESC LIMIT 1
+OPTIONAL MATCH (g)<-[:{S.CHOSE}]-(c:{S.ADAPTATION_DECISION})
+WHERE c.host = r.host AND NOT c.trigger STARTS WITH $standby
+WITH r, g, max(c.time) AS chosen_at
+OPTIONAL MATCH (g)<-[:{S.CHOSE}]-(s:{S.ADAPTATION_DECISION})
+WHERE s.host = r.host AND s.trigger STARTS WITH $standby
+WITH r, g, chosen_at, max(s.time) AS standby_at
+WHERE standby_at IS NULL OR (chosen_at IS NOT NULL AND chosen_at > standby_at)
+WITH r, g ORDER BY coalesce(chosen_at, -1.0) DESC, r.start_time DESC, r.name DESC LIMIT 1
 OPTIONAL MATCH (g)<-[:{S.CHOSE}]-(a:{S.ADAPTATION_DECISION})
-WHERE a.host = r.host
+WHERE a.host = r.host AND NOT a.trigger STARTS WITH $standby
 WITH r, g, a ORDER BY a.time DESC
 WITH r, g, collect(a)[0] AS a
 RETURN r.instance AS instance, g.name AS config, r.host AS host, r.pid AS pid,

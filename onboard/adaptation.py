@@ -49,6 +49,7 @@ class BandTracker:
     hysteresis: float = 4.0  # luminance levels beyond the edge before a change counts
     dwell_s: float = 1.0  # how long the new band must hold
     current: Band | None = None
+    previous: Band | None = None  # the band before the last change
     _pending: Band | None = field(default=None, repr=False)
     _pending_since: float = field(default=0.0, repr=False)
 
@@ -60,6 +61,24 @@ class BandTracker:
             return None
         # Outside every band: the nearest one (levels beyond the extremes).
         return min(self.bands, key=lambda b: min(abs(level - b.min_level), abs(level - b.max_level)))
+
+    def neighbour(self, level: float | None) -> Band | None:
+        """The band the light most likely goes to next: the one it left at the last change (light
+        comes back: a shadow, a doorway, a window); before any change, of the current band's
+        neighbours the one whose shared edge is nearest ``level`` (where the light heads near an edge)."""
+        if self.current is None or self.current not in self.bands:
+            return None
+        if self.previous is not None and self.previous != self.current:
+            return self.previous
+        ordered = sorted(self.bands, key=lambda b: b.min_level)
+        i = ordered.index(self.current)
+        around = [b for b in (ordered[i - 1] if i > 0 else None, ordered[i + 1] if i + 1 < len(ordered) else None) if b]
+        if not around:
+            return None
+        if level is None or not math.isfinite(level):
+            return around[0]
+        return min(around, key=lambda b: abs(level - (b.max_level if b.max_level <= self.current.min_level
+                                                        else b.min_level)))
 
     def update(self, level: float, now: float) -> Band | None:
         """Feed one smoothed level; return the new band when it changes, else None."""
@@ -78,7 +97,7 @@ class BandTracker:
         if candidate != self._pending:
             self._pending, self._pending_since = candidate, now
         if now - self._pending_since >= self.dwell_s:
-            self.current, self._pending = candidate, None
+            self.previous, self.current, self._pending = self.current, candidate, None
             return candidate
         return None
 
@@ -208,8 +227,10 @@ class Analyzer:
     collapse: CollapseWatch = field(default_factory=CollapseWatch)
     collapsed: set[str] = field(default_factory=set)  # configurations whose detections collapsed in this band
     hosts: dict[str, HostView] = field(default_factory=dict)
+    level: float | None = None  # the last smoothed illumination level
 
     def on_illumination(self, level: float, now: float) -> Trigger | None:
+        self.level = level
         before = self.tracker.current
         band = self.tracker.update(level, now)
         if band is None or before is None:
@@ -388,6 +409,41 @@ class Planner:
                                f"on {target.host} (in_place_change)")
         return "reconfigure", (f"same host, {running.deployment} and {target.deployment} are both "
                                f"{rows[0].get('family')} (in_place_change)")
+
+    def standby(self, *, band: str, running: Placement, lost_hosts: Sequence[str] = (),
+                live_free: Mapping[str, float] | None = None) -> Plan | None:
+        """A warm standby for ``band`` (the neighbouring one) beside ``running``, or None.
+
+        The best-ranked configuration for ``band`` that a host has room for *as
+        well* (the ``placement`` query with today's free memory, which the
+        running detector already uses: no credit for it), onboard first. None when that
+        configuration is the running one (a band change would keep it) or no
+        host has room.
+        """
+        try:
+            _full, ranked = self.candidates(band)
+        except PlanningError:
+            return None
+        row = ranked[0]
+        config = str(row["config"])
+        if config == running.config:
+            return None
+        demand = float(row.get("memory_demand_mb") or 0.0)
+        fits = self._hosts_for(config, demand, None, lost_hosts, live_free)
+        if not fits:
+            return None
+        # Onboard first whatever the preference: an idle standby costs memory, not CPU, and onboard it
+        # also covers losing the link to the remote host (the manager's own host is never lost to it).
+        order = sorted(fits, key=lambda h: (h != self.onboard_host, h))
+        host = order[0]
+        target = Placement(config=config, deployment=str(fits[host]["deployment"]), host=host, demand_mb=demand)
+        reason = (f"standby for band {band}: {config} (first in its ranking) kept idle; {host} has "
+                  f"{_fmt(fits[host].get('free_mb'))} MiB free for {demand:.0f} MiB beside the running "
+                  f"{running.config}@{running.host} (placement)")
+        inputs = {"band": band, "standby": True,
+                  "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in order],
+                  "running": {"config": running.config, "host": running.host}}
+        return Plan(target=target, reason=reason, inputs=inputs, queries=("config_ranking", "placement"))
 
     def _hosts_for(self, config: str, demand: float, running: Placement | None, lost_hosts: Sequence[str],
                    live_free: Mapping[str, float] | None) -> dict[str, dict[str, Any]]:

@@ -94,6 +94,12 @@ def render(data: dict[str, Any]) -> str:
                          f"(first frame {inputs.get('first_seq')}); {inputs.get('change_why')}")
         elif inputs.get("change") == "migrate":
             lines.append(f"  carried out as a new process (make-before-break): {inputs.get('change_why')}")
+        elif inputs.get("change") == "standby":
+            sb = inputs.get("standby") or {}
+            lines.append(f"  carried out as a switch to the warm standby {sb.get('instance')} (started idle for "
+                         f"{sb.get('config')} on {sb.get('host')}; no new process): {inputs.get('change_why')}"
+                         + (f"; the old detector {inputs.get('previous_instance')}: {inputs.get('old')}"
+                            if inputs.get("previous_instance") else ""))
     else:
         lines.append("No adaptation decision chose this placement (started by hand?).")
     now = data.get("placement_now") or []

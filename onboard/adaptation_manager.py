@@ -21,6 +21,21 @@ descent (flight state ``LANDING``, or landed state unknown in LAND/RTL:
 :func:`onboard.flight_phase.in_final_descent`) planned changes are deferred; losing the
 running host is still acted on.
 
+Warm standby (``standby=True``, ``kgadapt onboard --standby``; off by default):
+when the ``placement`` query says a host has room for the configuration of the
+band the light most likely goes to next as well (the band it left at the last
+change, else the neighbour whose edge it is nearest:
+:meth:`onboard.adaptation.BandTracker.neighbour`), the
+manager starts that configuration there through the deployer (supervised and
+profiled like any detector, its memory in the graph) and makes it idle
+(:func:`onboard.detector.set_active`). A change whose target configuration is the
+standby's is then a switch: activate the standby, make it the running detector,
+idle the old one (it becomes the standby). Losing the host that runs the
+detector activates a standby on another host (reconfigured in place to the
+band's configuration if needed) rather than starting a process. The standby is
+the first thing stopped when memory gets short: a ``memory_short`` trigger
+stops it and nothing else; a new one starts only after the next band change.
+
 Reconciliation: what the manager believes runs is checked against what the
 deployers report, on their events for our instance and every
 ``reconcile_s``. A detector stopped, migrated or killed by anyone else, or
@@ -32,6 +47,7 @@ any other detector of ours still running is stopped as a twin.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import json
 import logging
 import queue
@@ -45,6 +61,7 @@ from deploy.deployer import new_instance_name
 from deploy.migration import FirstOutput, migrate, reconfigure
 from knowledge.client import KnowledgeClient
 from onboard.adaptation import FEATURE, Analyzer, BandTracker, Placement, Plan, Planner, PlanningError, Trigger, bands_from_rows
+from onboard.detector import set_active
 from onboard.flight_phase import in_final_descent
 from shared import keys, messages
 from shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
@@ -79,6 +96,8 @@ class AdaptationSettings:
     reconcile_s: float = 0.5  # ask the running detector's deployer how it is at least this often
     in_place: bool = True  # reconfigure in place where the graph allows it (False: always migrate)
     status_window_s: float = 1.5  # a host's free memory counts when its statuses of this window (>= 2) agree
+    standby: bool = False  # keep the neighbouring band's configuration started but idle where a host has room
+    standby_check_s: float = 1.0  # how often the standby is checked against the graph
 
 
 @dataclass(kw_only=True)
@@ -137,6 +156,10 @@ class AdaptationManager:
         self._next_leftover_check = 0.0
         self._trust = StatusTrust(TrustSettings(window_s=settings.status_window_s))
         self._refusal_logged: dict[str, float] = {}
+        self.standby: Placement | None = None  # the warm standby (idle), when settings.standby
+        self._standby_run_id: str | None = None
+        self._standby_paused = False  # stopped for memory: none again until the band changes
+        self._next_standby_check = 0.0
 
     # -- lifecycle -------------------------------------------------------
 
@@ -181,6 +204,12 @@ class AdaptationManager:
                 log.debug("undeclare: %s", exc)
         self._handles = []
         current, self.current = self.current, None
+        standby, self.standby = self.standby, None
+        if standby is not None and standby.instance and self._deployers is not None:
+            try:
+                self._deployers.stop(standby.host, standby.instance)
+            except KgadaptError as exc:
+                log.warning("could not stop the standby %s on %s: %s", standby.instance, standby.host, exc)
         if current is not None and current.instance and self._deployers is not None:
             # We started it; a clean shutdown stops it wherever it runs.
             try:
@@ -247,6 +276,8 @@ class AdaptationManager:
                     self._stop_leftovers()
                 if trigger is not None:
                     self._act(trigger)
+                elif self.settings.standby:
+                    self._keep_standby()
             except Exception:  # the loop must survive any single bad observation or failed action
                 log.exception("adaptation: handling %s failed", kind)
 
@@ -304,6 +335,15 @@ class AdaptationManager:
                         running = None
                 trigger = a.on_host_status(host, free_mb=free, cpu_load=float(m["cpu_load"]), now=now, running=running)
                 view.memory_free_mb = self._trust.confirmed_free(host, received)
+                sb = self.standby
+                if (trigger is None and settled and sb is not None and sb.host == host
+                        and (self.current is None or self.current.host != host) and free + sb.held_mb < sb.demand_mb):
+                    self._refresh_standby_held()
+                    sb = self.standby
+                    if sb is not None and free + sb.held_mb < sb.demand_mb and sb.held_mb >= UNMEASURED_MB:
+                        trigger = Trigger("memory_short", now, {"host": host, "free_mb": round(free, 1),
+                                                                "held_mb": round(sb.held_mb, 1),
+                                                                "demand_mb": sb.demand_mb, "standby": sb.instance})
                 return trigger
             if kind == "flight_state":
                 m = messages.decode(payload, "flight_state")  # malformed ones are dropped and logged either way
@@ -313,6 +353,10 @@ class AdaptationManager:
                 return None
             if kind == "deploy_event":
                 m = messages.decode(payload, "deploy_event")
+                if (self.standby is not None and m["instance"] == self.standby.instance
+                        and m["event"] in ("exited", "stopped", "failed")):
+                    log.info("adaptation: the standby %s %s", m["instance"], m["event"])
+                    self.standby = None
                 if (self.current is not None and m["instance"] == self.current.instance
                         and m["event"] in ("exited", "stopped", "failed")):
                     self._next_check = 0.0  # ask its deployer now, not at the next round
@@ -390,7 +434,8 @@ class AdaptationManager:
         stopped = []
         for p in processes:
             if (p.get("state") in LIVE_STATES and p.get("config") in self._configs
-                    and self.current is not None and p.get("instance") != self.current.instance):
+                    and self.current is not None and p.get("instance") != self.current.instance
+                    and (self.standby is None or p.get("instance") != self.standby.instance)):
                 try:
                     self._deployers.stop(str(p["host"]), str(p["instance"]))
                     stopped.append(str(p["instance"]))
@@ -509,6 +554,21 @@ class AdaptationManager:
                 return
         if self._landed_state is not None:
             self._set_landing(self._landed_state() == "LANDING")
+        if trigger.kind == "band_changed":
+            self._standby_paused = False
+        if trigger.kind == "memory_short" and self.standby is not None:
+            # The standby is the first thing to go: stop it, and plan nothing else on this trigger;
+            # if the host is still short once the statuses show its memory back, the next one moves.
+            sb = self.standby
+            stopped = self._stop_standby()
+            self._standby_paused = True
+            self._settled_after = time.time() + self.settings.settle_s
+            self._record(Outcome(trigger=trigger, outcome=f"stopped the standby {sb.instance} ({sb.config}@{sb.host}) "
+                                 "first" + ("" if stopped else " (its deployer did not answer)"),
+                                 detail={"change": "standby_stopped", "instance": sb.instance,
+                                         "standby": {"config": sb.config, "host": sb.host, "instance": sb.instance,
+                                                     "run_id": self._standby_run_id}}))
+            return
         lost = tuple(h.name for h in a.hosts.values() if not h.online)
         running_lost = self.current is not None and (self.current.host in lost or trigger.kind == "detector_gone")
         if self.landing and not (trigger.urgent or running_lost):
@@ -545,7 +605,11 @@ class AdaptationManager:
                 self._record(Outcome(trigger=trigger, plan=plan, outcome="kept"))
             return
         try:
-            if self.current is None or running_lost:
+            via = self._standby_for(plan, lost, running_lost)
+            if via is not None:
+                result = self._activate_standby(plan, trigger, reconfigure_to=via[1], why=via[0],
+                                                old=None if running_lost else self.current)
+            elif self.current is None or running_lost:
                 result = self._start_fresh(plan, trigger)
             else:
                 change = plan.inputs.get("change", "migrate")  # the planner's choice, from the graph
@@ -660,10 +724,175 @@ class AdaptationManager:
                                "from": f"{old.config}@{old.host}", "target_ready_ms": report.target_ready_ms,
                                **({"source_not_stopped": left_running[:200]} if left_running else {})})
 
+    # -- the warm standby ---------------------------------------------------
+
+    def _standby_for(self, plan: Plan, lost: tuple[str, ...], running_lost: bool) -> tuple[str, str | None] | None:
+        """How the standby can serve ``plan``: (why, configuration to reconfigure it to or None), or None."""
+        sb = self.standby
+        if sb is None or sb.host in lost or self.current is None:
+            return None
+        if sb.config == plan.target.config:
+            return f"the plan's configuration {sb.config} is the standby's, idle on {sb.host}: a switch", None
+        if not running_lost:
+            return None
+        # Failover: a standby of another configuration, changed in place, still beats a new process.
+        change, why = self._planner.change(sb, dataclasses.replace(plan.target, host=sb.host))
+        if change != "reconfigure":
+            return None
+        return f"{self.current.host} lost; the standby {sb.config} on {sb.host} takes over, {why}", plan.target.config
+
+    def _activate_standby(self, plan: Plan, trigger: Trigger, *, reconfigure_to: str | None, why: str,
+                          old: Placement | None) -> Outcome:
+        """Make the standby the running detector; idle ``old`` (it becomes the standby) or stop it."""
+        sb = self.standby
+        s = self.settings
+        config = reconfigure_to or sb.config
+        first = FirstOutput(config=config)
+        sub = self._session.declare_subscriber(keys.detector_markers(s.robot, sb.instance), first)
+        try:
+            set_active(self._session, s.robot, sb.host, sb.instance, True, timeout=s.output_timeout)
+            if reconfigure_to is not None:
+                reconfigure(self._session, s.robot, sb.host, sb.instance, reconfigure_to, timeout=s.output_timeout)
+            got = first.event.wait(s.output_timeout)
+        finally:
+            sub.undeclare()
+        run_id = self._standby_run_id
+        self.standby, self._standby_run_id = None, None
+        target = dataclasses.replace(plan.target, config=config, host=sb.host, deployment=sb.deployment,
+                                     demand_mb=plan.target.demand_mb if config == plan.target.config else sb.demand_mb)
+        plan = dataclasses.replace(plan, target=target)
+        self._set_current(plan, sb.instance, run_id)
+        detail: dict[str, Any] = {"instance": sb.instance, "change": "standby", "change_why": why,
+                                  "standby": {"config": sb.config, "host": sb.host, "instance": sb.instance}}
+        if old is not None and old.instance:
+            detail["previous_instance"] = old.instance
+            detail["from"] = f"{old.config}@{old.host}"
+            old_run_id = getattr(self, "_old_run_id", None)
+            try:
+                set_active(self._session, s.robot, old.host, old.instance, False, timeout=s.output_timeout)
+                self.standby, self._standby_run_id = old, old_run_id
+                detail["old"] = "idle: the standby now"
+            except KgadaptError as exc:
+                log.info("adaptation: could not idle %s (%s); stopping it", old.instance, exc)
+                try:
+                    self._deployers.stop(old.host, old.instance)
+                    detail["old"] = "stopped"
+                except KgadaptError as err:
+                    self._leftovers.append((old.host, old.instance))
+                    detail["old"] = f"left running: {err}"[:200]
+        latency = (first.wall - trigger.time) * 1000.0 if got and first.wall else None
+        return Outcome(trigger=trigger, plan=plan, outcome="switched to the standby" if got
+                       else "switched to the standby, no detections yet", latency_ms=latency,
+                       detail=detail)
+
+    def _stop_standby(self) -> bool:
+        sb, self.standby = self.standby, None
+        self._standby_run_id = None
+        if sb is None or not sb.instance:
+            return True
+        try:
+            self._deployers.stop(sb.host, sb.instance)
+            log.info("adaptation: stopped the standby %s on %s", sb.instance, sb.host)
+            return True
+        except DeploymentError as exc:  # gone already
+            log.info("adaptation: the standby %s is gone: %s", sb.instance, exc)
+            return True
+        except KgadaptError as exc:
+            log.warning("adaptation: could not stop the standby %s on %s: %s", sb.instance, sb.host, exc)
+            self._leftovers.append((sb.host, sb.instance))
+            return False
+
+    def _refresh_standby_held(self) -> None:
+        sb, run_id = self.standby, self._standby_run_id
+        if sb is None or not run_id:
+            return
+        rss = self._profile_rss(run_id)
+        if rss is not None and self.standby is sb:
+            self.standby = dataclasses.replace(sb, held_mb=rss)
+
+    def _profile_rss(self, run_id: str) -> float | None:
+        try:
+            rows = self._knowledge.cypher(
+                "MATCH (r:ProcessProfile {name: $run_id}) RETURN r.rss_mb_max AS rss", {"run_id": run_id})
+        except KgadaptError as exc:
+            log.debug("adaptation: no profile figures yet: %s", exc)
+            return None
+        return float(rows[0]["rss"]) if rows and rows[0].get("rss") is not None else None
+
+    def _keep_standby(self) -> None:
+        """Start, keep or replace the warm standby as the graph allows (see the module's docstring)."""
+        now = time.monotonic()
+        if now < self._next_standby_check:
+            return
+        self._next_standby_check = now + self.settings.standby_check_s
+        a, current = self._analyzer, self.current
+        if current is None or not current.instance or self.landing or self._standby_paused or self._retry is not None:
+            return
+        band = a.tracker.neighbour(a.level)
+        sb = self.standby
+        if band is None:
+            return
+        view = a.hosts.get(sb.host) if sb is not None else None
+        if sb is not None and view is not None and not view.online:
+            # Gone with its host; should it come back from a partition, host_back's reconcile stops it.
+            log.info("adaptation: the standby %s went with %s", sb.instance, sb.host)
+            self.standby = self._standby_run_id = None
+            return
+        if sb is not None:
+            try:
+                _full, left = self._planner.candidates(band.name)
+            except (PlanningError, KgadaptError):
+                return
+            if left[0].get("config") == sb.config and sb.config != current.config:
+                return  # still the one the neighbouring band wants
+            log.info("adaptation: the standby %s (%s) is not band %s's any more", sb.instance, sb.config, band.name)
+            self._stop_standby()
+            return  # its memory shows free in a later status; start the new one then
+        wall = time.time()
+        lost = tuple(h.name for h in a.hosts.values() if not h.online)
+        live = {h.name: free for h in a.hosts.values() if h.online
+                and (free := self._trust.confirmed_free(h.name, wall)) is not None}
+        try:
+            plan = self._planner.standby(band=band.name, running=current, lost_hosts=lost, live_free=live)
+        except KgadaptError as exc:
+            log.debug("adaptation: no standby plan: %s", exc)
+            return
+        if plan is None:
+            return
+        t = plan.target
+        instance = new_instance_name(t.config, t.host)
+        trigger = Trigger("standby", wall, {"band": band.name})
+        try:
+            snapshot = self._deployers.start(t.host, t.deployment, t.config, instance=instance, wait_ready=True,
+                                             ready_timeout=self.settings.ready_timeout)
+        except KgadaptError as exc:
+            self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}", detail={"change": "standby_start"}))
+            return
+        try:
+            # Its deployer said ready; the activity queryable's declaration may still be on its way
+            # (set_active asks again until then). A standby not made idle is stopped, and the
+            # decision says so: it is no standby the failover could count on.
+            set_active(self._session, self.settings.robot, t.host, instance, False, timeout=self.settings.output_timeout)
+        except KgadaptError as exc:
+            try:
+                self._deployers.stop(t.host, instance)
+            except KgadaptError as err:
+                log.warning("adaptation: could not stop %s: %s", instance, err)
+            self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: not made idle: {exc}",
+                                 detail={"change": "standby_start"}))
+            return
+        self.standby = dataclasses.replace(t, instance=instance)
+        self._standby_run_id = snapshot.get("run_id")
+        self._record(Outcome(trigger=trigger, plan=plan, outcome="standby started (idle)",
+                             detail={"change": "standby_start", "instance": instance, "pid": snapshot.get("pid"),
+                                     "standby": {"config": t.config, "host": t.host, "instance": instance,
+                                                 "run_id": snapshot.get("run_id")}}))
+
     def _set_current(self, plan: Plan, instance: str, run_id: str | None) -> None:
         t = plan.target
         self.current = Placement(config=t.config, deployment=t.deployment, host=t.host, instance=instance,
                                  demand_mb=t.demand_mb, held_mb=0.0)
+        self._old_run_id = getattr(self, "_run_id", None)  # the replaced detector's (it may become the standby)
         self._run_id = run_id
         self._held_checked = 0.0
         self._changed_at = time.time()
@@ -688,6 +917,11 @@ class AdaptationManager:
                                  instance=keep["instance"], demand_mb=float(row.get("memory_demand_mb") or 0))
         self._run_id = keep.get("run_id")
         log.info("adaptation: adopted %s on %s", keep["instance"], keep["host"])
+        if self.settings.standby:  # it may have been our standby, idle
+            try:
+                set_active(self._session, self.settings.robot, keep["host"], keep["instance"], True)
+            except KgadaptError as exc:
+                log.warning("adaptation: could not make the adopted %s active: %s", keep["instance"], exc)
         for twin in twins:
             try:
                 self._deployers.stop(twin["host"], twin["instance"])
@@ -704,7 +938,8 @@ class AdaptationManager:
             return stopped
         for p in processes:
             if (p.get("state") in LIVE_STATES and p.get("config") in self._configs
-                    and (self.current is None or p.get("instance") != self.current.instance)):
+                    and (self.current is None or p.get("instance") != self.current.instance)
+                    and (self.standby is None or p.get("instance") != self.standby.instance)):
                 try:
                     self._deployers.stop(host, p["instance"])
                     stopped.append(p["instance"])

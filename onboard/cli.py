@@ -64,6 +64,9 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
     ad.add_argument("--no-in-place", dest="in_place", action="store_false",
                     help="always start a new detector for a change, even where the graph allows an in-place "
                     "reconfiguration (for comparison)")
+    ad.add_argument("--standby", action="store_true",
+                    help="keep the neighbouring illumination band's configuration started but idle where the graph "
+                    "says a host has room for it as well, so a band change or a lost host is a switch (default off)")
 
 
 class FlightPart:
@@ -147,7 +150,8 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
         # the manager's chosen detector, the manager the bridge's landed state (not Zenoh messages).
         manager = AdaptationManager(AdaptationSettings(
             robot=args.robot, camera=args.camera, preference=args.prefer, onboard_host=args.host,
-            dwell_s=args.dwell, hysteresis=args.hysteresis, in_place=args.in_place),
+            dwell_s=args.dwell, hysteresis=args.hysteresis, in_place=args.in_place,
+            standby=args.standby),
             landed_state=flight.landed_state if flight is not None else None)
         if flight is not None:
             flight.manager = manager

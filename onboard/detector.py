@@ -21,6 +21,11 @@ processed with it. It then prints ``KGADAPT_CONFIGURED <config> <deployment>``
 so its deployer's record (and a restart) follow. Anything refused leaves the
 running configuration untouched.
 
+Idle or active: a detector also answers ``kgadapt/<R>/host/<H>/detector/<I>/activity``
+(an ``activity_request``, ``{"active": false}`` or ``true``). An idle detector stays
+subscribed but drops every frame unread and publishes nothing: a warm standby the
+adaptation manager can make the running detector with one request.
+
 Stale frames are dropped, never queued: the Zenoh callback only puts the
 payload into a one-frame slot (replacing an unprocessed one) and a worker
 thread takes the newest frame when it is free. Memory stays bounded whatever
@@ -154,6 +159,8 @@ class Detector:
         self.processed = 0
         self.malformed = 0
         self._stop = threading.Event()
+        self.active = threading.Event()  # cleared: idle (frames dropped unread, nothing published)
+        self.active.set()
         self._worker: threading.Thread | None = None
         self._subscriber: Any = None
         self._publisher: Any = None
@@ -205,8 +212,8 @@ class Detector:
     def _work(self) -> None:
         while not self._stop.is_set():
             item = self.slot.take(timeout=0.5)
-            if item is None:
-                continue
+            if item is None or not self.active.is_set():
+                continue  # idle: no detection work
             try:
                 self._process(*item)
             except MessageError as exc:
@@ -265,6 +272,90 @@ class Detector:
             except Exception as exc:
                 log.debug("undeclare publisher: %s", exc)
             self._publisher = None
+
+
+class ActivitySwitch:
+    """Answers idle/active requests for one detector. Setting a flag and replying does not block,
+    so the queryable's callback answers directly."""
+
+    def __init__(self, detector: Detector) -> None:
+        self.detector = detector
+        self._queryable: Any = None
+
+    def setup(self, session: Any) -> None:
+        s = self.detector.settings
+        try:
+            self._queryable = session.declare_queryable(keys.detector_activity(s.robot, s.host, s.instance),
+                                                        self._on_query)
+        except Exception as exc:
+            raise TransportError(f"detector {s.instance}: cannot declare its activity queryable: {exc}") from exc
+
+    def _on_query(self, query: Any) -> None:
+        d = self.detector
+        try:
+            active = bool(messages.decode(query.payload.to_bytes() if query.payload is not None else b"",
+                                          "activity_request")["active"])
+        except MessageError as exc:
+            try:
+                query.reply_err(f"detector {d.settings.instance}: {exc}")
+            except Exception as err:
+                log.debug("reply_err: %s", err)
+            return
+        if active:
+            d.active.set()
+        else:
+            d.active.clear()
+        log.info("detector %s: %s", d.settings.instance, "active" if active else "idle")
+        try:
+            query.reply(str(query.key_expr), messages.encode(
+                "activity_reply", {"instance": d.settings.instance, "active": active, "processed": d.processed}))
+        except Exception as exc:
+            log.warning("detector %s: cannot reply to an activity request: %s", d.settings.instance, exc)
+
+    def shutdown(self) -> None:
+        if self._queryable is not None:
+            try:
+                self._queryable.undeclare()
+            except Exception as exc:
+                log.debug("undeclare activity queryable: %s", exc)
+            self._queryable = None
+
+
+def set_active(session: Any, robot: str, host: str, instance: str, active: bool, *,
+               timeout: float = 2.0) -> dict[str, Any]:
+    """Make the running detector ``instance`` on ``host`` idle or active; its reply (instance, active, processed).
+
+    No reply at once means no matching queryable is known yet: a detector's
+    deployer says it is ready before every session has its declaration (a
+    standby idled right after its start found none under load). Nobody got the
+    request, so it is asked again until ``timeout``.
+    """
+    key = keys.detector_activity(robot, host, instance)
+    payload = messages.encode("activity_request", {"active": bool(active)})
+    deadline = time.monotonic() + timeout
+    while True:
+        left = max(deadline - time.monotonic(), 0.05)
+        try:
+            replies = list(session.get(key, payload=payload, timeout=left))
+        except Exception as exc:  # zenoh.ZError
+            raise TransportError(f"{'activate' if active else 'idle'} {instance} on {host}: {exc}") from exc
+        if replies:
+            break
+        if time.monotonic() >= deadline:
+            raise RequestTimeout(f"detector {instance} on host {host} did not answer its activity switch "
+                                 f"within {timeout:g} s")
+        time.sleep(0.05)
+    reply = replies[0]
+    if reply.ok is None:
+        text = reply.err.payload.to_string()
+        if text.strip().lower() == "timeout":
+            raise RequestTimeout(f"detector {instance} on host {host} did not answer its activity switch "
+                                 f"within {timeout:g} s")
+        raise DeploymentError(f"activity of {instance} on {host}: {text}")
+    try:
+        return messages.decode(reply.ok.payload.to_bytes(), "activity_reply")
+    except MessageError as exc:
+        raise DeploymentError(f"activity of {instance} on {host}: bad reply: {exc}") from exc
 
 
 class Reconfigurer:
@@ -424,6 +515,7 @@ def run(args: argparse.Namespace) -> int:
     session = None
     detector: Detector | None = None
     reconfigurer: Reconfigurer | None = None
+    switch: ActivitySwitch | None = None
     with StopSignals() as stop:
         try:
             settings = DetectorSettings(robot=args.robot, host=args.host, instance=args.instance, camera=args.camera)
@@ -438,6 +530,8 @@ def run(args: argparse.Namespace) -> int:
                 config, row = fetch_config_row(session, args.robot, args.config, wait_s=args.config_wait)
             detector = Detector(settings, config)
             detector.setup(session)
+            switch = ActivitySwitch(detector)
+            switch.setup(session)
             if row.get("deployment"):  # only a configuration from the graph can be changed from the graph
                 reconfigurer = Reconfigurer(detector, deployment=str(row["deployment"]))
                 reconfigurer.setup(session)
@@ -455,6 +549,8 @@ def run(args: argparse.Namespace) -> int:
         finally:
             if reconfigurer is not None:
                 reconfigurer.shutdown()
+            if switch is not None:
+                switch.shutdown()
             if detector is not None:
                 detector.shutdown()
             if session is not None:

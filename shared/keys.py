@@ -14,7 +14,8 @@ key                                             what travels there
 ``kgadapt/<robot>/camera/<cam>/illumination``   luminance figures per frame
 ``kgadapt/<robot>/detector/<instance>/markers`` detections of one detector instance
 ``kgadapt/<robot>/detector/<instance>/alive``   liveliness token of a detector instance
-``kgadapt/<robot>/host/<host>/detector/<i>/..`` ``.../configure``: queryable, reconfigure detector <i> in place
+``kgadapt/<robot>/host/<host>/detector/<i>/..`` ``.../configure``: queryable, reconfigure detector <i> in place;
+                                                ``.../activity``: queryable, make it idle or active (a standby)
 ``kgadapt/<robot>/flight/state``                flight state from the MAVLink bridge
 ``kgadapt/<robot>/knowledge/query/<name>``      named queries (queryable)
 ``kgadapt/<robot>/knowledge/own/query/<name>``  the same, for the robot's own software only (queryable)
@@ -85,6 +86,12 @@ def detector_configure(robot: str, host: str, instance: str = "*") -> str:
     """A running detector's in-place reconfiguration queryable. Under its host's key space, so
     only those allowed to command that host's deployer may ask (deploy/zenoh/router.json5)."""
     return f"{robot_root(robot)}/host/{check_name(host, 'host')}/detector/{_name_or_star(instance, 'instance')}/configure"
+
+
+def detector_activity(robot: str, host: str, instance: str = "*") -> str:
+    """A running detector's idle/active switch (a warm standby is idle). Under its host's key space,
+    like ``detector_configure``."""
+    return f"{robot_root(robot)}/host/{check_name(host, 'host')}/detector/{_name_or_star(instance, 'instance')}/activity"
 
 
 def detector_alive(robot: str, instance: str = "*") -> str:

@@ -109,6 +109,9 @@ SCHEMAS: dict[str, Schema] = {
             "first_seq": _f(int, required=False), "check_ms": _f(*NUMBER), "build_ms": _f(*NUMBER),
             "first_frame_ms": _f(*NUMBER, required=False),
         }),
+        # A detector's idle/active switch (onboard.detector): an idle detector takes no frames and publishes nothing.
+        Schema("activity_request", 1, {"active": _f(bool)}),
+        Schema("activity_reply", 1, {"instance": _NAME, "active": _f(bool), "processed": _f(int)}),
         Schema("deploy_reply", 1, {"ok": _f(bool), "detail": _f(dict, required=False)}),
         Schema("deploy_event", 1, {
             "event": _f(str, max_len=32), "host": _NAME, "instance": _NAME, "time": _TIME,

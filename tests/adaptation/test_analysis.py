@@ -169,3 +169,17 @@ def test_a_detector_finding_one_marker_of_six_has_collapsed_though_every_frame_h
         if trigger:
             fired.append(trigger)
     assert len(fired) == 1 and fired[0].detail["in_view"] == 6 and fired[0].detail["rate"] < 0.95 / 2
+
+
+def test_the_next_band_is_the_one_left_last_else_the_neighbour_whose_edge_the_light_is_nearest():
+    t = tracker()
+    t.update(120.0, 0.0)
+    assert t.current.name == "day" and t.neighbour(120.0).name == "dusk"  # the only neighbour
+    t.current = next(b for b in BANDS if b.name == "dusk")
+    assert t.neighbour(70.0).name == "day"
+    assert t.neighbour(30.0).name == "dark"
+    t = tracker()
+    t.update(120.0, 0.0)
+    t.update(5.0, 1.0)
+    assert t.update(5.0, 2.5).name == "dark"
+    assert t.neighbour(5.0).name == "day"  # the light comes back (not the adjacent dusk)

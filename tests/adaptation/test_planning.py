@@ -164,3 +164,17 @@ def test_the_planner_reconfigures_in_place_on_the_same_host_and_migrates_across_
     graph.execute("MATCH (d:Deployment {name: 'detector_day'}) REMOVE d.reconfigurable_as")
     refused = planner(graph).plan(band="dark", running=day)
     assert refused.inputs["change"] == "migrate" and "does not let detector_day" in refused.inputs["change_why"]
+
+
+def test_a_standby_for_the_neighbouring_band_goes_where_there_is_room_as_well(graph):
+    day = Placement(config="marker_detection_day", deployment="x", host="onboard", instance="i", demand_mb=72,
+                    held_mb=70)
+    plan = planner(graph).standby(band="dusk", running=day)
+    assert (plan.target.config, plan.target.host) == ("marker_detection_dusk", "onboard")
+    assert plan.inputs["standby"] and "beside the running marker_detection_day@onboard" in plan.reason
+    # No credit for the running detector's memory: the standby comes in addition to it.
+    update_platform(graph, name="onboard", time=2.0, memory_free_mb=100)
+    assert planner(graph).standby(band="dark", running=day).target.host == "remote"
+    assert planner(graph).standby(band="dark", running=day, lost_hosts=("remote",)) is None
+    # The running configuration serves the band already: nothing to keep warm.
+    assert planner(graph).standby(band="day", running=day) is None

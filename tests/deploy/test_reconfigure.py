@@ -9,6 +9,8 @@ reason and the running one keeps detecting.
 
 from __future__ import annotations
 
+import threading
+
 import pytest
 
 from deploy.client import DeployerClient
@@ -74,3 +76,51 @@ def test_the_detector_takes_another_configuration_between_two_frames(hosts, clie
         events.close()
         markers.close()
         frames.close()
+
+
+
+def test_an_idle_detector_publishes_nothing_until_made_active(hosts, client_session, graph):
+    from onboard.detector import set_active
+
+    frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
+    markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
+    try:
+        client = DeployerClient(client_session, ROBOT)
+        started = client.start("onboard", "detector_day", "marker_detection_day", instance="idle1")
+        markers.wait_for(lambda d: d["instance"] == "idle1" and d["ids"])
+        reply = set_active(client_session, ROBOT, "onboard", "idle1", False)
+        idle_at = frames.seq
+        assert (reply["instance"], reply["active"]) == ("idle1", False)
+        wait_for(lambda: frames.seq >= idle_at + 15, 5, "half a second of frames while idle")
+        # One frame may be in detection and one in the slot when the request lands; none after.
+        assert not [d for _, d in list(markers.items) if d["seq"] > idle_at + 2], "an idle detector publishes nothing"
+        assert set_active(client_session, ROBOT, "onboard", "idle1", True)["active"] is True
+        markers.wait_for(lambda d: d["instance"] == "idle1" and d["seq"] > idle_at + 15 and d["ids"])
+        assert client.status("onboard", "idle1")["pid"] == started["pid"]  # the same process throughout
+        bad = list(client_session.get(keys.detector_activity(ROBOT, "onboard", "idle1"),
+                                      payload=b"not a request", timeout=2))
+        assert bad and bad[0].ok is None and "idle1" in bad[0].err.payload.to_string()  # refused, named
+        client.stop("onboard", "idle1")
+    finally:
+        markers.close()
+        frames.close()
+
+
+def test_an_activity_switch_asked_before_the_detector_is_up_reaches_it_once_it_is(hosts, client_session, graph):
+    # The adaptation manager idles a standby as soon as its deployer says ready; the activity
+    # queryable's declaration may reach the manager's session later than that. set_active asks
+    # again until its timeout rather than failing on the first empty answer (which left a failover
+    # with no standby and a new process under load).
+    from onboard.detector import set_active
+
+    replies: list = []
+    asking = threading.Thread(target=lambda: replies.append(
+        set_active(client_session, ROBOT, "onboard", "early1", False, timeout=30.0)), daemon=True)
+    asking.start()  # before the detector exists: no queryable matches yet
+    client = DeployerClient(client_session, ROBOT)
+    client.start("onboard", "detector_day", "marker_detection_day", instance="early1")
+    try:
+        asking.join(35)
+        assert replies and (replies[0]["instance"], replies[0]["active"]) == ("early1", False), replies
+    finally:
+        client.stop("onboard", "early1")

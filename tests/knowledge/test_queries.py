@@ -185,6 +185,27 @@ def test_current_placement_is_the_newest_running_detector_and_the_decision_behin
     assert (row["instance"], row["host"], row["decision"]) == ("i1", "beta", None)
 
 
+def test_current_placement_is_not_a_warm_standby_until_a_decision_switches_to_it(known_store):
+    R.record_process_start(known_store, run_id="run", instance="i1", deployment="d_a", config="g_a", host="alpha",
+                           pid=10, start_time=10.0)
+    R.record_decision(known_store, name="start", time=11.0, trigger="startup", config="g_a", host="alpha", outcome="ok")
+    R.record_process_start(known_store, run_id="warm", instance="i2", deployment="d_b", config="g_b", host="alpha",
+                           pid=20, start_time=12.0)
+    R.record_decision(known_store, name="warm", time=13.0, trigger="standby(band=dusk)", config="g_b", host="alpha",
+                      outcome="standby started (idle)")
+    row, = _run(known_store, "current_placement")
+    assert (row["instance"], row["decision"]) == ("i1", "start")  # the newer process is the idle standby
+    R.record_decision(known_store, name="switch", time=20.0, trigger="band_changed", config="g_b", host="alpha",
+                      outcome="switched to the standby")
+    row, = _run(known_store, "current_placement")
+    assert (row["instance"], row["decision"]) == ("i2", "switch")
+    # The light goes back: the old one (idle since) is switched to again, though it started first.
+    R.record_decision(known_store, name="back", time=30.0, trigger="band_changed", config="g_a", host="alpha",
+                      outcome="switched to the standby")
+    row, = _run(known_store, "current_placement")
+    assert (row["instance"], row["decision"]) == ("i1", "back")
+
+
 def _tiny_graph(store):
     """f <-REALIZES- g -CONTAINS-> c(100);  d1 -DEPLOYS-> g, d1 -> remote(free 120);
     d2 -DEPLOYS-> fc(50), d2 -> remote;  d3 -> onboard(free 200), unrelated to f."""

@@ -26,6 +26,7 @@ import pytest
 from deploy.client import DeployerClient
 from knowledge.client import KnowledgeClient
 from knowledge.runtime import WRITERS
+from onboard.detector import set_active
 from shared import keys, messages
 from shared.errors import RemoteError, RequestTimeout, TransportError
 from shared.hostmonitor import squeeze
@@ -490,6 +491,11 @@ def test_a_detector_runs_with_its_own_identity(network, session_as):
             # Its reconfiguration queryable, declared with its own identity, answers the operator.
             configure = keys.detector_configure(ROBOT, "onboard", "own_identity")
             assert len(reply_payloads(operator_session, configure, b"not a request")) == 1
+            # Its idle/active switch (the warm standby's): the manager's identity may, the remote host's may not.
+            assert set_active(session_as(f"{ROBOT}-onboard"), ROBOT, "onboard", "own_identity", False,
+                              timeout=5.0)["active"] is False
+            with pytest.raises(RequestTimeout):
+                set_active(session_as(f"{ROBOT}-remote"), ROBOT, "onboard", "own_identity", True, timeout=1.0)
         finally:
             operator.stop("onboard", "own_identity")
     finally:

@@ -1,0 +1,112 @@
+"""The warm standby (``kgadapt onboard --standby``), end to end with real processes.
+
+One robot (remote-first, light near the dusk/dark edge, then dark) goes through
+everything the standby is for, so the whole robot starts once: the manager keeps
+the neighbouring band's configuration started but idle where the graph says a
+host has room for it as well; its memory is in the graph like any process's;
+losing the remote host activates it (reconfigured in place) instead of starting
+a process; a band change to it is a switch (no process started or stopped); and
+it is the first thing stopped when memory gets short.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+
+from deploy.client import DeployerClient
+from knowledge.client import KnowledgeClient
+from knowledge.store import open_store
+from onboard.adaptation_cli import explain, render
+from shared.hostmonitor import squeeze
+from tests.adaptation.test_adaptation_e2e import Run
+
+pytestmark = pytest.mark.slow
+
+LIVE = ("starting", "ready", "running", "restarting")
+DUSK, DARK = "marker_detection_dusk", "marker_detection_dark"
+STEP_S = 14.0  # dusk until then: startup, the standby, the failover and the next standby all come before it
+
+
+def detectors(run: Run, host: str = "*") -> dict[str, tuple[str, int, str]]:
+    """instance -> (host, pid, configuration) of every live detector process (on ``host``).
+
+    A loaded machine can keep a deployer from answering for seconds: a generous bound, not a tight one.
+    """
+    return {p["instance"]: (p["host"], p["pid"], p["config"])
+            for p in DeployerClient(run.session, "quad1", timeout=20.0).list(host) if p.get("state") in LIVE}
+
+
+def idle_standbys(run: Run) -> list:
+    """The standbys started and made idle so far (a failed start is a decision of the same kind)."""
+    return [d for d in run.recorder.decisions if d.kind == "standby" and d.outcome == "standby started (idle)"]
+
+
+def open_profile(run: Run, config: str) -> dict | None:
+    """The open ProcessProfile of a process running ``config``, with a measured RSS, and its host."""
+    with open_store(run.cluster.store_url) as store:
+        rows = store.execute(
+            "MATCH (p:Platform)<-[:RAN_ON]-(r:ProcessProfile)-[:RAN_CONFIG]->(:PerceptionGraph {name: $config}) "
+            "WHERE r.end_time IS NULL AND r.rss_mb_max > 5 RETURN r.name AS run_id, r.rss_mb_max AS rss, p.name AS host",
+            {"config": config}, read_only=True)
+    return rows[0] if rows else None
+
+
+def test_the_standby_is_counted_takes_over_a_lost_host_is_switched_to_and_goes_first_in_a_squeeze(tmp_path):
+    points = [[0, 16], [STEP_S, 16], [STEP_S + 1, 5], [STEP_S + 60, 5]]
+    with Run(tmp_path, points, prefer="remote-first", standby=True) as run:
+        first = run.wait_for(run.decision("startup"), 40, "the first detector")
+        ready = run.wait_for(lambda: idle_standbys(run), 30, "the standby")[0]
+        # Remote-first runs the detector remote; the standby (memory, no CPU) goes onboard, for the
+        # band whose edge the light is nearest (dark).
+        assert (first.config, first.host, ready.config, ready.host) == (DUSK, "remote", DARK, "onboard"), (first, ready)
+        profile = run.wait_for(lambda: open_profile(run, DARK), 30, "the standby's profile")
+        standby = detectors(run, "onboard")
+        run.wait_for(lambda: time.time() > ready.time + 1.5, 5, "a second of frames with the standby idle")
+        idle_running = run.running(ready.time + 0.5)
+
+        run.cluster.kill("remote", signal.SIGKILL)
+        lost = run.wait_for(run.decision("host_lost"), 30, "the lost host")
+        run.wait_for(lambda: (DUSK, "onboard") in run.running(lost.time), 30, "dusk detections onboard")
+        after_failover = detectors(run, "onboard")  # only the onboard deployer: the remote one is dead
+
+        second = run.wait_for(lambda: idle_standbys(run)[1:], 30, "the next standby")[0]
+        before_switch = detectors(run, "onboard")
+        switch = run.wait_for(run.decision("band_changed"), 60, "the band change to dark")
+        run.wait_for(lambda: (DARK, "onboard") in run.running(switch.time), 30, "dark detections")
+        after_switch = detectors(run, "onboard")
+        since = time.time()
+        time.sleep(1.0)  # a second of detections: only the new running detector's
+        running = run.running(since)
+        explained = explain(KnowledgeClient(run.session, "quad1", own=True, timeout=10.0).query)
+
+        squeeze(run.session, "quad1", "onboard", 350.0, timeout=10.0)  # dark needs 300 MiB: short now
+        short = run.wait_for(run.decision("memory_short"), 30, "the squeeze to be noticed")
+        run.wait_for(lambda: lost.instance not in detectors(run, "onboard"), 30, "the standby's process gone")
+        after_squeeze = detectors(run, "onboard")
+
+    # Its memory counts in the graph like any process's, though it publishes nothing.
+    assert (profile["host"], profile["rss"] > 5) == ("onboard", True), profile
+    assert len(standby) == 1 and idle_running == {(DUSK, "remote")}, (standby, idle_running)
+    # Failover: the standby, reconfigured in place to dusk, is the detector; no process started.
+    assert (lost.change, lost.config, lost.host) == ("standby", DUSK, "onboard"), lost
+    assert lost.outcome.startswith("switched to the standby"), lost
+    # The same process, now on dusk; the only other one is the next standby (dark), which may be up already.
+    assert lost.instance in standby and after_failover[lost.instance][:2] == standby[lost.instance][:2], after_failover
+    assert not [i for i, (_, _, config) in after_failover.items() if i != lost.instance and config != DARK], (
+        f"no new process for the failover: {after_failover}")
+    # A standby again (dark beside the running dusk, a process of its own), then the band change: a switch.
+    assert (second.config, second.host) == (DARK, "onboard"), second
+    assert (switch.change, switch.config, switch.host) == ("standby", DARK, "onboard"), switch
+    assert switch.instance not in standby and switch.instance in before_switch, switch
+    assert switch.previous_instance == lost.instance
+    assert after_switch == before_switch, "a switch starts no process and stops none (the old one is the standby now)"
+    assert running == {(DARK, "onboard")}, "the old detector, idle, publishes nothing"
+    assert explained["running"]["instance"] == switch.instance  # not the old one, idle beside it
+    assert explained["decision"]["inputs"]["change"] == "standby"
+    assert "switch to the warm standby" in render(explained), render(explained)
+    # Memory short: the standby is stopped first, the running detector stays.
+    assert short.change == "standby_stopped" and short.outcome.startswith(f"stopped the standby {lost.instance}"), short
+    assert list(after_squeeze) == [switch.instance], after_squeeze
