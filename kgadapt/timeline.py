@@ -30,6 +30,9 @@ class Decision:
     latency_ms: float | None
     frames_lost: int | None = None  # frames between the old detector's last answer and the new one's first
     frames_dropped: int | None = None  # frames no detector answered around the migration (busy detectors)
+    # Of frames_lost in an in-place change: those the detector says it replaced in its one-frame slot
+    # while busy (its "dropped" count rose across the gap), as it does whenever the CPU falls behind.
+    frames_lost_busy: int | None = None
     instance: str | None = None
     previous_instance: str | None = None
     trigger_time: float | None = None  # when the manager observed the trigger (the band decided, after the dwell)
@@ -70,6 +73,7 @@ class Recorder:
         self._lock = threading.Lock()
         self._subs: list[Any] = []
         self._detected_seqs: set[int] = set()
+        self._dropped: dict[tuple[str, int], int] = {}  # (instance, seq answered) -> the detector's dropped count
 
     def setup(self, session: Any) -> None:
         r = self.robot
@@ -120,6 +124,7 @@ class Recorder:
                 self.detections.append((time.time(), str(m["instance"]), str(m["config"]), str(m["host"]),
                                         int(m["seq"]), len(m["ids"])))
                 self._detected_seqs.add(int(m["seq"]))
+                self._dropped[(str(m["instance"]), int(m["seq"]))] = int(m.get("dropped") or 0)
                 if m["ids"]:
                     self.found.append((int(m["seq"]), float(m["time"]), frozenset(int(i) for i in m["ids"])))
 
@@ -209,6 +214,11 @@ class Recorder:
                 continue
             old_last, new_first = max(old), min(new)
             d.frames_lost = sum(1 for seq in frames if old_last < seq < new_first)
+            if d.outcome.startswith("reconfigured"):
+                with self._lock:
+                    rose = (self._dropped.get((d.instance or "", new_first), 0)
+                            - self._dropped.get((d.instance or "", old_last), 0))
+                d.frames_lost_busy = min(d.frames_lost, max(0, rose))
 
     def light_steps(self, classify: Callable[[float], str | None]) -> list[LightStep]:
         """Every step of the scenario's light between the classes ``classify`` gives levels
