@@ -48,7 +48,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Protocol, TypeVar, cast
+from typing import Any, Callable, Iterable, Iterator, Protocol, TypeVar, cast
 
 import zenoh
 
@@ -83,6 +83,24 @@ def declared(stack: contextlib.ExitStack, entity: E) -> E:
     return entity
 
 
+@dataclass(frozen=True, kw_only=True)
+class Request:
+    """What a handler sees of a query (never the Zenoh query itself: replying is the server's)."""
+
+    key: str  # the query's key expression (it may hold wildcards)
+    payload: bytes | None
+    parameters: dict[str, str]  # the selector's ``?name=value;...``
+    received: float  # time.time() when the query arrived
+
+
+@dataclass(frozen=True, kw_only=True)
+class Reply:
+    """``payload`` on ``key``: a handler's answer (``key`` concrete, matching the query's), or one received."""
+
+    key: str
+    payload: bytes
+
+
 # -- asking -----------------------------------------------------------------------
 
 
@@ -93,38 +111,71 @@ class _End:
 _END = _End()
 
 
-def _send(session: zenoh.Session, key: str, payload: bytes, timeout: float) -> "queue.Queue[zenoh.Reply | _End]":
-    """Send one query; its replies, then ``_END``, arrive on the returned queue."""
-    replies: queue.Queue[zenoh.Reply | _End] = queue.Queue()
+class Pending:
+    """The replies of one query, as they arrive, until every queryable reached is done or the deadline passes."""
+
+    def __init__(self, key: str, timeout: float) -> None:
+        self.key = key
+        self.timeout = timeout
+        self.deadline = time.monotonic() + timeout
+        self.finished = False  # Zenoh ended the query: every queryable it reached is done
+        self._queue: queue.Queue[zenoh.Reply | _End] = queue.Queue()
+
+    def replies(self) -> Iterator[Reply | RemoteError]:
+        """Each reply: a :class:`Reply`, or a :class:`RemoteError` (not raised) for an error reply.
+
+        Ends when Zenoh ends the query (``finished``) or at the deadline.
+        """
+        while not self.finished:
+            try:
+                item = self._queue.get(timeout=max(0.0, self.deadline - time.monotonic()))
+            except queue.Empty:
+                return
+            if isinstance(item, _End):
+                self.finished = True
+                return
+            if item.ok is not None:
+                yield Reply(key=str(item.ok.key_expr), payload=item.ok.payload.to_bytes())
+            elif item.err is not None:
+                yield RemoteError(item.err.payload.to_bytes().decode("utf-8", "replace"))
+
+
+def ask(session: zenoh.Session, key: str, payload: bytes, *, timeout: float, every_reply: bool = False) -> Pending:
+    """Send one query on ``key`` and return at once; read its replies from the :class:`Pending`.
+
+    ``every_reply``: no consolidation (each queryable's reply, as soon as it
+    comes, even two on one key); else Zenoh's default.
+    """
+    if not timeout > 0:
+        raise TransportError(f"query on {key}: timeout {timeout!r} s must be more than 0")
+    pending = Pending(key, timeout)
+    put = pending._queue.put
+    options: dict[str, Any] = {"consolidation": zenoh.ConsolidationMode.NONE} if every_reply else {}
     try:
-        # A callback (not a channel) so that the caller can wait with its own deadline.
-        session.get(key, zenoh.handlers.Callback(replies.put, lambda: replies.put(_END)),
-                    payload=payload, timeout=timeout + GRACE)
+        # A callback (not a channel) so that the asker can wait with its own deadline.
+        session.get(key, zenoh.handlers.Callback(put, lambda: put(_END)), payload=payload, timeout=timeout + GRACE,
+                    **options)
     except zenoh.ZError as exc:
         raise TransportError(f"query on {key}: {exc}") from exc
-    return replies
+    return pending
 
 
 def _exchange(session: zenoh.Session, key: str, payload: bytes, *, timeout: float, resend_for: float,
-              first_only: bool) -> list[zenoh.Reply]:
-    """The replies to one request: the first (``first_only``) or all; typed errors otherwise."""
+              first_only: bool) -> list[Reply | RemoteError]:
+    """The replies to one request: the first (``first_only``) or all; NoResponder or RequestTimeout else."""
     if not timeout > 0:
         raise TransportError(f"query on {key}: timeout {timeout!r} s must be more than 0")
     start = time.monotonic()
     deadline = start + timeout
     while True:
-        replies = _send(session, key, payload, deadline - time.monotonic())
-        got: list[zenoh.Reply] = []
-        while True:
-            try:
-                item = replies.get(timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Empty:
-                raise RequestTimeout(f"no reply on {key} within {timeout:g} s") from None
-            if isinstance(item, _End):
-                break
-            got.append(item)
+        pending = ask(session, key, payload, timeout=max(0.001, deadline - time.monotonic()))
+        got: list[Reply | RemoteError] = []
+        for reply in pending.replies():
+            got.append(reply)
             if first_only:
-                break
+                return got
+        if not pending.finished:
+            raise RequestTimeout(f"no reply on {key} within {timeout:g} s")
         if got:
             return got
         # Ended without a reply: nobody received the request, so sending it again is safe.
@@ -133,11 +184,10 @@ def _exchange(session: zenoh.Session, key: str, payload: bytes, *, timeout: floa
         time.sleep(RESEND_PAUSE)
 
 
-def _decoded(reply: zenoh.Reply, decode: Callable[[bytes], T]) -> T:
-    if reply.ok is not None:
-        return decode(reply.ok.payload.to_bytes())
-    assert reply.err is not None
-    raise RemoteError(reply.err.payload.to_bytes().decode("utf-8", "replace"))
+def _decoded(reply: Reply | RemoteError, decode: Callable[[bytes], T]) -> T:
+    if isinstance(reply, RemoteError):
+        raise reply
+    return decode(reply.payload)
 
 
 def call(session: zenoh.Session, key: str, payload: bytes, decode: Callable[[bytes], T], *, timeout: float,
@@ -164,24 +214,6 @@ def gather(session: zenoh.Session, key: str, payload: bytes, decode: Callable[[b
 
 
 # -- answering --------------------------------------------------------------------
-
-
-@dataclass(frozen=True, kw_only=True)
-class Request:
-    """What a handler sees of a query (never the Zenoh query itself: replying is the server's)."""
-
-    key: str  # the query's key expression (it may hold wildcards)
-    payload: bytes | None
-    parameters: dict[str, str]  # the selector's ``?name=value;...``
-    received: float  # time.time() when the query arrived
-
-
-@dataclass(frozen=True, kw_only=True)
-class Reply:
-    """A handler's answer: ``payload`` sent on ``key`` (a concrete key the query's expression matches)."""
-
-    key: str
-    payload: bytes
 
 
 Handler = Callable[[Request], Reply]
