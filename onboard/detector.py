@@ -248,10 +248,7 @@ class Detector:
         for name in ("_token", "_subscriber"):
             thing = getattr(self, name)
             if thing is not None:
-                try:
-                    thing.undeclare()
-                except Exception as exc:
-                    log.debug("undeclare %s: %s", name, exc)
+                rpc.undeclare_quietly(thing)
                 setattr(self, name, None)
         self._stop.set()
         self.slot.close()
@@ -259,10 +256,7 @@ class Detector:
             self._worker.join(timeout=5)
             self._worker = None
         if self._publisher is not None:
-            try:
-                self._publisher.undeclare()
-            except Exception as exc:
-                log.debug("undeclare publisher: %s", exc)
+            rpc.undeclare_quietly(self._publisher)
             self._publisher = None
 
 
