@@ -53,8 +53,9 @@ A status never sets ``online``: only the token does, so a late status cannot
 revive a host whose token is gone. At setup every platform is first marked
 offline; the liveliness history then marks the live ones online again.
 
-Threads: Zenoh callbacks only put work on queues. Request workers (``workers``
-of them) answer queries; one status worker applies host statuses and
+Threads: Zenoh callbacks only put work on queues. Request workers (two
+:class:`shared.rpc.Server` pools: ``workers`` for the robot's own requests,
+``public_workers`` for other robots') answer queries; one status worker applies host statuses and
 liveliness changes, keeping only the newest of each per host when it falls
 behind, so a burst of statuses costs one write per host.
 """
