@@ -211,7 +211,7 @@ def reconfigure(session: Any, robot: str, host: str, instance: str, config: str,
     try:
         body = rpc.call(session, key, payload, lambda data: messages.decode(data, "configure_reply"), timeout=timeout)
     except NoResponder as exc:
-        raise NoResponder(f"detector {instance} on host {host} has no configure queryable (not reconfigurable)") from exc
+        raise RequestTimeout(f"detector {instance} on host {host} has no configure queryable (not reconfigurable)") from exc
     except RequestTimeout as exc:  # the detector took it, or not: its deployer's record says which
         raise DeploymentError(f"reconfigure {instance} on {host}: no reply within {timeout:g} s") from exc
     except RemoteError as exc:
