@@ -12,8 +12,8 @@ side's ``reply_err`` text, :class:`~shared.errors.NoResponder` says nobody
 serves the key (the query ended without a reply), :class:`~shared.errors.RequestTimeout`
 that the deadline passed; Zenoh's own failures (closed session, bad key)
 become :class:`~shared.errors.TransportError`. Our deadline comes before
-Zenoh's (it gets ``timeout + GRACE``), so Zenoh's own "Timeout" error reply
-never reaches a caller. ``resend_for``: a query that ends at once without a
+Zenoh's (it gets ``timeout + GRACE``): anything arriving after it, Zenoh's own
+"Timeout" error reply included, counts as no reply, judged by the clock. ``resend_for``: a query that ends at once without a
 reply reached nobody (a session opened a moment ago may not know the
 queryables yet), so it is sent again for up to that many seconds.
 
@@ -58,7 +58,9 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-GRACE = 1.0  # Zenoh's own query timeout is ours plus this: our deadline always comes first
+# Zenoh's own query timeout is ours plus this, so that its end (and its "Timeout" error reply) comes after
+# our deadline: a reply is judged late by the clock, never by its text.
+GRACE = 0.05
 RESEND_PAUSE = 0.05  # between sends of a query that reached nobody
 
 
@@ -104,40 +106,33 @@ class Reply:
 # -- asking -----------------------------------------------------------------------
 
 
-class _End:
-    """Put on a reply queue when Zenoh finished the query (every queryable done, or Zenoh's timeout)."""
-
-
-_END = _End()
-
-
 class Pending:
     """The replies of one query, as they arrive, until every queryable reached is done or the deadline passes."""
 
-    def __init__(self, key: str, timeout: float) -> None:
+    def __init__(self, key: str, timeout: float, deadline: float, replies: zenoh.Handler[zenoh.Reply]) -> None:
         self.key = key
         self.timeout = timeout
-        self.deadline = time.monotonic() + timeout
-        self.finished = False  # Zenoh ended the query: every queryable it reached is done
-        self._queue: queue.Queue[zenoh.Reply | _End] = queue.Queue()
+        self.deadline = deadline  # time.monotonic() past which a reply is late
+        self.finished = False  # Zenoh ended the query before the deadline: every queryable it reached is done
+        self._replies = replies
 
     def replies(self) -> Iterator[Reply | RemoteError]:
         """Each reply: a :class:`Reply`, or a :class:`RemoteError` (not raised) for an error reply.
 
-        Ends when Zenoh ends the query (``finished``) or at the deadline.
+        Ends when Zenoh ends the query (``finished``) or with the first reply
+        that comes after the deadline (which may be Zenoh's own "Timeout"
+        error reply: it is never handed out).
         """
-        while not self.finished:
-            try:
-                item = self._queue.get(timeout=max(0.0, self.deadline - time.monotonic()))
-            except queue.Empty:
-                return
-            if isinstance(item, _End):
-                self.finished = True
+        if self.finished:
+            return
+        for item in self._replies:  # Zenoh's channel: no thread hop, unlike a callback
+            if time.monotonic() > self.deadline:
                 return
             if item.ok is not None:
                 yield Reply(key=str(item.ok.key_expr), payload=item.ok.payload.to_bytes())
             elif item.err is not None:
                 yield RemoteError(item.err.payload.to_bytes().decode("utf-8", "replace"))
+        self.finished = time.monotonic() <= self.deadline
 
 
 def ask(session: zenoh.Session, key: str, payload: bytes, *, timeout: float, every_reply: bool = False) -> Pending:
@@ -148,16 +143,14 @@ def ask(session: zenoh.Session, key: str, payload: bytes, *, timeout: float, eve
     """
     if not timeout > 0:
         raise TransportError(f"query on {key}: timeout {timeout!r} s must be more than 0")
-    pending = Pending(key, timeout)
-    put = pending._queue.put
     options: dict[str, Any] = {"consolidation": zenoh.ConsolidationMode.NONE} if every_reply else {}
+    deadline = time.monotonic() + timeout  # before Zenoh's timer starts
     try:
-        # A callback (not a channel) so that the asker can wait with its own deadline.
-        session.get(key, zenoh.handlers.Callback(put, lambda: put(_END)), payload=payload, timeout=timeout + GRACE,
-                    **options)
+        # Zenoh's timeout a little after ours: what it sends when it expires comes after our deadline.
+        handler = session.get(key, payload=payload, timeout=timeout + GRACE, **options)
     except zenoh.ZError as exc:
         raise TransportError(f"query on {key}: {exc}") from exc
-    return pending
+    return Pending(key, timeout, deadline, handler)
 
 
 def _exchange(session: zenoh.Session, key: str, payload: bytes, *, timeout: float, resend_for: float,
