@@ -2,20 +2,23 @@
 
 Asking::
 
-    reply = call(session, key, messages.encode("query_request", body), decode_rows, timeout=2.0)
-    replies = gather(session, key, payload, decode, timeout=5.0)   # every queryable that matches
+    rows = call(session, key, messages.encode("query_request", body), decode_rows, timeout=2.0)
+    details = gather(session, key, payload, decode, timeout=5.0)   # every queryable that matches
+    pending = ask(session, key, payload, timeout=2.0, every_reply=True)   # replies as they come
+    for reply in pending.replies(): ...
 
 :func:`call` returns the first reply decoded, :func:`gather` every reply once
 all matching queryables have finished. Errors are typed, never ``None`` and
 never a text to compare: :class:`~shared.errors.RemoteError` carries the far
 side's ``reply_err`` text, :class:`~shared.errors.NoResponder` says nobody
-serves the key (the query ended without a reply), :class:`~shared.errors.RequestTimeout`
-that the deadline passed; Zenoh's own failures (closed session, bad key)
-become :class:`~shared.errors.TransportError`. Our deadline comes before
-Zenoh's (it gets ``timeout + GRACE``): anything arriving after it, Zenoh's own
-"Timeout" error reply included, counts as no reply, judged by the clock. ``resend_for``: a query that ends at once without a
-reply reached nobody (a session opened a moment ago may not know the
-queryables yet), so it is sent again for up to that many seconds.
+serves the key (the query ended without a reply),
+:class:`~shared.errors.RequestTimeout` that the deadline passed; Zenoh's own
+failures (closed session, bad key) become :class:`~shared.errors.TransportError`.
+Zenoh's own query timeout is ``timeout + GRACE``: anything arriving after our
+deadline, Zenoh's "Timeout" error reply included, counts as no reply, judged
+by the clock. ``resend_for``: a query that ends at once without a reply
+reached nobody (a session opened a moment ago may not know the queryables
+yet), so it is sent again for up to that many seconds.
 
 Answering::
 
@@ -52,7 +55,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, TypeVar, cast
 
 import zenoh
 
-from shared.errors import KgadaptError, NoResponder, RemoteError, RequestTimeout, TransportError
+from shared.errors import ConfigError, KgadaptError, NoResponder, RemoteError, RequestTimeout, TransportError
 
 log = logging.getLogger(__name__)
 
@@ -215,7 +218,7 @@ _STOP = object()
 
 
 @dataclass(frozen=True)
-class _Pending:
+class _Queued:
     query: zenoh.Query
     handler: Handler
     what: str
@@ -231,7 +234,7 @@ class Server:
 
     def __init__(self, name: str, *, workers: int = 1, max_pending: int = 64, prefix: str = "") -> None:
         if workers < 1 or max_pending < 1:
-            raise ValueError(f"{name}: workers {workers!r} and max_pending {max_pending!r} must be at least 1")
+            raise ConfigError(f"{name}: workers {workers!r} and max_pending {max_pending!r} must be at least 1")
         self.name = name
         self.workers = workers
         self.prefix = prefix
@@ -260,7 +263,7 @@ class Server:
 
         def on_query(query: zenoh.Query) -> None:
             # Zenoh callback: queue and return, nothing else.
-            self._enqueue(_Pending(query, handler, label, time.time()))
+            self._enqueue(_Queued(query, handler, label, time.time()))
 
         try:
             self._queryables.append(session.declare_queryable(key, on_query))
@@ -316,7 +319,7 @@ class Server:
         with self._stats_lock:
             self._stats[what] += 1
 
-    def _enqueue(self, item: _Pending) -> None:
+    def _enqueue(self, item: _Queued) -> None:
         if self._closing.is_set():
             _finish(item.query, error=f"{self.name} is shutting down")
             return
@@ -353,7 +356,7 @@ class Server:
                 with self._stats_lock:
                     self._busy -= 1
 
-    def _answer(self, item: _Pending) -> None:
+    def _answer(self, item: _Queued) -> None:
         query = item.query
         try:
             request = Request(key=str(query.key_expr), payload=None if query.payload is None else query.payload.to_bytes(),
