@@ -12,7 +12,7 @@ import pytest
 from knowledge import queries
 from knowledge.service import KnowledgeService, ServiceSettings
 from shared import messages, rpc
-from shared.errors import MessageError, NoResponder, RemoteError, RequestTimeout
+from shared.errors import MessageError, NoResponder, RemoteError, RequestTimeout, TransportError
 from tests.support import wait_for
 
 
@@ -205,3 +205,14 @@ def test_the_platforms_query_on_a_graph_never_written_returns_no_rows(resp_store
     # read of a missing graph with no rows, it does not raise.
     assert queries.run_named(resp_store, "platforms", {}) == []
     KnowledgeService(resp_store, ServiceSettings(lock=False))._mark_all_offline()
+
+
+def test_asking_on_a_closed_session_is_a_transport_error():
+    from shared.session import ZenohSettings, open_session
+
+    session = open_session(ZenohSettings(mode="peer", listen=("tcp/127.0.0.1:0",)))
+    session.close()
+    with pytest.raises(TransportError, match="test/rpc/closed"):
+        rpc.call(session, "test/rpc/closed", b"x", bytes, timeout=0.5)
+    with pytest.raises(TransportError, match="cannot declare"):
+        rpc.serve(session, "test/rpc/closed", echo, name="closed")
