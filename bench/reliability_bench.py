@@ -270,11 +270,10 @@ class _Probe:
         ]
 
     def shutdown(self) -> None:
+        from shared import rpc
+
         for handle in self._handles:
-            try:
-                handle.undeclare()
-            except Exception:  # the session may be closing
-                pass
+            rpc.undeclare_quietly(handle)
         self._out.put(None)
         self._writer.join(2)
 
@@ -821,7 +820,8 @@ def fuzz(session: Any, robot: str, *, examples: int = 20, hosts: Sequence[str] =
         from hypothesis import strategies as st
     except ImportError as exc:
         raise ConfigError(f"bad-input trials need hypothesis (pip install kgadapt[test]): {exc}") from exc
-    from shared import keys, messages
+    from shared import keys, messages, rpc
+    from shared.errors import RemoteError, RequestTimeout
 
     good = {
         "query_request": {"params": {"feature": "MarkerDetection"}},
@@ -865,16 +865,15 @@ def fuzz(session: Any, robot: str, *, examples: int = 20, hosts: Sequence[str] =
             targets.append((keys.deployer_verb(robot, host, verb), "deploy_request"))
 
     def ask(key: str, payload: bytes) -> str:
-        replies = list(session.get(key, payload=payload, timeout=5))
-        if not replies:
+        try:
+            body = rpc.call(session, key, payload, bytes, timeout=5)
+        except RemoteError:
+            return "error_reply"
+        except RequestTimeout:  # NoResponder included
             return "no_reply"
-        reply = replies[0]
-        if reply.ok is None:
-            text = reply.err.payload.to_bytes().decode("utf-8", "replace")
-            return "no_reply" if text.strip().lower() == "timeout" else "error_reply"
         if "/deployer/" in key:
             try:
-                return "refused" if not messages.decode(reply.ok.payload.to_bytes(), "deploy_reply")["ok"] else "accepted"
+                return "refused" if not messages.decode(body, "deploy_reply")["ok"] else "accepted"
             except KgadaptError:
                 return "accepted"
         return "accepted"

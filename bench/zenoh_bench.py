@@ -11,6 +11,8 @@ One run, real processes on loopback:
                        process of its own, one hop away as the service is
    ``zenoh_queued``    the same echo handed to a worker thread through a queue
                        (the pattern every queryable of ours follows)
+   ``rpc_queued``      the same queued echo asked with ``shared.rpc.call`` (how every
+                       client of ours asks; its cost over ``zenoh_queued``)
    ``store_trivial``   ``RETURN 1`` on the store directly
    ``zenoh_trivial``   ``RETURN 1`` as read-only Cypher through the service
    ``store_named``     the placement query, ``run_named`` on the store directly
@@ -43,6 +45,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from bench.stats import format_table, gc_paused, machine_info, make_record, time_once, write_records
+from shared import rpc
 from shared.errors import ConfigError, TransportError
 
 log = logging.getLogger(__name__)
@@ -218,6 +221,8 @@ def _request_latency(fabric: _Fabric, *, reps: int, warmup: int) -> list[dict[st
     ops: dict[str, Callable[[], Any]] = {
         "zenoh_bare": echo("bench/echo/direct"),
         "zenoh_queued": echo("bench/echo/queued"),
+        # the same echo asked through shared/rpc.py, as every client of ours asks: the layer's own cost
+        "rpc_queued": lambda: rpc.call(echo_session, "bench/echo/queued", b"ping", bytes, timeout=5),
         "store_trivial": lambda: store.execute("RETURN 1 AS one", read_only=True),
         "zenoh_trivial": lambda: client.cypher("RETURN 1 AS one"),
         "store_named": lambda: run_named(store, "placement", QUERY_PARAMS),

@@ -10,11 +10,10 @@ Replies are checked; a refusal raises :class:`DeploymentError` (or
 from __future__ import annotations
 
 import logging
-import time
 from typing import Any
 
-from shared import keys, messages
-from shared.errors import DeploymentError, MessageError, ReadinessTimeout, RemoteError, RequestTimeout, TransportError
+from shared import keys, messages, rpc
+from shared.errors import DeploymentError, MessageError, NoResponder, ReadinessTimeout, RemoteError, RequestTimeout
 
 log = logging.getLogger(__name__)
 
@@ -83,48 +82,37 @@ class DeployerClient:
 
     def _one(self, host: str, verb: str, body: dict[str, Any], timeout: float) -> dict[str, Any]:
         keys.check_name(host, "host name")
-        # No reply at once means no matching queryable is known (yet): a session
-        # opened a moment ago may not have the deployers' declarations. Nobody
-        # got the request, so asking again is safe, until ``self.timeout``.
-        deadline = time.monotonic() + self.timeout
-        while True:
-            details = self._ask(host, verb, body, timeout)
-            if details:
-                return details[0]
-            if time.monotonic() >= deadline:
-                raise RequestTimeout(
-                    f"no deployer on host {host} answered {verb} (is the {host} agent running and reachable?)"
-                )
-            time.sleep(0.05)
+        # Nobody answering at once means no matching queryable is known (yet): a session
+        # opened a moment ago may not have the deployers' declarations. Nobody got the
+        # request, so it is sent again, for up to ``self.timeout``.
+        details = self._ask(host, verb, body, timeout, resend_for=self.timeout)
+        if not details:
+            raise RequestTimeout(
+                f"no deployer on host {host} answered {verb} (is the {host} agent running and reachable?)"
+            )
+        return details[0]
 
-    def _ask(self, host: str, verb: str, body: dict[str, Any], timeout: float) -> list[dict[str, Any]]:
+    def _ask(self, host: str, verb: str, body: dict[str, Any], timeout: float, *,
+             resend_for: float = 0.0) -> list[dict[str, Any]]:
+        """The ``detail`` of every deployer's reply (none: no deployer serves the key)."""
         key = keys.deployer_verb(self.robot, host, verb)
         payload = messages.encode("deploy_request", body)
         try:
-            replies = list(self.session.get(key, payload=payload, timeout=timeout))
-        except Exception as exc:  # zenoh.ZError
-            raise TransportError(f"deployer {verb} on {key}: {exc}") from exc
+            replies = rpc.gather(self.session, key, payload, lambda data: messages.decode(data, "deploy_reply"),
+                                 timeout=timeout, resend_for=resend_for)
+        except NoResponder:
+            return []
+        except RequestTimeout as exc:
+            raise RequestTimeout(f"deployer on host {host} did not answer {verb} within {timeout:g} s") from exc
+        except RemoteError as exc:
+            raise RemoteError(f"deployer {verb} on host {host}: {exc}") from exc
+        except MessageError as exc:
+            raise RemoteError(f"deployer {verb} on {key}: bad reply: {exc}") from exc
         details: list[dict[str, Any]] = []
-        for reply in replies:
-            if reply.ok is None:
-                text = _text(reply.err.payload)
-                if text.strip().lower() == "timeout":
-                    raise RequestTimeout(f"deployer on host {host} did not answer {verb} within {timeout:g} s")
-                raise RemoteError(f"deployer {verb} on host {host}: {text}")
-            try:
-                message = messages.decode(reply.ok.payload.to_bytes(), "deploy_reply")
-            except MessageError as exc:
-                raise RemoteError(f"deployer {verb} on {reply.ok.key_expr}: bad reply: {exc}") from exc
+        for message in replies:
             detail = message.get("detail") or {}
             if not message["ok"]:
                 error = _ERRORS.get(str(detail.get("error_type")), DeploymentError)
                 raise error(f"{detail.get('host', host)}: {detail.get('error', 'refused')}")
             details.append(detail)
         return details
-
-
-def _text(payload: Any) -> str:
-    try:
-        return payload.to_string()
-    except Exception:
-        return repr(payload)

@@ -31,19 +31,21 @@ profiles are written through the knowledge service by :class:`ProfileRecorder`.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import re
 import secrets
 import sys
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
+
+import zenoh
 
 from deploy.options import add_arguments  # noqa: F401  (re-exported for agents)
 from deploy.profile import ProfileRecorder, ProfileSettings
 from deploy.supervisor import ProcessEvent, ProcessInfo, ProcessSpec, RestartPolicy, StopPolicy, Supervisor, SupervisorSettings
-from shared import keys, messages
+from shared import keys, messages, rpc
 from shared.agent import DEFAULT_ROBOT
 from shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RemoteError, TransportError
 from shared.session import DEFAULT_ENDPOINT
@@ -112,10 +114,9 @@ class Deployer:
         self.supervisor = Supervisor(SupervisorSettings(use_launcher=settings.launcher, python=settings.python))
         self.recorder: ProfileRecorder | None = None
         self._session: Any = None
-        self._queryables: list[Any] = []
         self._publisher: Any = None
         self._publish_lock = threading.Lock()
-        self._pool: ThreadPoolExecutor | None = None
+        self._stack = contextlib.ExitStack()
 
     # -- life cycle ---------------------------------------------------------------
 
@@ -127,44 +128,45 @@ class Deployer:
             from knowledge.client import KnowledgeClient
 
             self._knowledge = KnowledgeClient(session, s.robot, timeout=s.knowledge_timeout, own=True, host=s.host)
-        try:
+        # Shut down in reverse: queryables, supervisor (it stops every process and wakes requests waiting
+        # for readiness), request workers, profile recorder, and last the publisher (the "stopped" events).
+        with contextlib.ExitStack() as stack:
+            try:
+                publisher = session.declare_publisher(keys.deployer_events(s.robot, s.host))
+            except zenoh.ZError as exc:
+                raise TransportError(f"deployer of host {s.host}: cannot declare its event publisher: {exc}") from exc
+            self._publisher = rpc.declared(stack, publisher)
+            stack.callback(self._forget_publisher)
             self.recorder = ProfileRecorder(
                 host=s.host, write=self._knowledge.write, settings=ProfileSettings(sample_interval=s.sample_interval)
             )
             self.recorder.setup()
+            stack.callback(self._forget_recorder, self.recorder)
+            server = stack.enter_context(rpc.Server(f"deployer {s.host}", workers=s.workers, max_pending=64,
+                                                    prefix=f"deployer {s.host}: "))
             self.supervisor.add_listener(self.recorder.on_event)
             self.supervisor.add_listener(self._publish_event)
             self.supervisor.setup()
-            self._pool = ThreadPoolExecutor(max_workers=s.workers, thread_name_prefix=f"deployer-{s.host}")
-            self._publisher = session.declare_publisher(keys.deployer_events(s.robot, s.host))
+            stack.callback(self.supervisor.shutdown)
+            stack.callback(server.undeclare)
             for verb in VERBS:
                 key = keys.deployer_verb(s.robot, s.host, verb)
-                self._queryables.append(session.declare_queryable(key, self._callback(verb, key)))
-        except KgadaptError:
-            self.shutdown()
-            raise
-        except Exception as exc:  # zenoh.ZError and friends
-            self.shutdown()
-            raise TransportError(f"deployer of host {s.host}: cannot declare its queryables: {exc}") from exc
+                server.serve(session, key, self._handler(verb, key), what=verb)
+            self._stack = stack.pop_all()
         log.info("deployer of host %s (robot %s) ready", s.host, s.robot)
 
     def shutdown(self) -> None:
         """Refuse new requests, stop every process (SIGINT, SIGTERM, SIGKILL), flush profiles."""
-        for queryable in self._queryables:
-            _quietly(queryable.undeclare)
-        self._queryables = []
-        self.supervisor.shutdown()  # also wakes requests waiting for readiness
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
-        if self.recorder is not None:
-            self.recorder.shutdown()
-            self.recorder = None
-        with self._publish_lock:
-            if self._publisher is not None:
-                _quietly(self._publisher.undeclare)
-                self._publisher = None
+        self._stack.close()
         self._session = None
+
+    def _forget_publisher(self) -> None:
+        with self._publish_lock:  # no event is put while the publisher is undeclared
+            self._publisher = None
+
+    def _forget_recorder(self, recorder: ProfileRecorder) -> None:
+        recorder.shutdown()
+        self.recorder = None
 
     # -- operations ---------------------------------------------------------------
 
@@ -259,47 +261,25 @@ class Deployer:
 
     # -- Zenoh --------------------------------------------------------------------
 
-    def _callback(self, verb: str, key: str) -> Callable[[Any], None]:
-        def on_query(query: Any) -> None:
-            pool = self._pool
-            if pool is None:
-                return  # shutting down; dropping the query ends it on the querier's side
+    def _handler(self, verb: str, key: str) -> rpc.Handler:
+        def answer(request: rpc.Request) -> rpc.Reply:
+            # A MessageError here is answered with reply_err ("deployer <host>: ..."); every refusal
+            # past the message itself is a deploy_reply with ok false.
+            if request.payload is None:
+                raise MessageError(f"{verb} request has no payload; send a deploy_request message")
+            body = messages.decode(request.payload, "deploy_request")
+            if verb in ("start", "stop") and request.key != key:
+                # host/*/deployer/start would reach every host: a change names exactly one.
+                raise MessageError(f"a {verb} request must name exactly one host; {request.key} does not")
             try:
-                pool.submit(self._answer, verb, key, query)
-            except RuntimeError:  # pool shut down between the check and submit
-                pass
-
-        return on_query
-
-    def _answer(self, verb: str, key: str, query: Any) -> None:
-        with query:  # drops the query when done, so the querier is not left waiting
-            try:
-                payload = query.payload
-                if payload is None:
-                    raise MessageError(f"{verb} request has no payload; send a deploy_request message")
-                request = messages.decode(payload.to_bytes(), "deploy_request")
-                if verb in ("start", "stop") and str(query.key_expr) != key:
-                    # host/*/deployer/start would reach every host: a change names exactly one.
-                    raise MessageError(f"a {verb} request must name exactly one host; {query.key_expr} does not")
-            except MessageError as exc:
-                log.info("host %s: malformed %s request: %s", self.settings.host, verb, exc)
-                query.reply_err(f"deployer {self.settings.host}: {exc}")
-                return
-            try:
-                detail = self._handle(verb, request)
-                reply = {"ok": True, "detail": detail}
+                reply = {"ok": True, "detail": self._handle(verb, body)}
             except KgadaptError as exc:
                 log.info("host %s: %s refused: %s", self.settings.host, verb, exc)
                 reply = {"ok": False, "detail": {"error": str(exc), "error_type": type(exc).__name__,
                                                   "host": self.settings.host}}
-            except Exception as exc:  # a bug: answer, log, keep serving
-                log.exception("host %s: %s request failed", self.settings.host, verb)
-                query.reply_err(f"deployer {self.settings.host}: internal error in {verb}: {exc}")
-                return
-            try:
-                query.reply(key, messages.encode("deploy_reply", reply))
-            except Exception as exc:
-                log.warning("host %s: cannot reply to %s: %s", self.settings.host, verb, exc)
+            return rpc.Reply(key=key, payload=messages.encode("deploy_reply", reply))
+
+        return answer
 
     def _handle(self, verb: str, request: Mapping[str, Any]) -> dict[str, Any]:
         extra = sorted(set(request) - {"kind", "v"} - _ALLOWED[verb])
@@ -382,13 +362,6 @@ def _info_dict(info: ProcessInfo, host: str) -> dict[str, Any]:
     return data
 
 
-def _quietly(fn: Callable[[], Any]) -> None:
-    try:
-        fn()
-    except Exception as exc:  # undeclare after the session closed, etc.
-        log.debug("deployer cleanup: %s", exc)
-
-
 # -- agent wiring -------------------------------------------------------------------
 
 
@@ -414,8 +387,6 @@ def _first_connect_in_file(path: str | None) -> str | None:
     if not path:
         return None
     import json
-
-    import zenoh
 
     try:
         endpoints = json.loads(zenoh.Config.from_file(path).get_json("connect/endpoints"))

@@ -26,8 +26,17 @@ from typing import Any
 
 from deploy.client import DeployerClient
 from deploy.deployer import new_instance_name
-from shared import keys, messages
-from shared.errors import DeploymentError, KgadaptError, MessageError, ReadinessTimeout, SourceNotStopped
+from shared import keys, messages, rpc
+from shared.errors import (
+    DeploymentError,
+    KgadaptError,
+    MessageError,
+    NoResponder,
+    ReadinessTimeout,
+    RemoteError,
+    RequestTimeout,
+    SourceNotStopped,
+)
 
 log = logging.getLogger(__name__)
 
@@ -134,10 +143,7 @@ def migrate(
             )
         output_ms = ((first.at or time.perf_counter()) - t0) * 1000.0
     finally:
-        try:
-            subscriber.undeclare()
-        except Exception as exc:
-            log.debug("undeclare: %s", exc)
+        rpc.undeclare_quietly(subscriber)
     try:
         stopped = client.stop(source_host, instance)
     except KgadaptError as exc:
@@ -199,25 +205,20 @@ def reconfigure(session: Any, robot: str, host: str, instance: str, config: str,
     configuration's in place; refused or unanswered, the running configuration
     stays and :class:`DeploymentError` says why (the caller may then migrate).
     """
-    from shared.errors import RequestTimeout, TransportError
-
     key = keys.detector_configure(robot, host, instance)
     payload = messages.encode("configure_request", {"config": config})
     sent = time.perf_counter()
     try:
-        replies = list(session.get(key, payload=payload, timeout=timeout))
-    except Exception as exc:  # zenoh.ZError
-        raise TransportError(f"reconfigure {instance} on {host}: {exc}") from exc
-    reply_ms = (time.perf_counter() - sent) * 1e3
-    if not replies:
-        raise RequestTimeout(f"detector {instance} on host {host} has no configure queryable (not reconfigurable)")
-    reply = replies[0]
-    if reply.ok is None:
-        raise DeploymentError(f"reconfigure {instance} on {host}: {reply.err.payload.to_string()}")
-    try:
-        body = messages.decode(reply.ok.payload.to_bytes(), "configure_reply")
+        body = rpc.call(session, key, payload, lambda data: messages.decode(data, "configure_reply"), timeout=timeout)
+    except NoResponder as exc:
+        raise RequestTimeout(f"detector {instance} on host {host} has no configure queryable (not reconfigurable)") from exc
+    except RequestTimeout as exc:  # the detector took it, or not: its deployer's record says which
+        raise DeploymentError(f"reconfigure {instance} on {host}: no reply within {timeout:g} s") from exc
+    except RemoteError as exc:
+        raise DeploymentError(f"reconfigure {instance} on {host}: {exc}") from exc
     except MessageError as exc:
         raise DeploymentError(f"reconfigure {instance} on {host}: bad reply: {exc}") from exc
+    reply_ms = (time.perf_counter() - sent) * 1e3
     return ReconfigurationReport(instance=instance, host=host, config=str(body["config"]),
                                  previous=str(body["previous"]), deployment=str(body["deployment"]),
                                  first_seq=body.get("first_seq"), check_ms=float(body["check_ms"]),

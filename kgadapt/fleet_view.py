@@ -20,6 +20,7 @@ It declares no queryable, publishes nothing and sends no write.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import threading
@@ -27,7 +28,7 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from shared import keys
+from shared import keys, rpc
 
 CLEAR = "\x1b[H\x1b[2J"
 
@@ -74,28 +75,20 @@ class FleetView:
         self._lock = threading.Lock()
         self._alive: dict[str, set[str]] = {}  # robot -> hosts with a live token
         self._events: dict[str, dict[str, Any]] = {}  # robot -> newest adaptation event
-        self._declared: list[Any] = []
+        self._stack = contextlib.ExitStack()
 
     def setup(self) -> None:
         """Subscribe to host liveliness (with history) and adaptation events of every robot."""
         if not self.settings.subscribe:
             return
-        try:
-            self._declared.append(self.session.liveliness().declare_subscriber(
+        with contextlib.ExitStack() as stack:
+            rpc.declared(stack, self.session.liveliness().declare_subscriber(
                 f"{keys.PREFIX}/*/host/*/alive", self._on_alive, history=True))
-            self._declared.append(self.session.declare_subscriber(f"{keys.PREFIX}/*/adaptation/events",
-                                                                  self._on_event))
-        except Exception:
-            self.shutdown()
-            raise
+            rpc.declared(stack, self.session.declare_subscriber(f"{keys.PREFIX}/*/adaptation/events", self._on_event))
+            self._stack = stack.pop_all()
 
     def shutdown(self) -> None:
-        for entity in reversed(self._declared):
-            try:
-                entity.undeclare()
-            except Exception:  # the session may be closed already
-                pass
-        self._declared.clear()
+        self._stack.close()
 
     # Zenoh callbacks: record and signal, nothing else.
     def _on_alive(self, sample: Any) -> None:

@@ -94,11 +94,10 @@ class _Listener:
         return callback
 
     def close(self) -> None:
+        from shared import rpc
+
         for sub in self.subscribers:
-            try:
-                sub.undeclare()
-            except Exception:
-                pass
+            rpc.undeclare_quietly(sub)
 
 
 def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1.5, timeout: float = 2.0,

@@ -9,13 +9,14 @@ planned migration, the summary table, and a PNG timeline.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from shared import keys, messages
+from shared import keys, messages, rpc
 from shared.errors import MessageError
 
 
@@ -71,27 +72,23 @@ class Recorder:
 
     def __post_init__(self) -> None:
         self._lock = threading.Lock()
-        self._subs: list[Any] = []
+        self._stack = contextlib.ExitStack()
         self._detected_seqs: set[int] = set()
         self._dropped: dict[tuple[str, int], int] = {}  # (instance, seq answered) -> the detector's dropped count
 
     def setup(self, session: Any) -> None:
         r = self.robot
-        self._subs = [
-            session.declare_subscriber(keys.camera_illumination(r, self.camera), self._on_light),
-            session.declare_subscriber(keys.host_status(r), self._on_status),
-            session.declare_subscriber(keys.adaptation_events(r), self._on_event),
-            session.declare_subscriber(keys.detector_markers(r), self._on_detections),
-            session.declare_subscriber(keys.camera_frame(r, self.camera), self._on_frame),
-        ]
+        with contextlib.ExitStack() as stack:
+            for key, callback in ((keys.camera_illumination(r, self.camera), self._on_light),
+                                  (keys.host_status(r), self._on_status),
+                                  (keys.adaptation_events(r), self._on_event),
+                                  (keys.detector_markers(r), self._on_detections),
+                                  (keys.camera_frame(r, self.camera), self._on_frame)):
+                rpc.declared(stack, session.declare_subscriber(key, callback))
+            self._stack = stack.pop_all()
 
     def shutdown(self) -> None:
-        for sub in self._subs:
-            try:
-                sub.undeclare()
-            except Exception:  # the session may already be closed
-                pass
-        self._subs = []
+        self._stack.close()
 
     def mark(self, text: str) -> None:
         with self._lock:

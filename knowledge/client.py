@@ -16,12 +16,11 @@ time, :class:`MessageError` when the reply itself is malformed.
 
 from __future__ import annotations
 
-import time
 from typing import Any, Mapping
 
 from knowledge.fleet import FleetAnswer, FleetClient, FleetSettings  # noqa: F401 (the fleet's client, re-exported)
-from shared import keys, messages
-from shared.errors import RemoteError, RequestTimeout, TransportError
+from shared import keys, messages, rpc
+from shared.errors import RemoteError, RequestTimeout
 
 
 class KnowledgeClient:
@@ -60,34 +59,16 @@ class KnowledgeClient:
         return self._ask(key, payload, f"write {verb!r}")
 
     def _ask(self, key: str, payload: bytes, what: str) -> list[dict[str, Any]]:
-        deadline = time.monotonic() + self.timeout
-        error: str | None = None
-        while True:
-            remaining = max(0.05, deadline - time.monotonic())
-            try:
-                replies = self.session.get(key, payload=payload, timeout=remaining)
-            except Exception as exc:  # zenoh.ZError: session closed, bad key
-                raise TransportError(f"{what} on {key}: {exc}") from exc
-            answered = False
-            for reply in replies:
-                answered = True
-                if reply.ok is not None:
-                    body = messages.decode(reply.ok.payload.to_bytes(), "rows")
-                    self.last_elapsed_ms = body.get("elapsed_ms")
-                    return body["rows"]
-                text = reply.err.payload.to_bytes().decode("utf-8", "replace")
-                if text != "Timeout":  # Zenoh's own reply when the queryable is slower than the timeout
-                    error = text
-                    break
-            # Zero replies at once: no queryable is known yet (just after open(), or while
-            # the service restarts). Nobody received the request, so asking again is safe.
-            if answered or error is not None or time.monotonic() + 0.05 >= deadline:
-                break
-            time.sleep(0.05)
-        if error is not None:
-            raise RemoteError(f"{what} refused by the knowledge service of {self.robot}: {error}")
-        waited = self.timeout - max(0.0, deadline - time.monotonic())
-        raise RequestTimeout(
-            f"{what}: no answer from the knowledge service of robot {self.robot!r} on {key} "
-            f"within {waited:.1f} s (is `kgadapt knowledge serve` running and reachable?)"
-        )
+        try:
+            # Sent again while nothing answers at once: just after open(), or while the service restarts.
+            body = rpc.call(self.session, key, payload, lambda data: messages.decode(data, "rows"),
+                            timeout=self.timeout, resend_for=self.timeout)
+        except RemoteError as exc:
+            raise RemoteError(f"{what} refused by the knowledge service of {self.robot}: {exc}") from exc
+        except RequestTimeout as exc:
+            raise RequestTimeout(
+                f"{what}: no answer from the knowledge service of robot {self.robot!r} on {key} "
+                f"within {self.timeout:.1f} s (is `kgadapt knowledge serve` running and reachable?)"
+            ) from exc
+        self.last_elapsed_ms = body.get("elapsed_ms")
+        return body["rows"]

@@ -33,8 +33,8 @@ import time
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from shared import keys, messages
-from shared.errors import ConfigError, MessageError, TransportError
+from shared import keys, messages, rpc
+from shared.errors import ConfigError, MessageError, RemoteError, TransportError
 
 ROBOT_COLUMN = "robot"
 
@@ -169,7 +169,7 @@ class FleetClient:
             if self.settings.discover_hosts:
                 hosts = self.session.liveliness().get(f"{keys.PREFIX}/*/host/*/alive", timeout=timeout)
             pending = [(name, params, payload, self._send(name, payload, timeout)) for name, params, payload in checked]
-            answers = [self._collect(name, params, handler, start) for name, params, _, handler in pending]
+            answers = [self._collect(name, params, replies, start) for name, params, _, replies in pending]
             # No reply at all, at once: no queryable was known yet (a session just opened, in peer
             # mode). Nobody received the question, so asking again is safe; until the timeout.
             while time.monotonic() + 0.05 < deadline:
@@ -179,8 +179,8 @@ class FleetClient:
                 time.sleep(0.05)
                 for i in empty:
                     name, params, payload, _ = pending[i]
-                    handler = self._send(name, payload, max(0.05, deadline - time.monotonic()))
-                    answers[i] = self._collect(name, params, handler, start)
+                    replies = self._send(name, payload, max(0.05, deadline - time.monotonic()))
+                    answers[i] = self._collect(name, params, replies, start)
         except Exception as exc:  # zenoh.ZError: session closed
             raise TransportError(f"fleet question: {exc}") from exc
         expected = set(self._hosts_robots(hosts)) if hosts is not None else set()
@@ -191,30 +191,26 @@ class FleetClient:
             known = set(self._known)
         return [_with_silent(answer, known) for answer in answers]
 
-    def _send(self, name: str, payload: bytes, timeout: float) -> Any:
-        import zenoh
+    def _send(self, name: str, payload: bytes, timeout: float) -> rpc.Pending:
+        return rpc.ask(self.session, f"{keys.PREFIX}/*/knowledge/query/{name}", payload, timeout=timeout,
+                       every_reply=True)
 
-        return self.session.get(f"{keys.PREFIX}/*/knowledge/query/{name}", payload=payload, timeout=timeout,
-                                consolidation=zenoh.ConsolidationMode.NONE)
-
-    def _collect(self, name: str, params: dict[str, Any], handler: Any, start: float) -> FleetAnswer:
+    def _collect(self, name: str, params: dict[str, Any], pending: rpc.Pending, start: float) -> FleetAnswer:
         robots: dict[str, RobotAnswer] = {}
         refusals: list[str] = []
         malformed: list[str] = []
-        for reply in handler:  # ends when every queryable has finalized, or at the timeout
+        for reply in pending.replies():  # ends when every queryable has finalized, or at the timeout
             arrived = (time.perf_counter() - start) * 1000
-            if reply.ok is None:
-                text = reply.err.payload.to_bytes().decode("utf-8", "replace")
-                if text != "Timeout":  # Zenoh's own reply when a queryable is slower than the timeout
-                    refusals.append(text)
+            if isinstance(reply, RemoteError):
+                refusals.append(str(reply))
                 continue
-            key = str(reply.ok.key_expr)
+            key = reply.key
             robot = _robot_of(key, name)
             if robot is None:
                 malformed.append(f"reply on {key}: not a knowledge/query/{name} key")
                 continue
             try:
-                body = messages.decode(reply.ok.payload.to_bytes(), "rows")
+                body = messages.decode(reply.payload, "rows")
             except MessageError as exc:
                 malformed.append(f"{robot}: {exc}")
                 continue

@@ -53,8 +53,9 @@ A status never sets ``online``: only the token does, so a late status cannot
 revive a host whose token is gone. At setup every platform is first marked
 offline; the liveliness history then marks the live ones online again.
 
-Threads: Zenoh callbacks only put work on queues. Request workers (``workers``
-of them) answer queries; one status worker applies host statuses and
+Threads: Zenoh callbacks only put work on queues. Request workers (two
+:class:`shared.rpc.Server` pools: ``workers`` for the robot's own requests,
+``public_workers`` for other robots') answer queries; one status worker applies host statuses and
 liveliness changes, keeping only the newest of each per host when it falls
 behind, so a burst of statuses costs one write per host.
 """
@@ -64,7 +65,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
-import math
 import queue
 import threading
 import time
@@ -76,16 +76,16 @@ import zenoh
 from knowledge import queries, runtime
 from knowledge import schema as S
 from knowledge.cypher_guard import CypherLimits, check_cypher
+from knowledge.params import check_params
 from knowledge.service_lock import ServiceLock
 from knowledge.store import GraphStore
-from shared import keys, messages
-from shared.errors import ConfigError, KgadaptError, MessageError, NamedQueryError, QueryError, QueryTimeLimit
+from shared import keys, messages, rpc
+from shared.errors import ConfigError, KgadaptError, MessageError, NamedQueryError, QueryError, QueryTimeLimit, TransportError
 from shared.hostmonitor import StatusTrust, TrustSettings, check_status
 
 log = logging.getLogger(__name__)
 
 _STOP = object()
-_PLAIN = (str, int, float, bool, type(None))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -128,11 +128,14 @@ class KnowledgeService:
     def __init__(self, store: GraphStore, settings: ServiceSettings = ServiceSettings()) -> None:
         self.store = store
         self.settings = settings
-        self._requests: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_requests)
-        self._public_requests: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_public)
+        # The robot's own requests (own/query/*, writes) and other robots' questions (query/*, cypher):
+        # two pools, so a flood of the second never delays the first.
+        self._own = rpc.Server("knowledge service", workers=settings.workers, max_pending=settings.max_pending_requests)
+        self._public = rpc.Server("knowledge service", workers=settings.public_workers,
+                                  max_pending=settings.max_pending_public)
         self._events: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_statuses)
-        self._threads: list[threading.Thread] = []
-        self._declared: list[Any] = []
+        self._event_thread: threading.Thread | None = None
+        self._stack = contextlib.ExitStack()
         self._stats_lock = threading.Lock()
         self._stats: collections.Counter[str] = collections.Counter()
         self._last_drop = ""
@@ -152,45 +155,45 @@ class KnowledgeService:
     def setup(self, session: Any) -> None:
         """Start the workers and declare the queryables and subscribers on ``session``."""
         robot = self.settings.robot
-        if self._lock is not None:
-            self._lock.acquire()  # before anything is written: a second service changes nothing
-        try:
+        with contextlib.ExitStack() as stack:  # closed at once if anything fails; else kept for shutdown()
+            if self._lock is not None:
+                self._lock.acquire()  # before anything is written: a second service changes nothing
+                stack.callback(self._lock.release)
             if self.settings.sandbox and self.store.dialect.name == "falkordb" and self.store.capabilities.timeouts:
                 # A FalkorDB over RESP (the Bolt listener has no DUMP/RESTORE to copy from).
                 from knowledge.sandbox import QuerySandbox
 
+                stack.callback(self.sandboxes.clear)
                 for _ in range(self.settings.public_workers):
                     sandbox = QuerySandbox(self.store)
                     self.sandboxes.append(sandbox)
+                    stack.callback(sandbox.shutdown)
                     sandbox.setup()
                     self._sandbox_pool.put(sandbox)
             if self.settings.mark_offline_at_start:
                 self._mark_all_offline()
-        except Exception:
-            self.shutdown()
-            raise
-        for i in range(self.settings.workers):
-            self._start_thread(lambda: self._request_loop(self._requests), f"knowledge-requests-{i}")
-        for i in range(self.settings.public_workers):
-            self._start_thread(lambda: self._request_loop(self._public_requests), f"knowledge-public-{i}")
-        self._start_thread(self._event_loop, "knowledge-status")
-        try:
+            stack.enter_context(self._own)
+            stack.enter_context(self._public)
+            self._event_thread = threading.Thread(target=self._event_loop, name="knowledge-status", daemon=True)
+            self._event_thread.start()
+            stack.callback(self._stop_event_worker)
             # Subscribers first: declarations reach others in order, so whoever
             # sees the queryables also sees that statuses are listened to.
-            self._declared.append(
-                session.liveliness().declare_subscriber(keys.host_alive(robot, "*"), self._on_alive, history=True)
-            )
-            self._declared.append(session.declare_subscriber(keys.host_status(robot, "*"), self._on_status))
+            try:
+                rpc.declared(stack, session.liveliness().declare_subscriber(keys.host_alive(robot, "*"), self._on_alive,
+                                                                            history=True))
+                rpc.declared(stack, session.declare_subscriber(keys.host_status(robot, "*"), self._on_status))
+            except zenoh.ZError as exc:
+                raise TransportError(f"knowledge service of {robot}: cannot subscribe to host statuses: {exc}") from exc
+            stack.callback(self._own.undeclare)
+            stack.callback(self._public.undeclare)
             if self.settings.writes:
-                self._declared.append(session.declare_queryable(keys.knowledge_write(robot, "*"), self._on_write))
-                self._declared.append(session.declare_queryable(keys.knowledge_host_write(robot, "*", "*"),
-                                                                self._on_write))
-            self._declared.append(session.declare_queryable(keys.knowledge_cypher(robot), self._on_cypher))
-            self._declared.append(session.declare_queryable(keys.knowledge_query(robot, "*"), self._on_named_query))
-            self._declared.append(session.declare_queryable(keys.knowledge_own_query(robot, "*"), self._on_own_query))
-        except Exception:
-            self.shutdown()
-            raise
+                self._own.serve(session, keys.knowledge_write(robot, "*"), self._handler("write"), what="write")
+                self._own.serve(session, keys.knowledge_host_write(robot, "*", "*"), self._handler("write"), what="write")
+            self._public.serve(session, keys.knowledge_cypher(robot), self._handler("cypher"), what="cypher")
+            self._public.serve(session, keys.knowledge_query(robot, "*"), self._handler("query"), what="query")
+            self._own.serve(session, keys.knowledge_own_query(robot, "*"), self._handler("own"), what="own")
+            self._stack = stack.pop_all()
         log.info(
             "knowledge service for robot %s: %d named queries, cypher (read-only subset), %s; "
             "other robots' questions from %s, %d ms hard limit",
@@ -204,41 +207,17 @@ class KnowledgeService:
                         "queries from other robots will be refused", self.store.url)
 
     def shutdown(self) -> None:
-        """Undeclare everything and stop the workers (pending requests get an error reply)."""
-        for entity in reversed(self._declared):
-            try:
-                entity.undeclare()
-            except Exception as exc:  # the session may be closed already
-                log.debug("undeclare failed: %s", exc)
-        self._declared.clear()
-        if self._threads:
-            for _ in range(self.settings.workers):
-                _put_blocking(self._requests, _STOP)
-            for _ in range(self.settings.public_workers):
-                _put_blocking(self._public_requests, _STOP)
-            _put_blocking(self._events, _STOP)
-        for thread in self._threads:
-            thread.join(timeout=10)
-        self._threads.clear()
-        for sandbox in self.sandboxes:
-            sandbox.shutdown()
-        self.sandboxes.clear()
-        if self._lock is not None:
-            self._lock.release()
-        for pending in (self._requests, self._public_requests):
-            while True:
-                try:
-                    item = pending.get_nowait()
-                except queue.Empty:
-                    break
-                if item is not _STOP:
-                    _, query, _ = item
-                    _finish(query, error="knowledge service is shutting down")
+        """Undeclare everything and stop the workers (requests still queued get an error reply)."""
+        self._stack.close()
 
     def stats(self) -> dict[str, Any]:
-        """Counters: requests answered/refused, statuses applied/dropped, the last drop reason."""
+        """Counters: requests answered/refused/failed/shed, statuses applied/dropped, the last drop reason."""
         with self._stats_lock:
-            return {**self._stats, "last_drop": self._last_drop}
+            counts: collections.Counter[str] = collections.Counter(self._stats)
+            last_drop = self._last_drop
+        for server in (self._own, self._public):
+            counts.update({f"requests_{what}": n for what, n in server.stats().items() if n})
+        return {**counts, "last_drop": last_drop}
 
     # -- request handling, Zenoh-free (tests call these directly) -----------
 
@@ -253,7 +232,7 @@ class KnowledgeService:
             raise NamedQueryError(f"unknown named query {name!r}; known: {', '.join(sorted(queries.QUERIES))}")
         if payload:
             request = messages.decode(payload, "query_request")
-            params = _plain_params(request.get("params") or {}, f"query {name!r}")
+            params = check_params(request.get("params") or {}, what=f"query {name!r}", error=MessageError)
         elif selector_params:
             params = queries.coerce_params(name, dict(selector_params))
         else:
@@ -280,7 +259,7 @@ class KnowledgeService:
             raise MessageError("cypher_request has no payload")
         request = messages.decode(payload, "cypher_request")
         text = check_cypher(request["cypher"])  # before anything reaches a store
-        params = _plain_params(request.get("params") or {}, "cypher")
+        params = check_params(request.get("params") or {}, what="cypher", error=MessageError)
         start = time.perf_counter()
         rows = self._run_untrusted(text, params, self.settings.public_time_limit_ms, "cypher")
         return _rows_reply(rows, (time.perf_counter() - start) * 1000, "cypher")
@@ -319,7 +298,7 @@ class KnowledgeService:
         if not payload:
             raise MessageError(f"write_request for {verb!r} has no payload")
         request = messages.decode(payload, "write_request")
-        params = _plain_params(request["params"], f"write verb {verb!r}")
+        params = check_params(request["params"], what=f"write verb {verb!r}", error=MessageError)
         if verb == "process_sample":  # ours, not the sender's: a late sample must not reopen a lost host's profile
             params["received"] = time.time() if received is None else received
         start = time.perf_counter()
@@ -329,28 +308,33 @@ class KnowledgeService:
             runtime.run_write(self.store, verb, params)  # checks names, types and bounds, naming them
         return _rows_reply([], (time.perf_counter() - start) * 1000, f"write verb {verb!r}")
 
-    # -- Zenoh callbacks: hand over, nothing else ---------------------------
+    # -- Zenoh: requests through rpc.Server, events queued ---------------------------
 
-    def _on_named_query(self, query: Any) -> None:
-        self._enqueue_request("query", query, self._public_requests)
+    def _handler(self, kind: str) -> rpc.Handler:
+        return lambda request: self._serve(kind, request)
 
-    def _on_own_query(self, query: Any) -> None:
-        self._enqueue_request("own", query)
-
-    def _on_cypher(self, query: Any) -> None:
-        self._enqueue_request("cypher", query, self._public_requests)
-
-    def _on_write(self, query: Any) -> None:
-        self._enqueue_request("write", query)
-
-    def _enqueue_request(self, kind: str, query: Any, pending: "queue.Queue[Any] | None" = None) -> None:
-        try:
-            (self._requests if pending is None else pending).put_nowait((kind, query, time.time()))
-        except queue.Full:
-            # Refused at once, so the caller need not wait out its timeout.
-            self._count("requests_shed")
-            self._drop_log.warning("%s request shed: its queue is full", kind)
-            _finish(query, error=f"knowledge service busy: too many {kind} requests pending; ask again later")
+    def _serve(self, kind: str, request: rpc.Request) -> rpc.Reply:
+        """The reply to one request (on a server's worker); a KgadaptError is answered with its text."""
+        robot = self.settings.robot
+        key, payload = request.key, request.payload
+        if kind in ("query", "own"):
+            name = keys.last_chunk(key)
+            params = {k: v for k, v in request.parameters.items() if not k.startswith("_")}
+            body = self.answer_named(name, payload, params, public=kind == "query")
+            reply_key = (keys.knowledge_query if kind == "query" else keys.knowledge_own_query)(robot, name)
+        elif kind == "cypher":
+            body = self.answer_cypher(payload)
+            reply_key = keys.knowledge_cypher(robot)
+        else:
+            verb = keys.last_chunk(key)
+            if key.split("/")[-3] == "write":  # write/<host>/<verb>: a host's own
+                host = _host_of(key)
+                body = self.answer_write(verb, payload, host=host, received=request.received)
+                reply_key = keys.knowledge_host_write(robot, host, verb)
+            else:
+                body = self.answer_write(verb, payload, received=request.received)
+                reply_key = keys.knowledge_write(robot, verb)
+        return rpc.Reply(key=reply_key, payload=body)
 
     def _on_status(self, sample: Any) -> None:
         self._enqueue_event(("status", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
@@ -365,58 +349,16 @@ class KnowledgeService:
         except queue.Full:
             self._drop(f"{event[0]} on {event[1]}: {self.settings.max_pending_statuses} events pending")
 
-    # -- workers ------------------------------------------------------------
+    # -- the status worker -------------------------------------------------------------
 
-    def _start_thread(self, target: Callable[[], None], name: str) -> None:
-        thread = threading.Thread(target=target, name=name, daemon=True)
-        thread.start()
-        self._threads.append(thread)
-
-    def _request_loop(self, pending: "queue.Queue[Any]") -> None:
-        while True:
-            item = pending.get()
-            if item is _STOP:
-                return
-            kind, query, received = item
-            try:
-                self._serve(kind, query, received)
-            except Exception:  # never let one request end the worker
-                log.exception("request worker: unexpected failure")
-
-    def _serve(self, kind: str, query: Any, received: float | None = None) -> None:
-        robot = self.settings.robot
+    def _stop_event_worker(self) -> None:
         try:
-            key = str(query.key_expr)
-            payload = query.payload.to_bytes() if query.payload is not None else None
-            if kind in ("query", "own"):
-                name = keys.last_chunk(key)
-                body = self.answer_named(name, payload, _selector_params(query), public=kind == "query")
-                reply_key = (keys.knowledge_query if kind == "query" else keys.knowledge_own_query)(robot, name)
-            elif kind == "cypher":
-                body = self.answer_cypher(payload)
-                reply_key = keys.knowledge_cypher(robot)
-            else:
-                verb = keys.last_chunk(key)
-                chunks = key.split("/")
-                if chunks[-3] == "write":  # write/<host>/<verb>: a host's own
-                    host = _host_of(key)
-                    body = self.answer_write(verb, payload, host=host, received=received)
-                    reply_key = keys.knowledge_host_write(robot, host, verb)
-                else:
-                    body = self.answer_write(verb, payload, received=received)
-                    reply_key = keys.knowledge_write(robot, verb)
-        except KgadaptError as exc:
-            self._count("requests_refused")
-            log.info("%s request on %s refused: %s", kind, query.key_expr, exc)
-            _finish(query, error=str(exc))
-            return
-        except Exception as exc:
-            self._count("requests_failed")
-            log.exception("%s request on %s failed", kind, query.key_expr)
-            _finish(query, error=f"internal error answering {kind} request: {type(exc).__name__}: {exc}")
-            return
-        self._count("requests_answered")
-        _finish(query, key=reply_key, payload=body)
+            self._events.put(_STOP, timeout=5)
+        except queue.Full:
+            log.warning("status queue stayed full at shutdown")
+        if self._event_thread is not None:
+            self._event_thread.join(timeout=10)
+            self._event_thread = None
 
     def _event_loop(self) -> None:
         while True:
@@ -492,20 +434,15 @@ class KnowledgeService:
         try:
             with self._store_lock:
                 return runtime.held_by_processes(self.store, host=host)
-        except KgadaptError as exc:  # e.g. FalkorDB's "empty key" before anything was written
+        except KgadaptError as exc:  # e.g. the store restarting: the status is still applied
             log.debug("no profile figures for %s: %s", host, exc)
             return 0.0
 
     def _mark_all_offline(self) -> None:
         now = time.time()
         with self._store_lock:
-            try:
-                rows = queries.run_named(self.store, "platforms", {})
-            except QueryError as exc:
-                if "empty key" not in str(exc):
-                    raise
-                return  # FalkorDB refuses reads of a graph not created yet: nothing to mark
-            for row in rows:
+            # A graph never written to has no rows (every backend answers such a read with none).
+            for row in queries.run_named(self.store, "platforms", {}):
                 if row.get("online"):
                     runtime.set_platform_online(self.store, name=row["platform"], online=False, time=now)
 
@@ -567,37 +504,6 @@ def check_owner(store: GraphStore, verb: str, params: Mapping[str, Any], *, host
 # -- helpers ----------------------------------------------------------------
 
 
-def _plain_params(params: Mapping[Any, Any], what: str) -> dict[str, Any]:
-    """Keep only plain values (msgpack may also carry bytes and extension types)."""
-    for name, value in params.items():
-        if not isinstance(name, str):
-            raise MessageError(f"{what}: parameter name {name!r} is not a string")
-        _check_plain(value, f"{what}: parameter {name!r}", depth=0)
-    return dict(params)
-
-
-def _check_plain(value: Any, what: str, depth: int) -> None:
-    if depth > 8:
-        raise MessageError(f"{what} is nested too deeply")
-    if isinstance(value, float) and not math.isfinite(value):
-        raise MessageError(f"{what} is not a finite number")
-    if isinstance(value, int) and not isinstance(value, bool) and not -(2**63) <= value < 2**63:
-        raise MessageError(f"{what} does not fit in 64 bits")
-    if isinstance(value, _PLAIN):
-        return
-    if isinstance(value, list):
-        for item in value:
-            _check_plain(item, what, depth + 1)
-        return
-    if isinstance(value, dict):
-        for k, item in value.items():
-            if not isinstance(k, str):
-                raise MessageError(f"{what} has a map key {k!r} that is not a string")
-            _check_plain(item, what, depth + 1)
-        return
-    raise MessageError(f"{what} has a value of type {type(value).__name__}, not a graph value")
-
-
 def _rows_reply(rows: list[dict[str, Any]], elapsed_ms: float, what: str) -> bytes:
     try:
         return messages.encode("rows", {"rows": rows, "elapsed_ms": round(elapsed_ms, 4)})
@@ -607,42 +513,11 @@ def _rows_reply(rows: list[dict[str, Any]], elapsed_ms: float, what: str) -> byt
         raise MessageError(f"{what}: the answer holds a value that cannot be sent: {exc}") from exc
 
 
-def _selector_params(query: Any) -> dict[str, str]:
-    try:
-        pairs = list(query.parameters)
-    except Exception:
-        return {}
-    return {k: v for k, v in pairs if not k.startswith("_")}
-
-
 def _host_of(key: str) -> str:
     try:
         return keys.check_name(keys.last_chunk(key, 2), "host name")
     except ConfigError as exc:
         raise MessageError(str(exc)) from exc
-
-
-def _finish(query: Any, *, key: str | None = None, payload: bytes | None = None, error: str | None = None) -> None:
-    """Reply (or reply_err), then drop the query so the caller's get completes."""
-    try:
-        if error is not None:
-            query.reply_err(error)
-        else:
-            query.reply(key, payload)
-    except Exception as exc:  # the querier may be gone; nothing to tell it
-        log.debug("reply failed: %s", exc)
-    finally:
-        try:
-            query.drop()
-        except Exception:
-            pass
-
-
-def _put_blocking(q: queue.Queue[Any], item: Any) -> None:
-    try:
-        q.put(item, timeout=5)
-    except queue.Full:
-        log.warning("worker queue stayed full at shutdown")
 
 
 def _store_lock(store: GraphStore) -> Any:

@@ -32,7 +32,7 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from onboard.illumination import LightEstimate, LightSettings, Luminance, Smoother, estimate_light, luminance
-from shared import keys, messages
+from shared import keys, messages, rpc
 from shared.errors import ConfigError, KgadaptError, TransportError
 
 log = logging.getLogger(__name__)
@@ -331,10 +331,7 @@ class CameraPart:
         self._threads = []
         for pub in (self._markers_sub, self._frame_pub, self._light_pub):
             if pub is not None:
-                try:
-                    pub.undeclare()
-                except Exception as exc:  # the session may be closed already
-                    log.debug("camera publisher undeclare: %s", exc)
+                rpc.undeclare_quietly(pub)
         self._frame_pub = self._light_pub = self._markers_sub = None
         try:
             self.source.close()

@@ -39,14 +39,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import queue
 import sys
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Sequence
 
-from shared import keys, messages
+from shared import keys, messages, rpc
 from shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
 
 log = logging.getLogger("onboard.detector")
@@ -256,10 +255,7 @@ class Detector:
         for name in ("_token", "_subscriber"):
             thing = getattr(self, name)
             if thing is not None:
-                try:
-                    thing.undeclare()
-                except Exception as exc:
-                    log.debug("undeclare %s: %s", name, exc)
+                rpc.undeclare_quietly(thing)
                 setattr(self, name, None)
         self._stop.set()
         self.slot.close()
@@ -267,10 +263,7 @@ class Detector:
             self._worker.join(timeout=5)
             self._worker = None
         if self._publisher is not None:
-            try:
-                self._publisher.undeclare()
-            except Exception as exc:
-                log.debug("undeclare publisher: %s", exc)
+            rpc.undeclare_quietly(self._publisher)
             self._publisher = None
 
 
@@ -361,67 +354,33 @@ def set_active(session: Any, robot: str, host: str, instance: str, active: bool,
 class Reconfigurer:
     """Answers in-place reconfiguration requests for one detector (see the module's docstring).
 
-    The queryable's callback only queues the query; a worker thread asks the
-    graph, builds and swaps, and replies, so nothing blocks inside Zenoh.
+    Served by one :class:`shared.rpc.Server` worker: it asks the graph, builds
+    and swaps, and replies, so nothing blocks inside Zenoh.
     """
 
     def __init__(self, detector: Detector, *, deployment: str, first_frame_s: float = 2.0) -> None:
         self.detector = detector
         self.deployment = deployment
         self.first_frame_s = first_frame_s
-        self._queue: "queue.Queue[Any]" = queue.Queue(maxsize=8)
-        self._queryable: Any = None
-        self._worker: threading.Thread | None = None
+        instance = detector.settings.instance
+        self._server = rpc.Server(f"detector {instance}", workers=1, max_pending=8, prefix=f"detector {instance}: ")
         self._session: Any = None
 
     def setup(self, session: Any) -> None:
         s = self.detector.settings
         self._session = session
-        self._worker = threading.Thread(target=self._work, name="detector-reconfigure", daemon=True)
-        self._worker.start()
+        self._server.setup()
         try:
-            self._queryable = session.declare_queryable(keys.detector_configure(s.robot, s.host, s.instance),
-                                                        self._on_query)
-        except Exception as exc:
-            self.shutdown()
-            raise TransportError(f"detector {s.instance}: cannot declare its configure queryable: {exc}") from exc
+            self._server.serve(session, keys.detector_configure(s.robot, s.host, s.instance), self._answer,
+                               what="reconfigure")
+        except BaseException:
+            self._server.shutdown()
+            raise
 
-    def _on_query(self, query: Any) -> None:
-        try:
-            self._queue.put_nowait(query)
-        except queue.Full:
-            query.reply_err(f"detector {self.detector.settings.instance}: busy with other reconfigurations")
-
-    def _work(self) -> None:
-        while True:
-            query = self._queue.get()
-            if query is None:
-                return
-            self._answer(query)
-            # Dropping the query finalises it: the asker's get() ends now, not at its timeout.
-            del query
-
-    def _answer(self, query: Any) -> None:
-        try:
-            reply = self.handle(query.payload.to_bytes() if query.payload is not None else b"")
-        except KgadaptError as exc:
-            log.info("detector %s: reconfiguration refused: %s", self.detector.settings.instance, exc)
-            self._reply_err(query, str(exc))
-            return
-        except Exception as exc:  # the running configuration stays; the asker hears why
-            log.exception("detector %s: reconfiguration failed", self.detector.settings.instance)
-            self._reply_err(query, f"internal error: {exc}")
-            return
-        try:
-            query.reply(str(query.key_expr), messages.encode("configure_reply", reply))
-        except Exception as exc:
-            log.warning("detector %s: cannot reply to a reconfiguration: %s", self.detector.settings.instance, exc)
-
-    def _reply_err(self, query: Any, text: str) -> None:
-        try:
-            query.reply_err(f"detector {self.detector.settings.instance}: {text}")
-        except Exception as exc:
-            log.debug("reply_err: %s", exc)
+    def _answer(self, request: rpc.Request) -> rpc.Reply:
+        # A KgadaptError (refused: nothing changed) or a bug is answered with reply_err by the server.
+        reply = self.handle(request.payload or b"")
+        return rpc.Reply(key=request.key, payload=messages.encode("configure_reply", reply))
 
     def handle(self, payload: bytes) -> dict[str, Any]:
         """Check, build, swap; the reply body. Raises KgadaptError (nothing changed) when refused."""
@@ -460,16 +419,7 @@ class Reconfigurer:
         return body
 
     def shutdown(self) -> None:
-        if self._queryable is not None:
-            try:
-                self._queryable.undeclare()
-            except Exception as exc:
-                log.debug("undeclare configure queryable: %s", exc)
-            self._queryable = None
-        if self._worker is not None:
-            self._queue.put(None)
-            self._worker.join(timeout=5)
-            self._worker = None
+        self._server.shutdown()
 
 
 def add_detector_arguments(parser: argparse.ArgumentParser) -> None:

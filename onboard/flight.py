@@ -32,7 +32,7 @@ from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
 from onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, TargetHold
 from onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
 from onboard.site import SiteMarkers
-from shared import keys, messages
+from shared import keys, messages, rpc
 from shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
 
 log = logging.getLogger(__name__)
@@ -260,7 +260,7 @@ class FlightBridge:
         self._stopping = True
         subscriber, self._subscriber = self._subscriber, None
         if subscriber is not None:
-            _quietly(subscriber.undeclare)
+            rpc.undeclare_quietly(subscriber)
         self._queue.put((_STOP, None))
         if self._worker is not None:
             self._worker.join(timeout=2.0)
@@ -272,7 +272,7 @@ class FlightBridge:
             self._notifier = None
         publisher, self._publisher = self._publisher, None
         if publisher is not None:
-            _quietly(publisher.undeclare)
+            rpc.undeclare_quietly(publisher)
         self.link.shutdown()
 
     @property
@@ -518,10 +518,3 @@ class FlightControlWriter:
             return
         self._last, self._last_at, self._last_error = state.discrete(), now, ""
         self.written += 1
-
-
-def _quietly(undo: Callable[[], object]) -> None:
-    try:
-        undo()
-    except Exception as exc:
-        log.debug("ignored during shutdown: %s", exc)

@@ -25,7 +25,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Protocol
 
-from shared import keys
+from shared import keys, rpc
 from shared.errors import KgadaptError, TransportError
 from shared.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
 from shared.session import add_arguments as add_zenoh_arguments
@@ -173,10 +173,7 @@ class Agent:
     def shutdown(self) -> None:
         """Drop the token, shut the parts down in reverse order, close the session."""
         if self._token is not None:
-            try:
-                self._token.undeclare()
-            except Exception as exc:  # session already closed
-                log.debug("token undeclare failed: %s", exc)
+            rpc.undeclare_quietly(self._token)
             self._token = None
         if self._watch is not None:
             self._watch.shutdown()

@@ -18,6 +18,7 @@ translated at the boundary where we call it, with ``raise ... from exc``.
      ├── MessageError             a wire message is malformed, of an unknown version, or too big
      ├── TransportError           Zenoh failed (open, declare, get)
      │    └── RequestTimeout      no (good) reply in time
+     │         └── NoResponder    nobody serves the key: the request ended without a reply
      ├── RemoteError              the far side answered a request with an error reply
      ├── DeploymentError          the deployer refused or failed a start, stop or migration
      │    └── ReadinessTimeout    a process did not say it was ready in time
@@ -99,6 +100,10 @@ class TransportError(KgadaptError):
 
 class RequestTimeout(TransportError):
     """No reply (or no good reply) arrived in time."""
+
+
+class NoResponder(RequestTimeout):
+    """The request ended without any reply: no queryable serves its key (or none is known yet)."""
 
 
 class RemoteError(KgadaptError):

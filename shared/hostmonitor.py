@@ -28,9 +28,9 @@ Tests and the demo use it to make a host "run out" of memory on cue
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
-import queue
 import re
 import threading
 import time
@@ -39,8 +39,8 @@ from typing import Any
 
 import psutil
 
-from shared import keys, messages
-from shared.errors import ConfigError, MessageError, RemoteError, RequestTimeout
+from shared import keys, messages, rpc
+from shared.errors import ConfigError, MessageError, NoResponder, RemoteError, RequestTimeout
 
 log = logging.getLogger(__name__)
 
@@ -233,11 +233,12 @@ class HostMonitor:
     def __init__(self, settings: HostMonitorSettings) -> None:
         self.settings = settings
         self._reserved_mb = 0.0
-        self._requests: queue.Queue[Any] = queue.Queue(maxsize=64)
+        self._lock = threading.Lock()  # sampling and publishing: the sampler thread and the squeeze worker
+        self._next_due = 0.0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._publisher: Any = None
-        self._queryable: Any = None
+        self._stack = contextlib.ExitStack()
         self._me: psutil.Process | None = None  # looked up on first use: __init__ does no I/O
         self._last: dict[str, Any] | None = None
         self.published = 0
@@ -301,62 +302,42 @@ class HostMonitor:
         """Declare the status publisher and the squeeze queryable; start sampling."""
         s = self.settings
         psutil.cpu_percent(interval=None)  # prime: the first call always says 0.0
-        self._publisher = session.declare_publisher(keys.host_status(s.robot, s.host))
-        self._queryable = session.declare_queryable(squeeze_key(s.robot, s.host), self._on_squeeze)
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name=f"hostmonitor-{s.host}", daemon=True)
-        self._thread.start()
+        with contextlib.ExitStack() as stack:
+            self._publisher = rpc.declared(stack, session.declare_publisher(keys.host_status(s.robot, s.host)))
+            server = stack.enter_context(rpc.Server(f"host monitor {s.host}", workers=1, max_pending=64))
+            server.serve(session, squeeze_key(s.robot, s.host), self._answer_squeeze, what="squeeze")
+            stack.callback(server.undeclare)
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name=f"hostmonitor-{s.host}", daemon=True)
+            self._thread.start()
+            stack.callback(self._stop_sampling)
+            self._stack = stack.pop_all()
         budget = f"budget {s.memory_budget_mb:.0f} MiB" if s.memory_budget_mb else "no budget (machine memory)"
         log.info("host monitor for %s: publishing status at %.1f Hz, %s", s.host, s.rate_hz, budget)
 
     def shutdown(self) -> None:
         """Stop sampling and undeclare."""
-        self._stop.set()
-        try:
-            self._requests.put_nowait(None)  # wake the sampler now rather than after one interval
-        except queue.Full:
-            pass
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-            self._thread = None
-        for entity in (self._queryable, self._publisher):
-            if entity is not None:
-                try:
-                    entity.undeclare()
-                except Exception as exc:  # the session may already be closed
-                    log.debug("undeclare failed: %s", exc)
-        self._queryable = self._publisher = None
-        self._drain_requests()
+        self._stack.close()
+        self._publisher = None
 
     # -- internals ----------------------------------------------------------
 
-    def _on_squeeze(self, query: Any) -> None:
-        # Zenoh callback: no Zenoh calls here, only hand the query to the sampler thread.
-        try:
-            self._requests.put_nowait(query)
-        except queue.Full:
-            log.warning("squeeze dropped: too many pending squeeze requests")
+    def _stop_sampling(self) -> None:
+        self._stop.set()  # wakes the sampler now rather than after one interval
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
 
     def _run(self) -> None:
         period = 1.0 / self.settings.rate_hz
-        next_due = 0.0
-        while not self._stop.is_set():
+        while not self._stop.wait(self.settings.sample_interval):
             try:
-                query = self._requests.get(timeout=self.settings.sample_interval)
-            except queue.Empty:
-                query = None
-            if self._stop.is_set():
-                break
-            try:
-                if query is not None:
-                    self._answer_squeeze(query)
-                    next_due = time.monotonic() + period
-                    continue
-                body = self.sample()
-                now = time.monotonic()
-                if now >= next_due or self._moved(body):
-                    self._publish(body)
-                    next_due = now + period
+                with self._lock:  # a squeeze publishes too
+                    body = self.sample()
+                    now = time.monotonic()
+                    if now >= self._next_due or self._moved(body):
+                        self._publish(body)
+                        self._next_due = now + period
             except Exception:  # the monitor must outlive one bad sample
                 log.exception("host monitor: sample or publish failed")
 
@@ -374,50 +355,37 @@ class HostMonitor:
         self._last = body
         self.published += 1
 
-    def _answer_squeeze(self, query: Any) -> None:
-        try:
-            try:
-                payload = query.payload
-                if payload is None:
-                    raise MessageError("squeeze_request has no payload")
-                request = messages.decode(payload.to_bytes(), "squeeze_request")
-                reserve = float(request["reserve_mb"])
-                if reserve < 0:
-                    raise MessageError(f"squeeze_request field 'reserve_mb' must not be negative, got {reserve}")
-            except MessageError as exc:
-                log.warning("squeeze refused: %s", exc)
-                query.reply_err(str(exc))
-                return
+    def _answer_squeeze(self, request: rpc.Request) -> rpc.Reply:
+        # On the squeeze server's worker; a MessageError is answered with reply_err naming the field.
+        if request.payload is None:
+            raise MessageError("squeeze_request has no payload")
+        body = messages.decode(request.payload, "squeeze_request")
+        reserve = float(body["reserve_mb"])
+        if reserve < 0:
+            raise MessageError(f"squeeze_request field 'reserve_mb' must not be negative, got {reserve}")
+        with self._lock:
             self._reserved_mb = reserve
-            body = self.sample()
-            self._publish(body)
-            log.info("squeeze: reserving %.0f MiB on %s, free now %.0f MiB", reserve, body["host"], body["memory_free_mb"])
-            query.reply(squeeze_key(self.settings.robot, self.settings.host), messages.encode("host_status", body))
-        finally:
-            query.drop()
-
-    def _drain_requests(self) -> None:
-        while True:
-            try:
-                query = self._requests.get_nowait()
-            except queue.Empty:
-                return
-            if query is not None:
-                query.drop()
+            status = self.sample()
+            self._publish(status)
+            self._next_due = time.monotonic() + 1.0 / self.settings.rate_hz
+        log.info("squeeze: reserving %.0f MiB on %s, free now %.0f MiB", reserve, status["host"], status["memory_free_mb"])
+        return rpc.Reply(key=squeeze_key(self.settings.robot, self.settings.host),
+                         payload=messages.encode("host_status", status))
 
 
 def squeeze(session: Any, robot: str, host: str, reserve_mb: float, *, timeout: float = 2.0) -> dict[str, Any]:
     """Ask ``host``'s monitor to reserve ``reserve_mb`` MiB; return the status it then published."""
     key = squeeze_key(robot, host)
     payload = messages.encode("squeeze_request", {"reserve_mb": float(reserve_mb)})
-    for reply in session.get(key, payload=payload, timeout=timeout):
-        if reply.ok is not None:
-            return messages.decode(reply.ok.payload.to_bytes(), "host_status")
-        text = reply.err.payload.to_bytes().decode("utf-8", "replace")
-        if text == "Timeout":
-            raise RequestTimeout(f"squeeze on {key}: no answer within {timeout} s")
-        raise RemoteError(f"squeeze on {key}: {text}")
-    raise RequestTimeout(f"squeeze on {key}: no host monitor answered within {timeout} s (is the agent of {host!r} running?)")
+    try:
+        return rpc.call(session, key, payload, lambda data: messages.decode(data, "host_status"), timeout=timeout)
+    except RemoteError as exc:
+        raise RemoteError(f"squeeze on {key}: {exc}") from exc
+    except NoResponder as exc:
+        raise RequestTimeout(f"squeeze on {key}: no host monitor answered within {timeout} s "
+                          f"(is the agent of {host!r} running?)") from exc
+    except RequestTimeout as exc:
+        raise RequestTimeout(f"squeeze on {key}: no answer within {timeout} s") from exc
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
