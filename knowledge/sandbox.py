@@ -85,6 +85,7 @@ class QuerySandbox:
         self._dir: Path | None = None
         self._server: EmbeddedServer | None = None
         self._stores: dict[float, FalkorDBStore] = {}
+        self._loader: redis.Redis | None = None  # copies the graph into the running server
         self._generation = 0
         self._copied_at = -1e9
         self._checked_at = -1e9
@@ -181,7 +182,11 @@ class QuerySandbox:
         except (redis.RedisError, OSError) as exc:
             raise StoreUnavailable(f"cannot copy the graph for the query sandbox: {exc}") from exc
         assert self._server is not None and self._server.address is not None
-        client = redis.Redis(unix_socket_path=self._server.address.unix_socket, socket_timeout=5.0)
+        if self._loader is None:
+            # One client per server: a redis client made per copy kept ~1 KiB of connection-pool state each time
+            # (tracemalloc in a soak), and copies come every few seconds while the graph is written.
+            self._loader = redis.Redis(unix_socket_path=self._server.address.unix_socket, socket_timeout=5.0)
+        client = self._loader
         try:
             # DEL then RESTORE in one transaction: RESTORE ... REPLACE over a graph crashes
             # FalkorDB 4.16 (SIGBUS in GrB_Matrix_nvals while the old graph is freed).
@@ -192,8 +197,6 @@ class QuerySandbox:
             pipe.execute()
         except (redis.RedisError, OSError) as exc:
             raise StoreUnavailable(f"cannot load the graph into the query sandbox: {exc}") from exc
-        finally:
-            client.close()
         self._copied_at = self._checked_at = time.monotonic()
         self._copied_version = version
 
@@ -219,6 +222,9 @@ class QuerySandbox:
         for store in self._stores.values():
             store.shutdown()
         self._stores.clear()
+        loader, self._loader = self._loader, None
+        if loader is not None:
+            loader.close()
         server, self._server = self._server, None
         if server is None:
             return
