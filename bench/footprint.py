@@ -84,7 +84,7 @@ def copy_source(target: Path) -> Path:
     for part in SOURCE_PARTS:
         source = ROOT / part
         if source.is_dir():
-            shutil.copytree(source, target / part, ignore=ignore)
+            shutil.copytree(source, target / part, symlinks=True, ignore=ignore)  # kgadapt/shared etc. stay links
         else:
             shutil.copy2(source, target / part)
     return target
