@@ -138,10 +138,10 @@ class _Rig:
     def __enter__(self) -> "_Rig":
         from deploy.deployer import Deployer, DeployerSettings
         from deploy.supervisor import RestartPolicy, Supervisor, SupervisorSettings
-        from knowledge import schema as S
         from knowledge.loader import load_models
         from knowledge.service import KnowledgeService, ServiceSettings
         from knowledge.store import open_store
+        from shared.resources import models
         from shared.session import ZenohSettings, open_session
 
         stack = self._stack
@@ -151,7 +151,7 @@ class _Rig:
         store.setup()
         stack.callback(store.shutdown)
         if self.real_detector:
-            load_models(store, [Path(S.__file__).resolve().parent / "models"])
+            load_models(store, [models()])
         _add_echo_deployment(store)
         self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
         fast = {"scouting/delay": 0}

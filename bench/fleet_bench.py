@@ -44,11 +44,12 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from bench.stats import format_table, machine_info, make_record, write_json
+from shared.resources import models as shipped_models
 
 log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parent.parent
-MODELS = REPO / "knowledge" / "models"
+MODELS = shipped_models()
 DEFAULT_OUT = REPO / "bench" / "results" / "fleet.json"
 CONFIGS = (("marker_detection_day", "day"), ("marker_detection_dusk", "dusk"), ("marker_detection_dark", "dark"))
 HOSTS = ("onboard", "remote")

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from shared.errors import ConfigError
 from shared.keys import DEFAULT_ROBOT
+from shared.resources import models
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -83,7 +84,7 @@ def copy_source(target: Path) -> Path:
     for part in SOURCE_PARTS:
         source = ROOT / part
         if source.is_dir():
-            shutil.copytree(source, target / part, ignore=ignore)
+            shutil.copytree(source, target / part, symlinks=True, ignore=ignore)  # kgadapt/shared etc. stay links
         else:
             shutil.copy2(source, target / part)
     return target
@@ -226,7 +227,7 @@ def _config_json(config: str) -> str:
         store = open_store(f"embedded:{tmp}")
         store.setup()
         try:
-            load_models(store, [ROOT / "knowledge" / "models"])
+            load_models(store, [models()])
             row, = run_named(store, "detector_config", {"config": config})
         finally:
             store.shutdown()

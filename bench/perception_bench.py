@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.errors import KgadaptError
+from shared.resources import models
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "bench" / "results"
@@ -127,7 +128,7 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
         progress(f"phantoms: {phantom_frames} frames without the site's markers ...")
     from onboard.site import load_site
 
-    site = load_site(REPO / "knowledge" / "models" / "sites" / "demo.site")
+    site = load_site(models() / "sites" / "demo.site")
     phantoms = quality.phantoms(frames=phantom_frames, site_ids=sorted(site.ids), progress=progress)
     if progress:
         progress("real photographs against the synthetic scene ...")

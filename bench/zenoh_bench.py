@@ -47,6 +47,7 @@ from typing import Any, Callable
 from bench.stats import format_table, gc_paused, machine_info, make_record, time_once, write_records
 from shared import rpc
 from shared.errors import ConfigError, TransportError
+from shared.resources import models
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +148,7 @@ class _Fabric:
         loader = open_store(f"embedded:{store_dir}")
         loader.setup()
         try:
-            load_models(loader, [REPO / "knowledge" / "models"])
+            load_models(loader, [models()])
         finally:
             loader.shutdown()
         self.endpoint = f"tcp/127.0.0.1:{_free_port()}"

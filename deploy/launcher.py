@@ -58,8 +58,8 @@ log = logging.getLogger(__name__)
 
 # Modules a launcher may run with ``-m``; PRELOAD is what it imports first (the heavy parts).
 RUNNABLE = ("onboard.detector", "deploy.echo_detector")
-PRELOAD = ("numpy", "cv2", "zenoh", "onboard.markers", "knowledge.client", "shared.session", "shared.agent",
-           *RUNNABLE)
+PRELOAD = ("numpy", "cv2", "zenoh", "onboard.markers", "knowledge.client", "shared.session",
+           "shared.agent", *RUNNABLE)
 _MAX_MESSAGE = 1 << 20
 # The launcher's argv carries this much room: a forked detector writes its own command line there,
 # so ps, psutil and the tools that find detectors by their command line see it as a plain-started one.

@@ -30,9 +30,8 @@ from typing import Sequence
 
 from shared.errors import KgadaptError, TransportError
 from shared.keys import DEFAULT_ROBOT
+from shared.resources import models
 
-REPO = Path(__file__).resolve().parent.parent
-MODELS = REPO / "knowledge" / "models"
 
 
 def free_tcp_port() -> int:
@@ -123,13 +122,13 @@ class LocalCluster:
         s = self.settings
         s.workdir.mkdir(parents=True, exist_ok=True)
         out = []
-        steps = [self.kgadapt("knowledge", "load", str(MODELS), "--store", self.store_url)]
+        steps = [self.kgadapt("knowledge", "load", str(models()), "--store", self.store_url)]
         if s.calibrate:
             steps.append(self.kgadapt("perception", "calibrate", "--store", self.store_url,
                                       "--out", str(s.workdir / "calibration.json"),
                                       "--plot", str(s.workdir / "calibration.png")))
         for argv in steps:
-            result = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd=REPO)
+            result = subprocess.run(argv, capture_output=True, text=True, timeout=120)
             if result.returncode != 0:
                 raise KgadaptError(f"{' '.join(argv[3:6])} failed: {result.stderr.strip()[-500:]}")
             out.append(result.stdout)
@@ -177,7 +176,7 @@ class LocalCluster:
         command = self.network.run_in(where, argv) if where else list(argv)
         env = {**os.environ, **dict(self.settings.env)} if self.settings.env else None
         process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=log_file, stdin=subprocess.DEVNULL,
-                                   text=True, cwd=REPO, start_new_session=True, env=env)
+                                   text=True, start_new_session=True, env=env)
         child = Child(name, process, log_path, argv=tuple(argv), ready_text=ready, host=where)
         self.children[name] = child
 

@@ -17,11 +17,9 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 from typing import Any
 
 DEMO_STORE = "embedded:var/demo-store"
-MODELS = Path(__file__).resolve().parent.parent / "knowledge" / "models"
 
 # (title, query name, parameters)
 QUESTIONS: list[tuple[str, str, dict[str, Any]]] = [
@@ -55,7 +53,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--queries", action="store_true", help="only answer the paper's queries (a few seconds)")
     parser.add_argument("--store", metavar="URL", default=DEMO_STORE,
                         help=f"--queries: store to use (default {DEMO_STORE}); it is emptied first")
-    parser.add_argument("--models", metavar="DIR", default=str(MODELS), help="model directory (default: shipped)")
+    parser.add_argument("--models", metavar="DIR", default=None, help="model directory (default: the shipped models)")
     parser.add_argument("--workdir", default="var/demo", help="scenario: logs, store and plots (default var/demo)")
     parser.add_argument("--duration", type=float, default=62.0, metavar="S", help="scenario length (default 62)")
     parser.add_argument("--speed", type=float, default=1.0, help="scenario seconds per second (default 1)")
@@ -106,15 +104,18 @@ def run_queries(args: argparse.Namespace) -> int:
     from knowledge.queries import run_named
     from knowledge.store import open_store, rows_as_table
 
+    from shared.resources import models
+
+    folder = args.models or str(models())
     started = time.perf_counter()
     with open_store(args.store) as store:
         store.clear()
         t0 = time.perf_counter()
-        report = load_models(store, [args.models])
+        report = load_models(store, [folder])
         load_ms = (time.perf_counter() - t0) * 1000
         nodes = sum(report.as_dict()["labels"].get(label, 0) for label in
                     ("Feature", "IlluminationBand", "PerceptionGraph", "Component", "Port", "Deployment", "Platform"))
-        print(f"Loaded {len(report.files)} model files from {args.models}: {nodes} nodes, "
+        print(f"Loaded {len(report.files)} model files from {folder}: {nodes} nodes, "
               f"{sum(report.relations.values())} relations in {load_ms:.0f} ms (store {store.url}).")
         print("\nRun-time facts, as the agents would write them:")
         for line in _facts(store):

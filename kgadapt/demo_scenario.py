@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from kgadapt.cluster import REPO, ClusterSettings, LocalCluster, WatchedRobot
+from kgadapt.cluster import ClusterSettings, LocalCluster, WatchedRobot
 from kgadapt.timeline import Decision
 
 # (scenario second, action, argument): the demo profile is dark from 26 s to 36 s.
@@ -32,7 +32,7 @@ def run_scenario(args: argparse.Namespace) -> int:
     from knowledge.store import rows_as_table
     from shared.hostmonitor import parse_size_mb, squeeze
 
-    workdir = (REPO / args.workdir) if not Path(args.workdir).is_absolute() else Path(args.workdir)
+    workdir = Path(args.workdir).resolve()  # relative to where the command runs
     shutil.rmtree(workdir, ignore_errors=True)
     squeeze_mb = parse_size_mb(args.squeeze)
     settings = ClusterSettings(workdir=workdir, scenario_speed=args.speed)

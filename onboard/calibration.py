@@ -40,6 +40,7 @@ import numpy as np
 from onboard.illumination import Band, bands_from_rows
 from onboard.markers import DetectorConfig, MarkerDetector, Score, parse_config, score
 from shared.errors import ConfigError, KgadaptError
+from shared.resources import models
 
 log = logging.getLogger(__name__)
 
@@ -302,7 +303,7 @@ def configs_from_store(store: Any, feature: str = FEATURE) -> tuple[list[Detecto
     return configs, bands, rows
 
 
-def model_configs(folder: Path | str = REPO / "knowledge" / "models" / "perception") -> list[DetectorConfig]:
+def model_configs(folder: Path | str | None = None) -> list[DetectorConfig]:
     """The detector configurations of the perception-graph model files, read without a store (tests, bench).
 
     Each ``*.rpsl`` file's perception graph names the configuration; its
@@ -311,7 +312,7 @@ def model_configs(folder: Path | str = REPO / "knowledge" / "models" / "percepti
     from knowledge.importers.rpsl import parse
 
     configs = []
-    for path in sorted(Path(folder).glob("*.rpsl")):
+    for path in sorted(Path(folder or models() / "perception").glob("*.rpsl")):
         model = parse(path.read_text(), str(path))
         graphs = [n.name for n in model.nodes if n.label == "PerceptionGraph"]
         settings = [n.props["config_json"] for n in model.nodes if n.props.get("config_json")]
@@ -328,9 +329,9 @@ def ensure_models(store: Any, feature: str = FEATURE) -> bool:
         return False
     from knowledge.loader import load_models
 
-    models = REPO / "knowledge" / "models"
-    log.info("graph has no %s configurations: loading %s", feature, models)
-    load_models(store, [models])
+    folder = models()
+    log.info("graph has no %s configurations: loading %s", feature, folder)
+    load_models(store, [folder])
     return True
 
 

@@ -41,9 +41,10 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from shared.errors import ConfigError, ModelError
+from shared.resources import scenarios
 
 DEFAULT_DICTIONARY = "DICT_4X4_50"
-SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
+SCENARIO_DIR = scenarios()
 DEMO_PROFILE = SCENARIO_DIR / "demo.json"
 
 _GLOBALS = {"gradient": (0.0, 0.9), "noise": (0.0, 50.0), "shot": (0.0, 5.0), "readout_s": (0.0, 0.2)}

@@ -2,15 +2,15 @@
 
 ::
 
-    # Marker detector, dusk configuration.
-    name: detector_dusk
-    description: ArUco marker detector for dusk
-    deploys: marker_detection_dusk
-    executable: {python}
-    arguments: -m onboard.detector --robot {robot} --host {host} --instance {instance} --config {config} --connect {connect}
-    environment: OPENCV_LOG_LEVEL=ERROR
-    executable_on: onboard, remote
-    reconfigurable_as: marker-detector
+  # Marker detector, dusk configuration.
+  name: detector_dusk
+  description: ArUco marker detector for dusk
+  deploys: marker_detection_dusk
+  executable: {python}
+  arguments: -m onboard.detector --robot {robot} --host {host} --instance {instance} --config {config} --connect {connect}
+  environment: OPENCV_LOG_LEVEL=ERROR
+  executable_on: onboard, remote
+  reconfigurable_as: marker-detector
 
 ``name`` defaults to the file name without ``.deploy``. ``arguments`` are split
 like a shell would (quotes respected, nothing expanded). ``environment`` may

@@ -33,7 +33,9 @@ log = logging.getLogger(__name__)
 
 Verdict = dict[str, Any] | None
 # What the verdict depends on besides the configuration: the checking program and what it imports.
-_CHECK_MODULES = ("onboard.config_check", "onboard.markers", "onboard.scenario", "shared.preprocessing")
+_CHECK_MODULES = (
+    "onboard.config_check", "onboard.markers", "onboard.scenario", "shared.preprocessing",
+)
 _memory: dict[str, Verdict] = {}
 
 
@@ -95,13 +97,10 @@ def _write(key: str, verdict: Verdict) -> None:
 
 
 def _ask(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
-    spec = importlib.util.find_spec("onboard")
-    root = str(Path(next(iter(spec.submodule_search_locations or []))).parent) if spec else ""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)}
     request = json.dumps([{"name": name, "config_json": config} for name, config in configs])
     try:
         done = subprocess.run([sys.executable, "-m", "onboard.config_check"], input=request, capture_output=True,
-                              text=True, timeout=120, env=env)
+                              text=True, timeout=120)
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise ModelError(path, None, f"cannot check the detector configurations with OpenCV: {exc}") from exc
     try:

@@ -1,0 +1,45 @@
+"""Data files shipped inside the kgadapt package, found through :mod:`importlib.resources`.
+
+The domain models (``knowledge/models``), the synthetic-camera scenarios
+(``onboard/scenarios``) and the deployment files (``deploy/systemd``,
+``deploy/zenoh``, ...) are package data (pyproject.toml), so an installed
+wheel finds them where it installed them and a source checkout finds them in
+its folders; nothing depends on the current directory or on a checkout.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+from shared.errors import ConfigError
+
+
+def shipped(package: str, *parts: str) -> Path:
+    """The file or folder ``parts`` of ``package`` (e.g. ``"kgadapt.knowledge", "models"``) as a path.
+
+    The callers hand these paths to code that walks folders and to child processes, so the
+    package must be installed as files (a wheel or an editable install, not a zip archive).
+    """
+    try:
+        root = resources.files(package)
+    except ModuleNotFoundError as exc:
+        raise ConfigError(f"package {package!r} is not installed, so its data {'/'.join(parts)!r} cannot be found") \
+            from exc
+    target = root.joinpath(*parts)
+    if not isinstance(target, Path):
+        raise ConfigError(f"{package}: {'/'.join(parts)} is not on the file system ({target!r}); "
+                          f"install kgadapt as files (pip install), not from a zip archive")
+    if not target.exists():
+        raise ConfigError(f"{package} ships no {'/'.join(parts)} (looked for {target}): a broken installation")
+    return target
+
+
+def models() -> Path:
+    """The shipped domain models: the folder ``kgadapt knowledge load`` reads by default."""
+    return shipped("kgadapt.knowledge", "models")
+
+
+def scenarios() -> Path:
+    """The shipped synthetic-camera scenarios (illumination profiles)."""
+    return shipped("kgadapt.onboard", "scenarios")
