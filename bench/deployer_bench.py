@@ -6,7 +6,7 @@ Three measurements, all on this machine with real processes:
    - a trivial C program, compiled here with ``cc`` (prints the readiness line, waits for a signal),
    - a bare Python child, ``python -c``,
    - the echo detector (Python + a Zenoh session + a subscription),
-   - the real marker detector ``onboard.detector`` (OpenCV, Zenoh, its configuration asked of
+   - the real marker detector ``kgadapt.onboard.detector`` (OpenCV, Zenoh, its configuration asked of
      the knowledge service),
    side by side with the paper's figures (1.6 ms start, 0.07 ms stop). *spawn* is fork+exec
    until ``Popen`` returns; *ready* is until the readiness line is read; *stop* is SIGINT until
@@ -41,8 +41,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.stats import format_table, machine_info, make_record, summarize, write_records
-from shared.errors import ConfigError
+from kgadapt.bench.stats import format_table, machine_info, make_record, summarize, write_records
+from kgadapt.shared.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ int main(void) {
     for (;;) pause();
 }
 """
-ECHO_ARGS = ["-m", "deploy.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
+ECHO_ARGS = ["-m", "kgadapt.deploy.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
              "--config", "{config}", "--connect", "{connect}"]
 
 
@@ -89,7 +89,7 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.reps < 1 or args.detector_reps < 1 or args.migrations < 1:
         raise ConfigError("--reps, --detector-reps and --migrations must be at least 1")
-    from bench.footprint import HalfCore
+    from kgadapt.bench.footprint import HalfCore
 
     if args.onboard_cpu and HalfCore.unavailable_reason():
         raise ConfigError(f"kgadapt bench deployer: --onboard-cpu: {HalfCore.unavailable_reason()}")
@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         # (moving a running process with Zenoh's threads in was refused with EINVAL here).
         with HalfCore(args.onboard_cpu) as limit, tempfile.TemporaryDirectory() as tmp:
             out = Path(tmp) / "limited.json"
-            argv = [sys.executable, "-m", "bench.deployer_bench", "--reps", str(args.reps), "--detector-reps",
+            argv = [sys.executable, "-m", "kgadapt.bench.deployer_bench", "--reps", str(args.reps), "--detector-reps",
                     str(args.detector_reps), "--migrations", str(args.migrations), "--fps", str(args.fps),
                     "--out", str(out), "--inside-cgroup", str(args.onboard_cpu)]
             if args.skip_real_detector:
@@ -136,13 +136,13 @@ class _Rig:
         self._stack = contextlib.ExitStack()
 
     def __enter__(self) -> "_Rig":
-        from deploy.deployer import Deployer, DeployerSettings
-        from deploy.supervisor import RestartPolicy, Supervisor, SupervisorSettings
-        from knowledge.loader import load_models
-        from knowledge.service import KnowledgeService, ServiceSettings
-        from knowledge.store import open_store
-        from shared.resources import models
-        from shared.session import ZenohSettings, open_session
+        from kgadapt.deploy.deployer import Deployer, DeployerSettings
+        from kgadapt.deploy.supervisor import RestartPolicy, Supervisor, SupervisorSettings
+        from kgadapt.knowledge.loader import load_models
+        from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+        from kgadapt.knowledge.store import open_store
+        from kgadapt.shared.resources import models
+        from kgadapt.shared.session import ZenohSettings, open_session
 
         stack = self._stack
         self.tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="kgadapt-bench-deployer-")))
@@ -207,7 +207,7 @@ def compile_c_program(directory: Path) -> Path:
 
 
 def _add_echo_deployment(store: Any) -> None:
-    from knowledge import schema as S
+    from kgadapt.knowledge import schema as S
 
     store.execute(
         f"MERGE (d:{S.DEPLOYMENT} {{name: 'echo'}}) SET d.kind = 'DeploymentFile', d.executable = '{{python}}', "
@@ -235,7 +235,7 @@ def _free_port() -> int:
 
 
 def _wait_for_deployers(session: Any, hosts: list[str], timeout: float = 10.0) -> None:
-    from shared import keys, messages
+    from kgadapt.shared import keys, messages
 
     request = messages.encode("deploy_request", {})
     deadline = time.monotonic() + timeout
@@ -250,7 +250,7 @@ def _wait_for_deployers(session: Any, hosts: list[str], timeout: float = 10.0) -
 
 
 def supervisor_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, Any]]:
-    from deploy.supervisor import ProcessSpec
+    from kgadapt.deploy.supervisor import ProcessSpec
 
     py = sys.executable
     bare = (py, "-c", "import time; print('KGADAPT_READY'); time.sleep(600)")
@@ -263,17 +263,17 @@ def supervisor_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, 
             ("C program (trivial), setpriv launcher", (str(rig.c_program),), args.reps, rig.supervisor_setpriv),
             ("python -c (bare), setpriv launcher", bare, args.reps, rig.supervisor_setpriv),
         ]
-    echo = (py, "-m", "deploy.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
+    echo = (py, "-m", "kgadapt.deploy.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
             "--config", "echo_config", "--connect", rig.endpoint)
-    detector = (py, "-m", "onboard.detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
+    detector = (py, "-m", "kgadapt.onboard.detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
                 "--config", "marker_detection_day", "--connect", rig.endpoint)
     programs += [("echo detector (Python + Zenoh)", echo, args.reps, rig.supervisor)]
     if rig.real_detector:
-        programs.append(("onboard.detector (OpenCV + Zenoh + config query)", detector, args.detector_reps,
+        programs.append(("kgadapt.onboard.detector (OpenCV + Zenoh + config query)", detector, args.detector_reps,
                          rig.supervisor))
     programs += [("echo detector, forked by the launcher", echo, args.reps, rig.supervisor_launcher)]
     if rig.real_detector:
-        programs.append(("onboard.detector, forked by the launcher", detector, args.detector_reps,
+        programs.append(("kgadapt.onboard.detector, forked by the launcher", detector, args.detector_reps,
                          rig.supervisor_launcher))
     records = []
     for label, argv, reps, supervisor in programs:
@@ -319,7 +319,7 @@ def _rss_mb(pid: int | None) -> float:
 
 
 def deployer_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, Any]]:
-    from deploy.client import DeployerClient
+    from kgadapt.deploy.client import DeployerClient
 
     client = DeployerClient(rig.session, ROBOT, timeout=10.0)
     cases = [("echo", "echo_config", args.reps)]
@@ -357,7 +357,7 @@ class _Frames:
         import cv2
         import numpy as np
 
-        from shared import keys
+        from kgadapt.shared import keys
 
         image = np.full((480, 640), 128, np.uint8)
         ok, jpeg = cv2.imencode(".jpg", image)
@@ -371,7 +371,7 @@ class _Frames:
         self._thread.start()
 
     def _run(self) -> None:
-        from shared import messages
+        from kgadapt.shared import messages
 
         next_at = time.perf_counter()
         while not self._stop.is_set():
@@ -392,15 +392,15 @@ class _Answered:
     """Frame sequence numbers that got a detections message from any detector instance."""
 
     def __init__(self, session: Any) -> None:
-        from shared import keys
+        from kgadapt.shared import keys
 
         self.seqs: set[int] = set()
         self._lock = threading.Lock()
         self._sub = session.declare_subscriber(keys.detector_markers(ROBOT, "*"), self._on)
 
     def _on(self, sample: Any) -> None:
-        from shared import messages
-        from shared.errors import MessageError
+        from kgadapt.shared import messages
+        from kgadapt.shared.errors import MessageError
 
         try:
             seq = messages.decode(sample.payload.to_bytes(), "detections")["seq"]
@@ -418,8 +418,8 @@ class _Answered:
 
 
 def migration_gaps(rig: _Rig, args: argparse.Namespace) -> list[dict[str, Any]]:
-    from deploy.client import DeployerClient
-    from deploy.migration import migrate
+    from kgadapt.deploy.client import DeployerClient
+    from kgadapt.deploy.migration import migrate
 
     cases = [("echo", "echo_config")]
     if rig.real_detector:
@@ -501,8 +501,8 @@ def render(records: list[dict[str, Any]], *, markdown: bool = False) -> str:
     return "\n".join(out)
 
 
-def main(argv: list[str] | None = None) -> int:  # python -m bench.deployer_bench
-    parser = argparse.ArgumentParser(prog="python -m bench.deployer_bench")
+def main(argv: list[str] | None = None) -> int:  # python -m kgadapt.bench.deployer_bench
+    parser = argparse.ArgumentParser(prog="python -m kgadapt.bench.deployer_bench")
     register(parser.add_subparsers(dest="bench"))
     args = parser.parse_args(["deployer", *(argv if argv is not None else sys.argv[1:])])
     return args.func(args)

@@ -5,7 +5,7 @@ The fleet, all real processes on this machine:
 - one FalkorDB server holding one graph per robot (FalkorDB keeps many graphs
   per server), each loaded with the shipped models and seeded with a running
   detector, its decision and its hosts' figures (:func:`seed_robot`);
-- ``--routers`` router processes (``python -m bench.fleet_bench serve``), each
+- ``--routers`` router processes (``python -m kgadapt.bench.fleet_bench serve``), each
   a Zenoh router linked to every router started before it (a full mesh, so no
   single process carries the fleet) and hosting the knowledge services of its
   share of the robots: one :class:`KnowledgeService` per robot, each with its
@@ -43,8 +43,8 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from bench.stats import format_table, machine_info, make_record, write_json
-from shared.resources import models as shipped_models
+from kgadapt.bench.stats import format_table, machine_info, make_record, write_json
+from kgadapt.shared.resources import models as shipped_models
 
 log = logging.getLogger(__name__)
 
@@ -66,9 +66,9 @@ def seed_robot(store: Any, robot: str, index: int, *, now: float | None = None, 
     Robot ``index`` runs configuration ``CONFIGS[index % 3]`` on host
     ``HOSTS[index % 2]``; returns what was seeded, for tests to compare.
     """
-    from knowledge import runtime
-    from knowledge.loader import load_models
-    from knowledge.schema import ensure_indexes
+    from kgadapt.knowledge import runtime
+    from kgadapt.knowledge.loader import load_models
+    from kgadapt.knowledge.schema import ensure_indexes
 
     now = time.time() if now is None else now
     ensure_indexes(store)
@@ -91,8 +91,8 @@ def seed_robot(store: Any, robot: str, index: int, *, now: float | None = None, 
 
 def graph_store(socket: str, graph: str) -> Any:
     """A store on graph ``graph`` of the FalkorDB server at unix socket ``socket``."""
-    from knowledge.falkordb_store import FalkorDBStore
-    from knowledge.store import StoreSettings
+    from kgadapt.knowledge.falkordb_store import FalkorDBStore
+    from kgadapt.knowledge.store import StoreSettings
 
     store = FalkorDBStore(StoreSettings(kind="falkordb", url=f"falkordb+unix://{socket}", unix_socket=socket,
                                        graph=graph))
@@ -104,10 +104,10 @@ def graph_store(socket: str, graph: str) -> Any:
 
 
 def serve(argv: Sequence[str]) -> int:
-    """``python -m bench.fleet_bench serve --listen E [--connect E ...] --socket S --robots a,b,...``."""
-    from knowledge.service import KnowledgeService, ServiceSettings
-    from shared.agent import StopSignals
-    from shared.session import ZenohSettings, open_session
+    """``python -m kgadapt.bench.fleet_bench serve --listen E [--connect E ...] --socket S --robots a,b,...``."""
+    from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+    from kgadapt.shared.agent import StopSignals
+    from kgadapt.shared.session import ZenohSettings, open_session
 
     p = argparse.ArgumentParser(prog="fleet_bench serve")
     p.add_argument("--listen", required=True)
@@ -140,8 +140,8 @@ def serve(argv: Sequence[str]) -> int:
 
 _PUBLISHER = r"""
 import sys, time
-from shared import keys, messages
-from shared.session import ZenohSettings, open_session
+from kgadapt.shared import keys, messages
+from kgadapt.shared.session import ZenohSettings, open_session
 endpoints, robots = sys.argv[1].split(","), sys.argv[2].split(",")
 per_robot, rate, duration = int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
 session = open_session(ZenohSettings(mode="client", connect=tuple(endpoints)))
@@ -174,8 +174,8 @@ session.close()
 # under the services' figure; the rest is the writes to the store.
 _SINK = r"""
 import queue, sys, threading
-from shared import messages
-from shared.session import ZenohSettings, open_session
+from kgadapt.shared import messages
+from kgadapt.shared.session import ZenohSettings, open_session
 session = open_session(ZenohSettings(mode="client", connect=(sys.argv[1],)))
 work = queue.Queue()
 count = [0]
@@ -240,7 +240,7 @@ class SimulatedFleet:
         return self.robots[k::self.routers]
 
     def start(self) -> None:
-        from knowledge.embedded import EmbeddedServer
+        from kgadapt.knowledge.embedded import EmbeddedServer
 
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.server = EmbeddedServer(self.workdir / "store", append_only=False)
@@ -253,7 +253,7 @@ class SimulatedFleet:
             finally:
                 store.shutdown()
         for k in range(len(self.endpoints)):
-            argv = [sys.executable, "-m", "bench.fleet_bench", "serve", "--listen", self.endpoints[k],
+            argv = [sys.executable, "-m", "kgadapt.bench.fleet_bench", "serve", "--listen", self.endpoints[k],
                     "--socket", self.socket, "--robots", ",".join(self.share(k))]
             for j in range(k):
                 argv += ["--connect", self.endpoints[j]]
@@ -348,8 +348,8 @@ def measure_cpu_groups(groups: dict[str, Sequence[int]], seconds: float, during:
 
 def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], workdir: Path,
              fanin: bool) -> list[Any]:
-    from knowledge.fleet import FleetClient, FleetSettings
-    from shared.session import ZenohSettings, open_session
+    from kgadapt.knowledge.fleet import FleetClient, FleetSettings
+    from kgadapt.shared.session import ZenohSettings, open_session
 
     routers = min(args.routers, n)
     out = []
@@ -500,7 +500,7 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from shared.errors import ConfigError
+    from kgadapt.shared.errors import ConfigError
 
     try:
         sizes = [int(s) for s in str(args.sizes).split(",") if s.strip()]
@@ -540,4 +540,4 @@ if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "serve":
         logging.basicConfig(level=logging.WARNING)
         sys.exit(serve(sys.argv[2:]))
-    sys.exit("usage: python -m bench.fleet_bench serve ... (or kgadapt bench fleet)")
+    sys.exit("usage: python -m kgadapt.bench.fleet_bench serve ... (or kgadapt bench fleet)")

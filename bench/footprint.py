@@ -30,9 +30,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from shared.errors import ConfigError
-from shared.keys import DEFAULT_ROBOT
-from shared.resources import models
+from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.resources import models
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -203,7 +203,7 @@ def _usage(pid: int, seconds: float) -> tuple[float, float]:
 
 def render_ms_per_frame(frames: int = 60) -> float:
     """What one frame of the synthetic scene costs to render (the agent's share that a real camera does not have)."""
-    from onboard.camera import make_source
+    from kgadapt.onboard.camera import make_source
 
     source = make_source("synthetic", width=640, height=480, fps=30.0)
     source.open()
@@ -219,9 +219,9 @@ def render_ms_per_frame(frames: int = 60) -> float:
 
 def _config_json(config: str) -> str:
     """The shipped model's settings for ``config`` (read from a throwaway store)."""
-    from knowledge.loader import load_models
-    from knowledge.queries import run_named
-    from knowledge.store import open_store
+    from kgadapt.knowledge.loader import load_models
+    from kgadapt.knowledge.queries import run_named
+    from kgadapt.knowledge.store import open_store
 
     with tempfile.TemporaryDirectory(prefix="kgadapt-footprint-store-") as tmp:
         store = open_store(f"embedded:{tmp}")
@@ -239,8 +239,8 @@ def measure_onboard(*, seconds: float = 15.0, half_core: bool = False, progress=
     import psutil
 
     from kgadapt.cluster import ClusterSettings, LocalCluster
-    from shared import keys
-    from shared.session import ZenohSettings, open_session
+    from kgadapt.shared import keys
+    from kgadapt.shared.session import ZenohSettings, open_session
 
     records = []
     label = "half a core" if half_core else "unconstrained"
@@ -266,7 +266,7 @@ def measure_onboard(*, seconds: float = 15.0, half_core: bool = False, progress=
                     sub = session.declare_subscriber(keys.detector_markers(DEFAULT_ROBOT), lambda _: counted.append(1))
                     try:
                         detector = cluster.spawn(config, inside([
-                            sys.executable, "-m", "onboard.detector", "--instance", f"fp-{config}", "--host",
+                            sys.executable, "-m", "kgadapt.onboard.detector", "--instance", f"fp-{config}", "--host",
                             "onboard", "--connect", endpoint, "--config-json", _config_json(config)]),
                             ready="KGADAPT_READY").process.pid
                         progress(f"{config} beside the agent, {label}, {seconds:.0f} s ...")
@@ -319,7 +319,7 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from bench.stats import format_table, machine_info
+    from kgadapt.bench.stats import format_table, machine_info
 
     previous = json.loads(args.out.read_text()) if args.out.exists() else {}
     records = previous.get("records", []) if args.skip_install else measure(runs=args.runs)

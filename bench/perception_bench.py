@@ -12,7 +12,7 @@ the shared format of bench/stats.py) and summarised for docs/perception.md:
 3. **the calibration table**: detection rate, false markers per 1,000 frames
    and ms per frame per configuration, band and condition, and the first of
    each band's ranking.
-4. **quality** (:mod:`bench.perception_quality`, into
+4. **quality** (:mod:`kgadapt.bench.perception_quality`, into
    ``perception.quality.json``): per configuration x band x condition on fresh
    frames with the oracle gap of the planner's pick; phantom landing targets
    over frames without the site's markers (real photographs and synthetic
@@ -33,8 +33,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from shared.errors import KgadaptError
-from shared.resources import models
+from kgadapt.shared.errors import KgadaptError
+from kgadapt.shared.resources import models
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "bench" / "results"
@@ -105,12 +105,12 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
     """Run all four measurements; write the records; return a summary."""
     import json
 
-    from bench import perception_quality as quality
-    from bench import stats
-    from knowledge.queries import run_named
-    from knowledge.store import open_store
-    from onboard.calibration import CalibrationSettings, run_calibration
-    from onboard.illumination import bands_from_rows
+    from kgadapt.bench import perception_quality as quality
+    from kgadapt.bench import stats
+    from kgadapt.knowledge.queries import run_named
+    from kgadapt.knowledge.store import open_store
+    from kgadapt.onboard.calibration import CalibrationSettings, run_calibration
+    from kgadapt.onboard.illumination import bands_from_rows
 
     settings = CalibrationSettings(frames_per_level=frames, levels_per_band=levels)
     with tempfile.TemporaryDirectory(prefix="kgadapt-perception-") as tmp:
@@ -126,7 +126,7 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
             oracle = quality.oracle_gap(ask, bands, frames=eval_frames, levels=levels)
     if progress:
         progress(f"phantoms: {phantom_frames} frames without the site's markers ...")
-    from onboard.site import load_site
+    from kgadapt.onboard.site import load_site
 
     site = load_site(models() / "sites" / "demo.site")
     phantoms = quality.phantoms(frames=phantom_frames, site_ids=sorted(site.ids), progress=progress)
@@ -171,11 +171,11 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
 
 def measure_transport(*, seconds: float, fps: float, robot: str = "benchperc") -> dict[str, Any]:
     """Camera publisher here, detector in a child process; latencies from the detections' timestamps."""
-    from bench import stats
-    from onboard.camera import CameraPart, CameraSettings, SyntheticSource
-    from onboard.scenario import IlluminationProfile
-    from shared import keys, messages
-    from shared.session import ZenohSettings, open_session
+    from kgadapt.bench import stats
+    from kgadapt.onboard.camera import CameraPart, CameraSettings, SyntheticSource
+    from kgadapt.onboard.scenario import IlluminationProfile
+    from kgadapt.shared import keys, messages
+    from kgadapt.shared.session import ZenohSettings, open_session
 
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     session = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
@@ -183,7 +183,7 @@ def measure_transport(*, seconds: float, fps: float, robot: str = "benchperc") -
     sub = session.declare_subscriber(keys.detector_markers(robot, "bench"), lambda s: got.put(s.payload.to_bytes()))
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     child = subprocess.Popen(
-        [sys.executable, "-m", "onboard.detector", "--robot", robot, "--host", "bench", "--instance", "bench",
+        [sys.executable, "-m", "kgadapt.onboard.detector", "--robot", robot, "--host", "bench", "--instance", "bench",
          "--config-json", DAY_JSON, "--connect", endpoint],
         cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
     )

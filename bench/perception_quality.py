@@ -11,7 +11,7 @@ Used by ``kgadapt bench perception``:
 * :func:`phantoms` - frames of scenes without the site's markers (real
   photographs at their own light, darkened and blurred; synthetic textures,
   other dictionaries and ChArUco-like boards), through every configuration and
-  the confirmation of :mod:`onboard.confirmation`: raw false markers and
+  the confirmation of :mod:`kgadapt.onboard.confirmation`: raw false markers and
   landing targets that would have been sent.
 * :func:`photo_agreement` - every configuration (read with the photos'
   dictionary) on the real photographs darkened by the camera model and on the
@@ -27,9 +27,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from onboard.calibration import ALL, CONDITIONS, CalibrationSettings, calibrate, model_configs, rank_rows
-from onboard.illumination import Band
-from onboard.markers import DetectorConfig, MarkerDetector, Score, score
+from kgadapt.onboard.calibration import ALL, CONDITIONS, CalibrationSettings, calibrate, model_configs, rank_rows
+from kgadapt.onboard.illumination import Band
+from kgadapt.onboard.markers import DetectorConfig, MarkerDetector, Score, score
 
 Progress = Callable[[str], None] | None
 
@@ -69,8 +69,8 @@ def oracle_gap(ask: Callable[[str, dict[str, Any]], list[dict[str, Any]]], bands
 
 def phantom_scenes(total: int, *, run: int = 20):
     """``total`` frames without DICT_4X4_50 markers, in runs of ``run`` consecutive frames of one scene."""
-    from onboard.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
-    from onboard.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
+    from kgadapt.onboard.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
+    from kgadapt.onboard.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
 
     photos = [load_photo(name) for name in PHOTO_DICTIONARIES]
     variants = [(None, CameraModel()), (30.0, CameraModel()), (6.0, CameraModel()), (100.0, CameraModel(blur_px=7))]
@@ -95,8 +95,8 @@ def phantom_scenes(total: int, *, run: int = 20):
 
 def phantoms(*, frames: int, site_ids: Sequence[int], progress: Progress = None) -> dict[str, Any]:
     """Every configuration over ``frames`` frames without the site's markers: raw phantoms and landing targets."""
-    from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
-    from onboard.site import SiteMarkers
+    from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer
+    from kgadapt.onboard.site import SiteMarkers
 
     configs = shipped_configs()
     detectors = [MarkerDetector(c) for c in configs]
@@ -133,8 +133,8 @@ def phantoms(*, frames: int, site_ids: Sequence[int], progress: Progress = None)
 
 def photo_agreement(*, levels: Sequence[float] = (6.0, 15.0, 30.0), frames: int = 8) -> dict[str, Any]:
     """Every configuration with the photos' dictionary: rate on darkened photos and on the synthetic scene."""
-    from onboard.photos import PHOTO_DICTIONARIES, load_photo, photo_frames, photo_truth, shifted
-    from onboard.scenario import IlluminationProfile, SceneSettings, SyntheticScene
+    from kgadapt.onboard.photos import PHOTO_DICTIONARIES, load_photo, photo_frames, photo_truth, shifted
+    from kgadapt.onboard.scenario import IlluminationProfile, SceneSettings, SyntheticScene
 
     names = [n for n, d in PHOTO_DICTIONARIES.items() if d == "DICT_6X6_250"]
     photos = {n: load_photo(n) for n in names}
@@ -171,7 +171,7 @@ def photo_agreement(*, levels: Sequence[float] = (6.0, 15.0, 30.0), frames: int 
 
 def targets(*, frames: int = 20) -> dict[str, Any]:
     """The issue's two rate targets, for every configuration."""
-    from onboard.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
+    from kgadapt.onboard.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
 
     out: dict[str, Any] = {}
     cases = {

@@ -30,7 +30,7 @@ Trials (each injects one fault and records what happened):
     replies, refusals, or crashes, counted.
 
 The observer of the namespace trials is a second robot: :func:`probe_main`
-(``python -m bench.reliability_bench probe``) runs in the ``robot2``
+(``python -m kgadapt.bench.reliability_bench probe``) runs in the ``robot2``
 namespace, a Zenoh client of the robot's router, and reports what it sees
 (detections, liveliness, decisions, deployer events) as JSON lines; it also
 answers requests (named queries, Cypher, deployer lists, fuzzing) sent to its
@@ -58,13 +58,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from shared.errors import ConfigError, KgadaptError, TransportError
-from shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.errors import ConfigError, KgadaptError, TransportError
+from kgadapt.shared.keys import DEFAULT_ROBOT
 
 RESULTS = Path(__file__).resolve().parent / "results" / "reliability.json"
 ROBOT = DEFAULT_ROBOT
 LIVE_STATES = ("starting", "ready", "running", "restarting")
-DETECTOR_MODULE = "onboard.detector"
+DETECTOR_MODULE = "kgadapt.onboard.detector"
 # Measured here (Zenoh 1.10): a TCP link that dies with unsent data is closed with SO_LINGER 10 s,
 # which blocks one of the RX runtime's 2 threads; two dead links (a host's agent and its detector)
 # block both and the router stops routing until the cable is back. More RX threads keep it going.
@@ -102,15 +102,15 @@ def store_crash_trial(data_dir: Path, *, trial: int = 0, seed: int = 0,
                       settings: StoreCrashSettings = StoreCrashSettings()) -> dict[str, Any]:
     """A burst of acknowledged writes to the embedded store, ``kill -9`` of its server mid-burst, count.
 
-    The writes are ``knowledge.runtime.record_process_sample`` (one MERGE each, as the
+    The writes are ``kgadapt.knowledge.runtime.record_process_sample`` (one MERGE each, as the
     deployers send them), each acknowledged when ``execute`` returns. The kill comes from
     another thread while the writer keeps writing, so it lands mid-write. Writes run on
     this thread: a server the store restarts gets its parent-death signal tied to the
     thread that started it. Returns acknowledged, found and lost counts, and timings.
     """
-    from knowledge import runtime
-    from knowledge.embedded import EmbeddedServer
-    from knowledge.store import open_store
+    from kgadapt.knowledge import runtime
+    from kgadapt.knowledge.embedded import EmbeddedServer
+    from kgadapt.knowledge.store import open_store
 
     rng = random.Random(seed * 1000 + trial)
     target = rng.randint(*settings.kill_after)
@@ -219,16 +219,16 @@ def _kill_hard(pid: int) -> None:
 
 
 def probe_main(argv: Sequence[str] | None = None) -> int:
-    """``python -m bench.reliability_bench probe``: watch a robot over Zenoh, answer requests on stdin."""
-    parser = argparse.ArgumentParser(prog="python -m bench.reliability_bench probe",
+    """``python -m kgadapt.bench.reliability_bench probe``: watch a robot over Zenoh, answer requests on stdin."""
+    parser = argparse.ArgumentParser(prog="python -m kgadapt.bench.reliability_bench probe",
                                      description="Watch a robot's detections, hosts, decisions and deployers; "
                                      "print JSON lines; answer JSON requests read from stdin.")
     parser.add_argument("--robot", default=ROBOT, help="the robot watched (default quad1)")
-    from shared.session import add_arguments, settings_from_args
+    from kgadapt.shared.session import add_arguments, settings_from_args
 
     add_arguments(parser)
     args = parser.parse_args(argv)
-    from shared.session import DEFAULT_ENDPOINT, open_session
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session
 
     session = open_session(settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT]))
     probe = _Probe(args.robot, session)
@@ -258,7 +258,7 @@ class _Probe:
         self._writer = threading.Thread(target=self._write, name="probe-writer", daemon=True)
 
     def setup(self) -> None:
-        from shared import keys
+        from kgadapt.shared import keys
 
         r = self.robot
         self._writer.start()
@@ -270,7 +270,7 @@ class _Probe:
         ]
 
     def shutdown(self) -> None:
-        from shared import rpc
+        from kgadapt.shared import rpc
 
         for handle in self._handles:
             rpc.undeclare_quietly(handle)
@@ -287,8 +287,8 @@ class _Probe:
             sys.stdout.flush()
 
     def _decode(self, sample: Any, kind: str) -> dict[str, Any] | None:
-        from shared import messages
-        from shared.errors import MessageError
+        from kgadapt.shared import messages
+        from kgadapt.shared.errors import MessageError
 
         try:
             return messages.decode(sample.payload.to_bytes(), kind)
@@ -348,8 +348,8 @@ class _Probe:
             self.emit({"ev": "reply", "id": rid, "ok": False, "error": f"{type(exc).__name__}: {exc}"})
 
     def _answer(self, request: dict[str, Any]) -> Any:
-        from deploy.client import DeployerClient
-        from knowledge.client import KnowledgeClient
+        from kgadapt.deploy.client import DeployerClient
+        from kgadapt.knowledge.client import KnowledgeClient
 
         op = request.get("op")
         if op == "query":
@@ -375,11 +375,11 @@ class _Probe:
             return KnowledgeClient(self.session, self.robot, timeout=float(request.get("timeout", 3.0))).write(
                 request["verb"], request.get("params") or {})
         if op == "squeeze":
-            from shared.hostmonitor import squeeze
+            from kgadapt.shared.hostmonitor import squeeze
 
             return squeeze(self.session, self.robot, request["host"], float(request["reserve_mb"]))
         if op == "forge":  # host statuses on this robot's own keys, as a process holding its certificate could
-            from shared import keys, messages
+            from kgadapt.shared import keys, messages
 
             for body in request["statuses"]:
                 self.session.put(keys.host_status(self.robot, body["host"]), messages.encode("host_status", body))
@@ -521,7 +521,7 @@ class RobotOnHosts:
             self.cluster.prepare_store()
             self.cluster.start()
             self.probe = ProbeHandle(self.network.run_in("robot2", [
-                sys.executable, "-m", "bench.reliability_bench", "probe", "--robot", ROBOT,
+                sys.executable, "-m", "kgadapt.bench.reliability_bench", "probe", "--robot", ROBOT,
                 "--connect", self.cluster.endpoint, "--mode", "client"]), log_path=s.workdir / "probe.log")
             self.probe.start()
             self.wait_detecting(since=0.0, timeout=timeout)
@@ -820,8 +820,8 @@ def fuzz(session: Any, robot: str, *, examples: int = 20, hosts: Sequence[str] =
         from hypothesis import strategies as st
     except ImportError as exc:
         raise ConfigError(f"bad-input trials need hypothesis (pip install kgadapt[test]): {exc}") from exc
-    from shared import keys, messages, rpc
-    from shared.errors import RemoteError, RequestTimeout
+    from kgadapt.shared import keys, messages, rpc
+    from kgadapt.shared.errors import RemoteError, RequestTimeout
 
     good = {
         "query_request": {"params": {"feature": "MarkerDetection"}},
@@ -934,7 +934,7 @@ def register(bench_subparsers: Any) -> None:
 
 
 def run_bench(args: argparse.Namespace) -> int:
-    from bench.stats import machine_info
+    from kgadapt.bench.stats import machine_info
     from kgadapt.cluster import HostNetwork
 
     for name in ("store_trials", "store_self_trials", "failover_trials", "partition_trials", "restart_trials",
@@ -1043,7 +1043,7 @@ def _brief(result: dict[str, Any], *fields: str) -> str:
 
 def summarize(report: dict[str, Any]) -> list[dict[str, Any]]:
     """One row per fault: trials, failures, and the figures that matter."""
-    from bench.stats import percentile
+    from kgadapt.bench.stats import percentile
 
     rows: list[dict[str, Any]] = []
     trials = report["trials"]
@@ -1142,7 +1142,7 @@ def totals(report: dict[str, Any]) -> dict[str, Any]:
 
 
 def summary_table(rows: list[dict[str, Any]], *, markdown: bool = False) -> str:
-    from bench.stats import format_table
+    from kgadapt.bench.stats import format_table
 
     header = ["fault", "trials", "failed", "measure", "value", "timed", "p50 ms", "max ms"]
     return format_table([[r["fault"], r["trials"], r["failed"], r["measure"], r["value"], r["timed"], r["p50_ms"],
@@ -1172,7 +1172,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["probe"]:
         return probe_main(argv[1:])
-    print("usage: python -m bench.reliability_bench probe [--robot R] [--connect EP] [--mode M]; "
+    print("usage: python -m kgadapt.bench.reliability_bench probe [--robot R] [--connect EP] [--mode M]; "
           "the bench itself is `kgadapt bench reliability`", file=sys.stderr)
     return 2
 

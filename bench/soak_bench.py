@@ -2,7 +2,7 @@
 
 The robot runs across network namespaces (``onboard``: knowledge service,
 onboard agent, fake flight controller hovering; ``remote``: the remote agent;
-``robot2``: the observer, :func:`bench.reliability_bench.probe_main`), every
+``robot2``: the observer, :func:`kgadapt.bench.reliability_bench.probe_main`), every
 message through the service's router. The scenario camera loops through the
 bands (day, dusk, dark, flicker: a light step every ``band_s`` seconds), so
 band changes and migrations happen all along.
@@ -45,8 +45,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from shared.errors import ConfigError, KgadaptError
-from shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.errors import ConfigError, KgadaptError
+from kgadapt.shared.keys import DEFAULT_ROBOT
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ROBOT = DEFAULT_ROBOT
@@ -112,7 +112,7 @@ class Soak:
     # -- the robot ------------------------------------------------------------------
 
     def start(self) -> None:
-        from bench.reliability_bench import ZENOH_RUNTIME, ProbeHandle
+        from kgadapt.bench.reliability_bench import ZENOH_RUNTIME, ProbeHandle
         from kgadapt.cluster import ClusterSettings, HostNetwork, LocalCluster, NetworkSettings
 
         s = self.settings
@@ -129,7 +129,7 @@ class Soak:
         self.cluster.prepare_store()
         self.cluster.start()
         self.probe = ProbeHandle(self.network.run_in("robot2", [
-            sys.executable, "-m", "bench.reliability_bench", "probe", "--robot", ROBOT,
+            sys.executable, "-m", "kgadapt.bench.reliability_bench", "probe", "--robot", ROBOT,
             "--connect", self.cluster.endpoint, "--mode", "client"]), log_path=self.workdir / "probe.log")
         self.probe.start()
         self.probe.wait_event(lambda e: e["ev"] == "first_detection", 60, "the first detections")
@@ -152,7 +152,7 @@ class Soak:
         found = []
         for p in psutil.process_iter(["pid", "cmdline", "status"]):
             cmdline = p.info.get("cmdline") or []
-            if "onboard.detector" not in cmdline or p.info.get("status") == psutil.STATUS_ZOMBIE:
+            if "kgadapt.onboard.detector" not in cmdline or p.info.get("status") == psutil.STATUS_ZOMBIE:
                 continue
             try:
                 inode = os.stat(f"/proc/{p.info['pid']}/ns/net").st_ino
@@ -410,7 +410,7 @@ class Soak:
         return self.report(lost, processes_alive)
 
     def report(self, lost: list[str], alive: dict[str, bool]) -> dict[str, Any]:
-        from bench.stats import machine_info, percentile
+        from kgadapt.bench.stats import machine_info, percentile
 
         s = self.settings
         counts: dict[str, int] = {}

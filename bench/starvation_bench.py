@@ -25,8 +25,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from bench.stats import format_table, machine_info, make_record, write_records
-from shared.keys import DEFAULT_ROBOT
+from kgadapt.bench.stats import format_table, machine_info, make_record, write_records
+from kgadapt.shared.keys import DEFAULT_ROBOT
 
 RESULTS = Path(__file__).resolve().parent / "results" / "starvation.json"
 DARK = "marker_detection_dark"
@@ -59,7 +59,7 @@ def _attacks(port: int) -> dict[str, Callable[[Any], Any]]:
 
 def _probe(client: Any, seconds: float) -> tuple[list[float], int]:
     """Own placement every 50 ms for ``seconds``: (latencies ms, unanswered)."""
-    from shared.errors import KgadaptError
+    from kgadapt.shared.errors import KgadaptError
 
     latencies, unanswered = [], 0
     end = time.monotonic() + seconds
@@ -79,8 +79,8 @@ def run(args: argparse.Namespace) -> int:
     import socket
 
     from kgadapt.cluster import ClusterSettings, WatchedRobot, write_profile
-    from knowledge.client import KnowledgeClient
-    from shared.session import ZenohSettings, open_session
+    from kgadapt.knowledge.client import KnowledgeClient
+    from kgadapt.shared.session import ZenohSettings, open_session
     from tests.security.outsider import Outsider
 
     workdir = Path(tempfile.mkdtemp(prefix="kgadapt-bench-starvation-"))

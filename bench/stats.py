@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
-from shared.errors import ConfigError
+from kgadapt.shared.errors import ConfigError
 
 RECORD_KEYS = ("store", "n", "op", "mean_ms", "sd_ms", "p50_ms", "p99_ms")
 

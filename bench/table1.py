@@ -46,11 +46,11 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-from bench.stats import format_table, gc_paused, machine_info, make_record, read_records, time_once, write_records
-from knowledge import queries, runtime
-from knowledge import schema as S
-from knowledge.store import GraphStore, parse_store_url
-from shared.errors import ConfigError, QueryError
+from kgadapt.bench.stats import format_table, gc_paused, machine_info, make_record, read_records, time_once, write_records
+from kgadapt.knowledge import queries, runtime
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.store import GraphStore, parse_store_url
+from kgadapt.shared.errors import ConfigError, QueryError
 
 log = logging.getLogger(__name__)
 
@@ -192,7 +192,7 @@ def model_rows(first: int, count: int, rng: random.Random) -> list[dict[str, Any
                 "deployment": deployment_name(i),
                 "kind": "systemd",
                 "executable": "{python}",
-                "arguments": ["-m", "onboard.detector", "--config", config_name(i)],
+                "arguments": ["-m", "kgadapt.onboard.detector", "--config", config_name(i)],
             }
         )
     return rows
@@ -441,9 +441,9 @@ def measure_fig5(probe: Probe, sources: Sources, n: int, settings: Table1Setting
 
 def run_table1(settings: Table1Settings, *, progress: Callable[[str], None] = lambda line: None) -> list[dict[str, Any]]:
     """Measure every N of ``settings``; return the records (not yet written)."""
-    from knowledge.embedded import EmbeddedServer
-    from knowledge.falkordb_store import FalkorDBStore
-    from knowledge.store import open_store
+    from kgadapt.knowledge.embedded import EmbeddedServer
+    from kgadapt.knowledge.falkordb_store import FalkorDBStore
+    from kgadapt.knowledge.store import open_store
 
     sources = find_sources()
     rng = random.Random(settings.seed)
@@ -668,7 +668,7 @@ def _query_limit(ix: Mapping, n: int, op: str, smallest: int) -> str:
 
 def plot(records: Sequence[Mapping[str, Any]], path: Path) -> Path:
     """A PNG: latency (p50, p99 as whiskers) against N, the paper's means dashed; load time."""
-    from shared.extras import require
+    from kgadapt.shared.extras import require
 
     matplotlib = require("matplotlib", extra="plots", what="the Table I plot")
     matplotlib.use("Agg")

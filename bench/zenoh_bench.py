@@ -11,7 +11,7 @@ One run, real processes on loopback:
                        process of its own, one hop away as the service is
    ``zenoh_queued``    the same echo handed to a worker thread through a queue
                        (the pattern every queryable of ours follows)
-   ``rpc_queued``      the same queued echo asked with ``shared.rpc.call`` (how every
+   ``rpc_queued``      the same queued echo asked with ``kgadapt.shared.rpc.call`` (how every
                        client of ours asks; its cost over ``zenoh_queued``)
    ``store_trivial``   ``RETURN 1`` on the store directly
    ``zenoh_trivial``   ``RETURN 1`` as read-only Cypher through the service
@@ -44,10 +44,10 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from bench.stats import format_table, gc_paused, machine_info, make_record, time_once, write_records
-from shared import rpc
-from shared.errors import ConfigError, TransportError
-from shared.resources import models
+from kgadapt.bench.stats import format_table, gc_paused, machine_info, make_record, time_once, write_records
+from kgadapt.shared import rpc
+from kgadapt.shared.errors import ConfigError, TransportError
+from kgadapt.shared.resources import models
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,7 @@ QUERY_PARAMS = {"feature": "MarkerDetection", "config": CONFIG}
 
 _ECHO = r"""
 import queue, sys, threading
-from shared.session import ZenohSettings, open_session
+from kgadapt.shared.session import ZenohSettings, open_session
 session = open_session(ZenohSettings(mode="peer", listen=(sys.argv[1],)))
 work = queue.Queue()
 def worker():
@@ -139,10 +139,10 @@ class _Fabric:
         self.children: list[subprocess.Popen] = []
 
     def __enter__(self) -> "_Fabric":
-        from knowledge.client import KnowledgeClient
-        from knowledge.loader import load_models
-        from knowledge.store import open_store
-        from shared.session import ZenohSettings, open_session
+        from kgadapt.knowledge.client import KnowledgeClient
+        from kgadapt.knowledge.loader import load_models
+        from kgadapt.knowledge.store import open_store
+        from kgadapt.shared.session import ZenohSettings, open_session
 
         store_dir = self.tmp / "store"
         loader = open_store(f"embedded:{store_dir}")
@@ -208,7 +208,7 @@ class _Fabric:
 
 
 def _request_latency(fabric: _Fabric, *, reps: int, warmup: int) -> list[dict[str, Any]]:
-    from knowledge.queries import run_named
+    from kgadapt.knowledge.queries import run_named
 
     client, store, echo_session = fabric.client, fabric.store, fabric.echo_session
 
@@ -249,7 +249,7 @@ def _request_latency(fabric: _Fabric, *, reps: int, warmup: int) -> list[dict[st
 def _fan_in(fabric: _Fabric, *, hosts: int, rate: float, duration: float, probe_hosts: int) -> dict[str, Any]:
     import psutil
 
-    from shared import keys, messages
+    from kgadapt.shared import keys, messages
 
     service = psutil.Process(fabric.service.pid)
     store_proc = psutil.Process(fabric.store_pid)

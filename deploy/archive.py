@@ -1,6 +1,6 @@
 """Offline install archives: kgadapt's wheel, a wheelhouse of every dependency, an install script.
 
-``make dist`` (``python -m deploy.archive``) writes one archive per machine
+``make dist`` (``python -m kgadapt.deploy.archive``) writes one archive per machine
 architecture, ``dist/kgadapt-VERSION-linux-ARCH.tar.gz``, holding::
 
     kgadapt-VERSION-linux-ARCH/
@@ -30,7 +30,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from shared.errors import ConfigError
+from kgadapt.shared.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 DIST = ROOT / "dist"
@@ -80,7 +80,7 @@ def _pip(*args: str, what: str) -> None:
 def build_wheel(target: Path) -> Path:
     """kgadapt's own wheel (pure Python), built from this checkout."""
     with tempfile.TemporaryDirectory(prefix="kgadapt-wheel-") as tmp:
-        from bench.footprint import copy_source
+        from kgadapt.bench.footprint import copy_source
 
         source = copy_source(Path(tmp) / "src")
         _pip("wheel", "--no-deps", "-q", "-w", str(target), str(source), what="building kgadapt's wheel")
@@ -143,7 +143,7 @@ Then follow docs/deploy.md, "Running on a quadcopter and a remote host".
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m deploy.archive", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m kgadapt.deploy.archive", description=__doc__.split("\n\n")[0])
     parser.add_argument("--arch", action="append", choices=ARCHES, help="architecture (repeatable; default: all)")
     parser.add_argument("--python", action="append", choices=PYTHONS, help="Python version (repeatable; default: all)")
     parser.add_argument("--out", type=Path, default=DIST, help="output directory (default %(default)s)")

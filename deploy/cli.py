@@ -11,8 +11,8 @@ import argparse
 import json
 from typing import Any
 
-from shared.errors import ConfigError
-from shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.keys import DEFAULT_ROBOT
 
 
 def register(subparsers: Any) -> None:
@@ -78,8 +78,8 @@ def register(subparsers: Any) -> None:
                            "another agent, and for tests. Stops its processes on SIGINT or SIGTERM.")
     serve.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
     serve.add_argument("--host", required=True, help="this host's name, as the models call its Platform")
-    from deploy.options import add_arguments as add_deployer_arguments
-    from shared.session import add_arguments as add_zenoh_arguments
+    from kgadapt.deploy.options import add_arguments as add_deployer_arguments
+    from kgadapt.shared.session import add_arguments as add_zenoh_arguments
 
     add_zenoh_arguments(serve)
     add_deployer_arguments(serve)
@@ -87,7 +87,7 @@ def register(subparsers: Any) -> None:
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
-    from shared.session import add_arguments as add_zenoh_arguments
+    from kgadapt.shared.session import add_arguments as add_zenoh_arguments
 
     parser.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
     parser.add_argument("--timeout", type=float, default=5.0, metavar="S", help="request timeout (default 5)")
@@ -102,8 +102,8 @@ class _Client:
         self.args = args
 
     def __enter__(self):
-        from deploy.client import DeployerClient
-        from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+        from kgadapt.deploy.client import DeployerClient
+        from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
         zenoh = settings_from_args(self.args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
         self.session = open_session(zenoh)
@@ -140,8 +140,8 @@ def run_list(args: argparse.Namespace) -> int:
     with _Client(args) as (_, client):
         processes = client.list(args.host)
     if not client.answered:  # silence is not "no processes": say whom we asked, and fail
-        from shared.errors import RequestTimeout
-        from shared.session import DEFAULT_ENDPOINT, settings_from_args
+        from kgadapt.shared.errors import RequestTimeout
+        from kgadapt.shared.session import DEFAULT_ENDPOINT, settings_from_args
 
         via = ", ".join(settings_from_args(args).connect) or args.zenoh_config or DEFAULT_ENDPOINT
         where = "no deployer" if args.host == "*" else f"no deployer on host {args.host}"
@@ -153,7 +153,7 @@ def run_list(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(processes, indent=2))
         return 0
-    from knowledge.store import rows_as_table
+    from kgadapt.knowledge.store import rows_as_table
 
     columns = ("host", "instance", "state", "pid", "deployment", "config", "restarts", "returncode")
     print(rows_as_table([{c: p.get(c) for c in columns} for p in processes]))
@@ -161,8 +161,8 @@ def run_list(args: argparse.Namespace) -> int:
 
 
 def run_migrate(args: argparse.Namespace) -> int:
-    from deploy.client import DeployerClient
-    from deploy.migration import migrate
+    from kgadapt.deploy.client import DeployerClient
+    from kgadapt.deploy.migration import migrate
 
     with _Client(args) as (session, _):
         client = DeployerClient(session, args.robot, timeout=args.timeout,
@@ -180,10 +180,10 @@ def run_migrate(args: argparse.Namespace) -> int:
 
 
 def run_serve(args: argparse.Namespace) -> int:
-    from deploy.deployer import Deployer, settings_from_args
-    from shared.agent import Agent, AgentSettings, run_agent
-    from shared.session import DEFAULT_ENDPOINT
-    from shared.session import settings_from_args as zenoh_settings_from_args
+    from kgadapt.deploy.deployer import Deployer, settings_from_args
+    from kgadapt.shared.agent import Agent, AgentSettings, run_agent
+    from kgadapt.shared.session import DEFAULT_ENDPOINT
+    from kgadapt.shared.session import settings_from_args as zenoh_settings_from_args
 
     zenoh = zenoh_settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
     if zenoh.mode == "client" and not zenoh.connect and not zenoh.config_file:

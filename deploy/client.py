@@ -12,8 +12,8 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from shared import keys, messages, rpc
-from shared.errors import DeploymentError, MessageError, NoResponder, ReadinessTimeout, RemoteError, RequestTimeout
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.errors import DeploymentError, MessageError, NoResponder, ReadinessTimeout, RemoteError, RequestTimeout
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """The deployer: a host's detector processes, started and stopped on request over Zenoh.
 
 One :class:`Deployer` runs in each agent (onboard and remote) as one of its
-parts. It answers four queryables (``shared.keys.deployer_verb``)::
+parts. It answers four queryables (``kgadapt.shared.keys.deployer_verb``)::
 
     kgadapt/<robot>/host/<host>/deployer/start    deploy_request {deployment, config, instance?,
                                                                   wait_ready?, ready_timeout?}
@@ -42,13 +42,21 @@ from typing import Any, Callable, Mapping
 
 import zenoh
 
-from deploy.options import add_arguments  # noqa: F401  (re-exported for agents)
-from deploy.profile import ProfileRecorder, ProfileSettings
-from deploy.supervisor import ProcessEvent, ProcessInfo, ProcessSpec, RestartPolicy, StopPolicy, Supervisor, SupervisorSettings
-from shared import keys, messages, rpc
-from shared.agent import DEFAULT_ROBOT
-from shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RemoteError, TransportError
-from shared.session import DEFAULT_ENDPOINT
+from kgadapt.deploy.options import add_arguments  # noqa: F401  (re-exported for agents)
+from kgadapt.deploy.profile import ProfileRecorder, ProfileSettings
+from kgadapt.deploy.supervisor import (
+    ProcessEvent,
+    ProcessInfo,
+    ProcessSpec,
+    RestartPolicy,
+    StopPolicy,
+    Supervisor,
+    SupervisorSettings,
+)
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.agent import DEFAULT_ROBOT
+from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RemoteError, TransportError
+from kgadapt.shared.session import DEFAULT_ENDPOINT
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +133,7 @@ class Deployer:
         s = self.settings
         self._session = session
         if self._knowledge is None:
-            from knowledge.client import KnowledgeClient
+            from kgadapt.knowledge.client import KnowledgeClient
 
             self._knowledge = KnowledgeClient(session, s.robot, timeout=s.knowledge_timeout, own=True, host=s.host)
         # Shut down in reverse: queryables, supervisor (it stops every process and wakes requests waiting
@@ -367,7 +375,7 @@ def _info_dict(info: ProcessInfo, host: str) -> dict[str, Any]:
 
 def settings_from_args(args: argparse.Namespace, *, robot: str, host: str) -> DeployerSettings:
     """Deployer settings of an agent command; ``{connect}`` is the agent's own first endpoint."""
-    from shared.session import settings_from_args as zenoh_settings_from_args
+    from kgadapt.shared.session import settings_from_args as zenoh_settings_from_args
 
     zenoh = zenoh_settings_from_args(args)
     connect = zenoh.connect[0] if zenoh.connect else _first_connect_in_file(zenoh.config_file) or DEFAULT_ENDPOINT

@@ -7,7 +7,7 @@ frame's sequence number. Use it to try a deployment, a migration or a Zenoh
 configuration on real hosts before the camera and the models are in place,
 and in the deployer's tests and benchmark::
 
-    python -m deploy.echo_detector --robot quad1 --host remote --instance echo1 \\
+    python -m kgadapt.deploy.echo_detector --robot quad1 --host remote --instance echo1 \\
         --config marker_detection_day --connect tcp/127.0.0.1:7447
 
 ``--tick HZ`` publishes on its own clock when no camera runs;
@@ -25,7 +25,7 @@ import time
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m deploy.echo_detector", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m kgadapt.deploy.echo_detector", description=__doc__.splitlines()[0])
     parser.add_argument("--robot", required=True)
     parser.add_argument("--host", required=True)
     parser.add_argument("--instance", required=True)
@@ -59,9 +59,9 @@ def _raise_stopped(*_: object) -> None:
 
 
 def _serve(args: argparse.Namespace, unblock_signals) -> int:
-    from shared import keys, messages
-    from shared.errors import KgadaptError
-    from shared.session import open_session, settings_from_env
+    from kgadapt.shared import keys, messages
+    from kgadapt.shared.errors import KgadaptError
+    from kgadapt.shared.session import open_session, settings_from_env
 
     if args.never_ready_on == args.host:
         unblock_signals()

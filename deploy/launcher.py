@@ -3,8 +3,8 @@
 A detector started the plain way is a new Python interpreter that imports
 OpenCV, NumPy, Zenoh and the project's code before it can open its session:
 hundreds of milliseconds on a small computer. The launcher pays that once.
-Its agent's :class:`~deploy.supervisor.Supervisor` starts it
-(``python -m deploy.launcher --fd N``) and talks to it over a private unix
+Its agent's :class:`~kgadapt.deploy.supervisor.Supervisor` starts it
+(``python -m kgadapt.deploy.launcher --fd N``) and talks to it over a private unix
 socket pair (``SOCK_SEQPACKET``, one JSON message each way per request), never
 over Zenoh: the launcher stays single-threaded and opens no session, so every
 fork copies one thread and no runtime. The forked detector opens its own
@@ -52,14 +52,14 @@ import threading
 import time
 from typing import Any, Callable, Sequence
 
-from shared.errors import DeploymentError
+from kgadapt.shared.errors import DeploymentError
 
 log = logging.getLogger(__name__)
 
 # Modules a launcher may run with ``-m``; PRELOAD is what it imports first (the heavy parts).
-RUNNABLE = ("onboard.detector", "deploy.echo_detector")
-PRELOAD = ("numpy", "cv2", "zenoh", "onboard.markers", "knowledge.client", "shared.session",
-           "shared.agent", *RUNNABLE)
+RUNNABLE = ("kgadapt.onboard.detector", "kgadapt.deploy.echo_detector")
+PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.markers", "kgadapt.knowledge.client", "kgadapt.shared.session",
+           "kgadapt.shared.agent", *RUNNABLE)
 _MAX_MESSAGE = 1 << 20
 # The launcher's argv carries this much room: a forked detector writes its own command line there,
 # so ps, psutil and the tools that find detectors by their command line see it as a plain-started one.
@@ -273,12 +273,12 @@ def _run_module(module: str, argv: list[str]) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m deploy.launcher",
+    parser = argparse.ArgumentParser(prog="python -m kgadapt.deploy.launcher",
                                      description="Fork detectors for the agent that started this (see deploy/launcher.py).")
     parser.add_argument("--fd", type=int, required=True, help="descriptor of the socket to the agent")
     parser.add_argument("--title-room", default="", help="room for the forked detectors' command lines")
     args = parser.parse_args(argv)
-    set_title([sys.executable, "-m", "deploy.launcher", "--fd", str(args.fd)])
+    set_title([sys.executable, "-m", "kgadapt.deploy.launcher", "--fd", str(args.fd)])
     # OpenBLAS starts a thread pool at import; the launcher must stay single-threaded to fork safely.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sock = socket.socket(fileno=args.fd)
@@ -287,7 +287,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name in PRELOAD:
         importlib.import_module(name)
     if _threads() != 1:
-        print(f"deploy.launcher: error: {_threads()} threads after the imports; cannot fork safely", file=sys.stderr)
+        print(f"kgadapt.deploy.launcher: error: {_threads()} threads after the imports; cannot fork safely", file=sys.stderr)
         return 1
     import gc
 
@@ -377,7 +377,7 @@ class LauncherClient:
         env["PYTHONUNBUFFERED"] = "1"
         try:
             proc = subprocess.Popen(
-                [self.python, "-m", "deploy.launcher", "--fd", str(theirs.fileno()), "--title-room", "." * TITLE_ROOM],
+                [self.python, "-m", "kgadapt.deploy.launcher", "--fd", str(theirs.fileno()), "--title-room", "." * TITLE_ROOM],
                 stdin=subprocess.DEVNULL, pass_fds=(theirs.fileno(),), env=env, start_new_session=True,
                 preexec_fn=self._preexec(),
             )

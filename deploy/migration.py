@@ -24,10 +24,10 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from deploy.client import DeployerClient
-from deploy.deployer import new_instance_name
-from shared import keys, messages, rpc
-from shared.errors import (
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.deploy.deployer import new_instance_name
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.errors import (
     DeploymentError,
     KgadaptError,
     MessageError,

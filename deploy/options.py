@@ -2,7 +2,7 @@
 
 Agent commands register their flags at ``kgadapt`` start-up, where heavy
 imports are not wanted (kgadapt/cli.py); the settings are built later by
-:func:`deploy.deployer.settings_from_args`.
+:func:`kgadapt.deploy.deployer.settings_from_args`.
 """
 
 from __future__ import annotations

@@ -30,8 +30,8 @@ from typing import Any, Callable, Mapping
 
 import psutil
 
-from deploy.supervisor import ProcessEvent
-from shared.errors import KgadaptError
+from kgadapt.deploy.supervisor import ProcessEvent
+from kgadapt.shared.errors import KgadaptError
 
 log = logging.getLogger(__name__)
 

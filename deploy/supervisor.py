@@ -50,9 +50,9 @@ from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field, replace
 from typing import Callable
 
-from deploy.launcher import ForkedProcess, LauncherClient, become_subreaper
-from shared.errors import DeploymentError, ReadinessTimeout
-from shared.keys import check_name
+from kgadapt.deploy.launcher import ForkedProcess, LauncherClient, become_subreaper
+from kgadapt.shared.errors import DeploymentError, ReadinessTimeout
+from kgadapt.shared.keys import check_name
 
 log = logging.getLogger(__name__)
 

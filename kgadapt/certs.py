@@ -39,9 +39,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from shared import keys
-from shared.errors import ConfigError
-from shared.keys import DEFAULT_ROBOT
+from kgadapt.shared import keys
+from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.keys import DEFAULT_ROBOT
 
 # A detector has its own identity, not its host's: the router lets it publish detections, serve its
 # reconfiguration and read its configuration, nothing else (deploy/zenoh/router.json5).
@@ -245,7 +245,7 @@ class CertificateAuthority:
 
 def make_certificates(settings: CertSettings) -> CertReport:
     """Make (or reuse, with ``use_ca``) the CA in ``settings.directory`` and issue each role's certificate."""
-    from shared.extras import require
+    from kgadapt.shared.extras import require
 
     require("cryptography", extra="certs", what="kgadapt certs")
     directory = Path(settings.directory)

@@ -19,20 +19,20 @@ import logging
 import sys
 from typing import Sequence
 
-from shared.errors import KgadaptError
+from kgadapt.shared.errors import KgadaptError
 
 # The modules that register subcommands, in the order of `kgadapt --help`.
 PARTS = (
-    "knowledge.cli",          # kgadapt knowledge load|query|queries|cypher|export (+ serve, via a hook)
-    "knowledge.service_cli",  # kgadapt ask
+    "kgadapt.knowledge.cli",          # kgadapt knowledge load|query|queries|cypher|export (+ serve, via a hook)
+    "kgadapt.knowledge.service_cli",  # kgadapt ask
     "kgadapt.fleet_view",     # kgadapt fleet
-    "onboard.cli",            # kgadapt onboard
-    "onboard.perception_cli", # kgadapt perception calibrate|camera|detector ...
-    "onboard.flight_cli",     # kgadapt flight ... (MAVLink bridge, fake flight controller)
-    "remote.cli",             # kgadapt remote
-    "deploy.cli",             # kgadapt deploy start|stop|list|migrate
-    "onboard.adaptation_cli", # kgadapt why
-    "bench.cli",              # kgadapt bench table1|zenoh|deployer|perception|adaptation|reliability
+    "kgadapt.onboard.cli",            # kgadapt onboard
+    "kgadapt.onboard.perception_cli", # kgadapt perception calibrate|camera|detector ...
+    "kgadapt.onboard.flight_cli",     # kgadapt flight ... (MAVLink bridge, fake flight controller)
+    "kgadapt.remote.cli",             # kgadapt remote
+    "kgadapt.deploy.cli",             # kgadapt deploy start|stop|list|migrate
+    "kgadapt.onboard.adaptation_cli", # kgadapt why
+    "kgadapt.bench.cli",              # kgadapt bench table1|zenoh|deployer|perception|adaptation|reliability
     "kgadapt.demo",           # kgadapt demo
     "kgadapt.certs",          # kgadapt certs (TLS certificate authority and certificates)
     "kgadapt.status",         # kgadapt status (one screen for the person running the robot)

@@ -28,10 +28,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from shared.errors import KgadaptError, TransportError
-from shared.keys import DEFAULT_ROBOT
-from shared.resources import models
-
+from kgadapt.shared.errors import KgadaptError, TransportError
+from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.resources import models
 
 
 def free_tcp_port() -> int:
@@ -440,7 +439,7 @@ class WatchedRobot:
         self.exit_codes: dict[str, int | None] = {}  # of every process, after leaving
 
     def __enter__(self) -> "WatchedRobot":
-        from shared.session import ZenohSettings, open_session
+        from kgadapt.shared.session import ZenohSettings, open_session
 
         t = time.perf_counter()
         self.prepared = self.cluster.prepare_store()

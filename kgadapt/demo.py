@@ -65,7 +65,7 @@ def register(subparsers: Any) -> None:
 
 def _facts(store: Any) -> list[str]:
     """What the agents would have written by now; returns a line per fact, for the reader."""
-    from knowledge import runtime as R
+    from kgadapt.knowledge import runtime as R
 
     now = time.time()
     R.update_platform(store, name="onboard", time=now, memory_total_mb=1024.0, memory_free_mb=220.0,
@@ -100,11 +100,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_queries(args: argparse.Namespace) -> int:
-    from knowledge.loader import load_models
-    from knowledge.queries import run_named
-    from knowledge.store import open_store, rows_as_table
-
-    from shared.resources import models
+    from kgadapt.knowledge.loader import load_models
+    from kgadapt.knowledge.queries import run_named
+    from kgadapt.knowledge.store import open_store, rows_as_table
+    from kgadapt.shared.resources import models
 
     folder = args.models or str(models())
     started = time.perf_counter()

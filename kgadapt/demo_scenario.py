@@ -29,8 +29,8 @@ SCRIPT = (
 
 
 def run_scenario(args: argparse.Namespace) -> int:
-    from knowledge.store import rows_as_table
-    from shared.hostmonitor import parse_size_mb, squeeze
+    from kgadapt.knowledge.store import rows_as_table
+    from kgadapt.shared.hostmonitor import parse_size_mb, squeeze
 
     workdir = Path(args.workdir).resolve()  # relative to where the command runs
     shutil.rmtree(workdir, ignore_errors=True)
@@ -117,8 +117,8 @@ def run_scenario(args: argparse.Namespace) -> int:
 
 
 def _bands(cluster: LocalCluster) -> list[tuple[str, float, float]]:
-    from knowledge.queries import run_named
-    from knowledge.store import open_store
+    from kgadapt.knowledge.queries import run_named
+    from kgadapt.knowledge.store import open_store
 
     try:
         with open_store(cluster.store_url) as store:

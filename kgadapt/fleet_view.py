@@ -28,7 +28,7 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from shared import keys, rpc
+from kgadapt.shared import keys, rpc
 
 CLEAR = "\x1b[H\x1b[2J"
 
@@ -66,7 +66,7 @@ class FleetView:
     """The fleet's state. ``setup()`` subscribes, ``snapshot()`` asks, ``shutdown()`` undeclares."""
 
     def __init__(self, session: Any, settings: FleetViewSettings = FleetViewSettings()) -> None:
-        from knowledge.fleet import FleetClient, FleetSettings
+        from kgadapt.knowledge.fleet import FleetClient, FleetSettings
 
         self.session = session
         self.settings = settings
@@ -107,8 +107,8 @@ class FleetView:
         self.changed.set()
 
     def _on_event(self, sample: Any) -> None:
-        from shared import messages
-        from shared.errors import MessageError
+        from kgadapt.shared import messages
+        from kgadapt.shared.errors import MessageError
 
         robot = str(sample.key_expr).split("/")[1]
         try:
@@ -179,7 +179,7 @@ def _choice(config: str | None, host: str | None) -> str | None:
 
 def render(robots: list[RobotStatus], now: float | None = None) -> str:
     """The view as a plain text table."""
-    from knowledge.store import rows_as_table
+    from kgadapt.knowledge.store import rows_as_table
 
     now = time.time() if now is None else now
     rows = []
@@ -215,7 +215,7 @@ def _age(seconds: float | None) -> str | None:
 
 def register(subparsers: Any) -> None:
     """Add ``kgadapt fleet``."""
-    from shared.session import add_arguments as add_zenoh_arguments
+    from kgadapt.shared.session import add_arguments as add_zenoh_arguments
 
     p = subparsers.add_parser(
         "fleet",
@@ -236,8 +236,8 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from shared.errors import ConfigError
-    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.shared.errors import ConfigError
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
     if not args.interval > 0 or not args.timeout > 0:
         raise ConfigError("--interval and --timeout: more than 0 s")

@@ -10,7 +10,7 @@ What it shows, and where each figure comes from (nothing is computed twice):
   ``detector_configs``), the detection rate over the listening window against
   the configuration's calibrated rate in that band;
 - the flight phase (the bridge's ``flight_state``, the same message
-  ``kgadapt flight status`` prints, judged by onboard.flight_phase);
+  ``kgadapt flight status`` prints, judged by kgadapt.onboard.flight_phase);
 - the last decisions with their reasons (``decisions``);
 - problems: anything above that is missing or wrong.
 
@@ -28,8 +28,8 @@ import threading
 import time
 from typing import Any
 
-from shared.keys import DEFAULT_ROBOT
-from shared.timefmt import ago, duration, stamp
+from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.timefmt import ago, duration, stamp
 
 
 def register(subparsers: Any) -> None:
@@ -46,7 +46,7 @@ def register(subparsers: Any) -> None:
                         help="seconds to listen for host status, light, detections and flight state (default 1.5)")
     parser.add_argument("--timeout", type=float, default=2.0, metavar="S", help="request timeout (default 2)")
     parser.add_argument("--decisions", type=int, default=5, metavar="N", help="last N decisions (default 5)")
-    from shared.session import add_arguments
+    from kgadapt.shared.session import add_arguments
 
     add_arguments(parser)
     parser.set_defaults(func=run)
@@ -56,7 +56,7 @@ class _Listener:
     """Subscribers that only collect (never block in a Zenoh callback); read after the window."""
 
     def __init__(self, session: Any, robot: str) -> None:
-        from shared import keys
+        from kgadapt.shared import keys
 
         self.lock = threading.Lock()
         self.host_status: dict[str, dict[str, Any]] = {}
@@ -71,8 +71,8 @@ class _Listener:
         ]
 
     def _on(self, kind: str):
-        from shared import messages
-        from shared.errors import MessageError
+        from kgadapt.shared import messages
+        from kgadapt.shared.errors import MessageError
 
         def callback(sample: Any) -> None:
             try:
@@ -94,7 +94,7 @@ class _Listener:
         return callback
 
     def close(self) -> None:
-        from shared import rpc
+        from kgadapt.shared import rpc
 
         for sub in self.subscribers:
             rpc.undeclare_quietly(sub)
@@ -103,10 +103,10 @@ class _Listener:
 def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1.5, timeout: float = 2.0,
            decisions: int = 5) -> dict[str, Any]:
     """Everything ``status`` shows, as data (epoch times; ``problems`` a list of sentences)."""
-    from deploy.client import DeployerClient
-    from knowledge.client import KnowledgeClient
-    from shared import keys
-    from shared.errors import KgadaptError
+    from kgadapt.deploy.client import DeployerClient
+    from kgadapt.knowledge.client import KnowledgeClient
+    from kgadapt.shared import keys
+    from kgadapt.shared.errors import KgadaptError
 
     started = time.monotonic()
     listener = _Listener(session, robot)
@@ -197,8 +197,8 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     if light is not None:
         level = light.get("smoothed", light.get("mean"))
         if configs:
-            from onboard.illumination import band_for_level
-            from shared.errors import ConfigError
+            from kgadapt.onboard.illumination import band_for_level
+            from kgadapt.shared.errors import ConfigError
 
             try:
                 band = band_for_level(float(level), configs)
@@ -244,7 +244,7 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
 
 
 def _flight(message: dict[str, Any] | None, graph_rows: list[dict[str, Any]]) -> dict[str, Any] | None:
-    from onboard.flight_phase import in_final_descent
+    from kgadapt.onboard.flight_phase import in_final_descent
 
     if message is not None:
         state, source = dict(message), "flight_state"
@@ -325,7 +325,7 @@ def render(data: dict[str, Any], *, now: float | None = None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
     zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
     endpoint = ", ".join(zenoh.connect) or (zenoh.config_file or "?")

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from shared import keys, messages, rpc
-from shared.errors import MessageError
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.errors import MessageError
 
 
 @dataclass
@@ -280,7 +280,7 @@ class Recorder:
 
     def plot(self, path: Path, bands: list[tuple[str, float, float]] | None = None) -> Path:
         """Draw the timeline PNG: illumination, configuration, host, detection rate, free memory."""
-        from shared.extras import require
+        from kgadapt.shared.extras import require
 
         matplotlib = require("matplotlib", extra="plots", what="the demo's timeline plot")
         matplotlib.use("Agg")

@@ -26,10 +26,10 @@ import neo4j
 from neo4j import exceptions as neo4j_errors
 from neo4j import graph as neo4j_graph
 
-from knowledge.dialect import FALKORDB, MEMGRAPH, NEO4J, Dialect
-from knowledge.params import check_params
-from knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
-from shared.errors import QueryError, ReadOnlyViolation, StoreTimeout, StoreUnavailable
+from kgadapt.knowledge.dialect import FALKORDB, MEMGRAPH, NEO4J, Dialect
+from kgadapt.knowledge.params import check_params
+from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
+from kgadapt.shared.errors import QueryError, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 Every subcommand takes ``--store URL`` (default ``$KGADAPT_STORE``, else the
 embedded store in the user's data directory); ``--json`` where the output is
-data. ``kgadapt knowledge serve`` is added by ``knowledge.service_cli`` (it
+data. ``kgadapt knowledge serve`` is added by ``kgadapt.knowledge.service_cli`` (it
 needs Zenoh, and lives with the service's other commands).
 """
 
@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from knowledge.store import STORE_ENV, open_store, rows_as_table
-from shared.errors import ConfigError
+from kgadapt.knowledge.store import STORE_ENV, open_store, rows_as_table
+from kgadapt.shared.errors import ConfigError
 
 _STORE_HELP = f"graph store URL (default: ${STORE_ENV}, else the embedded store); e.g. embedded:DIR, falkordb://HOST:PORT, bolt://HOST:PORT"
 
@@ -78,7 +78,7 @@ def register(subparsers: Any) -> None:
     _store_arg(export)
     export.set_defaults(func=_export)
 
-    from knowledge.service_cli import register_knowledge
+    from kgadapt.knowledge.service_cli import register_knowledge
 
     register_knowledge(sub)
 
@@ -97,7 +97,7 @@ def _run_bounded(store_url: str | None, cypher: str, params: dict[str, Any], lim
     with open_store(store_url) as store:
         if not store.capabilities.sandbox:
             return store.execute(cypher, params, read_only=True, timeout_ms=int(limit_s * 1000))
-        from knowledge.sandbox import QuerySandbox
+        from kgadapt.knowledge.sandbox import QuerySandbox
 
         sandbox = QuerySandbox(store)
         sandbox.setup()
@@ -124,7 +124,7 @@ def _print_json(data: Any) -> None:
 
 
 def _load(args: argparse.Namespace) -> int:
-    from knowledge.loader import check_models, load_models, report
+    from kgadapt.knowledge.loader import check_models, load_models, report
 
     if args.check:
         result = report(check_models(args.paths))
@@ -141,7 +141,7 @@ def _load(args: argparse.Namespace) -> int:
 
 
 def _query(args: argparse.Namespace) -> int:
-    from knowledge.queries import check_params, coerce_params, get_query
+    from kgadapt.knowledge.queries import check_params, coerce_params, get_query
 
     query = get_query(args.name)
     values = check_params(args.name, coerce_params(args.name, _pairs(args.param)))
@@ -156,8 +156,8 @@ def _query(args: argparse.Namespace) -> int:
 
 def _why_empty(store_url: str | None, name: str | None, values: dict[str, Any]) -> str:
     """Why the answer is empty (or NamedQueryError when the question names what is not there)."""
-    from knowledge.empty_answers import explain_empty, store_is_empty
-    from knowledge.queries import run_named
+    from kgadapt.knowledge.empty_answers import explain_empty, store_is_empty
+    from kgadapt.knowledge.queries import run_named
 
     with open_store(store_url) as store:
         where = f"store {store.url}"
@@ -180,7 +180,7 @@ def _print_rows(rows: list[dict[str, Any]], as_json: bool, reason: str) -> None:
 
 
 def _queries(args: argparse.Namespace) -> int:
-    from knowledge.queries import catalogue
+    from kgadapt.knowledge.queries import catalogue
 
     rows = catalogue()
     if args.json:
@@ -199,7 +199,7 @@ def _cypher(args: argparse.Namespace) -> int:
             params[key] = json.loads(text)
         except ValueError:
             params[key] = text
-    from knowledge.cypher_guard import check_cypher
+    from kgadapt.knowledge.cypher_guard import check_cypher
 
     rows = _run_bounded(args.store, check_cypher(args.text), params, args.time_limit)
     _print_rows(rows, args.json, _why_empty(args.store, None, params) if not rows else "")
@@ -207,7 +207,7 @@ def _cypher(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from knowledge.export import export
+    from kgadapt.knowledge.export import export
 
     with open_store(args.store) as store:
         text = export(store, args.format)

@@ -18,9 +18,9 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from knowledge.fleet import FleetAnswer, FleetClient, FleetSettings  # noqa: F401 (the fleet's client, re-exported)
-from shared import keys, messages, rpc
-from shared.errors import RemoteError, RequestTimeout
+from kgadapt.knowledge.fleet import FleetAnswer, FleetClient, FleetSettings  # noqa: F401 (the fleet's client, re-exported)
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.errors import RemoteError, RequestTimeout
 
 
 class KnowledgeClient:
@@ -51,7 +51,7 @@ class KnowledgeClient:
         return self._ask(keys.knowledge_cypher(self.robot), payload, "cypher")
 
     def write(self, verb: str, params: Mapping[str, Any]) -> list[dict[str, Any]]:
-        """Apply run-time write ``verb`` (see knowledge.runtime.WRITERS)."""
+        """Apply run-time write ``verb`` (see kgadapt.knowledge.runtime.WRITERS)."""
         payload = messages.encode("write_request", {"params": dict(params)})
         verb = keys.check_name(verb, "write verb")
         key = (keys.knowledge_write(self.robot, verb) if self.host is None

@@ -37,7 +37,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from shared.errors import ReadOnlyViolation
+from kgadapt.shared.errors import ReadOnlyViolation
 
 
 class CypherRefused(ReadOnlyViolation):
@@ -496,7 +496,7 @@ class _Parser:
             self.i -= 1
             while self.tok.offset > start.offset:
                 self.i -= 1
-            self.fail(f"function {function}() is not allowed (only the functions in knowledge.cypher_guard.FUNCTIONS)")
+            self.fail(f"function {function}() is not allowed (only the functions in kgadapt.knowledge.cypher_guard.FUNCTIONS)")
         with self.nest():
             self.expect("(")
             self.accept("distinct")

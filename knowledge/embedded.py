@@ -33,7 +33,7 @@ import redis
 from redis.backoff import NoBackoff
 from redis.retry import Retry
 
-from shared.errors import StoreUnavailable
+from kgadapt.shared.errors import StoreUnavailable
 
 log = logging.getLogger(__name__)
 

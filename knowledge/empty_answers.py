@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Any, Callable, Mapping
 
-from shared.errors import NamedQueryError
+from kgadapt.shared.errors import NamedQueryError
 
 Run = Callable[[str, dict[str, Any]], list[dict[str, Any]]]
 
@@ -26,7 +26,7 @@ _RUN_TIME = {"decisions": "no adaptation decision yet (is `kgadapt onboard --ada
 
 def store_is_empty(run: Run) -> bool:
     """No platform and no detector configuration: nothing was loaded."""
-    from knowledge.queries import DEFAULT_FEATURE
+    from kgadapt.knowledge.queries import DEFAULT_FEATURE
 
     return not run("platforms", {}) and not run("detector_configs", {"feature": DEFAULT_FEATURE})
 
@@ -37,7 +37,7 @@ def explain_empty(name: str, params: Mapping[str, Any], run: Run, *, where: str)
     Raises NamedQueryError when the reason is a mistake: a name the graph does not have, or nothing loaded.
     Returns "" when no reason is known.
     """
-    from knowledge.queries import DEFAULT_FEATURE
+    from kgadapt.knowledge.queries import DEFAULT_FEATURE
 
     platforms = run("platforms", {})
     feature = params.get("feature") or DEFAULT_FEATURE

@@ -14,9 +14,9 @@ import math
 import re
 from typing import Any, Iterator
 
-from knowledge import schema as S
-from knowledge.store import GraphStore
-from shared.errors import ConfigError, QueryError
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.store import GraphStore
+from kgadapt.shared.errors import ConfigError, QueryError
 
 FORMATS = ("dot", "cypher")
 # A temporary label and key that tie relations to the nodes created by the same script.

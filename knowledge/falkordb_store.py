@@ -2,7 +2,7 @@
 
 Parameters travel in FalkorDB's ``CYPHER name=value ...`` prefix of the query
 text, built here (:func:`params_header`) for single statements and MULTI/EXEC
-batches alike, after :func:`knowledge.params.check_params`; the falkordb
+batches alike, after :func:`kgadapt.knowledge.params.check_params`; the falkordb
 client is used only through its public ``query``/``ro_query``/``connection``.
 """
 
@@ -19,11 +19,11 @@ from falkordb.edge import Edge
 from falkordb.node import Node
 from falkordb.path import Path as GraphPath
 
-from knowledge.dialect import FALKORDB, Dialect
-from knowledge.embedded import EmbeddedServer
-from knowledge.params import check_params
-from knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
-from shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreTimeout, StoreUnavailable
+from kgadapt.knowledge.dialect import FALKORDB, Dialect
+from kgadapt.knowledge.embedded import EmbeddedServer
+from kgadapt.knowledge.params import check_params
+from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
+from kgadapt.shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
 

@@ -33,8 +33,8 @@ import time
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from shared import keys, messages, rpc
-from shared.errors import ConfigError, MessageError, RemoteError, TransportError
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.errors import ConfigError, MessageError, RemoteError, TransportError
 
 ROBOT_COLUMN = "robot"
 
@@ -114,7 +114,7 @@ class FleetAnswer:
 
     def table(self) -> str:
         """One table with a robot column; then a line per silent robot and per refusal."""
-        from knowledge.store import rows_as_table
+        from kgadapt.knowledge.store import rows_as_table
 
         lines = [rows_as_table(self.rows())] if self.rows() else []
         answered_empty = [a.robot for a in self.robots if a.state is RobotState.ANSWERED and not a.rows]

@@ -28,12 +28,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from knowledge import schema as S
-from knowledge.importers import IMPORTERS, parse_file
-from knowledge.importers.model import EdgeSpec, NodeSpec, ParsedModel, Ref
-from knowledge.importers.rpsl import COMPONENT_KINDS
-from knowledge.store import GraphStore, Statement
-from shared.errors import ModelError
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.importers import IMPORTERS, parse_file
+from kgadapt.knowledge.importers.model import EdgeSpec, NodeSpec, ParsedModel, Ref
+from kgadapt.knowledge.importers.rpsl import COMPONENT_KINDS
+from kgadapt.knowledge.store import GraphStore, Statement
+from kgadapt.shared.errors import ModelError
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,7 @@ import numbers
 import re
 from typing import Any, Mapping
 
-from shared.errors import KgadaptError, QueryError
+from kgadapt.shared.errors import KgadaptError, QueryError
 
 MAX_DEPTH = 8
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")

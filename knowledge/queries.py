@@ -25,9 +25,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-from knowledge import schema as S
-from knowledge.store import GraphStore
-from shared.errors import NamedQueryError
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.store import GraphStore
+from kgadapt.shared.errors import NamedQueryError
 
 DEFAULT_FEATURE = "MarkerDetection"
 LITERAL_TIME_LIMIT_MS = 1000  # the paper's unbounded texts: 315 ms at N = 10, unbounded beyond

@@ -19,9 +19,9 @@ import inspect
 import math
 from typing import Any, Callable, Mapping
 
-from knowledge import schema as S
-from knowledge.store import GraphStore
-from shared.errors import NamedQueryError
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.store import GraphStore
+from kgadapt.shared.errors import NamedQueryError
 
 _NUM = (int, float)
 # Bounds of what a real host can report: a value outside them is a forgery or a bug, refused naming the field.

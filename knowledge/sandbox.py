@@ -37,10 +37,10 @@ from typing import Any, Mapping, cast
 
 import redis
 
-from knowledge.embedded import EmbeddedServer
-from knowledge.falkordb_store import FalkorDBStore
-from knowledge.store import GraphStore, Row, StoreSettings
-from shared.errors import ConfigError, QueryTimeLimit, StoreTimeout, StoreUnavailable
+from kgadapt.knowledge.embedded import EmbeddedServer
+from kgadapt.knowledge.falkordb_store import FalkorDBStore
+from kgadapt.knowledge.store import GraphStore, Row, StoreSettings
+from kgadapt.shared.errors import ConfigError, QueryTimeLimit, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
 

@@ -48,7 +48,7 @@ seconds since the epoch (float).
 
 from __future__ import annotations
 
-from knowledge.store import GraphStore
+from kgadapt.knowledge.store import GraphStore
 
 FEATURE = "Feature"
 ILLUMINATION_BAND = "IlluminationBand"

@@ -12,8 +12,8 @@ key                          request                               reply
 ``write/<host>/<verb>``      ``write_request {params}``            ``rows {rows: []}`` (host's own)
 ===========================  ====================================  ==========================
 
-``<name>`` is any of ``knowledge.queries.QUERIES``, ``<verb>`` any of
-``knowledge.runtime.WRITERS``. A named query may also be asked without a
+``<name>`` is any of ``kgadapt.knowledge.queries.QUERIES``, ``<verb>`` any of
+``kgadapt.knowledge.runtime.WRITERS``. A named query may also be asked without a
 payload, its parameters in the selector (``query/placement?feature=MarkerDetection``),
 which is handy from Zenoh's own tools. Every problem (malformed, truncated,
 wrong-typed or oversized payload, unknown query or verb, missing or ill-typed
@@ -24,15 +24,15 @@ Two doors, two paths. ``own/query/*`` (the robot's own agents, manager and
 detectors; the shipped ACL keeps other robots off it) and the write verbs
 are served by their own workers from the primary store. ``query/*`` and
 ``cypher`` (anyone allowed to read, other robots included) are served by
-other workers from a :class:`~knowledge.sandbox.QuerySandbox`, a copy of the
+other workers from a :class:`~kgadapt.knowledge.sandbox.QuerySandbox`, a copy of the
 graph in a separate, lower-priority FalkorDB server (one per public worker),
 as fresh as the primary.
 Each of those questions has a hard time limit (``public_time_limit_ms``,
 or a literal paper query's own shorter one): past it the answer is
 abandoned and the sandbox server killed, so the work stops. Free Cypher must
-parse in the subset of :mod:`knowledge.cypher_guard`. A flood of questions
+parse in the subset of :mod:`kgadapt.knowledge.cypher_guard`. A flood of questions
 thus costs other robots their answers, never the robot its own. One service
-per store: :class:`~knowledge.service_lock.ServiceLock`.
+per store: :class:`~kgadapt.knowledge.service_lock.ServiceLock`.
 
 Write verbs sit on their own key (``knowledge/write/**``) so that Zenoh access
 control can keep them from other robots while the queries stay open; with
@@ -43,7 +43,7 @@ there only what that host owns (:func:`check_owner`): its own platform, its
 own processes (by ``host``, or by the ``run_id`` of a profile it started), and
 on the ``manager_host`` the decisions and the flight state. ``write/<verb>``
 (any verb, about anything) is for operators and the service's own identity.
-Every write's figures must be plausible (``knowledge.runtime``'s bounds).
+Every write's figures must be plausible (``kgadapt.knowledge.runtime``'s bounds).
 
 It also keeps each ``Platform``'s run-time figures current: host statuses
 (``host/<host>/status``) update free memory, CPU load and ``last_seen``
@@ -54,7 +54,7 @@ revive a host whose token is gone. At setup every platform is first marked
 offline; the liveliness history then marks the live ones online again.
 
 Threads: Zenoh callbacks only put work on queues. Request workers (two
-:class:`shared.rpc.Server` pools: ``workers`` for the robot's own requests,
+:class:`kgadapt.shared.rpc.Server` pools: ``workers`` for the robot's own requests,
 ``public_workers`` for other robots') answer queries; one status worker applies host statuses and
 liveliness changes, keeping only the newest of each per host when it falls
 behind, so a burst of statuses costs one write per host.
@@ -73,15 +73,23 @@ from typing import Any, Callable, Mapping
 
 import zenoh
 
-from knowledge import queries, runtime
-from knowledge import schema as S
-from knowledge.cypher_guard import CypherLimits, check_cypher
-from knowledge.params import check_params
-from knowledge.service_lock import ServiceLock
-from knowledge.store import GraphStore
-from shared import keys, messages, rpc
-from shared.errors import ConfigError, KgadaptError, MessageError, NamedQueryError, QueryError, QueryTimeLimit, TransportError
-from shared.hostmonitor import StatusTrust, TrustSettings, check_status
+from kgadapt.knowledge import queries, runtime
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.cypher_guard import CypherLimits, check_cypher
+from kgadapt.knowledge.params import check_params
+from kgadapt.knowledge.service_lock import ServiceLock
+from kgadapt.knowledge.store import GraphStore
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.errors import (
+    ConfigError,
+    KgadaptError,
+    MessageError,
+    NamedQueryError,
+    QueryError,
+    QueryTimeLimit,
+    TransportError,
+)
+from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +154,7 @@ class KnowledgeService:
         self._store_lock = _store_lock(store)
         self._writers: Mapping[str, Callable[..., Any]] = dict(runtime.WRITERS) if settings.writes else {}
         self._lock = ServiceLock(store) if settings.lock else None
-        # knowledge.sandbox.QuerySandbox, one per public worker: a kill costs only its own question
+        # kgadapt.knowledge.sandbox.QuerySandbox, one per public worker: a kill costs only its own question
         self.sandboxes: list[Any] = []
         self._sandbox_pool: queue.Queue[Any] = queue.Queue()
 
@@ -161,7 +169,7 @@ class KnowledgeService:
                 stack.callback(self._lock.release)
             if self.settings.sandbox and self.store.dialect.name == "falkordb" and self.store.capabilities.timeouts:
                 # A FalkorDB over RESP (the Bolt listener has no DUMP/RESTORE to copy from).
-                from knowledge.sandbox import QuerySandbox
+                from kgadapt.knowledge.sandbox import QuerySandbox
 
                 stack.callback(self.sandboxes.clear)
                 for _ in range(self.settings.public_workers):

@@ -19,12 +19,12 @@ import json
 import sys
 from typing import Any
 
-from shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.keys import DEFAULT_ROBOT
 
 
 def register(subparsers: Any) -> None:
     """Add ``kgadapt ask``."""
-    from shared.session import add_arguments as add_zenoh_arguments
+    from kgadapt.shared.session import add_arguments as add_zenoh_arguments
 
     ask = subparsers.add_parser(
         "ask",
@@ -48,7 +48,7 @@ def register(subparsers: Any) -> None:
 
 def register_knowledge(knowledge_subparsers: Any) -> None:
     """Add ``kgadapt knowledge serve`` (called by knowledge/cli.py)."""
-    from shared.session import add_arguments as add_zenoh_arguments
+    from kgadapt.shared.session import add_arguments as add_zenoh_arguments
 
     serve = knowledge_subparsers.add_parser(
         "serve",
@@ -71,14 +71,14 @@ def register_knowledge(knowledge_subparsers: Any) -> None:
 def run_serve(args: argparse.Namespace) -> int:
     import logging
 
-    from knowledge.schema import ensure_indexes
-    from knowledge.service import KnowledgeService, ServiceSettings
-    from knowledge.store import open_store
-    from shared.agent import StopSignals
-    from shared.notifier import ServiceNotifier
-    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.knowledge.schema import ensure_indexes
+    from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+    from kgadapt.knowledge.store import open_store
+    from kgadapt.shared.agent import StopSignals
+    from kgadapt.shared.notifier import ServiceNotifier
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
-    log = logging.getLogger("knowledge.service")
+    log = logging.getLogger("kgadapt.knowledge.service")
     settings = ServiceSettings(robot=args.robot, writes=not args.read_only, workers=args.workers)
     zenoh = settings_from_args(args).with_defaults(mode="router", listen=[DEFAULT_ENDPOINT])
     with StopSignals() as stop:
@@ -113,10 +113,10 @@ def run_serve(args: argparse.Namespace) -> int:
 
 
 def run_ask(args: argparse.Namespace) -> int:
-    from knowledge.client import KnowledgeClient
-    from knowledge.store import rows_as_table
-    from shared.errors import ConfigError
-    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.knowledge.client import KnowledgeClient
+    from kgadapt.knowledge.store import rows_as_table
+    from kgadapt.shared.errors import ConfigError
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
     if args.fleet:
         return _run_fleet_ask(args)
@@ -126,7 +126,7 @@ def run_ask(args: argparse.Namespace) -> int:
         raise ConfigError("give either a named QUERY or --cypher TEXT (not both, not neither)")
     raw = _parse_params(args.param)
     if args.query:
-        from knowledge.queries import QUERIES, coerce_params
+        from kgadapt.knowledge.queries import QUERIES, coerce_params
 
         # A query this checkout does not know is sent as text: the far side judges it.
         params: dict[str, Any] = coerce_params(args.query, raw) if args.query in QUERIES else dict(raw)
@@ -151,8 +151,8 @@ def run_ask(args: argparse.Namespace) -> int:
 
 def _why_empty(client: Any, query: str | None, params: dict[str, Any]) -> str:
     """Why the service answered nothing (knowledge/empty_answers.py), asked over the same Zenoh session."""
-    from knowledge.empty_answers import explain_empty, store_is_empty
-    from knowledge.queries import QUERIES, check_params
+    from kgadapt.knowledge.empty_answers import explain_empty, store_is_empty
+    from kgadapt.knowledge.queries import QUERIES, check_params
 
     where = f"the knowledge service of robot {client.robot}"
     if query is None or query not in QUERIES:  # free Cypher, or a query this checkout does not know
@@ -162,14 +162,14 @@ def _why_empty(client: Any, query: str | None, params: dict[str, Any]) -> str:
 
 def _run_fleet_ask(args: argparse.Namespace) -> int:
     """``ask --fleet QUERY``: one question to every robot (knowledge/fleet.py); exit 3 when some were silent."""
-    from knowledge.fleet import FleetClient, FleetSettings
-    from knowledge.queries import QUERIES, coerce_params
-    from shared.errors import ConfigError
-    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.knowledge.fleet import FleetClient, FleetSettings
+    from kgadapt.knowledge.queries import QUERIES, coerce_params
+    from kgadapt.shared.errors import ConfigError
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
     if args.query or args.cypher:
         raise ConfigError("--fleet QUERY asks a named query of every robot: give no other QUERY and no --cypher")
-    from shared.keys import check_name
+    from kgadapt.shared.keys import check_name
 
     check_name(args.fleet, "query name")  # before any network: a name is one key chunk, no wildcard
     raw = _parse_params(args.param)
@@ -189,7 +189,7 @@ def _run_fleet_ask(args: argparse.Namespace) -> int:
 
 
 def _parse_params(items: list[str]) -> dict[str, str]:
-    from shared.errors import ConfigError
+    from kgadapt.shared.errors import ConfigError
 
     params: dict[str, str] = {}
     for item in items:

@@ -25,8 +25,8 @@ import time
 import uuid
 from typing import Any
 
-from knowledge.store import GraphStore
-from shared.errors import ConfigError, StoreError
+from kgadapt.knowledge.store import GraphStore
+from kgadapt.shared.errors import ConfigError, StoreError
 
 log = logging.getLogger(__name__)
 

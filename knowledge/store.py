@@ -31,11 +31,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 from urllib.parse import parse_qs, urlsplit
 
-from knowledge.cypher_guard import writing_clause
-from shared.errors import ConfigError, ReadOnlyViolation
+from kgadapt.knowledge.cypher_guard import writing_clause
+from kgadapt.shared.errors import ConfigError, ReadOnlyViolation
 
 if TYPE_CHECKING:
-    from knowledge.dialect import Dialect
+    from kgadapt.knowledge.dialect import Dialect
 
 Row = dict[str, Any]
 Statement = tuple[str, Mapping[str, Any]]
@@ -84,7 +84,7 @@ class Capabilities:
     tls: bool  # the connection can be encrypted
     read_only: str  # "store": the store's read-only entry point too; "check": our check only
     thread_safe: bool  # one store object may be called from several threads at once
-    sandbox: bool  # the graph can be copied into a knowledge.sandbox.QuerySandbox (FalkorDB over RESP)
+    sandbox: bool  # the graph can be copied into a kgadapt.knowledge.sandbox.QuerySandbox (FalkorDB over RESP)
 
 
 def parse_store_url(url: str | None = None) -> StoreSettings:
@@ -146,7 +146,7 @@ def assert_read_only(cypher: str) -> None:
     refused too, since procedures can write and LOAD CSV reaches outside the
     store. The check works on tokens, so neither a string nor a map key nor a
     property name can hide a clause or fake one. Cypher from outside the robot
-    gets the stricter grammar of :mod:`knowledge.cypher_guard`.
+    gets the stricter grammar of :mod:`kgadapt.knowledge.cypher_guard`.
     """
     word = writing_clause(cypher)
     if word:
@@ -192,7 +192,7 @@ class GraphStore(ABC):
     ) -> list[Row]:
         """Run one Cypher statement with parameters; return its rows.
 
-        Parameters are checked by :func:`knowledge.params.check_params` (QueryError
+        Parameters are checked by :func:`kgadapt.knowledge.params.check_params` (QueryError
         naming the parameter). A read-only query on a graph nothing was written to
         yet has no rows on every backend. A query the store stops at ``timeout_ms``
         raises :class:`StoreTimeout`.
@@ -223,14 +223,14 @@ def open_store(url: str | None = None, **overrides: Any) -> GraphStore:
     settings = parse_store_url(url)
     if overrides:
         settings = StoreSettings(**{**settings.__dict__, **overrides})
-    from shared.extras import require
+    from kgadapt.shared.extras import require
 
     store: GraphStore
     if settings.kind in ("embedded", "falkordb"):
-        module = require("knowledge.falkordb_store", extra="store", what=f"store {settings.url}")
+        module = require("kgadapt.knowledge.falkordb_store", extra="store", what=f"store {settings.url}")
         store = module.FalkorDBStore(settings)
     else:
-        module = require("knowledge.bolt_store", extra="memgraph", what=f"store {settings.url}")
+        module = require("kgadapt.knowledge.bolt_store", extra="memgraph", what=f"store {settings.url}")
         store = module.BoltStore(settings)
     return store
 
@@ -250,14 +250,14 @@ def rows_as_table(rows: Iterable[Row]) -> str:
 
 
 def _is_time_column(column: str) -> bool:
-    from shared.timefmt import TIME_COLUMNS
+    from kgadapt.shared.timefmt import TIME_COLUMNS
 
     name = column.rsplit(".", 1)[-1]  # `RETURN p.last_seen` names its column p.last_seen
     return name in TIME_COLUMNS or name.endswith(("_time", "_at"))
 
 
 def _time_cell(value: Any) -> str:
-    from shared.timefmt import is_epoch, stamp
+    from kgadapt.shared.timefmt import is_epoch, stamp
 
     return stamp(value) if is_epoch(value) else _cell(value)  # epoch seconds as 14:02:31 UTC (12 s ago)
 

@@ -29,7 +29,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
-from onboard.illumination import Band, bands_from_rows
+from kgadapt.onboard.illumination import Band, bands_from_rows
 
 __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",
            "PlanningError", "HostView", "KnowledgeAsk", "FEATURE", "PREFERENCES"]
@@ -315,7 +315,7 @@ class Planner:
 
     def ranking(self, band: str, condition: str = "all") -> list[dict[str, Any]]:
         """Every calibrated configuration of the feature for ``band``, best first."""
-        from onboard.calibration import rank_rows
+        from kgadapt.onboard.calibration import rank_rows
 
         rows = self.ask("config_ranking", {"feature": self.feature, "band": band, "condition": condition,
                                            "penalty": self.penalty, "max_ms": self.max_ms})

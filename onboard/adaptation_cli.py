@@ -13,8 +13,8 @@ import argparse
 import json
 from typing import Any, Callable
 
-from shared.errors import ConfigError
-from shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.keys import DEFAULT_ROBOT
 
 Ask = Callable[[str, dict[str, Any]], list[dict[str, Any]]]
 
@@ -30,7 +30,7 @@ def register(subparsers: Any) -> None:
                              "or robot quad1 with --connect)")
     parser.add_argument("--history", type=int, default=5, metavar="N", help="also list the last N decisions (default 5)")
     parser.add_argument("--json", action="store_true", help="print the explanation as JSON")
-    from shared.session import add_arguments
+    from kgadapt.shared.session import add_arguments
 
     add_arguments(parser)
     parser.set_defaults(func=run)
@@ -117,7 +117,7 @@ def _num(value: Any) -> str:
 
 
 def _ago(t: Any) -> str:
-    from shared.timefmt import stamp
+    from kgadapt.shared.timefmt import stamp
 
     return stamp(t)  # 14:02:31 UTC (12 s ago)
 
@@ -128,8 +128,8 @@ def run(args: argparse.Namespace) -> int:
         if args.store:
             raise ConfigError("give --store (read a store directly) or --robot/--connect (ask a robot's "
                               "knowledge service over Zenoh), not both")
-        from knowledge.client import KnowledgeClient
-        from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+        from kgadapt.knowledge.client import KnowledgeClient
+        from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
         zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
         session = open_session(zenoh)
@@ -140,8 +140,8 @@ def run(args: argparse.Namespace) -> int:
             session.close()
         source = f"the knowledge service of robot {client.robot} via {', '.join(zenoh.connect) or zenoh.config_file}"
     else:
-        from knowledge.queries import run_named
-        from knowledge.store import open_store
+        from kgadapt.knowledge.queries import run_named
+        from kgadapt.knowledge.store import open_store
 
         with open_store(args.store) as store:
             data = explain(lambda name, params: run_named(store, name, params), history=args.history)

@@ -1,7 +1,7 @@
 """The adaptation manager: the paper's Fig. 6 loop as a part of the onboard agent.
 
 Monitor (Zenoh subscribers: illumination, host status, host liveliness, flight
-state, the running detector's detections) -> analyse (:mod:`onboard.adaptation`)
+state, the running detector's detections) -> analyse (:mod:`kgadapt.onboard.adaptation`)
 -> plan (named queries through the knowledge service) -> execute (the hosts'
 deployers) -> knowledge (every decision written into the graph).
 
@@ -12,23 +12,23 @@ long action is acted on next, not after the observations queued meanwhile.
 
 Execution: a planned change on the same host whose deployments the graph
 says may be changed in place (the planner asks ``in_place_change``) reconfigures
-the running detector between two frames (:func:`deploy.migration.reconfigure`);
+the running detector between two frames (:func:`kgadapt.deploy.migration.reconfigure`);
 otherwise, or when that is refused, it is make-before-break: start the new
 detector, wait for its first detections, and only then stop the old one
-(:func:`deploy.migration.migrate`). The decision records which and why. When the host running the detector is
+(:func:`kgadapt.deploy.migration.migrate`). The decision records which and why. When the host running the detector is
 lost, a new detector starts at once on a host that can hold it. During final
 descent (flight state ``LANDING``, or landed state unknown in LAND/RTL:
-:func:`onboard.flight_phase.in_final_descent`) planned changes are deferred; losing the
+:func:`kgadapt.onboard.flight_phase.in_final_descent`) planned changes are deferred; losing the
 running host is still acted on.
 
 Warm standby (``standby=True``, ``kgadapt onboard --standby``; off by default):
 when the ``placement`` query says a host has room for the configuration of the
 band the light most likely goes to next as well (the band it left at the last
 change, else the neighbour whose edge it is nearest:
-:meth:`onboard.adaptation.BandTracker.neighbour`), the
+:meth:`kgadapt.onboard.adaptation.BandTracker.neighbour`), the
 manager starts that configuration there through the deployer (supervised and
 profiled like any detector, its memory in the graph) and makes it idle
-(:func:`onboard.detector.set_active`). A change whose target configuration is the
+(:func:`kgadapt.onboard.detector.set_active`). A change whose target configuration is the
 standby's is then a switch: activate the standby, make it the running detector,
 idle the old one (it becomes the standby). Losing the host that runs the
 detector activates a standby on another host (reconfigured in place to the
@@ -56,16 +56,26 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from deploy.client import DeployerClient
-from deploy.deployer import new_instance_name
-from deploy.migration import FirstOutput, migrate, reconfigure
-from knowledge.client import KnowledgeClient
-from onboard.adaptation import FEATURE, Analyzer, BandTracker, Placement, Plan, Planner, PlanningError, Trigger, bands_from_rows
-from onboard.detector import set_active
-from onboard.flight_phase import in_final_descent
-from shared import keys, messages
-from shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
-from shared.hostmonitor import StatusTrust, TrustSettings, check_status
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.deploy.deployer import new_instance_name
+from kgadapt.deploy.migration import FirstOutput, migrate, reconfigure
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.onboard.adaptation import (
+    FEATURE,
+    Analyzer,
+    BandTracker,
+    Placement,
+    Plan,
+    Planner,
+    PlanningError,
+    Trigger,
+    bands_from_rows,
+)
+from kgadapt.onboard.detector import set_active
+from kgadapt.onboard.flight_phase import in_final_descent
+from kgadapt.shared import keys, messages
+from kgadapt.shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
+from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +86,7 @@ MEASURE_WITHIN_S = 10.0  # how long after a change an unmeasured detector is giv
 
 @dataclass(frozen=True, kw_only=True)
 class AdaptationSettings:
-    """How the manager decides. ``preference``: see :mod:`onboard.adaptation`."""
+    """How the manager decides. ``preference``: see :mod:`kgadapt.onboard.adaptation`."""
 
     robot: str
     camera: str = "cam0"

@@ -3,7 +3,7 @@
 Every configuration the knowledge store has for a feature (named queries
 ``detector_configs`` and ``detector_config``) runs over the same synthetic
 frames of the realistic camera (sRGB, Poisson-Gaussian noise, 8 bits; see
-:mod:`onboard.scenario`): for each band, ``levels_per_band`` fixed levels at
+:mod:`kgadapt.onboard.scenario`): for each band, ``levels_per_band`` fixed levels at
 the midpoints of equal slices of the band, and for each level every condition
 of :data:`CONDITIONS` (clean, a 7 px motion blur, uneven light with blind
 stripes, a saturated window, small markers), ``frames_per_level`` frames each,
@@ -18,7 +18,7 @@ shown), ``false_per_frame`` (false markers per frame), ``false_per_reported``
 (false markers / markers reported), ``ms_per_frame`` (mean time of
 pre-processing plus detection). They go into the graph as
 ``(PerceptionGraph)-[:CALIBRATED {condition}]->(IlluminationBand)`` through
-``knowledge.runtime.record_calibration``, and into a JSON file and a PNG plot.
+``kgadapt.knowledge.runtime.record_calibration``, and into a JSON file and a PNG plot.
 
 The ranking of a band and condition (:func:`rank`, and the named query
 ``config_ranking`` on the graph) orders configurations by detection rate minus
@@ -37,10 +37,10 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from onboard.illumination import Band, bands_from_rows
-from onboard.markers import DetectorConfig, MarkerDetector, Score, parse_config, score
-from shared.errors import ConfigError, KgadaptError
-from shared.resources import models
+from kgadapt.onboard.illumination import Band, bands_from_rows
+from kgadapt.onboard.markers import DetectorConfig, MarkerDetector, Score, parse_config, score
+from kgadapt.shared.errors import ConfigError, KgadaptError
+from kgadapt.shared.resources import models
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ PENALTY = 1.0  # score lost per false marker per frame
 
 def condition_profile(condition: str, level: float) -> Any:
     """The constant-light profile of ``condition`` at ``level``."""
-    from onboard.scenario import CameraModel, IlluminationProfile, LightLayout, SceneOptions
+    from kgadapt.onboard.scenario import CameraModel, IlluminationProfile, LightLayout, SceneOptions
 
     spec = CONDITIONS.get(condition)
     if spec is None:
@@ -145,7 +145,7 @@ def render_test_frames(bands: Sequence[Band], settings: CalibrationSettings) -> 
     """The frames every configuration is judged on: ``(band, condition) -> [(level, grey, truth), ...]``."""
     import cv2
 
-    from onboard.scenario import SceneSettings, SyntheticScene
+    from kgadapt.onboard.scenario import SceneSettings, SyntheticScene
 
     base = SceneSettings(width=settings.width, height=settings.height)
     rng = np.random.default_rng(settings.seed)
@@ -287,7 +287,7 @@ def best_per_band(results: Sequence[CalibrationResult], *, tie_rate: float = 0.0
 
 def configs_from_store(store: Any, feature: str = FEATURE) -> tuple[list[DetectorConfig], list[Band], list[dict[str, Any]]]:
     """The feature's configurations (checked) and bands from the graph, and the raw rows."""
-    from knowledge.queries import run_named
+    from kgadapt.knowledge.queries import run_named
 
     rows = run_named(store, "detector_configs", {"feature": feature})
     bands = bands_from_rows(rows)
@@ -309,7 +309,7 @@ def model_configs(folder: Path | str | None = None) -> list[DetectorConfig]:
     Each ``*.rpsl`` file's perception graph names the configuration; its
     processing component with a ``config_json`` gives the settings.
     """
-    from knowledge.importers.rpsl import parse
+    from kgadapt.knowledge.importers.rpsl import parse
 
     configs = []
     for path in sorted(Path(folder or models() / "perception").glob("*.rpsl")):
@@ -323,11 +323,11 @@ def model_configs(folder: Path | str | None = None) -> list[DetectorConfig]:
 
 def ensure_models(store: Any, feature: str = FEATURE) -> bool:
     """Load the shipped models when the graph has no configuration for ``feature``; True if loaded."""
-    from knowledge.queries import run_named
+    from kgadapt.knowledge.queries import run_named
 
     if run_named(store, "detector_configs", {"feature": feature}):
         return False
-    from knowledge.loader import load_models
+    from kgadapt.knowledge.loader import load_models
 
     folder = models()
     log.info("graph has no %s configurations: loading %s", feature, folder)
@@ -337,7 +337,7 @@ def ensure_models(store: Any, feature: str = FEATURE) -> bool:
 
 def record(store: Any, results: Sequence[CalibrationResult], *, at: float | None = None) -> int:
     """Write every result as a CALIBRATED relation; return how many were written."""
-    from knowledge.runtime import record_calibration
+    from kgadapt.knowledge.runtime import record_calibration
 
     at = time.time() if at is None else at
     for r in results:
@@ -386,7 +386,7 @@ def table(results: Sequence[CalibrationResult], bands: Sequence[Band]) -> str:
 
 def plot(results: Sequence[CalibrationResult], bands: Sequence[Band], path: Path | str) -> Path:
     """Grouped bars: detection rate (top) and ms per frame (bottom) per band and configuration."""
-    from shared.extras import require
+    from kgadapt.shared.extras import require
 
     matplotlib = require("matplotlib", extra="plots", what="the calibration plot")
     matplotlib.use("Agg")
@@ -438,7 +438,7 @@ def run_calibration(
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Calibrate every configuration of ``feature`` in the store at ``store_url``; write the outputs."""
-    from knowledge.store import open_store
+    from kgadapt.knowledge.store import open_store
 
     store = open_store(store_url)
     store.setup()

@@ -31,9 +31,9 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from onboard.illumination import LightEstimate, LightSettings, Luminance, Smoother, estimate_light, luminance
-from shared import keys, messages, rpc
-from shared.errors import ConfigError, KgadaptError, TransportError
+from kgadapt.onboard.illumination import LightEstimate, LightSettings, Luminance, Smoother, estimate_light, luminance
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.errors import ConfigError, KgadaptError, TransportError
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ class SyntheticSource:
         seed: int = 0,
         clock: Callable[[], float] = time.time,
     ) -> None:
-        from onboard.scenario import DEMO_PROFILE, IlluminationProfile, SceneSettings
+        from kgadapt.onboard.scenario import DEMO_PROFILE, IlluminationProfile, SceneSettings
 
         if speed <= 0:
             raise ConfigError(f"synthetic source speed must be positive, not {speed}")
@@ -98,7 +98,7 @@ class SyntheticSource:
         self._rng: np.random.Generator | None = None
 
     def open(self) -> None:
-        from onboard.scenario import SyntheticScene, load_profile
+        from kgadapt.onboard.scenario import SyntheticScene, load_profile
 
         if self._profile_path is not None:
             self.profile = load_profile(self._profile_path)

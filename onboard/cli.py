@@ -19,7 +19,7 @@ def register(subparsers: Any) -> None:
         description="Run the onboard agent: host monitor, deployer, and optionally camera, MAVLink bridge "
         "and adaptation manager; stops cleanly on SIGINT or SIGTERM.",
     )
-    from shared.agent import add_agent_arguments
+    from kgadapt.shared.agent import add_agent_arguments
 
     add_agent_arguments(parser, default_host="onboard")
     add_part_arguments(parser)
@@ -27,8 +27,8 @@ def register(subparsers: Any) -> None:
 
 
 def add_part_arguments(parser: argparse.ArgumentParser) -> None:
-    from deploy import options as deploy_options
-    from shared import hostmonitor
+    from kgadapt.deploy import options as deploy_options
+    from kgadapt.shared import hostmonitor
 
     hostmonitor.add_arguments(parser)
     deploy_options.add_arguments(parser)
@@ -78,7 +78,7 @@ class FlightPart:
                  profile: str = "auto", manager: Any = None, site: str | None = None, host: str = "onboard") -> None:
         self.robot, self.url, self.camera_model, self.site = robot, url, camera_model, site
         self.host = host  # its flight state is written as this host's (knowledge/write/<host>/flight_state)
-        self.camera, self.markers, self.profile = camera, markers, profile  # checked files (onboard.landing_targets)
+        self.camera, self.markers, self.profile = camera, markers, profile  # checked files (kgadapt.onboard.landing_targets)
         self.manager = manager  # the adaptation manager beside it: only its chosen detector steers
 
     def landed_state(self) -> str | None:
@@ -88,10 +88,16 @@ class FlightPart:
         self.bridge: Any = None
 
     def setup(self, session: Any) -> None:
-        from knowledge.client import KnowledgeClient
-        from onboard.confirmation import ConfirmationSettings, load_site
-        from onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter, intrinsics_from_graph
-        from onboard.mavlink import LinkSettings
+        from kgadapt.knowledge.client import KnowledgeClient
+        from kgadapt.onboard.confirmation import ConfirmationSettings, load_site
+        from kgadapt.onboard.flight import (
+            BridgeSettings,
+            CameraIntrinsics,
+            FlightBridge,
+            FlightControlWriter,
+            intrinsics_from_graph,
+        )
+        from kgadapt.onboard.mavlink import LinkSettings
 
         client = KnowledgeClient(session, self.robot, own=True, host=self.host)
         c = self.camera
@@ -117,9 +123,9 @@ class FlightPart:
 
 def build_parts(args: argparse.Namespace) -> list[Any]:
     """The onboard agent's parts, in setup order."""
-    from deploy.deployer import Deployer
-    from deploy.deployer import settings_from_args as deployer_settings
-    from shared.hostmonitor import HostMonitor, settings_from_args
+    from kgadapt.deploy.deployer import Deployer
+    from kgadapt.deploy.deployer import settings_from_args as deployer_settings
+    from kgadapt.shared.hostmonitor import HostMonitor, settings_from_args
 
     monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))
     parts: list[Any] = [
@@ -127,7 +133,7 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
         Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb),
     ]
     if args.camera_source:
-        from onboard.camera import CameraPart, CameraSettings, make_source
+        from kgadapt.onboard.camera import CameraPart, CameraSettings, make_source
 
         settings = CameraSettings(robot=args.robot, camera=args.camera, fps=args.fps, jpeg_quality=args.jpeg_quality)
         source = make_source(args.camera_source, width=settings.width, height=settings.height, fps=args.fps,
@@ -135,7 +141,7 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
         parts.append(CameraPart(settings, source))
     flight = None
     if args.fc:
-        from onboard.landing_targets import load_camera, load_site_markers
+        from kgadapt.onboard.landing_targets import load_camera, load_site_markers
 
         flight = FlightPart(  # the files are checked here, before anything starts
             robot=args.robot, url=args.fc, camera_model=args.camera_model,
@@ -144,7 +150,7 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
             profile=getattr(args, "fc_profile", "auto"), site=getattr(args, "site", None), host=args.host)
         parts.append(flight)
     if args.adapt:
-        from onboard.adaptation_manager import AdaptationManager, AdaptationSettings
+        from kgadapt.onboard.adaptation_manager import AdaptationManager, AdaptationSettings
 
         # In one process, the manager and the bridge trust each other directly: the bridge follows
         # the manager's chosen detector, the manager the bridge's landed state (not Zenoh messages).
@@ -160,7 +166,7 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from shared.agent import Agent, agent_settings_from_args, run_agent
+    from kgadapt.shared.agent import Agent, agent_settings_from_args, run_agent
 
     agent = Agent(agent_settings_from_args(args, role="onboard"), build_parts(args))
     return run_agent(agent)

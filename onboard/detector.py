@@ -1,9 +1,9 @@
-"""The marker-detector program: ``python -m onboard.detector`` (what the deployer runs).
+"""The marker-detector program: ``python -m kgadapt.onboard.detector`` (what the deployer runs).
 
 ::
 
-    python -m onboard.detector --robot R --host H --instance I --config NAME --connect ENDPOINT [--camera cam0]
-    python -m onboard.detector ... --config-json '{"preprocess": [...], "parameters": {...}}'   # no store
+    python -m kgadapt.onboard.detector --robot R --host H --instance I --config NAME --connect ENDPOINT [--camera cam0]
+    python -m kgadapt.onboard.detector ... --config-json '{"preprocess": [...], "parameters": {...}}'   # no store
 
 It asks the knowledge service for its configuration (named query
 ``detector_config``), builds the pre-processing and ``cv2.aruco.ArucoDetector``
@@ -45,10 +45,10 @@ import time
 from dataclasses import dataclass
 from typing import Any, Sequence
 
-from shared import keys, messages, rpc
-from shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
 
-log = logging.getLogger("onboard.detector")
+log = logging.getLogger("kgadapt.onboard.detector")
 
 READY_LINE = "KGADAPT_READY"
 CONFIGURED_LINE = "KGADAPT_CONFIGURED"  # followed by the new configuration and its deployment
@@ -117,8 +117,8 @@ def fetch_config_row(session: Any, robot: str, name: str, *, wait_s: float = 10.
     ``wait_s``; raises UnknownConfiguration when the store has no such
     configuration, RequestTimeout when no service answered in time.
     """
-    from knowledge.client import KnowledgeClient
-    from onboard.markers import parse_config
+    from kgadapt.knowledge.client import KnowledgeClient
+    from kgadapt.onboard.markers import parse_config
 
     keys.check_name(name, "configuration name")
     client = KnowledgeClient(session, robot, own=True)
@@ -146,7 +146,7 @@ class Detector:
     """Subscribes to frames, detects markers on a worker thread, publishes detections."""
 
     def __init__(self, settings: DetectorSettings, config: Any) -> None:
-        from onboard.markers import MarkerDetector
+        from kgadapt.onboard.markers import MarkerDetector
 
         self.settings = settings
         # (configuration, its detector, generation): replaced whole, read once per frame by the worker,
@@ -175,7 +175,7 @@ class Detector:
 
     def swap(self, config: Any) -> int:
         """Take ``config`` from the next frame on; returns its generation (see ``first_frame``)."""
-        from onboard.markers import MarkerDetector
+        from kgadapt.onboard.markers import MarkerDetector
 
         core = MarkerDetector(config)  # built here, off the frame path
         generation = self._active[2] + 1
@@ -354,7 +354,7 @@ def set_active(session: Any, robot: str, host: str, instance: str, active: bool,
 class Reconfigurer:
     """Answers in-place reconfiguration requests for one detector (see the module's docstring).
 
-    Served by one :class:`shared.rpc.Server` worker: it asks the graph, builds
+    Served by one :class:`kgadapt.shared.rpc.Server` worker: it asks the graph, builds
     and swaps, and replies, so nothing blocks inside Zenoh.
     """
 
@@ -384,7 +384,7 @@ class Reconfigurer:
 
     def handle(self, payload: bytes) -> dict[str, Any]:
         """Check, build, swap; the reply body. Raises KgadaptError (nothing changed) when refused."""
-        from knowledge.client import KnowledgeClient
+        from kgadapt.knowledge.client import KnowledgeClient
 
         d, s = self.detector, self.detector.settings
         name = str(messages.decode(payload, "configure_request")["config"])
@@ -423,9 +423,9 @@ class Reconfigurer:
 
 
 def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
-    """The detector's flags (shared by ``python -m onboard.detector`` and ``kgadapt perception detect``)."""
-    from shared.agent import DEFAULT_ROBOT
-    from shared.session import add_arguments
+    """The detector's flags (shared by ``python -m kgadapt.onboard.detector`` and ``kgadapt perception detect``)."""
+    from kgadapt.shared.agent import DEFAULT_ROBOT
+    from kgadapt.shared.session import add_arguments
 
     parser.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
     parser.add_argument("--host", required=True, help="name of the host this runs on (reported in detections)")
@@ -441,7 +441,7 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m onboard.detector",
+        prog="python -m kgadapt.onboard.detector",
         description="ArUco marker detector: frames in over Zenoh, detections out. Prints KGADAPT_READY when ready. "
                     "Exit status 2: the knowledge store does not know the configuration.",
     )
@@ -459,8 +459,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Run the detector until SIGINT or SIGTERM; return the exit status."""
-    from shared.agent import StopSignals
-    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.shared.agent import StopSignals
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
     session = None
     detector: Detector | None = None
@@ -470,7 +470,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             settings = DetectorSettings(robot=args.robot, host=args.host, instance=args.instance, camera=args.camera)
             if args.config_json is not None:
-                from onboard.markers import parse_config
+                from kgadapt.onboard.markers import parse_config
 
                 config = parse_config(INLINE_CONFIG, args.config_json)
             zenoh_settings = settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
@@ -491,10 +491,10 @@ def run(args: argparse.Namespace) -> int:
             log.info("detector %s: signal %s, stopping after %d frames", args.instance, stop.received, detector.processed)
             return 0
         except UnknownConfiguration as exc:
-            print(f"onboard.detector: error: {exc}", file=sys.stderr, flush=True)
+            print(f"kgadapt.onboard.detector: error: {exc}", file=sys.stderr, flush=True)
             return EXIT_UNKNOWN_CONFIG
         except KgadaptError as exc:
-            print(f"onboard.detector: error: {exc}", file=sys.stderr, flush=True)
+            print(f"kgadapt.onboard.detector: error: {exc}", file=sys.stderr, flush=True)
             return 1
         finally:
             if reconfigurer is not None:

@@ -62,8 +62,8 @@ from dataclasses import dataclass, field, replace
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from onboard.geometry import body_to_ned
-from onboard.mavlink import (
+from kgadapt.onboard.geometry import body_to_ned
+from kgadapt.onboard.mavlink import (
     COPTER_MODE_NUMBERS,
     COPTER_MODES,
     LANDED_STATE_NUMBERS,
@@ -74,7 +74,7 @@ from onboard.mavlink import (
     new_mavlink,
     open_transport,
 )
-from shared.errors import FlightLinkError
+from kgadapt.shared.errors import FlightLinkError
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@
 detections of the running marker detector (``kgadapt/<robot>/detector/*/markers``),
 turns the chosen marker of each detection into a LANDING_TARGET with the
 camera's intrinsics (:func:`landing_target`), and publishes the flight
-controller's state (:class:`onboard.mavlink.FlightState`) as ``flight_state``
+controller's state (:class:`kgadapt.onboard.mavlink.FlightState`) as ``flight_state``
 on ``kgadapt/<robot>/flight/state`` every ``state_period_s`` and at once when
 the link, arming, mode or landed state changes.
 
@@ -28,12 +28,12 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
-from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
-from onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, TargetHold
-from onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
-from onboard.site import SiteMarkers
-from shared import keys, messages, rpc
-from shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
+from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer
+from kgadapt.onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, TargetHold
+from kgadapt.onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
+from kgadapt.onboard.site import SiteMarkers
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ class CameraIntrinsics:
 
 def intrinsics_from_graph(client: Any, camera: str) -> CameraIntrinsics:
     """The intrinsics of component ``camera`` from the knowledge graph (a KnowledgeClient's read-only Cypher)."""
-    from knowledge import schema as S  # only when asked: the bridge itself needs no store code
+    from kgadapt.knowledge import schema as S  # only when asked: the bridge itself needs no store code
 
     rows = client.cypher(
         f"MATCH (c:{S.COMPONENT} {{name: $camera}}) RETURN c.fx AS fx, c.fy AS fy, c.cx AS cx, c.cy AS cy",
@@ -178,7 +178,7 @@ class BridgeSettings:
     profile: str = "auto"  # ardupilot | px4 | auto (from the autopilot's heartbeat)
     hold_s: float = 1.5  # re-send the last target, predicted, this long after its frame ...
     resend_hz: float = 10.0  # ... at this rate: ArduPilot's estimator wants a measurement every 0.5 s
-    confirmation: ConfirmationSettings = ConfirmationSettings()  # no phantom landing targets (onboard.confirmation)
+    confirmation: ConfirmationSettings = ConfirmationSettings()  # no phantom landing targets (kgadapt.onboard.confirmation)
 
 
 StateCallback = Callable[[FlightState], None]
@@ -426,7 +426,7 @@ class FlightBridge:
         self._hold.confirm(held, time.time())
 
     def _confirmed(self, detections: dict) -> dict | None:
-        """Only confirmed markers (``onboard.confirmation``); None for a frame already seen.
+        """Only confirmed markers (``kgadapt.onboard.confirmation``); None for a frame already seen.
 
         Stale and future frames pass unchanged: the checks below count and refuse them.
         """

@@ -103,7 +103,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Follow a detector's detections over Zenoh, send LANDING_TARGET, publish flight_state. "
                     "The onboard agent hosts the same bridge; this runs it on its own.",
     )
-    from shared import session as zsession
+    from kgadapt.shared import session as zsession
 
     _add_link_arguments(bridge)
     bridge.add_argument("--robot", required=True, help="robot name (key namespace)")
@@ -141,7 +141,7 @@ def _add_link_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _link_settings(args: argparse.Namespace):
-    from onboard.mavlink import LinkSettings
+    from kgadapt.onboard.mavlink import LinkSettings
 
     return LinkSettings(url=args.url, system_id=args.system_id, component_id=args.component_id,
                         target_system=args.target_system, heartbeat_timeout_s=args.heartbeat_timeout)
@@ -173,10 +173,10 @@ def _run_until(stop: threading.Event, duration: float, every: float, tick) -> No
 
 
 def _fake_fc(args: argparse.Namespace) -> int:
-    from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
+    from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 
     if args.rate_scale <= 0:
-        from shared.errors import ConfigError
+        from kgadapt.shared.errors import ConfigError
 
         raise ConfigError(f"--rate-scale must be positive, not {args.rate_scale}")
     r = args.rate_scale
@@ -226,10 +226,10 @@ def _fake_fc(args: argparse.Namespace) -> int:
 def _monitor(args: argparse.Namespace) -> int:
     import queue
 
-    from onboard.mavlink import FlightLink
+    from kgadapt.onboard.mavlink import FlightLink
 
     if args.every <= 0:
-        from shared.errors import ConfigError
+        from kgadapt.shared.errors import ConfigError
 
         raise ConfigError(f"--every must be positive, not {args.every}")
     link = FlightLink(_link_settings(args))
@@ -287,12 +287,12 @@ def _monitor(args: argparse.Namespace) -> int:
 
 
 def _bridge(args: argparse.Namespace) -> int:
-    from onboard.confirmation import ConfirmationSettings
-    from onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter, intrinsics_from_graph
-    from onboard.landing_targets import load_camera
-    from onboard.site import load_site
-    from shared import session as zsession
-    from shared.errors import ConfigError
+    from kgadapt.onboard.confirmation import ConfirmationSettings
+    from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter, intrinsics_from_graph
+    from kgadapt.onboard.landing_targets import load_camera
+    from kgadapt.onboard.site import load_site
+    from kgadapt.shared import session as zsession
+    from kgadapt.shared.errors import ConfigError
 
     given = [args.fx, args.fy, args.cx, args.cy]
     camera_file = load_camera(args.camera_file) if args.camera_file else None
@@ -310,7 +310,7 @@ def _bridge(args: argparse.Namespace) -> int:
     try:
         client = None
         if args.camera or args.write_graph:
-            from knowledge.client import KnowledgeClient
+            from kgadapt.knowledge.client import KnowledgeClient
 
             client = KnowledgeClient(session, args.robot, own=True, host=args.host)
         intrinsics = (intrinsics_from_graph(client, args.camera) if args.camera
@@ -348,7 +348,7 @@ def status_lines(state, timeouts: dict[str, float], now: float) -> list[str]:
     """``kgadapt flight status``: one line a group of fields, with its age and timeout."""
     import math
 
-    from onboard.mavlink import STREAM_FIELDS
+    from kgadapt.onboard.mavlink import STREAM_FIELDS
 
     heard = dict(state.heard)
     lines = [f"link       {'up' if state.link else 'LOST'}  autopilot {state.autopilot or '-'} "
@@ -384,7 +384,7 @@ def status_lines(state, timeouts: dict[str, float], now: float) -> list[str]:
 
 
 def _status(args: argparse.Namespace) -> int:
-    from onboard.mavlink import STREAM_FIELDS, FlightLink
+    from kgadapt.onboard.mavlink import STREAM_FIELDS, FlightLink
 
     link = FlightLink(_link_settings(args))
     link.setup()
@@ -406,8 +406,8 @@ def _status(args: argparse.Namespace) -> int:
 
 
 def _land_check(args: argparse.Namespace) -> int:
-    from onboard.landing_check import LandingCheckSettings, run_landing_check
-    from shared.session import ZenohSettings, open_session
+    from kgadapt.onboard.landing_check import LandingCheckSettings, run_landing_check
+    from kgadapt.shared.session import ZenohSettings, open_session
 
     settings = LandingCheckSettings(rate_hz=args.rate, rangefinder=not args.no_rangefinder,
                                     sizes_known=not args.no_sizes, hold_s=args.hold, url=args.sitl_url,

@@ -19,7 +19,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from shared.errors import ConfigError
+from kgadapt.shared.errors import ConfigError
 
 
 @dataclass(frozen=True)

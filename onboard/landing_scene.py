@@ -21,8 +21,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from onboard.geometry import body_to_camera, ned_to_body
-from onboard.landing_targets import CameraModel
+from kgadapt.onboard.geometry import body_to_camera, ned_to_body
+from kgadapt.onboard.landing_targets import CameraModel
 
 Pose = tuple[tuple[float, float, float], tuple[float, float, float]]  # attitude (rad), position NED (m)
 
@@ -58,7 +58,7 @@ class MarkerScene:
 def run_detections(session, robot: str, scene: MarkerScene, pose: Callable[[], Pose | None], *, rate_hz: float,
                    stop: threading.Event, instance: str = "scene", noise_px: float = 0.0, seed: int = 12) -> dict:
     """Publish ``detections`` of ``scene`` at ``rate_hz`` until ``stop``; returns counts (sent, out of view)."""
-    from shared import keys, messages
+    from kgadapt.shared import keys, messages
 
     publisher = session.declare_publisher(keys.detector_markers(robot, instance))
     counts = {"sent": 0, "out_of_view": 0}

@@ -1,7 +1,7 @@
 """Landing targets the autopilot accepts: the marker's position from its size, in each autopilot's frame.
 
 Inputs: a **camera file** (intrinsics and how the camera is mounted) and the
-**site file** (the markers of a site with their printed sizes, :mod:`onboard.site`,
+**site file** (the markers of a site with their printed sizes, :mod:`kgadapt.onboard.site`,
 the same file the confirmer reads), both JSON, checked on load::
 
     camera.json   {"fx": 615.0, "fy": 615.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480,
@@ -43,10 +43,10 @@ from typing import Any, Callable, Sequence
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from onboard.geometry import body_to_ned, camera_to_body, ned_to_body, norm
-from onboard.mavlink import FlightState, LandingTarget
-from onboard.site import SiteMarkers, load_site
-from shared.errors import ConfigError
+from kgadapt.onboard.geometry import body_to_ned, camera_to_body, ned_to_body, norm
+from kgadapt.onboard.mavlink import FlightState, LandingTarget
+from kgadapt.onboard.site import SiteMarkers, load_site
+from kgadapt.shared.errors import ConfigError
 
 
 def _number(where: str, name: str, value: Any, *, positive: bool = False) -> float:

@@ -23,8 +23,8 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from shared.errors import ConfigError
-from shared.preprocessing import OPS as _OPS
+from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.preprocessing import OPS as _OPS
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ def parse_config(name: str, raw: str | Mapping[str, Any], *, dictionary: str | N
     dict_name = data.get("dictionary") or dictionary or "DICT_4X4_50"
     if not isinstance(dict_name, str):
         raise ConfigError(f"{where}: dictionary must be a name such as DICT_4X4_50")
-    from onboard.scenario import dictionary as lookup
+    from kgadapt.onboard.scenario import dictionary as lookup
 
     try:
         lookup(dict_name)
@@ -180,7 +180,7 @@ class MarkerDetector:
     def __init__(self, config: DetectorConfig) -> None:
         import cv2
 
-        from onboard.scenario import dictionary
+        from kgadapt.onboard.scenario import dictionary
 
         self.config = config
         self._cv2 = cv2
@@ -280,7 +280,7 @@ def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, t
           ignore: Sequence[int] = ()) -> Score:
     """Match detections to truth: same id and mean corner distance within ``tolerance_px``.
 
-    ``truth`` items are :class:`onboard.scenario.Truth` or wire maps ``{"id", "corners"}``.
+    ``truth`` items are :class:`kgadapt.onboard.scenario.Truth` or wire maps ``{"id", "corners"}``.
     A detection that matches nothing (wrong id, wrong place, or a second hit) is false;
     ids in ``ignore`` (markers partly hidden, e.g. by a saturated window) count neither way.
     """

@@ -41,7 +41,7 @@ from typing import Any, Callable
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from shared.errors import FlightLinkError
+from kgadapt.shared.errors import FlightLinkError
 
 log = logging.getLogger(__name__)
 
@@ -608,7 +608,7 @@ class FlightLink:
     """
 
     def __init__(self, settings: LinkSettings) -> None:
-        from onboard.mavlink_commands import CommandSender, CommandSettings
+        from kgadapt.onboard.mavlink_commands import CommandSender, CommandSettings
 
         self.settings = settings
         self.endpoint = Endpoint.parse(settings.url)

@@ -26,7 +26,7 @@ from typing import Callable
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from shared.errors import FlightLinkError
+from kgadapt.shared.errors import FlightLinkError
 
 log = logging.getLogger(__name__)
 

@@ -36,8 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _register_camera(sub: argparse._SubParsersAction) -> None:
-    from shared.agent import DEFAULT_ROBOT
-    from shared.session import add_arguments
+    from kgadapt.shared.agent import DEFAULT_ROBOT
+    from kgadapt.shared.session import add_arguments
 
     p = sub.add_parser(
         "camera",
@@ -62,9 +62,9 @@ def _register_camera(sub: argparse._SubParsersAction) -> None:
 
 
 def _camera(args: argparse.Namespace) -> int:
-    from onboard.camera import CameraPart, CameraSettings, make_source
-    from shared.agent import StopSignals
-    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.onboard.camera import CameraPart, CameraSettings, make_source
+    from kgadapt.shared.agent import StopSignals
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
     settings = CameraSettings(robot=args.robot, camera=args.camera, fps=args.fps, jpeg_quality=args.quality,
                               width=args.width, height=args.height)
@@ -107,11 +107,11 @@ def _camera(args: argparse.Namespace) -> int:
 
 
 def _register_detect(sub: argparse._SubParsersAction) -> None:
-    from onboard.detector import add_detector_arguments
+    from kgadapt.onboard.detector import add_detector_arguments
 
     p = sub.add_parser(
         "detect",
-        help="run the marker detector (same as python -m onboard.detector)",
+        help="run the marker detector (same as python -m kgadapt.onboard.detector)",
         description="The marker-detector program: gets its configuration from the knowledge store "
                     "(--config) or inline (--config-json), detects markers in the camera's frames and "
                     "publishes detections. Prints KGADAPT_READY when ready; exit status 2 when the store "
@@ -122,7 +122,7 @@ def _register_detect(sub: argparse._SubParsersAction) -> None:
 
 
 def _detect(args: argparse.Namespace) -> int:
-    from onboard.detector import run
+    from kgadapt.onboard.detector import run
 
     return run(args)
 
@@ -131,7 +131,7 @@ def _detect(args: argparse.Namespace) -> int:
 
 
 def _register_calibrate(sub: argparse._SubParsersAction) -> None:
-    from onboard.calibration import FEATURE, RESULTS_DIR
+    from kgadapt.onboard.calibration import FEATURE, RESULTS_DIR
 
     p = sub.add_parser(
         "calibrate",
@@ -156,7 +156,7 @@ def _register_calibrate(sub: argparse._SubParsersAction) -> None:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from onboard.calibration import CONDITIONS, CalibrationSettings, run_calibration
+    from kgadapt.onboard.calibration import CONDITIONS, CalibrationSettings, run_calibration
 
     conditions = tuple(c.strip() for c in args.conditions.split(",")) if args.conditions else tuple(CONDITIONS)
     settings = CalibrationSettings(frames_per_level=args.frames, levels_per_band=args.levels,
@@ -194,8 +194,8 @@ def _register_profile(sub: argparse._SubParsersAction) -> None:
 
 
 def _profile(args: argparse.Namespace) -> int:
-    from onboard.scenario import load_profile
-    from shared.errors import ConfigError
+    from kgadapt.onboard.scenario import load_profile
+    from kgadapt.shared.errors import ConfigError
 
     if not args.step > 0:
         raise ConfigError(f"--step {args.step}: must be positive")

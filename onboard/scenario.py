@@ -40,8 +40,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from shared.errors import ConfigError, ModelError
-from shared.resources import scenarios
+from kgadapt.shared.errors import ConfigError, ModelError
+from kgadapt.shared.resources import scenarios
 
 DEFAULT_DICTIONARY = "DICT_4X4_50"
 SCENARIO_DIR = scenarios()

@@ -7,8 +7,8 @@ lands, and their printed sizes (the black square's side, in metres)::
      "markers": [{"id": 33, "size_m": 0.20}, {"id": 42, "size_m": 0.10, "name": "pad B"}]}
 
 The ids keep phantom markers from becoming landing targets
-(:mod:`onboard.confirmation`); the sizes let a landing target carry the
-marker's position (:mod:`onboard.landing_targets`). ``site`` defaults to the
+(:mod:`kgadapt.onboard.confirmation`); the sizes let a landing target carry the
+marker's position (:mod:`kgadapt.onboard.landing_targets`). ``site`` defaults to the
 file's name, ``dictionary`` to ``DICT_4X4_50``. Anything else is refused with
 a :class:`ModelError` naming the file and the marker.
 """
@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-from shared.errors import ModelError
+from kgadapt.shared.errors import ModelError
 
 DEFAULT_DICTIONARY = "DICT_4X4_50"
 MAX_ID = 1023  # the largest ArUco dictionaries (ARUCO_ORIGINAL, 7X7_1000) stop below 1024

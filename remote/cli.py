@@ -15,7 +15,7 @@ from typing import Any
 
 
 def register(subparsers: Any) -> None:
-    from shared.agent import add_agent_arguments
+    from kgadapt.shared.agent import add_agent_arguments
 
     parser = subparsers.add_parser(
         "remote",
@@ -41,8 +41,8 @@ def register(subparsers: Any) -> None:
 
 
 def add_part_arguments(parser: argparse.ArgumentParser) -> None:
-    from deploy import options as deploy_options
-    from shared import hostmonitor
+    from kgadapt.deploy import options as deploy_options
+    from kgadapt.shared import hostmonitor
 
     hostmonitor.add_arguments(parser)
     deploy_options.add_arguments(parser)
@@ -50,24 +50,24 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
 
 def build_parts(args: argparse.Namespace) -> list[Any]:
     """The remote agent's parts, in setup order: host monitor, deployer."""
-    from deploy.deployer import Deployer
-    from deploy.deployer import settings_from_args as deployer_settings
-    from shared.hostmonitor import HostMonitor, settings_from_args
+    from kgadapt.deploy.deployer import Deployer
+    from kgadapt.deploy.deployer import settings_from_args as deployer_settings
+    from kgadapt.shared.hostmonitor import HostMonitor, settings_from_args
 
     monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))
     return [monitor, Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb)]
 
 
 def run(args: argparse.Namespace) -> int:
-    from shared.agent import Agent, agent_settings_from_args, run_agent
+    from kgadapt.shared.agent import Agent, agent_settings_from_args, run_agent
 
     agent = Agent(agent_settings_from_args(args, role="remote"), build_parts(args))
     return run_agent(agent)
 
 
 def run_squeeze(args: argparse.Namespace) -> int:
-    from shared import hostmonitor
-    from shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.shared import hostmonitor
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
     reserve = hostmonitor.parse_size_mb(args.size, allow_zero=True)
     zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])

@@ -25,15 +25,15 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Protocol
 
-from shared import keys, rpc
-from shared.errors import KgadaptError, TransportError
-from shared.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
-from shared.session import add_arguments as add_zenoh_arguments
-from shared.session import settings_from_args as zenoh_settings_from_args
+from kgadapt.shared import keys, rpc
+from kgadapt.shared.errors import KgadaptError, TransportError
+from kgadapt.shared.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
+from kgadapt.shared.session import add_arguments as add_zenoh_arguments
+from kgadapt.shared.session import settings_from_args as zenoh_settings_from_args
 
 log = logging.getLogger(__name__)
 
-DEFAULT_ROBOT = keys.DEFAULT_ROBOT  # kept here: deploy/deployer.py, onboard/ import it from shared.agent
+DEFAULT_ROBOT = keys.DEFAULT_ROBOT  # kept here: deploy/deployer.py, onboard/ import it from kgadapt.shared.agent
 
 
 class Part(Protocol):
@@ -252,7 +252,7 @@ def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) ->
     Under systemd (``Type=notify``) the watchdog is fed only while every part
     is healthy, so a hung or broken agent is restarted, not only a dead one.
     """
-    from shared.notifier import ServiceNotifier
+    from kgadapt.shared.notifier import ServiceNotifier
 
     s = agent.settings
     notifier = ServiceNotifier()

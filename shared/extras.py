@@ -12,7 +12,7 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-from shared.errors import MissingExtra
+from kgadapt.shared.errors import MissingExtra
 
 # extra -> what it is for, as a command would name it
 EXTRAS = {

@@ -39,8 +39,8 @@ from typing import Any
 
 import psutil
 
-from shared import keys, messages, rpc
-from shared.errors import ConfigError, MessageError, NoResponder, RemoteError, RequestTimeout
+from kgadapt.shared import keys, messages, rpc
+from kgadapt.shared.errors import ConfigError, MessageError, NoResponder, RemoteError, RequestTimeout
 
 log = logging.getLogger(__name__)
 

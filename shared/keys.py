@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import re
 
-from shared.errors import ConfigError
+from kgadapt.shared.errors import ConfigError
 
 # The robot every command and settings object means when none is named: the shipped
 # configurations (deploy/zenoh, deploy/systemd) are written for it.

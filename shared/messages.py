@@ -19,7 +19,7 @@ from typing import Any, Mapping
 
 import msgpack
 
-from shared.errors import MessageError
+from kgadapt.shared.errors import MessageError
 
 MAX_PAYLOAD = 8 * 1024 * 1024  # a 1080p JPEG is well under this
 MAX_SMALL = 256 * 1024  # everything that is not a frame
@@ -71,7 +71,7 @@ SCHEMAS: dict[str, Schema] = {
             "camera": _NAME, "seq": _f(int), "time": _TIME,
             "mean": _f(*NUMBER), "p5": _f(*NUMBER), "p50": _f(*NUMBER), "p95": _f(*NUMBER),
             "smoothed": _f(*NUMBER),
-            # optional, from onboard.illumination.estimate_light: the robust level the band is read
+            # optional, from kgadapt.onboard.illumination.estimate_light: the robust level the band is read
             # from (smoothed is its EMA), and what it used
             "level": _f(*NUMBER, required=False), "frame_level": _f(*NUMBER, required=False),
             "marker_level": _f(*NUMBER, required=False), "source": _OPT_NAME,
@@ -83,11 +83,11 @@ SCHEMAS: dict[str, Schema] = {
             "frame_time": _TIME, "time": _TIME,
             "ids": _f(list, max_len=1024), "corners": _f(list, max_len=1024),
             "processing_ms": _f(*NUMBER),
-            # optional, from onboard.detector: when the frame arrived, JPEG decode time, stale frames
+            # optional, from kgadapt.onboard.detector: when the frame arrived, JPEG decode time, stale frames
             # dropped so far, and the camera's publication time of the frame (transport = received - frame_sent)
             "camera": _OPT_NAME, "received": _f(*NUMBER, required=False), "decode_ms": _f(*NUMBER, required=False),
             "dropped": _f(int, required=False), "frame_sent": _f(*NUMBER, required=False),
-            # optional: per marker, whether its cells read clean (onboard.markers.cells_are_clean)
+            # optional: per marker, whether its cells read clean (kgadapt.onboard.markers.cells_are_clean)
             "clean": _f(list, required=False, max_len=1024),
         }),
         Schema("query_request", 1, {"params": _f(dict, required=False, max_len=64)}),
@@ -102,14 +102,14 @@ SCHEMAS: dict[str, Schema] = {
             "instance": _f(str, required=False, max_len=64),
             "wait_ready": _f(bool, required=False), "ready_timeout": _f(*NUMBER, required=False),
         }),
-        # In-place reconfiguration of a running detector (onboard.detector): ask, and what it did.
+        # In-place reconfiguration of a running detector (kgadapt.onboard.detector): ask, and what it did.
         Schema("configure_request", 1, {"config": _NAME}),
         Schema("configure_reply", 1, {
             "instance": _NAME, "config": _NAME, "previous": _NAME, "deployment": _f(str, max_len=64),
             "first_seq": _f(int, required=False), "check_ms": _f(*NUMBER), "build_ms": _f(*NUMBER),
             "first_frame_ms": _f(*NUMBER, required=False),
         }),
-        # A detector's idle/active switch (onboard.detector): an idle detector takes no frames and publishes nothing.
+        # A detector's idle/active switch (kgadapt.onboard.detector): an idle detector takes no frames and publishes nothing.
         Schema("activity_request", 1, {"active": _f(bool)}),
         Schema("activity_reply", 1, {"instance": _NAME, "active": _f(bool), "processed": _f(int)}),
         Schema("deploy_reply", 1, {"ok": _f(bool), "detail": _f(dict, required=False)}),

@@ -3,7 +3,7 @@
 One table for the two places that read a detector configuration: the model
 importer (``preprocess :gamma, gamma: 0.5`` in ``.rpsl`` files, checked at load
 time, every setting written out) and the detector itself
-(:func:`onboard.markers.parse_config`, where a missing setting takes its
+(:func:`kgadapt.onboard.markers.parse_config`, where a missing setting takes its
 default). docs/CONTRACTS.md describes the ``config_json`` they share.
 """
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-from shared.errors import ConfigError
+from kgadapt.shared.errors import ConfigError
 
 
 def shipped(package: str, *parts: str) -> Path:

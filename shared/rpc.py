@@ -9,11 +9,11 @@ Asking::
 
 :func:`call` returns the first reply decoded, :func:`gather` every reply once
 all matching queryables have finished. Errors are typed, never ``None`` and
-never a text to compare: :class:`~shared.errors.RemoteError` carries the far
-side's ``reply_err`` text, :class:`~shared.errors.NoResponder` says nobody
+never a text to compare: :class:`~kgadapt.shared.errors.RemoteError` carries the far
+side's ``reply_err`` text, :class:`~kgadapt.shared.errors.NoResponder` says nobody
 serves the key (the query ended without a reply),
-:class:`~shared.errors.RequestTimeout` that the deadline passed; Zenoh's own
-failures (closed session, bad key) become :class:`~shared.errors.TransportError`.
+:class:`~kgadapt.shared.errors.RequestTimeout` that the deadline passed; Zenoh's own
+failures (closed session, bad key) become :class:`~kgadapt.shared.errors.TransportError`.
 Zenoh's own query timeout is ``timeout + GRACE``: anything arriving after our
 deadline, Zenoh's "Timeout" error reply included, counts as no reply, judged
 by the clock. ``resend_for``: a query that ends at once without a reply
@@ -32,7 +32,7 @@ The Zenoh callback only queues the query (a full queue is answered "busy" at
 once); ``workers`` threads call the handler. Whatever happens, the query gets
 exactly one answer and is then dropped (which ends the asker's ``get``): the
 handler's :class:`Reply`, or ``reply_err`` with the text of the
-:class:`~shared.errors.KgadaptError` it raised (a refusal, naming what is
+:class:`~kgadapt.shared.errors.KgadaptError` it raised (a refusal, naming what is
 wrong), or ``reply_err("internal error ...")`` for any other exception (a
 bug: logged, and the server keeps serving). Queries still queued at
 shutdown are answered "<name> is shutting down".
@@ -55,7 +55,7 @@ from typing import Any, Callable, Iterable, Iterator, NamedTuple, Protocol, Type
 
 import zenoh
 
-from shared.errors import ConfigError, KgadaptError, NoResponder, RemoteError, RequestTimeout, TransportError
+from kgadapt.shared.errors import ConfigError, KgadaptError, NoResponder, RemoteError, RequestTimeout, TransportError
 
 log = logging.getLogger(__name__)
 

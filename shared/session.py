@@ -23,7 +23,7 @@ from typing import Sequence
 
 import zenoh
 
-from shared.errors import ConfigError, TransportError
+from kgadapt.shared.errors import ConfigError, TransportError
 
 log = logging.getLogger(__name__)
 

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from knowledge.embedded import EmbeddedServer
-from knowledge.falkordb_store import FalkorDBStore
-from knowledge.store import GraphStore, StoreSettings, open_store
+from kgadapt.knowledge.embedded import EmbeddedServer
+from kgadapt.knowledge.falkordb_store import FalkorDBStore
+from kgadapt.knowledge.store import GraphStore, StoreSettings, open_store
 
 REPO = Path(__file__).resolve().parent.parent
 _graph_numbers = itertools.count()

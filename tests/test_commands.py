@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from bench import cli as bench_cli
 from kgadapt import cli
+from kgadapt.bench import cli as bench_cli
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -23,7 +23,7 @@ def test_every_command_of_the_table_is_registered():
     assert _choices(parser) == {"ask", "bench", "certs", "demo", "deploy", "fleet", "flight", "knowledge", "onboard",
                                 "perception", "remote", "squeeze", "status", "why"}
     sub = parser._subparsers._group_actions[0].choices
-    assert "serve" in _choices(sub["knowledge"])  # the hook of knowledge.service_cli
+    assert "serve" in _choices(sub["knowledge"])  # the hook of kgadapt.knowledge.service_cli
     assert {"table1", "zenoh", "deployer", "perception", "adaptation", "reliability", "soak"} <= _choices(sub["bench"])
 
 

@@ -11,7 +11,7 @@ import subprocess
 
 import pytest
 
-from bench.footprint import NOT_IN_BASE, copy_source, install
+from kgadapt.bench.footprint import NOT_IN_BASE, copy_source, install
 from tests.conftest import free_port
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]  # builds and installs: minutes on a loaded machine

@@ -9,8 +9,8 @@ import sys
 
 import pytest
 
-from knowledge.store import assert_read_only, open_store, parse_store_url
-from shared.errors import ConfigError, QueryError, ReadOnlyViolation
+from kgadapt.knowledge.store import assert_read_only, open_store, parse_store_url
+from kgadapt.shared.errors import ConfigError, QueryError, ReadOnlyViolation
 
 TRICKY = ['a"b', "it's", "back\\slash", "x\ny", "ü€", "a'}) DETACH DELETE n //", "$param", ""]
 
@@ -104,7 +104,7 @@ def test_a_second_process_finds_the_running_embedded_store_instead_of_starting_a
     try:
         first.execute("CREATE (:Mark {n: 7})")
         code = (
-            "from knowledge.store import open_store\n"
+            "from kgadapt.knowledge.store import open_store\n"
             f"s = open_store('embedded:{tmp_path}'); s.setup()\n"
             "assert not s.server.owned\n"
             "print(s.execute('MATCH (m:Mark) RETURN m.n AS n')[0]['n'])\n"
@@ -137,7 +137,7 @@ def test_acknowledged_writes_survive_kill_9_of_the_embedded_store(tmp_path):
 
 def test_the_embedded_store_stops_when_its_owner_is_killed(tmp_path):
     code = (
-        "import time\nfrom knowledge.store import open_store\n"
+        "import time\nfrom kgadapt.knowledge.store import open_store\n"
         f"s = open_store('embedded:{tmp_path}'); s.setup()\n"
         "print(s.server.address.pid, flush=True)\ntime.sleep(60)\n"
     )

@@ -20,9 +20,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from knowledge.importers import aadl, deployment_file, feature_model, rpsl, systemd
-from knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
-from shared.errors import ModelError
+from kgadapt.knowledge.importers import aadl, deployment_file, feature_model, rpsl, systemd
+from kgadapt.knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
+from kgadapt.shared.errors import ModelError
 
 Importer = Callable[[str, str], ParsedModel]
 

@@ -27,9 +27,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from knowledge import schema as S
-from knowledge.importers.model import NodeSpec, Origin, ParsedModel
-from knowledge.importers.tokens import Statement, expect_args, name_arg, number_arg, read_statements, text_arg
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.importers.model import NodeSpec, Origin, ParsedModel
+from kgadapt.knowledge.importers.tokens import Statement, expect_args, name_arg, number_arg, read_statements, text_arg
 
 NOTATION = "platform model (AADL-like)"
 

@@ -16,9 +16,9 @@ import shlex
 import sys
 from dataclasses import dataclass
 
-from knowledge import schema as S
-from knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
-from shared.keys import DEFAULT_ROBOT
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
+from kgadapt.shared.keys import DEFAULT_ROBOT
 
 PLACEHOLDERS = ("python", "robot", "host", "instance", "config", "connect")
 _PLACEHOLDER = re.compile(r"\{([^{}]*)\}")

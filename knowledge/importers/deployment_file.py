@@ -7,7 +7,7 @@
   description: ArUco marker detector for dusk
   deploys: marker_detection_dusk
   executable: {python}
-  arguments: -m onboard.detector --robot {robot} --host {host} --instance {instance} --config {config} --connect {connect}
+  arguments: -m kgadapt.onboard.detector --robot {robot} --host {host} --instance {instance} --config {config} --connect {connect}
   environment: OPENCV_LOG_LEVEL=ERROR
   executable_on: onboard, remote
   reconfigurable_as: marker-detector
@@ -23,9 +23,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from knowledge import schema as S
-from knowledge.importers import deployment as D
-from knowledge.importers.model import Origin, ParsedModel
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.importers import deployment as D
+from kgadapt.knowledge.importers.model import Origin, ParsedModel
 
 NOTATION = "deployment file"
 KEYS = ("name", "description", "deploys", "executable", "arguments", "environment", "executable_on",

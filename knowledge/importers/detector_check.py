@@ -3,7 +3,7 @@
 The model loader runs where no camera is (the knowledge service, ``kgadapt
 knowledge load``) and must not import OpenCV; yet a configuration OpenCV
 would refuse should fail at load time with its file and line. So the
-configurations go to :mod:`onboard.config_check` in a child process, which
+configurations go to :mod:`kgadapt.onboard.config_check` in a child process, which
 answers what the detector program would say at start.
 
 A child costs an interpreter and an OpenCV import (~0.3 s idle, seconds on a
@@ -27,14 +27,14 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from shared.errors import ModelError
+from kgadapt.shared.errors import ModelError
 
 log = logging.getLogger(__name__)
 
 Verdict = dict[str, Any] | None
 # What the verdict depends on besides the configuration: the checking program and what it imports.
 _CHECK_MODULES = (
-    "onboard.config_check", "onboard.markers", "onboard.scenario", "shared.preprocessing",
+    "kgadapt.onboard.config_check", "kgadapt.onboard.markers", "kgadapt.onboard.scenario", "kgadapt.shared.preprocessing",
 )
 _memory: dict[str, Verdict] = {}
 
@@ -99,7 +99,7 @@ def _write(key: str, verdict: Verdict) -> None:
 def _ask(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
     request = json.dumps([{"name": name, "config_json": config} for name, config in configs])
     try:
-        done = subprocess.run([sys.executable, "-m", "onboard.config_check"], input=request, capture_output=True,
+        done = subprocess.run([sys.executable, "-m", "kgadapt.onboard.config_check"], input=request, capture_output=True,
                               text=True, timeout=120)
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise ModelError(path, None, f"cannot check the detector configurations with OpenCV: {exc}") from exc
@@ -110,5 +110,5 @@ def _ask(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
     if not isinstance(answer, list) or len(answer) != len(configs):
         last = (done.stderr.strip().splitlines() or ["no output"])[-1]
         raise ModelError(path, None, f"cannot check the detector configurations with OpenCV "
-                                     f"(onboard.config_check exited {done.returncode}: {last})")
+                                     f"(kgadapt.onboard.config_check exited {done.returncode}: {last})")
     return answer

@@ -28,9 +28,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from knowledge import schema as S
-from knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
-from knowledge.importers.tokens import Statement, expect_args, name_arg, number_arg, read_statements, text_arg
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
+from kgadapt.knowledge.importers.tokens import Statement, expect_args, name_arg, number_arg, read_statements, text_arg
 
 NOTATION = "feature model"
 _BLOCKS = {"feature": S.FEATURE, "band": S.ILLUMINATION_BAND}

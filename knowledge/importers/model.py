@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from shared.errors import ModelError
+from kgadapt.shared.errors import ModelError
 
 
 @dataclass(frozen=True)

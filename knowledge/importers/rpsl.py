@@ -48,11 +48,11 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from knowledge import schema as S
-from knowledge.importers import detector_check
-from knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
-from knowledge.importers.tokens import Statement, Symbol, expect_args, name_arg, number_arg, read_statements, text_arg
-from shared import preprocessing
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.importers import detector_check
+from kgadapt.knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
+from kgadapt.knowledge.importers.tokens import Statement, Symbol, expect_args, name_arg, number_arg, read_statements, text_arg
+from kgadapt.shared import preprocessing
 
 NOTATION = "perception graph DSL (rpsl)"
 
@@ -258,7 +258,7 @@ def _check_detectors(blocks: list[_Block], path: str) -> None:
     """Judge every detector configuration of the file as the detector program would at start.
 
     The names, types and ranges OpenCV accepts are OpenCV's to say, but this
-    process must not load it: :mod:`knowledge.importers.detector_check` asks a
+    process must not load it: :mod:`kgadapt.knowledge.importers.detector_check` asks a
     child process, for all of the file's configurations at once. Where OpenCV
     is not installed the detector program checks at start.
     """

@@ -8,7 +8,7 @@ into an ``[X-Kgadapt]`` section, which systemd ignores::
     Description=ArUco marker detector, daylight configuration
 
     [Service]
-    ExecStart={python} -m onboard.detector --robot {robot} --host {host} --instance {instance} \\
+    ExecStart={python} -m kgadapt.onboard.detector --robot {robot} --host {host} --instance {instance} \\
               --config {config} --connect {connect}
     Environment=OPENCV_LOG_LEVEL=ERROR
     Restart=on-failure
@@ -25,16 +25,16 @@ into an ``[X-Kgadapt]`` section, which systemd ignores::
 placeholders as in docs/CONTRACTS.md; a real unit gets them filled in by the
 deployer). ``Environment=`` may repeat. Other keys of ``[Unit]``, ``[Service]``
 and ``[Install]`` are systemd's own and are kept out of the graph. ``ReconfigurableAs=``: see
-:mod:`knowledge.importers.deployment_file`.
+:mod:`kgadapt.knowledge.importers.deployment_file`.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from knowledge import schema as S
-from knowledge.importers import deployment as D
-from knowledge.importers.model import Origin, ParsedModel
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.importers import deployment as D
+from kgadapt.knowledge.importers.model import Origin, ParsedModel
 
 NOTATION = "systemd service file"
 SECTIONS = ("Unit", "Service", "Install", "X-Kgadapt")

@@ -12,7 +12,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
-from knowledge.importers.model import Origin
+from kgadapt.knowledge.importers.model import Origin
 
 
 class Symbol(str):

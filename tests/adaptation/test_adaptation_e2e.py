@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from kgadapt.cluster import ClusterSettings, WatchedRobot, write_profile
-from shared.hostmonitor import squeeze
+from kgadapt.shared.hostmonitor import squeeze
 
 pytestmark = pytest.mark.slow
 
@@ -118,8 +118,8 @@ def test_a_memory_squeeze_moves_the_detector_remote_and_losing_the_remote_host_b
             10, "detections onboard")
     assert first_onboard > killed_at  # how fast is `kgadapt bench adaptation`'s failover figure, not a test's
     # The paper's history query on the real history of this run: every detector that ran was profiled.
-    from knowledge.queries import run_named
-    from knowledge.store import open_store
+    from kgadapt.knowledge.queries import run_named
+    from kgadapt.knowledge.store import open_store
 
     with open_store(run.cluster.store_url) as store:
         ran = run_named(store, "low_memory_components", {"threshold_mb": 10_000.0})

@@ -16,7 +16,7 @@ import time
 
 import pytest
 
-from deploy.client import DeployerClient
+from kgadapt.deploy.client import DeployerClient
 from tests.adaptation.test_adaptation_e2e import Run
 
 pytestmark = pytest.mark.slow

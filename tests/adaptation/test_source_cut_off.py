@@ -16,9 +16,9 @@ import threading
 
 import pytest
 
-from deploy.client import DeployerClient
-from shared import keys, messages
-from shared.hostmonitor import squeeze
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.shared import keys, messages
+from kgadapt.shared.hostmonitor import squeeze
 from tests.adaptation.test_adaptation_e2e import Run
 
 pytestmark = pytest.mark.slow

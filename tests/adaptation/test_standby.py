@@ -16,11 +16,11 @@ import time
 
 import pytest
 
-from deploy.client import DeployerClient
-from knowledge.client import KnowledgeClient
-from knowledge.store import open_store
-from onboard.adaptation_cli import explain, render
-from shared.hostmonitor import squeeze
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.store import open_store
+from kgadapt.onboard.adaptation_cli import explain, render
+from kgadapt.shared.hostmonitor import squeeze
 from tests.adaptation.test_adaptation_e2e import Run
 
 pytestmark = pytest.mark.slow

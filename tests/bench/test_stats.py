@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from bench.stats import format_table, make_record, percentile, read_records, summarize, time_calls, write_records
-from shared.errors import ConfigError
+from kgadapt.bench.stats import format_table, make_record, percentile, read_records, summarize, time_calls, write_records
+from kgadapt.shared.errors import ConfigError
 
 
 def test_percentiles_interpolate_between_ranks():

@@ -10,7 +10,7 @@ import subprocess
 
 import pytest
 
-from bench.table1 import OPS, PAPER
+from kgadapt.bench.table1 import OPS, PAPER
 
 TIMED_OPS = {"floor", "insert", "insert_create", "sample", "sample_after_create", "query", "query_named"}
 NUMBERS = ("mean_ms", "sd_ms", "p50_ms", "p99_ms")

@@ -2,7 +2,7 @@
 
 Everything real: the knowledge service on the session's embedded FalkorDB
 (an empty graph per test), a Zenoh router on a free loopback port, deployers
-as peers, and the stand-in detector ``deploy.echo_detector`` as the program
+as peers, and the stand-in detector ``kgadapt.deploy.echo_detector`` as the program
 the deployments run.
 """
 
@@ -15,12 +15,12 @@ from typing import Any, Iterator
 
 import pytest
 
-from deploy.deployer import Deployer, DeployerSettings
-from deploy.supervisor import RestartPolicy, StopPolicy
-from knowledge import schema as S
-from knowledge.service import KnowledgeService, ServiceSettings
-from shared import keys, messages
-from shared.session import ZenohSettings, open_session
+from kgadapt.deploy.deployer import Deployer, DeployerSettings
+from kgadapt.deploy.supervisor import RestartPolicy, StopPolicy
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.shared import keys, messages
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import free_port
 
 ROBOT = "testbot"
@@ -29,7 +29,7 @@ CONFIG_DUSK = "marker_detection_dusk"
 # Measured: open() of a router, and of a peer that finds others, waits scouting/delay (500 ms by
 # default) for scouted peers. The tests wait for what they need (wait_for_deployers) instead.
 FAST_OPEN = {"scouting/delay": 0}
-ECHO = ["-m", "deploy.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
+ECHO = ["-m", "kgadapt.deploy.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
         "--config", "{config}", "--connect", "{connect}"]
 
 

@@ -16,11 +16,11 @@ from pathlib import Path
 import psutil
 import pytest
 
-from deploy.client import DeployerClient
-from knowledge import schema as S
-from knowledge.loader import load_models
-from shared import keys
-from shared.errors import DeploymentError
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.loader import load_models
+from kgadapt.shared import keys
+from kgadapt.shared.errors import DeploymentError
 from tests.deploy.conftest import ROBOT, Collector, FrameSource, wait_for_deployers
 from tests.deploy.test_deployer import REPO, alive, wait_until
 from tests.deploy.test_real_detector import marker_jpeg
@@ -141,7 +141,7 @@ def test_the_launcher_forks_only_modules_it_preloaded(hosts):
     python = hosts["onboard"].deployer.settings.python
     assert launcher.fork([python, "-c", "print('KGADAPT_READY')"], dict(os.environ), None) is None
     assert launcher.fork([python, "-m", "http.server"], dict(os.environ), None) is None
-    assert launcher.fork(["/bin/sh", "-m", "onboard.detector"], dict(os.environ), None) is None
+    assert launcher.fork(["/bin/sh", "-m", "kgadapt.onboard.detector"], dict(os.environ), None) is None
     assert launcher.ready  # a refusal is not a failure of the launcher
 
 
@@ -171,7 +171,7 @@ def test_a_forked_detector_shows_its_own_command_line(hosts, client_session):
     info = DeployerClient(client_session, ROBOT).start("onboard", "detector_day", DAY, instance="titled")
     try:
         assert psutil.Process(info["pid"]).cmdline() == info["argv"]  # what ps and the fault tools look for
-        assert psutil.Process(launcher.pid).cmdline()[1:3] == ["-m", "deploy.launcher"]
+        assert psutil.Process(launcher.pid).cmdline()[1:3] == ["-m", "kgadapt.deploy.launcher"]
     finally:
         DeployerClient(client_session, ROBOT).stop("onboard", "titled")
 
@@ -182,7 +182,7 @@ def test_a_forked_detector_runs_with_the_environment_of_the_request_not_the_laun
     launcher = launcher_of(hosts)
     python = hosts["onboard"].deployer.settings.python
     missing = tmp_path / "no-such-zenoh.json5"
-    argv = [python, "-m", "deploy.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "env_probe",
+    argv = [python, "-m", "kgadapt.deploy.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "env_probe",
             "--config", "{}"]
     forked = launcher.fork(argv, {**os.environ, "KGADAPT_ZENOH_CONFIG": str(missing)}, None)
     assert forked is not None, "the launcher refused a preloaded module"

@@ -9,10 +9,10 @@ import threading
 
 import pytest
 
-from deploy.client import DeployerClient
-from deploy.migration import migrate
-from shared import keys
-from shared.errors import DeploymentError, ReadinessTimeout, SourceNotStopped
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.deploy.migration import migrate
+from kgadapt.shared import keys
+from kgadapt.shared.errors import DeploymentError, ReadinessTimeout, SourceNotStopped
 from tests.deploy.conftest import CONFIG, CONFIG_DUSK, ROBOT, Collector, FrameSource
 from tests.deploy.test_deployer import REPO, alive
 

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from shared.notifier import ServiceNotifier
+from kgadapt.shared.notifier import ServiceNotifier
 from tests.conftest import free_port
 from tests.support import Child
 

@@ -1,4 +1,4 @@
-"""The deployer with the shipped models and the real marker detector (onboard.detector).
+"""The deployer with the shipped models and the real marker detector (kgadapt.onboard.detector).
 
 Slower than the echo-detector tests (OpenCV loads in each detector), so one
 test covers the whole path: start from the models' deployment, detections on
@@ -13,11 +13,11 @@ import cv2
 import numpy as np
 import pytest
 
-from deploy.client import DeployerClient
-from deploy.migration import migrate
-from knowledge import schema as S
-from knowledge.loader import load_models
-from shared import keys
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.deploy.migration import migrate
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.loader import load_models
+from kgadapt.shared import keys
 from tests.deploy.conftest import ROBOT, Collector, FrameSource
 
 MODELS = Path(S.__file__).resolve().parent / "models"
@@ -48,7 +48,7 @@ def test_the_shipped_day_detector_starts_detects_and_migrates_without_a_gap_in_o
     try:
         client = DeployerClient(client_session, ROBOT)
         info = client.start("onboard", "detector_day", "marker_detection_day", instance="day1")
-        assert info["argv"][1:3] == ["-m", "onboard.detector"]
+        assert info["argv"][1:3] == ["-m", "kgadapt.onboard.detector"]
         _, first = markers.wait_for(lambda d: d["instance"] == "day1" and d["ids"])
         assert first["ids"] == [7] and first["config"] == "marker_detection_day" and first["host"] == "onboard"
 

@@ -1,4 +1,4 @@
-"""In-place reconfiguration of the real detector (onboard.detector) under a real deployer.
+"""In-place reconfiguration of the real detector (kgadapt.onboard.detector) under a real deployer.
 
 One detector process, real Zenoh, the shipped models in a real FalkorDB: it
 takes the dark configuration between two frames without a restart (same pid),
@@ -13,11 +13,11 @@ import threading
 
 import pytest
 
-from deploy.client import DeployerClient
-from deploy.migration import reconfigure
-from knowledge.loader import load_models
-from shared import keys
-from shared.errors import DeploymentError
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.deploy.migration import reconfigure
+from kgadapt.knowledge.loader import load_models
+from kgadapt.shared import keys
+from kgadapt.shared.errors import DeploymentError
 from tests.deploy.conftest import ROBOT, Collector, FrameSource
 from tests.deploy.test_real_detector import MODELS, marker_jpeg
 from tests.support import wait_for
@@ -80,7 +80,7 @@ def test_the_detector_takes_another_configuration_between_two_frames(hosts, clie
 
 
 def test_an_idle_detector_publishes_nothing_until_made_active(hosts, client_session, graph):
-    from onboard.detector import set_active
+    from kgadapt.onboard.detector import set_active
 
     frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
     markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
@@ -111,7 +111,7 @@ def test_an_activity_switch_asked_before_the_detector_is_up_reaches_it_once_it_i
     # queryable's declaration may reach the manager's session later than that. set_active asks
     # again until its timeout rather than failing on the first empty answer (which left a failover
     # with no standby and a new process under load).
-    from onboard.detector import set_active
+    from kgadapt.onboard.detector import set_active
 
     replies: list = []
     asking = threading.Thread(target=lambda: replies.append(

@@ -14,8 +14,8 @@ import time
 import psutil
 import pytest
 
-from deploy.supervisor import ProcessEvent, ProcessSpec, RestartPolicy, StopPolicy, Supervisor, SupervisorSettings
-from shared.errors import DeploymentError, ReadinessTimeout
+from kgadapt.deploy.supervisor import ProcessEvent, ProcessSpec, RestartPolicy, StopPolicy, Supervisor, SupervisorSettings
+from kgadapt.shared.errors import DeploymentError, ReadinessTimeout
 
 READY_AND_WAIT = "import time; print('KGADAPT_READY'); time.sleep(60)"
 DEAF = (
@@ -211,7 +211,7 @@ def test_killing_the_supervising_process_with_sigkill_kills_its_children(tmp_pat
     script.write_text(textwrap.dedent(f"""
         import sys, time
         sys.path.insert(0, {os.getcwd()!r})
-        from deploy.supervisor import ProcessSpec, Supervisor, SupervisorSettings
+        from kgadapt.deploy.supervisor import ProcessSpec, Supervisor, SupervisorSettings
         sup = Supervisor(SupervisorSettings(launcher={launcher!r})); sup.setup()
         info = sup.start(ProcessSpec(instance="det", argv=({sys.executable!r}, "-c", {DEAF!r})))
         print(info.pid, flush=True)
@@ -250,7 +250,7 @@ def test_a_supervisor_in_a_process_that_ignores_sigint_still_stops_its_child_wit
     code = textwrap.dedent(f"""
         import signal, sys
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        from deploy.supervisor import ProcessSpec, Supervisor
+        from kgadapt.deploy.supervisor import ProcessSpec, Supervisor
         sup = Supervisor()
         sup.setup()
         sup.start(ProcessSpec(instance="c", argv=(sys.executable, "-c", {READY_AND_WAIT!r})))

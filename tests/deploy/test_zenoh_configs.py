@@ -17,13 +17,13 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from deploy.client import DeployerClient
-from deploy.deployer import Deployer, DeployerSettings
-from knowledge import schema as S
-from knowledge.client import KnowledgeClient
-from knowledge.service import KnowledgeService, ServiceSettings
-from shared.errors import RequestTimeout, TransportError
-from shared.session import ZenohSettings, open_session
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.deploy.deployer import Deployer, DeployerSettings
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.shared.errors import RequestTimeout, TransportError
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import free_port
 from tests.deploy.conftest import CONFIG, FAST_OPEN, add_deployment
 from tests.deploy.pki import TestCA

@@ -18,7 +18,7 @@ from typing import Callable, Iterator
 
 import pytest
 
-from bench.reliability_bench import RobotOnHosts, RobotSettings
+from kgadapt.bench.reliability_bench import RobotOnHosts, RobotSettings
 from kgadapt.cluster import HostNetwork
 
 _reason: list[str | None] = []

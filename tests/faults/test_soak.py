@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import pytest
 
-from bench.soak_bench import Soak, SoakSettings
+from kgadapt.bench.soak_bench import Soak, SoakSettings
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from bench.reliability_bench import StoreCrashSettings, store_crash_trial
+from kgadapt.bench.reliability_bench import StoreCrashSettings, store_crash_trial
 
 TRIALS = 20
 

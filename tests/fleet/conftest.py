@@ -16,12 +16,12 @@ from typing import Any
 
 import pytest
 
-from bench.fleet_bench import seed_robot
-from knowledge.falkordb_store import FalkorDBStore
-from knowledge.service import KnowledgeService, ServiceSettings
-from knowledge.store import StoreSettings
-from shared import keys
-from shared.session import ZenohSettings, open_session
+from kgadapt.bench.fleet_bench import seed_robot
+from kgadapt.knowledge.falkordb_store import FalkorDBStore
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.knowledge.store import StoreSettings
+from kgadapt.shared import keys
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import free_port
 from tests.support import wait_for
 

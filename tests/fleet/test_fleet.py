@@ -9,12 +9,12 @@ import time
 
 import pytest
 
-from bench.fleet_bench import seed_robot
+from kgadapt.bench.fleet_bench import seed_robot
 from kgadapt.fleet_view import FleetView, FleetViewSettings, render
-from knowledge.fleet import FleetClient, FleetSettings, RobotState
-from knowledge.service import KnowledgeService, ServiceSettings
-from shared import keys, messages
-from shared.errors import ConfigError
+from kgadapt.knowledge.fleet import FleetClient, FleetSettings, RobotState
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.shared import keys, messages
+from kgadapt.shared.errors import ConfigError
 from tests.conftest import REPO
 from tests.fleet.conftest import _store, wait_until_all_answer
 from tests.support import wait_for
@@ -149,7 +149,7 @@ def _decisions_and_runs(store) -> tuple[int, int]:
 
 
 def test_a_peer_that_asks_right_after_opening_still_gets_every_robot(fleet):
-    from shared.session import ZenohSettings, open_session
+    from kgadapt.shared.session import ZenohSettings, open_session
 
     peer = open_session(ZenohSettings(mode="peer", connect=(fleet.endpoints["a"],), extra={"scouting/delay": 0}))
     try:

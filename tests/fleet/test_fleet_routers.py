@@ -20,9 +20,9 @@ from pathlib import Path
 
 import pytest
 
-from bench.fleet_bench import seed_robot
+from kgadapt.bench.fleet_bench import seed_robot
 from kgadapt.cluster import HostNetwork, NetworkSettings
-from knowledge.store import open_store
+from kgadapt.knowledge.store import open_store
 from tests.conftest import REPO
 from tests.support import Child
 
@@ -32,11 +32,11 @@ PORT = 7447
 
 _PROBE = r"""
 import json, sys, time
-from knowledge.client import KnowledgeClient
-from knowledge.fleet import FleetClient, FleetSettings
-from shared import messages
-from shared.errors import RequestTimeout
-from shared.session import ZenohSettings, open_session
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.fleet import FleetClient, FleetSettings
+from kgadapt.shared import messages
+from kgadapt.shared.errors import RequestTimeout
+from kgadapt.shared.session import ZenohSettings, open_session
 operator_cfg, onboard_cfg = sys.argv[1], sys.argv[2]
 out = {}
 operator = open_session(ZenohSettings(config_file=operator_cfg))

@@ -7,11 +7,11 @@ import time
 
 import pytest
 
-from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
-from onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
-from onboard.mavlink import LINK_LOST, LINK_RESTORED, LinkSettings
-from shared import keys, messages
-from shared.session import ZenohSettings, open_session
+from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
+from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
+from kgadapt.onboard.mavlink import LINK_LOST, LINK_RESTORED, LinkSettings
+from kgadapt.shared import keys, messages
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import free_port
 from tests.flight.conftest import FAST_STREAMS, free_udp_port, wait_until
 from tests.flight.test_landing_target import ANGLE_X, ANGLE_Y, SQUARE, K
@@ -235,14 +235,14 @@ def test_on_state_runs_with_published_states_and_a_failing_callback_does_not_sto
 
 
 def test_bridge_settings_with_a_bad_robot_name_are_refused():
-    from shared.errors import ConfigError
+    from kgadapt.shared.errors import ConfigError
 
     with pytest.raises(ConfigError, match="robot"):
         FlightBridge(BridgeSettings(robot="a/b", intrinsics=K, link=LinkSettings(url="udpin:127.0.0.1:1")))
 
 
 def test_bridge_setup_with_a_bad_url_fails_with_flight_link_error_naming_it():
-    from shared.errors import FlightLinkError
+    from kgadapt.shared.errors import FlightLinkError
 
     with pytest.raises(FlightLinkError, match="udpin:nowhere"):
         FlightBridge(BridgeSettings(robot=ROBOT, intrinsics=CameraIntrinsics(fx=1, fy=1, cx=0, cy=0),

@@ -9,14 +9,14 @@ import time
 
 import pytest
 
-from knowledge import runtime
-from knowledge import schema as S
-from knowledge.client import KnowledgeClient
-from knowledge.service import KnowledgeService, ServiceSettings
-from onboard.flight import FlightControlWriter, flight_control_params, intrinsics_from_graph
-from onboard.mavlink import FlightState
-from shared.errors import ConfigError
-from shared.session import ZenohSettings, open_session
+from kgadapt.knowledge import runtime
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.onboard.flight import FlightControlWriter, flight_control_params, intrinsics_from_graph
+from kgadapt.onboard.mavlink import FlightState
+from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import free_port
 from tests.flight.conftest import wait_until
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from onboard.flight_phase import in_final_descent
-from onboard.mavlink import FlightState
-from shared import messages
+from kgadapt.onboard.flight_phase import in_final_descent
+from kgadapt.onboard.mavlink import FlightState
+from kgadapt.shared import messages
 
 
 @pytest.mark.parametrize("state, expected", [

@@ -7,8 +7,8 @@ import time
 
 import pytest
 
-from onboard.fake_fc import VehicleState
-from onboard.mavlink import STREAM_FIELDS
+from kgadapt.onboard.fake_fc import VehicleState
+from kgadapt.onboard.mavlink import STREAM_FIELDS
 from tests.flight.conftest import wait_until
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from onboard.flight import CameraIntrinsics, choose_marker, landing_target, marker_points
-from shared.errors import FlightLinkError, MessageError
+from kgadapt.onboard.flight import CameraIntrinsics, choose_marker, landing_target, marker_points
+from kgadapt.shared.errors import FlightLinkError, MessageError
 
 K = CameraIntrinsics(fx=600.0, fy=500.0, cx=320.0, cy=240.0)
 # A 40 x 40 px marker centred on (400, 300): 80 px right and 60 px below the principal point.

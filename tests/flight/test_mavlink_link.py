@@ -14,8 +14,8 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
-from onboard.mavlink import (
+from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
+from kgadapt.onboard.mavlink import (
     DEFAULT_STREAM_RATES,
     LINK_LOST,
     LINK_RESTORED,
@@ -26,7 +26,7 @@ from onboard.mavlink import (
     LinkSettings,
     mode_name,
 )
-from shared.errors import FlightLinkError
+from kgadapt.shared.errors import FlightLinkError
 from tests.flight.conftest import free_udp_port, wait_until
 
 
@@ -260,8 +260,8 @@ def test_importing_the_flight_modules_leaves_the_mavlink_environment_and_globals
     code = (
         "import json, os, sys\n"
         "before = dict(os.environ)\n"
-        "import onboard.mavlink, onboard.fake_fc, onboard.flight, onboard.flight_cli\n"
-        "from onboard.mavlink import new_mavlink\n"
+        "import kgadapt.onboard.mavlink, kgadapt.onboard.fake_fc, kgadapt.onboard.flight, kgadapt.onboard.flight_cli\n"
+        "from kgadapt.onboard.mavlink import new_mavlink\n"
         "from pymavlink.dialects.v20 import common\n"
         "m = common.MAVLink(None, 1, 191)\n"
         "packet = m.landing_target_encode(0, 0, 12, 0.1, 0.2, 0, 0, 0, 1, 2, 3, (1, 0, 0, 0), 2, 1).pack(m)\n"

@@ -8,10 +8,10 @@ from pathlib import Path
 import pytest
 
 from kgadapt.cli import build_parser
-from onboard.confirmation import ConfirmationSettings, MarkerConfirmer
-from onboard.landing_targets import CameraModel, TargetBuilder, load_site_markers
-from onboard.site import load_site
-from shared.errors import ModelError
+from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer
+from kgadapt.onboard.landing_targets import CameraModel, TargetBuilder, load_site_markers
+from kgadapt.onboard.site import load_site
+from kgadapt.shared.errors import ModelError
 
 DEMO = Path(__file__).resolve().parents[2] / "knowledge" / "models" / "sites" / "demo.site"
 SQUARE = [[300.0, 220.0], [340.0, 220.0], [340.0, 260.0], [300.0, 260.0]]

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from knowledge.loader import load_models
-from knowledge.store import GraphStore
+from kgadapt.knowledge.loader import load_models
+from kgadapt.knowledge.store import GraphStore
 
 KNOWN = Path(__file__).resolve().parent / "known_models"
 SHIPPED = Path(__file__).resolve().parents[2] / "knowledge" / "models"

@@ -17,15 +17,15 @@ from pathlib import Path
 import pytest
 from neo4j import exceptions as neo4j_errors
 
-from knowledge import queries as Q
-from knowledge import runtime as R
-from knowledge.bolt_store import BoltStore
-from knowledge.dialect import FALKORDB, MEMGRAPH, NEO4J
-from knowledge.embedded import EmbeddedServer
-from knowledge.loader import load_models
-from knowledge.schema import INDEXED_NAMES, ensure_indexes
-from knowledge.store import open_store, parse_store_url
-from shared.errors import ConfigError, QueryError, StoreUnavailable
+from kgadapt.knowledge import queries as Q
+from kgadapt.knowledge import runtime as R
+from kgadapt.knowledge.bolt_store import BoltStore
+from kgadapt.knowledge.dialect import FALKORDB, MEMGRAPH, NEO4J
+from kgadapt.knowledge.embedded import EmbeddedServer
+from kgadapt.knowledge.loader import load_models
+from kgadapt.knowledge.schema import INDEXED_NAMES, ensure_indexes
+from kgadapt.knowledge.store import open_store, parse_store_url
+from kgadapt.shared.errors import ConfigError, QueryError, StoreUnavailable
 from tests.conftest import free_port
 from tests.deploy.pki import TestCA
 from tests.support import wait_for
@@ -206,7 +206,7 @@ def test_an_unreachable_server_is_store_unavailable_naming_the_url():
 
 
 def test_a_transient_conflict_is_retried_a_bounded_number_of_times(bolt_store, monkeypatch):
-    monkeypatch.setattr("knowledge.bolt_store.TRANSIENT_RETRY_PAUSES", (0.0, 0.0))
+    monkeypatch.setattr("kgadapt.knowledge.bolt_store.TRANSIENT_RETRY_PAUSES", (0.0, 0.0))
     calls = []
 
     def conflicting(fail_times):
@@ -337,8 +337,8 @@ def test_the_bolt_backend_is_the_driver_for_both_schemes():
 
 def test_a_store_that_cannot_stop_a_query_gets_no_free_cypher_from_other_robots(bolt_store, resp_store):
     """FalkorDB's Bolt listener ignores tx_timeout: the service refuses rather than pretends."""
-    from knowledge.service import KnowledgeService, ServiceSettings
-    from shared import messages
+    from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+    from kgadapt.shared import messages
 
     request = messages.encode("cypher_request", {"cypher": "MATCH (n) RETURN count(n) AS c", "params": {}})
     bolt_service = KnowledgeService(bolt_store, ServiceSettings(robot="quad1", lock=False))

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from knowledge import runtime as R
-from knowledge.queries import QUERIES
-from knowledge.store import open_store
+from kgadapt.knowledge import runtime as R
+from kgadapt.knowledge.queries import QUERIES
+from kgadapt.knowledge.store import open_store
 
 from .conftest import KNOWN
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from knowledge.embedded import EmbeddedServer
-from shared.errors import StoreUnavailable
+from kgadapt.knowledge.embedded import EmbeddedServer
+from kgadapt.shared.errors import StoreUnavailable
 
 
 def test_a_server_that_exits_while_starting_reports_its_own_log_lines_not_an_older_crash(tmp_path):
@@ -30,7 +30,7 @@ def test_a_crash_while_starting_shows_the_head_of_the_bug_report(tmp_path):
     data = tmp_path / "store"
     data.mkdir()
     # Only the reading of the log is under test here: the report is written as redis writes it.
-    from knowledge import embedded
+    from kgadapt.knowledge import embedded
 
     log = data / "server.log"
     log.write_text("old line\n")

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from knowledge import export as E
-from knowledge import runtime as R
-from knowledge.falkordb_store import FalkorDBStore
-from knowledge.store import StoreSettings
+from kgadapt.knowledge import export as E
+from kgadapt.knowledge import runtime as R
+from kgadapt.knowledge.falkordb_store import FalkorDBStore
+from kgadapt.knowledge.store import StoreSettings
 
 from .conftest import counts, signature
 

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from knowledge import schema as S
-from knowledge.importers import deployment_file, systemd
-from knowledge.loader import load_models
-from knowledge.queries import run_named
-from shared.errors import ModelError
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.importers import deployment_file, systemd
+from kgadapt.knowledge.loader import load_models
+from kgadapt.knowledge.queries import run_named
+from kgadapt.shared.errors import ModelError
 
 MODELS = Path(S.__file__).resolve().parent / "models"
 
@@ -24,7 +24,7 @@ def test_same_family_on_a_host_both_run_on_may_change_in_place_and_nothing_else(
     extra.mkdir()
     # The same program, but its model does not say it can be reconfigured: a new process every time.
     (extra / "detector_plain.deploy").write_text(
-        "deploys: marker_detection_dusk\nexecutable: {python}\narguments: -m onboard.detector --config {config}\n"
+        "deploys: marker_detection_dusk\nexecutable: {python}\narguments: -m kgadapt.onboard.detector --config {config}\n"
         "executable_on: onboard\n")
     load_models(resp_store, [MODELS, extra])
 

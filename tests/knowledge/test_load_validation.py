@@ -11,8 +11,8 @@ import re
 
 import pytest
 
-from knowledge.importers import deployment_file, rpsl, systemd
-from shared.errors import ModelError
+from kgadapt.knowledge.importers import deployment_file, rpsl, systemd
+from kgadapt.shared.errors import ModelError
 
 _DETECTOR = '''
 rpsl.processing_component do
@@ -57,8 +57,8 @@ def _deploy(executable: str, arguments: str) -> str:
 
 
 def test_a_deployment_of_a_module_python_can_find_loads():
-    model = deployment_file.parse(_deploy("{python}", "-m onboard.detector --config {config}"), "x.deploy")
-    assert model.nodes[0].props["arguments"][:2] == ["-m", "onboard.detector"]
+    model = deployment_file.parse(_deploy("{python}", "-m kgadapt.onboard.detector --config {config}"), "x.deploy")
+    assert model.nodes[0].props["arguments"][:2] == ["-m", "kgadapt.onboard.detector"]
 
 
 @pytest.mark.parametrize("executable, arguments, line, why", [
@@ -87,7 +87,7 @@ def test_loading_the_models_judges_detectors_with_opencv_in_a_child_and_never_im
     from pathlib import Path
 
     repo = Path(__file__).resolve().parents[2]
-    code = ("import json, sys; from knowledge.loader import check_models; "
+    code = ("import json, sys; from kgadapt.knowledge.loader import check_models; "
             "resolved = check_models([sys.argv[1]]); "
             "print(json.dumps({'nodes': len(resolved.nodes), 'cv2': 'cv2' in sys.modules}))")
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}  # a cold cache: the child must answer
@@ -100,7 +100,7 @@ def test_loading_the_models_judges_detectors_with_opencv_in_a_child_and_never_im
 
 
 def test_one_preprocessing_table_for_the_importer_and_the_detector():
-    from onboard import markers
-    from shared import preprocessing
+    from kgadapt.onboard import markers
+    from kgadapt.shared import preprocessing
 
     assert rpsl.PREPROCESS_OPS is preprocessing.OPS and markers._OPS is preprocessing.OPS

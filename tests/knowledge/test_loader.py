@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from knowledge import runtime as R
-from knowledge.loader import load_models
-from shared.errors import ModelError
+from kgadapt.knowledge import runtime as R
+from kgadapt.knowledge.loader import load_models
+from kgadapt.shared.errors import ModelError
 
 from .conftest import counts, signature
 

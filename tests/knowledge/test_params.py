@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from knowledge.falkordb_store import params_header
-from knowledge.params import MAX_DEPTH, check_params
-from shared.errors import MessageError, QueryError, StoreTimeout
+from kgadapt.knowledge.falkordb_store import params_header
+from kgadapt.knowledge.params import MAX_DEPTH, check_params
+from kgadapt.shared.errors import MessageError, QueryError, StoreTimeout
 
 HOSTILE = ['a"b', "it's", "back\\slash", "ends with \\", '\\"', "\\\\\"", "x\ny\tz\r", "literal \\n", "ü€😀",
            "a'}) DETACH DELETE n //", '" RETURN 1 //', "$param", "CYPHER a=1 ", "`k`", ""]

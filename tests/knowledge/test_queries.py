@@ -21,9 +21,9 @@ import json
 
 import pytest
 
-from knowledge import queries as Q
-from knowledge import runtime as R
-from shared.errors import NamedQueryError
+from kgadapt.knowledge import queries as Q
+from kgadapt.knowledge import runtime as R
+from kgadapt.shared.errors import NamedQueryError
 
 
 def _live(store, *, alpha_free=300.0, beta_free=600.0, beta_online=True):
@@ -146,7 +146,7 @@ def test_detector_config_gives_the_settings_the_detector_program_needs(known_sto
 def test_deployment_describes_one_deployment(known_store):
     assert _run(known_store, "deployment", name="d_a") == [{
         "name": "d_a", "kind": "SystemdServiceFile", "executable": "{python}",
-        "arguments": ["-m", "onboard.detector", "--config", "{config}", "--host", "{host}"],
+        "arguments": ["-m", "kgadapt.onboard.detector", "--config", "{config}", "--host", "{host}"],
         "environment": ["A=1", "B=two words"], "platforms": ["alpha", "beta"], "deploys": ["g_a"]}]
     assert _run(known_store, "deployment", name="d_fc")[0]["deploys"] == ["fc"]
     assert _run(known_store, "deployment", name="nope") == []
@@ -257,7 +257,7 @@ def test_every_query_the_contract_names_exists_and_all_run_read_only(known_store
     six = {"feature_deployments", "placement", "deployable_components", "camera_resolutions",
            "low_memory_components", "cpu_overload"}
     assert contract | six <= set(Q.QUERIES)
-    from knowledge.store import assert_read_only
+    from kgadapt.knowledge.store import assert_read_only
     for query in Q.QUERIES.values():
         for text in (query.cypher, *query.when_missing.values()):
             assert_read_only(text)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from knowledge import runtime as R
-from shared.errors import NamedQueryError
+from kgadapt.knowledge import runtime as R
+from kgadapt.shared.errors import NamedQueryError
 
 
 def _row(store, cypher, **params):

@@ -11,8 +11,8 @@ import json
 
 import pytest
 
-from knowledge import schema as S
-from knowledge.importers import parse_file
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.importers import parse_file
 from tests.support import REPO
 
 

@@ -15,8 +15,8 @@ from typing import Any, Callable
 
 import pytest
 
-from shared import messages
-from shared.session import ZenohSettings, open_session
+from kgadapt.shared import messages
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import REPO, free_port
 from tests.support import wait_for  # noqa: F401 (the tests import it from here)
 
@@ -70,14 +70,14 @@ class Collector:
 
 
 class DetectorProcess:
-    """``python -m onboard.detector`` as a child; stdout lines collected by a thread."""
+    """``python -m kgadapt.onboard.detector`` as a child; stdout lines collected by a thread."""
 
     def __init__(self, args: list[str], log_dir: Path, name: str) -> None:
         self.stderr_path = log_dir / f"{name}.stderr"
         self._stderr = open(self.stderr_path, "w")
         env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "onboard.detector", *args], cwd=REPO, env=env,
+            [sys.executable, "-m", "kgadapt.onboard.detector", *args], cwd=REPO, env=env,
             stdout=subprocess.PIPE, stderr=self._stderr, text=True,
         )
         self.lines: queue.Queue[str] = queue.Queue()

@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from onboard.camera import CameraPart, CameraSettings, CapturedFrame, OpenCVSource, SyntheticSource, make_source
-from onboard.scenario import IlluminationProfile
-from shared import keys
-from shared.errors import ConfigError, ModelError
+from kgadapt.onboard.camera import CameraPart, CameraSettings, CapturedFrame, OpenCVSource, SyntheticSource, make_source
+from kgadapt.onboard.scenario import IlluminationProfile
+from kgadapt.shared import keys
+from kgadapt.shared.errors import ConfigError, ModelError
 from tests.perception.conftest import Collector
 
 
@@ -135,8 +135,8 @@ def test_a_missing_profile_is_named_when_the_source_opens(tmp_path):
 
 
 def test_a_window_lifts_the_published_mean_but_not_the_level_bands_are_read_from(endpoint_session, robot):
-    from onboard.scenario import LightLayout
-    from shared import messages
+    from kgadapt.onboard.scenario import LightLayout
+    from kgadapt.shared import messages
 
     _, session = endpoint_session
     light = Collector(session, keys.camera_illumination(robot, "cam0"), "illumination")

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from onboard.scenario import (
+from kgadapt.onboard.scenario import (
     CameraModel,
     IlluminationProfile,
     LightLayout,
@@ -19,7 +19,7 @@ from onboard.scenario import (
     srgb_decode,
     srgb_encode,
 )
-from shared.errors import ModelError
+from kgadapt.shared.errors import ModelError
 
 
 def test_srgb_round_trips_and_lifts_the_shadows():

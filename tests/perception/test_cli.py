@@ -56,7 +56,7 @@ def test_calibrate_writes_the_figures_the_json_and_the_plot(kgadapt_cmd, tmp_pat
 
 
 def test_the_transport_bench_measures_latency_to_a_detector_process():
-    from bench.perception_bench import measure_transport
+    from kgadapt.bench.perception_bench import measure_transport
 
     result = measure_transport(seconds=1.5, fps=30, robot=f"bench{free_port()}")
     # 45 frames are offered; how many a detector keeps up with depends on the machine's load (19 seen

@@ -12,10 +12,10 @@ import psutil
 import pytest
 import zenoh
 
-from onboard.camera import CameraPart, CameraSettings, SyntheticSource
-from onboard.markers import score
-from onboard.scenario import IlluminationProfile, SyntheticScene
-from shared import keys, messages
+from kgadapt.onboard.camera import CameraPart, CameraSettings, SyntheticSource
+from kgadapt.onboard.markers import score
+from kgadapt.onboard.scenario import IlluminationProfile, SyntheticScene
+from kgadapt.shared import keys, messages
 from tests.perception.conftest import DAY_JSON, Collector, wait_for
 
 HAVE_SERVICE = (Path(__file__).resolve().parents[2] / "knowledge" / "service.py").exists()
@@ -185,9 +185,9 @@ def knowledge(resp_store, endpoint_session, robot):
     """The shipped models behind a real knowledge service on the test's session."""
     if not HAVE_SERVICE:
         pytest.skip("knowledge/service.py is not there yet")
-    from knowledge.loader import load_models
-    from knowledge.service import KnowledgeService, ServiceSettings
-    from onboard.calibration import REPO
+    from kgadapt.knowledge.loader import load_models
+    from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+    from kgadapt.onboard.calibration import REPO
 
     load_models(resp_store, [REPO / "knowledge" / "models"])
     service = KnowledgeService(resp_store, ServiceSettings(robot=robot))

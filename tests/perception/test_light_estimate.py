@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from onboard.illumination import LightSettings, LightSource, band_for_level, estimate_light, luminance
-from onboard.scenario import IlluminationProfile, LightLayout, SceneSettings, SyntheticScene
-from shared.errors import ConfigError
+from kgadapt.onboard.illumination import LightSettings, LightSource, band_for_level, estimate_light, luminance
+from kgadapt.onboard.scenario import IlluminationProfile, LightLayout, SceneSettings, SyntheticScene
+from kgadapt.shared.errors import ConfigError
 
 ROWS = [
     {"config": "marker_detection_dark", "band": "dark", "min_level": 0, "max_level": 12},

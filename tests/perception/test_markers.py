@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from onboard.calibration import (
+from kgadapt.onboard.calibration import (
     CONDITIONS,
     CalibrationSettings,
     band_levels,
@@ -17,10 +17,10 @@ from onboard.calibration import (
     rank,
     record,
 )
-from onboard.illumination import Band
-from onboard.markers import MarkerDetector, parse_config, score
-from onboard.scenario import IlluminationProfile, SyntheticScene
-from shared.errors import ConfigError
+from kgadapt.onboard.illumination import Band
+from kgadapt.onboard.markers import MarkerDetector, parse_config, score
+from kgadapt.onboard.scenario import IlluminationProfile, SyntheticScene
+from kgadapt.shared.errors import ConfigError
 
 
 def jpeg_round_trip(image: np.ndarray, quality: int = 80) -> np.ndarray:
@@ -126,7 +126,7 @@ def test_configurations_differ_in_the_dark_as_calibration_shows(calibrated):
 
 
 def test_calibration_figures_land_in_the_graph(calibrated):
-    from knowledge.queries import run_named
+    from kgadapt.knowledge.queries import run_named
 
     store, _, bands, results = calibrated
     assert record(store, results, at=1234.5) == len(results)
@@ -147,7 +147,7 @@ def test_calibration_figures_land_in_the_graph(calibrated):
 
 
 def test_the_best_configuration_of_a_band_is_the_most_accurate_then_the_fastest():
-    from onboard.calibration import CalibrationResult
+    from kgadapt.onboard.calibration import CalibrationResult
 
     def result(config, rate, ms, false=0.0):
         return CalibrationResult(config=config, band="b", detection_rate=rate, false_per_frame=false,

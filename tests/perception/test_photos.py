@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import pytest
 
-from bench.perception_quality import photo_agreement
-from onboard.photos import PHOTO_DICTIONARIES, PHOTO_DIR, load_photo, photo_frames, photo_truth
+from kgadapt.bench.perception_quality import photo_agreement
+from kgadapt.onboard.photos import PHOTO_DICTIONARIES, PHOTO_DIR, load_photo, photo_frames, photo_truth
 
 
 def test_every_photo_named_in_the_sources_is_here_with_markers_to_find():

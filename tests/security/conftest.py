@@ -98,9 +98,9 @@ def loopback_robot(tmp_path):
     ``loopback_robot(remote_budget="2G")`` returns {robot, endpoint, session(), service, agent, store_dir};
     everything is stopped at teardown.
     """
-    from knowledge.loader import load_models
-    from knowledge.store import open_store
-    from shared.session import ZenohSettings, open_session
+    from kgadapt.knowledge.loader import load_models
+    from kgadapt.knowledge.store import open_store
+    from kgadapt.shared.session import ZenohSettings, open_session
     from tests.conftest import free_port
 
     started: list[_Child] = []

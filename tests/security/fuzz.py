@@ -14,7 +14,7 @@ import msgpack
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
-from shared import messages
+from kgadapt.shared import messages
 
 FUZZ = settings(
     max_examples=60, deadline=None, derandomize=True, database=None,

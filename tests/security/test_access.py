@@ -23,14 +23,14 @@ from typing import Any, Callable
 
 import pytest
 
-from deploy.client import DeployerClient
-from knowledge.client import KnowledgeClient
-from knowledge.runtime import WRITERS
-from onboard.detector import set_active
-from shared import keys, messages
-from shared.errors import RemoteError, RequestTimeout, TransportError
-from shared.hostmonitor import squeeze
-from shared.session import ZenohSettings, open_session
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.runtime import WRITERS
+from kgadapt.onboard.detector import set_active
+from kgadapt.shared import keys, messages
+from kgadapt.shared.errors import RemoteError, RequestTimeout, TransportError
+from kgadapt.shared.hostmonitor import squeeze
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import REPO, free_port
 from tests.security.conftest import FAST_OPEN, OTHER_ROBOT, ROBOT, Child, kgadapt, shipped_config, wait_for
 

@@ -6,10 +6,10 @@ import time
 
 import pytest
 
-from knowledge.cypher_guard import CypherLimits, CypherRefused, check_cypher, writing_clause
-from knowledge.queries import QUERIES
-from knowledge.store import assert_read_only
-from shared.errors import ReadOnlyViolation
+from kgadapt.knowledge.cypher_guard import CypherLimits, CypherRefused, check_cypher, writing_clause
+from kgadapt.knowledge.queries import QUERIES
+from kgadapt.knowledge.store import assert_read_only
+from kgadapt.shared.errors import ReadOnlyViolation
 
 ACCEPTED = [
     "MATCH (p:Platform) RETURN p.name, p.memory_free_mb",

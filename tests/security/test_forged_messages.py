@@ -13,11 +13,11 @@ import time
 import msgpack
 import pytest
 
-from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
-from onboard.flight import BridgeSettings, FlightBridge
-from onboard.mavlink import LinkSettings
-from shared import keys, messages
-from shared.session import ZenohSettings, open_session
+from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
+from kgadapt.onboard.flight import BridgeSettings, FlightBridge
+from kgadapt.onboard.mavlink import LinkSettings
+from kgadapt.shared import keys, messages
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.adaptation.test_adaptation_e2e import Run
 from tests.conftest import free_port
 from tests.flight.conftest import FAST_STREAMS, free_udp_port, wait_until
@@ -142,7 +142,7 @@ def test_forged_detections_and_a_forged_descent_heard_on_zenoh(tmp_path):
     instance's key: the manager counts only frames whose key and body name the instance it started, so
     the rate it watches does not collapse. Then it says LANDING twenty times a second while the light
     flaps between dusk and day every 3 s: each kind of change is deferred, and recorded, once."""
-    from knowledge.client import KnowledgeClient
+    from kgadapt.knowledge.client import KnowledgeClient
 
     light = [[0, 120], [7, 120], [8, 16], [15, 16], [16, 120], [18, 120], [19, 16], [21, 16], [22, 120],
              [24, 120], [25, 16], [60, 16]]

@@ -9,8 +9,8 @@ from __future__ import annotations
 import msgpack
 import pytest
 
-from deploy.client import DeployerClient
-from shared.errors import DeploymentError
+from kgadapt.deploy.client import DeployerClient
+from kgadapt.shared.errors import DeploymentError
 from tests.security.outsider import Outsider
 
 DARK = "marker_detection_dark"  # 324 MiB declared: more than a 300 MiB budget can hold
@@ -70,7 +70,7 @@ def test_a_second_knowledge_service_on_the_same_store_refuses_to_start_and_chang
     import subprocess
     import sys
 
-    from knowledge.client import KnowledgeClient
+    from kgadapt.knowledge.client import KnowledgeClient
     from tests.conftest import REPO, free_port
     from tests.support import wait_for
 

@@ -23,14 +23,14 @@ from typing import Any, Callable
 
 import pytest
 
-from knowledge import queries, runtime
-from knowledge import schema as S
-from knowledge.client import KnowledgeClient
-from knowledge.loader import load_models
-from knowledge.service import KnowledgeService, ServiceSettings
-from knowledge.store import GraphStore
-from shared.errors import KgadaptError, ModelError, NamedQueryError, StoreError
-from shared.session import ZenohSettings, open_session
+from kgadapt.knowledge import queries, runtime
+from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.loader import load_models
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.knowledge.store import GraphStore
+from kgadapt.shared.errors import KgadaptError, ModelError, NamedQueryError, StoreError
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import free_port
 from tests.security.conftest import wait_for
 

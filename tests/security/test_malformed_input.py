@@ -31,11 +31,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
-from onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, choose_marker, landing_target
-from onboard.mavlink import LinkSettings
-from shared import keys, messages
-from shared.session import ZenohSettings, open_session
+from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
+from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, choose_marker, landing_target
+from kgadapt.onboard.mavlink import LinkSettings
+from kgadapt.shared import keys, messages
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import REPO, free_port
 from tests.security.conftest import wait_for
 from tests.security.fuzz import FUZZ, malformed, packed, wire
@@ -65,13 +65,13 @@ def count_lines(path: Path, pattern: str) -> int:
 
 @pytest.fixture
 def detector(tmp_path):
-    """A real ``python -m onboard.detector`` (inline configuration), connected to a listening peer session."""
+    """A real ``python -m kgadapt.onboard.detector`` (inline configuration), connected to a listening peer session."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
     stderr = tmp_path / "detector.stderr"
     with open(stderr, "w") as err:
         process = subprocess.Popen(
-            [sys.executable, "-m", "onboard.detector", "--robot", "fuzzbot", "--host", "onboard", "--instance", "fz",
+            [sys.executable, "-m", "kgadapt.onboard.detector", "--robot", "fuzzbot", "--host", "onboard", "--instance", "fz",
              "--connect", endpoint, "--config-json", DAY_JSON],
             cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE, stderr=err, text=True)
     try:
@@ -243,8 +243,8 @@ def test_a_detection_stamped_in_the_future_does_not_silence_the_landing_targets(
 
 def test_an_onboard_agent_with_adapt_fed_garbage_on_every_subscription_still_adapts(tmp_path):
     from kgadapt.cluster import ClusterSettings, LocalCluster
+    from kgadapt.shared.hostmonitor import squeeze
     from kgadapt.timeline import Recorder
-    from shared.hostmonitor import squeeze
 
     profile = tmp_path / "dark.json"
     profile.write_text(json.dumps({"points": [[0, 5], [600, 5]], "noise": 2.0, "gradient": 0.2, "loop": False}))

@@ -17,10 +17,10 @@ import sys
 import threading
 import time
 
-from bench import table1
-from knowledge.client import KnowledgeClient
-from knowledge.store import open_store
-from shared.errors import KgadaptError
+from kgadapt.bench import table1
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.store import open_store
+from kgadapt.shared.errors import KgadaptError
 from tests.conftest import REPO
 from tests.security.outsider import Outsider
 from tests.support import wait_for

@@ -9,11 +9,11 @@ import time
 
 import pytest
 
-from knowledge.client import KnowledgeClient
-from knowledge.schema import ensure_indexes
-from knowledge.service import KnowledgeService, ServiceSettings
-from shared import keys
-from shared.session import ZenohSettings, open_session
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.schema import ensure_indexes
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.shared import keys
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import free_port
 from tests.support import Child, wait_for  # noqa: F401 (the tests import wait_for from here)
 

@@ -6,10 +6,10 @@ import time
 
 import pytest
 
-from shared import keys
-from shared.agent import Agent, AgentSettings
-from shared.errors import ConfigError
-from shared.session import ZenohSettings, open_session
+from kgadapt.shared import keys
+from kgadapt.shared.agent import Agent, AgentSettings
+from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import free_port
 from tests.zenoh.conftest import wait_for
 

@@ -10,9 +10,9 @@ import time
 import psutil
 import pytest
 
-from shared import keys, messages
-from shared.errors import ConfigError
-from shared.hostmonitor import HostMonitor, HostMonitorSettings, parse_size_mb, squeeze
+from kgadapt.shared import keys, messages
+from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.hostmonitor import HostMonitor, HostMonitorSettings, parse_size_mb, squeeze
 from tests.zenoh.conftest import wait_for
 
 MIB = 1024 * 1024

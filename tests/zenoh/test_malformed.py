@@ -15,8 +15,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from shared import keys, messages
-from shared.hostmonitor import HostMonitor, HostMonitorSettings, squeeze_key
+from kgadapt.shared import keys, messages
+from kgadapt.shared.hostmonitor import HostMonitor, HostMonitorSettings, squeeze_key
 from tests.zenoh.conftest import platform_row, wait_for
 
 FUZZ = settings(

@@ -11,11 +11,11 @@ import time
 import psutil
 import pytest
 
-from knowledge.client import KnowledgeClient
-from knowledge.loader import load_models
-from knowledge.store import open_store
-from shared.hostmonitor import squeeze
-from shared.session import ZenohSettings, open_session
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.loader import load_models
+from kgadapt.knowledge.store import open_store
+from kgadapt.shared.hostmonitor import squeeze
+from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import REPO, free_port
 from tests.zenoh.conftest import platform_row, wait_for
 

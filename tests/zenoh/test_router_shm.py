@@ -3,7 +3,7 @@
 With Zenoh 1.x defaults, a client on the same machine puts every message above
 3 KiB into a 16 MiB shared-memory pool that the router maps; a client killed
 -9 leaves that mapping in the router for good (19 MiB per onboard agent
-restart in the soak). A router and clients opened through shared.session must
+restart in the soak). A router and clients opened through kgadapt.shared.session must
 not do that.
 """
 
@@ -14,16 +14,16 @@ import signal
 import sys
 import threading
 
-from shared.session import ZenohSettings, build_config, open_session
+from kgadapt.shared.session import ZenohSettings, build_config, open_session
 from tests.conftest import free_port
 from tests.support import Child
 
 KILLS = 3
 # A client that publishes messages above Zenoh's shared-memory threshold (3 KiB),
-# opened as the agents open theirs (shared.session's defaults, client mode).
+# opened as the agents open theirs (kgadapt.shared.session's defaults, client mode).
 CLIENT = """
 import sys, time
-from shared.session import ZenohSettings, open_session
+from kgadapt.shared.session import ZenohSettings, open_session
 session = open_session(ZenohSettings(mode="client", connect=(sys.argv[1],)))
 publisher = session.declare_publisher(sys.argv[2])
 print("ready", flush=True)

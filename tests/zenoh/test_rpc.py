@@ -9,10 +9,10 @@ import uuid
 import msgpack
 import pytest
 
-from knowledge import queries
-from knowledge.service import KnowledgeService, ServiceSettings
-from shared import messages, rpc
-from shared.errors import MessageError, NoResponder, RemoteError, RequestTimeout, TransportError
+from kgadapt.knowledge import queries
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.shared import messages, rpc
+from kgadapt.shared.errors import MessageError, NoResponder, RemoteError, RequestTimeout, TransportError
 from tests.support import wait_for
 
 
@@ -192,7 +192,7 @@ def test_requests_still_queued_at_shutdown_are_answered_shutting_down(zenoh_pair
 
 
 def test_declared_undeclares_quietly_even_after_the_session_closed():
-    from shared.session import ZenohSettings, open_session
+    from kgadapt.shared.session import ZenohSettings, open_session
 
     session = open_session(ZenohSettings(mode="peer", listen=("tcp/127.0.0.1:0",)))
     with contextlib.ExitStack() as stack:
@@ -208,7 +208,7 @@ def test_the_platforms_query_on_a_graph_never_written_returns_no_rows(resp_store
 
 
 def test_asking_on_a_closed_session_is_a_transport_error():
-    from shared.session import ZenohSettings, open_session
+    from kgadapt.shared.session import ZenohSettings, open_session
 
     session = open_session(ZenohSettings(mode="peer", listen=("tcp/127.0.0.1:0",)))
     session.close()

@@ -6,11 +6,11 @@ import time
 
 import pytest
 
-from knowledge import queries, schema
-from knowledge.client import KnowledgeClient
-from knowledge.service import KnowledgeService, ServiceSettings
-from shared import keys, messages
-from shared.errors import RemoteError, RequestTimeout
+from kgadapt.knowledge import queries, schema
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.shared import keys, messages
+from kgadapt.shared.errors import RemoteError, RequestTimeout
 from tests.zenoh.conftest import platform_row, wait_for, wait_until_serving
 
 

@@ -1,6 +1,6 @@
 """Statuses that cannot lie the detector off the drone: what a consumer of host statuses refuses.
 
-The rules (:class:`shared.hostmonitor.StatusTrust`) alone, then the knowledge
+The rules (:class:`kgadapt.shared.hostmonitor.StatusTrust`) alone, then the knowledge
 service applying them to forged statuses put on this robot's own keys over real
 Zenoh, with ProcessProfiles in a real FalkorDB, and closing the profiles of a
 host whose liveliness token is lost.
@@ -12,10 +12,10 @@ import time
 
 import pytest
 
-from knowledge import runtime
-from shared import keys, messages
-from shared.errors import MessageError
-from shared.hostmonitor import StatusTrust, TrustSettings
+from kgadapt.knowledge import runtime
+from kgadapt.shared import keys, messages
+from kgadapt.shared.errors import MessageError
+from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings
 from tests.zenoh.conftest import platform_row, wait_for
 
 
