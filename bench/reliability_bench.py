@@ -60,10 +60,10 @@ from typing import Any, Callable, Sequence
 
 from kgadapt.shared.errors import ConfigError, KgadaptError, TransportError
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.states import KEPT_STATES
 
 RESULTS = Path(__file__).resolve().parent / "results" / "reliability.json"
 ROBOT = DEFAULT_ROBOT
-LIVE_STATES = ("starting", "ready", "running", "restarting")
 DETECTOR_MODULE = "kgadapt.onboard.detector"
 # Measured here (Zenoh 1.10): a TCP link that dies with unsent data is closed with SO_LINGER 10 s,
 # which blocks one of the RX runtime's 2 threads; two dead links (a host's agent and its detector)
@@ -559,7 +559,7 @@ class RobotOnHosts:
         """Live detector processes as the deployers report them (asked from the second robot)."""
         assert self.probe is not None
         processes = self.probe.request("list", host="*", timeout=timeout, wait=timeout + 10)
-        return [p for p in processes if p.get("state") in LIVE_STATES and str(p.get("config", "")).startswith(
+        return [p for p in processes if p.get("state") in KEPT_STATES and str(p.get("config", "")).startswith(
             "marker_detection")]
 
     def detector_processes(self) -> list[DetectorProcess]:

@@ -76,10 +76,10 @@ from kgadapt.onboard.flight_phase import in_final_descent
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
+from kgadapt.shared.states import KEPT_STATES, Change, TriggerKind
 
 log = logging.getLogger(__name__)
 
-LIVE_STATES = ("starting", "ready", "running", "restarting")
 UNMEASURED_MB = 5.0  # a detector's profile below this has only its exec-time sample
 MEASURE_WITHIN_S = 10.0  # how long after a change an unmeasured detector is given the benefit of the doubt
 
@@ -410,7 +410,7 @@ class AdaptationManager:
             # Counted from the answer (or the timeout): unanswered probes back to back would leave
             # the loop no time for the observations waiting in the queue.
             self._next_check = time.monotonic() + self.settings.reconcile_s
-        if state in LIVE_STATES:
+        if state in KEPT_STATES:
             return None
         log.warning("adaptation: detector %s on %s is %s; replacing it", current.instance, current.host, state)
         return Trigger("detector_gone", time.time(), {"instance": current.instance, "host": current.host,
@@ -443,7 +443,7 @@ class AdaptationManager:
             return []
         stopped = []
         for p in processes:
-            if (p.get("state") in LIVE_STATES and p.get("config") in self._configs
+            if (p.get("state") in KEPT_STATES and p.get("config") in self._configs
                     and self.current is not None and p.get("instance") != self.current.instance
                     and (self.standby is None or p.get("instance") != self.standby.instance)):
                 try:
@@ -918,7 +918,7 @@ class AdaptationManager:
         except KgadaptError as exc:
             log.info("adaptation: no deployer answered at start (%s); nothing to adopt", exc)
             return
-        live = [p for p in processes if p.get("state") in LIVE_STATES and p.get("config") in self._configs]
+        live = [p for p in processes if p.get("state") in KEPT_STATES and p.get("config") in self._configs]
         if not live:
             return
         keep, *twins = sorted(live, key=lambda p: (p.get("host") != self.settings.onboard_host, p.get("instance")))
@@ -947,7 +947,7 @@ class AdaptationManager:
         except KgadaptError:
             return stopped
         for p in processes:
-            if (p.get("state") in LIVE_STATES and p.get("config") in self._configs
+            if (p.get("state") in KEPT_STATES and p.get("config") in self._configs
                     and (self.current is None or p.get("instance") != self.current.instance)
                     and (self.standby is None or p.get("instance") != self.standby.instance)):
                 try:
