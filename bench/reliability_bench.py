@@ -60,7 +60,7 @@ from typing import Any, Callable, Sequence
 
 from kgadapt.shared.errors import ConfigError, KgadaptError, TransportError
 from kgadapt.shared.keys import DEFAULT_ROBOT
-from kgadapt.shared.states import KEPT_STATES
+from kgadapt.shared.states import KEPT_STATES, TriggerKind
 
 RESULTS = Path(__file__).resolve().parent / "results" / "reliability.json"
 ROBOT = DEFAULT_ROBOT
@@ -680,10 +680,10 @@ class RobotOnHosts:
         stopped = self.probe.wait_event(lambda e: e["ev"] == "deploy" and e["instance"] == twin
                                         and e["event"] in ("stopped", "exited", "failed") and e["t"] >= healed_at,
                                         timeout, f"the twin {twin} to be stopped")
-        decision = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == "host_back"
+        decision = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == TriggerKind.HOST_BACK
                                          and e["t"] >= healed_at, timeout, "the adaptation manager's host_back decision")
         # remote-first: once the twin is gone, a planned migration brings the detector back.
-        returned = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == "host_back"
+        returned = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == TriggerKind.HOST_BACK
                                          and str(e.get("outcome", "")).startswith("migrated") and e["t"] >= healed_at,
                                          timeout, "the detector to move back to the preferred remote host")
         after = self.settle()

@@ -180,7 +180,8 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
                                                "started_at", "ready_at", "ended_at", "restarts", "returncode",
                                                "detail")} for p in processes]
     for p in processes:
-        if p.get("state") == ProcessState.FAILED or (p.get("state") == ProcessState.EXITED and p.get("returncode") not in (0, None)):
+        state = p.get("state")
+        if state == ProcessState.FAILED or (state == ProcessState.EXITED and p.get("returncode") not in (0, None)):
             problems.append(f"instance {p.get('instance')} on {p.get('host')} {p.get('state')} "
                             f"(exit status {p.get('returncode')}): {p.get('detail') or 'see kgadapt deploy status'}")
     live = [p for p in processes if p.get("state") in KEPT_STATES]
