@@ -60,7 +60,7 @@ from typing import Any, Callable, Sequence
 
 from kgadapt.shared.errors import ConfigError, KgadaptError, TransportError
 from kgadapt.shared.keys import DEFAULT_ROBOT
-from kgadapt.shared.states import KEPT_STATES, TriggerKind
+from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, TriggerKind
 
 RESULTS = Path(__file__).resolve().parent / "results" / "reliability.json"
 ROBOT = DEFAULT_ROBOT
@@ -678,7 +678,7 @@ class RobotOnHosts:
         back = self.probe.wait_event(lambda e: e["ev"] == "alive" and e["host"] == "remote" and e["up"]
                                      and e["t"] >= healed_at, timeout, "the remote host to be seen back")
         stopped = self.probe.wait_event(lambda e: e["ev"] == "deploy" and e["instance"] == twin
-                                        and e["event"] in ("stopped", "exited", "failed") and e["t"] >= healed_at,
+                                        and e["event"] in ENDED_EVENTS and e["t"] >= healed_at,
                                         timeout, f"the twin {twin} to be stopped")
         decision = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == TriggerKind.HOST_BACK
                                          and e["t"] >= healed_at, timeout, "the adaptation manager's host_back decision")
@@ -747,7 +747,7 @@ class RobotOnHosts:
         assert self.probe is not None
         # The deployer may start the same instance again, so wait for its exit, then for detections.
         exited = self.probe.wait_event(lambda e: e["ev"] == "deploy" and e["instance"] == before["instance"]
-                                       and e["event"] in ("exited", "failed", "stopped") and e["t"] >= killed_at,
+                                       and e["event"] in ENDED_EVENTS and e["t"] >= killed_at,
                                        timeout, f"the deployer to see {before['instance']} exit")
         firsts = self.detections_since(exited["t"], timeout=timeout)
         after = self.settle(since=exited["t"], timeout=timeout)

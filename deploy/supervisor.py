@@ -53,7 +53,7 @@ from typing import Callable
 from kgadapt.deploy.launcher import ForkedProcess, LauncherClient, become_subreaper
 from kgadapt.shared.errors import DeploymentError, ReadinessTimeout
 from kgadapt.shared.keys import check_name
-from kgadapt.shared.states import FINAL_STATES, LIVE_STATES, SERVING_STATES, ProcessState
+from kgadapt.shared.states import FINAL_STATES, LIVE_STATES, SERVING_STATES, ProcessEventKind, ProcessState
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +150,7 @@ class ProcessSpec:
 class ProcessEvent:
     """Something that happened to an instance (see the module docstring for the kinds)."""
 
-    event: str
+    event: ProcessEventKind
     instance: str
     time: float
     run_id: str
@@ -343,7 +343,7 @@ class Supervisor:
                 inst.state, inst.detail = ProcessState.FAILED, str(exc)
                 self._remember_finished(spec.instance)
                 self._changed.notify_all()
-            self._emit(inst, "failed", detail=str(exc))
+            self._emit(inst, ProcessEventKind.FAILED, detail=str(exc))
             raise
         if not wait_ready:
             return self._info(inst)
@@ -469,7 +469,7 @@ class Supervisor:
             if inst is not None and inst.state in FINAL_STATES:
                 del self._instances[old]
 
-    def _emit(self, inst: _Instance, event: str, **fields: object) -> None:
+    def _emit(self, inst: _Instance, event: ProcessEventKind, **fields: object) -> None:
         run = inst.run
         ev = ProcessEvent(
             event=event,
@@ -508,9 +508,9 @@ class Supervisor:
                 run.ready.set()
             self._changed.notify_all()
         # Reported before the reader thread can report "ready".
-        self._emit(inst, "started")
+        self._emit(inst, ProcessEventKind.STARTED)
         if restart:
-            self._emit(inst, "restarted", detail=f"restart {inst.restarts} of {inst.spec.restart.max_restarts}")
+            self._emit(inst, ProcessEventKind.RESTARTED, detail=f"restart {inst.restarts} of {inst.spec.restart.max_restarts}")
         name = inst.spec.instance
         threading.Thread(target=self._read_output, args=(inst, run), name=f"out-{name}", daemon=True).start()
         threading.Thread(target=self._wait_exit, args=(inst, run), name=f"wait-{name}", daemon=True).start()
@@ -573,7 +573,7 @@ class Supervisor:
                             inst.detail = None
                     self._changed.notify_all()
                 if is_current:
-                    self._emit(inst, "ready")
+                    self._emit(inst, ProcessEventKind.READY)
                 continue
             if line.startswith(CONFIGURED_LINE + " ") and inst.spec.config:
                 self._reconfigured(inst, line.split()[1:])
@@ -598,7 +598,7 @@ class Supervisor:
                 argv[i + 1] = config
         with self._lock:
             inst.spec = replace(inst.spec, config=config, deployment=deployment, argv=tuple(argv))
-        self._emit(inst, "reconfigured")
+        self._emit(inst, ProcessEventKind.RECONFIGURED)
 
     def _watch_readiness(self, inst: _Instance, run: _Run) -> None:
         if run.ready.wait(inst.spec.ready_timeout) or run.done.is_set():
@@ -651,11 +651,12 @@ class Supervisor:
             run.ended_at = time.time()
         run.done.set()
         tail = "\n".join(list(run.tail)[-5:]) or None
-        self._emit(inst, "exited", returncode=returncode, detail=tail if returncode else None)
+        self._emit(inst, ProcessEventKind.EXITED, returncode=returncode, detail=tail if returncode else None)
         self._after_exit(inst, run, returncode, tail)
 
     def _after_exit(self, inst: _Instance, run: _Run, returncode: int, tail: str | None) -> None:
         spec = inst.spec
+        final: ProcessEventKind | None = None  # FAILED or STOPPED: the run was the instance's last
         with self._lock:
             if inst.run is not run:
                 return
@@ -663,12 +664,12 @@ class Supervisor:
                 inst.state = ProcessState.FAILED
                 self._remember_finished(spec.instance)
                 self._changed.notify_all()
-                final = "failed"
+                final = ProcessEventKind.FAILED
             elif inst.stop_requested:
                 inst.state = ProcessState.STOPPED
                 self._remember_finished(spec.instance)
                 self._changed.notify_all()
-                final = "stopped"
+                final = ProcessEventKind.STOPPED
             elif returncode == 0:
                 inst.state = ProcessState.EXITED
                 inst.detail = "exited by itself with status 0"
@@ -676,7 +677,6 @@ class Supervisor:
                 self._changed.notify_all()
                 return
             else:
-                final = ""
                 if run.ended_at - run.started_at >= spec.restart.stable_after:
                     inst.restarts = 0
                 if inst.restarts >= spec.restart.max_restarts or self._closing:
@@ -686,18 +686,18 @@ class Supervisor:
                     )
                     self._remember_finished(spec.instance)
                     self._changed.notify_all()
-                    final = "failed"
+                    final = ProcessEventKind.FAILED
                 else:
                     inst.restarts += 1
                     inst.total_restarts += 1
                     inst.state = ProcessState.RESTARTING
                     inst.detail = f"exited with status {returncode}; restart {inst.restarts} of {spec.restart.max_restarts}"
                     self._changed.notify_all()
-        if final == "failed":
-            self._emit(inst, "failed", detail=inst.detail)
+        if final == ProcessEventKind.FAILED:
+            self._emit(inst, ProcessEventKind.FAILED, detail=inst.detail)
             return
-        if final == "stopped":
-            self._emit(inst, "stopped", returncode=returncode)
+        if final == ProcessEventKind.STOPPED:
+            self._emit(inst, ProcessEventKind.STOPPED, returncode=returncode)
             return
         self._restart_after_backoff(inst)
 
@@ -718,7 +718,7 @@ class Supervisor:
             else:
                 stopped = False
         if stopped:
-            self._emit(inst, "stopped")
+            self._emit(inst, ProcessEventKind.STOPPED)
             return
         try:
             self._launch(inst, restart=True)
@@ -727,7 +727,7 @@ class Supervisor:
                 inst.state, inst.detail = ProcessState.FAILED, str(exc)
                 self._remember_finished(inst.spec.instance)
                 self._changed.notify_all()
-            self._emit(inst, "failed", detail=str(exc))
+            self._emit(inst, ProcessEventKind.FAILED, detail=str(exc))
 
     def _stop_quietly(self, name: str) -> None:
         try:

@@ -76,7 +76,7 @@ from kgadapt.onboard.flight_phase import in_final_descent
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
-from kgadapt.shared.states import KEPT_STATES, Change, TriggerKind
+from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, TriggerKind
 
 log = logging.getLogger(__name__)
 
@@ -365,11 +365,11 @@ class AdaptationManager:
             if kind == "deploy_event":
                 m = messages.decode(payload, "deploy_event")
                 if (self.standby is not None and m["instance"] == self.standby.instance
-                        and m["event"] in ("exited", "stopped", "failed")):
+                        and m["event"] in ENDED_EVENTS):
                     log.info("adaptation: the standby %s %s", m["instance"], m["event"])
                     self.standby = None
                 if (self.current is not None and m["instance"] == self.current.instance
-                        and m["event"] in ("exited", "stopped", "failed")):
+                        and m["event"] in ENDED_EVENTS):
                     self._next_check = 0.0  # ask its deployer now, not at the next round
                 return None
             if kind == "detections":

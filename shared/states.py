@@ -1,5 +1,6 @@
-"""The named states and kinds that cross the wire: a process's state, why the
-adaptation manager acted (its trigger), and how it carried a change out.
+"""The named states and kinds that cross the wire: a process's state and what
+happened to it, why the adaptation manager acted (its trigger), and how it
+carried a change out.
 
 Each is a :class:`enum.StrEnum`: a member is the very string sent and stored
 (msgpack, JSON and the graph see ``"ready"``, not an enum), and it compares
@@ -24,6 +25,22 @@ class ProcessState(StrEnum):
     STOPPED = "stopped"
     EXITED = "exited"
     FAILED = "failed"
+
+
+class ProcessEventKind(StrEnum):
+    """What happened to a supervised instance (``ProcessEvent.event``; ``event`` of a ``deploy_event``)."""
+
+    STARTED = "started"  # every run, with its pid
+    READY = "ready"  # its readiness line
+    EXITED = "exited"  # every exit, with the return code (negative: a signal)
+    RESTARTED = "restarted"  # after the new run's STARTED
+    STOPPED = "stopped"  # stopped on request
+    FAILED = "failed"  # not ready in time, out of restarts, or could not start
+    RECONFIGURED = "reconfigured"  # took another configuration in place
+
+
+# The instance ran its last: it ended (EXITED, also before a restart) or is over (STOPPED, FAILED).
+ENDED_EVENTS = frozenset({ProcessEventKind.EXITED, ProcessEventKind.STOPPED, ProcessEventKind.FAILED})
 
 
 # Not yet final: the process runs or is about to (again), or is on its way out.

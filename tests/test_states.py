@@ -12,18 +12,21 @@ import pytest
 
 from kgadapt.shared import messages
 from kgadapt.shared.states import (
+    ENDED_EVENTS,
     FINAL_STATES,
     KEPT_STATES,
     LIVE_STATES,
     SERVING_STATES,
     URGENT_TRIGGERS,
     Change,
+    ProcessEventKind,
     ProcessState,
     TriggerKind,
 )
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
-ENUMS: dict[str, type[StrEnum]] = {"ProcessState": ProcessState, "TriggerKind": TriggerKind, "Change": Change}
+ENUMS: dict[str, type[StrEnum]] = {"ProcessState": ProcessState, "ProcessEventKind": ProcessEventKind,
+                                   "TriggerKind": TriggerKind, "Change": Change}
 
 
 def _contract_table() -> dict[str, list[str]]:
@@ -45,12 +48,21 @@ def test_contracts_lists_every_enum_with_exactly_its_values_in_order():
         assert table[name] == [m.value for m in enum], name
 
 
-def test_deploy_wire_contract_lists_the_live_and_final_states():
-    line = next(ln for ln in (DOCS / "deploy.md").read_text().splitlines() if ln.strip().startswith("States:"))
+def _deploy_wire_contract_item(head: str) -> str:
+    """The list item of docs/deploy.md's "Wire contract" that starts with ``head``, its lines joined."""
+    text = (DOCS / "deploy.md").read_text().split("## Wire contract", 1)[1].split("\n## ", 1)[0]
+    start = text.index(head)
+    end = text.find("\n- ", start)
+    return " ".join(text[start:end if end >= 0 else None].split())
+
+
+def test_deploy_wire_contract_lists_the_live_and_final_states_and_the_events():
+    line = _deploy_wire_contract_item("States:")
     live, final = re.findall(r"`([^`]+)` \((live|final)\)", line)
     assert live[1] == "live" and final[1] == "final", line
     assert live[0].split(", ") == [s.value for s in ProcessState if s in LIVE_STATES]
     assert final[0].split(", ") == [s.value for s in ProcessState if s in FINAL_STATES]
+    assert re.findall(r"`(\w+)`", _deploy_wire_contract_item("Events:")) == [e.value for e in ProcessEventKind]
 
 
 def test_the_sets_partition_the_states_as_documented():
@@ -58,14 +70,20 @@ def test_the_sets_partition_the_states_as_documented():
     assert KEPT_STATES == LIVE_STATES - {ProcessState.STOPPING}
     assert SERVING_STATES == {"ready", "running"} and SERVING_STATES < KEPT_STATES
     assert URGENT_TRIGGERS == {"startup", "host_lost"}
+    assert ENDED_EVENTS == {"exited", "stopped", "failed"}
 
 
-@pytest.mark.parametrize("member", [*ProcessState, *TriggerKind, *Change], ids=lambda m: f"{type(m).__name__}.{m.name}")
+MEMBERS = [*ProcessState, *ProcessEventKind, *TriggerKind, *Change]
+
+
+@pytest.mark.parametrize("member", MEMBERS, ids=lambda m: f"{type(m).__name__}.{m.name}")
 def test_a_member_is_its_plain_string_on_the_wire(member):
     body = {"time": 1.0, "trigger": f"{member}(host=onboard)", "outcome": str(member),
             "decision": {"trigger_kind": member, "change": member, "state": member}}
     decoded = messages.decode(messages.encode("adaptation_event", body), "adaptation_event")
-    for value in (decoded["decision"]["trigger_kind"], decoded["decision"]["change"], decoded["outcome"]):
+    event = messages.decode(messages.encode("deploy_event", {"event": member, "host": "onboard", "instance": "det1",
+                                                             "time": 1.0}), "deploy_event")
+    for value in (decoded["decision"]["trigger_kind"], decoded["decision"]["change"], decoded["outcome"], event["event"]):
         assert type(value) is str and value == member.value and value == member
     assert decoded["trigger"] == f"{member.value}(host=onboard)"
     assert json.loads(json.dumps({"state": member})) == {"state": member.value}
