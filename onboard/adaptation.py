@@ -252,8 +252,8 @@ class Analyzer:
             # Free memory excludes what the running detector holds; with that given
             # back, the host must still cover the demand the graph declares.
             return Trigger(TriggerKind.MEMORY_SHORT, now, {"host": host, "free_mb": round(free_mb, 1),
-                                                 "held_mb": round(running.held_mb, 1),
-                                                 "demand_mb": running.demand_mb})
+                                                           "held_mb": round(running.held_mb, 1),
+                                                           "demand_mb": running.demand_mb})
         return None
 
     def on_liveliness(self, host: str, alive: bool, now: float, running: Placement | None) -> Trigger | None:
