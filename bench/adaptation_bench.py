@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from kgadapt.bench.stats import format_table, machine_info, make_record, write_records
+from kgadapt.shared.states import TriggerKind
 
 RESULTS = Path(__file__).resolve().parent / "results" / "adaptation.json"
 PAPER = {"start_ms": 1.602, "stop_ms": 0.072, "query_ms": 7.323, "insert_ms": 27.766}  # Table I, N = 100
@@ -145,7 +146,7 @@ def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cp
     rec.attribute_losses()
     steps = rec.light_steps(classify)[:4 * cycles]
     changes = [d for d in rec.decisions if d.outcome.startswith(("migrated", "reconfigured", "switched"))]
-    others = [d for d in rec.decisions if d.kind not in ("startup", "standby") and d not in changes
+    others = [d for d in rec.decisions if d.kind not in (TriggerKind.STARTUP, TriggerKind.STANDBY) and d not in changes
               and not d.outcome.startswith("kept")]
     return {"steps": steps, "changes": changes, "others": others, "baseline": rec.baseline_loss()}
 
@@ -176,7 +177,7 @@ def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, st
             # reported, not covered here.)
             on_remote = robot.wait(only_remote, 30) and time.sleep(1.0) is None and robot.wait(only_remote, 5)
             if on_remote and standby:  # the onboard standby started again after the detector went back
-                on_remote = robot.wait(lambda: any(d.kind == "standby" and d.outcome == "standby started (idle)"
+                on_remote = robot.wait(lambda: any(d.kind == TriggerKind.STANDBY and d.outcome == "standby started (idle)"
                                                    and d.time > placed for d in rec.decisions), 20)
             if not on_remote:
                 print(f"failover: the detector did not settle on the remote host; decisions {rec.decisions[-3:]}",

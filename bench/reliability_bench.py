@@ -60,10 +60,10 @@ from typing import Any, Callable, Sequence
 
 from kgadapt.shared.errors import ConfigError, KgadaptError, TransportError
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, TriggerKind
 
 RESULTS = Path(__file__).resolve().parent / "results" / "reliability.json"
 ROBOT = DEFAULT_ROBOT
-LIVE_STATES = ("starting", "ready", "running", "restarting")
 DETECTOR_MODULE = "kgadapt.onboard.detector"
 # Measured here (Zenoh 1.10): a TCP link that dies with unsent data is closed with SO_LINGER 10 s,
 # which blocks one of the RX runtime's 2 threads; two dead links (a host's agent and its detector)
@@ -559,7 +559,7 @@ class RobotOnHosts:
         """Live detector processes as the deployers report them (asked from the second robot)."""
         assert self.probe is not None
         processes = self.probe.request("list", host="*", timeout=timeout, wait=timeout + 10)
-        return [p for p in processes if p.get("state") in LIVE_STATES and str(p.get("config", "")).startswith(
+        return [p for p in processes if p.get("state") in KEPT_STATES and str(p.get("config", "")).startswith(
             "marker_detection")]
 
     def detector_processes(self) -> list[DetectorProcess]:
@@ -678,12 +678,12 @@ class RobotOnHosts:
         back = self.probe.wait_event(lambda e: e["ev"] == "alive" and e["host"] == "remote" and e["up"]
                                      and e["t"] >= healed_at, timeout, "the remote host to be seen back")
         stopped = self.probe.wait_event(lambda e: e["ev"] == "deploy" and e["instance"] == twin
-                                        and e["event"] in ("stopped", "exited", "failed") and e["t"] >= healed_at,
+                                        and e["event"] in ENDED_EVENTS and e["t"] >= healed_at,
                                         timeout, f"the twin {twin} to be stopped")
-        decision = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == "host_back"
+        decision = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == TriggerKind.HOST_BACK
                                          and e["t"] >= healed_at, timeout, "the adaptation manager's host_back decision")
         # remote-first: once the twin is gone, a planned migration brings the detector back.
-        returned = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == "host_back"
+        returned = self.probe.wait_event(lambda e: e["ev"] == "decision" and e.get("kind") == TriggerKind.HOST_BACK
                                          and str(e.get("outcome", "")).startswith("migrated") and e["t"] >= healed_at,
                                          timeout, "the detector to move back to the preferred remote host")
         after = self.settle()
@@ -747,7 +747,7 @@ class RobotOnHosts:
         assert self.probe is not None
         # The deployer may start the same instance again, so wait for its exit, then for detections.
         exited = self.probe.wait_event(lambda e: e["ev"] == "deploy" and e["instance"] == before["instance"]
-                                       and e["event"] in ("exited", "failed", "stopped") and e["t"] >= killed_at,
+                                       and e["event"] in ENDED_EVENTS and e["t"] >= killed_at,
                                        timeout, f"the deployer to see {before['instance']} exit")
         firsts = self.detections_since(exited["t"], timeout=timeout)
         after = self.settle(since=exited["t"], timeout=timeout)

@@ -27,6 +27,7 @@ from typing import Any, Callable
 
 from kgadapt.bench.stats import format_table, machine_info, make_record, write_records
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.states import TriggerKind
 
 RESULTS = Path(__file__).resolve().parent / "results" / "starvation.json"
 DARK = "marker_detection_dark"
@@ -132,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
                 t.join(timeout=15)
             for s in sessions:
                 s.close()
-            migrated = [d for d in robot.recorder.decisions if d.kind == "band_changed" and d.time >= attack_started]
+            migrated = [d for d in robot.recorder.decisions if d.kind == TriggerKind.BAND_CHANGED and d.time >= attack_started]
     finally:
         listener.close()
         shutil.rmtree(workdir, ignore_errors=True)

@@ -13,6 +13,7 @@ from typing import Any
 
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.states import LIVE_STATES
 
 
 def register(subparsers: Any) -> None:
@@ -148,7 +149,7 @@ def run_list(args: argparse.Namespace) -> int:
         raise RequestTimeout(f"{where} of robot {args.robot} answered within {args.timeout:g} s via {via} "
                              f"(is `kgadapt onboard` or `kgadapt remote --robot {args.robot}` running there?)")
     if args.live:
-        processes = [p for p in processes if p.get("state") in ("starting", "ready", "running", "restarting", "stopping")]
+        processes = [p for p in processes if p.get("state") in LIVE_STATES]
     processes.sort(key=lambda p: (str(p.get("host")), str(p.get("instance"))))
     if args.json:
         print(json.dumps(processes, indent=2))

@@ -14,6 +14,7 @@ from typing import Any
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import DeploymentError, MessageError, NoResponder, ReadinessTimeout, RemoteError, RequestTimeout
+from kgadapt.shared.states import KEPT_STATES
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +76,7 @@ class DeployerClient:
         found = [p for p in self.list("*") if p.get("instance") == instance]
         if not found:
             raise DeploymentError(f"no deployer knows instance {instance!r}")
-        found.sort(key=lambda p: p.get("state") not in ("ready", "running", "starting", "restarting"))
+        found.sort(key=lambda p: p.get("state") not in KEPT_STATES)
         return found[0]
 
     # -- internals ----------------------------------------------------------------

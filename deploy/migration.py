@@ -37,10 +37,9 @@ from kgadapt.shared.errors import (
     RequestTimeout,
     SourceNotStopped,
 )
+from kgadapt.shared.states import SERVING_STATES
 
 log = logging.getLogger(__name__)
-
-LIVE = ("ready", "running")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -113,7 +112,7 @@ def migrate(
     keys.check_name(target_host, "host name")
     source = client.status(source_host, instance) if source_host else client.find(instance)
     source_host = str(source.get("host") or source_host)
-    if source.get("state") not in LIVE:
+    if source.get("state") not in SERVING_STATES:
         raise DeploymentError(f"instance {instance} on {source_host} is {source.get('state')}, not running; nothing to migrate")
     deployment = deployment or str(source["deployment"])
     config = config or str(source["config"])

@@ -32,6 +32,7 @@ import psutil
 
 from kgadapt.deploy.supervisor import ProcessEvent
 from kgadapt.shared.errors import KgadaptError
+from kgadapt.shared.states import ProcessEventKind
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +141,7 @@ class ProfileRecorder:
 
     def on_event(self, event: ProcessEvent) -> None:
         """Supervisor listener: start and end records, and which runs to sample."""
-        if event.event == "started" and event.pid is not None:
+        if event.event == ProcessEventKind.STARTED and event.pid is not None:
             self._enqueue("process_start", {
                 "run_id": event.run_id, "instance": event.instance, "deployment": event.deployment,
                 "config": event.config, "host": self.host, "pid": event.pid, "start_time": event.time,
@@ -148,11 +149,11 @@ class ProfileRecorder:
             with self._lock:
                 self._tracked[event.run_id] = _Tracked(event.run_id, event.pid)
                 self._wake.notify_all()  # first sample right away
-        elif event.event == "reconfigured":
+        elif event.event == ProcessEventKind.RECONFIGURED:
             self._enqueue("process_reconfigured", {
                 "run_id": event.run_id, "config": event.config, "deployment": event.deployment, "time": event.time,
             }, event.run_id)
-        elif event.event == "exited":
+        elif event.event == ProcessEventKind.EXITED:
             with self._lock:
                 tracked = self._tracked.pop(event.run_id, None)
                 if tracked is not None:

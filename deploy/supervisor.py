@@ -53,17 +53,12 @@ from typing import Callable
 from kgadapt.deploy.launcher import ForkedProcess, LauncherClient, become_subreaper
 from kgadapt.shared.errors import DeploymentError, ReadinessTimeout
 from kgadapt.shared.keys import check_name
+from kgadapt.shared.states import FINAL_STATES, LIVE_STATES, SERVING_STATES, ProcessEventKind, ProcessState
 
 log = logging.getLogger(__name__)
 
 READY_LINE = "KGADAPT_READY"
 CONFIGURED_LINE = "KGADAPT_CONFIGURED"  # "<line> <config> <deployment>": the child reconfigured itself in place
-
-# Instance states. "ready" and "running" are live; the last four are final.
-STARTING, READY, RUNNING, RESTARTING, STOPPING = "starting", "ready", "running", "restarting", "stopping"
-STOPPED, EXITED, FAILED = "stopped", "exited", "failed"
-LIVE_STATES = frozenset({STARTING, READY, RUNNING, RESTARTING, STOPPING})
-FINAL_STATES = frozenset({STOPPED, EXITED, FAILED})
 
 _PR_SET_PDEATHSIG = 1
 try:  # resolved here, not in the child: after fork only async-signal-safe work is wise
@@ -155,7 +150,7 @@ class ProcessSpec:
 class ProcessEvent:
     """Something that happened to an instance (see the module docstring for the kinds)."""
 
-    event: str
+    event: ProcessEventKind
     instance: str
     time: float
     run_id: str
@@ -173,7 +168,7 @@ class ProcessInfo:
     instance: str
     deployment: str
     config: str
-    state: str
+    state: ProcessState
     pid: int | None
     run_id: str
     restarts: int
@@ -244,7 +239,7 @@ class _Run:
 class _Instance:
     def __init__(self, spec: ProcessSpec) -> None:
         self.spec = spec
-        self.state = STARTING
+        self.state: ProcessState = ProcessState.STARTING
         self.run: _Run | None = None
         self.restarts = 0  # since the last stable run
         self.total_restarts = 0
@@ -345,10 +340,10 @@ class Supervisor:
             self._launch(inst)
         except DeploymentError as exc:
             with self._lock:
-                inst.state, inst.detail = FAILED, str(exc)
+                inst.state, inst.detail = ProcessState.FAILED, str(exc)
                 self._remember_finished(spec.instance)
                 self._changed.notify_all()
-            self._emit(inst, "failed", detail=str(exc))
+            self._emit(inst, ProcessEventKind.FAILED, detail=str(exc))
             raise
         if not wait_ready:
             return self._info(inst)
@@ -364,12 +359,12 @@ class Supervisor:
                 attempts = spec.restart.max_restarts + 1
                 timeout = attempts * (spec.ready_timeout + spec.restart.backoff_max) + 5.0
             deadline = time.monotonic() + timeout
-            while inst.state not in (READY, RUNNING) and inst.state not in FINAL_STATES:
+            while inst.state not in SERVING_STATES and inst.state not in FINAL_STATES:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise ReadinessTimeout(f"instance {instance} not ready within {timeout:.1f} s")
                 self._changed.wait(left)
-            if inst.state in (READY, RUNNING):
+            if inst.state in SERVING_STATES:
                 return self._info(inst)
             run = inst.run
             if run is not None and run.not_ready_in_time:
@@ -389,7 +384,7 @@ class Supervisor:
             inst = self._get(instance)
             if inst.state not in FINAL_STATES:
                 inst.stop_requested = True
-                inst.state = STOPPING
+                inst.state = ProcessState.STOPPING
                 self._changed.notify_all()  # wakes a back-off wait
         while True:
             with self._lock:
@@ -474,7 +469,7 @@ class Supervisor:
             if inst is not None and inst.state in FINAL_STATES:
                 del self._instances[old]
 
-    def _emit(self, inst: _Instance, event: str, **fields: object) -> None:
+    def _emit(self, inst: _Instance, event: ProcessEventKind, **fields: object) -> None:
         run = inst.run
         ev = ProcessEvent(
             event=event,
@@ -507,15 +502,15 @@ class Supervisor:
         with self._lock:
             inst.run = run
             if not inst.stop_requested:  # a stop that came during the spawn keeps its state
-                inst.state = STARTING if inst.spec.ready_line else RUNNING
+                inst.state = ProcessState.STARTING if inst.spec.ready_line else ProcessState.RUNNING
             if not inst.spec.ready_line:
                 run.ready_at = run.started_at
                 run.ready.set()
             self._changed.notify_all()
         # Reported before the reader thread can report "ready".
-        self._emit(inst, "started")
+        self._emit(inst, ProcessEventKind.STARTED)
         if restart:
-            self._emit(inst, "restarted", detail=f"restart {inst.restarts} of {inst.spec.restart.max_restarts}")
+            self._emit(inst, ProcessEventKind.RESTARTED, detail=f"restart {inst.restarts} of {inst.spec.restart.max_restarts}")
         name = inst.spec.instance
         threading.Thread(target=self._read_output, args=(inst, run), name=f"out-{name}", daemon=True).start()
         threading.Thread(target=self._wait_exit, args=(inst, run), name=f"wait-{name}", daemon=True).start()
@@ -571,14 +566,14 @@ class Supervisor:
                 with self._lock:
                     run.ready_at = time.time()
                     run.ready.set()
-                    is_current = inst.run is run and inst.state == STARTING
+                    is_current = inst.run is run and inst.state == ProcessState.STARTING
                     if is_current:
-                        inst.state = READY
+                        inst.state = ProcessState.READY
                         if inst.restarts and inst.detail:
                             inst.detail = None
                     self._changed.notify_all()
                 if is_current:
-                    self._emit(inst, "ready")
+                    self._emit(inst, ProcessEventKind.READY)
                 continue
             if line.startswith(CONFIGURED_LINE + " ") and inst.spec.config:
                 self._reconfigured(inst, line.split()[1:])
@@ -603,7 +598,7 @@ class Supervisor:
                 argv[i + 1] = config
         with self._lock:
             inst.spec = replace(inst.spec, config=config, deployment=deployment, argv=tuple(argv))
-        self._emit(inst, "reconfigured")
+        self._emit(inst, ProcessEventKind.RECONFIGURED)
 
     def _watch_readiness(self, inst: _Instance, run: _Run) -> None:
         if run.ready.wait(inst.spec.ready_timeout) or run.done.is_set():
@@ -613,7 +608,7 @@ class Supervisor:
                 return
             run.not_ready_in_time = True
             inst.stop_requested = True  # no restart: a program that cannot get ready will not by retrying
-            inst.state = STOPPING
+            inst.state = ProcessState.STOPPING
             inst.detail = f"not ready within {inst.spec.ready_timeout:g} s"
         log.warning("instance %s (pid %s) not ready within %.1f s; stopping it",
                     inst.spec.instance, run.pid, inst.spec.ready_timeout)
@@ -656,53 +651,53 @@ class Supervisor:
             run.ended_at = time.time()
         run.done.set()
         tail = "\n".join(list(run.tail)[-5:]) or None
-        self._emit(inst, "exited", returncode=returncode, detail=tail if returncode else None)
+        self._emit(inst, ProcessEventKind.EXITED, returncode=returncode, detail=tail if returncode else None)
         self._after_exit(inst, run, returncode, tail)
 
     def _after_exit(self, inst: _Instance, run: _Run, returncode: int, tail: str | None) -> None:
         spec = inst.spec
+        final: ProcessEventKind | None = None  # FAILED or STOPPED: the run was the instance's last
         with self._lock:
             if inst.run is not run:
                 return
             if run.not_ready_in_time:
-                inst.state = FAILED
+                inst.state = ProcessState.FAILED
                 self._remember_finished(spec.instance)
                 self._changed.notify_all()
-                final = "failed"
+                final = ProcessEventKind.FAILED
             elif inst.stop_requested:
-                inst.state = STOPPED
+                inst.state = ProcessState.STOPPED
                 self._remember_finished(spec.instance)
                 self._changed.notify_all()
-                final = "stopped"
+                final = ProcessEventKind.STOPPED
             elif returncode == 0:
-                inst.state = EXITED
+                inst.state = ProcessState.EXITED
                 inst.detail = "exited by itself with status 0"
                 self._remember_finished(spec.instance)
                 self._changed.notify_all()
                 return
             else:
-                final = ""
                 if run.ended_at - run.started_at >= spec.restart.stable_after:
                     inst.restarts = 0
                 if inst.restarts >= spec.restart.max_restarts or self._closing:
-                    inst.state = FAILED
+                    inst.state = ProcessState.FAILED
                     inst.detail = f"exited with status {returncode} after {inst.restarts} restarts" + (
                         f"; last output: {tail}" if tail else ""
                     )
                     self._remember_finished(spec.instance)
                     self._changed.notify_all()
-                    final = "failed"
+                    final = ProcessEventKind.FAILED
                 else:
                     inst.restarts += 1
                     inst.total_restarts += 1
-                    inst.state = RESTARTING
+                    inst.state = ProcessState.RESTARTING
                     inst.detail = f"exited with status {returncode}; restart {inst.restarts} of {spec.restart.max_restarts}"
                     self._changed.notify_all()
-        if final == "failed":
-            self._emit(inst, "failed", detail=inst.detail)
+        if final == ProcessEventKind.FAILED:
+            self._emit(inst, ProcessEventKind.FAILED, detail=inst.detail)
             return
-        if final == "stopped":
-            self._emit(inst, "stopped", returncode=returncode)
+        if final == ProcessEventKind.STOPPED:
+            self._emit(inst, ProcessEventKind.STOPPED, returncode=returncode)
             return
         self._restart_after_backoff(inst)
 
@@ -716,23 +711,23 @@ class Supervisor:
                     break
                 self._changed.wait(left)
             if inst.stop_requested or self._closing:
-                inst.state = STOPPED
+                inst.state = ProcessState.STOPPED
                 self._remember_finished(inst.spec.instance)
                 self._changed.notify_all()
                 stopped = True
             else:
                 stopped = False
         if stopped:
-            self._emit(inst, "stopped")
+            self._emit(inst, ProcessEventKind.STOPPED)
             return
         try:
             self._launch(inst, restart=True)
         except DeploymentError as exc:
             with self._lock:
-                inst.state, inst.detail = FAILED, str(exc)
+                inst.state, inst.detail = ProcessState.FAILED, str(exc)
                 self._remember_finished(inst.spec.instance)
                 self._changed.notify_all()
-            self._emit(inst, "failed", detail=str(exc))
+            self._emit(inst, ProcessEventKind.FAILED, detail=str(exc))
 
     def _stop_quietly(self, name: str) -> None:
         try:

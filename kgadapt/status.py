@@ -29,6 +29,7 @@ import time
 from typing import Any
 
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.states import KEPT_STATES, ProcessState
 from kgadapt.shared.timefmt import ago, duration, stamp
 
 
@@ -179,10 +180,11 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
                                                "started_at", "ready_at", "ended_at", "restarts", "returncode",
                                                "detail")} for p in processes]
     for p in processes:
-        if p.get("state") == "failed" or (p.get("state") == "exited" and p.get("returncode") not in (0, None)):
+        state = p.get("state")
+        if state == ProcessState.FAILED or (state == ProcessState.EXITED and p.get("returncode") not in (0, None)):
             problems.append(f"instance {p.get('instance')} on {p.get('host')} {p.get('state')} "
                             f"(exit status {p.get('returncode')}): {p.get('detail') or 'see kgadapt deploy status'}")
-    live = [p for p in processes if p.get("state") in ("starting", "ready", "running", "restarting")]
+    live = [p for p in processes if p.get("state") in KEPT_STATES]
 
     configs = graph.get("configs", [])
     if graph and not platforms and not configs:
@@ -223,7 +225,7 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     out["detection"] = detectors
     heard = {d["instance"] for d in detectors}
     for p in live:
-        if p.get("state") == "ready" and p.get("instance") not in heard and light is not None \
+        if p.get("state") == ProcessState.READY and p.get("instance") not in heard and light is not None \
                 and p.get("config") in {r.get("config") for r in configs}:
             problems.append(f"detector {p.get('instance')} is ready but sent no detections in {listen_s:g} s "
                             "(on a host with only a loopback interface Zenoh peers cannot reach each other: "
@@ -286,7 +288,7 @@ def render(data: dict[str, Any], *, now: float | None = None) -> str:
             "up" if h["up"] else f"DOWN, last seen {ago(h.get('last_seen'), now)}" if h.get("last_seen") else "DOWN")
         lines.append(f"  {h['host']:<10} {since:<44} {mem}")
     lines.append("detector processes")
-    shown = [p for p in data["processes"] if p.get("state") not in ("stopped",)]
+    shown = [p for p in data["processes"] if p.get("state") != ProcessState.STOPPED]
     if not shown:
         lines.append("  (none)")
     for p in shown:

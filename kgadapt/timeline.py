@@ -18,13 +18,14 @@ from typing import Any, Callable
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import MessageError
+from kgadapt.shared.states import TriggerKind
 
 
 @dataclass
 class Decision:
     time: float
     trigger: str
-    kind: str
+    kind: str  # a TriggerKind value, "" when the event names none
     config: str | None
     host: str | None
     outcome: str
@@ -37,7 +38,7 @@ class Decision:
     instance: str | None = None
     previous_instance: str | None = None
     trigger_time: float | None = None  # when the manager observed the trigger (the band decided, after the dwell)
-    change: str | None = None  # "reconfigure" or "migrate"
+    change: str | None = None  # a kgadapt.shared.states.Change value
 
 
 @dataclass
@@ -252,7 +253,7 @@ class Recorder:
                     break
             until = steps[i + 1].frame_time if i + 1 < len(steps) else float("inf")
             after = next((d for d in decisions if step.frame_time <= d.trigger_time < until
-                          and d.kind not in ("startup", "host_back")), None)
+                          and d.kind not in (TriggerKind.STARTUP, TriggerKind.HOST_BACK)), None)
             if after is not None:
                 step.band_ms = (after.trigger_time - step.frame_time) * 1000.0
                 step.change = after.change or after.outcome.split(":")[0]

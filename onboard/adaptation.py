@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.onboard.illumination import Band, bands_from_rows
+from kgadapt.shared.states import URGENT_TRIGGERS, Change, TriggerKind
 
 __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",
            "PlanningError", "HostView", "KnowledgeAsk", "FEATURE", "PREFERENCES"]
@@ -106,18 +107,18 @@ class BandTracker:
 class Trigger:
     """Why the manager reconsiders the placement."""
 
-    kind: str  # startup | band_changed | memory_short | host_lost | host_back | rate_collapsed | operator
+    kind: TriggerKind
     time: float
     detail: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def urgent(self) -> bool:
         """Urgent triggers act even during final descent: the detector is gone or about to be."""
-        return self.kind in ("startup", "host_lost")
+        return self.kind in URGENT_TRIGGERS
 
     def describe(self) -> str:
         bits = ", ".join(f"{k}={v}" for k, v in self.detail.items())
-        return f"{self.kind}({bits})" if bits else self.kind
+        return f"{self.kind}({bits})" if bits else str(self.kind)
 
 
 @dataclass(frozen=True)
@@ -238,7 +239,7 @@ class Analyzer:
         # A new band: every configuration gets its chance again.
         self.collapsed.clear()
         self.collapse.rearm()
-        return Trigger("band_changed", now, {"from": before.name, "to": band.name, "level": round(level, 1)})
+        return Trigger(TriggerKind.BAND_CHANGED, now, {"from": before.name, "to": band.name, "level": round(level, 1)})
 
     def on_host_status(self, host: str, *, free_mb: float, cpu_load: float, now: float,
                        running: Placement | None) -> Trigger | None:
@@ -250,9 +251,9 @@ class Analyzer:
         if running is not None and running.host == host and free_mb + running.held_mb < running.demand_mb:
             # Free memory excludes what the running detector holds; with that given
             # back, the host must still cover the demand the graph declares.
-            return Trigger("memory_short", now, {"host": host, "free_mb": round(free_mb, 1),
-                                                 "held_mb": round(running.held_mb, 1),
-                                                 "demand_mb": running.demand_mb})
+            return Trigger(TriggerKind.MEMORY_SHORT, now, {"host": host, "free_mb": round(free_mb, 1),
+                                                           "held_mb": round(running.held_mb, 1),
+                                                           "demand_mb": running.demand_mb})
         return None
 
     def on_liveliness(self, host: str, alive: bool, now: float, running: Placement | None) -> Trigger | None:
@@ -261,10 +262,10 @@ class Analyzer:
         view.online = alive
         if not alive and was:
             if running is not None and running.host == host:
-                return Trigger("host_lost", now, {"host": host})
-            return Trigger("host_lost", now, {"host": host, "running_elsewhere": True})
+                return Trigger(TriggerKind.HOST_LOST, now, {"host": host})
+            return Trigger(TriggerKind.HOST_LOST, now, {"host": host, "running_elsewhere": True})
         if alive and not was:
-            return Trigger("host_back", now, {"host": host})
+            return Trigger(TriggerKind.HOST_BACK, now, {"host": host})
         return None
 
     def on_detection(self, markers: int, now: float, expected_rate: float | None,
@@ -279,7 +280,7 @@ class Analyzer:
         if config is not None:
             self.collapsed.add(config)
             evidence = {"config": config, **evidence}
-        return Trigger("rate_collapsed", now, evidence)
+        return Trigger(TriggerKind.RATE_COLLAPSED, now, evidence)
 
     def reset_rate(self) -> None:
         self.collapse.reset()
@@ -393,21 +394,21 @@ class Planner:
             queries += ("in_place_change",)
         return Plan(target=target, reason=reason, inputs=inputs, queries=queries)
 
-    def change(self, running: Placement, target: Placement) -> tuple[str, str]:
-        """How to get from ``running`` to ``target``: ("reconfigure" | "migrate", why).
+    def change(self, running: Placement, target: Placement) -> tuple[Change, str]:
+        """How to get from ``running`` to ``target``: (Change.RECONFIGURE or Change.MIGRATE, why).
 
         Reconfigure in place when the graph says the running deployment may take
         the target's on that host (named query ``in_place_change``); else migrate.
         """
         if not self.in_place:
-            return "migrate", "in-place changes are switched off on this agent (--no-in-place)"
+            return Change.MIGRATE, "in-place changes are switched off on this agent (--no-in-place)"
         if target.host != running.host:
-            return "migrate", f"another host ({running.host} -> {target.host})"
+            return Change.MIGRATE, f"another host ({running.host} -> {target.host})"
         rows = self.ask("in_place_change", {"from": running.deployment, "to": target.deployment, "host": target.host})
         if not rows:
-            return "migrate", (f"the graph does not let {running.deployment} take {target.deployment} in place "
+            return Change.MIGRATE, (f"the graph does not let {running.deployment} take {target.deployment} in place "
                                f"on {target.host} (in_place_change)")
-        return "reconfigure", (f"same host, {running.deployment} and {target.deployment} are both "
+        return Change.RECONFIGURE, (f"same host, {running.deployment} and {target.deployment} are both "
                                f"{rows[0].get('family')} (in_place_change)")
 
     def standby(self, *, band: str, running: Placement, lost_hosts: Sequence[str] = (),

@@ -15,6 +15,7 @@ from typing import Any, Callable
 
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.states import Change
 
 Ask = Callable[[str, dict[str, Any]], list[dict[str, Any]]]
 
@@ -89,12 +90,12 @@ def render(data: dict[str, Any]) -> str:
                          f"{ms if not isinstance(ms, float) else round(ms, 1)} ms/frame")
         for p in inputs.get("platforms") or []:
             lines.append(f"  platform {p.get('platform')}: {p.get('free_mb')} MiB free then")
-        if inputs.get("change") == "reconfigure":
+        if inputs.get("change") == Change.RECONFIGURE:
             lines.append(f"  carried out in place: the running detector took the configuration between two frames "
                          f"(first frame {inputs.get('first_seq')}); {inputs.get('change_why')}")
-        elif inputs.get("change") == "migrate":
+        elif inputs.get("change") == Change.MIGRATE:
             lines.append(f"  carried out as a new process (make-before-break): {inputs.get('change_why')}")
-        elif inputs.get("change") == "standby":
+        elif inputs.get("change") == Change.STANDBY:
             sb = inputs.get("standby") or {}
             lines.append(f"  carried out as a switch to the warm standby {sb.get('instance')} (started idle for "
                          f"{sb.get('config')} on {sb.get('host')}; no new process): {inputs.get('change_why')}"

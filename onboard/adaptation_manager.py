@@ -76,10 +76,10 @@ from kgadapt.onboard.flight_phase import in_final_descent
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
+from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, TriggerKind
 
 log = logging.getLogger(__name__)
 
-LIVE_STATES = ("starting", "ready", "running", "restarting")
 UNMEASURED_MB = 5.0  # a detector's profile below this has only its exec-time sample
 MEASURE_WITHIN_S = 10.0  # how long after a change an unmeasured detector is given the benefit of the doubt
 
@@ -351,9 +351,10 @@ class AdaptationManager:
                     self._refresh_standby_held()
                     sb = self.standby
                     if sb is not None and free + sb.held_mb < sb.demand_mb and sb.held_mb >= UNMEASURED_MB:
-                        trigger = Trigger("memory_short", now, {"host": host, "free_mb": round(free, 1),
-                                                                "held_mb": round(sb.held_mb, 1),
-                                                                "demand_mb": sb.demand_mb, "standby": sb.instance})
+                        trigger = Trigger(TriggerKind.MEMORY_SHORT, now, {"host": host, "free_mb": round(free, 1),
+                                                                            "held_mb": round(sb.held_mb, 1),
+                                                                            "demand_mb": sb.demand_mb,
+                                                                            "standby": sb.instance})
                 return trigger
             if kind == "flight_state":
                 m = messages.decode(payload, "flight_state")  # malformed ones are dropped and logged either way
@@ -364,11 +365,11 @@ class AdaptationManager:
             if kind == "deploy_event":
                 m = messages.decode(payload, "deploy_event")
                 if (self.standby is not None and m["instance"] == self.standby.instance
-                        and m["event"] in ("exited", "stopped", "failed")):
+                        and m["event"] in ENDED_EVENTS):
                     log.info("adaptation: the standby %s %s", m["instance"], m["event"])
                     self.standby = None
                 if (self.current is not None and m["instance"] == self.current.instance
-                        and m["event"] in ("exited", "stopped", "failed")):
+                        and m["event"] in ENDED_EVENTS):
                     self._next_check = 0.0  # ask its deployer now, not at the next round
                 return None
             if kind == "detections":
@@ -410,11 +411,11 @@ class AdaptationManager:
             # Counted from the answer (or the timeout): unanswered probes back to back would leave
             # the loop no time for the observations waiting in the queue.
             self._next_check = time.monotonic() + self.settings.reconcile_s
-        if state in LIVE_STATES:
+        if state in KEPT_STATES:
             return None
         log.warning("adaptation: detector %s on %s is %s; replacing it", current.instance, current.host, state)
-        return Trigger("detector_gone", time.time(), {"instance": current.instance, "host": current.host,
-                                                       "state": state[:120]})
+        return Trigger(TriggerKind.DETECTOR_GONE, time.time(), {"instance": current.instance, "host": current.host,
+                                                                     "state": state[:120]})
 
     def _stop_leftovers(self) -> None:
         """Stop the sources of migrations that could not be stopped, once their deployers answer."""
@@ -443,7 +444,7 @@ class AdaptationManager:
             return []
         stopped = []
         for p in processes:
-            if (p.get("state") in LIVE_STATES and p.get("config") in self._configs
+            if (p.get("state") in KEPT_STATES and p.get("config") in self._configs
                     and self.current is not None and p.get("instance") != self.current.instance
                     and (self.standby is None or p.get("instance") != self.standby.instance)):
                 try:
@@ -466,7 +467,7 @@ class AdaptationManager:
         within_grace = time.monotonic() - self._setup_at <= self.settings.startup_grace_s
         if not (all(confirmed) if within_grace else any(confirmed)):
             return None  # a plan now could only fail or go elsewhere
-        return Trigger("startup", time.time(), {"band": a.tracker.current.name})
+        return Trigger(TriggerKind.STARTUP, time.time(), {"band": a.tracker.current.name})
 
     def _log_refusal(self, host: str, exc: Exception) -> None:
         now = time.monotonic()
@@ -547,13 +548,13 @@ class AdaptationManager:
         band = a.tracker.current
         if band is None:
             return
-        if trigger.kind == "host_back":
+        if trigger.kind == TriggerKind.HOST_BACK:
             self._graph_shows_online(str(trigger.detail.get("host")), self.settings.graph_catch_up_s)
             # A host back from a partition may still run the detector we replaced: no twins.
             twins = self.reconcile(str(trigger.detail.get("host")))
             if twins:
                 self._record(Outcome(trigger=trigger, outcome=f"stopped twin(s) {', '.join(twins)}"))
-        if (trigger.kind == "host_back" and self._retry is None and not trigger.detail.get("confirming")
+        if (trigger.kind == TriggerKind.HOST_BACK and self._retry is None and not trigger.detail.get("confirming")
                 and self._trust.confirmed_free(str(trigger.detail.get("host")), time.time()) is None):
             # The host is back but none of its statuses is confirmed yet: plan once they can be, not
             # now without it (the soak saw a needless migration to the other host that way).
@@ -564,9 +565,9 @@ class AdaptationManager:
                 return
         if self._landed_state is not None:
             self._set_landing(self._landed_state() == "LANDING")
-        if trigger.kind == "band_changed":
+        if trigger.kind == TriggerKind.BAND_CHANGED:
             self._standby_paused = False
-        if trigger.kind == "memory_short" and self.standby is not None:
+        if trigger.kind == TriggerKind.MEMORY_SHORT and self.standby is not None:
             # The standby is the first thing to go: stop it, and plan nothing else on this trigger;
             # if the host is still short once the statuses show its memory back, the next one moves.
             sb = self.standby
@@ -575,12 +576,12 @@ class AdaptationManager:
             self._settled_after = time.time() + self.settings.settle_s
             self._record(Outcome(trigger=trigger, outcome=f"stopped the standby {sb.instance} ({sb.config}@{sb.host}) "
                                  "first" + ("" if stopped else " (its deployer did not answer)"),
-                                 detail={"change": "standby_stopped", "instance": sb.instance,
+                                 detail={"change": Change.STANDBY_STOPPED, "instance": sb.instance,
                                          "standby": {"config": sb.config, "host": sb.host, "instance": sb.instance,
                                                      "run_id": self._standby_run_id}}))
             return
         lost = tuple(h.name for h in a.hosts.values() if not h.online)
-        running_lost = self.current is not None and (self.current.host in lost or trigger.kind == "detector_gone")
+        running_lost = self.current is not None and (self.current.host in lost or trigger.kind == TriggerKind.DETECTOR_GONE)
         if self.landing and not (trigger.urgent or running_lost):
             # One decision per kind of change and descent: a descent (forged or not) with a flapping
             # light or repeated triggers must not write a decision per message.
@@ -611,7 +612,7 @@ class AdaptationManager:
                 self._retry_later(trigger)
             return
         if plan.same_as(self.current) and not running_lost:
-            if trigger.kind not in ("host_back", "startup"):
+            if trigger.kind not in (TriggerKind.HOST_BACK, TriggerKind.STARTUP):
                 self._record(Outcome(trigger=trigger, plan=plan, outcome="kept"))
             return
         try:
@@ -622,22 +623,22 @@ class AdaptationManager:
             elif self.current is None or running_lost:
                 result = self._start_fresh(plan, trigger)
             else:
-                change = plan.inputs.get("change", "migrate")  # the planner's choice, from the graph
+                change = plan.inputs.get("change", Change.MIGRATE)  # the planner's choice, from the graph
                 why = plan.inputs.get("change_why", "")
                 result = None
-                if change == "reconfigure":
+                if change == Change.RECONFIGURE:
                     try:
                         result = self._reconfigure(plan, trigger)
                     except KgadaptError as exc:  # refused or unanswered: the old one still runs; migrate
                         why = f"in-place change refused ({exc}); migrated instead"
                 if result is None:
                     result = self._switch(plan, trigger)
-                result.detail["change"] = "reconfigure" if result.outcome == "reconfigured" else "migrate"
+                result.detail["change"] = Change.RECONFIGURE if result.outcome == "reconfigured" else Change.MIGRATE
                 result.detail["change_why"] = why
         except KgadaptError as exc:
             result = Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}")
         result.detail["plan_ms"] = round((time.perf_counter() - started) * 1000.0, 1)
-        if trigger.kind == "detector_gone" and not result.outcome.startswith("failed"):
+        if trigger.kind == TriggerKind.DETECTOR_GONE and not result.outcome.startswith("failed"):
             twins = self._stop_twins()  # e.g. what an outside migrate started elsewhere
             if twins:
                 result.detail["stopped_twins"] = twins
@@ -747,7 +748,7 @@ class AdaptationManager:
             return None
         # Failover: a standby of another configuration, changed in place, still beats a new process.
         change, why = self._planner.change(sb, dataclasses.replace(plan.target, host=sb.host))
-        if change != "reconfigure":
+        if change != Change.RECONFIGURE:
             return None
         return f"{self.current.host} lost; the standby {sb.config} on {sb.host} takes over, {why}", plan.target.config
 
@@ -772,7 +773,7 @@ class AdaptationManager:
                                      demand_mb=plan.target.demand_mb if config == plan.target.config else sb.demand_mb)
         plan = dataclasses.replace(plan, target=target)
         self._set_current(plan, sb.instance, run_id)
-        detail: dict[str, Any] = {"instance": sb.instance, "change": "standby", "change_why": why,
+        detail: dict[str, Any] = {"instance": sb.instance, "change": Change.STANDBY, "change_why": why,
                                   "standby": {"config": sb.config, "host": sb.host, "instance": sb.instance}}
         if old is not None and old.instance:
             detail["previous_instance"] = old.instance
@@ -871,12 +872,12 @@ class AdaptationManager:
             return
         t = plan.target
         instance = new_instance_name(t.config, t.host)
-        trigger = Trigger("standby", wall, {"band": band.name})
+        trigger = Trigger(TriggerKind.STANDBY, wall, {"band": band.name})
         try:
             snapshot = self._deployers.start(t.host, t.deployment, t.config, instance=instance, wait_ready=True,
                                              ready_timeout=self.settings.ready_timeout)
         except KgadaptError as exc:
-            self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}", detail={"change": "standby_start"}))
+            self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}", detail={"change": Change.STANDBY_START}))
             return
         try:
             # Its deployer said ready; the activity queryable's declaration may still be on its way
@@ -889,12 +890,12 @@ class AdaptationManager:
             except KgadaptError as err:
                 log.warning("adaptation: could not stop %s: %s", instance, err)
             self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: not made idle: {exc}",
-                                 detail={"change": "standby_start"}))
+                                 detail={"change": Change.STANDBY_START}))
             return
         self.standby = dataclasses.replace(t, instance=instance)
         self._standby_run_id = snapshot.get("run_id")
         self._record(Outcome(trigger=trigger, plan=plan, outcome="standby started (idle)",
-                             detail={"change": "standby_start", "instance": instance, "pid": snapshot.get("pid"),
+                             detail={"change": Change.STANDBY_START, "instance": instance, "pid": snapshot.get("pid"),
                                      "standby": {"config": t.config, "host": t.host, "instance": instance,
                                                  "run_id": snapshot.get("run_id")}}))
 
@@ -918,7 +919,7 @@ class AdaptationManager:
         except KgadaptError as exc:
             log.info("adaptation: no deployer answered at start (%s); nothing to adopt", exc)
             return
-        live = [p for p in processes if p.get("state") in LIVE_STATES and p.get("config") in self._configs]
+        live = [p for p in processes if p.get("state") in KEPT_STATES and p.get("config") in self._configs]
         if not live:
             return
         keep, *twins = sorted(live, key=lambda p: (p.get("host") != self.settings.onboard_host, p.get("instance")))
@@ -947,7 +948,7 @@ class AdaptationManager:
         except KgadaptError:
             return stopped
         for p in processes:
-            if (p.get("state") in LIVE_STATES and p.get("config") in self._configs
+            if (p.get("state") in KEPT_STATES and p.get("config") in self._configs
                     and (self.current is None or p.get("instance") != self.current.instance)
                     and (self.standby is None or p.get("instance") != self.standby.instance)):
                 try:

@@ -17,14 +17,14 @@ import time
 import pytest
 
 from kgadapt.deploy.client import DeployerClient
+from kgadapt.shared.states import KEPT_STATES
 from tests.adaptation.test_adaptation_e2e import Run
 
 pytestmark = pytest.mark.slow
-LIVE = ("starting", "ready", "running", "restarting")
 
 
 def _live(run: Run) -> list[dict]:
-    return [p for p in DeployerClient(run.session, "quad1").list("*") if p.get("state") in LIVE]
+    return [p for p in DeployerClient(run.session, "quad1").list("*") if p.get("state") in KEPT_STATES]
 
 
 def _back_after(run: Run, gone: str, since: float) -> float:
@@ -71,7 +71,7 @@ def test_a_stopped_migrated_or_failed_detector_is_replaced_by_the_planners_choic
         killed = 0
         while True:
             status = deployers.status("onboard", third["instance"])
-            if status["state"] not in LIVE:
+            if status["state"] not in KEPT_STATES:
                 break
             if status["state"] in ("ready", "running") and status.get("pid"):
                 os.kill(int(status["pid"]), signal.SIGKILL)

@@ -19,10 +19,10 @@ import pytest
 from kgadapt.deploy.client import DeployerClient
 from kgadapt.shared import keys, messages
 from kgadapt.shared.hostmonitor import squeeze
+from kgadapt.shared.states import KEPT_STATES
 from tests.adaptation.test_adaptation_e2e import Run
 
 pytestmark = pytest.mark.slow
-LIVE = ("starting", "ready", "running", "restarting")
 
 
 def test_a_migration_whose_source_host_is_cut_off_leaves_one_detector(tmp_path):
@@ -51,7 +51,7 @@ def test_a_migration_whose_source_host_is_cut_off_leaves_one_detector(tmp_path):
             events.undeclare()
 
         def one_onboard():
-            live = [p for p in DeployerClient(run.session, "quad1").list("*") if p.get("state") in LIVE]
+            live = [p for p in DeployerClient(run.session, "quad1").list("*") if p.get("state") in KEPT_STATES]
             return live if len(live) == 1 and live[0]["host"] == "onboard" else None
 
         # The old detector is stopped once the remote deployer answers again; the new one stays

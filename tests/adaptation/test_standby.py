@@ -21,11 +21,11 @@ from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.store import open_store
 from kgadapt.onboard.adaptation_cli import explain, render
 from kgadapt.shared.hostmonitor import squeeze
+from kgadapt.shared.states import KEPT_STATES
 from tests.adaptation.test_adaptation_e2e import Run
 
 pytestmark = pytest.mark.slow
 
-LIVE = ("starting", "ready", "running", "restarting")
 DUSK, DARK = "marker_detection_dusk", "marker_detection_dark"
 STEP_S = 14.0  # dusk until then: startup, the standby, the failover and the next standby all come before it
 
@@ -36,7 +36,7 @@ def detectors(run: Run, host: str = "*") -> dict[str, tuple[str, int, str]]:
     A loaded machine can keep a deployer from answering for seconds: a generous bound, not a tight one.
     """
     return {p["instance"]: (p["host"], p["pid"], p["config"])
-            for p in DeployerClient(run.session, "quad1", timeout=20.0).list(host) if p.get("state") in LIVE}
+            for p in DeployerClient(run.session, "quad1", timeout=20.0).list(host) if p.get("state") in KEPT_STATES}
 
 
 def idle_standbys(run: Run) -> list:
