@@ -89,6 +89,8 @@ class StoreCrashSettings:
     restart: str = "owner"
     tail: int = 50
     start_timeout: float = 15.0
+    # A write with no answer this long is not acknowledged (a FalkorDB that stops answering is a fault of its own).
+    socket_timeout: float = 10.0
 
     def __post_init__(self) -> None:
         if self.restart not in ("owner", "store"):
@@ -119,7 +121,8 @@ def store_crash_trial(data_dir: Path, *, trial: int = 0, seed: int = 0,
     server.ensure()
     first_pid = server.address.pid
     auto = settings.restart == "store"
-    store = open_store(f"embedded:{data_dir}" if auto else f"falkordb+unix://{server.address.unix_socket}")
+    store = open_store(f"embedded:{data_dir}" if auto else f"falkordb+unix://{server.address.unix_socket}",
+                       socket_timeout=settings.socket_timeout)
     if auto:
         store.server = server  # the store adopts the server: it restarts it and stops it
     store.setup(timeout=settings.start_timeout)
@@ -193,7 +196,7 @@ def store_crash_trial(data_dir: Path, *, trial: int = 0, seed: int = 0,
         "trial": trial, "restart": settings.restart, "kill_after": target, "acked": len(acked),
         "acked_after_restart": len(acked) - (acked_at_kill or len(acked)),
         "found": len(found), "lost": len(lost), "lost_examples": lost[:10],
-        "unacked_but_stored": len(found - set(acked)), "failed_writes": len(failed),
+        "unacked_but_stored": len(found - set(acked)), "failed_writes": len(failed), "first_failure": failed[:1],
         "killed": bool(killed_at), "restarted_by_store": bool(auto and restarted_pid and restarted_pid != first_pid),
         "outage_ms": None if outage_ms is None else round(outage_ms, 1), "restart_ms": round(restart_ms, 1),
     }

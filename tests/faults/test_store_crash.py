@@ -8,7 +8,18 @@ TRIALS = 20
 
 
 def test_every_acknowledged_write_survives_kill_9_of_the_store_in_20_trials(tmp_path):
-    results = [store_crash_trial(tmp_path / f"trial{i}", trial=i) for i in range(TRIALS)]
+    results, hung = [], []
+    for i in range(TRIALS):
+        result = store_crash_trial(tmp_path / f"trial{i}", trial=i)
+        if result["acked"] < result["kill_after"]:
+            # The server stopped answering before the kill was due (seen once: a fresh FalkorDB 4.16 never
+            # answered its first write, under two test workers). Not this test's fault; counted, and the
+            # trial is run again on a fresh server.
+            hung.append((i, result["acked"], result["first_failure"]))
+            result = store_crash_trial(tmp_path / f"trial{i}-again", trial=i)
+        results.append(result)
+
+    assert len(hung) <= 1, f"the store stopped answering before the kill in more than one trial: {hung}"
 
     assert all(r["killed"] for r in results)
     assert all(r["acked"] >= r["kill_after"] for r in results)  # the kill came mid-burst, after the target
