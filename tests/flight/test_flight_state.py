@@ -35,6 +35,8 @@ def test_altitude_attitude_position_rangefinder_and_home_come_from_the_autopilot
 
 def test_a_stopped_stream_makes_its_fields_unknown_and_is_asked_for_again(ardu):
     link, fc = ardu(vehicle=VehicleState(armed=True, landed_state="IN_AIR", alt=5.0))
+    # Known first: on a loaded machine the link may not have heard the stream yet when the fixture returns.
+    wait_until(lambda: link.state.position_ned is not None, 5, "LOCAL_POSITION_NED heard")
     fc.set_stream("LOCAL_POSITION_NED", None)  # as if the autopilot had dropped it
     stopped = time.monotonic()
     wait_until(lambda: link.state.position_ned is None, 5, "LOCAL_POSITION_NED fields unknown")
