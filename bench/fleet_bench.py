@@ -198,11 +198,9 @@ print("decoded", count[0], flush=True)
 
 
 def _free_port() -> int:
-    import socket
+    from kgadapt.cluster import free_tcp_port
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_tcp_port()
 
 
 class SimulatedFleet:

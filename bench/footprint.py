@@ -298,11 +298,9 @@ def _cpu(pid: int) -> float:
 
 
 def _free_port() -> int:
-    import socket
+    from kgadapt.cluster import free_tcp_port
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_tcp_port()
 
 
 def register(bench_sub: argparse._SubParsersAction) -> None:

@@ -16,6 +16,7 @@ host's link can be cut and restored (``ip link set ... down``).
 from __future__ import annotations
 
 import os
+import random
 import secrets
 import shutil
 import signal
@@ -33,16 +34,27 @@ from kgadapt.shared.keys import DEFAULT_ROBOT
 from kgadapt.shared.resources import models
 
 
+def _free_port(kind: int) -> int:
+    # Below Linux's ephemeral range (32768-60999): a port the kernel hands out for port 0 is also
+    # what any process's next outgoing connection may take before ours binds it (seen with two test
+    # workers: "Address already in use"). Random, so two callers rarely pick the same one.
+    for _ in range(200):
+        port = random.randrange(20000, 32000)
+        with socket.socket(socket.AF_INET, kind) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise TransportError("no free loopback port in 20000-32000")
+
+
 def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return _free_port(socket.SOCK_STREAM)
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return _free_port(socket.SOCK_DGRAM)
 
 
 @dataclass(frozen=True, kw_only=True)
