@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import itertools
 import os
-import socket
 import sys
 from pathlib import Path
 
 import pytest
 
+from kgadapt.cluster import free_tcp_port
 from kgadapt.knowledge.embedded import EmbeddedServer
 from kgadapt.knowledge.falkordb_store import FalkorDBStore
 from kgadapt.knowledge.store import GraphStore, StoreSettings, open_store
@@ -24,22 +24,9 @@ REPO = Path(__file__).resolve().parent.parent
 _graph_numbers = itertools.count()
 
 
-def free_port(low: int = 20000, high: int = 32000) -> int:
-    """A TCP port on loopback in [low, high) that was free a moment ago.
-
-    Kept below 32768 because FalkorDB ignores higher Bolt ports.
-    """
-    import random
-
-    for _ in range(200):
-        port = random.randrange(low, high)
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return port
-    raise RuntimeError("no free port")
+def free_port() -> int:
+    """A TCP port on loopback that was free a moment ago (below 32768, which FalkorDB's Bolt port needs too)."""
+    return free_tcp_port()
 
 
 @pytest.fixture(scope="session")

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import socket
-
 import pytest
 
+from kgadapt import cluster
 from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from kgadapt.onboard.mavlink import FlightLink, LinkSettings
 from tests.support import wait_for as wait_until  # noqa: F401 (the tests import it from here)
@@ -16,9 +15,7 @@ FAST_STREAMS = (("SYS_STATUS", 10.0), ("BATTERY_STATUS", 10.0), ("EXTENDED_SYS_S
 
 def free_udp_port() -> int:
     """A UDP port on loopback that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return cluster.free_udp_port()
 
 
 @pytest.fixture
