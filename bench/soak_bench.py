@@ -332,9 +332,18 @@ class Soak:
     def lost_writes(self) -> list[str]:
         found: set[str] = set()
         for i in range(0, len(self.acked), 500):  # another robot's answers are capped at 1000 rows
-            rows = self.probe.request("cypher", wait=30, cypher=(
-                "MATCH (d:AdaptationDecision) WHERE d.name IN $names RETURN d.name AS name"),
-                params={"names": self.acked[i:i + 500]})
+            for attempt in range(3):
+                # The final check must not throw the whole run away: a loaded machine (load 20) once took
+                # more than the client's default 2 s to answer it.
+                try:
+                    rows = self.probe.request("cypher", wait=40, timeout=10.0, cypher=(
+                        "MATCH (d:AdaptationDecision) WHERE d.name IN $names RETURN d.name AS name"),
+                        params={"names": self.acked[i:i + 500]})
+                    break
+                except KgadaptError as exc:
+                    self.say(f"checking acknowledged writes {i}-{i + 499} (attempt {attempt + 1}): {exc}")
+                    if attempt == 2:
+                        raise
             found |= {r["name"] for r in rows}
         return [n for n in self.acked if n not in found]
 
