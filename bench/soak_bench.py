@@ -56,6 +56,7 @@ FAULTS = ("store_kill", "remote_kill", "onboard_kill", "detector_kill", "link_cu
 EXPLAINS_S = {"store_kill": 10.0, "remote_kill": 20.0, "onboard_kill": 30.0, "detector_kill": 20.0,
               "link_cut": 20.0, "squeeze": 15.0, "forged_status": 0.0}
 LONG_RUNNING = ("service", "remote", "fake-fc", "onboard")
+LIFE_WARMUP_S = 60.0  # a restarted process's start-up, left out of its memory growth
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -431,10 +432,14 @@ class Soak:
         warm = self.t0 + min(s.warmup_s, s.minutes * 60.0 / 3.0)
         growth = {}
         for name in (*LONG_RUNNING, "store"):
-            rows = [m for m in self.memory if m["name"] == name and m["t"] >= warm]
             by_pid: dict[int, list[dict[str, Any]]] = {}
-            for m in rows:
-                by_pid.setdefault(m["pid"], []).append(m)
+            for m in self.memory:
+                if m["name"] == name and m["rss_mb"] > 0:  # 0: a killed process not yet reaped
+                    by_pid.setdefault(m["pid"], []).append(m)
+            # A process restarted by a fault has its own warm-up: growth counts from LIFE_WARMUP_S after its
+            # start (imports, session, its detectors), not from its first sample.
+            by_pid = {pid: kept for pid, life in by_pid.items()
+                      if (kept := [m for m in life if m["t"] >= max(warm, life[0]["t"] + LIFE_WARMUP_S)])}
             if not by_pid:
                 continue
             pid, life = max(by_pid.items(), key=lambda kv: kv[1][-1]["t"] - kv[1][0]["t"])  # its longest life after warm-up
