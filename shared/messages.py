@@ -52,8 +52,11 @@ Triple = Annotated[list[Any], Meta(max_length=3)]
 Items = Annotated[list[Any], Meta(max_length=1024)]  # one entry per marker
 
 
-class Message(Struct, frozen=True, kw_only=True, tag_field="kind", omit_defaults=True):
-    """What every kind has: its schema version ``v`` (the tag ``kind`` is the Struct's)."""
+class Message(Struct, frozen=True, kw_only=True, tag_field="kind"):
+    """What every kind has: its schema version ``v`` (the tag ``kind`` is the Struct's).
+
+    Every field is sent, an unset optional one as nil (which a receiver reads as absent): ``v`` must be.
+    """
 
     MAX_SIZE: ClassVar[int] = MAX_SMALL
     v: int = 1
@@ -401,10 +404,13 @@ _MISSING = re.compile(r"^Object missing required field `(?P<name>[^`]+)`$")
 
 def _explain(kind: str, exc: msgspec.ValidationError) -> str:
     """msgspec's complaint as ours: the field's path without ``$.``, and "finite" for NaN and infinities."""
-    match = _WHERE.match(str(exc))
-    what, path = (match.group("what"), match.group("path") or "$") if match else (str(exc), "$")
-    if path.startswith("`key` in") or path.startswith("key in"):
-        return f"{kind} message has a map key that is not a string ({what})"
+    text = str(exc)
+    if " - at `key` in `" in text:
+        where = text.rsplit(" - at `key` in `", 1)[1].rstrip("`")
+        where = "" if where == "$" else f" in {where.removeprefix('$.')!r}"
+        return f"{kind} message has a map key that is not a string{where}"
+    match = _WHERE.match(text)
+    what, path = (match.group("what"), match.group("path") or "$") if match else (text, "$")
     field = path[2:] if path.startswith("$.") else path.removeprefix("$")
     missing = _MISSING.match(what)
     if missing:
