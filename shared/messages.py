@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import re
 import sys
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -302,7 +303,7 @@ AnyMessage = Union[
     DeployRequest, ConfigureRequest, ConfigureReply, ActivityRequest, ActivityReply, DeployReply, DeployEvent,
     FlightState, AdaptationEvent,
 ]
-KINDS: dict[str, type[Message]] = {str(t.__struct_config__.tag): t for t in AnyMessage.__args__}
+KINDS: dict[str, type[Message]] = {str(t.__struct_config__.tag): t for t in typing.get_args(AnyMessage)}
 
 M = TypeVar("M", bound=Message)
 
@@ -330,6 +331,7 @@ def encode(message: Message | str, body: Mapping[str, Any] | None = None) -> byt
 
     A ``body`` map may carry fields the Struct does not know: they are sent.
     """
+    what: Message | dict[str, Any]
     if isinstance(message, Message):
         cls, what = type(message), message
     else:
