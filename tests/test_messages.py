@@ -205,3 +205,12 @@ def test_contracts_message_table_is_generated_from_the_types():
     start, end = text.index(messages.BEGIN), text.index(messages.END) + len(messages.END)
     assert text[start:end] == messages.contract_table(), (
         "docs/CONTRACTS.md is out of date: run `python -m kgadapt.shared.messages docs/CONTRACTS.md`")
+
+
+def test_a_body_may_repeat_its_kind_and_version_but_not_name_others():
+    received = messages.decode(messages.encode("squeeze_request", {"reserve_mb": 1.0}), "squeeze_request")
+    assert messages.decode(messages.encode("squeeze_request", received), "squeeze_request") == received  # relayed as is
+    with pytest.raises(MessageError, match="names kind 'host_status'"):
+        messages.encode("squeeze_request", {**received, "kind": "host_status"})
+    with pytest.raises(MessageError, match="version 2"):
+        messages.encode("squeeze_request", {**received, "v": 2})
