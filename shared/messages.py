@@ -320,8 +320,7 @@ def _plain(obj: object) -> object:
 
 # v is the first field of every kind; looked up once (msgspec.structs.fields resolves the annotations).
 _VERSIONS: dict[type[Message], int] = {cls: int(msgspec.structs.fields(cls)[0].default) for cls in KINDS.values()}
-
-
+# What encode checks its payload with: the Struct's own decoder, one typed pass.
 _DECODERS: dict[type[Message], msgspec.msgpack.Decoder[Any]] = {cls: msgspec.msgpack.Decoder(cls) for cls in KINDS.values()}
 
 
@@ -341,6 +340,8 @@ def encode(message: Message | str, body: Mapping[str, Any] | None = None) -> byt
     what: Message | dict[str, Any]
     if isinstance(message, Message):
         cls, what = type(message), message
+        if message.v != version_of(cls):
+            raise MessageError(f"a {kind_of(cls)} message has version {message.v}; this sender writes {version_of(cls)}")
     else:
         cls = _kind(message)
         version = version_of(cls)

@@ -214,3 +214,5 @@ def test_a_body_may_repeat_its_kind_and_version_but_not_name_others():
         messages.encode("squeeze_request", {**received, "kind": "host_status"})
     with pytest.raises(MessageError, match="version 2"):
         messages.encode("squeeze_request", {**received, "v": 2})
+    with pytest.raises(MessageError, match="squeeze_request message has version 2"):
+        messages.encode(messages.SqueezeRequest(v=2, reserve_mb=1.0))
