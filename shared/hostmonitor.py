@@ -414,8 +414,7 @@ class HostMonitor:
         # On the squeeze server's worker; a MessageError is answered with reply_err naming the field.
         if request.payload is None:
             raise MessageError("squeeze_request has no payload")
-        body = messages.decode(request.payload, "squeeze_request")
-        reserve = float(body["reserve_mb"])
+        reserve = messages.decode_as(request.payload, messages.SqueezeRequest).reserve_mb
         if reserve < 0:
             raise MessageError(f"squeeze_request field 'reserve_mb' must not be negative, got {reserve}")
         with self._lock:
