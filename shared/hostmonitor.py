@@ -188,7 +188,7 @@ class StatusTrust:
     def _check_sender(self, host: str, record: _HostTrust, body: dict[str, Any], received: float) -> None:
         """Raise MessageError unless this status's sender is the host's current one (or takes over)."""
         s = self.settings
-        origin = body.get("origin", "")
+        origin = body.get("origin") or ""
         seq = body.get("seq")
         if not isinstance(origin, str) or (seq is not None and (not isinstance(seq, int) or isinstance(seq, bool))):
             raise MessageError(f"host_status of {host}: origin must be a string and seq an integer")

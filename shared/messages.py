@@ -73,6 +73,10 @@ class HostStatus(Message, tag="host_status", frozen=True, kw_only=True):
     budget_mb: Number | None = None
     ours_mb: Number | None = None
     reserved_mb: Number | None = None
+    # The sender: random per monitor life, and a number that grows with each status (StatusTrust
+    # tells a second sender on a host's key by them).
+    origin: Str32 | None = None
+    seq: int | None = None
 
 
 class SqueezeRequest(Message, tag="squeeze_request", frozen=True, kw_only=True):
