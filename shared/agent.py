@@ -253,6 +253,7 @@ def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) ->
     is healthy, so a hung or broken agent is restarted, not only a dead one.
     """
     from kgadapt.shared.notifier import ServiceNotifier
+    from kgadapt.shared.readiness import announce_ready
 
     s = agent.settings
     notifier = ServiceNotifier()
@@ -263,8 +264,8 @@ def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) ->
                 f"{s.role} agent ready: robot {s.robot}, host {s.host}, "
                 f"zenoh {s.zenoh.mode} connect {list(s.zenoh.connect)}"
             )
-            (announce or _print_flush)(line)
-            notifier.ready(status=line)
+            (announce or _print_flush)(line)  # for people; machines wait on the readiness line
+            announce_ready(status=line, notifier=notifier, role=s.role, robot=s.robot, host=s.host)
 
             def tick() -> None:
                 if agent.healthy():
