@@ -72,11 +72,12 @@ class ChildProcess:
         self.name = name
         self.argv = tuple(argv)
         self.log_path = log
-        self.watch = ReadyWatch(name, keep=keep)
+        self.watch = ReadyWatch(name, keep=keep, output=self.last_output)
         self.lines: queue.Queue[str] = queue.Queue()  # every stdout line, for wait_for_line
         self.output: list[str] = []  # every stdout line, with its newline
         self._eof = threading.Event()
         self._log: IO[str] | None = open(log, "a" if append else "w") if log is not None else None
+        self._log_stdout = log_stdout and self._log is not None
         try:
             self.process = subprocess.Popen(
                 list(argv), stdout=subprocess.PIPE, stderr=self._log, stdin=stdin, text=True, cwd=cwd,
@@ -85,7 +86,6 @@ class ChildProcess:
             if self._log is not None:
                 self._log.close()
             raise DeploymentError(f"cannot start {name} ({argv[0] if argv else '(no program)'}): {exc}") from exc
-        self._log_stdout = log_stdout and self._log is not None
         threading.Thread(target=self._read, name=f"{name}-stdout", daemon=True).start()
         threading.Thread(target=self._reap, name=f"{name}-wait", daemon=True).start()
 
@@ -130,16 +130,22 @@ class ChildProcess:
             left = deadline - time.monotonic()
             if left <= 0:
                 raise DeploymentError(f"{self.name}: no line with {text!r} within {timeout:g} s; "
-                                      f"last output:\n{self.watch.last_lines()}")
+                                      f"last output:\n{self.last_output()}")
             try:
                 line = self.lines.get(timeout=min(left, 0.2))
             except queue.Empty:
                 if self.watch.ended:
                     raise DeploymentError(f"{self.name} exited with status {self.watch.returncode}; "
-                                          f"last output:\n{self.watch.last_lines()}") from None
+                                          f"last output:\n{self.last_output()}") from None
                 continue
             if text in line:
                 return line
+
+    def last_output(self) -> str:
+        """What errors show: the log's last lines, or stdout's and then stderr's."""
+        if self.log_path is None or self._log_stdout:
+            return self.tail()
+        return f"{self.watch.last_lines()}\nstderr ({self.log_path}):\n{self.tail()}"
 
     def tail(self, n: int = 15) -> str:
         """The last ``n`` lines of its log (stdout lines when there is no log)."""

@@ -26,7 +26,7 @@ import json
 import os
 import sys
 import threading
-from typing import Any, TextIO
+from typing import Any, Callable, TextIO
 
 from kgadapt.shared.errors import NotReady, ReadinessTimeout
 from kgadapt.shared.notifier import ServiceNotifier
@@ -82,11 +82,14 @@ class ReadyWatch:
 
     Feed it every line the child prints (:meth:`feed`, from the thread that reads
     its stdout) and tell it when the child has ended (:meth:`end`, after the
-    last line was fed). :meth:`wait` may be called from any thread.
+    last line was fed). :meth:`wait` may be called from any thread. ``output``
+    describes the child's last output for errors (default: its last stdout
+    lines), e.g. from a log file that also has its stderr.
     """
 
-    def __init__(self, name: str, *, keep: int = 20) -> None:
+    def __init__(self, name: str, *, keep: int = 20, output: Callable[[], str] | None = None) -> None:
         self.name = name
+        self._output = output
         self.payload: Payload | None = None
         self.returncode: int | None = None
         self.ended = False
@@ -132,8 +135,8 @@ class ReadyWatch:
             payload, ended, returncode = self.payload, self.ended, self.returncode
         if payload is not None:
             return payload
+        output = self._output() if self._output is not None else self.last_lines()
         if ended:
             raise NotReady(f"{self.name} exited with status {returncode} before it printed {READY_TOKEN}; "
-                           f"last output:\n{self.last_lines()}")
-        raise ReadinessTimeout(f"{self.name} did not print {READY_TOKEN} within {timeout:g} s; "
-                               f"last output:\n{self.last_lines()}")
+                           f"last output:\n{output}")
+        raise ReadinessTimeout(f"{self.name} did not print {READY_TOKEN} within {timeout:g} s; last output:\n{output}")

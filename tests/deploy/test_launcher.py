@@ -21,6 +21,7 @@ from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.loader import load_models
 from kgadapt.shared import keys
 from kgadapt.shared.errors import DeploymentError
+from kgadapt.shared.readiness import READY_TOKEN
 from tests.deploy.conftest import ROBOT, Collector, FrameSource, wait_for_deployers
 from tests.deploy.test_deployer import REPO, alive, wait_until
 from tests.deploy.test_real_detector import marker_jpeg
@@ -139,7 +140,7 @@ def test_the_launcher_runs_nothing_the_graph_does_not_deploy(hosts, client_sessi
 def test_the_launcher_forks_only_modules_it_preloaded(hosts):
     launcher = launcher_of(hosts)
     python = hosts["onboard"].deployer.settings.python
-    assert launcher.fork([python, "-c", "print('KGADAPT_READY')"], dict(os.environ), None) is None
+    assert launcher.fork([python, "-c", f"print({READY_TOKEN!r})"], dict(os.environ), None) is None
     assert launcher.fork([python, "-m", "http.server"], dict(os.environ), None) is None
     assert launcher.fork(["/bin/sh", "-m", "kgadapt.onboard.detector"], dict(os.environ), None) is None
     assert launcher.ready  # a refusal is not a failure of the launcher
@@ -188,4 +189,4 @@ def test_a_forked_detector_runs_with_the_environment_of_the_request_not_the_laun
     assert forked is not None, "the launcher refused a preloaded module"
     assert forked.wait() != 0  # its session was built from the request's config file, which is missing
     output = forked.stdout.read() if forked.stdout is not None else b""
-    assert b"KGADAPT_READY" not in (output if isinstance(output, bytes) else output.encode())
+    assert READY_TOKEN.encode() not in (output if isinstance(output, bytes) else output.encode())
