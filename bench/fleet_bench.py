@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from kgadapt.bench.stats import format_table, machine_info, make_record, write_json
+from kgadapt.shared.children import ChildProcess, StopPolicy
 from kgadapt.shared.resources import models as shipped_models
 
 log = logging.getLogger(__name__)
@@ -53,7 +54,6 @@ MODELS = shipped_models()
 DEFAULT_OUT = REPO / "bench" / "results" / "fleet.json"
 CONFIGS = (("marker_detection_day", "day"), ("marker_detection_dusk", "dusk"), ("marker_detection_dark", "dark"))
 HOSTS = ("onboard", "remote")
-READY = "FLEET_ROUTER_READY"
 
 
 def robot_name(i: int) -> str:
@@ -107,6 +107,7 @@ def serve(argv: Sequence[str]) -> int:
     """``python -m kgadapt.bench.fleet_bench serve --listen E [--connect E ...] --socket S --robots a,b,...``."""
     from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
     from kgadapt.shared.agent import StopSignals
+    from kgadapt.shared.readiness import announce_ready
     from kgadapt.shared.session import ZenohSettings, open_session
 
     p = argparse.ArgumentParser(prog="fleet_bench serve")
@@ -127,7 +128,7 @@ def serve(argv: Sequence[str]) -> int:
                 service = KnowledgeService(store, ServiceSettings(robot=robot, workers=args.workers))
                 service.setup(session)
                 services.append(service)
-            print(f"{READY} {len(services)} robots", flush=True)
+            announce_ready(role="fleet router", robots=len(services))
             stop.wait()
         finally:
             for service in services:
@@ -224,7 +225,7 @@ class SimulatedFleet:
         self.start_timeout = start_timeout
         self.endpoints = [f"tcp/127.0.0.1:{_free_port()}" for _ in range(routers + int(transit))]
         self.server: Any = None
-        self.children: list[subprocess.Popen[str]] = []
+        self.children: list[ChildProcess] = []
         self.seeded: dict[str, dict[str, Any]] = {}
 
     @property
@@ -255,27 +256,10 @@ class SimulatedFleet:
                     "--socket", self.socket, "--robots", ",".join(self.share(k))]
             for j in range(k):
                 argv += ["--connect", self.endpoints[j]]
-            child = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     env={**os.environ, "PYTHONPATH": str(REPO)})
+            child = ChildProcess(argv, name=f"router {k}", cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
+                                 log=self.workdir / f"router{k}.log")
             self.children.append(child)
-            self._wait_ready(child, k)
-
-    def _wait_ready(self, child: subprocess.Popen[str], k: int) -> None:
-        result: list[str] = []
-        done = threading.Event()
-
-        def read() -> None:
-            assert child.stdout is not None
-            for line in child.stdout:
-                if not done.is_set():
-                    result.append(line)
-                    if line.startswith(READY):
-                        done.set()
-            done.set()
-
-        threading.Thread(target=read, daemon=True).start()
-        if not done.wait(self.start_timeout) or not result or not result[-1].startswith(READY):
-            raise RuntimeError(f"router {k} did not start: {''.join(result[-10:])}")
+            child.wait_ready(self.start_timeout)
 
     def pids(self) -> list[int]:
         """The processes holding the knowledge services (the transit router excluded)."""
@@ -285,15 +269,8 @@ class SimulatedFleet:
         return self.children[0].pid if self.transit else None
 
     def stop(self) -> None:
-        for child in self.children:
-            if child.poll() is None:
-                child.terminate()
-        for child in self.children:
-            try:
-                child.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                child.kill()
-                child.wait()
+        for child in reversed(self.children):
+            child.stop(StopPolicy(sigint_timeout=15.0))
         self.children.clear()
         if self.server is not None:
             for robot in self.robots:

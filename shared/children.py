@@ -20,7 +20,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Callable, Mapping, Sequence
+from typing import IO, Any, Callable, Mapping, Sequence
 
 from kgadapt.shared.errors import DeploymentError
 from kgadapt.shared.readiness import Payload, ReadyWatch
@@ -56,6 +56,36 @@ def escalate(send: Callable[[int], None], ended: Callable[[float], bool], policy
             return True
         log.info("%s still running %.1f s after %s", what, wait, sig.name)
     return False
+
+
+def stop_process(process: subprocess.Popen[Any], policy: StopPolicy, *, what: str, first: int = signal.SIGINT,
+                 group: bool = True) -> int:
+    """Stop a child with :func:`escalate` (its process group with ``group``); its exit status.
+
+    DeploymentError if it survived SIGKILL.
+    """
+
+    def send(sig: int) -> None:
+        if process.poll() is not None:
+            return
+        try:
+            if group:
+                os.killpg(process.pid, sig)
+            else:
+                process.send_signal(sig)
+        except ProcessLookupError:
+            pass
+
+    def ended(wait: float) -> bool:
+        try:
+            process.wait(wait)
+        except subprocess.TimeoutExpired:
+            return False
+        return True
+
+    if process.poll() is None and not escalate(send, ended, policy, what=what, first=first):
+        raise DeploymentError(f"{what} survived SIGKILL; is it stuck in the kernel?")
+    return process.returncode
 
 
 class ChildProcess:
@@ -170,23 +200,13 @@ class ChildProcess:
         except ProcessLookupError:
             pass
 
-    def _ended(self, wait: float) -> bool:
-        try:
-            self.process.wait(wait)
-        except subprocess.TimeoutExpired:
-            return False
-        return True
-
     def stop(self, policy: StopPolicy | None = None, *, first: int = signal.SIGINT) -> int:
         """SIGINT, SIGTERM, SIGKILL (from ``first`` on) to its group, each with a bounded wait; the exit status."""
-        if self.process.poll() is None:
-            if not escalate(self.send_signal, self._ended, policy or StopPolicy(), what=f"{self.name} (pid {self.pid})",
-                            first=first):
-                raise DeploymentError(f"{self.name} (pid {self.pid}) survived SIGKILL; is it stuck in the kernel?")
+        returncode = stop_process(self.process, policy or StopPolicy(), what=f"{self.name} (pid {self.pid})", first=first)
         self._eof.wait(2.0)
         if self._log is not None and not self._log.closed and self._eof.is_set():
             self._log.close()
-        return self.process.returncode
+        return returncode
 
     def __enter__(self) -> "ChildProcess":
         return self
