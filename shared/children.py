@@ -98,7 +98,7 @@ class ChildProcess:
 
     def __init__(self, argv: Sequence[str], *, name: str, env: Mapping[str, str] | None = None,
                  cwd: str | Path | None = None, log: Path | None = None, log_stdout: bool = True,
-                 append: bool = False, stdin: int | IO | None = subprocess.DEVNULL, keep: int = 50) -> None:
+                 append: bool = False, stdin: int | IO[Any] | None = subprocess.DEVNULL, keep: int = 50) -> None:
         self.name = name
         self.argv = tuple(argv)
         self.log_path = log

@@ -40,7 +40,10 @@ Payload = dict[str, Any]
 
 def ready_line(**payload: Any) -> str:
     """The readiness line for ``payload`` (this process's pid added)."""
-    fields = {"pid": os.getpid(), **payload}
+    return _line({"pid": os.getpid(), **payload})
+
+
+def _line(fields: Payload) -> str:
     return f"{READY_TOKEN} {json.dumps(fields, separators=(',', ':'), default=str)}"
 
 
@@ -51,12 +54,12 @@ def announce_ready(*, status: str = "", notifier: ServiceNotifier | None = None,
     ``status`` is the human summary systemd shows; ``payload`` are small JSON
     values for the parent. Returns the payload sent, pid included.
     """
-    line = ready_line(**payload)
+    fields: Payload = {"pid": os.getpid(), **payload}
     (notifier or ServiceNotifier()).ready(status=status)
     stream = out or sys.stdout
-    stream.write(line + "\n")
+    stream.write(_line(fields) + "\n")
     stream.flush()  # a pipe would hold the line back
-    return json.loads(line[len(READY_TOKEN) + 1:])
+    return fields
 
 
 def parse_ready(line: str) -> Payload | None:
