@@ -61,9 +61,6 @@ from kgadapt.shared.states import FINAL_STATES, LIVE_STATES, SERVING_STATES, Pro
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ProcessEvent", "ProcessInfo", "ProcessSpec", "RestartPolicy", "StopPolicy", "Supervisor",
-           "SupervisorSettings"]
-
 _PR_SET_PDEATHSIG = 1
 try:  # resolved here, not in the child: after fork only async-signal-safe work is wise
     _prctl = ctypes.CDLL(None, use_errno=True).prctl

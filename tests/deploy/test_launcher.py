@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import sys
 from pathlib import Path
 
@@ -23,8 +22,9 @@ from kgadapt.shared import keys
 from kgadapt.shared.errors import DeploymentError
 from kgadapt.shared.readiness import READY_TOKEN
 from tests.deploy.conftest import ROBOT, Collector, FrameSource, wait_for_deployers
-from tests.deploy.test_deployer import REPO, alive, wait_until
+from tests.deploy.test_deployer import alive, wait_until
 from tests.deploy.test_real_detector import marker_jpeg
+from tests.support import Child
 
 MODELS = Path(S.__file__).resolve().parent / "models"
 DAY = "marker_detection_day"
@@ -146,12 +146,12 @@ def test_the_launcher_forks_only_modules_it_preloaded(hosts):
     assert launcher.ready  # a refusal is not a failure of the launcher
 
 
-def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launcher(knowledge, endpoint, test_session):
-    agent = subprocess.Popen(
-        [sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
-         "--connect", endpoint], cwd=REPO, stdout=subprocess.PIPE, text=True)
+def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launcher(knowledge, endpoint, test_session, tmp_path):
+    agent = Child([sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
+                   "--connect", endpoint], "agent", tmp_path)
     try:
-        assert "agent ready" in agent.stdout.readline()
+        agent.wait_ready()
+        assert "agent ready" in agent.output[0]  # the line for people comes first
         wait_for_deployers(test_session, ["onboard"])
         client = DeployerClient(test_session, ROBOT)
         launcher = wait_until(lambda: (found := client.launcher("onboard")) and found["ready"] and found,
@@ -159,12 +159,11 @@ def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launche
         info = client.start("onboard", "detector_day", DAY)
         assert info["via"] == "launcher" and psutil.Process(info["pid"]).ppid() == agent.pid
         os.kill(agent.pid, signal.SIGKILL)
-        agent.wait()
+        agent.process.wait()
         wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="forked detector gone after kill -9 of its agent")
         wait_until(lambda: not alive(launcher["pid"]), timeout=5.0, what="launcher gone after kill -9 of its agent")
     finally:
-        agent.kill()
-        agent.wait()
+        agent.stop()
 
 
 def test_a_forked_detector_shows_its_own_command_line(hosts, client_session):
