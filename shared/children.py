@@ -94,11 +94,14 @@ class ChildProcess:
     ``log``: a file that gets the child's stderr and, with ``log_stdout``, a copy
     of every stdout line too (``append`` keeps what it held). Without ``log``
     stderr is inherited. ``env`` replaces the environment (None: ours).
+    ``on_line`` is called (on the reader thread) with every stdout line, then
+    with None when the output ends: for children that speak more than readiness.
     """
 
     def __init__(self, argv: Sequence[str], *, name: str, env: Mapping[str, str] | None = None,
                  cwd: str | Path | None = None, log: Path | None = None, log_stdout: bool = True,
-                 append: bool = False, stdin: int | IO[Any] | None = subprocess.DEVNULL, keep: int = 50) -> None:
+                 append: bool = False, stdin: int | IO[Any] | None = subprocess.DEVNULL, keep: int = 50,
+                 on_line: Callable[[str | None], None] | None = None) -> None:
         self.name = name
         self.argv = tuple(argv)
         self.log_path = log
@@ -106,6 +109,7 @@ class ChildProcess:
         self.lines: queue.Queue[str] = queue.Queue()  # every stdout line, for wait_for_line
         self.output: list[str] = []  # every stdout line, with its newline
         self._eof = threading.Event()
+        self._on_line = on_line
         self._log: IO[str] | None = open(log, "a" if append else "w") if log is not None else None
         self._log_stdout = log_stdout and self._log is not None
         try:
@@ -133,10 +137,14 @@ class ChildProcess:
                 if self._log_stdout and self._log is not None:
                     self._log.write(line)
                     self._log.flush()
+                if self._on_line is not None:
+                    self._on_line(line)
         except (OSError, ValueError):  # the pipe closed under us while stopping
             pass
         finally:
             self._eof.set()
+            if self._on_line is not None:
+                self._on_line(None)
 
     def _reap(self) -> None:
         returncode = self.process.wait()
