@@ -150,7 +150,8 @@ for r in robots:
     for h in range(per_robot):
         host = f"sim{h:03d}"
         pubs.append((host, session.declare_publisher(keys.host_status(r, host))))
-print("publishing", len(pubs), flush=True)
+from kgadapt.shared.readiness import announce_ready
+announce_ready(publishers=len(pubs))
 period = 1.0 / rate
 start = time.monotonic()
 sent = 0
@@ -186,7 +187,8 @@ def worker():
         count[0] += body["host"] == key.split("/")[-2]
 threading.Thread(target=worker, daemon=True).start()
 sub = session.declare_subscriber("kgadapt/*/host/*/status", lambda s: work.put((str(s.key_expr), s.payload.to_bytes())))
-print("sink ready", flush=True)
+from kgadapt.shared.readiness import announce_ready
+announce_ready(role="sink")
 sys.stdin.read()
 sub.undeclare()
 session.close()
@@ -382,27 +384,29 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
     # One publisher per robot-hosting router, for the hosts of its robots: a robot's hosts are
     # clients of its own router, so no status crosses to another router.
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    pubs = []
-    for k, endpoint in enumerate(fleet.endpoints):
-        robots = fleet.share(k)
-        if robots:
-            pubs.append(subprocess.Popen(
-                [sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
-                 str(args.fanin_s + 3)], cwd=REPO, stdout=subprocess.PIPE, text=True, env=env))
+    pubs: list[ChildProcess] = []
     try:
+        for k, endpoint in enumerate(fleet.endpoints):
+            robots = fleet.share(k)
+            if robots:
+                pubs.append(ChildProcess(
+                    [sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
+                     str(args.fanin_s + 3)], name=f"publisher {k}", cwd=REPO, env=env))
         for pub in pubs:
-            assert pub.stdout is not None
-            pub.stdout.readline()  # "publishing N"
+            pub.wait_ready(60.0)
         time.sleep(1.0)  # let the first seconds of declarations settle before measuring (a warm-up window)
         before = {p: cpu_seconds([p]) for p in pids + store_pids}
         t0 = time.monotonic()
         time.sleep(args.fanin_s)  # the measurement window
         elapsed = time.monotonic() - t0
         after = {p: cpu_seconds([p]) for p in pids + store_pids}
-        sent = sum(int(pub.stdout.read().split()[-1]) for pub in pubs if pub.stdout is not None)
+        for pub in pubs:
+            pub.wait(60)
+        sent = sum(int("".join(pub.output).split()[-1]) for pub in pubs)  # each one's last line: "sent N"
     finally:
         for pub in pubs:
-            pub.wait(timeout=60)
+            if pub.alive():
+                pub.stop()
     sent_line = f"sent {sent}"
     services = 100.0 * sum(after[p] - before[p] for p in pids) / elapsed
     store = 100.0 * sum(after[p] - before[p] for p in store_pids) / elapsed
@@ -417,29 +421,25 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
 def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -> dict[str, Any]:
     """The same statuses again, also received by one process that only decodes them (see _SINK)."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    sink = subprocess.Popen([sys.executable, "-c", _SINK, fleet.endpoints[0]], cwd=REPO, stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True, env=env)
-    assert sink.stdout is not None and sink.stdin is not None
+    sink = ChildProcess([sys.executable, "-c", _SINK, fleet.endpoints[0]], name="sink", cwd=REPO, env=env,
+                        stdin=subprocess.PIPE)
     try:
-        sink.stdout.readline()  # "sink ready"
-        pub = subprocess.Popen([sys.executable, "-c", _PUBLISHER, fleet.endpoints[0], ",".join(fleet.robots),
-                                str(per_robot), str(args.rate), str(args.fanin_s + 3)],
-                               cwd=REPO, stdout=subprocess.PIPE, text=True, env=env)
+        sink.wait_ready(60.0)
+        pub = ChildProcess([sys.executable, "-c", _PUBLISHER, fleet.endpoints[0], ",".join(fleet.robots),
+                            str(per_robot), str(args.rate), str(args.fanin_s + 3)], name="publisher", cwd=REPO, env=env)
         try:
-            assert pub.stdout is not None
-            pub.stdout.readline()
+            pub.wait_ready(60.0)
             time.sleep(1.0)  # warm-up window, as above
             cpu = measure_cpu([sink.pid], args.fanin_s)
+            pub.wait(60)
         finally:
-            pub.wait(timeout=60)
-        sink.stdin.close()
-        decoded = sink.stdout.readline().strip()
+            pub.stop()
+        assert sink.process.stdin is not None
+        sink.process.stdin.close()  # the sink's end: it prints what it decoded and exits
+        sink.wait(15)
+        decoded = sink.output[-1].strip()  # "decoded N"
     finally:
-        try:
-            sink.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            sink.kill()
-            sink.wait()
+        sink.stop()
     return {"decode_only_receiver_cpu_pct": round(cpu, 1), "decode_only_receiver": decoded}
 
 

@@ -199,6 +199,12 @@ class ChildProcess:
     def alive(self) -> bool:
         return self.process.poll() is None
 
+    def wait(self, timeout: float | None = None) -> int:
+        """Its exit status once it has exited by itself and its output is read (TimeoutExpired after ``timeout``)."""
+        returncode = self.process.wait(timeout)
+        self._eof.wait(2.0)
+        return returncode
+
     def send_signal(self, sig: int) -> None:
         """Send ``sig`` to the child's whole process group (nothing if it is gone)."""
         if self.process.poll() is not None:
