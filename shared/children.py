@@ -47,6 +47,10 @@ class StopPolicy:
         return list(zip(_ESCALATION[start:], waits[start:]))
 
 
+# ChildProcess.stop()'s default: an agent stops its own detectors first (up to ~6 s with theirs at 3 s).
+AGENT_STOP = StopPolicy(sigint_timeout=10.0, sigterm_timeout=5.0)
+
+
 def escalate(send: Callable[[int], None], ended: Callable[[float], bool], policy: StopPolicy, *,
              what: str, first: int = signal.SIGINT) -> bool:
     """Signal with ``send`` step by step until ``ended(wait)`` says the process is gone; False if it survived SIGKILL."""
@@ -216,7 +220,7 @@ class ChildProcess:
 
     def stop(self, policy: StopPolicy | None = None, *, first: int = signal.SIGINT) -> int:
         """SIGINT, SIGTERM, SIGKILL (from ``first`` on) to its group, each with a bounded wait; the exit status."""
-        returncode = stop_process(self.process, policy or StopPolicy(), what=f"{self.name} (pid {self.pid})", first=first)
+        returncode = stop_process(self.process, policy or AGENT_STOP, what=f"{self.name} (pid {self.pid})", first=first)
         self._eof.wait(2.0)
         if self._log is not None and not self._log.closed and self._eof.is_set():
             self._log.close()
