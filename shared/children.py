@@ -118,7 +118,7 @@ class ChildProcess:
         self._log_stdout = log_stdout and self._log is not None
         try:
             self.process = subprocess.Popen(
-                list(argv), stdout=subprocess.PIPE, stderr=self._log, stdin=stdin, text=True, cwd=cwd,
+                list(argv), stdout=subprocess.PIPE, stderr=self._log, stdin=stdin, text=True, errors="replace", cwd=cwd,
                 env=dict(env) if env is not None else None, start_new_session=True)
         except (OSError, ValueError, subprocess.SubprocessError) as exc:
             if self._log is not None:
