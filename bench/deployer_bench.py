@@ -43,6 +43,7 @@ from typing import Any
 
 from kgadapt.bench.stats import format_table, machine_info, make_record, summarize, write_records
 from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.readiness import READY_TOKEN
 
 log = logging.getLogger(__name__)
 
@@ -53,13 +54,13 @@ PAPER = {"start_ms": 1.6, "stop_ms": 0.07}
 C_PROGRAM = r"""
 #include <stdio.h>
 #include <unistd.h>
-/* Ready at once, then wait; SIGINT's default action ends it. */
+/* Ready at once (the bare readiness token), then wait; SIGINT's default action ends it. */
 int main(void) {
-    fputs("KGADAPT_READY\n", stdout);
+    fputs("@TOKEN@\n", stdout);
     fflush(stdout);
     for (;;) pause();
 }
-"""
+""".replace("@TOKEN@", READY_TOKEN)
 ECHO_ARGS = ["-m", "kgadapt.deploy.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
              "--config", "{config}", "--connect", "{connect}"]
 
@@ -253,7 +254,7 @@ def supervisor_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, 
     from kgadapt.deploy.supervisor import ProcessSpec
 
     py = sys.executable
-    bare = (py, "-c", "import time; print('KGADAPT_READY'); time.sleep(600)")
+    bare = (py, "-c", f"import time; print({READY_TOKEN!r}); time.sleep(600)")
     programs: list[tuple[str, tuple[str, ...], int, Any]] = [
         ("C program (trivial)", (str(rig.c_program),), args.reps, rig.supervisor),
         ("python -c (bare)", bare, args.reps, rig.supervisor),

@@ -38,12 +38,12 @@ import os
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any, Sequence
 
 from kgadapt.bench.stats import format_table, machine_info, make_record, write_json
+from kgadapt.shared.children import ChildProcess, StopPolicy
 from kgadapt.shared.resources import models as shipped_models
 
 log = logging.getLogger(__name__)
@@ -53,7 +53,6 @@ MODELS = shipped_models()
 DEFAULT_OUT = REPO / "bench" / "results" / "fleet.json"
 CONFIGS = (("marker_detection_day", "day"), ("marker_detection_dusk", "dusk"), ("marker_detection_dark", "dark"))
 HOSTS = ("onboard", "remote")
-READY = "FLEET_ROUTER_READY"
 
 
 def robot_name(i: int) -> str:
@@ -107,6 +106,7 @@ def serve(argv: Sequence[str]) -> int:
     """``python -m kgadapt.bench.fleet_bench serve --listen E [--connect E ...] --socket S --robots a,b,...``."""
     from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
     from kgadapt.shared.agent import StopSignals
+    from kgadapt.shared.readiness import announce_ready
     from kgadapt.shared.session import ZenohSettings, open_session
 
     p = argparse.ArgumentParser(prog="fleet_bench serve")
@@ -127,7 +127,7 @@ def serve(argv: Sequence[str]) -> int:
                 service = KnowledgeService(store, ServiceSettings(robot=robot, workers=args.workers))
                 service.setup(session)
                 services.append(service)
-            print(f"{READY} {len(services)} robots", flush=True)
+            announce_ready(role="fleet router", robots=len(services))
             stop.wait()
         finally:
             for service in services:
@@ -150,7 +150,8 @@ for r in robots:
     for h in range(per_robot):
         host = f"sim{h:03d}"
         pubs.append((host, session.declare_publisher(keys.host_status(r, host))))
-print("publishing", len(pubs), flush=True)
+from kgadapt.shared.readiness import announce_ready
+announce_ready(publishers=len(pubs))
 period = 1.0 / rate
 start = time.monotonic()
 sent = 0
@@ -186,7 +187,8 @@ def worker():
         count[0] += body["host"] == key.split("/")[-2]
 threading.Thread(target=worker, daemon=True).start()
 sub = session.declare_subscriber("kgadapt/*/host/*/status", lambda s: work.put((str(s.key_expr), s.payload.to_bytes())))
-print("sink ready", flush=True)
+from kgadapt.shared.readiness import announce_ready
+announce_ready(role="sink")
 sys.stdin.read()
 sub.undeclare()
 session.close()
@@ -224,7 +226,7 @@ class SimulatedFleet:
         self.start_timeout = start_timeout
         self.endpoints = [f"tcp/127.0.0.1:{_free_port()}" for _ in range(routers + int(transit))]
         self.server: Any = None
-        self.children: list[subprocess.Popen[str]] = []
+        self.children: list[ChildProcess] = []
         self.seeded: dict[str, dict[str, Any]] = {}
 
     @property
@@ -255,27 +257,10 @@ class SimulatedFleet:
                     "--socket", self.socket, "--robots", ",".join(self.share(k))]
             for j in range(k):
                 argv += ["--connect", self.endpoints[j]]
-            child = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     env={**os.environ, "PYTHONPATH": str(REPO)})
+            child = ChildProcess(argv, name=f"router {k}", cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
+                                 log=self.workdir / f"router{k}.log")
             self.children.append(child)
-            self._wait_ready(child, k)
-
-    def _wait_ready(self, child: subprocess.Popen[str], k: int) -> None:
-        result: list[str] = []
-        done = threading.Event()
-
-        def read() -> None:
-            assert child.stdout is not None
-            for line in child.stdout:
-                if not done.is_set():
-                    result.append(line)
-                    if line.startswith(READY):
-                        done.set()
-            done.set()
-
-        threading.Thread(target=read, daemon=True).start()
-        if not done.wait(self.start_timeout) or not result or not result[-1].startswith(READY):
-            raise RuntimeError(f"router {k} did not start: {''.join(result[-10:])}")
+            child.wait_ready(self.start_timeout)
 
     def pids(self) -> list[int]:
         """The processes holding the knowledge services (the transit router excluded)."""
@@ -285,15 +270,8 @@ class SimulatedFleet:
         return self.children[0].pid if self.transit else None
 
     def stop(self) -> None:
-        for child in self.children:
-            if child.poll() is None:
-                child.terminate()
-        for child in self.children:
-            try:
-                child.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                child.kill()
-                child.wait()
+        for child in reversed(self.children):
+            child.stop(StopPolicy(sigint_timeout=15.0))
         self.children.clear()
         if self.server is not None:
             for robot in self.robots:
@@ -406,27 +384,29 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
     # One publisher per robot-hosting router, for the hosts of its robots: a robot's hosts are
     # clients of its own router, so no status crosses to another router.
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    pubs = []
-    for k, endpoint in enumerate(fleet.endpoints):
-        robots = fleet.share(k)
-        if robots:
-            pubs.append(subprocess.Popen(
-                [sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
-                 str(args.fanin_s + 3)], cwd=REPO, stdout=subprocess.PIPE, text=True, env=env))
+    pubs: list[ChildProcess] = []
     try:
+        for k, endpoint in enumerate(fleet.endpoints):
+            robots = fleet.share(k)
+            if robots:
+                pubs.append(ChildProcess(
+                    [sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
+                     str(args.fanin_s + 3)], name=f"publisher {k}", cwd=REPO, env=env))
         for pub in pubs:
-            assert pub.stdout is not None
-            pub.stdout.readline()  # "publishing N"
+            pub.wait_ready(60.0)
         time.sleep(1.0)  # let the first seconds of declarations settle before measuring (a warm-up window)
         before = {p: cpu_seconds([p]) for p in pids + store_pids}
         t0 = time.monotonic()
         time.sleep(args.fanin_s)  # the measurement window
         elapsed = time.monotonic() - t0
         after = {p: cpu_seconds([p]) for p in pids + store_pids}
-        sent = sum(int(pub.stdout.read().split()[-1]) for pub in pubs if pub.stdout is not None)
+        for pub in pubs:
+            pub.wait(60)
+        sent = sum(int("".join(pub.output).split()[-1]) for pub in pubs)  # each one's last line: "sent N"
     finally:
         for pub in pubs:
-            pub.wait(timeout=60)
+            if pub.alive():
+                pub.stop()
     sent_line = f"sent {sent}"
     services = 100.0 * sum(after[p] - before[p] for p in pids) / elapsed
     store = 100.0 * sum(after[p] - before[p] for p in store_pids) / elapsed
@@ -441,29 +421,25 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
 def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -> dict[str, Any]:
     """The same statuses again, also received by one process that only decodes them (see _SINK)."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    sink = subprocess.Popen([sys.executable, "-c", _SINK, fleet.endpoints[0]], cwd=REPO, stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True, env=env)
-    assert sink.stdout is not None and sink.stdin is not None
+    sink = ChildProcess([sys.executable, "-c", _SINK, fleet.endpoints[0]], name="sink", cwd=REPO, env=env,
+                        stdin=subprocess.PIPE)
     try:
-        sink.stdout.readline()  # "sink ready"
-        pub = subprocess.Popen([sys.executable, "-c", _PUBLISHER, fleet.endpoints[0], ",".join(fleet.robots),
-                                str(per_robot), str(args.rate), str(args.fanin_s + 3)],
-                               cwd=REPO, stdout=subprocess.PIPE, text=True, env=env)
+        sink.wait_ready(60.0)
+        pub = ChildProcess([sys.executable, "-c", _PUBLISHER, fleet.endpoints[0], ",".join(fleet.robots),
+                            str(per_robot), str(args.rate), str(args.fanin_s + 3)], name="publisher", cwd=REPO, env=env)
         try:
-            assert pub.stdout is not None
-            pub.stdout.readline()
+            pub.wait_ready(60.0)
             time.sleep(1.0)  # warm-up window, as above
             cpu = measure_cpu([sink.pid], args.fanin_s)
+            pub.wait(60)
         finally:
-            pub.wait(timeout=60)
-        sink.stdin.close()
-        decoded = sink.stdout.readline().strip()
+            pub.stop()
+        assert sink.process.stdin is not None
+        sink.process.stdin.close()  # the sink's end: it prints what it decoded and exits
+        sink.wait(15)
+        decoded = sink.output[-1].strip()  # "decoded N"
     finally:
-        try:
-            sink.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            sink.kill()
-            sink.wait()
+        sink.stop()
     return {"decode_only_receiver_cpu_pct": round(cpu, 1), "decode_only_receiver": decoded}
 
 

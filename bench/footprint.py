@@ -254,7 +254,7 @@ def measure_onboard(*, seconds: float = 15.0, half_core: bool = False, progress=
                 group.__enter__()
             agent = cluster.spawn("onboard", inside(cluster.kgadapt(
                 "onboard", "--host", "onboard", "--listen", endpoint, "--connect", endpoint,
-                "--camera-source", "synthetic", "--fps", "30")), ready="agent ready").process.pid
+                "--camera-source", "synthetic", "--fps", "30"))).pid
             progress(f"onboard agent alone, {label}, {seconds:.0f} s ...")
             cpu, rss = _usage(agent, seconds)
             records.append({"process": "onboard agent", "limit": label, "cpu_pct": round(cpu, 1),
@@ -267,8 +267,7 @@ def measure_onboard(*, seconds: float = 15.0, half_core: bool = False, progress=
                     try:
                         detector = cluster.spawn(config, inside([
                             sys.executable, "-m", "kgadapt.onboard.detector", "--instance", f"fp-{config}", "--host",
-                            "onboard", "--connect", endpoint, "--config-json", _config_json(config)]),
-                            ready="KGADAPT_READY").process.pid
+                            "onboard", "--connect", endpoint, "--config-json", _config_json(config)])).pid
                         progress(f"{config} beside the agent, {label}, {seconds:.0f} s ...")
                         counted.clear()
                         start, agent_cpu = time.monotonic(), _cpu(agent)

@@ -26,13 +26,13 @@ import argparse
 import os
 import queue
 import signal
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
+from kgadapt.shared.children import ChildProcess
 from kgadapt.shared.errors import KgadaptError
 from kgadapt.shared.resources import models
 
@@ -182,16 +182,12 @@ def measure_transport(*, seconds: float, fps: float, robot: str = "benchperc") -
     got: queue.Queue[bytes] = queue.Queue()
     sub = session.declare_subscriber(keys.detector_markers(robot, "bench"), lambda s: got.put(s.payload.to_bytes()))
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    child = subprocess.Popen(
+    child = ChildProcess(
         [sys.executable, "-m", "kgadapt.onboard.detector", "--robot", robot, "--host", "bench", "--instance", "bench",
-         "--config-json", DAY_JSON, "--connect", endpoint],
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-    )
+         "--config-json", DAY_JSON, "--connect", endpoint], name="transport bench detector", cwd=REPO, env=env)
     camera = CameraPart(CameraSettings(robot=robot, fps=fps), SyntheticSource(IlluminationProfile.constant(120)))
     try:
-        line = child.stdout.readline() if child.stdout else ""
-        if line.strip() != "KGADAPT_READY":
-            raise KgadaptError(f"detector for the transport bench did not start (status {child.poll()})")
+        child.wait_ready(30.0)
         camera.setup(session)
         # The first frames pay for the subscription reaching us and OpenCV's first allocations.
         _drain(got, time.monotonic() + 1.0)
@@ -200,12 +196,7 @@ def measure_transport(*, seconds: float, fps: float, robot: str = "benchperc") -
         sent = camera.stats.published - start_published
     finally:
         camera.shutdown()
-        child.send_signal(signal.SIGTERM)
-        try:
-            child.wait(10)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait()
+        child.stop(first=signal.SIGTERM)
         sub.undeclare()
         session.close()
     transport = [(b["received"] - b["frame_sent"]) * 1e3 for b in bodies if "frame_sent" in b]

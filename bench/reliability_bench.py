@@ -58,6 +58,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from kgadapt.shared.children import ChildProcess, StopPolicy
 from kgadapt.shared.errors import ConfigError, KgadaptError, TransportError
 from kgadapt.shared.keys import DEFAULT_ROBOT
 from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, TriggerKind
@@ -231,13 +232,14 @@ def probe_main(argv: Sequence[str] | None = None) -> int:
 
     add_arguments(parser)
     args = parser.parse_args(argv)
+    from kgadapt.shared.readiness import ready_line
     from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session
 
     session = open_session(settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT]))
     probe = _Probe(args.robot, session)
     try:
         probe.setup()
-        probe.emit({"ev": "ready"})
+        probe.emit_line(ready_line(role="probe", robot=args.robot))  # through the one writer: lines stay whole
         for line in sys.stdin:
             if line.strip():
                 probe.handle(line)
@@ -253,7 +255,7 @@ class _Probe:
     def __init__(self, robot: str, session: Any) -> None:
         self.robot = robot
         self.session = session
-        self._out: queue.Queue[dict[str, Any] | None] = queue.Queue()
+        self._out: queue.Queue[dict[str, Any] | str | None] = queue.Queue()
         self._lock = threading.Lock()
         self.instances: dict[str, dict[str, Any]] = {}
         self._times: dict[str, collections.deque[float]] = {}  # recent detection times per instance
@@ -284,9 +286,12 @@ class _Probe:
         event.setdefault("t", time.time())
         self._out.put(event)
 
+    def emit_line(self, line: str) -> None:
+        self._out.put(line)
+
     def _write(self) -> None:
         while (event := self._out.get()) is not None:
-            sys.stdout.write(json.dumps(event, default=str) + "\n")
+            sys.stdout.write((event if isinstance(event, str) else json.dumps(event, default=str)) + "\n")
             sys.stdout.flush()
 
     def _decode(self, sample: Any, kind: str) -> dict[str, Any] | None:
@@ -400,33 +405,34 @@ class ProbeHandle:
     def __init__(self, argv: Sequence[str], *, log_path: Path) -> None:
         self.argv = list(argv)
         self.log_path = log_path
-        self.process: subprocess.Popen[str] | None = None
+        self.child: ChildProcess | None = None
         self.events: list[dict[str, Any]] = []
         self._cond = threading.Condition()
         self._ids = itertools.count(1)
         self._write_lock = threading.Lock()  # requests may come from several threads (the soak's)
 
-    def start(self, timeout: float = 20.0) -> None:
-        log_file = open(self.log_path, "w")
-        self.process = subprocess.Popen(self.argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log_file,
-                                        text=True, start_new_session=True,
-                                        cwd=Path(__file__).resolve().parent.parent)
-        log_file.close()
-        threading.Thread(target=self._read, name="probe-reader", daemon=True).start()
-        self.wait_event(lambda e: e["ev"] == "ready", timeout, "the probe to be ready")
+    @property
+    def process(self) -> subprocess.Popen[str] | None:
+        return self.child.process if self.child is not None else None
 
-    def _read(self) -> None:
-        assert self.process is not None and self.process.stdout is not None
-        for line in self.process.stdout:
+    def start(self, timeout: float = 20.0) -> None:
+        self.child = ChildProcess(self.argv, name="probe", stdin=subprocess.PIPE, log=self.log_path, log_stdout=False,
+                                  cwd=Path(__file__).resolve().parent.parent, on_line=self._event)
+        self.child.wait_ready(timeout)
+
+    def _event(self, line: str | None) -> None:
+        """One line of the probe's output (on the child's reader thread); None: its output ended."""
+        if line is None:
+            event: dict[str, Any] = {"ev": "exit", "t": time.time()}
+        else:
             try:
                 event = json.loads(line)
-            except ValueError:
-                continue
-            with self._cond:
-                self.events.append(event)
-                self._cond.notify_all()
+            except ValueError:  # its readiness line, or anything else that is not an event
+                return
+            if not isinstance(event, dict):
+                return
         with self._cond:
-            self.events.append({"ev": "exit", "t": time.time()})
+            self.events.append(event)
             self._cond.notify_all()
 
     def wait_event(self, match: Callable[[dict[str, Any]], bool], timeout: float, what: str) -> dict[str, Any]:
@@ -460,16 +466,15 @@ class ProbeHandle:
         return reply["result"]
 
     def stop(self) -> None:
-        p, self.process = self.process, None
-        if p is None:
+        child, self.child = self.child, None
+        if child is None:
             return
         try:
-            if p.stdin:
-                p.stdin.close()  # end of requests: the probe closes its session and exits
-            p.wait(5)
+            if child.process.stdin:
+                child.process.stdin.close()  # end of requests: the probe closes its session and exits
+            child.process.wait(5)
         except (OSError, subprocess.TimeoutExpired):
-            p.kill()
-            p.wait(5)
+            child.stop(StopPolicy(sigint_timeout=2.0, sigterm_timeout=2.0))
 
 
 # -- the robot on three hosts -------------------------------------------------------------

@@ -34,7 +34,6 @@ import argparse
 import json
 import logging
 import os
-import queue
 import random
 import subprocess
 import sys
@@ -46,6 +45,7 @@ from typing import Any, Callable
 
 from kgadapt.bench.stats import format_table, gc_paused, machine_info, make_record, time_once, write_records
 from kgadapt.shared import rpc
+from kgadapt.shared.children import ChildProcess
 from kgadapt.shared.errors import ConfigError, TransportError
 from kgadapt.shared.resources import models
 
@@ -59,6 +59,7 @@ QUERY_PARAMS = {"feature": "MarkerDetection", "config": CONFIG}
 
 _ECHO = r"""
 import queue, sys, threading
+from kgadapt.shared.readiness import announce_ready
 from kgadapt.shared.session import ZenohSettings, open_session
 session = open_session(ZenohSettings(mode="peer", listen=(sys.argv[1],)))
 work = queue.Queue()
@@ -73,7 +74,7 @@ def direct(q):
     q.drop()
 session.declare_queryable("bench/echo/direct", direct)
 session.declare_queryable("bench/echo/queued", lambda q: work.put(q))
-print("echo ready", flush=True)
+announce_ready(role="echo")
 sys.stdin.read()
 """
 
@@ -136,7 +137,7 @@ class _Fabric:
 
     def __init__(self, tmp: Path) -> None:
         self.tmp = tmp
-        self.children: list[subprocess.Popen] = []
+        self.children: list[ChildProcess] = []
 
     def __enter__(self) -> "_Fabric":
         from kgadapt.knowledge.client import KnowledgeClient
@@ -155,10 +156,10 @@ class _Fabric:
         try:
             self.service = self._start(
                 [sys.executable, "-m", "kgadapt", "knowledge", "serve", "--store", f"embedded:{store_dir}",
-                 "--robot", ROBOT, "--listen", self.endpoint], "knowledge service ready")
+                 "--robot", ROBOT, "--listen", self.endpoint], "service")
             # The echo gets its own endpoint and session: one hop, like this process to the service.
             echo_endpoint = f"tcp/127.0.0.1:{_free_port()}"
-            self.echo = self._start([sys.executable, "-c", _ECHO, echo_endpoint], "echo ready")
+            self.echo = self._start([sys.executable, "-c", _ECHO, echo_endpoint], "echo")
             self.echo_session = open_session(ZenohSettings(mode="client", connect=(echo_endpoint,)))
             self.session = open_session(ZenohSettings(mode="client", connect=(self.endpoint,)))
             self.client = KnowledgeClient(self.session, ROBOT, timeout=5)
@@ -175,21 +176,12 @@ class _Fabric:
             raise
         return self
 
-    def _start(self, argv: list[str], ready: str) -> subprocess.Popen:
-        env = {**os.environ, "PYTHONPATH": str(REPO)}
-        child = subprocess.Popen(argv, cwd=REPO, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    def _start(self, argv: list[str], name: str) -> ChildProcess:
+        # stdin stays open (a pipe): the echo runs until it closes
+        child = ChildProcess(argv, name=name, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdin=subprocess.PIPE)
         self.children.append(child)
-        lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=lambda: [lines.put(line) for line in child.stdout], daemon=True).start()
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            try:
-                if ready in lines.get(timeout=0.2):
-                    return child
-            except queue.Empty:
-                if child.poll() is not None:
-                    raise TransportError(f"{argv[2:5]} exited with {child.returncode} before it was ready")
-        raise TransportError(f"{argv[2:5]} was not ready within 30 s")
+        child.wait_ready(30.0)
+        return child
 
     def __exit__(self, *exc: object) -> None:
         if getattr(self, "store", None) is not None:
@@ -198,13 +190,7 @@ class _Fabric:
             if getattr(self, name, None) is not None:
                 getattr(self, name).close()
         for child in reversed(self.children):
-            if child.poll() is None:
-                child.terminate()
-                try:
-                    child.wait(10)
-                except subprocess.TimeoutExpired:
-                    child.kill()
-                    child.wait()
+            child.stop()
 
 
 def _request_latency(fabric: _Fabric, *, reps: int, warmup: int) -> list[dict[str, Any]]:

@@ -28,7 +28,7 @@ def register(subparsers: Any) -> None:
 
     start = sub.add_parser("start", help="start a deployment with a configuration on a host",
                            description="Start DEPLOYMENT with detector configuration CONFIG on --host; "
-                           "waits until the process prints KGADAPT_READY unless --no-wait.")
+                           "waits until the process announces it is ready (its readiness line) unless --no-wait.")
     start.add_argument("deployment", help="Deployment name in the knowledge store")
     start.add_argument("config", help="detector configuration (PerceptionGraph name)")
     start.add_argument("--host", required=True, help="host whose deployer starts it (a Platform name)")

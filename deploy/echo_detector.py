@@ -1,7 +1,7 @@
 """A stand-in detector: answers every camera frame with an empty ``detections`` message.
 
 It speaks the detector's contract (docs/CONTRACTS.md) without OpenCV or a
-detector configuration: same arguments, ``KGADAPT_READY`` once subscribed,
+detector configuration: same arguments, its readiness line once subscribed,
 ``detections`` on ``kgadapt/<robot>/detector/<instance>/markers`` carrying the
 frame's sequence number. Use it to try a deployment, a migration or a Zenoh
 configuration on real hosts before the camera and the models are in place,
@@ -61,6 +61,7 @@ def _raise_stopped(*_: object) -> None:
 def _serve(args: argparse.Namespace, unblock_signals) -> int:
     from kgadapt.shared import keys, messages
     from kgadapt.shared.errors import KgadaptError
+    from kgadapt.shared.readiness import announce_ready
     from kgadapt.shared.session import open_session, settings_from_env
 
     if args.never_ready_on == args.host:
@@ -87,7 +88,7 @@ def _serve(args: argparse.Namespace, unblock_signals) -> int:
                     pass
 
             _subscriber = session.declare_subscriber(keys.camera_frame(args.robot, args.camera), on_frame)  # held
-        print("KGADAPT_READY", flush=True)
+        announce_ready(instance=args.instance)
         seq = 0
         while True:
             if args.tick > 0:

@@ -22,8 +22,8 @@ which declared itself a child subreaper (``PR_SET_CHILD_SUBREAPER``). Only
 then does the detector ask for its parent-death signal (re-parenting would
 fire it), check that its parent is the agent, start its own session and
 process group, take the standard streams the agent sent (``SCM_RIGHTS``:
-stdin, and the pipe whose other end the supervisor reads for
-``KGADAPT_READY``), take the environment and working directory of the request
+stdin, and the pipe whose other end the supervisor reads for the
+readiness line), take the environment and working directory of the request
 and run the module as ``__main__``. The agent waits for it, signals its group
 and restarts it like any other child.
 

@@ -14,7 +14,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The deployer's flags for agent commands (``kgadapt onboard``, ``kgadapt remote``, ``kgadapt deploy serve``)."""
     group = parser.add_argument_group("deployer")
     group.add_argument("--ready-timeout", type=float, default=15.0, metavar="S",
-                       help="seconds a started process has to print KGADAPT_READY (default 15)")
+                       help="seconds a started process has to announce it is ready (default 15)")
     group.add_argument("--max-restarts", type=int, default=3, metavar="N",
                        help="restarts of a crashed process before it is reported failed (default 3)")
     group.add_argument("--stop-timeout", type=float, default=3.0, metavar="S",

@@ -6,11 +6,13 @@ For each *instance* (a name unique among the live ones) it
 - starts the program in its own session and process group, asked by the
   kernel to die with the agent (``PR_SET_PDEATHSIG``), so neither a crashed
   agent nor a detector's own children leave orphans behind;
-- watches stdout for the readiness line (``KGADAPT_READY``) within a timeout;
+- watches stdout for the readiness line of the one readiness protocol
+  (:mod:`kgadapt.shared.readiness`) within a timeout;
 - notices the exit and its return code, and restarts a crashed program with
   exponential back-off up to a limit (systemd's ``Restart=on-failure``);
 - stops it like ros2 launch does: SIGINT, then SIGTERM, then SIGKILL, each
-  after its own timeout, sent to the whole process group.
+  after its own timeout, sent to the whole process group (the escalation of
+  :mod:`kgadapt.shared.children`, which every other starter of children uses).
 
 What happens is reported to listeners as :class:`ProcessEvent` values
 (``started``, ``ready``, ``exited``, ``restarted``, ``stopped``, ``failed``).
@@ -51,14 +53,13 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Callable
 
 from kgadapt.deploy.launcher import ForkedProcess, LauncherClient, become_subreaper
-from kgadapt.shared.errors import DeploymentError, ReadinessTimeout
+from kgadapt.shared.children import StopPolicy, escalate
+from kgadapt.shared.errors import DeploymentError, NotReady, ReadinessTimeout
 from kgadapt.shared.keys import check_name
+from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, ReadyWatch
 from kgadapt.shared.states import FINAL_STATES, LIVE_STATES, SERVING_STATES, ProcessEventKind, ProcessState
 
 log = logging.getLogger(__name__)
-
-READY_LINE = "KGADAPT_READY"
-CONFIGURED_LINE = "KGADAPT_CONFIGURED"  # "<line> <config> <deployment>": the child reconfigured itself in place
 
 _PR_SET_PDEATHSIG = 1
 try:  # resolved here, not in the child: after fork only async-signal-safe work is wise
@@ -115,15 +116,6 @@ class RestartPolicy:
 
 
 @dataclass(frozen=True, kw_only=True)
-class StopPolicy:
-    """Escalation timeouts in seconds: SIGINT, wait, SIGTERM, wait, SIGKILL, wait."""
-
-    sigint_timeout: float = 3.0
-    sigterm_timeout: float = 3.0
-    sigkill_timeout: float = 5.0
-
-
-@dataclass(frozen=True, kw_only=True)
 class ProcessSpec:
     """What to run for one instance. ``env`` is added to the agent's own environment."""
 
@@ -133,7 +125,7 @@ class ProcessSpec:
     cwd: str | None = None
     deployment: str = ""
     config: str = ""
-    ready_line: str | None = READY_LINE  # None: ready as soon as it runs
+    await_ready: bool = True  # False: ready as soon as it runs (a program that prints no readiness line)
     ready_timeout: float = 10.0
     restart: RestartPolicy = field(default_factory=RestartPolicy)
     stop: StopPolicy = field(default_factory=StopPolicy)
@@ -230,10 +222,9 @@ class _Run:
         self.ended_at: float | None = None
         self.returncode: int | None = None
         self.reaped = False  # once True the pid (and process group id) may be reused
-        self.ready = threading.Event()
+        self.watch = ReadyWatch(run_id)  # its readiness line, and the last lines it printed
         self.done = threading.Event()
         self.not_ready_in_time = False
-        self.tail: collections.deque[str] = collections.deque(maxlen=20)
 
 
 class _Instance:
@@ -369,7 +360,7 @@ class Supervisor:
             run = inst.run
             if run is not None and run.not_ready_in_time:
                 raise ReadinessTimeout(
-                    f"instance {instance} did not print {spec.ready_line} within {spec.ready_timeout:g} s; stopped it"
+                    f"instance {instance} did not print {READY_TOKEN} within {spec.ready_timeout:g} s; stopped it"
                 )
             why = f": {inst.detail}" if inst.detail else ""
             raise DeploymentError(f"instance {instance} {inst.state} before it was ready{why}")
@@ -404,16 +395,9 @@ class Supervisor:
                     self._changed.wait(left)
 
     def _escalate(self, inst: _Instance, run: _Run) -> None:
-        policy = inst.spec.stop
-        for sig, wait in (
-            (signal.SIGINT, policy.sigint_timeout),
-            (signal.SIGTERM, policy.sigterm_timeout),
-            (signal.SIGKILL, policy.sigkill_timeout),
-        ):
-            self._signal_group(run, sig)
-            if run.done.wait(wait):
-                return
-            log.info("instance %s (pid %s) still running %.1f s after %s", inst.spec.instance, run.pid, wait, sig.name)
+        if escalate(lambda sig: self._signal_group(run, sig), run.done.wait, inst.spec.stop,
+                    what=f"instance {inst.spec.instance} (pid {run.pid})"):
+            return
         raise DeploymentError(
             f"instance {inst.spec.instance} (pid {run.pid}) survived SIGKILL; is it stuck in the kernel?"
         )
@@ -455,7 +439,7 @@ class Supervisor:
             returncode=run.returncode if run else None,
             argv=inst.spec.argv,
             detail=inst.detail,
-            output=tuple(list(run.tail)[-5:]) if run else (),
+            output=tuple(list(run.watch.tail)[-5:]) if run else (),
             via=run.via if run else "",
         )
 
@@ -502,10 +486,10 @@ class Supervisor:
         with self._lock:
             inst.run = run
             if not inst.stop_requested:  # a stop that came during the spawn keeps its state
-                inst.state = ProcessState.STARTING if inst.spec.ready_line else ProcessState.RUNNING
-            if not inst.spec.ready_line:
+                inst.state = ProcessState.STARTING if inst.spec.await_ready else ProcessState.RUNNING
+            if not inst.spec.await_ready:
                 run.ready_at = run.started_at
-                run.ready.set()
+                run.watch.mark_ready()
             self._changed.notify_all()
         # Reported before the reader thread can report "ready".
         self._emit(inst, ProcessEventKind.STARTED)
@@ -514,7 +498,7 @@ class Supervisor:
         name = inst.spec.instance
         threading.Thread(target=self._read_output, args=(inst, run), name=f"out-{name}", daemon=True).start()
         threading.Thread(target=self._wait_exit, args=(inst, run), name=f"wait-{name}", daemon=True).start()
-        if inst.spec.ready_line:
+        if inst.spec.await_ready:
             threading.Thread(target=self._watch_readiness, args=(inst, run), name=f"ready-{name}", daemon=True).start()
 
     def _spawn_loop(self) -> None:
@@ -562,10 +546,9 @@ class Supervisor:
         assert run.proc.stdout is not None
         for raw in run.proc.stdout:
             line = raw.decode("utf-8", errors="replace").rstrip("\r\n")
-            if inst.spec.ready_line and not run.ready.is_set() and line.strip() == inst.spec.ready_line:
+            if run.watch.feed(line) is not None:  # the readiness line (also kept out of the tail)
                 with self._lock:
                     run.ready_at = time.time()
-                    run.ready.set()
                     is_current = inst.run is run and inst.state == ProcessState.STARTING
                     if is_current:
                         inst.state = ProcessState.READY
@@ -575,9 +558,8 @@ class Supervisor:
                 if is_current:
                     self._emit(inst, ProcessEventKind.READY)
                 continue
-            if line.startswith(CONFIGURED_LINE + " ") and inst.spec.config:
+            if line.startswith(CONFIGURED_TOKEN + " ") and inst.spec.config:
                 self._reconfigured(inst, line.split()[1:])
-            run.tail.append(line)
             child_log.debug("%s", line)
         run.proc.stdout.close()
 
@@ -601,10 +583,15 @@ class Supervisor:
         self._emit(inst, ProcessEventKind.RECONFIGURED)
 
     def _watch_readiness(self, inst: _Instance, run: _Run) -> None:
-        if run.ready.wait(inst.spec.ready_timeout) or run.done.is_set():
+        try:
+            run.watch.wait(inst.spec.ready_timeout)
+            return
+        except ReadinessTimeout:
+            pass
+        except NotReady:  # it exited: _wait_exit decides what follows
             return
         with self._lock:
-            if inst.run is not run or inst.stop_requested or run.done.is_set() or run.ready.is_set():
+            if inst.run is not run or inst.stop_requested or run.done.is_set() or run.watch.ready:
                 return
             run.not_ready_in_time = True
             inst.stop_requested = True  # no restart: a program that cannot get ready will not by retrying
@@ -612,11 +599,9 @@ class Supervisor:
             inst.detail = f"not ready within {inst.spec.ready_timeout:g} s"
         log.warning("instance %s (pid %s) not ready within %.1f s; stopping it",
                     inst.spec.instance, run.pid, inst.spec.ready_timeout)
-        policy = inst.spec.stop
-        for sig, wait in ((signal.SIGTERM, policy.sigterm_timeout), (signal.SIGKILL, policy.sigkill_timeout)):
-            self._signal_group(run, sig)
-            if run.done.wait(wait):
-                return
+        # SIGINT is skipped: a program that cannot get ready may well be deaf to it.
+        escalate(lambda sig: self._signal_group(run, sig), run.done.wait, inst.spec.stop,
+                 what=f"instance {inst.spec.instance} (pid {run.pid})", first=signal.SIGTERM)
 
     def _signal_group(self, run: _Run, sig: int) -> None:
         with self._lock:
@@ -650,7 +635,8 @@ class Supervisor:
             run.returncode = returncode
             run.ended_at = time.time()
         run.done.set()
-        tail = "\n".join(list(run.tail)[-5:]) or None
+        run.watch.end(returncode)
+        tail = "\n".join(list(run.watch.tail)[-5:]) or None
         self._emit(inst, ProcessEventKind.EXITED, returncode=returncode, detail=tail if returncode else None)
         self._after_exit(inst, run, returncode, tail)
 

@@ -1,10 +1,11 @@
 """A whole robot on one machine: knowledge service, remote agent, fake flight controller, onboard agent.
 
 Used by ``kgadapt demo``, the adaptation tests and ``kgadapt bench adaptation``.
-Every process is a real child (``python -m kgadapt ...``) in its own process
-group; ``start()`` waits on each one's readiness line with a bounded wait and
-raises with its log tail; ``stop()`` asks politely (SIGINT), then SIGTERM,
-then SIGKILL, and always runs, even after a failed start.
+Every process is a real child (``python -m kgadapt ...``) started by
+:class:`kgadapt.shared.children.ChildProcess` in its own process group;
+``start()`` waits on each one's readiness line (kgadapt.shared.readiness)
+with a bounded wait and raises with its log tail; ``stop()`` asks politely
+(SIGINT), then SIGTERM, then SIGKILL, and always runs, even after a failed start.
 
 With a :class:`HostNetwork` (the fault tests and ``kgadapt bench
 reliability``), the hosts are Linux network namespaces on one bridge: the
@@ -23,13 +24,13 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from kgadapt.shared.errors import KgadaptError, TransportError
+from kgadapt.shared.children import ChildProcess, StopPolicy
+from kgadapt.shared.errors import DeploymentError, KgadaptError, TransportError
 from kgadapt.shared.keys import DEFAULT_ROBOT
 from kgadapt.shared.resources import models
 
@@ -87,22 +88,13 @@ class ClusterSettings:
     env: tuple[tuple[str, str], ...] = ()  # extra environment of every child (e.g. ZENOH_RUNTIME)
 
 
-@dataclass
-class Child:
-    name: str
-    process: subprocess.Popen[str]
-    log_path: Path
-    argv: tuple[str, ...] = ()
-    ready_text: str | None = None
-    ready: threading.Event = field(default_factory=threading.Event)
-    lines: list[str] = field(default_factory=list)
-    host: str | None = None  # the network namespace's host it runs in (None: this machine's network)
+@dataclass(frozen=True)
+class _Recipe:
+    """How a child was started, to start it again (``respawn``)."""
 
-    def tail(self, n: int = 15) -> str:
-        try:
-            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-n:])
-        except OSError:
-            return "(no log)"
+    argv: tuple[str, ...]
+    ready: bool
+    host: str | None  # the network namespace's host it runs in (None: this machine's network)
 
 
 class LocalCluster:
@@ -117,7 +109,8 @@ class LocalCluster:
         self.network = network
         self.port = 0
         self.fc_port = 0
-        self.children: dict[str, Child] = {}
+        self.children: dict[str, ChildProcess] = {}
+        self._recipes: dict[str, _Recipe] = {}
         self.store_url = f"embedded:{settings.workdir / 'store'}"
 
     @property
@@ -155,10 +148,10 @@ class LocalCluster:
             connect += ("--mode", s.agent_mode)
         try:
             self._spawn("service", self.kgadapt("knowledge", "serve", "--robot", s.robot, "--store", self.store_url,
-                                                "--listen", self.endpoint), ready="service ready", host="onboard")
+                                                "--listen", self.endpoint), host="onboard")
             self._spawn("remote", self.kgadapt("remote", "--robot", s.robot, "--host", "remote",
                                                "--memory-budget", s.remote_budget, *connect, *s.extra_remote_args),
-                        ready="agent ready", host="remote")
+                        host="remote")
             onboard = ["onboard", "--robot", s.robot, "--host", "onboard", "--memory-budget", s.onboard_budget,
                        "--camera-source", f"synthetic:{s.profile}" if s.profile else "synthetic",
                        "--fps", str(s.fps), "--scenario-speed", str(s.scenario_speed), *connect]
@@ -166,7 +159,7 @@ class LocalCluster:
                 fc = ["flight", "fake-fc", "--url", f"udpout:127.0.0.1:{self.fc_port}", "--armed"]
                 if s.land_after_s is not None:
                     fc += ["--land-after", str(s.land_after_s), "--descent", str(s.descent_s)]
-                self._spawn("fake-fc", self.kgadapt(*fc), ready="KGADAPT_READY", host="onboard")
+                self._spawn("fake-fc", self.kgadapt(*fc), host="onboard")
                 onboard += ["--fc", f"udpin:127.0.0.1:{self.fc_port}"]
             if s.adapt:
                 onboard += ["--adapt", "--prefer", s.prefer, "--dwell", str(s.dwell_s)]
@@ -174,86 +167,56 @@ class LocalCluster:
                     onboard.append("--no-in-place")
                 if s.standby:
                     onboard.append("--standby")
-            self._spawn("onboard", self.kgadapt(*onboard, *s.extra_onboard_args), ready="agent ready", host="onboard")
+            self._spawn("onboard", self.kgadapt(*onboard, *s.extra_onboard_args), host="onboard")
         except BaseException:
             self.stop()
             raise
 
-    def _spawn(self, name: str, argv: Sequence[str], *, ready: str | None, host: str | None = None,
-               append: bool = False) -> Child:
-        log_path = self.settings.workdir / f"{name}.log"
-        log_file = open(log_path, "a" if append else "w")
+    def _spawn(self, name: str, argv: Sequence[str], *, ready: bool = True, host: str | None = None,
+               append: bool = False) -> ChildProcess:
         where = host if self.network is not None else None
-        command = self.network.run_in(where, argv) if where else list(argv)
+        command = self.network.run_in(where, argv) if self.network is not None and where else list(argv)
         env = {**os.environ, **dict(self.settings.env)} if self.settings.env else None
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=log_file, stdin=subprocess.DEVNULL,
-                                   text=True, start_new_session=True, env=env)
-        child = Child(name, process, log_path, argv=tuple(argv), ready_text=ready, host=where)
+        child = ChildProcess(command, name=name, env=env, log=self.settings.workdir / f"{name}.log", append=append)
         self.children[name] = child
-
-        def pump() -> None:  # stdout to the log and the readiness line to an event
-            for line in process.stdout:
-                child.lines.append(line.rstrip())
-                log_file.write(line)
-                log_file.flush()
-                if ready is None or ready in line or "KGADAPT_READY" in line:
-                    child.ready.set()
-            log_file.close()
-
-        threading.Thread(target=pump, name=f"{name}-stdout", daemon=True).start()
-        if ready is None:
-            return child
-        deadline = time.monotonic() + self.settings.start_timeout
-        while not child.ready.wait(0.05):
-            if process.poll() is not None or time.monotonic() > deadline:
-                why = f"exited with {process.returncode}" if process.poll() is not None else "was not ready in time"
-                raise KgadaptError(f"{name} {why}; last log lines:\n{child.tail()}")
+        self._recipes[name] = _Recipe(tuple(argv), ready, where)
+        if ready:
+            child.wait_ready(self.settings.start_timeout)
         return child
 
-    def spawn(self, name: str, argv: Sequence[str], *, ready: str | None) -> Child:
-        """Start one more process of this cluster (logged, stopped by ``stop()``), waiting for ``ready``."""
+    def spawn(self, name: str, argv: Sequence[str], *, ready: bool = True) -> ChildProcess:
+        """Start one more process of this cluster (logged, stopped by ``stop()``); with ``ready``, wait for its readiness line."""
         return self._spawn(name, argv, ready=ready)
 
-    def respawn(self, name: str) -> Child:
+    def respawn(self, name: str) -> ChildProcess:
         """Start a stopped or killed process again with the same command line (and wait for it).
 
         It runs where it ran before (its host's namespace), appends to its log, and
         counts as the newest child (``stop()`` stops it first).
         """
         old = self.children[name]
-        if old.process.poll() is None:
-            raise KgadaptError(f"{name} is still running (pid {old.process.pid}); stop it first")
+        if old.alive():
+            raise KgadaptError(f"{name} is still running (pid {old.pid}); stop it first")
         del self.children[name]
-        return self._spawn(name, old.argv, ready=old.ready_text, host=old.host, append=True)
+        recipe = self._recipes[name]
+        return self._spawn(name, recipe.argv, ready=recipe.ready, host=recipe.host, append=True)
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
         """Send ``sig`` to one process's whole group (e.g. kill -9 of the remote agent and its detectors' parent)."""
         child = self.children[name]
-        try:
-            os.killpg(child.process.pid, sig)
-        except ProcessLookupError:
-            pass
+        child.send_signal(sig)
         if sig == signal.SIGKILL:
             child.process.wait(10)
 
     def stop(self, timeout: float = 8.0) -> dict[str, int | None]:
         """Stop every child, newest first: SIGINT, then SIGTERM, then SIGKILL."""
+        policy = StopPolicy(sigint_timeout=timeout, sigterm_timeout=timeout / 2, sigkill_timeout=5.0)
         codes: dict[str, int | None] = {}
         for name in reversed(list(self.children)):
-            child = self.children[name]
-            p = child.process
-            for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, timeout / 2), (signal.SIGKILL, 5.0)):
-                if p.poll() is not None:
-                    break
-                try:
-                    os.killpg(p.pid, sig)
-                except ProcessLookupError:
-                    break
-                try:
-                    p.wait(wait)
-                except subprocess.TimeoutExpired:
-                    continue
-            codes[name] = p.poll()
+            try:
+                codes[name] = self.children[name].stop(policy)
+            except DeploymentError:  # survived SIGKILL: reported as still running, the others are stopped anyway
+                codes[name] = None
         self.children.clear()
         return codes
 

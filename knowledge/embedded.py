@@ -33,7 +33,8 @@ import redis
 from redis.backoff import NoBackoff
 from redis.retry import Retry
 
-from kgadapt.shared.errors import StoreUnavailable
+from kgadapt.shared.children import StopPolicy, stop_process
+from kgadapt.shared.errors import DeploymentError, StoreUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -228,13 +229,13 @@ class EmbeddedServer:
         process, self._process = self._process, None
         if process is None:
             return
-        if process.poll() is None:
-            process.terminate()  # redis fsyncs the AOF and exits on SIGTERM
-            try:
-                process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        # redis fsyncs the AOF and exits on SIGTERM; SIGKILL after ``timeout``. Only the server itself:
+        # signalling its group would also stop an AOF rewrite child in mid-write.
+        try:
+            stop_process(process, StopPolicy(sigterm_timeout=timeout), what=f"embedded FalkorDB (pid {process.pid})",
+                         first=signal.SIGTERM, group=False)
+        except DeploymentError as exc:  # stuck in the kernel: nothing more a signal can do
+            log.error("%s", exc)
         try:
             info = json.loads(self.info_path.read_text())
             if info.get("pid") == process.pid:

@@ -80,6 +80,7 @@ def run_serve(args: argparse.Namespace) -> int:
     from kgadapt.knowledge.store import open_store
     from kgadapt.shared.agent import StopSignals
     from kgadapt.shared.notifier import ServiceNotifier
+    from kgadapt.shared.readiness import announce_ready
     from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
     log = logging.getLogger("kgadapt.knowledge.service")
@@ -102,8 +103,9 @@ def run_serve(args: argparse.Namespace) -> int:
                         f"zenoh {zenoh.mode} listen {list(zenoh.listen)} connect {list(zenoh.connect)}, "
                         f"writes {'on' if settings.writes else 'off'}"
                     )
-                    print(line, flush=True)
-                    notifier.ready(status=line)
+                    print(line, flush=True)  # for people; machines wait on the readiness line
+                    announce_ready(status=line, notifier=notifier, role="knowledge service", robot=settings.robot,
+                                   listen=list(zenoh.listen))
                     stop.wait(tick=notifier.watchdog)
                     log.info("signal %s: stopping the knowledge service", stop.received)
                 finally:

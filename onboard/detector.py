@@ -8,8 +8,8 @@
 It asks the knowledge service for its configuration (named query
 ``detector_config``), builds the pre-processing and ``cv2.aruco.ArucoDetector``
 of it, subscribes to ``kgadapt/<R>/camera/<cam>/frame`` and publishes
-``detections`` on ``kgadapt/<R>/detector/<I>/markers``; then prints
-``KGADAPT_READY`` on stdout. SIGINT or SIGTERM stop it cleanly (status 0).
+``detections`` on ``kgadapt/<R>/detector/<I>/markers``; then announces it is
+ready (kgadapt.shared.readiness: a line on stdout). SIGINT or SIGTERM stop it cleanly (status 0).
 
 In-place reconfiguration: a detector started with ``--config`` also answers
 ``kgadapt/<R>/host/<H>/detector/<I>/configure`` (a ``configure_request``
@@ -17,7 +17,7 @@ naming another configuration). It takes the configuration from the graph,
 checks there (named query ``in_place_change``) that its deployment may take
 the new one's in place on this host, builds the new detector off the frame
 path and swaps it in between two frames; the reply names the first frame
-processed with it. It then prints ``KGADAPT_CONFIGURED <config> <deployment>``
+processed with it. It then prints ``<CONFIGURED_TOKEN> <config> <deployment>``
 so its deployer's record (and a restart) follow. Anything refused leaves the
 running configuration untouched.
 
@@ -47,11 +47,10 @@ from typing import Any, Sequence
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
+from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, announce_ready
 
 log = logging.getLogger("kgadapt.onboard.detector")
 
-READY_LINE = "KGADAPT_READY"
-CONFIGURED_LINE = "KGADAPT_CONFIGURED"  # followed by the new configuration and its deployment
 EXIT_UNKNOWN_CONFIG = 2
 INLINE_CONFIG = "inline"
 
@@ -406,7 +405,7 @@ class Reconfigurer:
         generation = d.swap(config)
         build_ms = (time.perf_counter() - built) * 1e3
         self.deployment = str(target)
-        print(f"{CONFIGURED_LINE} {name} {target}", flush=True)  # the deployer's record follows
+        print(f"{CONFIGURED_TOKEN} {name} {target}", flush=True)  # the deployer's record follows
         log.info("detector %s: %s -> %s in place", s.instance, previous, name)
         swapped = time.perf_counter()
         first = d.first_frame(generation, self.first_frame_s)
@@ -442,7 +441,7 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m kgadapt.onboard.detector",
-        description="ArUco marker detector: frames in over Zenoh, detections out. Prints KGADAPT_READY when ready. "
+        description=f"ArUco marker detector: frames in over Zenoh, detections out. Prints {READY_TOKEN} when ready. "
                     "Exit status 2: the knowledge store does not know the configuration.",
     )
     add_detector_arguments(parser)
@@ -485,7 +484,7 @@ def run(args: argparse.Namespace) -> int:
             if row.get("deployment"):  # only a configuration from the graph can be changed from the graph
                 reconfigurer = Reconfigurer(detector, deployment=str(row["deployment"]))
                 reconfigurer.setup(session)
-            print(READY_LINE, flush=True)
+            announce_ready(instance=args.instance, config=config.name)
             log.info("detector %s ready: config %s, camera %s", args.instance, config.name, args.camera)
             stop.wait()
             log.info("detector %s: signal %s, stopping after %d frames", args.instance, stop.received, detector.processed)

@@ -34,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="A fake autopilot that follows ArduCopter (docs/flight.md): streams HEARTBEAT, SYS_STATUS, "
                     "BATTERY_STATUS, EXTENDED_SYS_STATE, and ATTITUDE, GLOBAL_POSITION_INT, LOCAL_POSITION_NED, "
                     "DISTANCE_SENSOR, HOME_POSITION when asked; acknowledges commands; lands with precision "
-                    "landing on LANDING_TARGETs; counts what it receives. Prints KGADAPT_READY once its socket is open.",
+                    "landing on LANDING_TARGETs; counts what it receives. Prints its readiness line once its socket is open.",
     )
     fake.add_argument("--url", default="udpout:127.0.0.1:14550",
                       help="where to talk (default udpout:127.0.0.1:14550; udpin:HOST:PORT to listen)")
@@ -174,6 +174,7 @@ def _run_until(stop: threading.Event, duration: float, every: float, tick) -> No
 
 def _fake_fc(args: argparse.Namespace) -> int:
     from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
+    from kgadapt.shared.readiness import announce_ready
 
     if args.rate_scale <= 0:
         from kgadapt.shared.errors import ConfigError
@@ -194,7 +195,7 @@ def _fake_fc(args: argparse.Namespace) -> int:
     print(f"fake flight controller ready: system {args.system_id} on {args.url}, {vehicle.mode}, "
           f"{'armed' if vehicle.armed else 'disarmed'}, {vehicle.landed_state}; one line a second follows "
           "(the next line tells scripts it is ready)", flush=True)
-    print("KGADAPT_READY", flush=True)
+    announce_ready(status="fake flight controller ready", url=args.url)
 
     def tick() -> None:
         if args.land_after is not None and not landing["started"] and time.monotonic() - started >= args.land_after:
@@ -293,6 +294,7 @@ def _bridge(args: argparse.Namespace) -> int:
     from kgadapt.onboard.site import load_site
     from kgadapt.shared import session as zsession
     from kgadapt.shared.errors import ConfigError
+    from kgadapt.shared.readiness import announce_ready
 
     given = [args.fx, args.fy, args.cx, args.cy]
     camera_file = load_camera(args.camera_file) if args.camera_file else None
@@ -321,7 +323,7 @@ def _bridge(args: argparse.Namespace) -> int:
                                   profile=args.profile, hold_s=args.hold)
         bridge = FlightBridge(settings, on_state=FlightControlWriter(client) if args.write_graph else None)
         bridge.setup(session)
-        print("KGADAPT_READY", flush=True)
+        announce_ready(status="flight bridge ready", robot=args.robot)
         _run_until(stop, 0.0, 5.0, lambda: print(json.dumps(bridge.counters), file=sys.stderr, flush=True))
     finally:
         if bridge is not None:

@@ -114,7 +114,7 @@ def _register_detect(sub: argparse._SubParsersAction) -> None:
         help="run the marker detector (same as python -m kgadapt.onboard.detector)",
         description="The marker-detector program: gets its configuration from the knowledge store "
                     "(--config) or inline (--config-json), detects markers in the camera's frames and "
-                    "publishes detections. Prints KGADAPT_READY when ready; exit status 2 when the store "
+                    "publishes detections. Prints its readiness line when ready; exit status 2 when the store "
                     "does not know the configuration.",
     )
     add_detector_arguments(p)

@@ -254,6 +254,7 @@ def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) ->
     """
     from kgadapt.shared.allocator import cap_arenas
     from kgadapt.shared.notifier import ServiceNotifier
+    from kgadapt.shared.readiness import announce_ready
 
     cap_arenas()  # before the agent's threads (shared/allocator.py)
     s = agent.settings
@@ -265,8 +266,8 @@ def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) ->
                 f"{s.role} agent ready: robot {s.robot}, host {s.host}, "
                 f"zenoh {s.zenoh.mode} connect {list(s.zenoh.connect)}"
             )
-            (announce or _print_flush)(line)
-            notifier.ready(status=line)
+            (announce or _print_flush)(line)  # for people; machines wait on the readiness line
+            announce_ready(status=line, notifier=notifier, role=s.role, robot=s.robot, host=s.host)
 
             def tick() -> None:
                 if agent.healthy():

@@ -21,7 +21,8 @@ translated at the boundary where we call it, with ``raise ... from exc``.
      │         └── NoResponder    nobody serves the key: the request ended without a reply
      ├── RemoteError              the far side answered a request with an error reply
      ├── DeploymentError          the deployer refused or failed a start, stop or migration
-     │    └── ReadinessTimeout    a process did not say it was ready in time
+     │    └── NotReady            a child exited before it said it was ready (shared/readiness)
+     │         └── ReadinessTimeout   ... or did not say so in time
      └── FlightLinkError          the MAVLink link could not be opened or used
 """
 
@@ -114,7 +115,11 @@ class DeploymentError(KgadaptError):
     """The deployer refused or failed to start, stop or migrate a process."""
 
 
-class ReadinessTimeout(DeploymentError):
+class NotReady(DeploymentError):
+    """A started process did not become ready: it ended first (or, as ReadinessTimeout, took too long)."""
+
+
+class ReadinessTimeout(NotReady):
     """A started process did not say it was ready within its timeout."""
 
 

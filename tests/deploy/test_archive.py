@@ -85,15 +85,15 @@ def test_the_robot_starts_from_the_installed_archive(installed, tmp_path):
     assert load.returncode == 0, load.stderr
     children = []
     try:
-        for name, args, ready in (
-            ("service", ["knowledge", "serve", "--store", store, "--listen", endpoint], "service ready"),
-            ("remote", ["remote", "--host", "remote", "--connect", endpoint], "agent ready"),
+        for name, args in (
+            ("service", ["knowledge", "serve", "--store", store, "--listen", endpoint]),
+            ("remote", ["remote", "--host", "remote", "--connect", endpoint]),
             ("onboard", ["onboard", "--host", "onboard", "--connect", endpoint, "--camera-source", "synthetic",
-                         "--adapt"], "agent ready"),
+                         "--adapt"]),
         ):
             child = Child([str(venv / "kgadapt"), "--log-level", "INFO", *args], name, tmp_path, from_checkout=False)
             children.append(child)
-            child.wait_for_line(ready, timeout=60)
+            child.wait_ready(60)
 
         def detector_running():
             out = subprocess.run([str(venv / "kgadapt"), "ask", "current_placement", "--json", "--connect", endpoint],

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import sys
 import time
 
@@ -15,6 +14,7 @@ from kgadapt.deploy.client import DeployerClient
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import DeploymentError
 from tests.deploy.conftest import CONFIG, ROBOT, Collector, add_deployment, wait_for_deployers
+from tests.support import Child
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -134,18 +134,17 @@ def test_the_process_profile_reaches_the_graph_start_then_memory_then_exit(graph
     assert row["r"]["end_time"] >= row["r"]["start_time"]
 
 
-def test_killing_an_agent_with_sigkill_leaves_no_detector_running(knowledge, endpoint, test_session):
-    agent = subprocess.Popen(
-        [sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
-         "--connect", endpoint], cwd=REPO, stdout=subprocess.PIPE, text=True)
+def test_killing_an_agent_with_sigkill_leaves_no_detector_running(knowledge, endpoint, test_session, tmp_path):
+    agent = Child([sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
+                   "--connect", endpoint], "agent", tmp_path)
     try:
-        assert "agent ready" in agent.stdout.readline()
+        agent.wait_ready()
+        assert "agent ready" in agent.output[0]  # the line for people comes first
         wait_for_deployers(test_session, ["onboard"])
         info = DeployerClient(test_session, ROBOT).start("onboard", "echo", CONFIG)
         assert alive(info["pid"])
         os.kill(agent.pid, signal.SIGKILL)
-        agent.wait()
+        agent.process.wait()
         wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="detector gone after kill -9 of its agent")
     finally:
-        agent.kill()
-        agent.wait()
+        agent.stop()

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import sys
 from pathlib import Path
 
@@ -21,9 +20,11 @@ from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.loader import load_models
 from kgadapt.shared import keys
 from kgadapt.shared.errors import DeploymentError
+from kgadapt.shared.readiness import READY_TOKEN
 from tests.deploy.conftest import ROBOT, Collector, FrameSource, wait_for_deployers
-from tests.deploy.test_deployer import REPO, alive, wait_until
+from tests.deploy.test_deployer import alive, wait_until
 from tests.deploy.test_real_detector import marker_jpeg
+from tests.support import Child
 
 MODELS = Path(S.__file__).resolve().parent / "models"
 DAY = "marker_detection_day"
@@ -139,18 +140,18 @@ def test_the_launcher_runs_nothing_the_graph_does_not_deploy(hosts, client_sessi
 def test_the_launcher_forks_only_modules_it_preloaded(hosts):
     launcher = launcher_of(hosts)
     python = hosts["onboard"].deployer.settings.python
-    assert launcher.fork([python, "-c", "print('KGADAPT_READY')"], dict(os.environ), None) is None
+    assert launcher.fork([python, "-c", f"print({READY_TOKEN!r})"], dict(os.environ), None) is None
     assert launcher.fork([python, "-m", "http.server"], dict(os.environ), None) is None
     assert launcher.fork(["/bin/sh", "-m", "kgadapt.onboard.detector"], dict(os.environ), None) is None
     assert launcher.ready  # a refusal is not a failure of the launcher
 
 
-def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launcher(knowledge, endpoint, test_session):
-    agent = subprocess.Popen(
-        [sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
-         "--connect", endpoint], cwd=REPO, stdout=subprocess.PIPE, text=True)
+def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launcher(knowledge, endpoint, test_session, tmp_path):
+    agent = Child([sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
+                   "--connect", endpoint], "agent", tmp_path)
     try:
-        assert "agent ready" in agent.stdout.readline()
+        agent.wait_ready()
+        assert "agent ready" in agent.output[0]  # the line for people comes first
         wait_for_deployers(test_session, ["onboard"])
         client = DeployerClient(test_session, ROBOT)
         launcher = wait_until(lambda: (found := client.launcher("onboard")) and found["ready"] and found,
@@ -158,12 +159,11 @@ def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launche
         info = client.start("onboard", "detector_day", DAY)
         assert info["via"] == "launcher" and psutil.Process(info["pid"]).ppid() == agent.pid
         os.kill(agent.pid, signal.SIGKILL)
-        agent.wait()
+        agent.process.wait()
         wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="forked detector gone after kill -9 of its agent")
         wait_until(lambda: not alive(launcher["pid"]), timeout=5.0, what="launcher gone after kill -9 of its agent")
     finally:
-        agent.kill()
-        agent.wait()
+        agent.stop()
 
 
 def test_a_forked_detector_shows_its_own_command_line(hosts, client_session):
@@ -188,4 +188,4 @@ def test_a_forked_detector_runs_with_the_environment_of_the_request_not_the_laun
     assert forked is not None, "the launcher refused a preloaded module"
     assert forked.wait() != 0  # its session was built from the request's config file, which is missing
     output = forked.stdout.read() if forked.stdout is not None else b""
-    assert b"KGADAPT_READY" not in (output if isinstance(output, bytes) else output.encode())
+    assert READY_TOKEN.encode() not in (output if isinstance(output, bytes) else output.encode())

@@ -16,12 +16,14 @@ import pytest
 
 from kgadapt.deploy.supervisor import ProcessEvent, ProcessSpec, RestartPolicy, StopPolicy, Supervisor, SupervisorSettings
 from kgadapt.shared.errors import DeploymentError, ReadinessTimeout
+from kgadapt.shared.readiness import READY_TOKEN
 
-READY_AND_WAIT = "import time; print('KGADAPT_READY'); time.sleep(60)"
+SAY_READY = f"print({READY_TOKEN!r}, flush=True)"  # the bare token: what a program that is not ours may print
+READY_AND_WAIT = f"import time; {SAY_READY}; time.sleep(60)"
 DEAF = (
     "import signal, time\n"
     "signal.signal(signal.SIGINT, signal.SIG_IGN); signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
-    "print('KGADAPT_READY'); time.sleep(60)"
+    f"{SAY_READY}; time.sleep(60)"
 )
 
 
@@ -98,7 +100,7 @@ def test_a_started_child_is_ready_and_stops_on_sigint(supervisor, events):
 
 
 def test_a_child_that_handles_sigint_exits_cleanly_without_escalation(supervisor):
-    code = "import time\ntry:\n    print('KGADAPT_READY')\n    time.sleep(60)\nexcept KeyboardInterrupt:\n    pass"
+    code = f"import time\ntry:\n    {SAY_READY}\n    time.sleep(60)\nexcept KeyboardInterrupt:\n    pass"
     supervisor.start(spec("clean", code))
     assert supervisor.stop("clean").returncode == 0
 
@@ -137,7 +139,7 @@ def test_a_child_that_crashes_after_ready_comes_back_ready(supervisor, events, t
     flag = tmp_path / "crashed-once"
     code = textwrap.dedent(f"""
         import os, sys, time
-        print('KGADAPT_READY', flush=True)
+        {SAY_READY}
         if not os.path.exists({str(flag)!r}):
             open({str(flag)!r}, 'w').close()
             sys.exit(5)
@@ -151,7 +153,7 @@ def test_a_child_that_crashes_after_ready_comes_back_ready(supervisor, events, t
 
 
 def test_a_child_that_never_gets_ready_is_stopped_and_not_restarted(supervisor, events):
-    with pytest.raises(ReadinessTimeout, match="KGADAPT_READY within 0.3 s"):
+    with pytest.raises(ReadinessTimeout, match=f"{READY_TOKEN} within 0.3 s"):
         supervisor.start(spec("mute", "import time; time.sleep(60)", ready_timeout=0.3))
     info = supervisor.status("mute")
     assert info.state == "failed" and gone(info.pid)
@@ -159,11 +161,11 @@ def test_a_child_that_never_gets_ready_is_stopped_and_not_restarted(supervisor, 
 
 
 def test_stopping_a_child_also_ends_the_processes_it_started(supervisor):
-    code = textwrap.dedent("""
+    code = textwrap.dedent(f"""
         import subprocess, time
         child = subprocess.Popen(['sleep', '60'])
         print(child.pid, flush=True)
-        print('KGADAPT_READY', flush=True)
+        {SAY_READY}
         time.sleep(60)
     """)
     supervisor.start(spec("parent", code))

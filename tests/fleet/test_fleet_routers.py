@@ -132,7 +132,7 @@ def test_a_fleet_question_crosses_the_router_link_and_nothing_writes_the_other_r
         routers[robot] = Child(argv, f"serve-{robot}", work)
     try:
         for child in routers.values():
-            child.wait_for_line("knowledge service ready")
+            child.wait_ready()
 
         def client(cn: str) -> Path:
             return config_for("quad2", "onboard.json5", tls, work, **{

@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import time
+from pathlib import Path
 
 import pytest
 
@@ -16,37 +17,24 @@ from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import REPO, free_port
 from tests.flight.conftest import free_udp_port, wait_until
 from tests.flight.test_landing_target import ANGLE_X, ANGLE_Y, SQUARE
+from tests.support import Child
 
 
-def _spawn(kgadapt_cmd, *args: str) -> subprocess.Popen:
-    return subprocess.Popen([*kgadapt_cmd, *args], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def _spawn(kgadapt_cmd, log_dir: Path, *args: str) -> Child:
+    return Child([*kgadapt_cmd, *args], args[1], log_dir)
 
 
-def _wait_ready(process: subprocess.Popen, timeout: float = 15.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        line = process.stdout.readline()  # type: ignore[union-attr]
-        if line.strip() == "KGADAPT_READY":
-            return
-        if not line and process.poll() is not None:
-            break
-    process.kill()
-    pytest.fail(f"no KGADAPT_READY; stderr: {process.stderr.read()}")  # type: ignore[union-attr]
+def _wait_ready(child: Child, timeout: float = 15.0) -> None:
+    child.wait_ready(timeout)
 
 
-def _stop(process: subprocess.Popen) -> int:
-    if process.poll() is None:
-        process.send_signal(signal.SIGTERM)
-    try:
-        return process.wait(timeout=5)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        raise
+def _stop(child: Child) -> int:
+    return child.stop(10.0, first=signal.SIGTERM)  # SIGTERM, 5 s, then SIGKILL
 
 
-def test_monitor_prints_the_state_of_the_fake_fc_run_as_a_command(kgadapt_cmd):
+def test_monitor_prints_the_state_of_the_fake_fc_run_as_a_command(kgadapt_cmd, tmp_path):
     port = free_udp_port()
-    fc = _spawn(kgadapt_cmd, "flight", "fake-fc", "--url", f"udpout:127.0.0.1:{port}", "--armed", "--mode", "GUIDED",
+    fc = _spawn(kgadapt_cmd, tmp_path, "flight", "fake-fc", "--url", f"udpout:127.0.0.1:{port}", "--armed", "--mode", "GUIDED",
                 "--battery-pct", "55", "--rate-scale", "5")
     try:
         _wait_ready(fc)
@@ -70,7 +58,7 @@ def test_monitor_with_a_bad_url_exits_1_with_one_line_naming_it(kgadapt_cmd):
     assert out.stderr.strip().count("\n") == 0 and "'udpin:127.0.0.1'" in out.stderr
 
 
-def test_the_bridge_command_turns_detections_into_landing_targets_and_publishes_flight_state(kgadapt_cmd):
+def test_the_bridge_command_turns_detections_into_landing_targets_and_publishes_flight_state(kgadapt_cmd, tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     observer = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
     port = free_udp_port()
@@ -78,7 +66,7 @@ def test_the_bridge_command_turns_detections_into_landing_targets_and_publishes_
     sub = observer.declare_subscriber(
         keys.flight_state("clitest"), lambda s: states.append(messages.decode(s.payload.to_bytes(), "flight_state"))
     )
-    bridge = _spawn(kgadapt_cmd, "flight", "bridge", "--robot", "clitest", "--url", f"udpin:127.0.0.1:{port}",
+    bridge = _spawn(kgadapt_cmd, tmp_path, "flight", "bridge", "--robot", "clitest", "--url", f"udpin:127.0.0.1:{port}",
                     "--fx", "600", "--fy", "500", "--cx", "320", "--cy", "240", "--connect", endpoint)
     fc = FakeFlightController(FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=5),
                               VehicleState(armed=True, mode="LAND", landed_state="LANDING"))
@@ -155,7 +143,7 @@ def test_the_bridge_command_with_camera_and_marker_files_sends_positions_and_hol
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     observer = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
     port = free_udp_port()
-    bridge = _spawn(kgadapt_cmd, "flight", "bridge", "--robot", "clitest", "--url", f"udpin:127.0.0.1:{port}",
+    bridge = _spawn(kgadapt_cmd, tmp_path, "flight", "bridge", "--robot", "clitest", "--url", f"udpin:127.0.0.1:{port}",
                     "--camera-file", str(tmp_path / "camera.json"), "--markers", str(tmp_path / "markers.json"),
                     "--connect", endpoint)
     vehicle = VehicleState(armed=True, mode="LOITER", landed_state="IN_AIR", alt=8.0, yaw=0.3)

@@ -13,6 +13,7 @@ import re
 
 import pytest
 
+from kgadapt.shared.readiness import READY_TOKEN
 from tests.support import REPO, wait_for
 
 # What each command's output must show, by the line's start (every line must be covered).
@@ -22,7 +23,7 @@ EXPECTED = {
     "kgadapt perception calibrate": r"recorded \d+ CALIBRATED relations in embedded:",
     "kgadapt knowledge serve": r"knowledge service ready: robot quad1",
     "kgadapt remote": r"remote agent ready: robot quad1, host remote",
-    "kgadapt flight fake-fc": r"KGADAPT_READY",
+    "kgadapt flight fake-fc": re.escape(READY_TOKEN),
     "kgadapt onboard": r"onboard agent ready: robot quad1, host onboard",
     "kgadapt status": r"(?s)onboard +up since .*remote +up since .*marker_detection_\w+@onboard +ready.*"
                       r"band (day|dusk|dark).*calibrated \d+%.*in the air.*-> marker_detection_\w+@onboard.*"

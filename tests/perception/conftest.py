@@ -6,9 +6,7 @@ import itertools
 import os
 import queue
 import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -16,9 +14,10 @@ from typing import Any, Callable
 import pytest
 
 from kgadapt.shared import messages
+from kgadapt.shared.readiness import Payload
 from kgadapt.shared.session import ZenohSettings, open_session
-from tests.conftest import REPO, free_port
-from tests.support import wait_for  # noqa: F401 (the tests import it from here)
+from tests.conftest import free_port
+from tests.support import Child, wait_for  # noqa: F401 (the tests import wait_for from here)
 
 _robots = itertools.count()
 
@@ -69,52 +68,21 @@ class Collector:
         self._sub.undeclare()
 
 
-class DetectorProcess:
-    """``python -m kgadapt.onboard.detector`` as a child; stdout lines collected by a thread."""
+class DetectorProcess(Child):
+    """``python -m kgadapt.onboard.detector`` as a child of ours (tests.support.Child)."""
 
     def __init__(self, args: list[str], log_dir: Path, name: str) -> None:
-        self.stderr_path = log_dir / f"{name}.stderr"
-        self._stderr = open(self.stderr_path, "w")
-        env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "kgadapt.onboard.detector", *args], cwd=REPO, env=env,
-            stdout=subprocess.PIPE, stderr=self._stderr, text=True,
-        )
-        self.lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=self._read, daemon=True).start()
+        super().__init__([sys.executable, "-m", "kgadapt.onboard.detector", *args], name, log_dir)
 
-    def _read(self) -> None:
-        for line in self.process.stdout:
-            self.lines.put(line.strip())
-
-    def wait_ready(self, timeout: float = 20.0) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                if self.lines.get(timeout=0.1) == "KGADAPT_READY":
-                    return
-            except queue.Empty:
-                if self.process.poll() is not None:
-                    break
-        raise AssertionError(f"detector not ready (status {self.process.poll()}); stderr:\n{self.stderr()}")
-
-    def stderr(self) -> str:
-        self._stderr.flush()
-        return self.stderr_path.read_text()
+    def wait_ready(self, timeout: float = 20.0) -> Payload:
+        return super().wait_ready(timeout)
 
     def wait(self, timeout: float = 10.0) -> int:
         return self.process.wait(timeout)
 
-    def stop(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> int:
-        if self.process.poll() is None:
-            self.process.send_signal(sig)
-            try:
-                self.process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        self._stderr.close()
-        return self.process.returncode
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> int:  # type: ignore[override]
+        """``sig`` first, then on up the escalation (SIGTERM, SIGKILL)."""
+        return super().stop(timeout, first=sig)
 
 
 @pytest.fixture

@@ -115,12 +115,12 @@ def loopback_robot(tmp_path):
         service = _Child.kgadapt("service", ["knowledge", "serve", "--store", f"embedded:{store_dir}",
                                              "--robot", robot, "--listen", endpoint], tmp_path)
         started.append(service)
-        service.wait_for_line("knowledge service ready")
+        service.wait_ready()
         # A host online with free memory, so that placement has an answer to give.
         agent = _Child.kgadapt("remote", ["remote", "--robot", robot, "--host", "remote", "--memory-budget",
                                           remote_budget, "--connect", endpoint], tmp_path)
         started.append(agent)
-        agent.wait_for_line("agent ready")
+        agent.wait_ready()
 
         def session():
             s = open_session(ZenohSettings(mode="client", connect=(endpoint,)))

@@ -30,6 +30,7 @@ from kgadapt.onboard.detector import set_active
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import RemoteError, RequestTimeout, TransportError
 from kgadapt.shared.hostmonitor import squeeze
+from kgadapt.shared.readiness import READY_TOKEN
 from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import REPO, free_port
 from tests.security.conftest import FAST_OPEN, OTHER_ROBOT, ROBOT, Child, kgadapt, shipped_config, wait_for
@@ -43,7 +44,7 @@ FAIL_FAST = {"connect/exit_on_failure": True, "connect/timeout_ms": 1000}
 # shlex): the deployer runs the words as they are, without a shell, so none of these may run.
 SHELL_WORDS = ["$(touch {m})", "`touch {m}`", "; touch {m}", "&& touch {m}", "| touch {m}", "> {m}"]
 PROBE_CODE = ("import json, os, sys, time; print(json.dumps([sys.argv[1:], os.environ.get(\"PROBE\")]), flush=True); "
-              "print(\"KGADAPT_READY\", flush=True); time.sleep(60)")
+              f"print(\"{READY_TOKEN}\", flush=True); time.sleep(60)")
 
 
 def write_probe_model(directory: Path, marker: Path) -> None:
@@ -79,7 +80,7 @@ class Network:
         service = Child("service", ["knowledge", "serve", "--store", store, "--robot", ROBOT,
                                     "--zenoh-config", str(router)], self.work)
         self.children.append(service)
-        service.wait_for_line("knowledge service ready")
+        service.wait_ready()
         onboard = self.config(f"{ROBOT}-onboard")
         # The detectors the deployer starts get their own identity, as the shipped units give them.
         self.detector_config = shipped_config("onboard-detector.json5", self.pki.tls, self.work, **{
@@ -89,7 +90,7 @@ class Network:
                                   "--detector-zenoh-config", str(self.detector_config)],
                       self.work)
         self.children.append(agent)
-        agent.wait_for_line("agent ready")
+        agent.wait_ready()
 
     def config(self, cn: str, *, foreign: bool = False, **changes: Any) -> Path:
         cert, key = self.pki.pair(cn, foreign=foreign)

@@ -16,11 +16,9 @@ logged or counted), so none is skipped as stale and every one is exercised.
 from __future__ import annotations
 
 import json
-import os
 import re
 import signal
 import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -36,9 +34,10 @@ from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridg
 from kgadapt.onboard.mavlink import LinkSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
-from tests.conftest import REPO, free_port
+from tests.conftest import free_port
 from tests.security.conftest import wait_for
 from tests.security.fuzz import FUZZ, malformed, packed, wire
+from tests.support import Child
 
 DAY_JSON = '{"dictionary": "DICT_4X4_50", "preprocess": [], "parameters": {}}'
 
@@ -68,23 +67,13 @@ def detector(tmp_path):
     """A real ``python -m kgadapt.onboard.detector`` (inline configuration), connected to a listening peer session."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
-    stderr = tmp_path / "detector.stderr"
-    with open(stderr, "w") as err:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "kgadapt.onboard.detector", "--robot", "fuzzbot", "--host", "onboard", "--instance", "fz",
-             "--connect", endpoint, "--config-json", DAY_JSON],
-            cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE, stderr=err, text=True)
+    child = Child([sys.executable, "-m", "kgadapt.onboard.detector", "--robot", "fuzzbot", "--host", "onboard",
+                   "--instance", "fz", "--connect", endpoint, "--config-json", DAY_JSON], "detector", tmp_path)
     try:
-        assert process.stdout.readline().strip() == "KGADAPT_READY", stderr.read_text()
-        yield process, session, stderr
+        child.wait_ready(30.0)  # raises with its stderr when it is not
+        yield child.process, session, child.stderr_path
     finally:
-        if process.poll() is None:
-            process.send_signal(signal.SIGTERM)
-            try:
-                process.wait(10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        child.stop(20.0, first=signal.SIGTERM)
         session.close()
 
 

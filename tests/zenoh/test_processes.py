@@ -36,14 +36,14 @@ def fabric(tmp_path, children, robot):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     service = children("service", "knowledge", "serve", "--store", f"embedded:{store_dir}",
                        "--robot", robot, "--listen", endpoint)
-    service.wait_for_line("knowledge service ready")
+    service.wait_ready()
     session = open_session(ZenohSettings(mode="client", connect=(endpoint,)))
     client = KnowledgeClient(session, robot, timeout=3.0)
 
     def agent(role: str, host: str, budget: str):
         child = children(f"{role}-{host}", role, "--robot", robot, "--host", host,
                          "--memory-budget", budget, "--connect", endpoint)
-        child.wait_for_line("agent ready")
+        child.wait_ready()
         return child
 
     yield {"endpoint": endpoint, "service": service, "session": session, "client": client,

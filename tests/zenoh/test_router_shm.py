@@ -23,10 +23,11 @@ KILLS = 3
 # opened as the agents open theirs (kgadapt.shared.session's defaults, client mode).
 CLIENT = """
 import sys, time
+from kgadapt.shared.readiness import announce_ready
 from kgadapt.shared.session import ZenohSettings, open_session
 session = open_session(ZenohSettings(mode="client", connect=(sys.argv[1],)))
 publisher = session.declare_publisher(sys.argv[2])
-print("ready", flush=True)
+announce_ready()
 while True:
     publisher.put(b"x" * 20000)
     time.sleep(0.01)
@@ -64,7 +65,7 @@ def test_router_maps_nothing_of_clients_killed_by_sigkill(tmp_path):
         for n in range(KILLS):
             child = Child([sys.executable, "-c", CLIENT, endpoint, key], f"client{n}", tmp_path)
             try:
-                child.wait_for_line("ready")
+                child.wait_ready()
                 for _ in range(20):  # large messages have reached the router
                     assert received.acquire(timeout=30), f"client {n}: no messages reached the router"
             finally:
