@@ -43,11 +43,12 @@ from typing import Any
 
 from kgadapt.bench.stats import format_table, machine_info, make_record, summarize, write_records
 from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.resources import results_dir
 
 log = logging.getLogger(__name__)
 
 ROBOT = "benchbot"
-DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "deployer.json"
+DEFAULT_OUT = results_dir() / "deployer.json"
 PAPER = {"start_ms": 1.6, "stop_ms": 0.07}
 
 C_PROGRAM = r"""
@@ -60,7 +61,7 @@ int main(void) {
     for (;;) pause();
 }
 """
-ECHO_ARGS = ["-m", "kgadapt.deploy.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
+ECHO_ARGS = ["-m", "kgadapt.sim.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
              "--config", "{config}", "--connect", "{connect}"]
 
 
@@ -263,7 +264,7 @@ def supervisor_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, 
             ("C program (trivial), setpriv launcher", (str(rig.c_program),), args.reps, rig.supervisor_setpriv),
             ("python -c (bare), setpriv launcher", bare, args.reps, rig.supervisor_setpriv),
         ]
-    echo = (py, "-m", "kgadapt.deploy.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
+    echo = (py, "-m", "kgadapt.sim.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
             "--config", "echo_config", "--connect", rig.endpoint)
     detector = (py, "-m", "kgadapt.onboard.detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
                 "--config", "marker_detection_day", "--connect", rig.endpoint)

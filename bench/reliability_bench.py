@@ -60,9 +60,10 @@ from typing import Any, Callable, Sequence
 
 from kgadapt.shared.errors import ConfigError, KgadaptError, TransportError
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.resources import results_dir
 from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, TriggerKind
 
-RESULTS = Path(__file__).resolve().parent / "results" / "reliability.json"
+RESULTS = results_dir() / "reliability.json"
 ROBOT = DEFAULT_ROBOT
 DETECTOR_MODULE = "kgadapt.onboard.detector"
 # Measured here (Zenoh 1.10): a TCP link that dies with unsent data is closed with SO_LINGER 10 s,

@@ -47,8 +47,9 @@ from typing import Any, Callable
 
 from kgadapt.shared.errors import ConfigError, KgadaptError
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.resources import results_dir
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = results_dir()
 ROBOT = DEFAULT_ROBOT
 FAULTS = ("store_kill", "remote_kill", "onboard_kill", "detector_kill", "link_cut", "squeeze", "forged_status")
 # After a fault ends, detections may stay away this long and still be explained by it (agent restarts
