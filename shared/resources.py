@@ -62,5 +62,5 @@ def results_dir() -> Path:
     except ModuleNotFoundError:
         checkout = None
     if isinstance(checkout, Path) and checkout.is_dir():
-        return checkout
+        return checkout.resolve()  # bench/results, not the kgadapt/bench link to it
     return Path("bench-results")
