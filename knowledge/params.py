@@ -66,3 +66,38 @@ def _value(value: Any, where: str, error: type[KgadaptError], depth: int) -> Any
             out[key] = _value(item, where, error, depth + 1)
         return out
     raise error(f"{where}: a {type(value).__name__} is not a graph value")
+
+
+def cypher_literal(value: Any, *, where: str = "value") -> str:
+    """``value`` (a checked graph value) as Cypher text that FalkorDB and Memgraph read back unchanged.
+
+    Written for an export script and for FalkorDB's ``CYPHER name=value`` parameter header.
+    Strings are single-quoted with ``\\``, ``'``, newline, CR and tab escaped (FalkorDB reads
+    no ``\\u`` escapes, and a script is split on newlines only, so other characters stay as they
+    are); floats are written exactly, without a ``+`` in the exponent, which openCypher's grammar
+    (and Memgraph's lexer) lacks; map keys are back-quoted, and may be neither empty nor hold a
+    backquote, which FalkorDB cannot escape. ``where`` names the value in errors.
+    """
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise QueryError(f"{where}: {value} is not a finite number")
+        return repr(value).replace("e+", "e")  # shortest round trip: 0.1, 1e-07, 1e20
+    if isinstance(value, str):
+        return "'" + value.translate(_ESCAPES) + "'"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(cypher_literal(item, where=where) for item in value) + "]"
+    if isinstance(value, Mapping):
+        for key in value:
+            if not isinstance(key, str) or not key or "`" in key:
+                raise QueryError(f"{where}: map key {key!r} cannot be written for FalkorDB (empty, or with a backquote)")
+        return "{" + ", ".join(f"`{key}`: {cypher_literal(item, where=where)}" for key, item in value.items()) + "}"
+    raise QueryError(f"{where}: a {type(value).__name__} is not a graph value")
+
+
+_ESCAPES = str.maketrans({"\\": "\\\\", "'": "\\'", "\n": "\\n", "\r": "\\r", "\t": "\\t"})
