@@ -137,6 +137,7 @@ class _Rig:
         self._stack = contextlib.ExitStack()
 
     def __enter__(self) -> "_Rig":
+        from kgadapt.deploy.client import DeployerClient
         from kgadapt.deploy.deployer import Deployer, DeployerSettings
         from kgadapt.deploy.supervisor import RestartPolicy, Supervisor, SupervisorSettings
         from kgadapt.knowledge.loader import load_models
@@ -186,7 +187,7 @@ class _Rig:
         for supervisor in (self.supervisor_launcher, self.deployers["onboard"].supervisor):
             if supervisor.launcher is None or not supervisor.launcher.wait_ready(120.0):
                 raise ConfigError("the launcher did not get ready within 120 s")
-        _wait_for_deployers(self.session, list(self.deployers))
+        DeployerClient(self.session, ROBOT).wait_for(list(self.deployers))
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -233,18 +234,6 @@ def _free_port() -> int:
                 continue
             return port
     raise ConfigError("no free TCP port on loopback")
-
-
-def _wait_for_deployers(session: Any, hosts: list[str], timeout: float = 10.0) -> None:
-    from kgadapt.shared import keys, messages
-
-    request = messages.encode("deploy_request", {})
-    deadline = time.monotonic() + timeout
-    for host in hosts:
-        while not list(session.get(keys.deployer_verb(ROBOT, host, "list"), payload=request, timeout=1.0)):
-            if time.monotonic() > deadline:
-                raise ConfigError(f"bench deployer {host} not reachable")
-            time.sleep(0.01)
 
 
 # -- 1. supervisor ------------------------------------------------------------------------

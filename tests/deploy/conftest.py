@@ -18,6 +18,7 @@ from typing import Any, Iterator
 
 import pytest
 
+from kgadapt.deploy.client import DeployerClient
 from kgadapt.deploy.deployer import Deployer, DeployerSettings
 from kgadapt.deploy.supervisor import RestartPolicy, StopPolicy
 from kgadapt.knowledge import schema as S
@@ -161,13 +162,7 @@ def deploy_agent(endpoint: str, session: Any, host: str = "onboard") -> Iterator
 
 def wait_for_deployers(session: Any, names: list[str], timeout: float = 10.0) -> None:
     """Declarations travel asynchronously: wait until every named deployer answers ``list``."""
-    request = messages.encode("deploy_request", {})
-    deadline = time.monotonic() + timeout
-    for name in names:
-        while not list(session.get(keys.deployer_verb(ROBOT, name, "list"), payload=request, timeout=1.0)):
-            if time.monotonic() > deadline:
-                raise AssertionError(f"deployer {name} not reachable within {timeout} s")
-            time.sleep(0.01)
+    DeployerClient(session, ROBOT).wait_for(names, timeout)
 
 
 class Collector:
