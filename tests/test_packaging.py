@@ -143,6 +143,7 @@ def test_the_demo_queries_run_from_the_installed_wheel_outside_the_checkout(inst
 
 @pytest.mark.slow
 def test_a_part_runs_as_a_module_of_the_installed_wheel(installed):
-    done = _run(installed, "python", "-m", "kgadapt.onboard.detector", "--help")
-    assert done.returncode == 0, done.stderr
-    assert "usage:" in done.stdout
+    for module in ("kgadapt.onboard.detector", "kgadapt.sim.echo_detector"):
+        done = _run(installed, "python", "-m", module, "--help")
+        assert done.returncode == 0, (module, done.stderr)
+        assert "usage:" in done.stdout, module
