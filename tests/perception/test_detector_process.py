@@ -187,9 +187,9 @@ def knowledge(resp_store, endpoint_session, robot):
         pytest.skip("knowledge/service.py is not there yet")
     from kgadapt.knowledge.loader import load_models
     from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
-    from kgadapt.onboard.calibration import REPO
+    from kgadapt.shared.resources import models
 
-    load_models(resp_store, [REPO / "knowledge" / "models"])
+    load_models(resp_store, [models()])
     service = KnowledgeService(resp_store, ServiceSettings(robot=robot))
     service.setup(endpoint_session[1])
     yield service
