@@ -356,10 +356,13 @@ class _Probe:
         from kgadapt.knowledge.client import KnowledgeClient
 
         op = request.get("op")
+        timeout = float(request.get("timeout", 2.0))
         if op == "query":
-            return KnowledgeClient(self.session, self.robot).query(request["name"], request.get("params") or {})
+            return KnowledgeClient(self.session, self.robot, timeout=timeout).query(
+                request["name"], request.get("params") or {})
         if op == "cypher":
-            return KnowledgeClient(self.session, self.robot).cypher(request["cypher"], request.get("params") or {})
+            return KnowledgeClient(self.session, self.robot, timeout=timeout).cypher(
+                request["cypher"], request.get("params") or {})
         if op == "list":
             return DeployerClient(self.session, self.robot, timeout=float(request.get("timeout", 2.0))).list(
                 request.get("host", "*"))

@@ -56,6 +56,7 @@ FAULTS = ("store_kill", "remote_kill", "onboard_kill", "detector_kill", "link_cu
 EXPLAINS_S = {"store_kill": 10.0, "remote_kill": 20.0, "onboard_kill": 30.0, "detector_kill": 20.0,
               "link_cut": 20.0, "squeeze": 15.0, "forged_status": 0.0}
 LONG_RUNNING = ("service", "remote", "fake-fc", "onboard")
+LIFE_WARMUP_S = 60.0  # a restarted process's start-up, left out of its memory growth
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -299,9 +300,18 @@ class Soak:
     def lost_writes(self) -> list[str]:
         found: set[str] = set()
         for i in range(0, len(self.acked), 500):  # another robot's answers are capped at 1000 rows
-            rows = self.probe.request("cypher", wait=30, cypher=(
-                "MATCH (d:AdaptationDecision) WHERE d.name IN $names RETURN d.name AS name"),
-                params={"names": self.acked[i:i + 500]})
+            for attempt in range(3):
+                # The final check must not throw the whole run away: a loaded machine (load 20) once took
+                # more than the client's default 2 s to answer it.
+                try:
+                    rows = self.probe.request("cypher", wait=40, timeout=10.0, cypher=(
+                        "MATCH (d:AdaptationDecision) WHERE d.name IN $names RETURN d.name AS name"),
+                        params={"names": self.acked[i:i + 500]})
+                    break
+                except KgadaptError as exc:
+                    self.say(f"checking acknowledged writes {i}-{i + 499} (attempt {attempt + 1}): {exc}")
+                    if attempt == 2:
+                        raise
             found |= {r["name"] for r in rows}
         return [n for n in self.acked if n not in found]
 
@@ -389,10 +399,14 @@ class Soak:
         warm = self.t0 + min(s.warmup_s, s.minutes * 60.0 / 3.0)
         growth = {}
         for name in (*LONG_RUNNING, "store"):
-            rows = [m for m in self.memory if m["name"] == name and m["t"] >= warm]
             by_pid: dict[int, list[dict[str, Any]]] = {}
-            for m in rows:
-                by_pid.setdefault(m["pid"], []).append(m)
+            for m in self.memory:
+                if m["name"] == name and m["rss_mb"] > 0:  # 0: a killed process not yet reaped
+                    by_pid.setdefault(m["pid"], []).append(m)
+            # A process restarted by a fault has its own warm-up: growth counts from LIFE_WARMUP_S after its
+            # start (imports, session, its detectors), not from its first sample.
+            by_pid = {pid: kept for pid, life in by_pid.items()
+                      if (kept := [m for m in life if m["t"] >= max(warm, life[0]["t"] + LIFE_WARMUP_S)])}
             if not by_pid:
                 continue
             pid, life = max(by_pid.items(), key=lambda kv: kv[1][-1]["t"] - kv[1][0]["t"])  # its longest life after warm-up

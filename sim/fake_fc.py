@@ -78,7 +78,7 @@ from kgadapt.shared.errors import FlightLinkError
 
 log = logging.getLogger(__name__)
 
-_RECORD_LIMIT = 10_000  # per message type: a long demo run must not grow without bound
+_RECORD_LIMIT = 2_000  # per message type: bounded, and full within the soak's 5-minute warm-up for the 15 Hz streams
 _STEP_S = 0.02  # physics and precision-landing update period (ArduCopter runs precland at 400 Hz)
 
 # AC_PrecLand constants (AC_PrecLand.cpp, AC_PrecLand_MAVLink.cpp)
