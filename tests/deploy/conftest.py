@@ -8,11 +8,8 @@ the deployments run.
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import threading
 import time
-from contextlib import contextmanager
 from dataclasses import replace
 from typing import Any, Iterator
 
@@ -25,7 +22,7 @@ from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
-from tests.conftest import REPO, free_port
+from tests.conftest import free_port
 
 ROBOT = "testbot"
 CONFIG = "marker_detection_day"
@@ -143,21 +140,6 @@ def client_session(test_session, hosts) -> Any:
     """The test's session, once it sees both deployers of ``hosts``."""
     wait_for_deployers(test_session, list(hosts))
     return test_session
-
-
-@contextmanager
-def deploy_agent(endpoint: str, session: Any, host: str = "onboard") -> Iterator[subprocess.Popen]:
-    """``kgadapt deploy serve`` for ``host`` as its own process, once ``session`` reaches its deployer; killed after."""
-    agent = subprocess.Popen(
-        [sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", host,
-         "--connect", endpoint], cwd=REPO, stdout=subprocess.PIPE, text=True)
-    try:
-        assert "agent ready" in agent.stdout.readline()
-        wait_for_deployers(session, [host])
-        yield agent
-    finally:
-        agent.kill()
-        agent.wait()
 
 
 def wait_for_deployers(session: Any, names: list[str], timeout: float = 10.0) -> None:

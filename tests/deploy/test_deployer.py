@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import sys
 import time
 
@@ -13,7 +14,7 @@ import pytest
 from kgadapt.deploy.client import DeployerClient
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import DeploymentError
-from tests.deploy.conftest import CONFIG, ROBOT, Collector, add_deployment, deploy_agent
+from tests.deploy.conftest import CONFIG, ROBOT, Collector, add_deployment, wait_for_deployers
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -134,9 +135,17 @@ def test_the_process_profile_reaches_the_graph_start_then_memory_then_exit(graph
 
 
 def test_killing_an_agent_with_sigkill_leaves_no_detector_running(knowledge, endpoint, test_session):
-    with deploy_agent(endpoint, test_session) as agent:
+    agent = subprocess.Popen(
+        [sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
+         "--connect", endpoint], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert "agent ready" in agent.stdout.readline()
+        wait_for_deployers(test_session, ["onboard"])
         info = DeployerClient(test_session, ROBOT).start("onboard", "echo", CONFIG)
         assert alive(info["pid"])
         os.kill(agent.pid, signal.SIGKILL)
         agent.wait()
         wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="detector gone after kill -9 of its agent")
+    finally:
+        agent.kill()
+        agent.wait()

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import psutil
@@ -19,8 +21,8 @@ from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.loader import load_models
 from kgadapt.shared import keys
 from kgadapt.shared.errors import DeploymentError
-from tests.deploy.conftest import ROBOT, Collector, FrameSource, deploy_agent
-from tests.deploy.test_deployer import alive, wait_until
+from tests.deploy.conftest import ROBOT, Collector, FrameSource, wait_for_deployers
+from tests.deploy.test_deployer import REPO, alive, wait_until
 from tests.deploy.test_real_detector import marker_jpeg
 
 MODELS = Path(S.__file__).resolve().parent / "models"
@@ -144,7 +146,12 @@ def test_the_launcher_forks_only_modules_it_preloaded(hosts):
 
 
 def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launcher(knowledge, endpoint, test_session):
-    with deploy_agent(endpoint, test_session) as agent:
+    agent = subprocess.Popen(
+        [sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
+         "--connect", endpoint], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert "agent ready" in agent.stdout.readline()
+        wait_for_deployers(test_session, ["onboard"])
         client = DeployerClient(test_session, ROBOT)
         launcher = wait_until(lambda: (found := client.launcher("onboard")) and found["ready"] and found,
                               timeout=60.0, what="the agent's launcher ready")
@@ -154,6 +161,9 @@ def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launche
         agent.wait()
         wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="forked detector gone after kill -9 of its agent")
         wait_until(lambda: not alive(launcher["pid"]), timeout=5.0, what="launcher gone after kill -9 of its agent")
+    finally:
+        agent.kill()
+        agent.wait()
 
 
 def test_a_forked_detector_shows_its_own_command_line(hosts, client_session):
