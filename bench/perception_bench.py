@@ -113,11 +113,11 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
     from kgadapt.onboard.illumination import bands_from_rows
 
     settings = CalibrationSettings(frames_per_level=frames, levels_per_band=levels)
+    folder = Path(out).parent  # the calibration's and the quality's files go beside the records
     with tempfile.TemporaryDirectory(prefix="kgadapt-perception-") as tmp:
         url = store_url or f"embedded:{tmp}/store"
         calibration = run_calibration(url, settings=settings, progress=progress,
-                                      json_path=Path(out).parent / "calibration.json",
-                                      plot_path=Path(out).parent / "calibration.png")
+                                      json_path=folder / "calibration.json", plot_path=folder / "calibration.png")
         # The planner's view: the ranking query on the calibrated graph, judged on fresh frames.
         with open_store(url) as store:
             ask = lambda name, params: run_named(store, name, params)  # noqa: E731
@@ -136,8 +136,8 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
     photos = quality.photo_agreement()
     target_rates = quality.targets()
     quality_summary = {"oracle": oracle, "phantoms": phantoms, "photos": photos, "targets": target_rates}
-    (Path(out).parent / "perception.quality.json").write_text(json.dumps({"machine": stats.machine_info(), **quality_summary},
-                                                               indent=2) + "\n")
+    (folder / "perception.quality.json").write_text(json.dumps({"machine": stats.machine_info(), **quality_summary},
+                                                             indent=2) + "\n")
     records: list[dict[str, Any]] = []
     for r in calibration["results"]:
         records.append({

@@ -4,7 +4,9 @@ The domain models (``knowledge/models``), the synthetic-camera scenarios
 (``sim/scenarios``), the photographs of markers (``sim/photographs``) and the
 deployment files (``deploy/systemd``, ``deploy/zenoh``, ...) are package data
 (pyproject.toml), so an installed wheel finds them where it installed them and
-a source checkout finds them in its folders; nothing depends on the current directory or on a checkout.
+a source checkout finds them in its folders; nothing read depends on the current
+directory or on a checkout. Where results are written by default is here too
+(:func:`results_dir`).
 """
 
 from __future__ import annotations
