@@ -219,8 +219,7 @@ def params_header(params: Mapping[str, Any] | None) -> str:
     clean = check_params(params)
     if not clean:
         return ""
-    return "CYPHER " + "".join(f"{name}={cypher_literal(value, where=f'parameter {name!r}')} "
-                               for name, value in clean.items())
+    return "CYPHER " + "".join([f"{name}={cypher_literal(value, name=name)} " for name, value in clean.items()])
 
 
 def _plain(value: Any) -> Any:
