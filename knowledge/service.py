@@ -239,8 +239,8 @@ class KnowledgeService:
         if name not in queries.QUERIES:
             raise NamedQueryError(f"unknown named query {name!r}; known: {', '.join(sorted(queries.QUERIES))}")
         if payload:
-            request = messages.decode(payload, "query_request")
-            params = check_params(request.get("params") or {}, what=f"query {name!r}", error=MessageError)
+            request = messages.decode_as(payload, messages.QueryRequest)
+            params = check_params(request.params or {}, what=f"query {name!r}", error=MessageError)
         elif selector_params:
             params = queries.coerce_params(name, dict(selector_params))
         else:
@@ -265,9 +265,9 @@ class KnowledgeService:
         """A ``rows`` reply for read-only Cypher; a write is refused with ReadOnlyViolation."""
         if not payload:
             raise MessageError("cypher_request has no payload")
-        request = messages.decode(payload, "cypher_request")
-        text = check_cypher(request["cypher"])  # before anything reaches a store
-        params = check_params(request.get("params") or {}, what="cypher", error=MessageError)
+        request = messages.decode_as(payload, messages.CypherRequest)
+        text = check_cypher(request.cypher)  # before anything reaches a store
+        params = check_params(request.params or {}, what="cypher", error=MessageError)
         start = time.perf_counter()
         rows = self._run_untrusted(text, params, self.settings.public_time_limit_ms, "cypher")
         return _rows_reply(rows, (time.perf_counter() - start) * 1000, "cypher")
@@ -305,8 +305,8 @@ class KnowledgeService:
             raise NamedQueryError(f"unknown write verb {verb!r}; known: {', '.join(sorted(self._writers))}")
         if not payload:
             raise MessageError(f"write_request for {verb!r} has no payload")
-        request = messages.decode(payload, "write_request")
-        params = check_params(request["params"], what=f"write verb {verb!r}", error=MessageError)
+        request = messages.decode_as(payload, messages.WriteRequest)
+        params = check_params(request.params, what=f"write verb {verb!r}", error=MessageError)
         if verb == "process_sample":  # ours, not the sender's: a late sample must not reopen a lost host's profile
             params["received"] = time.time() if received is None else received
         start = time.perf_counter()

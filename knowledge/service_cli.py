@@ -71,6 +71,10 @@ def register_knowledge(knowledge_subparsers: Any) -> None:
 def run_serve(args: argparse.Namespace) -> int:
     import logging
 
+    from kgadapt.shared.allocator import cap_arenas
+
+    cap_arenas()  # before Zenoh's threads: a long-running router's RSS creeps with glibc's default arenas
+
     from kgadapt.knowledge.schema import ensure_indexes
     from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
     from kgadapt.knowledge.store import open_store

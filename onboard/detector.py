@@ -286,8 +286,8 @@ class ActivitySwitch:
     def _on_query(self, query: Any) -> None:
         d = self.detector
         try:
-            active = bool(messages.decode(query.payload.to_bytes() if query.payload is not None else b"",
-                                          "activity_request")["active"])
+            active = messages.decode_as(query.payload.to_bytes() if query.payload is not None else b"",
+                                        messages.ActivityRequest).active
         except MessageError as exc:
             try:
                 query.reply_err(f"detector {d.settings.instance}: {exc}")
@@ -387,7 +387,7 @@ class Reconfigurer:
         from kgadapt.knowledge.client import KnowledgeClient
 
         d, s = self.detector, self.detector.settings
-        name = str(messages.decode(payload, "configure_request")["config"])
+        name = messages.decode_as(payload, messages.ConfigureRequest).config
         keys.check_name(name, "configuration name")
         previous = d.config.name
         started = time.perf_counter()

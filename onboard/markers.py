@@ -8,7 +8,8 @@ knowledge graph (docs/CONTRACTS.md)::
                     {"op": "stretch", "low_pct": 2, "high_pct": 98}, {"op": "blur", "ksize": 3}],
      "parameters": {"adaptiveThreshWinSizeMax": 53, "adaptiveThreshConstant": 3}}
 
-:func:`parse_config` checks it and says what is wrong (an unknown op, a
+:func:`parse_config` checks it (its schema: :class:`kgadapt.shared.preprocessing.DetectorSettings`)
+and says what is wrong (an unknown op, a
 parameter ``cv2.aruco.DetectorParameters`` does not have, a value of the
 wrong type); :class:`MarkerDetector` runs it on grey frames. :func:`score`
 compares detections with a frame's ground truth.
@@ -25,6 +26,7 @@ import numpy as np
 
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.preprocessing import OPS as _OPS
+from kgadapt.shared.preprocessing import read_settings
 
 
 def aruco_dictionary(name: str) -> Any:
@@ -64,48 +66,12 @@ def parse_config(name: str, raw: str | Mapping[str, Any], *, dictionary: str | N
             raise ConfigError(f"{where}: config_json is not JSON: {exc}") from exc
     else:
         data = raw
-    if not isinstance(data, Mapping):
-        raise ConfigError(f"{where}: config_json must be an object, not {type(data).__name__}")
-    unknown = sorted(set(data) - {"dictionary", "preprocess", "parameters"})
-    if unknown:
-        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (use dictionary, preprocess, parameters)")
-    dict_name = data.get("dictionary") or dictionary or "DICT_4X4_50"
-    if not isinstance(dict_name, str):
-        raise ConfigError(f"{where}: dictionary must be a name such as DICT_4X4_50")
+    settings = read_settings(data, where, dictionary=dictionary)
     try:
-        aruco_dictionary(dict_name)
+        aruco_dictionary(settings.dictionary)
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from exc
-
-    steps = data.get("preprocess") or []
-    if not isinstance(steps, list):
-        raise ConfigError(f"{where}: preprocess must be a list of {{op: ...}} objects")
-    preprocess = []
-    for i, step in enumerate(steps):
-        if not isinstance(step, Mapping) or not isinstance(step.get("op"), str):
-            raise ConfigError(f"{where}: preprocess[{i}] must be an object with an 'op'")
-        op = step["op"]
-        spec = _OPS.get(op)
-        if spec is None:
-            raise ConfigError(f"{where}: preprocess[{i}] has unknown op {op!r} (use {', '.join(_OPS)})")
-        args = []
-        for key, value in step.items():
-            if key == "op":
-                continue
-            if key not in spec:
-                raise ConfigError(f"{where}: preprocess[{i}] op {op!r} has no argument {key!r} (use {', '.join(spec)})")
-        for key, setting in spec.items():
-            value = step.get(key, setting.default)
-            problem = setting.problem(value)
-            if problem:
-                raise ConfigError(f"{where}: preprocess[{i}] {op}.{key} {problem}")
-            args.append((key, setting.kind(value)))
-        preprocess.append((op, tuple(args)))
-
-    params = data.get("parameters") or {}
-    if not isinstance(params, Mapping):
-        raise ConfigError(f"{where}: parameters must be an object of cv2.aruco.DetectorParameters attributes")
-    config = DetectorConfig(name, dict_name, tuple(preprocess), tuple(sorted(params.items())))
+    config = DetectorConfig(name, settings.dictionary, settings.steps(), tuple(sorted(settings.parameters.items())))
     _detector_parameters(config)  # checks every parameter name and type now, not on the first frame
     return config
 
@@ -221,7 +187,7 @@ class MarkerDetector:
         if op == "blur":
             k = args["ksize"]
             return (lambda img: img) if k <= 1 else (lambda img: cv2.GaussianBlur(img, (k, k), 0))
-        raise ConfigError(f"unknown pre-processing op {op!r}")  # parse_config refuses these first
+        raise ConfigError(f"unknown pre-processing op {op!r} (use {', '.join(_OPS)})")  # parse_config refuses these first
 
     def preprocess(self, gray: np.ndarray) -> np.ndarray:
         for step in self._steps:

@@ -252,8 +252,10 @@ def run_agent(agent: Agent, *, announce: Callable[[str], None] | None = None) ->
     Under systemd (``Type=notify``) the watchdog is fed only while every part
     is healthy, so a hung or broken agent is restarted, not only a dead one.
     """
+    from kgadapt.shared.allocator import cap_arenas
     from kgadapt.shared.notifier import ServiceNotifier
 
+    cap_arenas()  # before the agent's threads (shared/allocator.py)
     s = agent.settings
     notifier = ServiceNotifier()
     with StopSignals() as stop:

@@ -32,6 +32,7 @@ import contextlib
 import logging
 import os
 import re
+import secrets
 import threading
 import time
 from dataclasses import dataclass, field
@@ -90,6 +91,8 @@ class TrustSettings:
     total_slack: float = 0.05  # a total this much above the host's first total since its token came up is refused
     profile_slack: float = 0.25  # free memory may overlap its processes' recorded RSS this much (shared pages)
     require_alive: bool = True  # refuse statuses of a host whose liveliness token is absent
+    new_source_s: float = 5.0  # statuses of a host from a new sender count once it alone has spoken this long
+    contest_s: float = 15.0  # after two senders interleave on one host, none of its statuses count this long
 
     def __post_init__(self) -> None:
         if not self.window_s > 0 or self.min_statuses < 1 or not self.stale_s > 0:
@@ -103,6 +106,12 @@ class _HostTrust:
     total_mb: float | None = None  # the first total since the token came up: a host's total does not grow
     newest: float | None = None  # the newest accepted status's own time
     recent: list[tuple[float, float]] = field(default_factory=list)  # (received, free) of accepted statuses
+    source: str | None = None  # the sender whose statuses count (its ``origin``; "" for a sender without one)
+    seq: int | None = None  # that sender's last sequence number
+    current_heard: float = 0.0  # when that sender last spoke
+    candidate: str | None = None  # another sender, on probation
+    candidate_since: float = 0.0
+    contested_until: float = 0.0
 
 
 class StatusTrust:
@@ -114,7 +123,13 @@ class StatusTrust:
     :func:`check_status`, a status of a host without a liveliness token, a
     status far older than the host's newest, a total above the host's total,
     free memory that the RSS of the host's own running processes (their
-    profiles) shows as used. And no single status decides: :meth:`confirmed_free`
+    profiles) shows as used, a sequence number that does not grow. A status
+    from another sender than the host's current one (each monitor sends its
+    random ``origin`` and a ``seq``) counts only once that sender alone has
+    spoken for ``new_source_s`` (a restarted monitor); if the current sender
+    speaks again meanwhile, two senders interleave and none of the host's
+    statuses counts for ``contest_s``: a forger beside a real monitor holds the
+    detector where it is, whichever of them lags. And no single status decides: :meth:`confirmed_free`
     is the least free memory of the last ``window_s`` (so one roomy forgery
     between real statuses is outvoted), :meth:`roomiest` the most (so one
     "full" forgery is), each only with ``min_statuses`` statuses in the window.
@@ -159,6 +174,7 @@ class StatusTrust:
             if used_mb > 0 and free > known_total - used_mb * (1 - s.profile_slack):
                 raise MessageError(f"host_status of {host}: {free:.0f} MiB free of {known_total:.0f} MiB, but its "
                                    f"running processes hold {used_mb:.0f} MiB")
+            self._check_sender(host, record, body, received)
         except MessageError:
             self.refused += 1
             raise
@@ -169,9 +185,45 @@ class StatusTrust:
         record.recent = [(t, f) for t, f in record.recent if t > received - keep] + [(received, free)]
         return body
 
+    def _check_sender(self, host: str, record: _HostTrust, body: dict[str, Any], received: float) -> None:
+        """Raise MessageError unless this status's sender is the host's current one (or takes over)."""
+        s = self.settings
+        origin = body.get("origin") or ""
+        seq = body.get("seq")
+        if not isinstance(origin, str) or (seq is not None and (not isinstance(seq, int) or isinstance(seq, bool))):
+            raise MessageError(f"host_status of {host}: origin must be a string and seq an integer")
+        if record.source is None or (record.candidate == origin and received - record.candidate_since >= s.new_source_s
+                                     and record.current_heard < record.candidate_since):
+            if record.source is not None:
+                log.warning("host %s: statuses now come from sender %r (the last one was silent for %.1f s)",
+                            host, origin, received - record.current_heard)
+                record.recent.clear()  # the old sender's figures are not this one's
+            record.source, record.seq, record.candidate = origin, None, None
+        if origin == record.source:
+            if seq is not None and record.seq is not None and seq <= record.seq:
+                record.contested_until = received + s.contest_s
+                raise MessageError(f"host_status of {host}: seq {seq} not after {record.seq} from sender "
+                                   f"{origin!r} (replayed, or a second sender with its origin)")
+            if record.candidate is not None:
+                # The current sender is alive beside the new one: two senders on one key.
+                record.contested_until = received + s.contest_s
+                log.warning("host %s: two senders of its statuses (%r and %r); none counts for %.0f s",
+                            host, record.source, record.candidate, s.contest_s)
+                record.candidate = None
+            record.current_heard = received
+            if seq is not None:
+                record.seq = seq
+            return
+        if record.candidate != origin:
+            record.candidate, record.candidate_since = origin, received
+        raise MessageError(f"host_status of {host}: from sender {origin!r}, not the host's {record.source!r}: "
+                           f"counted once it alone has spoken for {s.new_source_s:g} s")
+
     def _window(self, host: str, now: float) -> list[float] | None:
         record = self._hosts.get(host)
         if record is None or (self.settings.require_alive and not record.alive):
+            return None
+        if now < record.contested_until:
             return None
         s = self.settings
         frees = [f for t, f in record.recent if t > now - s.window_s]
@@ -242,6 +294,9 @@ class HostMonitor:
         self._me: psutil.Process | None = None  # looked up on first use: __init__ does no I/O
         self._last: dict[str, Any] | None = None
         self.published = 0
+        # Who sends (random per monitor life) and in which order: consumers tell a second sender on this
+        # host's key (a forger, a replay) from this monitor by them (StatusTrust).
+        self.origin = secrets.token_hex(4)
 
     # -- measurements -------------------------------------------------------
 
@@ -351,7 +406,7 @@ class HostMonitor:
         )
 
     def _publish(self, body: dict[str, Any]) -> None:
-        self._publisher.put(messages.encode("host_status", body))
+        self._publisher.put(messages.encode("host_status", {**body, "origin": self.origin, "seq": self.published}))
         self._last = body
         self.published += 1
 
@@ -359,8 +414,7 @@ class HostMonitor:
         # On the squeeze server's worker; a MessageError is answered with reply_err naming the field.
         if request.payload is None:
             raise MessageError("squeeze_request has no payload")
-        body = messages.decode(request.payload, "squeeze_request")
-        reserve = float(body["reserve_mb"])
+        reserve = messages.decode_as(request.payload, messages.SqueezeRequest).reserve_mb
         if reserve < 0:
             raise MessageError(f"squeeze_request field 'reserve_mb' must not be negative, got {reserve}")
         with self._lock:

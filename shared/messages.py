@@ -1,37 +1,460 @@
 """Wire messages: msgpack maps with a kind and a schema version, checked on receipt.
 
-Every payload is a map ``{"kind": KIND, "v": VERSION, ...fields}``. ``encode``
-checks what we send; ``decode`` checks what we receive and raises
-:class:`MessageError` naming the problem (not msgpack, not a map, wrong kind,
-unknown version, missing or ill-typed field, oversized) so that a queryable
-can answer with an error reply and a subscriber can log a drop and go on.
+Every payload is a map ``{"kind": KIND, "v": VERSION, ...fields}``. Each kind is a
+frozen, keyword-only :class:`msgspec.Struct` below (the union :data:`Message` is
+tagged on ``kind``); process states, process events, triggers and changes are the
+enums of :mod:`kgadapt.shared.states`, so an unknown value is refused naming its
+field. ``encode`` checks what we send as a receiver would; ``decode`` checks what we
+receive and raises :class:`MessageError` naming the problem (not msgpack, not a map,
+wrong kind, unknown version, missing or ill-typed field with its path, a number that
+is not finite, oversized) so that a queryable can answer with an error reply and a
+subscriber can log a drop and go on.
 
-Fields not in the schema are kept, not refused: a newer sender may add
-optional fields without breaking older receivers. A new *required* field or a
-changed meaning needs a new version.
+Fields not in a Struct are kept, not refused: a newer sender may add optional
+fields without breaking older receivers (``decode`` returns them in its map; the
+Struct of :func:`decode_as` ignores them). A new *required* field or a changed
+meaning needs a new version.
+
+docs/CONTRACTS.md, section "Message kinds", is generated from these types
+(``python -m kgadapt.shared.messages docs/CONTRACTS.md``); tests/test_messages.py
+checks that it is up to date.
 """
 
 from __future__ import annotations
 
-import math
+import re
+import sys
+import typing
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from pathlib import Path
+from typing import Annotated, Any, ClassVar, TypeVar, Union
 
-import msgpack
+import msgspec
+from msgspec import Meta, Struct
 
 from kgadapt.shared.errors import MessageError
+from kgadapt.shared.states import Change, ProcessEventKind, ProcessState, TriggerKind
 
 MAX_PAYLOAD = 8 * 1024 * 1024  # a 1080p JPEG is well under this
 MAX_SMALL = 256 * 1024  # everything that is not a frame
 
-NUMBER = (int, float)
+# Field types. A number is a float on the wire or an int (taken as a float), never a bool,
+# NaN or an infinity: the bounds below refuse NaN and the infinities.
+_LARGEST = 1.7976931348623157e308
+Number = Annotated[float, Meta(ge=-_LARGEST, le=_LARGEST)]
+Name = Annotated[str, Meta(max_length=64)]  # a host, instance, configuration or camera name
+Str32 = Annotated[str, Meta(max_length=32)]
+Str128 = Annotated[str, Meta(max_length=128)]
+Str256 = Annotated[str, Meta(max_length=256)]
+Str4096 = Annotated[str, Meta(max_length=4096)]
+Params = Annotated[dict[str, Any], Meta(max_length=64)]  # named-query, Cypher or write parameters
+Triple = Annotated[list[Any], Meta(max_length=3)]
+Items = Annotated[list[Any], Meta(max_length=1024)]  # one entry per marker
+
+
+class Message(Struct, frozen=True, kw_only=True, tag_field="kind"):
+    """What every kind has: its schema version ``v`` (the tag ``kind`` is the Struct's).
+
+    Every field is sent, an unset optional one as nil (which a receiver reads as absent): ``v`` must be.
+    """
+
+    MAX_SIZE: ClassVar[int] = MAX_SMALL
+    v: int = 1
+
+
+class HostStatus(Message, tag="host_status", frozen=True, kw_only=True):
+    host: Name
+    time: Number
+    memory_total_mb: Number
+    memory_free_mb: Number
+    cpu_load: Number  # percent of one core: 2 busy cores = 200
+    cpu_cores: int | None = None
+    budget_mb: Number | None = None
+    ours_mb: Number | None = None
+    reserved_mb: Number | None = None
+    # The sender: random per monitor life, and a number that grows with each status (StatusTrust
+    # tells a second sender on a host's key by them).
+    origin: Str32 | None = None
+    seq: int | None = None
+
+
+class SqueezeRequest(Message, tag="squeeze_request", frozen=True, kw_only=True):
+    reserve_mb: Number  # >= 0; 0 lifts the reservation (checked by the host monitor)
+
+
+class Frame(Message, tag="frame", frozen=True, kw_only=True):
+    MAX_SIZE: ClassVar[int] = MAX_PAYLOAD
+    camera: Name
+    seq: int
+    time: Number
+    width: int
+    height: int
+    jpeg: Annotated[bytes, Meta(max_length=MAX_PAYLOAD)]
+    truth: Items | None = None
+    level: Number | None = None
+    sent: Number | None = None  # publication time (capture "time" is before encoding)
+
+
+class Illumination(Message, tag="illumination", frozen=True, kw_only=True):
+    camera: Name
+    seq: int
+    time: Number
+    mean: Number
+    p5: Number
+    p50: Number
+    p95: Number
+    smoothed: Number
+    # from kgadapt.onboard.illumination.estimate_light: the robust level the band is read from
+    # (smoothed is its EMA), and what it used
+    level: Number | None = None
+    frame_level: Number | None = None
+    marker_level: Number | None = None
+    source: Name | None = None
+    usable: Number | None = None
+    saturated: Number | None = None
+    black: Number | None = None
+    markers: int | None = None
+
+
+class Detections(Message, tag="detections", frozen=True, kw_only=True):
+    instance: Name
+    config: Name
+    host: Name
+    seq: int
+    frame_time: Number
+    time: Number
+    ids: Items
+    corners: Items
+    processing_ms: Number
+    # from kgadapt.onboard.detector: when the frame arrived, JPEG decode time, stale frames dropped so
+    # far, and the camera's publication time of the frame (transport = received - frame_sent)
+    camera: Name | None = None
+    received: Number | None = None
+    decode_ms: Number | None = None
+    dropped: int | None = None
+    frame_sent: Number | None = None
+    clean: Items | None = None  # per marker, whether its cells read clean (kgadapt.onboard.markers.cells_are_clean)
+
+
+class QueryRequest(Message, tag="query_request", frozen=True, kw_only=True):
+    params: Params | None = None
+
+
+class CypherRequest(Message, tag="cypher_request", frozen=True, kw_only=True):
+    cypher: Annotated[str, Meta(max_length=16384)]
+    params: Params | None = None
+
+
+class Rows(Message, tag="rows", frozen=True, kw_only=True):
+    MAX_SIZE: ClassVar[int] = MAX_PAYLOAD
+    rows: Annotated[list[dict[str, Any]], Meta(max_length=100_000)]
+    elapsed_ms: Number | None = None  # time in the store
+
+
+class WriteRequest(Message, tag="write_request", frozen=True, kw_only=True):
+    params: Params
+
+
+class DeployRequest(Message, tag="deploy_request", frozen=True, kw_only=True):
+    """Which fields a verb takes is the deployer's to say (it refuses the others, naming them)."""
+
+    deployment: Name | None = None
+    config: Name | None = None
+    instance: Name | None = None
+    wait_ready: bool | None = None  # absent: true
+    ready_timeout: Number | None = None  # seconds
+
+
+class Launcher(Struct, frozen=True, kw_only=True, omit_defaults=True):
+    """A deployer's launcher (the forking helper its detectors start from)."""
+
+    pid: int | None = None
+    ready: bool | None = None
+
+
+class ProcessDetail(Struct, frozen=True, kw_only=True, omit_defaults=True):
+    """One supervised process as a deployer reports it (``kgadapt.deploy.supervisor.ProcessInfo``)."""
+
+    instance: str | None = None
+    host: str | None = None
+    deployment: str | None = None
+    config: str | None = None
+    state: ProcessState | None = None
+    pid: int | None = None
+    run_id: str | None = None
+    restarts: int | None = None
+    started_at: Number | None = None
+    ready_at: Number | None = None
+    ended_at: Number | None = None
+    returncode: int | None = None
+    argv: list[str] | None = None
+    detail: str | None = None
+    output: list[str] | None = None  # the last lines the current (or last) run printed
+    via: str | None = None  # "launcher" (forked) or "exec"
+
+
+class DeployDetail(ProcessDetail, frozen=True, kw_only=True, omit_defaults=True):
+    """``detail`` of a ``deploy_reply``: one process (start, stop, status), the host's list, or a refusal."""
+
+    processes: list[ProcessDetail] | None = None  # list
+    launcher: Launcher | None = None  # list
+    error: str | None = None  # a refusal (ok false): what was wrong
+    error_type: Annotated[str, Meta(max_length=64)] | None = None  # its class in kgadapt.shared.errors
+
+
+class DeployReply(Message, tag="deploy_reply", frozen=True, kw_only=True):
+    ok: bool
+    detail: DeployDetail | None = None
+
+
+class ConfigureRequest(Message, tag="configure_request", frozen=True, kw_only=True):
+    """In-place reconfiguration of a running detector (kgadapt.onboard.detector)."""
+
+    config: Name
+
+
+class ConfigureReply(Message, tag="configure_reply", frozen=True, kw_only=True):
+    instance: Name
+    config: Name
+    previous: Name
+    deployment: Name
+    first_seq: int | None = None  # the first frame processed with the new configuration
+    check_ms: Number
+    build_ms: Number
+    first_frame_ms: Number | None = None
+
+
+class ActivityRequest(Message, tag="activity_request", frozen=True, kw_only=True):
+    """A detector's idle/active switch: an idle detector takes no frames and publishes nothing."""
+
+    active: bool
+
+
+class ActivityReply(Message, tag="activity_reply", frozen=True, kw_only=True):
+    instance: Name
+    active: bool
+    processed: int
+
+
+class DeployEvent(Message, tag="deploy_event", frozen=True, kw_only=True):
+    event: ProcessEventKind
+    host: Name
+    instance: Name
+    time: Number
+    pid: int | None = None
+    returncode: int | None = None  # negative: a signal
+    detail: Str4096 | None = None
+    run_id: Str128 | None = None
+    deployment: Name | None = None
+    config: Name | None = None
+
+
+class FlightState(Message, tag="flight_state", frozen=True, kw_only=True):
+    """The flight controller's state from the MAVLink bridge; an absent figure is unknown (not heard in time)."""
+
+    time: Number
+    link: bool
+    armed: bool | None = None
+    mode: Name | None = None
+    landed_state: Str32 | None = None
+    battery_pct: Number | None = None
+    battery_v: Number | None = None
+    onboard_load: Number | None = None
+    event: Str32 | None = None  # link_up, link_lost, link_restored, autopilot_rebooted
+    alt_rel_m: Number | None = None
+    alt_amsl_m: Number | None = None
+    lat_deg: Number | None = None
+    lon_deg: Number | None = None
+    attitude: Triple | None = None
+    rates: Triple | None = None
+    position_ned: Triple | None = None
+    velocity_ned: Triple | None = None
+    rangefinder_m: Number | None = None
+    home: Triple | None = None
+    heard: Annotated[dict[str, Any], Meta(max_length=16)] | None = None
+    boot_ms: int | None = None
+    reboots: int | None = None
+    missing: Annotated[list[Any], Meta(max_length=16)] | None = None
+    refused: Annotated[list[Any], Meta(max_length=16)] | None = None
+
+
+class Decision(Struct, frozen=True, kw_only=True, omit_defaults=True):
+    """``decision`` of an ``adaptation_event``: what the adaptation manager chose and how it went."""
+
+    name: str | None = None  # the Decision node's name in the graph
+    trigger_kind: TriggerKind | None = None
+    trigger_time: Number | None = None
+    change: Change | None = None
+    config: str | None = None
+    host: str | None = None
+    instance: str | None = None
+    previous_instance: str | None = None
+    latency_ms: Number | None = None
+    frames_lost: int | None = None
+
+
+class AdaptationEvent(Message, tag="adaptation_event", frozen=True, kw_only=True):
+    time: Number
+    trigger: Str256
+    decision: Decision | None = None
+    outcome: Str256 | None = None
+
+
+# The tagged union of every kind: msgspec picks the Struct by ``kind``.
+AnyMessage = Union[
+    HostStatus, SqueezeRequest, Frame, Illumination, Detections, QueryRequest, CypherRequest, Rows, WriteRequest,
+    DeployRequest, ConfigureRequest, ConfigureReply, ActivityRequest, ActivityReply, DeployReply, DeployEvent,
+    FlightState, AdaptationEvent,
+]
+KINDS: dict[str, type[Message]] = {str(t.__struct_config__.tag): t for t in typing.get_args(AnyMessage)}
+
+M = TypeVar("M", bound=Message)
+
+_RAW = msgspec.msgpack.Decoder()
+_ENCODER = msgspec.msgpack.Encoder(enc_hook=lambda obj: _plain(obj))
+
+
+def _plain(obj: object) -> object:
+    # float subclasses (numpy.float64) go as floats, as msgpack-python sent them.
+    if isinstance(obj, float):
+        return float(obj)
+    raise TypeError(f"cannot send a {type(obj).__name__}")
+
+
+# v is the first field of every kind; looked up once (msgspec.structs.fields resolves the annotations).
+_VERSIONS: dict[type[Message], int] = {cls: int(msgspec.structs.fields(cls)[0].default) for cls in KINDS.values()}
+# What encode checks its payload with: the Struct's own decoder, one typed pass.
+_DECODERS: dict[type[Message], msgspec.msgpack.Decoder[Any]] = {cls: msgspec.msgpack.Decoder(cls) for cls in KINDS.values()}
+
+
+def kind_of(cls: type[Message]) -> str:
+    return str(cls.__struct_config__.tag)
+
+
+def version_of(cls: type[Message]) -> int:
+    return _VERSIONS[cls]
+
+
+def encode(message: Message | str, body: Mapping[str, Any] | None = None) -> bytes:
+    """Pack a message: a Struct, or ``body`` as a ``kind`` message; checked as a receiver checks it.
+
+    A ``body`` map may carry fields the Struct does not know: they are sent.
+    """
+    what: Message | dict[str, Any]
+    if isinstance(message, Message):
+        cls, what = type(message), message
+        if message.v != version_of(cls):
+            raise MessageError(f"a {kind_of(cls)} message has version {message.v}; this sender writes {version_of(cls)}")
+    else:
+        cls = _kind(message)
+        version = version_of(cls)
+        if body and (body.get("kind", message) != message or body.get("v", version) != version):
+            raise MessageError(f"a {message} body names kind {body.get('kind')!r}, version {body.get('v')!r}")
+        what = {"kind": message, "v": version, **(body or {})}
+    kind = kind_of(cls)
+    try:
+        payload = _ENCODER.encode(what)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise MessageError(f"{kind} message cannot be packed: {exc}") from exc
+    if len(payload) > cls.MAX_SIZE:
+        raise MessageError(f"{kind} message of {len(payload)} bytes exceeds {cls.MAX_SIZE}")
+    try:
+        # Kind and version are ours, so the receiver's field checks suffice: one typed pass.
+        _DECODERS[cls].decode(payload)
+    except msgspec.ValidationError as exc:
+        raise MessageError(_explain(kind, exc)) from exc
+    return payload
+
+
+def decode(payload: bytes | bytearray | memoryview, kind: str) -> dict[str, Any]:
+    """Unpack and check a ``kind`` message; its map as sent (unknown fields kept). MessageError says what is wrong."""
+    return _load(payload, _kind(kind))[0]
+
+
+def decode_as(payload: bytes | bytearray | memoryview, cls: type[M]) -> M:
+    """Unpack and check a message of the kind ``cls``; MessageError says what is wrong."""
+    message = _load(payload, cls)[1]
+    assert isinstance(message, cls)
+    return message
+
+
+def decode_any(payload: bytes | bytearray | memoryview) -> Message:
+    """Unpack and check a message of whichever kind it says it is."""
+    try:
+        kind = _RAW.decode(payload).get("kind")
+    except (msgspec.MsgspecError, AttributeError, RecursionError) as exc:
+        raise MessageError(f"message is not a valid msgpack map: {exc}") from exc
+    if not isinstance(kind, str):
+        raise MessageError(f"message has no kind but {kind!r}")
+    return _load(payload, _kind(kind))[1]
+
+
+def _kind(kind: str) -> type[Message]:
+    try:
+        return KINDS[kind]
+    except KeyError:
+        raise MessageError(f"unknown message kind {kind!r}") from None
+
+
+def _load(payload: bytes | bytearray | memoryview, cls: type[Message]) -> tuple[dict[str, Any], Message]:
+    kind, version = kind_of(cls), version_of(cls)
+    if len(payload) > cls.MAX_SIZE:
+        raise MessageError(f"{kind} message of {len(payload)} bytes exceeds {cls.MAX_SIZE}")
+    try:
+        raw = _RAW.decode(payload)
+    except (msgspec.MsgspecError, RecursionError) as exc:
+        raise MessageError(f"{kind} message is not valid msgpack: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise MessageError(f"{kind} message is not a map but {type(raw).__name__}")
+    if raw.get("kind") != kind:
+        raise MessageError(f"expected a {kind} message, got kind {raw.get('kind')!r}")
+    if raw.get("v") != version:
+        raise MessageError(f"{kind} message has version {raw.get('v')!r}; this receiver reads version {version}")
+    try:
+        # bytes stay bytes: a str is not taken as base64 for one.
+        message = msgspec.convert(raw, cls, builtin_types=(bytes,))
+    except msgspec.ValidationError as exc:
+        raise MessageError(_explain(kind, exc)) from exc
+    return raw, message
+
+
+_WHERE = re.compile(r"^(?P<what>.*?)(?: - at `(?P<path>[^`]*)`)?$", re.S)
+_MISSING = re.compile(r"^Object missing required field `(?P<name>[^`]+)`$")
+
+
+def _explain(kind: str, exc: msgspec.ValidationError) -> str:
+    """msgspec's complaint as ours: the field's path without ``$.``, and "finite" for NaN and infinities."""
+    text = str(exc)
+    if " - at `key` in `" in text:
+        where = text.rsplit(" - at `key` in `", 1)[1].rstrip("`")
+        where = "" if where == "$" else f" in {where.removeprefix('$.')!r}"
+        return f"{kind} message has a map key that is not a string{where}"
+    match = _WHERE.match(text)
+    what, path = (match.group("what"), match.group("path") or "$") if match else (text, "$")
+    field = path[2:] if path.startswith("$.") else path.removeprefix("$")
+    missing = _MISSING.match(what)
+    if missing:
+        name = f"{field}.{missing.group('name')}" if field else missing.group("name")
+        return f"{kind} message lacks field {name!r}"
+    if repr(_LARGEST) in what:
+        what = "must be a finite number"
+    if not field:
+        return f"{kind} message: {what}"
+    return f"{kind} field {field!r}: {what}"
+
+
+# -- a description of the kinds, for the fuzzers and the contract's table ------------------------------------
 
 
 @dataclass(frozen=True)
 class Field:
+    """One field of a kind: the Python types a receiver takes, whether it must be there, its length limit."""
+
     types: tuple[type, ...]
-    required: bool = True
-    max_len: int | None = None  # strings, bytes, lists, maps
+    required: bool
+    max_len: int | None
+    text: str  # the type in words, as docs/CONTRACTS.md shows it
 
 
 @dataclass(frozen=True)
@@ -39,169 +462,94 @@ class Schema:
     kind: str
     version: int
     fields: Mapping[str, Field]
-    max_size: int = MAX_SMALL
+    max_size: int
 
 
-def _f(*types: type, required: bool = True, max_len: int | None = None) -> Field:
-    return Field(types, required, max_len)
+def _describe(t: Any) -> Field:
+    """Types, limit and words of one msgspec type (``required`` is filled in by the caller)."""
+    from msgspec import inspect as mi
+
+    if isinstance(t, mi.UnionType):
+        parts = [_describe(p) for p in t.types if not isinstance(p, mi.NoneType)]
+        return Field(tuple(x for p in parts for x in p.types), False, parts[0].max_len if len(parts) == 1 else None,
+                     " or ".join(p.text for p in parts))
+    if isinstance(t, mi.FloatType):
+        return Field((int, float), True, None, "number")
+    if isinstance(t, mi.IntType):
+        return Field((int,), True, None, "int")
+    if isinstance(t, mi.BoolType):
+        return Field((bool,), True, None, "bool")
+    if isinstance(t, mi.StrType):
+        return Field((str,), True, t.max_length, "str" + (f" ≤ {t.max_length}" if t.max_length else ""))
+    if isinstance(t, mi.BytesType):
+        return Field((bytes,), True, t.max_length, "bytes" + (f" ≤ {t.max_length}" if t.max_length else ""))
+    if isinstance(t, mi.EnumType):
+        return Field((str,), True, None, f"`{t.cls.__name__}`")
+    if isinstance(t, mi.ListType):
+        item = "" if isinstance(t.item_type, mi.AnyType) else f" of {_describe(t.item_type).text}"
+        return Field((list,), True, t.max_length, "list" + item + (f" ≤ {t.max_length}" if t.max_length else ""))
+    if isinstance(t, mi.DictType):
+        return Field((dict,), True, t.max_length, "map" + (f" ≤ {t.max_length}" if t.max_length else ""))
+    if isinstance(t, mi.StructType):
+        return Field((dict,), True, None, f"`{t.cls.__name__}`")
+    if isinstance(t, mi.LiteralType):
+        return Field(tuple({type(v) for v in t.values}), True, None, " or ".join(map(repr, t.values)))
+    return Field((object,), True, None, "any")
 
 
-_NAME = _f(str, max_len=64)
-_OPT_NAME = _f(str, required=False, max_len=64)
-_TIME = _f(*NUMBER)
+def fields_of(cls: type[Struct]) -> dict[str, Field]:
+    """Every field of a Struct but the version ``v``, in order."""
+    from msgspec import inspect as mi
+
+    info = mi.type_info(cls)
+    assert isinstance(info, mi.StructType)
+    out = {}
+    for f in info.fields:
+        if f.name == "v" and issubclass(cls, Message):
+            continue
+        d = _describe(f.type)
+        out[f.name] = Field(d.types, f.required, d.max_len, d.text)
+    return out
+
 
 SCHEMAS: dict[str, Schema] = {
-    s.kind: s
-    for s in [
-        Schema("host_status", 1, {
-            "host": _NAME, "time": _TIME,
-            "memory_total_mb": _f(*NUMBER), "memory_free_mb": _f(*NUMBER), "cpu_load": _f(*NUMBER),
-            "cpu_cores": _f(int, required=False), "budget_mb": _f(*NUMBER, required=False),
-            "ours_mb": _f(*NUMBER, required=False), "reserved_mb": _f(*NUMBER, required=False),
-        }),
-        Schema("squeeze_request", 1, {"reserve_mb": _f(*NUMBER)}),
-        Schema("frame", 1, {
-            "camera": _NAME, "seq": _f(int), "time": _TIME,
-            "width": _f(int), "height": _f(int), "jpeg": _f(bytes, max_len=MAX_PAYLOAD),
-            "truth": _f(list, required=False, max_len=1024),
-            "level": _f(*NUMBER, required=False),
-            "sent": _f(*NUMBER, required=False),  # publication time (capture "time" is before encoding)
-        }, max_size=MAX_PAYLOAD),
-        Schema("illumination", 1, {
-            "camera": _NAME, "seq": _f(int), "time": _TIME,
-            "mean": _f(*NUMBER), "p5": _f(*NUMBER), "p50": _f(*NUMBER), "p95": _f(*NUMBER),
-            "smoothed": _f(*NUMBER),
-            # optional, from kgadapt.onboard.illumination.estimate_light: the robust level the band is read
-            # from (smoothed is its EMA), and what it used
-            "level": _f(*NUMBER, required=False), "frame_level": _f(*NUMBER, required=False),
-            "marker_level": _f(*NUMBER, required=False), "source": _OPT_NAME,
-            "usable": _f(*NUMBER, required=False), "saturated": _f(*NUMBER, required=False),
-            "black": _f(*NUMBER, required=False), "markers": _f(int, required=False),
-        }),
-        Schema("detections", 1, {
-            "instance": _NAME, "config": _NAME, "host": _NAME, "seq": _f(int),
-            "frame_time": _TIME, "time": _TIME,
-            "ids": _f(list, max_len=1024), "corners": _f(list, max_len=1024),
-            "processing_ms": _f(*NUMBER),
-            # optional, from kgadapt.onboard.detector: when the frame arrived, JPEG decode time, stale frames
-            # dropped so far, and the camera's publication time of the frame (transport = received - frame_sent)
-            "camera": _OPT_NAME, "received": _f(*NUMBER, required=False), "decode_ms": _f(*NUMBER, required=False),
-            "dropped": _f(int, required=False), "frame_sent": _f(*NUMBER, required=False),
-            # optional: per marker, whether its cells read clean (kgadapt.onboard.markers.cells_are_clean)
-            "clean": _f(list, required=False, max_len=1024),
-        }),
-        Schema("query_request", 1, {"params": _f(dict, required=False, max_len=64)}),
-        Schema("cypher_request", 1, {
-            "cypher": _f(str, max_len=16384), "params": _f(dict, required=False, max_len=64),
-        }),
-        Schema("rows", 1, {"rows": _f(list, max_len=100_000), "elapsed_ms": _f(*NUMBER, required=False)},
-               max_size=MAX_PAYLOAD),
-        Schema("write_request", 1, {"params": _f(dict, max_len=64)}),
-        Schema("deploy_request", 1, {
-            "deployment": _f(str, required=False, max_len=64), "config": _f(str, required=False, max_len=64),
-            "instance": _f(str, required=False, max_len=64),
-            "wait_ready": _f(bool, required=False), "ready_timeout": _f(*NUMBER, required=False),
-        }),
-        # In-place reconfiguration of a running detector (kgadapt.onboard.detector): ask, and what it did.
-        Schema("configure_request", 1, {"config": _NAME}),
-        Schema("configure_reply", 1, {
-            "instance": _NAME, "config": _NAME, "previous": _NAME, "deployment": _f(str, max_len=64),
-            "first_seq": _f(int, required=False), "check_ms": _f(*NUMBER), "build_ms": _f(*NUMBER),
-            "first_frame_ms": _f(*NUMBER, required=False),
-        }),
-        # A detector's idle/active switch (kgadapt.onboard.detector): an idle detector takes no frames and publishes nothing.
-        Schema("activity_request", 1, {"active": _f(bool)}),
-        Schema("activity_reply", 1, {"instance": _NAME, "active": _f(bool), "processed": _f(int)}),
-        Schema("deploy_reply", 1, {"ok": _f(bool), "detail": _f(dict, required=False)}),
-        Schema("deploy_event", 1, {
-            "event": _f(str, max_len=32), "host": _NAME, "instance": _NAME, "time": _TIME,
-            "pid": _f(int, required=False), "returncode": _f(int, required=False),
-            "detail": _f(str, required=False, max_len=4096),
-            "run_id": _f(str, required=False, max_len=128), "deployment": _f(str, required=False, max_len=64),
-            "config": _f(str, required=False, max_len=64),
-        }),
-        Schema("flight_state", 1, {
-            "time": _TIME, "link": _f(bool), "armed": _f(bool, required=False),
-            "mode": _f(str, required=False, max_len=64), "landed_state": _f(str, required=False, max_len=32),
-            "battery_pct": _f(*NUMBER, required=False), "battery_v": _f(*NUMBER, required=False),
-            "onboard_load": _f(*NUMBER, required=False),
-            "event": _f(str, required=False, max_len=32),  # link_up, link_lost, link_restored, autopilot_rebooted
-            # optional (issue 12): absent = unknown, i.e. not heard within its stream's timeout
-            "alt_rel_m": _f(*NUMBER, required=False), "alt_amsl_m": _f(*NUMBER, required=False),
-            "lat_deg": _f(*NUMBER, required=False), "lon_deg": _f(*NUMBER, required=False),
-            "attitude": _f(list, required=False, max_len=3), "rates": _f(list, required=False, max_len=3),
-            "position_ned": _f(list, required=False, max_len=3), "velocity_ned": _f(list, required=False, max_len=3),
-            "rangefinder_m": _f(*NUMBER, required=False), "home": _f(list, required=False, max_len=3),
-            "heard": _f(dict, required=False, max_len=16), "boot_ms": _f(int, required=False),
-            "reboots": _f(int, required=False), "missing": _f(list, required=False, max_len=16),
-            "refused": _f(list, required=False, max_len=16),
-        }),
-        Schema("adaptation_event", 1, {
-            "time": _TIME, "trigger": _f(str, max_len=256), "decision": _f(dict, required=False),
-            "outcome": _f(str, required=False, max_len=256),
-        }),
-    ]
+    kind: Schema(kind, version_of(cls), fields_of(cls), cls.MAX_SIZE) for kind, cls in KINDS.items()
 }
+NESTED: tuple[type[Struct], ...] = (DeployDetail, ProcessDetail, Launcher, Decision)
+ENUMS = (ProcessState, ProcessEventKind, TriggerKind, Change)
+
+BEGIN = "<!-- message kinds: generated by `python -m kgadapt.shared.messages docs/CONTRACTS.md` -->"
+END = "<!-- end of message kinds -->"
 
 
-def encode(kind: str, body: Mapping[str, Any]) -> bytes:
-    """Pack ``body`` as a ``kind`` message, checking it against the schema first."""
-    schema = _schema(kind)
-    message = {"kind": kind, "v": schema.version, **body}
-    _check(schema, message)
-    payload: bytes = msgpack.packb(message, use_bin_type=True)
-    if len(payload) > schema.max_size:
-        raise MessageError(f"{kind} message of {len(payload)} bytes exceeds {schema.max_size}")
-    return payload
+def contract_table() -> str:
+    """The "Message kinds" tables of docs/CONTRACTS.md, from the types above."""
+
+    def cells(fields: Mapping[str, Field]) -> str:
+        required = [f"`{n}` ({f.text})" for n, f in fields.items() if f.required]
+        optional = [f"`{n}` ({f.text})" for n, f in fields.items() if not f.required]
+        return ", ".join(required) + (" | " if required else "— | ") + (", ".join(optional) or "—")
+
+    lines = [BEGIN, "", "| kind | v | max bytes | fields | optional fields |", "|---|---|---|---|---|"]
+    for kind, schema in SCHEMAS.items():
+        lines.append(f"| `{kind}` | {schema.version} | {schema.max_size} | {cells(schema.fields)} |")
+    lines += ["", "Nested maps:", "", "| map | fields | optional fields |", "|---|---|---|"]
+    for cls in NESTED:
+        lines.append(f"| `{cls.__name__}` | {cells(fields_of(cls))} |")
+    lines += ["", END]
+    return "\n".join(lines)
 
 
-def decode(payload: bytes | bytearray | memoryview, kind: str) -> dict[str, Any]:
-    """Unpack and check a ``kind`` message; raise MessageError saying what is wrong."""
-    schema = _schema(kind)
-    data = bytes(payload)
-    if len(data) > schema.max_size:
-        raise MessageError(f"{kind} message of {len(data)} bytes exceeds {schema.max_size}")
-    try:
-        # The size was checked above; msgpack's unpackb() takes no max_buffer_size.
-        message = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True)
-    except Exception as exc:  # msgpack raises several unrelated types
-        raise MessageError(f"{kind} message is not valid msgpack: {exc}") from exc
-    if not isinstance(message, dict):
-        raise MessageError(f"{kind} message is not a map but {type(message).__name__}")
-    if message.get("kind") != kind:
-        raise MessageError(f"expected a {kind} message, got kind {message.get('kind')!r}")
-    if message.get("v") != schema.version:
-        raise MessageError(f"{kind} message has version {message.get('v')!r}; this receiver reads version {schema.version}")
-    _check(schema, message)
-    return message
+def update_doc(path: Path) -> bool:
+    """Rewrite the generated section of ``path``; True when it changed."""
+    text = path.read_text()
+    start, end = text.index(BEGIN), text.index(END) + len(END)
+    new = text[:start] + contract_table() + text[end:]
+    if new != text:
+        path.write_text(new)
+    return new != text
 
 
-def _schema(kind: str) -> Schema:
-    try:
-        return SCHEMAS[kind]
-    except KeyError:
-        raise MessageError(f"unknown message kind {kind!r}") from None
-
-
-def _check(schema: Schema, message: Mapping[str, Any]) -> None:
-    for name, field in schema.fields.items():
-        if name not in message or message[name] is None:
-            if field.required:
-                raise MessageError(f"{schema.kind} message lacks field {name!r}")
-            continue
-        value = message[name]
-        # bool is an int in Python; a number field must not accept True.
-        if isinstance(value, bool) and bool not in field.types:
-            raise MessageError(f"{schema.kind} field {name!r} must be {_names(field.types)}, not bool")
-        if not isinstance(value, field.types):
-            raise MessageError(
-                f"{schema.kind} field {name!r} must be {_names(field.types)}, not {type(value).__name__}"
-            )
-        if isinstance(value, float) and not math.isfinite(value):
-            raise MessageError(f"{schema.kind} field {name!r} is not a finite number")
-        if field.max_len is not None and hasattr(value, "__len__") and len(value) > field.max_len:
-            raise MessageError(f"{schema.kind} field {name!r} is too long ({len(value)} > {field.max_len})")
-
-
-def _names(types: tuple[type, ...]) -> str:
-    return " or ".join(t.__name__ for t in types)
+if __name__ == "__main__":
+    for name in sys.argv[1:] or ["docs/CONTRACTS.md"]:
+        print(f"{name}: {'updated' if update_doc(Path(name)) else 'up to date'}")

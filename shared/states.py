@@ -4,8 +4,9 @@ carried a change out.
 
 Each is a :class:`enum.StrEnum`: a member is the very string sent and stored
 (msgpack, JSON and the graph see ``"ready"``, not an enum), and it compares
-equal to that string, so what a receiver decodes (a plain ``str``) is tested
-against these members directly. docs/CONTRACTS.md lists the values;
+equal to that string, so a plain ``str`` (``messages.decode``'s map) is tested
+against these members directly; ``messages.decode_as`` gives the members, and
+refuses a value that is none of them, naming the field. docs/CONTRACTS.md lists the values;
 tests/test_states.py checks the two agree.
 """
 

@@ -45,7 +45,6 @@ and line.
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from kgadapt.knowledge import schema as S
@@ -248,8 +247,12 @@ def _config_json(b: _Block) -> None:
     if b.kind != "rpsl.processing_component":
         return
     if "dictionary" in b.props:
-        b.props["config_json"] = json.dumps(
-            {"dictionary": b.props["dictionary"], "preprocess": b.preprocess, "parameters": b.parameters})
+        # Written through the detector's schema: what the importer writes is what parse_config reads.
+        b.props["config_json"] = preprocessing.DetectorSettings(
+            dictionary=b.props["dictionary"], parameters=b.parameters,
+            preprocess=[preprocessing.make_step(step["op"], {k: v for k, v in step.items() if k != "op"})
+                        for step in b.preprocess],
+        ).to_json()
     elif b.parameters or b.preprocess:
         raise b.origin.error(f"{b.name}: detector parameters or preprocess steps need a dictionary statement")
 

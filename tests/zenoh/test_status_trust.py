@@ -146,3 +146,58 @@ def test_a_hosts_profiles_close_when_its_liveliness_is_lost_and_reopen_if_its_pr
                                   rss_mb_max=50.0, cpu_percent_mean=1.0, received=time.time())
     assert resp_store.execute(profile, {"run": "run-a"})[0] == {"end": None, "why": None}
     assert runtime.held_by_processes(resp_store, host="remote") == 50.0
+
+
+def sent(origin: str, seq: int, **kw) -> dict:
+    return {**status(**kw), "origin": origin, "seq": seq}
+
+
+def test_a_second_sender_beside_the_real_monitor_makes_none_of_the_hosts_statuses_count():
+    trust = StatusTrust(TrustSettings(window_s=2.5, new_source_s=5.0, contest_s=15.0))
+    trust.alive("onboard", True)
+    trust.admit("onboard", sent("real", 0, host="onboard", free=600.0), received=10.0)
+    trust.admit("onboard", sent("real", 1, host="onboard", free=600.0), received=10.5)
+    assert trust.roomiest("onboard", 10.6) == 600.0
+    # A forger's "full" statuses, each refused while on probation...
+    for i, t in enumerate((11.0, 11.7, 12.4)):
+        with pytest.raises(MessageError, match="not the host's 'real'"):
+            trust.admit("onboard", sent("forger", i, host="onboard", free=0.0), received=t)
+    # ...and once the real monitor speaks again (late: a loaded machine), the host is contested.
+    trust.admit("onboard", sent("real", 2, host="onboard", free=600.0), received=13.0)
+    assert trust.roomiest("onboard", 13.1) is None and trust.confirmed_free("onboard", 13.1) is None
+    trust.admit("onboard", sent("real", 3, host="onboard", free=600.0), received=28.5)
+    trust.admit("onboard", sent("real", 4, host="onboard", free=600.0), received=29.0)
+    assert trust.roomiest("onboard", 29.1) == 600.0  # the contest is over
+
+
+def test_a_forgery_without_an_origin_never_counts_while_the_monitor_speaks():
+    trust = StatusTrust(TrustSettings(new_source_s=5.0))
+    trust.alive("onboard", True)
+    trust.admit("onboard", sent("real", 0, host="onboard"), received=1.0)
+    with pytest.raises(MessageError, match="sender ''"):
+        trust.admit("onboard", status("onboard", free=0.0), received=1.2)
+
+
+def test_a_replayed_or_copied_sequence_number_is_refused_and_contests_the_host():
+    trust = StatusTrust(TrustSettings(contest_s=15.0))
+    trust.alive("onboard", True)
+    trust.admit("onboard", sent("real", 7, host="onboard"), received=1.0)
+    trust.admit("onboard", sent("real", 8, host="onboard"), received=1.5)
+    with pytest.raises(MessageError, match="seq 8 not after 8"):
+        trust.admit("onboard", sent("real", 8, host="onboard", free=0.0), received=1.6)
+    assert trust.roomiest("onboard", 2.0) is None
+
+
+def test_a_restarted_monitor_takes_over_once_the_old_one_stays_silent():
+    trust = StatusTrust(TrustSettings(require_alive=False, new_source_s=5.0, window_s=2.5))
+    trust.admit("remote", sent("old", 0, free=500.0), received=1.0)
+    with pytest.raises(MessageError, match="counted once it alone has spoken for 5 s"):
+        trust.admit("remote", sent("new", 0, free=400.0), received=3.0)
+    trust.admit("remote", sent("new", 1, free=400.0), received=8.5)  # the old one silent since 1.0
+    trust.admit("remote", sent("new", 2, free=400.0), received=9.0)
+    assert trust.confirmed_free("remote", 9.1) == 400.0
+    # A new liveliness token starts afresh: the first sender of the new session counts at once.
+    trust.alive("remote", True)
+    trust.admit("remote", sent("third", 0, free=300.0), received=10.0)
+    trust.admit("remote", sent("third", 1, free=300.0), received=10.5)
+    assert trust.confirmed_free("remote", 10.6) == 300.0
