@@ -43,9 +43,10 @@ from pathlib import Path
 from typing import Any
 
 from kgadapt.bench.stats import format_table, machine_info, make_record, write_records
+from kgadapt.shared.resources import results_dir
 from kgadapt.shared.states import TriggerKind
 
-RESULTS = Path(__file__).resolve().parent / "results" / "adaptation.json"
+RESULTS = results_dir() / "adaptation.json"
 PAPER = {"start_ms": 1.602, "stop_ms": 0.072, "query_ms": 7.323, "insert_ms": 27.766}  # Table I, N = 100
 
 

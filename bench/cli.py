@@ -3,7 +3,8 @@
 Each bench module in the static table :data:`BENCHES` exposes
 ``register(bench_subparsers)``; one that cannot be imported is an error (a
 broken installation), never a silently missing benchmark. Results go to
-``bench/results/``.
+``bench/results/`` in a source checkout, else to ``./bench-results/`` (each bench's ``--out``
+says otherwise; :func:`kgadapt.shared.resources.results_dir`).
 """
 
 from __future__ import annotations
@@ -31,8 +32,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``kgadapt bench`` and the subcommands of every bench present."""
     parser = subparsers.add_parser(
         "bench",
-        help="run a benchmark and write its results to bench/results/",
-        description="Benchmarks. Each writes JSON records (mean, sd, p50, p99 in ms) to bench/results/.",
+        help="run a benchmark and write its results to bench/results/ (./bench-results/ outside a checkout)",
+        description="Benchmarks. Each writes JSON records (mean, sd, p50, p99 in ms) to bench/results/ in a "
+                    "source checkout, else to ./bench-results/, or where its --out says.",
     )
     bench_sub = parser.add_subparsers(dest="bench", metavar="BENCH")
     bench_sub.required = True

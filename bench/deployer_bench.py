@@ -44,11 +44,12 @@ from typing import Any
 from kgadapt.bench.stats import format_table, machine_info, make_record, summarize, write_records
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.readiness import READY_TOKEN
+from kgadapt.shared.resources import results_dir
 
 log = logging.getLogger(__name__)
 
 ROBOT = "benchbot"
-DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "deployer.json"
+DEFAULT_OUT = results_dir() / "deployer.json"
 PAPER = {"start_ms": 1.6, "stop_ms": 0.07}
 
 C_PROGRAM = r"""
@@ -61,7 +62,7 @@ int main(void) {
     for (;;) pause();
 }
 """.replace("@TOKEN@", READY_TOKEN)
-ECHO_ARGS = ["-m", "kgadapt.deploy.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
+ECHO_ARGS = ["-m", "kgadapt.sim.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
              "--config", "{config}", "--connect", "{connect}"]
 
 
@@ -137,6 +138,7 @@ class _Rig:
         self._stack = contextlib.ExitStack()
 
     def __enter__(self) -> "_Rig":
+        from kgadapt.deploy.client import DeployerClient
         from kgadapt.deploy.deployer import Deployer, DeployerSettings
         from kgadapt.deploy.supervisor import RestartPolicy, Supervisor, SupervisorSettings
         from kgadapt.knowledge.loader import load_models
@@ -186,7 +188,7 @@ class _Rig:
         for supervisor in (self.supervisor_launcher, self.deployers["onboard"].supervisor):
             if supervisor.launcher is None or not supervisor.launcher.wait_ready(120.0):
                 raise ConfigError("the launcher did not get ready within 120 s")
-        _wait_for_deployers(self.session, list(self.deployers))
+        DeployerClient(self.session, ROBOT).wait_for(list(self.deployers))
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -235,18 +237,6 @@ def _free_port() -> int:
     raise ConfigError("no free TCP port on loopback")
 
 
-def _wait_for_deployers(session: Any, hosts: list[str], timeout: float = 10.0) -> None:
-    from kgadapt.shared import keys, messages
-
-    request = messages.encode("deploy_request", {})
-    deadline = time.monotonic() + timeout
-    for host in hosts:
-        while not list(session.get(keys.deployer_verb(ROBOT, host, "list"), payload=request, timeout=1.0)):
-            if time.monotonic() > deadline:
-                raise ConfigError(f"bench deployer {host} not reachable")
-            time.sleep(0.01)
-
-
 # -- 1. supervisor ------------------------------------------------------------------------
 
 
@@ -264,7 +254,7 @@ def supervisor_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, 
             ("C program (trivial), setpriv launcher", (str(rig.c_program),), args.reps, rig.supervisor_setpriv),
             ("python -c (bare), setpriv launcher", bare, args.reps, rig.supervisor_setpriv),
         ]
-    echo = (py, "-m", "kgadapt.deploy.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
+    echo = (py, "-m", "kgadapt.sim.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
             "--config", "echo_config", "--connect", rig.endpoint)
     detector = (py, "-m", "kgadapt.onboard.detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
                 "--config", "marker_detection_day", "--connect", rig.endpoint)

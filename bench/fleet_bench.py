@@ -45,12 +45,13 @@ from typing import Any, Sequence
 from kgadapt.bench.stats import format_table, machine_info, make_record, write_json
 from kgadapt.shared.children import ChildProcess, StopPolicy
 from kgadapt.shared.resources import models as shipped_models
+from kgadapt.shared.resources import results_dir
 
 log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parent.parent
 MODELS = shipped_models()
-DEFAULT_OUT = REPO / "bench" / "results" / "fleet.json"
+DEFAULT_OUT = results_dir() / "fleet.json"
 CONFIGS = (("marker_detection_day", "day"), ("marker_detection_dusk", "dusk"), ("marker_detection_dark", "dark"))
 HOSTS = ("onboard", "remote")
 

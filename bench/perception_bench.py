@@ -34,10 +34,10 @@ from typing import Any
 
 from kgadapt.shared.children import ChildProcess
 from kgadapt.shared.errors import KgadaptError
-from kgadapt.shared.resources import models
+from kgadapt.shared.resources import models, results_dir
 
 REPO = Path(__file__).resolve().parent.parent
-RESULTS = REPO / "bench" / "results"
+RESULTS = results_dir()
 TRANSPORT_TARGET_P99_MS = 20.0
 DAY_JSON = '{"dictionary": "DICT_4X4_50", "preprocess": [], "parameters": {}}'
 
@@ -113,10 +113,11 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
     from kgadapt.onboard.illumination import bands_from_rows
 
     settings = CalibrationSettings(frames_per_level=frames, levels_per_band=levels)
+    folder = Path(out).parent  # the calibration's and the quality's files go beside the records
     with tempfile.TemporaryDirectory(prefix="kgadapt-perception-") as tmp:
         url = store_url or f"embedded:{tmp}/store"
         calibration = run_calibration(url, settings=settings, progress=progress,
-                                      json_path=RESULTS / "calibration.json", plot_path=RESULTS / "calibration.png")
+                                      json_path=folder / "calibration.json", plot_path=folder / "calibration.png")
         # The planner's view: the ranking query on the calibrated graph, judged on fresh frames.
         with open_store(url) as store:
             ask = lambda name, params: run_named(store, name, params)  # noqa: E731
@@ -135,8 +136,8 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
     photos = quality.photo_agreement()
     target_rates = quality.targets()
     quality_summary = {"oracle": oracle, "phantoms": phantoms, "photos": photos, "targets": target_rates}
-    (RESULTS / "perception.quality.json").write_text(json.dumps({"machine": stats.machine_info(), **quality_summary},
-                                                               indent=2) + "\n")
+    (folder / "perception.quality.json").write_text(json.dumps({"machine": stats.machine_info(), **quality_summary},
+                                                             indent=2) + "\n")
     records: list[dict[str, Any]] = []
     for r in calibration["results"]:
         records.append({
@@ -173,9 +174,9 @@ def measure_transport(*, seconds: float, fps: float, robot: str = "benchperc") -
     """Camera publisher here, detector in a child process; latencies from the detections' timestamps."""
     from kgadapt.bench import stats
     from kgadapt.onboard.camera import CameraPart, CameraSettings, SyntheticSource
-    from kgadapt.onboard.scenario import IlluminationProfile
     from kgadapt.shared import keys, messages
     from kgadapt.shared.session import ZenohSettings, open_session
+    from kgadapt.sim.scenario import IlluminationProfile
 
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     session = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))

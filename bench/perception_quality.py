@@ -69,8 +69,8 @@ def oracle_gap(ask: Callable[[str, dict[str, Any]], list[dict[str, Any]]], bands
 
 def phantom_scenes(total: int, *, run: int = 20):
     """``total`` frames without DICT_4X4_50 markers, in runs of ``run`` consecutive frames of one scene."""
-    from kgadapt.onboard.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
-    from kgadapt.onboard.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
+    from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
+    from kgadapt.sim.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
 
     photos = [load_photo(name) for name in PHOTO_DICTIONARIES]
     variants = [(None, CameraModel()), (30.0, CameraModel()), (6.0, CameraModel()), (100.0, CameraModel(blur_px=7))]
@@ -133,8 +133,8 @@ def phantoms(*, frames: int, site_ids: Sequence[int], progress: Progress = None)
 
 def photo_agreement(*, levels: Sequence[float] = (6.0, 15.0, 30.0), frames: int = 8) -> dict[str, Any]:
     """Every configuration with the photos' dictionary: rate on darkened photos and on the synthetic scene."""
-    from kgadapt.onboard.photos import PHOTO_DICTIONARIES, load_photo, photo_frames, photo_truth, shifted
-    from kgadapt.onboard.scenario import IlluminationProfile, SceneSettings, SyntheticScene
+    from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames, photo_truth, shifted
+    from kgadapt.sim.scenario import IlluminationProfile, SceneSettings, SyntheticScene
 
     names = [n for n, d in PHOTO_DICTIONARIES.items() if d == "DICT_6X6_250"]
     photos = {n: load_photo(n) for n in names}
@@ -171,7 +171,7 @@ def photo_agreement(*, levels: Sequence[float] = (6.0, 15.0, 30.0), frames: int 
 
 def targets(*, frames: int = 20) -> dict[str, Any]:
     """The issue's two rate targets, for every configuration."""
-    from kgadapt.onboard.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
+    from kgadapt.sim.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
 
     out: dict[str, Any] = {}
     cases = {

@@ -56,14 +56,15 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.shared.children import ChildProcess, StopPolicy
 from kgadapt.shared.errors import ConfigError, KgadaptError, TransportError
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.resources import results_dir
 from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, TriggerKind
 
-RESULTS = Path(__file__).resolve().parent / "results" / "reliability.json"
+RESULTS = results_dir() / "reliability.json"
 ROBOT = DEFAULT_ROBOT
 DETECTOR_MODULE = "kgadapt.onboard.detector"
 # Measured here (Zenoh 1.10): a TCP link that dies with unsent data is closed with SO_LINGER 10 s,
@@ -492,6 +493,8 @@ class RobotSettings:
     agent_mode: str = "client"  # every message passes the router, as across machines (docs/deploy.md)
     subnet: str = "10.213.7"
     zenoh_runtime: str | None = ZENOH_RUNTIME  # None: Zenoh's default threads (the router stalls in a cut)
+    profile: Mapping[str, Any] | None = None  # the camera's illumination profile; None: constant at ``level``
+    fake_fc: bool = False
 
 
 @dataclass
@@ -514,10 +517,10 @@ class RobotOnHosts:
 
         self.settings = settings
         self.network = HostNetwork(NetworkSettings(subnet=settings.subnet))
-        profile = settings.workdir / "constant.json"
+        profile = settings.workdir / "profile.json"
         self.cluster = LocalCluster(ClusterSettings(
             workdir=settings.workdir, robot=ROBOT, profile=str(profile), fps=settings.fps, prefer=settings.prefer,
-            calibrate=False, fake_fc=False, log_level=settings.log_level, agent_mode=settings.agent_mode,
+            calibrate=False, fake_fc=settings.fake_fc, log_level=settings.log_level, agent_mode=settings.agent_mode,
             env=(("ZENOH_RUNTIME", settings.zenoh_runtime),) if settings.zenoh_runtime else (),
         ), network=self.network)
         self.probe: ProbeHandle | None = None
@@ -525,8 +528,8 @@ class RobotOnHosts:
     def start(self, timeout: float = 60.0) -> None:
         s = self.settings
         s.workdir.mkdir(parents=True, exist_ok=True)
-        (s.workdir / "constant.json").write_text(json.dumps({"points": [[0, s.level], [3600, s.level]],
-                                                             "noise": 2.0, "gradient": 0.2}))
+        (s.workdir / "profile.json").write_text(json.dumps(
+            s.profile or {"points": [[0, s.level], [3600, s.level]], "noise": 2.0, "gradient": 0.2}))
         try:
             self.network.setup()
             self.cluster.prepare_store()
@@ -579,9 +582,9 @@ class RobotOnHosts:
 
         hosts = {self.network.inode(h): h for h in ("onboard", "remote")}
         found = []
-        for p in psutil.process_iter(["pid", "ppid", "cmdline"]):
+        for p in psutil.process_iter(["pid", "ppid", "cmdline", "status"]):
             cmdline = p.info.get("cmdline") or []
-            if DETECTOR_MODULE not in cmdline:
+            if DETECTOR_MODULE not in cmdline or p.info.get("status") == psutil.STATUS_ZOMBIE:  # exited, not reaped yet
                 continue
             try:
                 inode = os.stat(f"/proc/{p.info['pid']}/ns/net").st_ino

@@ -37,7 +37,6 @@ import os
 import random
 import shutil
 import signal
-import sys
 import tempfile
 import threading
 import time
@@ -47,8 +46,9 @@ from typing import Any, Callable
 
 from kgadapt.shared.errors import ConfigError, KgadaptError
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.resources import results_dir
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = results_dir()
 ROBOT = DEFAULT_ROBOT
 FAULTS = ("store_kill", "remote_kill", "onboard_kill", "detector_kill", "link_cut", "squeeze", "forged_status")
 # After a fault ends, detections may stay away this long and still be explained by it (agent restarts
@@ -108,61 +108,27 @@ class Soak:
         self.squeezed_until = 0.0
         self.forged_until = 0.0
         self._stop = threading.Event()
-        self._robot: Any = None
+        self.robot: Any = None
 
     # -- the robot ------------------------------------------------------------------
 
     def start(self) -> None:
-        from kgadapt.bench.reliability_bench import ZENOH_RUNTIME, ProbeHandle
-        from kgadapt.cluster import ClusterSettings, HostNetwork, LocalCluster, NetworkSettings
+        from kgadapt.bench.reliability_bench import RobotOnHosts, RobotSettings
 
         s = self.settings
-        self.workdir.mkdir(parents=True, exist_ok=True)
-        profile = self.workdir / "bands.json"
-        profile.write_text(json.dumps(scenario(s.band_s)))
-        self.network = HostNetwork(NetworkSettings(subnet=s.subnet))
-        self.cluster = LocalCluster(ClusterSettings(
-            workdir=self.workdir, robot=ROBOT, profile=str(profile), fps=15.0, prefer="onboard-first",
-            calibrate=False, fake_fc=True, agent_mode="client", env=(("ZENOH_RUNTIME", ZENOH_RUNTIME),),
-        ), network=self.network)
-        self.probe: Any = None
-        self.network.setup()
-        self.cluster.prepare_store()
-        self.cluster.start()
-        self.probe = ProbeHandle(self.network.run_in("robot2", [
-            sys.executable, "-m", "kgadapt.bench.reliability_bench", "probe", "--robot", ROBOT,
-            "--connect", self.cluster.endpoint, "--mode", "client"]), log_path=self.workdir / "probe.log")
-        self.probe.start()
-        self.probe.wait_event(lambda e: e["ev"] == "first_detection", 60, "the first detections")
+        # The reliability bench's robot, with changing light and the fake flight controller.
+        self.robot = RobotOnHosts(RobotSettings(workdir=self.workdir, profile=scenario(s.band_s), fps=15.0,
+                                                prefer="onboard-first", subnet=s.subnet, fake_fc=True))
+        self.network, self.cluster = self.robot.network, self.robot.cluster
+        self.robot.start(timeout=60.0)  # stops what it started when it fails
+        self.probe = self.robot.probe
 
     def stop(self) -> None:
-        try:
-            if self.probe is not None:
-                self.probe.stop()
-        finally:
-            try:
-                self.cluster.stop()
-            finally:
-                self.network.shutdown()
+        self.robot.stop()
 
-    def detector_processes(self) -> list[tuple[int, str, str]]:
-        """(pid, host, instance) of detector programs in our namespaces (psutil, not the agents' word)."""
-        import psutil
-
-        hosts = {self.network.inode(h): h for h in ("onboard", "remote")}
-        found = []
-        for p in psutil.process_iter(["pid", "cmdline", "status"]):
-            cmdline = p.info.get("cmdline") or []
-            if "kgadapt.onboard.detector" not in cmdline or p.info.get("status") == psutil.STATUS_ZOMBIE:
-                continue
-            try:
-                inode = os.stat(f"/proc/{p.info['pid']}/ns/net").st_ino
-            except OSError:
-                continue
-            if inode in hosts:
-                instance = cmdline[cmdline.index("--instance") + 1] if "--instance" in cmdline else "?"
-                found.append((p.info["pid"], hosts[inode], instance))
-        return found
+    def detector_processes(self) -> list[Any]:
+        """Detector programs in our namespaces (psutil, not the agents' word): pid, ppid, host, instance."""
+        return self.robot.detector_processes()
 
     def store_pid(self) -> int | None:
         try:
@@ -212,7 +178,8 @@ class Soak:
         procs = self.detector_processes()
         if not procs:
             raise KgadaptError("no detector process to kill")
-        pid, host, instance = self.rng.choice(procs)
+        victim = self.rng.choice(procs)
+        pid, host, instance = victim.pid, victim.host, victim.instance
         os.kill(pid, signal.SIGKILL)
         return {"pid": pid, "host": host, "instance": instance}
 
@@ -276,7 +243,7 @@ class Soak:
             self.samples.append(sample)
             return
         procs = self.detector_processes()
-        sample.update(detecting=sorted(active), processes=sorted(i for _, _, i in procs),
+        sample.update(detecting=sorted(active), processes=sorted(p.instance for p in procs),
                       hosts=sorted({v["host"] for v in active.values()}))
         # One detector counts, outside a bounded handover.
         if len(active) > 1:
@@ -302,7 +269,7 @@ class Soak:
                     "MATCH (r:ProcessProfile) WHERE r.end_time IS NULL AND r.config STARTS WITH 'marker_detection' "
                     "RETURN r.instance AS instance, r.host AS host"), params={})
                 open_profiles = {r["instance"] for r in rows}
-                running = {i for _, _, i in self.detector_processes()}
+                running = {p.instance for p in self.detector_processes()}
                 differ = sorted(open_profiles ^ running)
                 sample["graph_differs"] = differ
                 if differ:

@@ -27,9 +27,10 @@ from typing import Any, Callable
 
 from kgadapt.bench.stats import format_table, machine_info, make_record, write_records
 from kgadapt.shared.keys import DEFAULT_ROBOT
+from kgadapt.shared.resources import results_dir
 from kgadapt.shared.states import TriggerKind
 
-RESULTS = Path(__file__).resolve().parent / "results" / "starvation.json"
+RESULTS = results_dir() / "starvation.json"
 DARK = "marker_detection_dark"
 HEAVY = "MATCH (a), (b), (c), (d), (e) RETURN count(*) AS n"
 

@@ -51,12 +51,13 @@ from kgadapt.knowledge import queries, runtime
 from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.store import GraphStore, parse_store_url
 from kgadapt.shared.errors import ConfigError, QueryError
+from kgadapt.shared.resources import results_dir
 
 log = logging.getLogger(__name__)
 
 QUICK_NS = (10, 100, 1_000, 10_000)
 FULL_NS = QUICK_NS + (100_000,)
-DEFAULT_OUT = Path("bench/results/table1.json")
+DEFAULT_OUT = results_dir() / "table1.json"
 DEFAULT_MARKDOWN = Path("docs/bench-table1.md")
 BENCH_GRAPH = "kgadapt_bench_table1"
 

@@ -47,12 +47,12 @@ from kgadapt.bench.stats import format_table, gc_paused, machine_info, make_reco
 from kgadapt.shared import rpc
 from kgadapt.shared.children import ChildProcess
 from kgadapt.shared.errors import ConfigError, TransportError
-from kgadapt.shared.resources import models
+from kgadapt.shared.resources import models, results_dir
 
 log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parent.parent
-DEFAULT_OUT = REPO / "bench" / "results" / "zenoh.json"
+DEFAULT_OUT = results_dir() / "zenoh.json"
 ROBOT = "bench"
 CONFIG = "marker_detection_day"
 QUERY_PARAMS = {"feature": "MarkerDetection", "config": CONFIG}

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.resources import shipped
 
 ROOT = Path(__file__).resolve().parents[1]
 DIST = ROOT / "dist"
@@ -59,7 +60,9 @@ class ArchiveSettings:
 def version() -> str:
     import tomllib
 
-    return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    from kgadapt.bench.footprint import checkout
+
+    return tomllib.loads((checkout() / "pyproject.toml").read_text())["project"]["version"]
 
 
 def platform_flags(arch: str) -> list[str]:
@@ -116,10 +119,10 @@ def build(settings: ArchiveSettings, *, progress=print) -> Path:
         own = build_wheel(wheelhouse)
         progress(f"{name}: wheels for Python {', '.join(settings.pythons)}")
         fill_wheelhouse(wheelhouse, own, settings)
-        shutil.copy2(ROOT / "deploy" / "install" / "install.sh", root / "install.sh")
+        shutil.copy2(shipped("kgadapt.deploy", "install", "install.sh"), root / "install.sh")
         (root / "install.sh").chmod(0o755)
-        shutil.copytree(ROOT / "deploy" / "systemd", root / "systemd")
-        shutil.copytree(ROOT / "deploy" / "zenoh", root / "zenoh")
+        shutil.copytree(shipped("kgadapt.deploy", "systemd"), root / "systemd")
+        shutil.copytree(shipped("kgadapt.deploy", "zenoh"), root / "zenoh")
         (root / "README.txt").write_text(_readme(name, settings))
         settings.out.mkdir(parents=True, exist_ok=True)
         archive = settings.out / f"{name}.tar.gz"

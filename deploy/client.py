@@ -64,6 +64,17 @@ class DeployerClient:
             processes.extend(detail.get("processes") or [])
         return processes
 
+    def wait_for(self, hosts: list[str], timeout: float = 10.0) -> None:
+        """Wait until the deployer of each of ``hosts`` answers (a new session learns of them asynchronously).
+
+        RequestTimeout naming the first host whose deployer did not answer within ``timeout``.
+        """
+        for host in hosts:
+            keys.check_name(host, "host name")
+            if not self._ask(host, "list", {}, timeout, resend_for=timeout):
+                raise RequestTimeout(f"no deployer on host {host} answered within {timeout:g} s "
+                                     f"(is the {host} agent running and reachable?)")
+
     def launcher(self, host: str) -> dict[str, Any] | None:
         """``{pid, ready}`` of ``host``'s launcher, None when its deployer runs none."""
         details = self._ask(host, "list", {}, self.timeout)

@@ -57,7 +57,7 @@ from kgadapt.shared.errors import DeploymentError
 log = logging.getLogger(__name__)
 
 # Modules a launcher may run with ``-m``; PRELOAD is what it imports first (the heavy parts).
-RUNNABLE = ("kgadapt.onboard.detector", "kgadapt.deploy.echo_detector")
+RUNNABLE = ("kgadapt.onboard.detector", "kgadapt.sim.echo_detector")
 PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.markers", "kgadapt.knowledge.client", "kgadapt.shared.session",
            "kgadapt.shared.agent", *RUNNABLE)
 _MAX_MESSAGE = 1 << 20

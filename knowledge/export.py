@@ -10,13 +10,13 @@ One statement per line, each ending in ``;``; ``//`` lines are comments.
 
 from __future__ import annotations
 
-import math
 import re
 from typing import Any, Iterator
 
 from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.params import cypher_literal as literal
 from kgadapt.knowledge.store import GraphStore
-from kgadapt.shared.errors import ConfigError, QueryError
+from kgadapt.shared.errors import ConfigError
 
 FORMATS = ("dot", "cypher")
 # A temporary label and key that tie relations to the nodes created by the same script.
@@ -48,44 +48,6 @@ def export(store: GraphStore, fmt: str) -> str:
 
 
 # --- Cypher ---------------------------------------------------------------
-
-def literal(value: Any) -> str:
-    """A Cypher literal for a property value (strings escaped, floats exact)."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise QueryError(f"cannot export the non-finite number {value!r}")
-        # openCypher's grammar has no '+' in an exponent (Memgraph's lexer
-        # rejects 1e+16), so write 1e16; every store reads that form.
-        text = repr(value).replace("e+", "e")
-        return text if any(c in text for c in ".eE") else text + ".0"
-    if isinstance(value, str):
-        return "'" + "".join(_escape(c) for c in value) + "'"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(literal(v) for v in value) + "]"
-    raise QueryError(f"cannot export a property value of type {type(value).__name__}")
-
-
-def _escape(c: str) -> str:
-    if c == "\\":
-        return "\\\\"
-    if c == "'":
-        return "\\'"
-    if c == "\n":
-        return "\\n"
-    if c == "\r":
-        return "\\r"
-    if c == "\t":
-        return "\\t"
-    # Other characters stay as they are: FalkorDB reads no \\u escapes, and
-    # statements are split on newlines only, so a raw U+2028 cannot break one.
-    return c
-
 
 def name(text: str) -> str:
     """A label, relation type or property key, back-quoted unless it is a plain identifier."""

@@ -9,7 +9,6 @@ client is used only through its public ``query``/``ro_query``/``connection``.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 from typing import Any, Mapping, Sequence
 
@@ -21,7 +20,7 @@ from falkordb.path import Path as GraphPath
 
 from kgadapt.knowledge.dialect import FALKORDB, Dialect
 from kgadapt.knowledge.embedded import EmbeddedServer
-from kgadapt.knowledge.params import check_params
+from kgadapt.knowledge.params import check_params, cypher_literal
 from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
 from kgadapt.shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
@@ -213,40 +212,14 @@ class FalkorDBStore(GraphStore):
 
 
 def params_header(params: Mapping[str, Any] | None) -> str:
-    """FalkorDB's parameter prefix ``CYPHER a=1 b="x" `` for ``params`` ("" when there are none).
+    """FalkorDB's parameter prefix ``CYPHER a=1 b='x' `` for ``params`` ("" when there are none).
 
-    Strings are double-quoted with ``\\`` and ``"`` escaped (FalkorDB reads the
-    rest of a string verbatim, newlines included); map keys are back-quoted and
-    may not contain a backquote, which FalkorDB cannot escape.
+    Values are written by :func:`kgadapt.knowledge.params.cypher_literal`, as an export script writes them.
     """
     clean = check_params(params)
     if not clean:
         return ""
-    return "CYPHER " + "".join(f"{name}={_literal(name, value)} " for name, value in clean.items())
-
-
-def _literal(name: str, value: Any) -> str:
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):  # check_params refuses these already; never write "inf" as a literal
-            raise QueryError(f"parameter {name!r}: {value} is not a finite number")
-        return repr(value)  # shortest round trip: 0.1, 1e-07, 1e+20 (FalkorDB reads them all)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, list):
-        return "[" + ",".join(_literal(name, item) for item in value) + "]"
-    if isinstance(value, dict):
-        for key in value:
-            if not key or "`" in key:
-                raise QueryError(f"parameter {name!r}: map key {key!r} cannot be written for FalkorDB "
-                                 "(empty, or with a backquote)")
-        return "{" + ",".join(f"`{key}`:{_literal(name, item)}" for key, item in value.items()) + "}"
-    raise QueryError(f"parameter {name!r}: a {type(value).__name__} is not a graph value")
+    return "CYPHER " + "".join([f"{name}={cypher_literal(value, name=name)} " for name, value in clean.items()])
 
 
 def _plain(value: Any) -> Any:

@@ -66,3 +66,42 @@ def _value(value: Any, where: str, error: type[KgadaptError], depth: int) -> Any
             out[key] = _value(item, where, error, depth + 1)
         return out
     raise error(f"{where}: a {type(value).__name__} is not a graph value")
+
+
+def cypher_literal(value: Any, *, name: str = "") -> str:
+    """``value`` (a checked graph value) as Cypher text that FalkorDB and Memgraph read back unchanged.
+
+    Written for an export script and for FalkorDB's ``CYPHER name=value`` parameter header.
+    Strings are single-quoted with ``\\``, ``'``, newline, CR and tab escaped (FalkorDB reads
+    no ``\\u`` escapes, and a script is split on newlines only, so other characters stay as they
+    are); floats are written exactly, without a ``+`` in the exponent, which openCypher's grammar
+    (and Memgraph's lexer) lacks; map keys are back-quoted, and may be neither empty nor hold a
+    backquote, which FalkorDB cannot escape. Errors name the parameter ``name`` when given.
+    """
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise QueryError(f"{_where(name)}: {value} is not a finite number")
+        return repr(value).replace("e+", "e")  # shortest round trip: 0.1, 1e-07, 1e20
+    if isinstance(value, str):
+        # Five C-level replaces beat str.translate on the short strings parameters are.
+        return "'" + value.replace("\\", "\\\\").replace("'", "\\'").replace("\n", "\\n").replace(
+            "\r", "\\r").replace("\t", "\\t") + "'"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join([cypher_literal(item, name=name) for item in value]) + "]"
+    if isinstance(value, dict):
+        for key in value:
+            if not isinstance(key, str) or not key or "`" in key:
+                raise QueryError(f"{_where(name)}: map key {key!r} cannot be written for FalkorDB "
+                                 "(empty, or with a backquote)")
+        return "{" + ", ".join([f"`{key}`: {cypher_literal(item, name=name)}" for key, item in value.items()]) + "}"
+    raise QueryError(f"{_where(name)}: a {type(value).__name__} is not a graph value")
+
+
+def _where(name: str) -> str:
+    return f"parameter {name!r}" if name else "value"

@@ -3,7 +3,7 @@
 Every configuration the knowledge store has for a feature (named queries
 ``detector_configs`` and ``detector_config``) runs over the same synthetic
 frames of the realistic camera (sRGB, Poisson-Gaussian noise, 8 bits; see
-:mod:`kgadapt.onboard.scenario`): for each band, ``levels_per_band`` fixed levels at
+:mod:`kgadapt.sim.scenario`): for each band, ``levels_per_band`` fixed levels at
 the midpoints of equal slices of the band, and for each level every condition
 of :data:`CONDITIONS` (clean, a 7 px motion blur, uneven light with blind
 stripes, a saturated window, small markers), ``frames_per_level`` frames each,
@@ -40,12 +40,11 @@ import numpy as np
 from kgadapt.onboard.illumination import Band, bands_from_rows
 from kgadapt.onboard.markers import DetectorConfig, MarkerDetector, Score, parse_config, score
 from kgadapt.shared.errors import ConfigError, KgadaptError
-from kgadapt.shared.resources import models
+from kgadapt.shared.resources import models, results_dir
 
 log = logging.getLogger(__name__)
 
-REPO = Path(__file__).resolve().parent.parent
-RESULTS_DIR = REPO / "bench" / "results"
+RESULTS_DIR = results_dir()
 FEATURE = "MarkerDetection"
 
 
@@ -63,7 +62,7 @@ PENALTY = 1.0  # score lost per false marker per frame
 
 def condition_profile(condition: str, level: float) -> Any:
     """The constant-light profile of ``condition`` at ``level``."""
-    from kgadapt.onboard.scenario import CameraModel, IlluminationProfile, LightLayout, SceneOptions
+    from kgadapt.sim.scenario import CameraModel, IlluminationProfile, LightLayout, SceneOptions
 
     spec = CONDITIONS.get(condition)
     if spec is None:
@@ -145,7 +144,7 @@ def render_test_frames(bands: Sequence[Band], settings: CalibrationSettings) -> 
     """The frames every configuration is judged on: ``(band, condition) -> [(level, grey, truth), ...]``."""
     import cv2
 
-    from kgadapt.onboard.scenario import SceneSettings, SyntheticScene
+    from kgadapt.sim.scenario import SceneSettings, SyntheticScene
 
     base = SceneSettings(width=settings.width, height=settings.height)
     rng = np.random.default_rng(settings.seed)

@@ -173,7 +173,7 @@ def _run_until(stop: threading.Event, duration: float, every: float, tick) -> No
 
 
 def _fake_fc(args: argparse.Namespace) -> int:
-    from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
+    from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
     from kgadapt.shared.readiness import announce_ready
 
     if args.rate_scale <= 0:

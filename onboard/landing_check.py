@@ -17,12 +17,12 @@ from dataclasses import dataclass, field
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.landing_scene import MarkerScene, fake_pose, horizontal_error, link_pose, run_detections
 from kgadapt.onboard.landing_targets import CameraModel
 from kgadapt.onboard.mavlink import LinkSettings
 from kgadapt.onboard.mavlink_commands import CommandOutcome
 from kgadapt.onboard.site import SiteMarkers
 from kgadapt.shared.errors import FlightLinkError
+from kgadapt.sim.landing_scene import MarkerScene, fake_pose, horizontal_error, link_pose, run_detections
 
 log = logging.getLogger(__name__)
 
@@ -72,8 +72,8 @@ def _free_udp_port() -> int:
 
 
 def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "landcheck") -> LandingResult:
-    from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
     from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
+    from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 
     s = settings
     fc = None

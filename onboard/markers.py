@@ -29,6 +29,16 @@ from kgadapt.shared.preprocessing import OPS as _OPS
 from kgadapt.shared.preprocessing import read_settings
 
 
+def aruco_dictionary(name: str) -> Any:
+    """The predefined ArUco dictionary called ``name``; ConfigError when unknown."""
+    import cv2
+
+    key = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
+    if not isinstance(key, int):
+        raise ConfigError(f"unknown ArUco dictionary {name!r}: use a cv2.aruco DICT_* name such as DICT_4X4_50")
+    return cv2.aruco.getPredefinedDictionary(key)
+
+
 @dataclass(frozen=True)
 class DetectorConfig:
     """A checked detector configuration."""
@@ -57,10 +67,8 @@ def parse_config(name: str, raw: str | Mapping[str, Any], *, dictionary: str | N
     else:
         data = raw
     settings = read_settings(data, where, dictionary=dictionary)
-    from kgadapt.onboard.scenario import dictionary as lookup
-
     try:
-        lookup(settings.dictionary)
+        aruco_dictionary(settings.dictionary)
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from exc
     config = DetectorConfig(name, settings.dictionary, settings.steps(), tuple(sorted(settings.parameters.items())))
@@ -146,12 +154,10 @@ class MarkerDetector:
     def __init__(self, config: DetectorConfig) -> None:
         import cv2
 
-        from kgadapt.onboard.scenario import dictionary
-
         self.config = config
         self._cv2 = cv2
         self._steps: list[Callable[[np.ndarray], np.ndarray]] = [self._step(op, dict(args)) for op, args in config.preprocess]
-        found = dictionary(config.dictionary)
+        found = aruco_dictionary(config.dictionary)
         self._cells = int(found.markerSize) + 2  # code cells plus the one-cell black border each side
         self._detector = cv2.aruco.ArucoDetector(found, _detector_parameters(config))
 
@@ -246,7 +252,7 @@ def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, t
           ignore: Sequence[int] = ()) -> Score:
     """Match detections to truth: same id and mean corner distance within ``tolerance_px``.
 
-    ``truth`` items are :class:`kgadapt.onboard.scenario.Truth` or wire maps ``{"id", "corners"}``.
+    ``truth`` items are :class:`kgadapt.sim.scenario.Truth` or wire maps ``{"id", "corners"}``.
     A detection that matches nothing (wrong id, wrong place, or a second hit) is false;
     ids in ``ignore`` (markers partly hidden, e.g. by a saturated window) count neither way.
     """

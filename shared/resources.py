@@ -1,10 +1,12 @@
 """Data files shipped inside the kgadapt package, found through :mod:`importlib.resources`.
 
 The domain models (``knowledge/models``), the synthetic-camera scenarios
-(``onboard/scenarios``) and the deployment files (``deploy/systemd``,
-``deploy/zenoh``, ...) are package data (pyproject.toml), so an installed
-wheel finds them where it installed them and a source checkout finds them in
-its folders; nothing depends on the current directory or on a checkout.
+(``sim/scenarios``), the photographs of markers (``sim/photographs``) and the
+deployment files (``deploy/systemd``, ``deploy/zenoh``, ...) are package data
+(pyproject.toml), so an installed wheel finds them where it installed them and
+a source checkout finds them in its folders; nothing read depends on the current
+directory or on a checkout. Where results are written by default is here too
+(:func:`results_dir`).
 """
 
 from __future__ import annotations
@@ -42,4 +44,25 @@ def models() -> Path:
 
 def scenarios() -> Path:
     """The shipped synthetic-camera scenarios (illumination profiles)."""
-    return shipped("kgadapt.onboard", "scenarios")
+    return shipped("kgadapt.sim", "scenarios")
+
+
+def photographs() -> Path:
+    """The shipped photographs of ArUco markers (sources in its SOURCES.txt)."""
+    return shipped("kgadapt.sim", "photographs")
+
+
+def results_dir() -> Path:
+    """Where benchmarks and calibration write unless told otherwise (their ``--out``).
+
+    In a source checkout that is ``bench/results``, where the figures are committed; an installed
+    wheel has no such folder (and must not write into site-packages), so it is ``bench-results``
+    in the current directory.
+    """
+    try:
+        checkout = resources.files("kgadapt.bench").joinpath("results")
+    except ModuleNotFoundError:
+        checkout = None
+    if isinstance(checkout, Path) and checkout.is_dir():
+        return checkout.resolve()  # bench/results, not the kgadapt/bench link to it
+    return Path("bench-results")

@@ -122,13 +122,15 @@ def test_the_wheel_installs_nothing_but_kgadapt_at_the_top(installed):
 
 
 @pytest.mark.slow
-def test_the_installed_wheel_finds_its_models_and_scenarios(installed):
-    done = _run(installed, "python", "-c", "from kgadapt.shared import resources as r; "
-                                           "print(r.models()); print(r.scenarios())")
+def test_the_installed_wheel_finds_its_data_and_writes_results_where_it_runs(installed):
+    done = _run(installed, "python", "-c", "from kgadapt.shared import resources as r; print(r.models()); "
+                                           "print(r.scenarios()); print(r.photographs()); print(r.results_dir().resolve())")
     assert done.returncode == 0, done.stderr
-    models, scenarios = (Path(line) for line in done.stdout.split())
+    models, scenarios, photographs, results = (Path(line) for line in done.stdout.split())
     assert models.is_relative_to(installed[0]) and (models / "deployments" / "detector_dusk.deploy").is_file()
     assert scenarios.is_relative_to(installed[0]) and (scenarios / "demo.json").is_file()
+    assert photographs.is_relative_to(installed[0]) and (photographs / "contrib_img_00.jpg").is_file()
+    assert results == installed[1] / "bench-results"  # not site-packages: the wheel has no bench/results
 
 
 @pytest.mark.slow
@@ -141,6 +143,7 @@ def test_the_demo_queries_run_from_the_installed_wheel_outside_the_checkout(inst
 
 @pytest.mark.slow
 def test_a_part_runs_as_a_module_of_the_installed_wheel(installed):
-    done = _run(installed, "python", "-m", "kgadapt.onboard.detector", "--help")
-    assert done.returncode == 0, done.stderr
-    assert "usage:" in done.stdout
+    for module in ("kgadapt.onboard.detector", "kgadapt.sim.echo_detector"):
+        done = _run(installed, "python", "-m", module, "--help")
+        assert done.returncode == 0, (module, done.stderr)
+        assert "usage:" in done.stdout, module

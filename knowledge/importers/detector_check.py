@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 Verdict = dict[str, Any] | None
 # What the verdict depends on besides the configuration: the checking program and what it imports.
 _CHECK_MODULES = (
-    "kgadapt.onboard.config_check", "kgadapt.onboard.markers", "kgadapt.onboard.scenario", "kgadapt.shared.preprocessing",
+    "kgadapt.onboard.config_check", "kgadapt.onboard.markers", "kgadapt.shared.preprocessing",
 )
 _memory: dict[str, Verdict] = {}
 

@@ -2,7 +2,7 @@
 
 Everything real: the knowledge service on the session's embedded FalkorDB
 (an empty graph per test), a Zenoh router on a free loopback port, deployers
-as peers, and the stand-in detector ``kgadapt.deploy.echo_detector`` as the program
+as peers, and the stand-in detector ``kgadapt.sim.echo_detector`` as the program
 the deployments run.
 """
 
@@ -15,6 +15,7 @@ from typing import Any, Iterator
 
 import pytest
 
+from kgadapt.deploy.client import DeployerClient
 from kgadapt.deploy.deployer import Deployer, DeployerSettings
 from kgadapt.deploy.supervisor import RestartPolicy, StopPolicy
 from kgadapt.knowledge import schema as S
@@ -29,8 +30,16 @@ CONFIG_DUSK = "marker_detection_dusk"
 # Measured: open() of a router, and of a peer that finds others, waits scouting/delay (500 ms by
 # default) for scouted peers. The tests wait for what they need (wait_for_deployers) instead.
 FAST_OPEN = {"scouting/delay": 0}
-ECHO = ["-m", "kgadapt.deploy.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
+ECHO = ["-m", "kgadapt.sim.echo_detector", "--robot", "{robot}", "--host", "{host}", "--instance", "{instance}",
         "--config", "{config}", "--connect", "{connect}"]
+# The echo detector's arguments, run by a program that hangs before readiness when --host is remote.
+ECHO_HANGS_ON_REMOTE = [
+    "-c", "import sys, threading\n"
+          "if sys.argv[sys.argv.index('--host') + 1] == 'remote':\n"
+          "    threading.Event().wait()\n"
+          "from kgadapt.sim.echo_detector import main\n"
+          "sys.exit(main(sys.argv[1:]))",
+    *ECHO[2:]]
 
 
 def add_deployment(store: Any, name: str, *, platforms: list[str], deploys: list[str], executable: str = "{python}",
@@ -59,7 +68,7 @@ def graph(resp_store):
     add_deployment(resp_store, "echo", platforms=["onboard", "remote"], deploys=[CONFIG, CONFIG_DUSK])
     add_deployment(resp_store, "echo_remote_only", platforms=["remote"], deploys=[CONFIG])
     add_deployment(resp_store, "echo_hangs_on_remote", platforms=["onboard", "remote"], deploys=[CONFIG],
-                   arguments=ECHO + ["--never-ready-on", "remote"])
+                   arguments=ECHO_HANGS_ON_REMOTE)
     return resp_store
 
 
@@ -135,13 +144,7 @@ def client_session(test_session, hosts) -> Any:
 
 def wait_for_deployers(session: Any, names: list[str], timeout: float = 10.0) -> None:
     """Declarations travel asynchronously: wait until every named deployer answers ``list``."""
-    request = messages.encode("deploy_request", {})
-    deadline = time.monotonic() + timeout
-    for name in names:
-        while not list(session.get(keys.deployer_verb(ROBOT, name, "list"), payload=request, timeout=1.0)):
-            if time.monotonic() > deadline:
-                raise AssertionError(f"deployer {name} not reachable within {timeout} s")
-            time.sleep(0.01)
+    DeployerClient(session, ROBOT).wait_for(names, timeout)
 
 
 class Collector:

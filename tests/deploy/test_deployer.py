@@ -48,7 +48,7 @@ def test_a_deployment_from_the_store_starts_on_request_reports_events_and_stops(
     info = client.start("onboard", "echo", CONFIG, instance="det1")
     assert info["state"] == "ready" and info["host"] == "onboard" and alive(info["pid"])
     # Placeholders were filled by the deployer from its own knowledge.
-    assert info["argv"][:3] == [sys.executable, "-m", "kgadapt.deploy.echo_detector"]
+    assert info["argv"][:3] == [sys.executable, "-m", "kgadapt.sim.echo_detector"]
     assert info["argv"][info["argv"].index("--host") + 1] == "onboard"
     assert info["argv"][info["argv"].index("--instance") + 1] == "det1"
     assert [p["instance"] for p in client.list("*")] == ["det1"]

@@ -182,7 +182,7 @@ def test_a_forked_detector_runs_with_the_environment_of_the_request_not_the_laun
     launcher = launcher_of(hosts)
     python = hosts["onboard"].deployer.settings.python
     missing = tmp_path / "no-such-zenoh.json5"
-    argv = [python, "-m", "kgadapt.deploy.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "env_probe",
+    argv = [python, "-m", "kgadapt.sim.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "env_probe",
             "--config", "{}"]
     forked = launcher.fork(argv, {**os.environ, "KGADAPT_ZENOH_CONFIG": str(missing)}, None)
     assert forked is not None, "the launcher refused a preloaded module"

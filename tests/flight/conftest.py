@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from kgadapt import cluster
-from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from kgadapt.onboard.mavlink import FlightLink, LinkSettings
+from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from tests.support import wait_for as wait_until  # noqa: F401 (the tests import it from here)
 
 # What the tests' links ask of the fake autopilot (the defaults, 1-2 Hz, would slow the tests down).

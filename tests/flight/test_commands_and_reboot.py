@@ -7,9 +7,9 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from kgadapt.onboard.mavlink import AUTOPILOT_REBOOTED, FlightLink, LinkSettings
 from kgadapt.onboard.mavlink_commands import CommandOutcome, CommandSettings
+from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from tests.flight.conftest import ALL_FAST, ARDUCOPTER_DEFAULTS, free_udp_port, wait_until
 
 FAST_RETRIES = CommandSettings(first_wait_s=0.1, backoff=2.0, attempts=4)

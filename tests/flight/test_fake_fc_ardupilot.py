@@ -11,9 +11,9 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.fake_fc import VehicleState
 from kgadapt.onboard.mavlink import LandingTarget
 from kgadapt.onboard.mavlink_commands import CommandOutcome
+from kgadapt.sim.fake_fc import VehicleState
 from tests.flight.conftest import wait_until
 
 HOVER = VehicleState(armed=True, mode="LOITER", landed_state="IN_AIR", alt=8.0)

@@ -7,11 +7,11 @@ import time
 
 import pytest
 
-from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
 from kgadapt.onboard.mavlink import LINK_LOST, LINK_RESTORED, LinkSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
+from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from tests.conftest import free_port
 from tests.flight.conftest import FAST_STREAMS, free_udp_port, wait_until
 from tests.flight.test_landing_target import ANGLE_X, ANGLE_Y, SQUARE, K

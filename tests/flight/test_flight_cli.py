@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
+from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from tests.conftest import REPO, free_port
 from tests.flight.conftest import free_udp_port, wait_until
 from tests.flight.test_landing_target import ANGLE_X, ANGLE_Y, SQUARE
@@ -134,8 +134,8 @@ def test_status_prints_every_field_with_its_age_and_the_missing_streams(kgadapt_
 
 
 def test_the_bridge_command_with_camera_and_marker_files_sends_positions_and_holds_them(kgadapt_cmd, tmp_path):
-    from kgadapt.onboard.landing_scene import MarkerScene
     from kgadapt.onboard.landing_targets import CameraModel
+    from kgadapt.sim.landing_scene import MarkerScene
 
     camera = CameraModel(fx=615.0, fy=615.0, cx=320.0, cy=240.0, width=640, height=480, yaw_deg=90.0)
     (tmp_path / "camera.json").write_text(json.dumps(camera.as_dict()))

@@ -7,8 +7,8 @@ import time
 
 import pytest
 
-from kgadapt.onboard.fake_fc import VehicleState
 from kgadapt.onboard.mavlink import STREAM_FIELDS
+from kgadapt.sim.fake_fc import VehicleState
 from tests.flight.conftest import wait_until
 
 

@@ -9,11 +9,11 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 from kgadapt.onboard.geometry import body_to_camera, body_to_ned, camera_to_body, ned_to_body
-from kgadapt.onboard.landing_scene import MarkerScene
 from kgadapt.onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, load_camera, load_site_markers
 from kgadapt.onboard.mavlink import FlightState
 from kgadapt.onboard.site import SiteMarkers
 from kgadapt.shared.errors import ConfigError, ModelError
+from kgadapt.sim.landing_scene import MarkerScene
 
 CAMERA = CameraModel(fx=615.0, fy=615.0, cx=320.0, cy=240.0, width=640, height=480)
 MARKERS = SiteMarkers(site="pad", sizes_m={7: 0.5})

@@ -14,7 +14,6 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from kgadapt.onboard.mavlink import (
     DEFAULT_STREAM_RATES,
     LINK_LOST,
@@ -27,6 +26,7 @@ from kgadapt.onboard.mavlink import (
     mode_name,
 )
 from kgadapt.shared.errors import FlightLinkError
+from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from tests.flight.conftest import free_udp_port, wait_until
 
 
@@ -260,7 +260,7 @@ def test_importing_the_flight_modules_leaves_the_mavlink_environment_and_globals
     code = (
         "import json, os, sys\n"
         "before = dict(os.environ)\n"
-        "import kgadapt.onboard.mavlink, kgadapt.onboard.fake_fc, kgadapt.onboard.flight, kgadapt.onboard.flight_cli\n"
+        "import kgadapt.onboard.mavlink, kgadapt.sim.fake_fc, kgadapt.onboard.flight, kgadapt.onboard.flight_cli\n"
         "from kgadapt.onboard.mavlink import new_mavlink\n"
         "from pymavlink.dialects.v20 import common\n"
         "m = common.MAVLink(None, 1, 191)\n"

@@ -16,8 +16,8 @@ HOSTILE = ['a"b', "it's", "back\\slash", "ends with \\", '\\"', "\\\\\"", "x\ny\
 def test_the_header_quotes_and_escapes_every_kind_of_value():
     header = params_header({"s": 'say "hi" \\o/', "n": None, "t": True, "f": False, "i": -3, "x": 1e20,
                             "l": [1, "a", [0.5]], "m": {"a b": {"c": None}}, "u": (1, 2)})
-    assert header == ('CYPHER s="say \\"hi\\" \\\\o/" n=null t=true f=false i=-3 x=1e+20 '
-                      'l=[1,"a",[0.5]] m={`a b`:{`c`:null}} u=[1,2] ')
+    assert header == ('CYPHER s=\'say "hi" \\\\o/\' n=null t=true f=false i=-3 x=1e20 '
+                      "l=[1, 'a', [0.5]] m={`a b`: {`c`: null}} u=[1, 2] ")
     assert params_header(None) == params_header({}) == ""
 
 

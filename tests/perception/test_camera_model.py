@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from kgadapt.onboard.scenario import (
+from kgadapt.shared.errors import ModelError
+from kgadapt.sim.scenario import (
     CameraModel,
     IlluminationProfile,
     LightLayout,
@@ -19,7 +20,6 @@ from kgadapt.onboard.scenario import (
     srgb_decode,
     srgb_encode,
 )
-from kgadapt.shared.errors import ModelError
 
 
 def test_srgb_round_trips_and_lifts_the_shadows():

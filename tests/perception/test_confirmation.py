@@ -9,10 +9,10 @@ import pytest
 from kgadapt.onboard.calibration import model_configs
 from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer
 from kgadapt.onboard.markers import MarkerDetector
-from kgadapt.onboard.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
-from kgadapt.onboard.scenario import IlluminationProfile, SceneSettings, SyntheticScene
 from kgadapt.onboard.site import SiteMarkers, load_site
 from kgadapt.shared.errors import ConfigError, MessageError, ModelError
+from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
+from kgadapt.sim.scenario import IlluminationProfile, SceneSettings, SyntheticScene
 from tests.conftest import REPO
 
 SQUARE = [[100.0, 100.0], [140.0, 100.0], [140.0, 140.0], [100.0, 140.0]]
@@ -148,11 +148,11 @@ def test_the_shipped_configurations_do_report_phantoms_on_these_scenes(phantom_d
 @pytest.mark.parametrize("with_site", [False, True])
 def test_phantoms_from_textures_other_dictionaries_and_charuco_boards_send_no_landing_target(
         phantom_detections, with_site):
-    from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
     from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
     from kgadapt.onboard.mavlink import LinkSettings
     from kgadapt.shared import keys, messages
     from kgadapt.shared.session import ZenohSettings, open_session
+    from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
     from tests.conftest import free_port
     from tests.flight.conftest import FAST_STREAMS, free_udp_port
     from tests.support import wait_for

@@ -14,8 +14,8 @@ import zenoh
 
 from kgadapt.onboard.camera import CameraPart, CameraSettings, SyntheticSource
 from kgadapt.onboard.markers import score
-from kgadapt.onboard.scenario import IlluminationProfile, SyntheticScene
 from kgadapt.shared import keys, messages
+from kgadapt.sim.scenario import IlluminationProfile, SyntheticScene
 from tests.perception.conftest import DAY_JSON, Collector, wait_for
 
 HAVE_SERVICE = (Path(__file__).resolve().parents[2] / "knowledge" / "service.py").exists()
@@ -187,9 +187,9 @@ def knowledge(resp_store, endpoint_session, robot):
         pytest.skip("knowledge/service.py is not there yet")
     from kgadapt.knowledge.loader import load_models
     from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
-    from kgadapt.onboard.calibration import REPO
+    from kgadapt.shared.resources import models
 
-    load_models(resp_store, [REPO / "knowledge" / "models"])
+    load_models(resp_store, [models()])
     service = KnowledgeService(resp_store, ServiceSettings(robot=robot))
     service.setup(endpoint_session[1])
     yield service

@@ -1,4 +1,4 @@
-"""Every configuration on real photographs (tests/perception/photos, sources in SOURCES.txt), issue 11.
+"""Every configuration on real photographs (sim/photographs, sources in SOURCES.txt), issue 11.
 
 The photos hold markers of DICT_6X6_250 (and a custom dictionary), not the
 site's DICT_4X4_50: read with their own dictionary, they say how each
@@ -14,7 +14,7 @@ from __future__ import annotations
 import pytest
 
 from kgadapt.bench.perception_quality import photo_agreement
-from kgadapt.onboard.photos import PHOTO_DICTIONARIES, PHOTO_DIR, load_photo, photo_frames, photo_truth
+from kgadapt.sim.photos import PHOTO_DICTIONARIES, PHOTO_DIR, load_photo, photo_frames, photo_truth
 
 
 def test_every_photo_named_in_the_sources_is_here_with_markers_to_find():

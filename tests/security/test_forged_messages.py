@@ -13,11 +13,11 @@ import time
 import msgpack
 import pytest
 
-from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from kgadapt.onboard.flight import BridgeSettings, FlightBridge
 from kgadapt.onboard.mavlink import LinkSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
+from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from tests.adaptation.test_adaptation_e2e import Run
 from tests.conftest import free_port
 from tests.flight.conftest import FAST_STREAMS, free_udp_port, wait_until

@@ -29,11 +29,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from kgadapt.onboard.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, choose_marker, landing_target
 from kgadapt.onboard.mavlink import LinkSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
+from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from tests.conftest import free_port
 from tests.security.conftest import wait_for
 from tests.security.fuzz import FUZZ, malformed, packed, wire

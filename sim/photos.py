@@ -1,11 +1,11 @@
 """Real photographs of ArUco markers through the camera model (tests, calibration checks, the bench).
 
-The photographs (``tests/perception/photos``, sources in its SOURCES.txt) are
+The photographs (``sim/photographs``, sources in its SOURCES.txt) are
 evenly lit desk photos. :func:`photo_frames` turns one into the frames a
 fixed-exposure camera would take of the same scene in less light: the photo's
 sRGB values are decoded to linear light, scaled so the encoded frame's mean is
 the asked level, given shot and read noise and re-encoded
-(:func:`kgadapt.onboard.scenario.camera_expose`), with a small random shift per frame as
+(:func:`kgadapt.sim.scenario.camera_expose`), with a small random shift per frame as
 a hovering camera would see it. :func:`photo_truth` finds the markers of the
 photo's own dictionary at full brightness with default parameters: the
 reference the darkened frames are scored against.
@@ -14,15 +14,15 @@ reference the darkened frames are scored against.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
-from kgadapt.onboard.scenario import CameraModel, LightLayout, camera_expose, srgb_decode
 from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.resources import photographs
+from kgadapt.sim.scenario import CameraModel, LightLayout, camera_expose, srgb_decode
 
-PHOTO_DIR = Path(__file__).resolve().parent.parent / "tests" / "perception" / "photos"
+PHOTO_DIR = photographs()
 
 # Which dictionary each photo's markers are from (SOURCES.txt); the custom one is left out.
 PHOTO_DICTIONARIES = {
@@ -88,7 +88,7 @@ def photo_truth(photo: np.ndarray, dictionary: str) -> list[dict[str, Any]]:
     """The markers of ``dictionary`` in the photo at full brightness (default parameters)."""
     import cv2
 
-    from kgadapt.onboard.scenario import dictionary as lookup
+    from kgadapt.onboard.markers import aruco_dictionary as lookup
 
     detector = cv2.aruco.ArucoDetector(lookup(dictionary), cv2.aruco.DetectorParameters())
     corners, ids, _ = detector.detectMarkers(photo)

@@ -7,11 +7,10 @@ frame's sequence number. Use it to try a deployment, a migration or a Zenoh
 configuration on real hosts before the camera and the models are in place,
 and in the deployer's tests and benchmark::
 
-    python -m kgadapt.deploy.echo_detector --robot quad1 --host remote --instance echo1 \\
+    python -m kgadapt.sim.echo_detector --robot quad1 --host remote --instance echo1 \\
         --config marker_detection_day --connect tcp/127.0.0.1:7447
 
-``--tick HZ`` publishes on its own clock when no camera runs;
-``--never-ready-on HOST`` makes it hang before readiness on that host (tests).
+``--tick HZ`` publishes on its own clock when no camera runs.
 """
 
 from __future__ import annotations
@@ -20,12 +19,11 @@ import argparse
 import queue
 import signal
 import sys
-import threading
 import time
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m kgadapt.deploy.echo_detector", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m kgadapt.sim.echo_detector", description=__doc__.splitlines()[0])
     parser.add_argument("--robot", required=True)
     parser.add_argument("--host", required=True)
     parser.add_argument("--instance", required=True)
@@ -33,7 +31,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--connect", action="append", default=[], help="Zenoh endpoint (repeatable)")
     parser.add_argument("--camera", default="*", help="camera name (default: every camera)")
     parser.add_argument("--tick", type=float, default=0.0, metavar="HZ", help="publish on a clock instead of frames")
-    parser.add_argument("--never-ready-on", default="", metavar="HOST", help="hang before readiness on HOST")
     args = parser.parse_args(argv)
     # A signal raises Stopped in the main thread, which interrupts its blocking wait at once --
     # if the kernel delivers the signal to the main thread. A process-directed signal goes to
@@ -64,9 +61,6 @@ def _serve(args: argparse.Namespace, unblock_signals) -> int:
     from kgadapt.shared.readiness import announce_ready
     from kgadapt.shared.session import open_session, settings_from_env
 
-    if args.never_ready_on == args.host:
-        unblock_signals()
-        threading.Event().wait()
     try:
         # Mode and TLS come from $KGADAPT_ZENOH_MODE / _CONFIG when the deployer passes them on.
         session = open_session(settings_from_env(connect=tuple(args.connect)).with_defaults(mode="peer"))

@@ -40,6 +40,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from kgadapt.onboard.markers import aruco_dictionary
 from kgadapt.shared.errors import ConfigError, ModelError
 from kgadapt.shared.resources import scenarios
 
@@ -621,7 +622,7 @@ class SyntheticScene:
         w, h = settings.width, settings.height
         if w < 64 or h < 64:
             raise ConfigError(f"synthetic scene {w}x{h}: use at least 64x64")
-        dictionary = _dictionary(settings.dictionary)
+        dictionary = aruco_dictionary(settings.dictionary)
         self._rng = np.random.default_rng(settings.seed)
         self._background = self._make_background(cv2, w, h)
         ys = np.linspace(0.0, 1.0, h, dtype=np.float32)[:, None]
@@ -659,7 +660,7 @@ class SyntheticScene:
         """Printed things that are not the site's markers: other dictionaries, ChArUco-like boards, texture."""
         h, w = base.shape
         s, rng = self.settings, self._rng
-        other = _dictionary("DICT_6X6_250")
+        other = aruco_dictionary("DICT_6X6_250")
 
         def place(patch: np.ndarray) -> None:
             ph, pw = patch.shape
@@ -835,20 +836,6 @@ def _project(pose: MarkerPose, width: int, height: int) -> np.ndarray:
     points = local @ (rx @ ry @ rz).T + np.array([0, 0, distance])
     uv = f * points[:, :2] / points[:, 2:3]
     return (uv + np.array([pose.x * width, pose.y * height])).astype(np.float32)
-
-
-def _dictionary(name: str) -> Any:
-    import cv2
-
-    key = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
-    if not isinstance(key, int):
-        raise ConfigError(f"unknown ArUco dictionary {name!r}: use a cv2.aruco DICT_* name such as DICT_4X4_50")
-    return cv2.aruco.getPredefinedDictionary(key)
-
-
-def dictionary(name: str) -> Any:
-    """The predefined ArUco dictionary called ``name``; ConfigError when unknown."""
-    return _dictionary(name)
 
 
 def frames(
