@@ -173,8 +173,8 @@ def _run_until(stop: threading.Event, duration: float, every: float, tick) -> No
 
 
 def _fake_fc(args: argparse.Namespace) -> int:
-    from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
     from kgadapt.shared.readiness import announce_ready
+    from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 
     if args.rate_scale <= 0:
         from kgadapt.shared.errors import ConfigError
