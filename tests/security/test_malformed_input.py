@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import zenoh
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -83,9 +84,15 @@ def test_a_detector_process_fed_garbage_frames_drops_each_and_keeps_answering_go
     sub = session.declare_subscriber(keys.detector_markers("fuzzbot", "fz"),
                                      lambda s: answers.append(messages.decode(s.payload.to_bytes(), "detections")))
     frame_key = keys.camera_frame("fuzzbot", "cam0")
+
+    def put(payload: bytes) -> None:
+        # BLOCK: with Zenoh's default (drop) a large frame put on a loaded machine may never leave,
+        # and the wait below for the detector to handle it times out (seen with a 1 MB drawn payload).
+        session.put(frame_key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
     try:
         # The detector's subscription takes a moment to reach this session: send until one is answered.
-        wait_for(lambda: (session.put(frame_key, messages.encode("frame", good_frame(1))), answers)[1], 10,
+        wait_for(lambda: (put(messages.encode("frame", good_frame(1))), answers)[1], 10,
                  "the first good frame to be answered")
         dropped = "dropped a frame"
         garbage = st.one_of(
@@ -101,14 +108,14 @@ def test_a_detector_process_fed_garbage_frames_drops_each_and_keeps_answering_go
         @given(payload=garbage)
         def feed(payload: bytes) -> None:
             drops, before = count_lines(stderr, dropped), answered()
-            session.put(frame_key, payload)
+            put(payload)
             # Handled: dropped with a reason, or (a cut JPEG that still decodes) answered like any frame.
             wait_for(lambda: count_lines(stderr, dropped) > drops or answered() > before, 10,
                      f"the detector to handle {payload[:40]!r}")
 
         feed()
         seq = 10_000
-        session.put(frame_key, messages.encode("frame", good_frame(seq)))
+        put(messages.encode("frame", good_frame(seq)))
         wait_for(lambda: any(a["seq"] == seq for a in answers), 10, "the good frame after the garbage to be answered")
     finally:
         sub.undeclare()
