@@ -278,6 +278,24 @@ RETURN p.name AS platform, p.memory_total_mb AS memory_total_mb, p.memory_free_m
 ORDER BY platform""",
     ),
     NamedQuery(
+        "process_profile",
+        "One process run's profile (the deployer's run id): its instance, host and resource figures "
+        "(null until sampled). rss_mb_max is what the adaptation manager counts as the memory it holds.",
+        {"run_id": Param("str", help="run id, as the deployer reports it")},
+        f"""
+MATCH (r:{S.PROCESS_PROFILE} {{name: $run_id}})
+RETURN r.name AS run_id, r.instance AS instance, r.host AS host, r.rss_mb_last AS rss_mb_last,
+       r.rss_mb_mean AS rss_mb_mean, r.rss_mb_max AS rss_mb_max, r.cpu_percent_mean AS cpu_percent_mean""",
+    ),
+    NamedQuery(
+        "camera_intrinsics",
+        "A camera component's pinhole intrinsics in pixels (null where the model gives none).",
+        {"camera": Param("str", help="camera component name, e.g. camera")},
+        f"""
+MATCH (c:{S.COMPONENT} {{name: $camera}})
+RETURN c.name AS camera, c.fx AS fx, c.fy AS fy, c.cx AS cx, c.cy AS cy""",
+    ),
+    NamedQuery(
         "decisions",
         "The adaptation decisions taken, newest first.",
         {"limit": Param("int", required=False, default=20, help="how many")},

@@ -33,7 +33,7 @@ from kgadapt.onboard.illumination import Band, bands_from_rows
 from kgadapt.shared.states import URGENT_TRIGGERS, Change, TriggerKind
 
 __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",
-           "PlanningError", "HostView", "KnowledgeAsk", "FEATURE", "PREFERENCES"]
+           "PlanningError", "HostView", "KnowledgeAsk", "FEATURE", "PREFERENCES", "memory_short"]
 
 # A function that answers a named query: (name, params) -> rows.
 KnowledgeAsk = Callable[[str, Mapping[str, Any]], list[dict[str, Any]]]
@@ -131,6 +131,7 @@ class Placement:
     instance: str | None = None
     demand_mb: float = 0.0  # declared in the graph (sum of the components' memory demand)
     held_mb: float = 0.0  # what the running process actually holds (its profile's last RSS)
+    run_id: str | None = None  # the deployer's run of that process (its ProcessProfile), when known
 
 
 @dataclass(frozen=True)
@@ -144,6 +145,12 @@ class Plan:
 
     def same_as(self, current: Placement | None) -> bool:
         return current is not None and (current.config, current.host) == (self.target.config, self.target.host)
+
+
+def memory_short(free_mb: float, placement: Placement) -> bool:
+    """``placement``'s host can no longer hold it: free memory excludes what the detector holds, and
+    with that given back the host must still cover the demand the graph declares."""
+    return free_mb + placement.held_mb < placement.demand_mb
 
 
 class PlanningError(Exception):
@@ -248,9 +255,7 @@ class Analyzer:
         # arrive before the token, and marking the host online here would swallow the
         # host_back that stops a twin detector there.
         view.memory_free_mb, view.cpu_load, view.last_seen = free_mb, cpu_load, now
-        if running is not None and running.host == host and free_mb + running.held_mb < running.demand_mb:
-            # Free memory excludes what the running detector holds; with that given
-            # back, the host must still cover the demand the graph declares.
+        if running is not None and running.host == host and memory_short(free_mb, running):
             return Trigger(TriggerKind.MEMORY_SHORT, now, {"host": host, "free_mb": round(free_mb, 1),
                                                            "held_mb": round(running.held_mb, 1),
                                                            "demand_mb": running.demand_mb})

@@ -89,6 +89,8 @@ EXAMPLES = {
     "in_place_change": {"from": "detector_day", "to": "detector_dark", "host": "onboard"},
     "deployment": {"name": "marker_detection_dark_onboard"},
     "platforms": {},
+    "process_profile": {"run_id": "r1"},
+    "camera_intrinsics": {"camera": "camera"},
     "decisions": {"limit": 5},
     "current_placement": {},
     "fig4_literal": {"platform": "remote"},
