@@ -33,7 +33,7 @@ from kgadapt.onboard.illumination import Band, bands_from_rows
 from kgadapt.shared.states import URGENT_TRIGGERS, Change, TriggerKind
 
 __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",
-           "PlanningError", "HostView", "KnowledgeAsk", "FEATURE", "PREFERENCES", "memory_short"]
+           "PlanningError", "HostView", "KnowledgeAsk", "FEATURE", "PREFERENCES", "memory_short", "room_for"]
 
 # A function that answers a named query: (name, params) -> rows.
 KnowledgeAsk = Callable[[str, Mapping[str, Any]], list[dict[str, Any]]]
@@ -147,10 +147,15 @@ class Plan:
         return current is not None and (current.config, current.host) == (self.target.config, self.target.host)
 
 
+def room_for(demand_mb: float, *, free_mb: float, held_mb: float = 0.0) -> bool:
+    """A host with ``free_mb`` free can hold ``demand_mb``, given back the ``held_mb`` that a detector it
+    replaces holds there (free memory excludes what that detector holds)."""
+    return free_mb + held_mb >= demand_mb
+
+
 def memory_short(free_mb: float, placement: Placement) -> bool:
-    """``placement``'s host can no longer hold it: free memory excludes what the detector holds, and
-    with that given back the host must still cover the demand the graph declares."""
-    return free_mb + placement.held_mb < placement.demand_mb
+    """``placement``'s host can no longer cover the demand the graph declares for it."""
+    return not room_for(placement.demand_mb, free_mb=free_mb, held_mb=placement.held_mb)
 
 
 class PlanningError(Exception):
@@ -466,7 +471,7 @@ class Planner:
             for row in self.ask("platforms", {}):
                 free = row.get("memory_free_mb")
                 if (row.get("platform") == running.host and row.get("online") and free is not None
-                        and free + running.held_mb >= demand):
+                        and room_for(demand, free_mb=free, held_mb=running.held_mb)):
                     deployment = self.ask("detector_config", {"config": config})
                     if deployment:
                         fits[running.host] = {"platform": running.host, "free_mb": free + running.held_mb,
@@ -475,7 +480,7 @@ class Planner:
             free = (live_free or {}).get(host)
             running_here = running is not None and running.host == host
             credit = running.held_mb if running_here else 0.0
-            if free is not None and free + credit < demand:
+            if free is not None and not room_for(demand, free_mb=free, held_mb=credit):
                 del fits[host]  # the graph has not caught up with a squeeze we already saw
             elif free is None and live_free is not None and not running_here:
                 del fits[host]  # the caller has no confirmed figure of this host: the graph's alone moves nothing
