@@ -273,9 +273,20 @@ RETURN a.reconfigurable_as AS family, a.name AS from_deployment, b.name AS to_de
         f"""
 MATCH (p:{S.PLATFORM})
 RETURN p.name AS platform, p.memory_total_mb AS memory_total_mb, p.memory_free_mb AS memory_free_mb,
-       p.cpu_load AS cpu_load, p.online AS online, p.last_seen AS last_seen,
+       p.cpu_load AS cpu_load, p.online AS online, p.online_since AS online_since, p.last_seen AS last_seen,
        p.cpu_cores AS cpu_cores, p.cpu_capacity AS cpu_capacity
 ORDER BY platform""",
+    ),
+    NamedQuery(
+        "flight_control",
+        "The flight control component(s) with the flight state last written into the graph (null until "
+        "a flight bridge writes it).",
+        {},
+        f"""
+MATCH (c:{S.FLIGHT_CONTROL})
+RETURN c.name AS name, c.mode AS mode, c.armed AS armed, c.landed_state AS landed_state, c.link AS link,
+       c.last_seen AS last_seen
+ORDER BY name""",
     ),
     NamedQuery(
         "process_profile",
