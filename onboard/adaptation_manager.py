@@ -108,11 +108,11 @@ class AdaptationManager:
         self._session: Any = None
         self._declarations = contextlib.ExitStack()  # subscribers and the events publisher
         self._events_pub: Any = None
-        self._knowledge: Any = None  # KnowledgeClient, from setup()
-        self._deployers: Any = None  # DeployerClient
-        self._probe: Any = None  # DeployerClient with a short timeout: a lost host is liveliness' business
-        self._analyzer: Any = None  # Analyzer
-        self._planner: Any = None  # Planner
+        self._knowledge: KnowledgeClient | None = None
+        self._deployers: DeployerClient | None = None
+        self._probe: DeployerClient | None = None  # short timeout: a lost host is liveliness' business
+        self._analyzer: Analyzer | None = None
+        self._planner: Planner | None = None
         self._configs: dict[str, dict[str, Any]] = {}
         self._state = LoopState()  # the schedule and the last change's facts (adaptation_policy)
         self._decisions = 0
