@@ -118,17 +118,12 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
         graph: dict[str, Any] = {}
         try:
             t0 = time.monotonic()
-            graph["platforms"] = client.cypher(
-                "MATCH (p:Platform) RETURN p.name AS platform, p.online AS online, p.online_since AS online_since, "
-                "p.last_seen AS last_seen, p.memory_free_mb AS memory_free_mb, p.memory_total_mb AS memory_total_mb "
-                "ORDER BY platform")
+            graph["platforms"] = client.query("platforms", {})
             out["service"] = {"reachable": True, "answered_ms": round((time.monotonic() - t0) * 1000.0, 1)}
             graph["configs"] = client.query("detector_configs", {})
             graph["decisions"] = client.query("decisions", {"limit": decisions})
             graph["current"] = client.query("current_placement", {})
-            graph["flight_control"] = client.cypher(
-                "MATCH (c:FlightControl) RETURN c.name AS name, c.mode AS mode, c.armed AS armed, "
-                "c.landed_state AS landed_state, c.link AS link, c.last_seen AS last_seen")
+            graph["flight_control"] = client.query("flight_control", {})
         except KgadaptError as exc:
             out["service"] = {"reachable": False, "error": str(exc)}
             problems.append(f"knowledge service of robot {robot} not reachable via {endpoint}: {exc}")

@@ -273,9 +273,38 @@ RETURN a.reconfigurable_as AS family, a.name AS from_deployment, b.name AS to_de
         f"""
 MATCH (p:{S.PLATFORM})
 RETURN p.name AS platform, p.memory_total_mb AS memory_total_mb, p.memory_free_mb AS memory_free_mb,
-       p.cpu_load AS cpu_load, p.online AS online, p.last_seen AS last_seen,
+       p.cpu_load AS cpu_load, p.online AS online, p.online_since AS online_since, p.last_seen AS last_seen,
        p.cpu_cores AS cpu_cores, p.cpu_capacity AS cpu_capacity
 ORDER BY platform""",
+    ),
+    NamedQuery(
+        "flight_control",
+        "The flight control component(s) with the flight state last written into the graph (null until "
+        "a flight bridge writes it).",
+        {},
+        f"""
+MATCH (c:{S.FLIGHT_CONTROL})
+RETURN c.name AS name, c.mode AS mode, c.armed AS armed, c.landed_state AS landed_state, c.link AS link,
+       c.last_seen AS last_seen
+ORDER BY name""",
+    ),
+    NamedQuery(
+        "process_profile",
+        "One process run's profile (the deployer's run id): its instance, host and resource figures "
+        "(null until sampled). rss_mb_max is what the adaptation manager counts as the memory it holds.",
+        {"run_id": Param("str", help="run id, as the deployer reports it")},
+        f"""
+MATCH (r:{S.PROCESS_PROFILE} {{name: $run_id}})
+RETURN r.name AS run_id, r.instance AS instance, r.host AS host, r.rss_mb_last AS rss_mb_last,
+       r.rss_mb_mean AS rss_mb_mean, r.rss_mb_max AS rss_mb_max, r.cpu_percent_mean AS cpu_percent_mean""",
+    ),
+    NamedQuery(
+        "camera_intrinsics",
+        "A camera component's pinhole intrinsics in pixels (null where the model gives none).",
+        {"camera": Param("str", help="camera component name, e.g. camera")},
+        f"""
+MATCH (c:{S.COMPONENT} {{name: $camera}})
+RETURN c.name AS camera, c.fx AS fx, c.fy AS fy, c.cx AS cx, c.cy AS cy""",
     ),
     NamedQuery(
         "decisions",

@@ -33,7 +33,7 @@ from kgadapt.onboard.illumination import Band, bands_from_rows
 from kgadapt.shared.states import URGENT_TRIGGERS, Change, TriggerKind
 
 __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",
-           "PlanningError", "HostView", "KnowledgeAsk", "FEATURE", "PREFERENCES"]
+           "PlanningError", "HostView", "KnowledgeAsk", "FEATURE", "PREFERENCES", "memory_short", "room_for"]
 
 # A function that answers a named query: (name, params) -> rows.
 KnowledgeAsk = Callable[[str, Mapping[str, Any]], list[dict[str, Any]]]
@@ -131,6 +131,7 @@ class Placement:
     instance: str | None = None
     demand_mb: float = 0.0  # declared in the graph (sum of the components' memory demand)
     held_mb: float = 0.0  # what the running process actually holds (its profile's last RSS)
+    run_id: str | None = None  # the deployer's run of that process (its ProcessProfile), when known
 
 
 @dataclass(frozen=True)
@@ -144,6 +145,17 @@ class Plan:
 
     def same_as(self, current: Placement | None) -> bool:
         return current is not None and (current.config, current.host) == (self.target.config, self.target.host)
+
+
+def room_for(demand_mb: float, *, free_mb: float, held_mb: float = 0.0) -> bool:
+    """A host with ``free_mb`` free can hold ``demand_mb``, given back the ``held_mb`` that a detector it
+    replaces holds there (free memory excludes what that detector holds)."""
+    return free_mb + held_mb >= demand_mb
+
+
+def memory_short(free_mb: float, placement: Placement) -> bool:
+    """``placement``'s host can no longer cover the demand the graph declares for it."""
+    return not room_for(placement.demand_mb, free_mb=free_mb, held_mb=placement.held_mb)
 
 
 class PlanningError(Exception):
@@ -248,9 +260,7 @@ class Analyzer:
         # arrive before the token, and marking the host online here would swallow the
         # host_back that stops a twin detector there.
         view.memory_free_mb, view.cpu_load, view.last_seen = free_mb, cpu_load, now
-        if running is not None and running.host == host and free_mb + running.held_mb < running.demand_mb:
-            # Free memory excludes what the running detector holds; with that given
-            # back, the host must still cover the demand the graph declares.
+        if running is not None and running.host == host and memory_short(free_mb, running):
             return Trigger(TriggerKind.MEMORY_SHORT, now, {"host": host, "free_mb": round(free_mb, 1),
                                                            "held_mb": round(running.held_mb, 1),
                                                            "demand_mb": running.demand_mb})
@@ -461,7 +471,7 @@ class Planner:
             for row in self.ask("platforms", {}):
                 free = row.get("memory_free_mb")
                 if (row.get("platform") == running.host and row.get("online") and free is not None
-                        and free + running.held_mb >= demand):
+                        and room_for(demand, free_mb=free, held_mb=running.held_mb)):
                     deployment = self.ask("detector_config", {"config": config})
                     if deployment:
                         fits[running.host] = {"platform": running.host, "free_mb": free + running.held_mb,
@@ -470,7 +480,7 @@ class Planner:
             free = (live_free or {}).get(host)
             running_here = running is not None and running.host == host
             credit = running.held_mb if running_here else 0.0
-            if free is not None and free + credit < demand:
+            if free is not None and not room_for(demand, free_mb=free, held_mb=credit):
                 del fits[host]  # the graph has not caught up with a squeeze we already saw
             elif free is None and live_free is not None and not running_here:
                 del fits[host]  # the caller has no confirmed figure of this host: the graph's alone moves nothing

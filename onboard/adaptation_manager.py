@@ -5,10 +5,17 @@ state, the running detector's detections) -> analyse (:mod:`kgadapt.onboard.adap
 -> plan (named queries through the knowledge service) -> execute (the hosts'
 deployers) -> knowledge (every decision written into the graph).
 
+This module only observes and executes: every decision (what an observation
+means, what a trigger leads to, how a plan is carried out, when a check is due)
+is a pure function of :mod:`kgadapt.onboard.adaptation` (analyse, plan) or
+:mod:`kgadapt.onboard.adaptation_policy` (the loop's rules and its schedule, one
+:class:`~kgadapt.onboard.adaptation_policy.LoopState`), tested without processes.
+
 Callbacks only queue observations; one worker thread analyses and acts, so a
 migration never runs inside a Zenoh callback and decisions happen one at a time.
-Host liveliness changes have their own queue, served first: a host lost during a
-long action is acted on next, not after the observations queued meanwhile.
+It waits on that queue until the next check of its own is due. Host liveliness
+changes have their own queue, served first: a host lost during a long action is
+acted on next, not after the observations queued meanwhile.
 
 Execution: a planned change on the same host whose deployments the graph
 says may be changed in place (the planner asks ``in_place_change``) reconfigures
@@ -47,79 +54,32 @@ any other detector of ours still running is stopped as a twin.
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
-import json
 import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 from kgadapt.deploy.client import DeployerClient
 from kgadapt.deploy.deployer import new_instance_name
 from kgadapt.deploy.migration import FirstOutput, migrate, reconfigure
 from kgadapt.knowledge.client import KnowledgeClient
-from kgadapt.onboard.adaptation import (
-    FEATURE,
-    Analyzer,
-    BandTracker,
-    Placement,
-    Plan,
-    Planner,
-    PlanningError,
-    Trigger,
-    bands_from_rows,
-)
+from kgadapt.onboard import adaptation_policy as policy
+from kgadapt.onboard.adaptation import Analyzer, BandTracker, Placement, Plan, Planner, PlanningError, Trigger, bands_from_rows
+from kgadapt.onboard.adaptation_policy import Action, AdaptationSettings, Execution, LoopState, Outcome, StandbyStep
 from kgadapt.onboard.detector import set_active
 from kgadapt.onboard.flight_phase import in_final_descent
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
-from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, TriggerKind
+from kgadapt.shared.rpc import declared
+from kgadapt.shared.states import Change, TriggerKind
+
+__all__ = ["AdaptationManager", "AdaptationSettings", "Outcome"]
 
 log = logging.getLogger(__name__)
-
-UNMEASURED_MB = 5.0  # a detector's profile below this has only its exec-time sample
-MEASURE_WITHIN_S = 10.0  # how long after a change an unmeasured detector is given the benefit of the doubt
-
-
-@dataclass(frozen=True, kw_only=True)
-class AdaptationSettings:
-    """How the manager decides. ``preference``: see :mod:`kgadapt.onboard.adaptation`."""
-
-    robot: str
-    camera: str = "cam0"
-    feature: str = FEATURE
-    preference: str = "onboard-first"
-    onboard_host: str = "onboard"
-    hysteresis: float = 4.0
-    dwell_s: float = 1.0
-    ready_timeout: float = 20.0
-    output_timeout: float = 5.0
-    knowledge_timeout: float = 15.0  # bounded wait for the knowledge service at setup
-    rss_refresh_s: float = 2.0
-    startup_grace_s: float = 5.0  # how long the first placement waits for our own host to show online
-    graph_catch_up_s: float = 2.0  # how long a host_back waits for the graph to show the host online
-    settle_s: float = 1.0  # after a change, host statuses this young do not count for memory_short
-    retry_s: float = 1.0  # the running host lost and no replacement started: try again this often
-    reconcile_s: float = 0.5  # ask the running detector's deployer how it is at least this often
-    in_place: bool = True  # reconfigure in place where the graph allows it (False: always migrate)
-    status_window_s: float = 1.5  # a host's free memory counts when its statuses of this window (>= 2) agree
-    standby: bool = False  # keep the neighbouring band's configuration started but idle where a host has room
-    standby_check_s: float = 1.0  # how often the standby is checked against the graph
-
-
-@dataclass(kw_only=True)
-class Outcome:
-    """What one decision did, for the graph, the event stream and the demo's summary."""
-
-    trigger: Trigger
-    plan: Plan | None = None
-    outcome: str = ""
-    latency_ms: float | None = None  # trigger observed -> new detector's first detection
-    frames_lost: int | None = None
-    detail: dict[str, Any] = field(default_factory=dict)
 
 
 class AdaptationManager:
@@ -127,14 +87,16 @@ class AdaptationManager:
 
     name = "adaptation"
 
-    def __init__(self, settings: AdaptationSettings, *, landed_state: Any = None) -> None:
+    def __init__(self, settings: AdaptationSettings, *, landed_state: Callable[[], Any] | None = None) -> None:
         self.settings = settings
         # With a flight bridge in the same process: its landed state, read directly. Then
         # flight_state messages on Zenoh, which anyone holding a host certificate could
         # forge, are not listened to.
         self._landed_state = landed_state
-        self.current: Placement | None = None
-        self.history: list[Outcome] = []
+        self.current: Placement | None = None  # the running detector (its run id and held memory as last known)
+        self.standby: Placement | None = None  # the warm standby (idle), when settings.standby
+        # This run's decisions, oldest first; the graph keeps every one, memory the last history_size.
+        self.history: collections.deque[Outcome] = collections.deque(maxlen=settings.history_size)
         self.landing = False
         self._deferred: set[str] = set()  # kinds of change deferred in this descent: each recorded once
         self._queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=4096)
@@ -144,37 +106,27 @@ class AdaptationManager:
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         self._session: Any = None
-        self._handles: list[Any] = []
+        self._declarations = contextlib.ExitStack()  # subscribers and the events publisher
         self._events_pub: Any = None
         self._knowledge: KnowledgeClient | None = None
         self._deployers: DeployerClient | None = None
+        self._probe: DeployerClient | None = None  # short timeout: a lost host is liveliness' business
         self._analyzer: Analyzer | None = None
         self._planner: Planner | None = None
         self._configs: dict[str, dict[str, Any]] = {}
-        self._held_checked = 0.0
+        self._state = LoopState()  # the schedule and the last change's facts (adaptation_policy)
         self._decisions = 0
-        self._setup_at = 0.0
-        self._settled_after = 0.0
-        self._changed_at = 0.0
-        self._retry: Trigger | None = None  # a lost detector not yet replaced (e.g. the knowledge service was down)
-        self._retry_at = 0.0
         self._lock = threading.Lock()
-        self._probe: DeployerClient | None = None  # short timeout: a lost host is liveliness' business
-        self._next_check = 0.0
         # (host, instance) of migration sources that could not be stopped (host cut off): twins to stop.
         self._leftovers: list[tuple[str, str]] = []
-        self._next_leftover_check = 0.0
         self._trust = StatusTrust(TrustSettings(window_s=settings.status_window_s))
         self._refusal_logged: dict[str, float] = {}
-        self.standby: Placement | None = None  # the warm standby (idle), when settings.standby
-        self._standby_run_id: str | None = None
-        self._standby_paused = False  # stopped for memory: none again until the band changes
-        self._next_standby_check = 0.0
 
     # -- lifecycle -------------------------------------------------------
 
     def setup(self, session: Any) -> None:
         s = self.settings
+        self._stop.clear()
         self._session = session
         self._knowledge = KnowledgeClient(session, s.robot, own=True, host=s.onboard_host)  # writes as its host's
         self._deployers = DeployerClient(session, s.robot)
@@ -187,32 +139,26 @@ class AdaptationManager:
         self._analyzer = Analyzer(tracker=BandTracker(bands=bands, hysteresis=s.hysteresis, dwell_s=s.dwell_s))
         self._planner = Planner(ask=self._knowledge.query, feature=s.feature, preference=s.preference,
                                 onboard_host=s.onboard_host, in_place=s.in_place)
-        self._events_pub = session.declare_publisher(keys.adaptation_events(s.robot))
-        self._handles = [
-            session.declare_subscriber(keys.camera_illumination(s.robot, s.camera), self._on("illumination")),
-            session.declare_subscriber(keys.host_status(s.robot), self._on("host_status")),
-            session.liveliness().declare_subscriber(keys.host_alive(s.robot), self._on_alive, history=True),
-            session.declare_subscriber(keys.flight_state(s.robot), self._on("flight_state")),
-            session.declare_subscriber(keys.detector_markers(s.robot), self._on("detections")),
-            session.declare_subscriber(keys.deployer_events(s.robot), self._on("deploy_event")),
-        ]
-        self._stop.clear()
-        self._setup_at = time.monotonic()
+        stack = contextlib.ExitStack()
+        self._events_pub = declared(stack, session.declare_publisher(keys.adaptation_events(s.robot)))
+        declared(stack, session.declare_subscriber(keys.camera_illumination(s.robot, s.camera), self._on("illumination")))
+        declared(stack, session.declare_subscriber(keys.host_status(s.robot), self._on("host_status")))
+        declared(stack, session.liveliness().declare_subscriber(keys.host_alive(s.robot), self._on_alive, history=True))
+        declared(stack, session.declare_subscriber(keys.flight_state(s.robot), self._on("flight_state")))
+        declared(stack, session.declare_subscriber(keys.detector_markers(s.robot), self._on("detections")))
+        declared(stack, session.declare_subscriber(keys.deployer_events(s.robot), self._on("deploy_event")))
+        self._declarations = stack
+        self._state = LoopState(setup_at=time.monotonic())
         self._worker = threading.Thread(target=self._run, name="adaptation", daemon=True)
         self._worker.start()
         log.info("adaptation manager up: bands %s, preference %s", [b.name for b in bands], s.preference)
 
     def shutdown(self) -> None:
         self._stop.set()
+        self._put(("wake", None))  # the worker may be waiting on the queue
         if self._worker is not None:
             self._worker.join(timeout=30)
             self._worker = None
-        for handle in self._handles:
-            try:
-                handle.undeclare()
-            except Exception as exc:  # session may be closing
-                log.debug("undeclare: %s", exc)
-        self._handles = []
         current, self.current = self.current, None
         standby, self.standby = self.standby, None
         if standby is not None and standby.instance and self._deployers is not None:
@@ -226,26 +172,23 @@ class AdaptationManager:
                 self._deployers.stop(current.host, current.instance)
             except KgadaptError as exc:
                 log.warning("could not stop %s on %s: %s", current.instance, current.host, exc)
-        if self._events_pub is not None:
-            try:
-                self._events_pub.undeclare()
-            except Exception as exc:
-                log.debug("undeclare: %s", exc)
-            self._events_pub = None
+        self._declarations.close()  # quietly: the session may be closing
+        self._events_pub = None
 
     def _wait_for_knowledge(self) -> list[dict[str, Any]]:
+        # The client sends again while nobody answers; this waits out refusals (a store still loading).
         deadline = time.monotonic() + self.settings.knowledge_timeout
         while True:
             try:
-                return self._knowledge.query("detector_configs", {"feature": self.settings.feature})
+                rows: list[dict[str, Any]] = self._knowledge.query("detector_configs", {"feature": self.settings.feature})
+                return rows
             except KgadaptError as exc:
-                if time.monotonic() >= deadline:
+                if time.monotonic() >= deadline or self._stop.wait(0.2):
                     raise KgadaptError(f"adaptation: the knowledge service did not answer: {exc}") from exc
-                time.sleep(0.2)
 
     # -- monitor: callbacks only queue -----------------------------------
 
-    def _on(self, kind: str):
+    def _on(self, kind: str) -> Callable[[Any], None]:
         def callback(sample: Any) -> None:
             self._put((kind, (str(sample.key_expr), sample.payload.to_bytes(), time.time())))
         return callback
@@ -261,7 +204,7 @@ class AdaptationManager:
         except queue.Full:
             log.warning("adaptation: observation queue full; dropping %s", item[0])
 
-    # -- analyse, plan, execute ------------------------------------------
+    # -- the loop: observe, decide (policy), execute -----------------------
 
     def _run(self) -> None:
         self._adopt_running()
@@ -270,7 +213,7 @@ class AdaptationManager:
                 kind, data = "alive", self._alive.popleft()
             else:
                 try:
-                    kind, data = self._queue.get(timeout=0.2)
+                    kind, data = self._queue.get(timeout=self._next_wake())
                 except queue.Empty:
                     kind, data = "tick", None
             try:
@@ -279,7 +222,7 @@ class AdaptationManager:
                     # Nothing runs: whatever was observed, the question is where to start.
                     trigger = self._startup_trigger()
                 if trigger is None:
-                    trigger = self._due_retry()
+                    trigger, self._state = policy.due_retry(self._state, mono=time.monotonic())
                 if trigger is None:
                     trigger = self._check_running()
                 if trigger is None and self._leftovers:
@@ -291,6 +234,13 @@ class AdaptationManager:
             except Exception:  # the loop must survive any single bad observation or failed action
                 log.exception("adaptation: handling %s failed", kind)
 
+    def _next_wake(self) -> float:
+        c = self.current
+        return policy.next_wake(self._state, mono=time.monotonic(),
+                                probing=policy.probing(c, self._analyzer.hosts), starting=c is None,
+                                leftovers=bool(self._leftovers), standby=self.settings.standby,
+                                startup_poll_s=self.settings.startup_poll_s)
+
     def _observe(self, kind: str, data: Any) -> Trigger | None:
         now = time.time()
         a = self._analyzer
@@ -300,62 +250,18 @@ class AdaptationManager:
             if host == self.settings.onboard_host and not alive:
                 # Our own token goes first when our agent shuts down; we go with it.
                 return None
-            return a.on_liveliness(host, alive, now, self.current)
+            trigger: Trigger | None = a.on_liveliness(host, alive, now, self.current)
+            return trigger
         if kind in ("tick", "wake"):
             return None
         key, payload, received = data
         try:
             if kind == "illumination":
                 m = messages.decode(payload, "illumination")
-                return a.on_illumination(float(m["smoothed"]), now)
-            if kind == "host_status":
-                # Refused: what the knowledge service refuses, a host without a liveliness token,
-                # a stale status, free memory its running detector's profile shows as used.
-                host = keys.last_chunk(key, 2)
-                held = self.current.held_mb if self.current is not None and self.current.host == host else 0.0
-                m = check_status(host, messages.decode(payload, "host_status"))  # malformed: dropped below
-                try:
-                    m = self._trust.admit(host, m, received=received, used_mb=held)
-                except MessageError as exc:
-                    self._log_refusal(host, exc)
-                    return None
-                view = a.hosts.get(host)
-                if view is None or not view.online:
-                    return None
-                # No move on the strength of one status: a shortage counts when every status of the
-                # window shows it, and a host looks as roomy as the least of them (None: not yet confirmed).
-                roomiest = self._trust.roomiest(host, received)
-                if roomiest is None:
-                    return None
-                m = {**m, "memory_free_mb": roomiest}
-                if self.current is not None and self.current.host == host:
-                    self._refresh_held(now)
-                # A status received before the last change settled was measured while old and
-                # new detector both ran (it may have queued while we migrated): it updates the
-                # view but cannot say the new detector does not fit.
-                settled = received >= self._settled_after
-                free = float(m["memory_free_mb"])
-                running = self.current if settled else None
-                if running is not None and running.host == host and free + running.held_mb < running.demand_mb:
-                    # Before calling it unfit, make sure "held" is a real measurement: the
-                    # profile's first sample is taken at exec (a few MiB).
-                    self._refresh_held(now, force=True)
-                    running = self.current
-                    if running.held_mb < UNMEASURED_MB and now - self._changed_at < MEASURE_WITHIN_S:
-                        running = None
-                trigger = a.on_host_status(host, free_mb=free, cpu_load=float(m["cpu_load"]), now=now, running=running)
-                view.memory_free_mb = self._trust.confirmed_free(host, received)
-                sb = self.standby
-                if (trigger is None and settled and sb is not None and sb.host == host
-                        and (self.current is None or self.current.host != host) and free + sb.held_mb < sb.demand_mb):
-                    self._refresh_standby_held()
-                    sb = self.standby
-                    if sb is not None and free + sb.held_mb < sb.demand_mb and sb.held_mb >= UNMEASURED_MB:
-                        trigger = Trigger(TriggerKind.MEMORY_SHORT, now, {"host": host, "free_mb": round(free, 1),
-                                                                            "held_mb": round(sb.held_mb, 1),
-                                                                            "demand_mb": sb.demand_mb,
-                                                                            "standby": sb.instance})
+                trigger = a.on_illumination(float(m["smoothed"]), now)
                 return trigger
+            if kind == "host_status":
+                return self._on_host_status(keys.last_chunk(key, 2), payload, received, now)
             if kind == "flight_state":
                 m = messages.decode(payload, "flight_state")  # malformed ones are dropped and logged either way
                 if self._landed_state is not None:
@@ -364,28 +270,60 @@ class AdaptationManager:
                 return None
             if kind == "deploy_event":
                 m = messages.decode(payload, "deploy_event")
-                if (self.standby is not None and m["instance"] == self.standby.instance
-                        and m["event"] in ENDED_EVENTS):
+                if policy.ended(self.standby, instance=m["instance"], event=m["event"]):
                     log.info("adaptation: the standby %s %s", m["instance"], m["event"])
                     self.standby = None
-                if (self.current is not None and m["instance"] == self.current.instance
-                        and m["event"] in ENDED_EVENTS):
-                    self._next_check = 0.0  # ask its deployer now, not at the next round
+                if policy.ended(self.current, instance=m["instance"], event=m["event"]):
+                    self._state = dataclasses.replace(self._state, next_check=0.0)  # ask its deployer now
                 return None
             if kind == "detections":
                 m = messages.decode(payload, "detections")
-                # Key and body must both name the instance we started: any detector may put on
-                # detector/*/markers, under any name in the body.
-                if (self.current is None or m["instance"] != self.current.instance
-                        or keys.last_chunk(key, 2) != self.current.instance):
+                running = self.current
+                if running is None or not policy.own_detection(running, body_instance=m["instance"],
+                                                               key_instance=keys.last_chunk(key, 2)):
                     return None
                 band = a.tracker.current.name if a.tracker.current else None
-                # Only markers whose cells read clean count as evidence (phantoms do not hold up a rate).
-                found = sum(c is not False for c in (m.get("clean") or [True] * len(m["ids"]))[:len(m["ids"])])
-                return a.on_detection(found, now, self._expected_rate(self.current.config, band), self.current.config)
+                found = policy.clean_markers(m["ids"], m.get("clean"))
+                expected = policy.expected_rate(self._state, self._configs, running.config, band)
+                trigger = a.on_detection(found, now, expected, running.config)
+                return trigger
         except MessageError as exc:
             log.info("adaptation: dropped a %s message on %s: %s", kind, key, exc)
         return None
+
+    def _on_host_status(self, host: str, payload: bytes, received: float, now: float) -> Trigger | None:
+        # Refused: what the knowledge service refuses, a host without a liveliness token,
+        # a stale status, free memory its running detector's profile shows as used.
+        a = self._analyzer
+        held = self.current.held_mb if self.current is not None and self.current.host == host else 0.0
+        m = check_status(host, messages.decode(payload, "host_status"))  # malformed: dropped by the caller
+        try:
+            m = self._trust.admit(host, m, received=received, used_mb=held)
+        except MessageError as exc:
+            self._log_refusal(host, exc)
+            return None
+        view = a.hosts.get(host)
+        if view is None or not view.online:
+            return None
+        # No move on the strength of one status: a shortage counts when every status of the
+        # window shows it, and a host looks as roomy as the least of them (None: not yet confirmed).
+        roomiest = self._trust.roomiest(host, received)
+        if roomiest is None:
+            return None
+        free = float(roomiest)
+        if self.current is not None and self.current.host == host:
+            self._refresh_held(now)
+        settled = received >= self._state.settled_after
+        short = policy.to_measure(host, free, running=self.current, standby=self.standby, settled=settled)
+        if short is not None and short is self.current:
+            self._refresh_held(now, force=True)  # before calling it unfit, make sure "held" is a measurement
+        elif short is not None and short is self.standby:
+            self._refresh_standby_held()
+        trigger = policy.host_status_trigger(a, host, free_mb=free, cpu_load=float(m["cpu_load"]), wall=now,
+                                             running=self.current, standby=self.standby, state=self._state,
+                                             received=received)
+        view.memory_free_mb = self._trust.confirmed_free(host, received)
+        return trigger
 
     def _set_landing(self, landing: bool) -> None:
         if not landing:
@@ -395,11 +333,8 @@ class AdaptationManager:
     def _check_running(self) -> Trigger | None:
         """A ``detector_gone`` trigger when the deployer says our detector no longer runs."""
         current = self.current
-        if current is None or not current.instance or time.monotonic() < self._next_check:
+        if current is None or not policy.probe_due(self._state, current, self._analyzer.hosts, mono=time.monotonic()):
             return None
-        host = self._analyzer.hosts.get(current.host)
-        if host is not None and not host.online:
-            return None  # host_lost covers it
         try:
             state = str(self._probe.status(current.host, current.instance).get("state"))
         except DeploymentError as exc:  # the deployer does not know it (any more)
@@ -410,21 +345,21 @@ class AdaptationManager:
         finally:
             # Counted from the answer (or the timeout): unanswered probes back to back would leave
             # the loop no time for the observations waiting in the queue.
-            self._next_check = time.monotonic() + self.settings.reconcile_s
-        if state in KEPT_STATES:
-            return None
-        log.warning("adaptation: detector %s on %s is %s; replacing it", current.instance, current.host, state)
-        return Trigger(TriggerKind.DETECTOR_GONE, time.time(), {"instance": current.instance, "host": current.host,
-                                                                     "state": state[:120]})
+            self._state = dataclasses.replace(self._state, next_check=time.monotonic() + self.settings.reconcile_s)
+        trigger = policy.gone_trigger(current, state, wall=time.time())
+        if trigger is not None:
+            log.warning("adaptation: detector %s on %s is %s; replacing it", current.instance, current.host, state)
+        return trigger
 
     def _stop_leftovers(self) -> None:
         """Stop the sources of migrations that could not be stopped, once their deployers answer."""
-        if time.monotonic() < self._next_leftover_check:
+        mono = time.monotonic()
+        if mono < self._state.next_leftover_check:
             return
-        self._next_leftover_check = time.monotonic() + self.settings.reconcile_s
+        self._state = dataclasses.replace(self._state, next_leftover_check=mono + self.settings.reconcile_s)
         for host, instance in list(self._leftovers):
-            state = self._analyzer.hosts.get(host)
-            if state is not None and not state.online:
+            view = self._analyzer.hosts.get(host)
+            if view is not None and not view.online:
                 continue  # host_back's reconcile or the next round
             try:
                 self._deployers.stop(host, instance)
@@ -436,42 +371,47 @@ class AdaptationManager:
                 continue
             self._leftovers.remove((host, instance))
 
-    def _stop_twins(self) -> list[str]:
-        """Stop every live detector of ours but the current one, on any host."""
+    def _stop_twins(self, host: str = "*", *, running_only: bool = True) -> list[str]:
+        """Stop every live detector of ours on ``host`` ("*": any) but the current one and the standby.
+
+        ``running_only``: nothing is stopped while no detector runs.
+        """
+        if running_only and self.current is None:
+            return []
         try:
-            processes = self._deployers.list("*")
+            processes = self._deployers.list(host)
         except KgadaptError:
             return []
         stopped = []
-        for p in processes:
-            if (p.get("state") in KEPT_STATES and p.get("config") in self._configs
-                    and self.current is not None and p.get("instance") != self.current.instance
-                    and (self.standby is None or p.get("instance") != self.standby.instance)):
-                try:
-                    self._deployers.stop(str(p["host"]), str(p["instance"]))
-                    stopped.append(str(p["instance"]))
-                except KgadaptError as exc:
-                    log.warning("adaptation: could not stop twin %s: %s", p.get("instance"), exc)
+        for p in policy.twins(processes, self._configs, running=self.current, standby=self.standby):
+            try:
+                self._deployers.stop(str(p["host"]) if host == "*" else host, str(p["instance"]))
+                stopped.append(str(p["instance"]))
+            except KgadaptError as exc:
+                log.warning("adaptation: could not stop twin %s on %s: %s", p.get("instance"), p.get("host"), exc)
         return stopped
 
+    def reconcile(self, host: str) -> list[str]:
+        """Stop detectors on ``host`` that are not the current one (after a partition heals)."""
+        return self._stop_twins(host, running_only=False)
+
     def _startup_trigger(self) -> Trigger | None:
-        a = self._analyzer
-        if a.tracker.current is None or not any(h.online for h in a.hosts.values()):
-            return None
-        if not self._own_host_known():
-            return None
-        now = time.time()
-        # Within the grace period, every online host's figures confirmed (else the first plan
-        # would see only the host confirmed first); after it, any host's.
-        confirmed = [self._trust.confirmed_free(h.name, now) is not None for h in a.hosts.values() if h.online]
-        within_grace = time.monotonic() - self._setup_at <= self.settings.startup_grace_s
-        if not (all(confirmed) if within_grace else any(confirmed)):
-            return None  # a plan now could only fail or go elsewhere
-        return Trigger(TriggerKind.STARTUP, time.time(), {"band": a.tracker.current.name})
+        wall = time.time()
+        within_grace = time.monotonic() - self._state.setup_at <= self.settings.startup_grace_s
+        return policy.startup_trigger(self._analyzer, own_host=self.settings.onboard_host, within_grace=within_grace,
+                                      platforms=self._platforms,
+                                      confirmed=lambda h: self._trust.confirmed_free(h, wall) is not None, wall=wall)
+
+    def _platforms(self) -> list[dict[str, Any]]:
+        try:
+            rows: list[dict[str, Any]] = self._knowledge.query("platforms", {})
+            return rows
+        except KgadaptError:
+            return []
 
     def _log_refusal(self, host: str, exc: Exception) -> None:
         now = time.monotonic()
-        if now - self._refusal_logged.get(host, -1e9) >= 5.0:  # a flood of forgeries logs once per host per 5 s
+        if policy.refusal_log_due(self._refusal_logged.get(host), now):
             self._refusal_logged[host] = now
             log.warning("adaptation: refused %s (%d refused so far)", exc, self._trust.refused)
 
@@ -480,128 +420,84 @@ class AdaptationManager:
 
         We and the knowledge service see a liveliness token at the same moment;
         planning before the service has written it would leave the host out.
+        No event says when it has: the graph is asked again every 50 ms.
         """
         deadline = time.monotonic() + timeout
-        while True:
-            try:
-                rows = self._knowledge.query("platforms", {})
-            except KgadaptError:
-                rows = []
-            if any(r.get("platform") == host and r.get("online") and r.get("memory_free_mb") is not None
-                   for r in rows):
-                return True
-            if time.monotonic() >= deadline or self._stop.is_set():
+        while not policy.shows_online(self._platforms(), host):
+            if time.monotonic() >= deadline or self._stop.wait(0.05):
                 return False
-            time.sleep(0.05)
+        return True
 
-    def _own_host_known(self) -> bool:
-        """True once the graph shows our own host online with its figures, or after a grace period.
+    def _profile_rss(self, run_id: str | None) -> float | None:
+        """The most the process of run ``run_id`` held (its profile's rss_mb_max), None when not known yet.
 
-        Our agent declares its liveliness token only after all its parts are up,
-        so the first plan could otherwise see only the remote host online.
+        The maximum, not the last sample: the first sample is taken right after
+        exec (a few MiB) and would make the detector look as if it held nothing.
         """
-        if time.monotonic() - self._setup_at > self.settings.startup_grace_s:
-            return True
-        own = self._analyzer.hosts.get(self.settings.onboard_host)
-        if own is None or not own.online:
-            return False
-        try:
-            rows = self._knowledge.query("platforms", {})
-        except KgadaptError:
-            return False
-        # Online and with a free-memory figure: a status put right after open() can be lost.
-        return any(r.get("platform") == self.settings.onboard_host and r.get("online")
-                   and r.get("memory_free_mb") is not None for r in rows)
-
-    def _expected_rate(self, config: str, band: str | None) -> float | None:
-        planned = getattr(self, "_expected", None)  # (config, band, rate) from the plan's ranking
-        if planned is not None and planned[:2] == (config, band):
-            return planned[2]
-        row = self._configs.get(config)
-        if row is None or band is None or row.get("band") != band:
-            return None
-        rate = row.get("detection_rate")
-        return float(rate) if rate is not None else None
-
-    def _refresh_held(self, now: float, *, force: bool = False) -> None:
-        if self.current is None or (not force and now - self._held_checked < self.settings.rss_refresh_s):
-            return
-        self._held_checked = now
-        run_id = getattr(self, "_run_id", None)
         if not run_id:
-            return
+            return None
         try:
-            # The maximum, not the last sample: the first sample is taken right after exec
-            # (a few MiB) and would make the detector look as if it held nothing.
-            rows = self._knowledge.cypher(
-                "MATCH (r:ProcessProfile {name: $run_id}) RETURN r.rss_mb_max AS rss", {"run_id": run_id})
+            rows = self._knowledge.query("process_profile", {"run_id": run_id})
         except KgadaptError as exc:
             log.debug("adaptation: no profile figures yet: %s", exc)
+            return None
+        return float(rows[0]["rss_mb_max"]) if rows and rows[0].get("rss_mb_max") is not None else None
+
+    def _refresh_held(self, now: float, *, force: bool = False) -> None:
+        if self.current is None:
             return
-        if rows and rows[0].get("rss") is not None:
-            c = self.current
-            self.current = Placement(config=c.config, deployment=c.deployment, host=c.host, instance=c.instance,
-                                     demand_mb=c.demand_mb, held_mb=float(rows[0]["rss"]))
+        state = policy.held_refresh(self._state, wall=now, every_s=self.settings.rss_refresh_s, force=force)
+        if state is None:
+            return
+        self._state = state
+        current = self.current
+        rss = self._profile_rss(current.run_id)
+        if rss is not None and self.current is current:
+            self.current = dataclasses.replace(current, held_mb=rss)
 
     def _act(self, trigger: Trigger) -> None:
         a = self._analyzer
-        band = a.tracker.current
-        if band is None:
+        if a.tracker.current is None:
             return
+        band = a.tracker.current
         if trigger.kind == TriggerKind.HOST_BACK:
-            self._graph_shows_online(str(trigger.detail.get("host")), self.settings.graph_catch_up_s)
+            host = str(trigger.detail.get("host"))
+            self._graph_shows_online(host, self.settings.graph_catch_up_s)
             # A host back from a partition may still run the detector we replaced: no twins.
-            twins = self.reconcile(str(trigger.detail.get("host")))
+            twins = self.reconcile(host)
             if twins:
                 self._record(Outcome(trigger=trigger, outcome=f"stopped twin(s) {', '.join(twins)}"))
-        if (trigger.kind == TriggerKind.HOST_BACK and self._retry is None and not trigger.detail.get("confirming")
-                and self._trust.confirmed_free(str(trigger.detail.get("host")), time.time()) is None):
-            # The host is back but none of its statuses is confirmed yet: plan once they can be, not
-            # now without it (the soak saw a needless migration to the other host that way).
-            self._retry = Trigger(trigger.kind, trigger.time, {**trigger.detail, "confirming": True})
-            self._retry_at = time.monotonic() + self.settings.status_window_s
-            if not (self.current is not None and self.current.host in
-                    tuple(h.name for h in a.hosts.values() if not h.online)):
-                return
+        waiting = policy.confirm_host_back(
+            self._state, trigger, mono=time.monotonic(), window_s=self.settings.status_window_s,
+            host_confirmed=self._trust.confirmed_free(str(trigger.detail.get("host")), time.time()) is not None)
+        if waiting is not None:
+            self._state = waiting
         if self._landed_state is not None:
             self._set_landing(self._landed_state() == "LANDING")
         if trigger.kind == TriggerKind.BAND_CHANGED:
-            self._standby_paused = False
-        if trigger.kind == TriggerKind.MEMORY_SHORT and self.standby is not None:
-            # The standby is the first thing to go: stop it, and plan nothing else on this trigger;
-            # if the host is still short once the statuses show its memory back, the next one moves.
-            sb = self.standby
-            stopped = self._stop_standby()
-            self._standby_paused = True
-            self._settled_after = time.time() + self.settings.settle_s
-            self._record(Outcome(trigger=trigger, outcome=f"stopped the standby {sb.instance} ({sb.config}@{sb.host}) "
-                                 "first" + ("" if stopped else " (its deployer did not answer)"),
-                                 detail={"change": Change.STANDBY_STOPPED, "instance": sb.instance,
-                                         "standby": {"config": sb.config, "host": sb.host, "instance": sb.instance,
-                                                     "run_id": self._standby_run_id}}))
+            self._state = dataclasses.replace(self._state, standby_paused=False)
+        lost = policy.lost_hosts(a.hosts)
+        action = policy.triage(trigger, running=self.current, standby=self.standby, lost=lost, landing=self.landing,
+                               deferred=self._deferred, waiting=waiting is not None)
+        if action == Action.WAIT:
             return
-        lost = tuple(h.name for h in a.hosts.values() if not h.online)
-        running_lost = self.current is not None and (self.current.host in lost or trigger.kind == TriggerKind.DETECTOR_GONE)
-        if self.landing and not (trigger.urgent or running_lost):
-            # One decision per kind of change and descent: a descent (forged or not) with a flapping
-            # light or repeated triggers must not write a decision per message.
-            if trigger.kind not in self._deferred:
-                self._deferred.add(trigger.kind)
-                self._record(Outcome(trigger=trigger, outcome="deferred: final descent"))
-            else:
-                log.info("adaptation: %s deferred again (final descent)", trigger.describe())
+        if action == Action.STOP_STANDBY:
+            self._stop_standby_first(trigger)
             return
+        if action == Action.DEFER:
+            self._deferred.add(trigger.kind)
+            self._record(Outcome(trigger=trigger, outcome="deferred: final descent"))
+            return
+        if action == Action.DEFER_AGAIN:
+            log.info("adaptation: %s deferred again (final descent)", trigger.describe())
+            return
+        running_lost = policy.running_lost(self.current, trigger, lost)
         started = time.perf_counter()
         try:
-            # Only confirmed figures place a detector: a host whose statuses of the window do not
-            # all show room (or that has too few yet) is no target, whatever the graph says.
-            now = time.time()
-            # The running detector's host keeps it unless every status of the window shows it short
-            # (a forged "full" between real statuses must not move the detector off it).
             here = self.current.host if self.current is not None else None
-            live = {h.name: free for h in a.hosts.values() if h.online
-                    and (free := (self._trust.roomiest if h.name == here else self._trust.confirmed_free)(
-                        h.name, now)) is not None}
+            wall = time.time()
+            live = policy.live_free(a.hosts, here=here, roomiest=lambda h: self._trust.roomiest(h, wall),
+                                    confirmed=lambda h: self._trust.confirmed_free(h, wall))
             # Configurations whose detections collapsed in this band stay out until the band changes.
             exclude = tuple(sorted(a.collapsed))
             plan = self._planner.plan(band=band.name, running=None if running_lost else self.current, exclude=exclude,
@@ -611,22 +507,24 @@ class AdaptationManager:
             if running_lost:
                 self._retry_later(trigger)
             return
-        if plan.same_as(self.current) and not running_lost:
-            if trigger.kind not in (TriggerKind.HOST_BACK, TriggerKind.STARTUP):
-                self._record(Outcome(trigger=trigger, plan=plan, outcome="kept"))
-            return
+        result: Outcome | None
         try:
-            via = self._standby_for(plan, lost, running_lost)
-            if via is not None:
-                result = self._activate_standby(plan, trigger, reconfigure_to=via[1], why=via[0],
+            how = policy.execution(plan, trigger, running=self.current, standby=self.standby, lost=lost,
+                                   change=self._planner.change)
+            if how.how == Execution.NOTHING:
+                return
+            if how.how == Execution.KEEP:
+                self._record(Outcome(trigger=trigger, plan=plan, outcome="kept"))
+                return
+            if how.how == Execution.STANDBY:
+                result = self._activate_standby(plan, trigger, reconfigure_to=how.reconfigure_to, why=how.why,
                                                 old=None if running_lost else self.current)
-            elif self.current is None or running_lost:
+            elif how.how == Execution.START:
                 result = self._start_fresh(plan, trigger)
             else:
-                change = plan.inputs.get("change", Change.MIGRATE)  # the planner's choice, from the graph
-                why = plan.inputs.get("change_why", "")
+                why = how.why
                 result = None
-                if change == Change.RECONFIGURE:
+                if how.how == Execution.RECONFIGURE:
                     try:
                         result = self._reconfigure(plan, trigger)
                     except KgadaptError as exc:  # refused or unanswered: the old one still runs; migrate
@@ -638,12 +536,12 @@ class AdaptationManager:
         except KgadaptError as exc:
             result = Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}")
         result.detail["plan_ms"] = round((time.perf_counter() - started) * 1000.0, 1)
-        if trigger.kind == TriggerKind.DETECTOR_GONE and not result.outcome.startswith("failed"):
+        if trigger.kind == TriggerKind.DETECTOR_GONE and not policy.failed(result.outcome):
             twins = self._stop_twins()  # e.g. what an outside migrate started elsewhere
             if twins:
                 result.detail["stopped_twins"] = twins
         self._record(result)
-        if running_lost and not result.outcome.startswith("failed"):
+        if running_lost and not policy.failed(result.outcome):
             a.reset_rate()
         elif running_lost:
             self._retry_later(trigger)
@@ -653,29 +551,19 @@ class AdaptationManager:
 
         Without this, a failover that fails once (the knowledge service restarting
         its store, a deployer not answering) would leave the robot without a
-        detector until some other trigger came. The trigger keeps its time, so the
-        recorded latency runs from the loss.
+        detector until some other trigger came.
         """
-        self._retry = trigger
-        self._retry_at = time.monotonic() + self.settings.retry_s
-
-    def _due_retry(self) -> Trigger | None:
-        if self._retry is None or time.monotonic() < self._retry_at:
-            return None
-        trigger, self._retry = self._retry, None
-        return trigger
+        self._state = policy.retry_later(self._state, trigger, mono=time.monotonic(), retry_s=self.settings.retry_s)
 
     def _start_fresh(self, plan: Plan, trigger: Trigger) -> Outcome:
         t = plan.target
         instance = new_instance_name(t.config, t.host)
         first = FirstOutput()
-        sub = self._session.declare_subscriber(keys.detector_markers(self.settings.robot, instance), first)
-        try:
+        with contextlib.ExitStack() as stack:
+            declared(stack, self._session.declare_subscriber(keys.detector_markers(self.settings.robot, instance), first))
             snapshot = self._deployers.start(t.host, t.deployment, t.config, instance=instance, wait_ready=True,
                                              ready_timeout=self.settings.ready_timeout)
             got = first.event.wait(self.settings.output_timeout)
-        finally:
-            sub.undeclare()
         self._set_current(plan, instance, snapshot.get("run_id"))
         latency = (first.wall - trigger.time) * 1000.0 if got and first.wall else None
         return Outcome(trigger=trigger, plan=plan, outcome="started" if got else "started, no detections yet",
@@ -683,10 +571,12 @@ class AdaptationManager:
 
     def _reconfigure(self, plan: Plan, trigger: Trigger) -> Outcome:
         t, old = plan.target, self.current
+        assert old is not None and old.instance is not None  # Execution.RECONFIGURE: a detector runs
         first = FirstOutput(config=t.config)
-        sub = self._session.declare_subscriber(keys.detector_markers(self.settings.robot, old.instance), first)
         report = None
-        try:
+        with contextlib.ExitStack() as stack:
+            declared(stack, self._session.declare_subscriber(keys.detector_markers(self.settings.robot, old.instance),
+                                                             first))
             try:
                 report = reconfigure(self._session, self.settings.robot, old.host, old.instance, t.config,
                                      timeout=self.settings.output_timeout)
@@ -696,12 +586,7 @@ class AdaptationManager:
                 if self._deployers.status(old.host, old.instance).get("config") != t.config:
                     raise
             got = first.event.wait(self.settings.output_timeout)
-        finally:
-            sub.undeclare()
-        self.current = Placement(config=t.config, deployment=t.deployment, host=t.host, instance=old.instance,
-                                 demand_mb=t.demand_mb, held_mb=old.held_mb)
-        run_id = getattr(self, "_run_id", None)
-        self._set_current(plan, old.instance, run_id)
+        self._set_current(plan, old.instance, old.run_id)
         latency = (first.wall - trigger.time) * 1000.0 if got and first.wall else None
         return Outcome(trigger=trigger, plan=plan, outcome="reconfigured", latency_ms=latency, frames_lost=0,
                        detail={"instance": old.instance, "previous_instance": old.instance,
@@ -712,6 +597,7 @@ class AdaptationManager:
 
     def _switch(self, plan: Plan, trigger: Trigger) -> Outcome:
         t, old = plan.target, self.current
+        assert old is not None and old.instance is not None  # Execution.MIGRATE: a detector runs
         called_at = time.time()
         left_running = ""
         try:
@@ -737,51 +623,33 @@ class AdaptationManager:
 
     # -- the warm standby ---------------------------------------------------
 
-    def _standby_for(self, plan: Plan, lost: tuple[str, ...], running_lost: bool) -> tuple[str, str | None] | None:
-        """How the standby can serve ``plan``: (why, configuration to reconfigure it to or None), or None."""
-        sb = self.standby
-        if sb is None or sb.host in lost or self.current is None:
-            return None
-        if sb.config == plan.target.config:
-            return f"the plan's configuration {sb.config} is the standby's, idle on {sb.host}: a switch", None
-        if not running_lost:
-            return None
-        # Failover: a standby of another configuration, changed in place, still beats a new process.
-        change, why = self._planner.change(sb, dataclasses.replace(plan.target, host=sb.host))
-        if change != Change.RECONFIGURE:
-            return None
-        return f"{self.current.host} lost; the standby {sb.config} on {sb.host} takes over, {why}", plan.target.config
-
     def _activate_standby(self, plan: Plan, trigger: Trigger, *, reconfigure_to: str | None, why: str,
                           old: Placement | None) -> Outcome:
         """Make the standby the running detector; idle ``old`` (it becomes the standby) or stop it."""
         sb = self.standby
+        assert sb is not None and sb.instance is not None  # Execution.STANDBY: there is one
         s = self.settings
         config = reconfigure_to or sb.config
         first = FirstOutput(config=config)
-        sub = self._session.declare_subscriber(keys.detector_markers(s.robot, sb.instance), first)
-        try:
+        with contextlib.ExitStack() as stack:
+            declared(stack, self._session.declare_subscriber(keys.detector_markers(s.robot, sb.instance), first))
             set_active(self._session, s.robot, sb.host, sb.instance, True, timeout=s.output_timeout)
             if reconfigure_to is not None:
                 reconfigure(self._session, s.robot, sb.host, sb.instance, reconfigure_to, timeout=s.output_timeout)
             got = first.event.wait(s.output_timeout)
-        finally:
-            sub.undeclare()
-        run_id = self._standby_run_id
-        self.standby, self._standby_run_id = None, None
+        self.standby = None
         target = dataclasses.replace(plan.target, config=config, host=sb.host, deployment=sb.deployment,
                                      demand_mb=plan.target.demand_mb if config == plan.target.config else sb.demand_mb)
         plan = dataclasses.replace(plan, target=target)
-        self._set_current(plan, sb.instance, run_id)
+        self._set_current(plan, sb.instance, sb.run_id)
         detail: dict[str, Any] = {"instance": sb.instance, "change": Change.STANDBY, "change_why": why,
                                   "standby": {"config": sb.config, "host": sb.host, "instance": sb.instance}}
         if old is not None and old.instance:
             detail["previous_instance"] = old.instance
             detail["from"] = f"{old.config}@{old.host}"
-            old_run_id = getattr(self, "_old_run_id", None)
             try:
                 set_active(self._session, s.robot, old.host, old.instance, False, timeout=s.output_timeout)
-                self.standby, self._standby_run_id = old, old_run_id
+                self.standby = old
                 detail["old"] = "idle: the standby now"
             except KgadaptError as exc:
                 log.info("adaptation: could not idle %s (%s); stopping it", old.instance, exc)
@@ -796,9 +664,22 @@ class AdaptationManager:
                        else "switched to the standby, no detections yet", latency_ms=latency,
                        detail=detail)
 
+    def _stop_standby_first(self, trigger: Trigger) -> None:
+        """Memory short with a standby: stop it, and plan nothing else on this trigger; if the host is
+        still short once the statuses show its memory back, the next one moves."""
+        sb = self.standby
+        assert sb is not None  # Action.STOP_STANDBY: there is one
+        stopped = self._stop_standby()
+        self._state = dataclasses.replace(self._state, standby_paused=True,
+                                          settled_after=time.time() + self.settings.settle_s)
+        self._record(Outcome(trigger=trigger, outcome=f"stopped the standby {sb.instance} ({sb.config}@{sb.host}) "
+                             "first" + ("" if stopped else " (its deployer did not answer)"),
+                             detail={"change": Change.STANDBY_STOPPED, "instance": sb.instance,
+                                     "standby": {"config": sb.config, "host": sb.host, "instance": sb.instance,
+                                                 "run_id": sb.run_id}}))
+
     def _stop_standby(self) -> bool:
         sb, self.standby = self.standby, None
-        self._standby_run_id = None
         if sb is None or not sb.instance:
             return True
         try:
@@ -814,57 +695,50 @@ class AdaptationManager:
             return False
 
     def _refresh_standby_held(self) -> None:
-        sb, run_id = self.standby, self._standby_run_id
-        if sb is None or not run_id:
+        sb = self.standby
+        if sb is None:
             return
-        rss = self._profile_rss(run_id)
+        rss = self._profile_rss(sb.run_id)
         if rss is not None and self.standby is sb:
             self.standby = dataclasses.replace(sb, held_mb=rss)
 
-    def _profile_rss(self, run_id: str) -> float | None:
+    def _first_for(self, band: str) -> str | None:
         try:
-            rows = self._knowledge.cypher(
-                "MATCH (r:ProcessProfile {name: $run_id}) RETURN r.rss_mb_max AS rss", {"run_id": run_id})
-        except KgadaptError as exc:
-            log.debug("adaptation: no profile figures yet: %s", exc)
+            _full, left = self._planner.candidates(band)
+        except (PlanningError, KgadaptError):
             return None
-        return float(rows[0]["rss"]) if rows and rows[0].get("rss") is not None else None
+        first = left[0].get("config")
+        return None if first is None else str(first)
 
     def _keep_standby(self) -> None:
         """Start, keep or replace the warm standby as the graph allows (see the module's docstring)."""
-        now = time.monotonic()
-        if now < self._next_standby_check:
+        mono = time.monotonic()
+        if mono < self._state.next_standby_check:
             return
-        self._next_standby_check = now + self.settings.standby_check_s
-        a, current = self._analyzer, self.current
-        if current is None or not current.instance or self.landing or self._standby_paused or self._retry is not None:
-            return
+        self._state = dataclasses.replace(self._state, next_standby_check=mono + self.settings.standby_check_s)
+        a, current, sb = self._analyzer, self.current, self.standby
         band = a.tracker.neighbour(a.level)
-        sb = self.standby
-        if band is None:
-            return
-        view = a.hosts.get(sb.host) if sb is not None else None
-        if sb is not None and view is not None and not view.online:
+        step = policy.standby_step(running=current, standby=sb, landing=self.landing,
+                                   paused=self._state.standby_paused, retrying=self._state.retry is not None,
+                                   band=None if band is None else band.name, hosts=a.hosts, first_for=self._first_for)
+        if step == StandbyStep.DROP and sb is not None:
             # Gone with its host; should it come back from a partition, host_back's reconcile stops it.
             log.info("adaptation: the standby %s went with %s", sb.instance, sb.host)
-            self.standby = self._standby_run_id = None
-            return
-        if sb is not None:
-            try:
-                _full, left = self._planner.candidates(band.name)
-            except (PlanningError, KgadaptError):
-                return
-            if left[0].get("config") == sb.config and sb.config != current.config:
-                return  # still the one the neighbouring band wants
+            self.standby = None
+        elif step == StandbyStep.STOP and sb is not None and band is not None:
             log.info("adaptation: the standby %s (%s) is not band %s's any more", sb.instance, sb.config, band.name)
-            self._stop_standby()
-            return  # its memory shows free in a later status; start the new one then
+            self._stop_standby()  # its memory shows free in a later status; start the new one then
+        elif step == StandbyStep.START and current is not None and band is not None:
+            self._start_standby(band.name, current)
+
+    def _start_standby(self, band: str, current: Placement) -> None:
+        a = self._analyzer
         wall = time.time()
-        lost = tuple(h.name for h in a.hosts.values() if not h.online)
-        live = {h.name: free for h in a.hosts.values() if h.online
-                and (free := self._trust.confirmed_free(h.name, wall)) is not None}
+        lost = policy.lost_hosts(a.hosts)
+        live = policy.live_free(a.hosts, here=None, roomiest=lambda h: None,
+                                confirmed=lambda h: self._trust.confirmed_free(h, wall))
         try:
-            plan = self._planner.standby(band=band.name, running=current, lost_hosts=lost, live_free=live)
+            plan = self._planner.standby(band=band, running=current, lost_hosts=lost, live_free=live)
         except KgadaptError as exc:
             log.debug("adaptation: no standby plan: %s", exc)
             return
@@ -872,12 +746,13 @@ class AdaptationManager:
             return
         t = plan.target
         instance = new_instance_name(t.config, t.host)
-        trigger = Trigger(TriggerKind.STANDBY, wall, {"band": band.name})
+        trigger = Trigger(TriggerKind.STANDBY, wall, {"band": band})
         try:
             snapshot = self._deployers.start(t.host, t.deployment, t.config, instance=instance, wait_ready=True,
                                              ready_timeout=self.settings.ready_timeout)
         except KgadaptError as exc:
-            self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}", detail={"change": Change.STANDBY_START}))
+            self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}",
+                                 detail={"change": Change.STANDBY_START}))
             return
         try:
             # Its deployer said ready; the activity queryable's declaration may still be on its way
@@ -892,25 +767,20 @@ class AdaptationManager:
             self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: not made idle: {exc}",
                                  detail={"change": Change.STANDBY_START}))
             return
-        self.standby = dataclasses.replace(t, instance=instance)
-        self._standby_run_id = snapshot.get("run_id")
+        self.standby = dataclasses.replace(t, instance=instance, run_id=snapshot.get("run_id"))
         self._record(Outcome(trigger=trigger, plan=plan, outcome="standby started (idle)",
                              detail={"change": Change.STANDBY_START, "instance": instance, "pid": snapshot.get("pid"),
                                      "standby": {"config": t.config, "host": t.host, "instance": instance,
                                                  "run_id": snapshot.get("run_id")}}))
 
+    # -- execute: the running detector -----------------------------------------
+
     def _set_current(self, plan: Plan, instance: str, run_id: str | None) -> None:
         t = plan.target
         self.current = Placement(config=t.config, deployment=t.deployment, host=t.host, instance=instance,
-                                 demand_mb=t.demand_mb, held_mb=0.0)
-        self._old_run_id = getattr(self, "_run_id", None)  # the replaced detector's (it may become the standby)
-        self._run_id = run_id
-        self._held_checked = 0.0
-        self._changed_at = time.time()
-        self._settled_after = self._changed_at + self.settings.settle_s
+                                 demand_mb=t.demand_mb, held_mb=0.0, run_id=run_id)
+        self._state = policy.after_change(self._state, plan, wall=time.time(), settle_s=self.settings.settle_s)
         self._analyzer.reset_rate()
-        rate = plan.inputs.get("expected_rate")
-        self._expected = (t.config, plan.inputs.get("band"), float(rate) if rate is not None else None)
 
     def _adopt_running(self) -> None:
         """After a restart: adopt one live detector of ours, stop any twin."""
@@ -919,14 +789,13 @@ class AdaptationManager:
         except KgadaptError as exc:
             log.info("adaptation: no deployer answered at start (%s); nothing to adopt", exc)
             return
-        live = [p for p in processes if p.get("state") in KEPT_STATES and p.get("config") in self._configs]
-        if not live:
+        keep, twins = policy.adoption(processes, self._configs, onboard_host=self.settings.onboard_host)
+        if keep is None:
             return
-        keep, *twins = sorted(live, key=lambda p: (p.get("host") != self.settings.onboard_host, p.get("instance")))
         row = self._configs[keep["config"]]
         self.current = Placement(config=keep["config"], deployment=keep["deployment"], host=keep["host"],
-                                 instance=keep["instance"], demand_mb=float(row.get("memory_demand_mb") or 0))
-        self._run_id = keep.get("run_id")
+                                 instance=keep["instance"], demand_mb=float(row.get("memory_demand_mb") or 0),
+                                 run_id=keep.get("run_id"))
         log.info("adaptation: adopted %s on %s", keep["instance"], keep["host"])
         if self.settings.standby:  # it may have been our standby, idle
             try:
@@ -940,60 +809,23 @@ class AdaptationManager:
             except KgadaptError as exc:
                 log.warning("adaptation: could not stop twin %s: %s", twin["instance"], exc)
 
-    def reconcile(self, host: str) -> list[str]:
-        """Stop detectors on ``host`` that are not the current one (after a partition heals)."""
-        stopped = []
-        try:
-            processes = self._deployers.list(host)
-        except KgadaptError:
-            return stopped
-        for p in processes:
-            if (p.get("state") in KEPT_STATES and p.get("config") in self._configs
-                    and (self.current is None or p.get("instance") != self.current.instance)
-                    and (self.standby is None or p.get("instance") != self.standby.instance)):
-                try:
-                    self._deployers.stop(host, p["instance"])
-                    stopped.append(p["instance"])
-                except KgadaptError as exc:
-                    log.warning("adaptation: could not stop twin %s on %s: %s", p["instance"], host, exc)
-        return stopped
-
     # -- knowledge -------------------------------------------------------
 
     def _record(self, outcome: Outcome) -> None:
-        trigger, plan = outcome.trigger, outcome.plan
         self._decisions += 1
-        now = time.time()
-        name = f"{self.settings.robot}-decision-{int(now * 1000)}-{self._decisions}"
-        target = plan.target if plan else None
-        inputs = {"trigger": dict(trigger.detail), **(dict(plan.inputs) if plan else {}), **outcome.detail}
-        params = {
-            "name": name, "time": now, "trigger": trigger.describe(),
-            "inputs_json": json.dumps(inputs, default=str),
-            "query": ",".join(plan.queries) if plan else None,
-            "config": target.config if target else None, "host": target.host if target else None,
-            "duration_ms": None if outcome.latency_ms is None else round(outcome.latency_ms, 1),
-            "outcome": outcome.outcome if not plan else f"{outcome.outcome}: {plan.reason}",
-        }
+        params, event = policy.decision_record(outcome, robot=self.settings.robot, wall=time.time(),
+                                               seq=self._decisions,
+                                               instance=self.current.instance if self.current else None)
+        name = params["name"]
         try:
             self._knowledge.write("decision", params)
         except KgadaptError as exc:
             log.warning("adaptation: could not record decision %s: %s", name, exc)
         with self._lock:
             self.history.append(outcome)
-        event = {
-            "time": now, "trigger": trigger.describe(), "outcome": outcome.outcome[:256],
-            "decision": {
-                "config": params["config"], "host": params["host"], "latency_ms": params["duration_ms"],
-                "trigger_kind": trigger.kind, "frames_lost": outcome.frames_lost, "name": name,
-                "instance": self.current.instance if self.current else None,
-                "previous_instance": outcome.detail.get("previous_instance"),
-                "trigger_time": trigger.time, "change": outcome.detail.get("change"),
-            },
-        }
         try:
             self._events_pub.put(messages.encode("adaptation_event", event))
         except Exception as exc:  # publishing is best effort; the graph has the record
             log.debug("adaptation event not published: %s", exc)
-        log.info("decision %s: %s -> %s@%s (%s, %s ms)", name, trigger.describe(), params["config"],
+        log.info("decision %s: %s -> %s@%s (%s, %s ms)", name, outcome.trigger.describe(), params["config"],
                  params["host"], outcome.outcome, params["duration_ms"])

@@ -57,13 +57,8 @@ class CameraIntrinsics:
 
 
 def intrinsics_from_graph(client: Any, camera: str) -> CameraIntrinsics:
-    """The intrinsics of component ``camera`` from the knowledge graph (a KnowledgeClient's read-only Cypher)."""
-    from kgadapt.knowledge import schema as S  # only when asked: the bridge itself needs no store code
-
-    rows = client.cypher(
-        f"MATCH (c:{S.COMPONENT} {{name: $camera}}) RETURN c.fx AS fx, c.fy AS fy, c.cx AS cx, c.cy AS cy",
-        {"camera": camera},
-    )
+    """The intrinsics of component ``camera`` from the knowledge graph (a KnowledgeClient's named query)."""
+    rows = client.query("camera_intrinsics", {"camera": camera})
     if not rows or any(rows[0].get(k) is None for k in ("fx", "fy", "cx", "cy")):
         raise ConfigError(f"camera {camera!r} has no intrinsics (fx, fy, cx, cy) in the knowledge graph")
     return CameraIntrinsics(**{k: float(rows[0][k]) for k in ("fx", "fy", "cx", "cy")})
