@@ -272,6 +272,8 @@ class AdaptationManager:
                 m = messages.decode(payload, "deploy_event")
                 if policy.ended(self.standby, instance=m["instance"], event=m["event"]):
                     log.info("adaptation: the standby %s %s", m["instance"], m["event"])
+                    if policy.crashed_standby(self.standby, instance=m["instance"], event=m["event"]):
+                        self._end_crashed_standby(self.standby)
                     self.standby = None
                 if policy.ended(self.current, instance=m["instance"], event=m["event"]):
                     self._state = dataclasses.replace(self._state, next_check=0.0)  # ask its deployer now
@@ -663,6 +665,16 @@ class AdaptationManager:
         return Outcome(trigger=trigger, plan=plan, outcome="switched to the standby" if got
                        else "switched to the standby, no detections yet", latency_ms=latency,
                        detail=detail)
+
+    def _end_crashed_standby(self, standby: Placement | None) -> None:
+        if standby is None or not standby.instance or self._deployers is None:
+            return
+        try:
+            self._deployers.stop(standby.host, standby.instance)
+            log.warning("adaptation: the standby %s on %s exited; stopped rather than restarted active",
+                        standby.instance, standby.host)
+        except KgadaptError as exc:  # its host gone with it: nothing left to restart it
+            log.warning("could not stop the crashed standby %s on %s: %s", standby.instance, standby.host, exc)
 
     def _stop_standby_first(self, trigger: Trigger) -> None:
         """Memory short with a standby: stop it, and plan nothing else on this trigger; if the host is

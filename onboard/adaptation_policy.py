@@ -25,7 +25,7 @@ from enum import StrEnum
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from kgadapt.onboard.adaptation import FEATURE, Analyzer, HostView, Placement, Plan, Trigger, memory_short
-from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, TriggerKind
+from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, ProcessEventKind, TriggerKind
 
 UNMEASURED_MB = 5.0  # a detector's profile below this has only its exec-time sample
 MEASURE_WITHIN_S = 10.0  # how long after a change an unmeasured detector is given the benefit of the doubt
@@ -212,6 +212,12 @@ def expected_rate(state: LoopState, configs: Mapping[str, Mapping[str, Any]], co
 def ended(placement: Placement | None, *, instance: str, event: str) -> bool:
     """A deployer's event says ``placement``'s process ran its last."""
     return placement is not None and instance == placement.instance and event in ENDED_EVENTS
+
+
+def crashed_standby(standby: Placement | None, *, instance: str, event: str) -> bool:
+    """The standby's process exited unasked: supervision would restart it *active* (a detector starts
+    active), beside the running one. It is to be stopped instead; the usual path starts a new, idle one."""
+    return ended(standby, instance=instance, event=event) and event == ProcessEventKind.EXITED
 
 
 def probing(running: Placement | None, hosts: Mapping[str, HostView]) -> bool:

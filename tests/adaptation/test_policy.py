@@ -146,6 +146,13 @@ def test_a_process_that_ran_its_last_is_noticed_and_a_gone_detector_is_a_trigger
                                                                        "state": "failed"}
 
 
+def test_a_standby_that_exited_unasked_is_to_be_stopped_not_restarted_active():
+    assert P.crashed_standby(STANDBY, instance="i2", event="exited")
+    assert not P.crashed_standby(STANDBY, instance="i2", event="stopped")  # stopped on request: over already
+    assert not P.crashed_standby(STANDBY, instance="i1", event="exited")  # another process
+    assert not P.crashed_standby(None, instance="i2", event="exited")
+
+
 def test_the_deployer_is_not_asked_while_the_running_host_is_lost():
     hosts = {"onboard": HostView(name="onboard", online=False)}
     assert not P.probe_due(P.LoopState(), RUNNING, hosts, mono=1.0)

@@ -110,3 +110,27 @@ def test_the_standby_is_counted_takes_over_a_lost_host_is_switched_to_and_goes_f
     # Memory short: the standby is stopped first, the running detector stays.
     assert short.change == "standby_stopped" and short.outcome.startswith(f"stopped the standby {lost.instance}"), short
     assert list(after_squeeze) == [switch.instance], after_squeeze
+
+
+def test_a_standby_that_crashes_is_stopped_not_restarted_active_and_a_new_idle_one_follows(tmp_path):
+    import os
+
+    with Run(tmp_path, [[0, 16], [120, 16]], prefer="remote-first", standby=True) as run:
+        first = run.wait_for(run.decision("startup"), 40, "the first detector")
+        ready = run.wait_for(lambda: idle_standbys(run), 30, "the standby")[0]
+        # A decision names the running detector's instance; the standby is the other live process.
+        before = run.wait_for(lambda: {i: d for i, d in detectors(run).items() if i != first.instance},
+                              30, "the standby's process")
+        (crashed, (host, pid, config)), = before.items()
+        os.kill(pid, signal.SIGKILL)
+        run.wait_for(lambda: idle_standbys(run)[1:], 60, "a new idle standby")
+        live = run.wait_for(lambda: {i: d for i, d in detectors(run).items() if i != first.instance},
+                            30, "the new standby's process")
+        since = time.time()
+        time.sleep(1.0)  # a second of detections: only the running detector's
+        running = run.running(since)
+
+    assert (host, config) == (ready.host, ready.config), before
+    assert crashed not in live, f"the crashed standby was restarted (active): {live}"
+    assert [(h, c) for h, _, c in live.values()] == [(ready.host, ready.config)], live
+    assert running == {(first.config, first.host)}, running
