@@ -635,9 +635,17 @@ class AdaptationManager:
         first = FirstOutput(config=config)
         with contextlib.ExitStack() as stack:
             declared(stack, self._session.declare_subscriber(keys.detector_markers(s.robot, sb.instance), first))
-            set_active(self._session, s.robot, sb.host, sb.instance, True, timeout=s.output_timeout)
-            if reconfigure_to is not None:
-                reconfigure(self._session, s.robot, sb.host, sb.instance, reconfigure_to, timeout=s.output_timeout)
+            try:
+                set_active(self._session, s.robot, sb.host, sb.instance, True, timeout=s.output_timeout)
+                if reconfigure_to is not None:
+                    reconfigure(self._session, s.robot, sb.host, sb.instance, reconfigure_to,
+                                timeout=s.output_timeout)
+            except KgadaptError:
+                # Dead without an exit event, or refusing: forget it, so that the retry of a failover
+                # starts a process instead of asking the same standby again.
+                self.standby = None
+                self._end_standby_quietly(sb)
+                raise
             got = first.event.wait(s.output_timeout)
         self.standby = None
         target = dataclasses.replace(plan.target, config=config, host=sb.host, deployment=sb.deployment,
@@ -665,6 +673,15 @@ class AdaptationManager:
         return Outcome(trigger=trigger, plan=plan, outcome="switched to the standby" if got
                        else "switched to the standby, no detections yet", latency_ms=latency,
                        detail=detail)
+
+    def _end_standby_quietly(self, standby: Placement) -> None:
+        try:
+            if self._deployers is not None and standby.instance:
+                self._deployers.stop(standby.host, standby.instance)
+        except KgadaptError as exc:
+            assert standby.instance is not None
+            self._leftovers.append((standby.host, standby.instance))  # stopped once its deployer answers
+            log.info("adaptation: could not stop the unanswering standby %s: %s", standby.instance, exc)
 
     def _end_crashed_standby(self, standby: Placement | None) -> None:
         if standby is None or not standby.instance or self._deployers is None:

@@ -134,3 +134,29 @@ def test_a_standby_that_crashes_is_stopped_not_restarted_active_and_a_new_idle_o
     assert crashed not in live, f"the crashed standby was restarted (active): {live}"
     assert [(h, c) for h, _, c in live.values()] == [(ready.host, ready.config)], live
     assert running == {(first.config, first.host)}, running
+
+
+def test_a_failover_whose_standby_does_not_answer_starts_a_process_instead_of_asking_it_again(tmp_path):
+    import os
+
+    with Run(tmp_path, [[0, 16], [120, 16]], prefer="remote-first", standby=True) as run:
+        first = run.wait_for(run.decision("startup"), 40, "the first detector")
+        run.wait_for(lambda: idle_standbys(run), 30, "the standby")
+        standby = run.wait_for(lambda: {i: d for i, d in detectors(run).items() if i != first.instance},
+                               30, "the standby's process")
+        (hung, (_, pid, _)), = standby.items()
+        os.kill(pid, signal.SIGSTOP)  # alive, so no exit event, and it answers nothing
+        try:
+            run.cluster.kill("remote", signal.SIGKILL)
+            lost = run.wait_for(run.decision("host_lost"), 60, "the failover")
+            run.wait_for(lambda: any(h == "onboard" for _, h in run.running(lost.time)), 90, "detections onboard")
+            decisions = [d for d in run.recorder.decisions if d.kind == "host_lost"]
+        finally:
+            try:
+                os.kill(pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+
+    assert decisions[0].outcome.startswith("failed"), decisions  # the standby was asked once
+    recovered = [d for d in decisions if not d.outcome.startswith("failed")]
+    assert recovered and recovered[0].instance != hung and recovered[0].change != "standby", decisions
