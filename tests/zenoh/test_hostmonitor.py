@@ -112,10 +112,29 @@ def test_a_squeeze_reserves_memory_and_publishes_at_once(monitored, robot):
     status = squeeze(session, robot, "remote", 500)
     assert status["reserved_mb"] == 500
     assert status["memory_free_mb"] == pytest.approx(2048 - status["ours_mb"] - 500, abs=0.2)
-    published = messages.decode(received.get(timeout=1), "host_status")  # long before the 10 s period
-    assert published["reserved_mb"] == 500 and published["memory_free_mb"] < first["memory_free_mb"] - 490
+    published = published_with(received, 500)  # long before the 10 s period
+    assert published["memory_free_mb"] < first["memory_free_mb"] - 490
     squeeze(session, robot, "remote", 0)
-    assert messages.decode(received.get(timeout=1), "host_status")["reserved_mb"] == 0
+    published_with(received, 0)
+
+
+def published_with(received: queue.Queue, reserved: float) -> dict:
+    """The first status published with ``reserved`` MiB reserved, within 2 s (long before the 10 s period).
+
+    The sampler also publishes whenever the machine's CPU load moves by half a core, so on a loaded
+    machine statuses of the reservation before may come first (one did: 500 after the lift).
+    """
+    deadline = time.monotonic() + 2.0
+    seen = []
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            status = messages.decode(received.get(timeout=left), "host_status")
+        except queue.Empty:
+            break
+        if status["reserved_mb"] == reserved:
+            return status
+        seen.append(status["reserved_mb"])
+    raise AssertionError(f"no status with {reserved} MiB reserved within 2 s; published meanwhile: {seen}")
 
 
 def test_a_large_memory_change_is_published_at_once(monitored):
