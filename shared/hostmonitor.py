@@ -112,6 +112,7 @@ class _HostTrust:
     candidate: str | None = None  # another sender, on probation
     candidate_since: float = 0.0
     contested_until: float = 0.0
+    frozen: list[float] = field(default_factory=list)  # the window's figures when the contest began
 
 
 class StatusTrust:
@@ -127,9 +128,10 @@ class StatusTrust:
     from another sender than the host's current one (each monitor sends its
     random ``origin`` and a ``seq``) counts only once that sender alone has
     spoken for ``new_source_s`` (a restarted monitor); if the current sender
-    speaks again meanwhile, two senders interleave and none of the host's
-    statuses counts for ``contest_s``: a forger beside a real monitor holds the
-    detector where it is, whichever of them lags. And no single status decides: :meth:`confirmed_free`
+    speaks again meanwhile, two senders interleave, and for ``contest_s`` the
+    host's figures stay what they were before (none of its statuses counts): a
+    forger beside a real monitor holds the detector where it is, whichever of
+    them lags. And no single status decides: :meth:`confirmed_free`
     is the least free memory of the last ``window_s`` (so one roomy forgery
     between real statuses is outvoted), :meth:`roomiest` the most (so one
     "full" forgery is), each only with ``min_statuses`` statuses in the window.
@@ -201,12 +203,12 @@ class StatusTrust:
             record.source, record.seq, record.candidate = origin, None, None
         if origin == record.source:
             if seq is not None and record.seq is not None and seq <= record.seq:
-                record.contested_until = received + s.contest_s
+                self._contest(record, received)
                 raise MessageError(f"host_status of {host}: seq {seq} not after {record.seq} from sender "
                                    f"{origin!r} (replayed, or a second sender with its origin)")
             if record.candidate is not None:
                 # The current sender is alive beside the new one: two senders on one key.
-                record.contested_until = received + s.contest_s
+                self._contest(record, received)
                 log.warning("host %s: two senders of its statuses (%r and %r); none counts for %.0f s",
                             host, record.source, record.candidate, s.contest_s)
                 record.candidate = None
@@ -219,12 +221,22 @@ class StatusTrust:
         raise MessageError(f"host_status of {host}: from sender {origin!r}, not the host's {record.source!r}: "
                            f"counted once it alone has spoken for {s.new_source_s:g} s")
 
+    def _contest(self, record: _HostTrust, now: float) -> None:
+        """Hold the host's figures as they were: a forger must not make the drone's own host unconfirmed
+        (no target: the detector would go remote) any more than move it with false figures."""
+        if now >= record.contested_until:
+            record.frozen = self._frees(record, now) or []
+        record.contested_until = now + self.settings.contest_s
+
     def _window(self, host: str, now: float) -> list[float] | None:
         record = self._hosts.get(host)
         if record is None or (self.settings.require_alive and not record.alive):
             return None
         if now < record.contested_until:
-            return None
+            return record.frozen or None
+        return self._frees(record, now)
+
+    def _frees(self, record: _HostTrust, now: float) -> list[float] | None:
         s = self.settings
         frees = [f for t, f in record.recent if t > now - s.window_s]
         if len(frees) < s.min_statuses:

@@ -162,12 +162,15 @@ def test_a_second_sender_beside_the_real_monitor_makes_none_of_the_hosts_statuse
     for i, t in enumerate((11.0, 11.7, 12.4)):
         with pytest.raises(MessageError, match="not the host's 'real'"):
             trust.admit("onboard", sent("forger", i, host="onboard", free=0.0), received=t)
-    # ...and once the real monitor speaks again (late: a loaded machine), the host is contested.
-    trust.admit("onboard", sent("real", 2, host="onboard", free=600.0), received=13.0)
-    assert trust.roomiest("onboard", 13.1) is None and trust.confirmed_free("onboard", 13.1) is None
-    trust.admit("onboard", sent("real", 3, host="onboard", free=600.0), received=28.5)
-    trust.admit("onboard", sent("real", 4, host="onboard", free=600.0), received=29.0)
-    assert trust.roomiest("onboard", 29.1) == 600.0  # the contest is over
+    # ...and once the real monitor speaks again (late: a loaded machine), the host is contested: its
+    # figures stay what they were (not unconfirmed: that would make the drone's own host no target).
+    trust.admit("onboard", sent("real", 2, host="onboard", free=300.0), received=13.0)
+    assert trust.roomiest("onboard", 13.1) == 600.0 and trust.confirmed_free("onboard", 13.1) == 600.0
+    trust.admit("onboard", sent("real", 3, host="onboard", free=300.0), received=20.0)
+    assert trust.confirmed_free("onboard", 20.1) == 600.0  # still held
+    trust.admit("onboard", sent("real", 4, host="onboard", free=300.0), received=28.5)
+    trust.admit("onboard", sent("real", 5, host="onboard", free=300.0), received=29.0)
+    assert trust.roomiest("onboard", 29.1) == 300.0  # the contest is over: the statuses count again
 
 
 def test_a_forgery_without_an_origin_never_counts_while_the_monitor_speaks():
@@ -185,7 +188,17 @@ def test_a_replayed_or_copied_sequence_number_is_refused_and_contests_the_host()
     trust.admit("onboard", sent("real", 8, host="onboard"), received=1.5)
     with pytest.raises(MessageError, match="seq 8 not after 8"):
         trust.admit("onboard", sent("real", 8, host="onboard", free=0.0), received=1.6)
-    assert trust.roomiest("onboard", 2.0) is None
+    trust.admit("onboard", sent("real", 9, host="onboard", free=100.0), received=2.0)
+    assert trust.confirmed_free("onboard", 2.1) == 500.0  # held as before the copied number
+
+
+def test_a_host_contested_before_any_figure_stays_unconfirmed():
+    trust = StatusTrust(TrustSettings(contest_s=15.0))
+    trust.alive("onboard", True)
+    trust.admit("onboard", sent("real", 1, host="onboard"), received=1.0)
+    with pytest.raises(MessageError):
+        trust.admit("onboard", sent("real", 1, host="onboard"), received=1.1)
+    assert trust.confirmed_free("onboard", 1.2) is None
 
 
 def test_a_restarted_monitor_takes_over_once_the_old_one_stays_silent():
