@@ -42,8 +42,11 @@ def test_a_readiness_line_is_the_token_and_a_json_object_and_nothing_else_is_one
 
 def test_a_child_that_gets_ready_hands_over_its_payload_and_is_stopped_by_sigint(tmp_path):
     child = python_child("""
-        import time
+        import signal, time
         from kgadapt.shared.readiness import announce_ready
+        # A suite started in the background of a non-interactive shell hands its children SIGINT ignored,
+        # and Python then installs no KeyboardInterrupt handler: restore Python's own.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         print("warming up", flush=True)
         announce_ready(status="test child ready", role="test", n=3)
         print("after ready", flush=True)

@@ -126,9 +126,10 @@ def test_a_standby_that_crashes_is_stopped_not_restarted_active_and_a_new_idle_o
         run.wait_for(lambda: idle_standbys(run)[1:], 60, "a new idle standby")
         live = run.wait_for(lambda: {i: d for i, d in detectors(run).items() if i != first.instance},
                             30, "the new standby's process")
-        since = time.time()
-        time.sleep(1.0)  # a second of detections: only the running detector's
-        running = run.running(since)
+        # Then a second of detections with only the running detector's (one fresh-clone run saw the
+        # standby's configuration detecting in the first second after the new standby was idled).
+        running = run.wait_for(lambda: run.running(time.time() - 1.0) == {(first.config, first.host)}
+                               and run.running(time.time() - 1.0), 20, "only the running detector detecting")
 
     assert (host, config) == (ready.host, ready.config), before
     assert crashed not in live, f"the crashed standby was restarted (active): {live}"
@@ -149,7 +150,11 @@ def test_a_failover_whose_standby_does_not_answer_starts_a_process_instead_of_as
         try:
             run.cluster.kill("remote", signal.SIGKILL)
             lost = run.wait_for(run.decision("host_lost"), 60, "the failover")
-            run.wait_for(lambda: any(h == "onboard" for _, h in run.running(lost.time)), 90, "detections onboard")
+            # The retry's decision is recorded after its first detections: wait for the decision itself.
+            run.wait_for(lambda: [d for d in run.recorder.decisions
+                                  if d.kind == "host_lost" and not d.outcome.startswith("failed")], 90,
+                         "a failover that worked")
+            run.wait_for(lambda: any(h == "onboard" for _, h in run.running(lost.time)), 30, "detections onboard")
             decisions = [d for d in run.recorder.decisions if d.kind == "host_lost"]
         finally:
             try:
