@@ -178,15 +178,17 @@ def record_process_reconfigured(store: GraphStore, *, run_id: str, config: str, 
 
 
 def close_host_profiles(store: GraphStore, *, name: str, time: float) -> None:
-    """Host ``name``'s liveliness was lost: its open profiles end now (``end_reason`` 'host_lost', no exit status).
+    """Host ``name``'s liveliness was lost at ``time``: the profiles it had open then end (``end_reason``
+    'host_lost', no exit status).
 
-    Not a write verb: the knowledge service calls it on the token's loss. A process
-    that outlived a partition reopens its profile with its next sample.
+    Not a write verb: the knowledge service calls it on the token's loss, late if the
+    store was away then; a process started after ``time`` (the host back) keeps its
+    profile. A process that outlived a partition reopens its profile with its next sample.
     """
     _check("close_host_profiles", name=(name, (str,), False), time=(time, _NUM, False))
     store.execute(
         f"MATCH (r:{S.PROCESS_PROFILE})-[:{S.RAN_ON}]->(:{S.PLATFORM} {{name: $name}}) WHERE r.end_time IS NULL "
-        "SET r.end_time = $time, r.end_reason = 'host_lost'",
+        "AND (r.start_time IS NULL OR r.start_time <= $time) SET r.end_time = $time, r.end_reason = 'host_lost'",
         {"name": name, "time": float(time)})
 
 

@@ -94,6 +94,7 @@ from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
 log = logging.getLogger(__name__)
 
 _STOP = object()
+_MAX_LIVELINESS_DUE = 100  # per host: a flapping token while the store is away
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -106,6 +107,9 @@ class ServiceSettings:
     query_timeout_ms: int = 5000  # named queries (FalkorDB honours it late for reads)
     max_pending_requests: int = 1000
     max_pending_statuses: int = 10000
+    # A liveliness change the store could not take (e.g. it was restarting) is tried again this often,
+    # in order with the host's later changes; the profiles of a lost host must end even then.
+    liveliness_retry_s: float = 1.0
     mark_offline_at_start: bool = True
     # Other robots' questions (query/*, cypher): own workers, a copy of the graph, hard limits.
     public_workers: int = 2
@@ -143,6 +147,8 @@ class KnowledgeService:
                                   max_pending=settings.max_pending_public)
         self._events: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_statuses)
         self._event_thread: threading.Thread | None = None
+        # Per host, its liveliness changes not yet in the store, oldest first (only the status worker touches it).
+        self._liveliness_due: dict[str, list[tuple[bool, float]]] = {}
         self._stack = contextlib.ExitStack()
         self._stats_lock = threading.Lock()
         self._stats: collections.Counter[str] = collections.Counter()
@@ -370,12 +376,16 @@ class KnowledgeService:
 
     def _event_loop(self) -> None:
         while True:
-            first = self._events.get()
+            try:
+                first = self._events.get(timeout=self.settings.liveliness_retry_s if self._liveliness_due else None)
+            except queue.Empty:
+                self._apply_liveliness()
+                continue
             if first is _STOP:
                 return
             batch = [first]
             stop = False
-            while len(batch) < 1000:  # drain what piled up: only the newest per host matters
+            while len(batch) < 1000:  # drain what piled up: only the newest status per host matters
                 try:
                     item = self._events.get_nowait()
                 except queue.Empty:
@@ -393,7 +403,6 @@ class KnowledgeService:
 
     def _apply_events(self, batch: list[tuple[Any, ...]]) -> None:
         statuses: dict[str, tuple[dict[str, Any], float]] = {}
-        alive: dict[str, tuple[bool, float]] = {}
         used: dict[str, float] = {}  # what each host's open profiles hold, read once per batch
         for kind, key, value, received in batch:
             try:
@@ -406,18 +415,13 @@ class KnowledgeService:
                     statuses[body["host"]] = (body, received)
                 else:
                     host = _host_of(key)
-                    alive[host] = (value, received)
+                    # Every change, in order: a loss and a return in one batch still end the lost life's profiles.
+                    self._liveliness_due.setdefault(host, []).append((value, received))
                     self._trust.alive(host, value)
             except KgadaptError as exc:
                 self._drop(f"{kind} on {key}: {exc}")
         self._count("events_received", len(batch))
-        for host, (online, received) in alive.items():
-            self._apply(runtime.set_platform_online, host, "liveliness", name=host, online=online, time=received)
-            log.info("host %s is %s", host, "online" if online else "offline")
-            if not online:
-                # Its processes are beyond reach: their profiles end with the token. A process that
-                # outlived a partition reopens its profile with its next sample.
-                self._apply(runtime.close_host_profiles, host, "profile closing", name=host, time=received)
+        self._apply_liveliness()
         for host, (body, received) in statuses.items():
             self._apply(
                 runtime.update_platform, host, "status",
@@ -425,6 +429,37 @@ class KnowledgeService:
                 memory_total_mb=float(body["memory_total_mb"]), memory_free_mb=float(body["memory_free_mb"]),
                 cpu_load=float(body["cpu_load"]), cpu_cores=body.get("cpu_cores"),
             )
+
+    def _apply_liveliness(self) -> None:
+        """Write the hosts' liveliness changes, oldest first; what the store refuses waits for the next try."""
+        for host in list(self._liveliness_due):
+            due = self._liveliness_due[host]
+            while due:
+                online, received = due[0]
+                try:
+                    with self._store_lock:
+                        runtime.set_platform_online(self.store, name=host, online=online, time=received)
+                        if not online:
+                            # Its processes are beyond reach: the profiles they opened before the loss end
+                            # with the token. One that outlived a partition reopens with its next sample.
+                            runtime.close_host_profiles(self.store, name=host, time=received)
+                except KgadaptError as exc:
+                    self._count("liveliness_retried")
+                    log.warning("liveliness of host %s (%s): the store refused it, trying again: %s",
+                                host, "online" if online else "offline", exc)
+                    break
+                due.pop(0)
+                self._count("liveliness_applied")
+                if not online:
+                    self._count("profile closing_applied")
+                log.info("host %s is %s", host, "online" if online else "offline")
+            if len(due) > _MAX_LIVELINESS_DUE:
+                # A token flapping while the store is away: the newest loss ends every profile the
+                # earlier ones would have, and the newest change says where the host is now.
+                losses = [change for change in due if not change[0]]
+                due[:] = sorted(set(losses[-1:] + due[-1:]), key=lambda change: change[1])
+            if not due:
+                del self._liveliness_due[host]
 
     def _apply(self, writer: Callable[..., Any], host: str, what: str, **params: Any) -> None:
         try:

@@ -13,6 +13,11 @@ import time
 import pytest
 
 from kgadapt.knowledge import runtime
+from kgadapt.knowledge.embedded import EmbeddedServer
+from kgadapt.knowledge.falkordb_store import FalkorDBStore
+from kgadapt.knowledge.schema import ensure_indexes
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.knowledge.store import StoreSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import MessageError
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings
@@ -214,3 +219,44 @@ def test_a_restarted_monitor_takes_over_once_the_old_one_stays_silent():
     trust.admit("remote", sent("third", 0, free=300.0), received=10.0)
     trust.admit("remote", sent("third", 1, free=300.0), received=10.5)
     assert trust.confirmed_free("remote", 10.6) == 300.0
+
+
+def test_a_loss_while_the_store_is_away_still_ends_the_hosts_profiles_once_it_is_back(zenoh_pair, robot, tmp_path):
+    """The soak's ``graph_disagrees``: the remote agent died while the store restarted, its
+    detector's profile stayed open for good. The loss (and the host's return in between) waits
+    for the store; a detector the returned host started after the loss keeps its profile."""
+    server_side, session = zenoh_pair
+    embedded = EmbeddedServer(tmp_path / "store")
+    address = embedded.ensure()
+    store = FalkorDBStore(StoreSettings(kind="falkordb", url=f"falkordb+unix://{address.unix_socket}",
+                                        unix_socket=address.unix_socket, graph="g", socket_timeout=2.0))
+    store.setup()
+    ensure_indexes(store)
+    svc = KnowledgeService(store, ServiceSettings(robot=robot, liveliness_retry_s=0.2))
+    svc.setup(server_side)
+    profile = "MATCH (r:ProcessProfile {name: $run}) RETURN r.end_time AS end, r.end_reason AS why"
+    token = session.liveliness().declare_token(keys.host_alive(robot, "remote"))
+    try:
+        wait_for(lambda: svc.stats().get("liveliness_applied", 0) >= 1, 5, "remote online in the graph")
+        runtime.record_process_start(store, run_id="old", instance="old", deployment="d", config=None,
+                                     host="remote", pid=1, start_time=time.time())
+        embedded.stop()  # the store is away
+        lost_at = time.time()
+        token.undeclare()
+        wait_for(lambda: svc.stats().get("liveliness_retried", 0) >= 1, 10, "the loss refused by the absent store")
+        token = session.liveliness().declare_token(keys.host_alive(robot, "remote"))  # the host is back
+        wait_for(lambda: svc.stats().get("liveliness_retried", 0) >= 3, 10, "more tries")
+        embedded.ensure()  # the store is back (an AOF-recovered server, as after a kill)
+        runtime.record_process_start(store, run_id="new", instance="new", deployment="d", config=None,
+                                     host="remote", pid=2, start_time=time.time())
+        wait_for(lambda: svc.stats().get("liveliness_applied", 0) >= 3, 15, "the loss and the return applied")
+        row = store.execute(profile, {"run": "old"})[0]
+        assert row["why"] == "host_lost" and lost_at - 1.0 <= row["end"] <= lost_at + 5.0
+        assert store.execute(profile, {"run": "new"})[0] == {"end": None, "why": None}
+        online = store.execute("MATCH (p:Platform {name: 'remote'}) RETURN p.online AS online")[0]["online"]
+        assert online is True
+    finally:
+        token.undeclare()
+        svc.shutdown()
+        store.shutdown()
+        embedded.stop()
