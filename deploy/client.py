@@ -36,11 +36,14 @@ class DeployerClient:
         self.answered: list[str] = []  # hosts whose deployers answered the last list()
 
     def start(self, host: str, deployment: str, config: str, *, instance: str | None = None,
-              wait_ready: bool = True, ready_timeout: float | None = None) -> dict[str, Any]:
-        """Ask ``host`` to start ``deployment`` with ``config``; returns the process snapshot."""
+              wait_ready: bool = True, ready_timeout: float | None = None, idle: bool = False) -> dict[str, Any]:
+        """Ask ``host`` to start ``deployment`` with ``config`` (``idle``: as a warm standby); returns the
+        process snapshot."""
         body: dict[str, Any] = {"deployment": deployment, "config": config, "wait_ready": wait_ready}
         if instance:
             body["instance"] = instance
+        if idle:
+            body["idle"] = True
         if ready_timeout is not None:
             body["ready_timeout"] = float(ready_timeout)
         wait = self.start_timeout if wait_ready else self.timeout

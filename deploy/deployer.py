@@ -4,7 +4,7 @@ One :class:`Deployer` runs in each agent (onboard and remote) as one of its
 parts. It answers four queryables (``kgadapt.shared.keys.deployer_verb``)::
 
     kgadapt/<robot>/host/<host>/deployer/start    deploy_request {deployment, config, instance?,
-                                                                  wait_ready?, ready_timeout?}
+                                                                  wait_ready?, ready_timeout?, idle?}
     kgadapt/<robot>/host/<host>/deployer/stop     deploy_request {instance}
     kgadapt/<robot>/host/<host>/deployer/status   deploy_request {instance}
     kgadapt/<robot>/host/<host>/deployer/list     deploy_request {}
@@ -56,6 +56,7 @@ from kgadapt.deploy.supervisor import (
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.agent import DEFAULT_ROBOT
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RemoteError, TransportError
+from kgadapt.shared.readiness import START_IDLE_ENV
 from kgadapt.shared.session import DEFAULT_ENDPOINT
 
 log = logging.getLogger(__name__)
@@ -67,7 +68,7 @@ _ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 # Fields a request may carry besides kind and version; anything else is refused.
 _ALLOWED = {
-    "start": {"deployment", "config", "instance", "wait_ready", "ready_timeout"},
+    "start": {"deployment", "config", "instance", "wait_ready", "ready_timeout", "idle"},
     "stop": {"instance"},
     "status": {"instance"},
     "list": set(),
@@ -179,7 +180,7 @@ class Deployer:
     # -- operations ---------------------------------------------------------------
 
     def resolve(self, deployment: str, config: str, instance: str | None = None,
-                *, ready_timeout: float | None = None) -> ProcessSpec:
+                *, ready_timeout: float | None = None, idle: bool = False) -> ProcessSpec:
         """What to run for ``deployment`` with ``config`` on this host, from the knowledge store.
 
         Raises DeploymentError naming what is wrong: an unknown deployment, one
@@ -220,6 +221,8 @@ class Deployer:
             env.append(("KGADAPT_ZENOH_CONFIG", s.child_zenoh_config or s.zenoh_config))
         if s.zenoh_mode:
             env.append(("KGADAPT_ZENOH_MODE", s.zenoh_mode))
+        if idle:
+            env.append((START_IDLE_ENV, "1"))
         for item in _as_list(row.get("environment"), deployment, "environment"):
             name, sep, value = str(item).partition("=")
             if not sep or not _ENV_NAME.match(name):
@@ -234,9 +237,11 @@ class Deployer:
         )
 
     def start(self, deployment: str, config: str, *, instance: str | None = None,
-              wait_ready: bool = True, ready_timeout: float | None = None) -> ProcessInfo:
-        """Check with the knowledge store and the host's memory, then start; see :meth:`Supervisor.start`."""
-        spec = self.resolve(deployment, config, instance, ready_timeout=ready_timeout)
+              wait_ready: bool = True, ready_timeout: float | None = None, idle: bool = False) -> ProcessInfo:
+        """Check with the knowledge store and the host's memory, then start; see :meth:`Supervisor.start`.
+
+        ``idle``: the process is told to start idle (``$KGADAPT_START_IDLE``), as a warm standby does."""
+        spec = self.resolve(deployment, config, instance, ready_timeout=ready_timeout, idle=idle)
         self._check_memory(config)
         log.info("host %s: starting %s (%s, %s): %s", self.settings.host, spec.instance, deployment, config, " ".join(spec.argv))
         return self.supervisor.start(spec, wait_ready=wait_ready)
@@ -316,9 +321,12 @@ class Deployer:
         ready_timeout = request.get("ready_timeout")
         if ready_timeout is not None and (isinstance(ready_timeout, bool) or not isinstance(ready_timeout, (int, float))):
             raise DeploymentError("start request field 'ready_timeout' must be a number of seconds")
+        idle = request.get("idle") or False
+        if not isinstance(idle, bool):
+            raise DeploymentError("start request field 'idle' must be true or false")
         info = self.start(
             request["deployment"], request["config"], instance=request.get("instance") or None,
-            wait_ready=wait_ready, ready_timeout=ready_timeout,
+            wait_ready=wait_ready, ready_timeout=ready_timeout, idle=idle,
         )
         return _info_dict(info, host)
 

@@ -778,15 +778,15 @@ class AdaptationManager:
         trigger = Trigger(TriggerKind.STANDBY, wall, {"band": band})
         try:
             snapshot = self._deployers.start(t.host, t.deployment, t.config, instance=instance, wait_ready=True,
-                                             ready_timeout=self.settings.ready_timeout)
+                                             ready_timeout=self.settings.ready_timeout, idle=True)
         except KgadaptError as exc:
             self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: {exc}",
                                  detail={"change": Change.STANDBY_START}))
             return
         try:
-            # Its deployer said ready; the activity queryable's declaration may still be on its way
-            # (set_active asks again until then). A standby not made idle is stopped, and the
-            # decision says so: it is no standby the failover could count on.
+            # It started idle; asking confirms that its activity switch answers (its declaration may
+            # still be on its way: set_active asks again until then). A standby that does not answer
+            # is stopped, and the decision says so: it is no standby the failover could count on.
             set_active(self._session, self.settings.robot, t.host, instance, False, timeout=self.settings.output_timeout)
         except KgadaptError as exc:
             try:

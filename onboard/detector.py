@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import threading
 import time
@@ -47,7 +48,7 @@ from typing import Any, Sequence
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
-from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, announce_ready
+from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, START_IDLE_ENV, announce_ready
 
 log = logging.getLogger("kgadapt.onboard.detector")
 
@@ -97,6 +98,7 @@ class DetectorSettings:
     host: str
     instance: str
     camera: str = "cam0"
+    idle: bool = False  # start idle (a warm standby): no detection work until activated
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
@@ -158,7 +160,8 @@ class Detector:
         self.malformed = 0
         self._stop = threading.Event()
         self.active = threading.Event()  # cleared: idle (frames dropped unread, nothing published)
-        self.active.set()
+        if not settings.idle:
+            self.active.set()
         self._worker: threading.Thread | None = None
         self._subscriber: Any = None
         self._publisher: Any = None
@@ -467,7 +470,9 @@ def run(args: argparse.Namespace) -> int:
     switch: ActivitySwitch | None = None
     with StopSignals() as stop:
         try:
-            settings = DetectorSettings(robot=args.robot, host=args.host, instance=args.instance, camera=args.camera)
+            # A standby starts idle: active until the manager's first request, it would publish detections.
+            settings = DetectorSettings(robot=args.robot, host=args.host, instance=args.instance, camera=args.camera,
+                                        idle=os.environ.get(START_IDLE_ENV) == "1")
             if args.config_json is not None:
                 from kgadapt.onboard.markers import parse_config
 

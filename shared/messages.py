@@ -164,6 +164,7 @@ class DeployRequest(Message, tag="deploy_request", frozen=True, kw_only=True):
     instance: Name | None = None
     wait_ready: bool | None = None  # absent: true
     ready_timeout: Number | None = None  # seconds
+    idle: bool | None = None  # absent: false; true starts a detector idle (a warm standby)
 
 
 class Launcher(Struct, frozen=True, kw_only=True, omit_defaults=True):

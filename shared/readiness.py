@@ -34,6 +34,9 @@ from kgadapt.shared.notifier import ServiceNotifier
 READY_TOKEN = "KGADAPT_READY"
 # "<token> <config> <deployment>": a detector took another configuration in place (deploy/supervisor.py).
 CONFIGURED_TOKEN = "KGADAPT_CONFIGURED"
+# Set to "1" in a started process's environment: start idle (a detector's warm standby does no detection
+# work and publishes nothing until it is activated). Its deployer sets it for a start request with idle.
+START_IDLE_ENV = "KGADAPT_START_IDLE"
 
 Payload = dict[str, Any]
 

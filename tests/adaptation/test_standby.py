@@ -126,15 +126,18 @@ def test_a_standby_that_crashes_is_stopped_not_restarted_active_and_a_new_idle_o
         run.wait_for(lambda: idle_standbys(run)[1:], 60, "a new idle standby")
         live = run.wait_for(lambda: {i: d for i, d in detectors(run).items() if i != first.instance},
                             30, "the new standby's process")
-        # Then a second of detections with only the running detector's (one fresh-clone run saw the
-        # standby's configuration detecting in the first second after the new standby was idled).
+        # Then a second of detections with only the running detector's.
         running = run.wait_for(lambda: run.running(time.time() - 1.0) == {(first.config, first.host)}
                                and run.running(time.time() - 1.0), 20, "only the running detector detecting")
+        # A standby starts idle: neither it nor the one after the crash ever published a detection
+        # (they used to, between ready and the manager's request to idle).
+        ever = {(c, h) for _, _, c, h, _, _ in list(run.recorder.detections)}
 
     assert (host, config) == (ready.host, ready.config), before
     assert crashed not in live, f"the crashed standby was restarted (active): {live}"
     assert [(h, c) for h, _, c in live.values()] == [(ready.host, ready.config)], live
     assert running == {(first.config, first.host)}, running
+    assert ever == {(first.config, first.host)}, ever
 
 
 def test_a_failover_whose_standby_does_not_answer_starts_a_process_instead_of_asking_it_again(tmp_path):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 
+import msgpack
 import pytest
 
 from kgadapt.deploy.client import DeployerClient
@@ -124,3 +125,31 @@ def test_an_activity_switch_asked_before_the_detector_is_up_reaches_it_once_it_i
         assert replies and (replies[0]["instance"], replies[0]["active"]) == ("early1", False), replies
     finally:
         client.stop("onboard", "early1")
+
+
+def test_a_detector_started_idle_publishes_nothing_until_made_active(hosts, client_session, graph):
+    # A warm standby: started with idle (KGADAPT_START_IDLE in its environment), it does no detection
+    # work from its first frame on, instead of detecting until the manager's request to idle reaches it.
+    from kgadapt.onboard.detector import set_active
+
+    frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
+    markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
+    try:
+        client = DeployerClient(client_session, ROBOT)
+        started = client.start("onboard", "detector_day", "marker_detection_day", instance="standby1", idle=True)
+        ready_at = frames.seq
+        wait_for(lambda: frames.seq >= ready_at + 30, 10, "a second of frames after ready")
+        assert not [d for _, d in list(markers.items) if d["instance"] == "standby1"], "a standby detects nothing"
+        assert set_active(client_session, ROBOT, "onboard", "standby1", True)["active"] is True
+        markers.wait_for(lambda d: d["instance"] == "standby1" and d["ids"])
+        assert client.status("onboard", "standby1")["pid"] == started["pid"]
+        bad = msgpack.packb({"kind": "deploy_request", "v": 1, "deployment": "detector_day",
+                             "config": "marker_detection_day", "idle": "yes"})
+        replies = list(client_session.get(keys.deployer_verb(ROBOT, "onboard", "start"), payload=bad, timeout=10))
+        refused = replies[0].err.payload.to_string() if replies and replies[0].ok is None else \
+            str(msgpack.unpackb(replies[0].ok.payload.to_bytes()) if replies else "no reply")
+        assert "idle" in refused and len(client.list("onboard")) == 1, refused  # named, and nothing started
+        client.stop("onboard", "standby1")
+    finally:
+        markers.close()
+        frames.close()
