@@ -495,6 +495,7 @@ class RobotSettings:
     zenoh_runtime: str | None = ZENOH_RUNTIME  # None: Zenoh's default threads (the router stalls in a cut)
     profile: Mapping[str, Any] | None = None  # the camera's illumination profile; None: constant at ``level``
     fake_fc: bool = False
+    standby: bool = False  # the onboard agent keeps a warm standby (--standby)
 
 
 @dataclass
@@ -521,6 +522,7 @@ class RobotOnHosts:
         self.cluster = LocalCluster(ClusterSettings(
             workdir=settings.workdir, robot=ROBOT, profile=str(profile), fps=settings.fps, prefer=settings.prefer,
             calibrate=False, fake_fc=settings.fake_fc, log_level=settings.log_level, agent_mode=settings.agent_mode,
+            standby=settings.standby,
             env=(("ZENOH_RUNTIME", settings.zenoh_runtime),) if settings.zenoh_runtime else (),
         ), network=self.network)
         self.probe: ProbeHandle | None = None

@@ -70,6 +70,7 @@ class SoakSettings:
     graph_bound_s: float = 20.0  # profiles and processes may disagree this long (writes retried after a store kill)
     warmup_s: float = 300.0
     subnet: str = "10.213.9"
+    standby: bool = False  # the onboard agent keeps a warm standby (an idle second detector process)
 
     def __post_init__(self) -> None:
         if not self.minutes > 0:
@@ -118,7 +119,8 @@ class Soak:
         s = self.settings
         # The reliability bench's robot, with changing light and the fake flight controller.
         self.robot = RobotOnHosts(RobotSettings(workdir=self.workdir, profile=scenario(s.band_s), fps=15.0,
-                                                prefer="onboard-first", subnet=s.subnet, fake_fc=True))
+                                                prefer="onboard-first", subnet=s.subnet, fake_fc=True,
+                                                standby=s.standby))
         self.network, self.cluster = self.robot.network, self.robot.cluster
         self.robot.start(timeout=60.0)  # stops what it started when it fails
         self.probe = self.robot.probe
@@ -488,6 +490,8 @@ def register(bench_subparsers: Any) -> None:
     parser.add_argument("--band", type=float, default=40.0, metavar="S", help="seconds per light band (default 40)")
     parser.add_argument("--out", default=str(RESULTS / "soak.json"), help="report file (the PNG goes beside it)")
     parser.add_argument("--workdir", default=None, help="logs and store (default: a temporary directory)")
+    parser.add_argument("--standby", action="store_true",
+                        help="the onboard agent keeps a warm standby (an idle detector process for the next band)")
     parser.add_argument("--quiet", action="store_true")
     parser.set_defaults(func=run_bench)
 
@@ -498,7 +502,8 @@ def run_bench(args: argparse.Namespace) -> int:
     reason = HostNetwork.unavailable_reason()
     if reason:
         raise ConfigError(f"the soak needs network namespaces: {reason}")
-    settings = SoakSettings(minutes=args.minutes, seed=args.seed, gap=tuple(args.gap), band_s=args.band)
+    settings = SoakSettings(minutes=args.minutes, seed=args.seed, gap=tuple(args.gap), band_s=args.band,
+                            standby=args.standby)
     keep = args.workdir is not None
     workdir = Path(args.workdir) if keep else Path(tempfile.mkdtemp(prefix="kgadapt-soak-"))
 
