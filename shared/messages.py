@@ -277,6 +277,11 @@ class FlightState(Message, tag="flight_state", frozen=True, kw_only=True):
     reboots: int | None = None
     missing: Annotated[list[Any], Meta(max_length=16)] | None = None
     refused: Annotated[list[Any], Meta(max_length=16)] | None = None
+    # Which autopilot the state is of (the bridge follows the first it hears): its MAVLink system id,
+    # its kind (ardupilot, px4, generic, else the MAV_AUTOPILOT number) and its last HEARTBEAT, epoch s.
+    system_id: int | None = None
+    autopilot: Str32 | None = None
+    last_heartbeat: Number | None = None
 
 
 class Decision(Struct, frozen=True, kw_only=True, omit_defaults=True):

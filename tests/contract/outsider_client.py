@@ -104,7 +104,7 @@ KINDS: dict[str, Kind] = {
                           "alt_amsl_m": NUMBER, "lat_deg": NUMBER, "lon_deg": NUMBER, "attitude": L(3),
                           "rates": L(3), "position_ned": L(3), "velocity_ned": L(3), "rangefinder_m": NUMBER,
                           "home": L(3), "heard": M(16), "boot_ms": INT, "reboots": INT, "missing": L(16),
-                          "refused": L(16)}),
+                          "refused": L(16), "system_id": INT, "autopilot": S(32), "last_heartbeat": NUMBER}),
     "adaptation_event": Kind(1, K256, {"time": NUMBER, "trigger": S(256)},
                              {"decision": ("struct", "Decision"), "outcome": S(256)}),
 }
@@ -219,15 +219,12 @@ def decode(payload: bytes) -> Any:
 
 @dataclass(frozen=True)
 class Reply:
-    """One reply: ``body`` (decoded map) and its ``size`` when it was a reply, else the ``error`` text."""
+    """One reply: ``ok`` with ``body`` (decoded) and its ``size``, or not ``ok`` with the ``error`` text."""
 
-    body: dict[str, Any] | None
-    error: str | None
+    ok: bool
+    body: Any = None
+    error: str = ""
     size: int = 0
-
-    @property
-    def ok(self) -> bool:
-        return self.error is None
 
 
 class Outsider:
@@ -246,9 +243,9 @@ class Outsider:
         for reply in self.session.get(key, payload=payload, timeout=timeout):
             if reply.ok is not None:
                 raw = reply.ok.payload.to_bytes()
-                out.append(Reply(decode(raw), None, len(raw)))
+                out.append(Reply(True, body=decode(raw), size=len(raw)))
             else:
-                out.append(Reply(None, reply.err.payload.to_bytes().decode("utf-8", "replace")))
+                out.append(Reply(False, error=reply.err.payload.to_bytes().decode("utf-8", "replace")))
         return out
 
     def get_one(self, key: str, payload: bytes | None, timeout: float = 10.0) -> Reply:

@@ -24,7 +24,7 @@ import zenoh
 
 from tests.conftest import REPO, free_port
 from tests.contract.outsider_client import Heard, Outsider, encode, shape_problems
-from tests.support import Child
+from tests.support import Child, wait_for
 
 ONBOARD, REMOTE = "onboard", "remote"
 INSTANCE = "contract1"  # the detector this test starts itself, on the remote host
@@ -44,7 +44,7 @@ def ok_rows(reply: Any) -> list[dict[str, Any]]:
 
 def refused(reply: Any, *names: str) -> str:
     """The text of an error reply, after checking it names each of ``names``."""
-    assert not reply.ok, f"expected an error reply, got {reply.body}"
+    assert not reply.ok, f"expected an error reply, got {str(reply.body)[:500]}"
     for name in names:
         assert name in reply.error, f"the error does not name {name!r}: {reply.error}"
     return reply.error
@@ -136,8 +136,9 @@ def test_host_statuses_have_the_documented_fields(robot: Robot) -> None:
 
 
 def test_host_liveliness_tokens(robot: Robot) -> None:
-    alive = robot.client.tokens("host/*/alive")
-    assert alive == {robot.client.key("host", h, "alive") for h in (ONBOARD, REMOTE)}
+    expected = {robot.client.key("host", h, "alive") for h in (ONBOARD, REMOTE)}
+    # A token reaches the router a moment after its agent declared it (seen: onboard's missing once).
+    wait_for(lambda: robot.client.tokens("host/*/alive") == expected, 10, "both hosts' tokens")
 
 
 def test_camera_frames_and_illumination(robot: Robot) -> None:
@@ -169,6 +170,10 @@ def test_the_startup_decision_is_published_and_recorded(robot: Robot) -> None:
     assert mkey == robot.client.key("detector", detections["instance"], "markers")
     rows = ok_rows(robot.client.query("decisions", {"limit": 5}))
     assert any(r.get("name") == decision["name"] for r in rows), rows
+    # docs/fleet.md: current_placement names the configuration, its host and the decision.
+    placed = ok_rows(robot.client.query("current_placement"))
+    assert [(r["config"], r["host"], r["decision"]) for r in placed] == [
+        (decision["config"], decision["host"], decision["name"])]
 
 
 # --- the knowledge service -------------------------------------------------------------------------------------------
@@ -176,7 +181,7 @@ def test_the_startup_decision_is_published_and_recorded(robot: Robot) -> None:
 DOCUMENTED_COLUMNS = {  # docs/CONTRACTS.md, "Named queries"
     "placement": ("config", "deployment", "platform", "demand_mb", "free_mb"),
     "detector_configs": ("config", "band", "min_level", "max_level", "memory_demand_mb", "detection_rate",
-                         "false_per_frame", "false_per_reported", "ms_per_frame"),
+                         "false_per_frame", "false_per_reported", "ms_per_frame", "calibrated_at"),
     "config_ranking": ("config", "detection_rate", "false_per_frame", "false_per_reported", "ms_per_frame",
                        "memory_demand_mb", "suited_for", "score"),
     "detector_config": ("config", "dictionary", "config_json", "memory_demand_mb", "deployment"),
@@ -202,11 +207,12 @@ def test_named_queries_answer_the_documented_columns(robot: Robot) -> None:
         "flight_control": {},
         "camera_intrinsics": {"camera": "camera"},
     }
+    differ = {}
     for name, params in asked.items():
         rows = ok_rows(c.query(name, params))
         assert rows, f"{name} {params}: no rows"
-        for row in rows:
-            assert tuple(row) == DOCUMENTED_COLUMNS[name], f"{name}: columns {tuple(row)}"
+        differ.update({name: tuple(row) for row in rows if tuple(row) != DOCUMENTED_COLUMNS[name]})
+    assert not differ, f"columns other than documented: {differ}"
     online = {r["platform"]: r["online"] for r in ok_rows(c.query("platforms"))}
     assert online[ONBOARD] is True and online[REMOTE] is True
     ranking = ok_rows(c.query("config_ranking", {"band": "day"}))
@@ -223,6 +229,17 @@ def test_named_queries_answer_the_documented_columns(robot: Robot) -> None:
         ok_rows(c.query(name, params))
     # The robot's own lane answers the same.
     assert ok_rows(c.query("platforms", own=True))
+
+
+def test_the_papers_literal_queries_are_bounded(robot: Robot) -> None:
+    """fig4_literal has 21,344 rows on the shipped models (docs/knowledge.md): through the service, on
+    either door, it answers its first 1,000 (the LIMIT every sandboxed question gets) or stops at 1 s."""
+    for own in (False, True):
+        reply = robot.client.query("fig4_literal", {"platform": REMOTE}, own=own)
+        if reply.ok:
+            assert len(ok_rows(reply)) == 1000
+        else:
+            refused(reply, "time limit")
 
 
 def test_a_named_query_in_the_selector(robot: Robot) -> None:
@@ -342,7 +359,7 @@ def test_deployer_lifecycle_and_detector_requests(robot: Robot) -> None:
     assert len(listed) == 2 and all(r.ok for r in listed), listed
     for r in listed:
         assert_shape("deploy_reply", r.body, r.size)
-        assert r.body["ok"] is True and set(r.body["detail"]) == {"host", "processes"}
+        assert r.body["ok"] is True and {"host", "processes"} <= set(r.body["detail"]) <= {"host", "processes", "launcher"}
     assert {r.body["detail"]["host"] for r in listed} == {ONBOARD, REMOTE}
 
     started = deploy_reply(c.deployer(REMOTE, "start", deployment="detector_day", config="marker_detection_day",
@@ -365,6 +382,11 @@ def test_deployer_lifecycle_and_detector_requests(robot: Robot) -> None:
 
     status = deploy_reply(c.deployer(REMOTE, "status", instance=INSTANCE))
     assert status["ok"] is True and status["detail"]["run_id"] == detail["run_id"]
+    # Its profile, written by the deployer through the knowledge service.
+    profile = wait_for(lambda: ok_rows(c.query("process_profile", {"run_id": detail["run_id"]})), 15,
+                       "the run's process profile")
+    assert tuple(profile[0]) == DOCUMENTED_COLUMNS["process_profile"]
+    assert profile[0]["instance"] == INSTANCE and profile[0]["host"] == REMOTE
 
     # In place: the graph allows detector_day -> detector_dusk on this host.
     assert ok_rows(c.query("in_place_change", {"from": "detector_day", "to": "detector_dusk", "host": REMOTE}))
@@ -385,6 +407,9 @@ def test_deployer_lifecycle_and_detector_requests(robot: Robot) -> None:
     reply = c.activity(REMOTE, INSTANCE, True)
     assert reply.ok and reply.body["active"] is True
 
+    # Every verb refuses a field beyond its own.
+    body = deploy_reply(c.deployer(REMOTE, "stop", instance=INSTANCE, config="marker_detection_day"))
+    assert body["ok"] is False and "config" in body["detail"]["error"], body
     stopped = deploy_reply(c.deployer(REMOTE, "stop", instance=INSTANCE))
     assert stopped["ok"] is True and "returncode" in stopped["detail"], stopped
     key, event, size = events.wait(lambda k, b: b.get("instance") == INSTANCE and b["event"] == "stopped", 30,
