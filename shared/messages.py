@@ -429,7 +429,7 @@ _MISSING = re.compile(r"^Object missing required field `(?P<name>[^`]+)`$")
 
 
 def _explain(kind: str, exc: msgspec.ValidationError) -> str:
-    """msgspec's complaint as ours: the field's path without ``$.``, and "finite" for NaN and infinities."""
+    """msgspec's complaint as ours: the field's path without ``$.``, "finite" for NaN and infinities, "number"."""
     text = str(exc)
     if " - at `key` in `" in text:
         where = text.rsplit(" - at `key` in `", 1)[1].rstrip("`")
@@ -444,6 +444,8 @@ def _explain(kind: str, exc: msgspec.ValidationError) -> str:
         return f"{kind} message lacks field {name!r}"
     if repr(_LARGEST) in what:
         what = "must be a finite number"
+    # A Number is a float in msgspec's words but takes an int too: say "number", as docs/CONTRACTS.md does.
+    what = what.replace("Expected `float", "Expected `number")
     if not field:
         return f"{kind} message: {what}"
     return f"{kind} field {field!r}: {what}"

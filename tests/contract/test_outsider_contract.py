@@ -168,6 +168,7 @@ def test_the_startup_decision_is_published_and_recorded(robot: Robot) -> None:
         lambda k, b: b.get("instance") == decision.get("instance"), 60, "the startup detector's detections")
     assert_shape("detections", detections, msize)
     assert mkey == robot.client.key("detector", detections["instance"], "markers")
+    assert len(detections["corners"]) == len(detections["ids"]) == len(detections["clean"])
     rows = ok_rows(robot.client.query("decisions", {"limit": 5}))
     assert any(r.get("name") == decision["name"] for r in rows), rows
     # docs/fleet.md: current_placement names the configuration, its host and the decision.
@@ -285,6 +286,7 @@ def test_malformed_requests_name_the_field(robot: Robot) -> None:
     refused(c.get_one(query_key, msgpack.packb({"kind": "query_request", "v": 2, "params": {}})), "v")
     refused(c.get_one(cypher_key, encode("cypher_request", params={})), "cypher")
     refused(c.get_one(cypher_key, encode("cypher_request", cypher=42)), "cypher")
+    refused(c.get_one(cypher_key, encode("cypher_request", cypher=b"RETURN 1")), "cypher")  # a str is no bytes
     refused(c.get_one(cypher_key, encode("cypher_request", cypher="RETURN 1", params=[1])), "params")
     refused(c.get_one(cypher_key, encode("cypher_request", cypher="RETURN 1 // " + "y" * 17000)), "cypher")
     refused(c.get_one(query_key, encode("query_request", params={f"p{i}": i for i in range(65)})), "params")
@@ -332,7 +334,7 @@ def test_squeeze_answers_the_new_status(robot: Robot) -> None:
     reply = c.squeeze(REMOTE, 0)
     assert reply.ok and reply.body["reserved_mb"] == 0
     refused(c.squeeze(REMOTE, -5), "reserve_mb")
-    refused(c.squeeze(REMOTE, True), "reserve_mb")
+    assert "number" in refused(c.squeeze(REMOTE, True), "reserve_mb")  # a bool is no number
     refused(c.squeeze(REMOTE, "lots"), "reserve_mb")
     refused(c.squeeze(REMOTE, math.nan), "reserve_mb")
 
@@ -387,6 +389,10 @@ def test_deployer_lifecycle_and_detector_requests(robot: Robot) -> None:
                        "the run's process profile")
     assert tuple(profile[0]) == DOCUMENTED_COLUMNS["process_profile"]
     assert profile[0]["instance"] == INSTANCE and profile[0]["host"] == REMOTE
+    # Only the host that started a run writes its samples.
+    refused(c.write("process_sample", {"run_id": detail["run_id"], "rss_mb_last": 50.0, "rss_mb_mean": 50.0,
+                                       "rss_mb_max": 50.0, "cpu_percent_mean": 5.0}, host=ONBOARD), "run_id")
+    assert len(status["detail"]["output"]) <= 5  # its last output lines
 
     # In place: the graph allows detector_day -> detector_dusk on this host.
     assert ok_rows(c.query("in_place_change", {"from": "detector_day", "to": "detector_dusk", "host": REMOTE}))
