@@ -282,12 +282,25 @@ class Outsider:
 
     # a running detector
     def configure(self, host: str, instance: str, config: str) -> Reply:
-        return self.get_one(self.key("host", host, "detector", instance, "configure"),
-                            encode("configure_request", config=config), timeout=30.0)
+        return self.get_answered(self.key("host", host, "detector", instance, "configure"),
+                                 encode("configure_request", config=config), timeout=30.0)
 
     def activity(self, host: str, instance: str, active: bool) -> Reply:
-        return self.get_one(self.key("host", host, "detector", instance, "activity"),
-                            encode("activity_request", active=active))
+        return self.get_answered(self.key("host", host, "detector", instance, "activity"),
+                                 encode("activity_request", active=active))
+
+    def get_answered(self, key: str, payload: bytes, timeout: float = 10.0) -> Reply:
+        """``get_one``, asking again while nothing answers: a detector's queryable may reach this session
+        a moment after its deployer reported it ready (docs/perception.md, "Idle or active")."""
+        deadline = time.monotonic() + timeout
+        while True:
+            replies = self.get_all(key, payload, max(0.1, deadline - time.monotonic()))
+            if replies or time.monotonic() >= deadline:
+                break
+            time.sleep(0.05)
+        if len(replies) != 1:
+            raise AssertionError(f"{key}: {len(replies)} replies, documented exactly one: {replies}")
+        return replies[0]
 
     def tokens(self, keyexpr: str, timeout: float = 5.0) -> set[str]:
         """The keys of the liveliness tokens alive under ``keyexpr`` now."""
