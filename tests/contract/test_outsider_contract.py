@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -412,6 +414,19 @@ def test_deployer_lifecycle_and_detector_requests(robot: Robot) -> None:
     assert reply.body == {**reply.body, "instance": INSTANCE, "active": False}
     reply = c.activity(REMOTE, INSTANCE, True)
     assert reply.ok and reply.body["active"] is True
+
+    # A crash: exited with the signal as a negative return code, then restarted with the configuration
+    # it took in place.
+    os.kill(detail["pid"], signal.SIGKILL)
+    key, event, size = events.wait(lambda k, b: b.get("run_id") == detail["run_id"] and b["event"] == "exited", 30,
+                                   "the killed run's exit")
+    assert event["returncode"] == -signal.SIGKILL
+    key, event, size = events.wait(lambda k, b: b.get("instance") == INSTANCE and b["event"] == "restarted", 30,
+                                   "the restart")
+    assert_shape("deploy_event", event, size)
+    assert (event["deployment"], event["config"]) == ("detector_dusk", "marker_detection_dusk")
+    assert event["run_id"] != detail["run_id"]
+    events.wait(lambda k, b: b.get("run_id") == event["run_id"] and b["event"] == "ready", 30, "the new run's ready")
 
     # Every verb refuses a field beyond its own.
     body = deploy_reply(c.deployer(REMOTE, "stop", instance=INSTANCE, config="marker_detection_day"))
