@@ -278,6 +278,11 @@ class FlightState(Message, tag="flight_state", frozen=True, kw_only=True):
     reboots: int | None = None
     missing: Annotated[list[Any], Meta(max_length=16)] | None = None
     refused: Annotated[list[Any], Meta(max_length=16)] | None = None
+    # Which autopilot the state is of (the bridge follows the first it hears): its MAVLink system id,
+    # its kind (ardupilot, px4, generic, else the MAV_AUTOPILOT number) and its last HEARTBEAT, epoch s.
+    system_id: int | None = None
+    autopilot: Str32 | None = None
+    last_heartbeat: Number | None = None
 
 
 class Decision(Struct, frozen=True, kw_only=True, omit_defaults=True):
@@ -425,7 +430,7 @@ _MISSING = re.compile(r"^Object missing required field `(?P<name>[^`]+)`$")
 
 
 def _explain(kind: str, exc: msgspec.ValidationError) -> str:
-    """msgspec's complaint as ours: the field's path without ``$.``, and "finite" for NaN and infinities."""
+    """msgspec's complaint as ours: the field's path without ``$.``, "finite" for NaN and infinities, "number"."""
     text = str(exc)
     if " - at `key` in `" in text:
         where = text.rsplit(" - at `key` in `", 1)[1].rstrip("`")
@@ -440,6 +445,8 @@ def _explain(kind: str, exc: msgspec.ValidationError) -> str:
         return f"{kind} message lacks field {name!r}"
     if repr(_LARGEST) in what:
         what = "must be a finite number"
+    # A Number is a float in msgspec's words but takes an int too: say "number", as docs/CONTRACTS.md does.
+    what = what.replace("Expected `float", "Expected `number")
     if not field:
         return f"{kind} message: {what}"
     return f"{kind} field {field!r}: {what}"
