@@ -85,7 +85,7 @@ KINDS: dict[str, Kind] = {
     "write_request": Kind(1, K256, {"params": M(64)}, {}),
     "deploy_request": Kind(1, K256, {},
                            {"deployment": S(64), "config": S(64), "instance": S(64), "wait_ready": BOOL,
-                            "ready_timeout": NUMBER}),
+                            "ready_timeout": NUMBER, "idle": BOOL}),
     "configure_request": Kind(1, K256, {"config": S(64)}, {}),
     "configure_reply": Kind(1, K256,
                             {"instance": S(64), "config": S(64), "previous": S(64), "deployment": S(64),
