@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import importlib
 import json
 import logging
 import os
@@ -257,11 +258,14 @@ def set_title(argv: Sequence[str]) -> bool:
 
 
 def _run_module(module: str, argv: list[str]) -> int:
-    import runpy
+    """Run ``module``'s ``main(args)`` as ``python -m module args`` would.
 
+    Its preloaded copy is used as it is: running it again as ``__main__`` (runpy) would execute a
+    second copy beside the imported one, which Python warns about in the detector's output.
+    """
     sys.argv = [argv[0], *argv[3:]]
     try:
-        runpy.run_module(module, run_name="__main__", alter_sys=True)
+        code = importlib.import_module(module).main(sys.argv[1:])
     except SystemExit as exc:
         if exc.code is None:
             return 0
@@ -269,7 +273,7 @@ def _run_module(module: str, argv: list[str]) -> int:
             return exc.code
         print(exc.code, file=sys.stderr)
         return 1
-    return 0
+    return code if isinstance(code, int) else 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -282,8 +286,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     # OpenBLAS starts a thread pool at import; the launcher must stay single-threaded to fork safely.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sock = socket.socket(fileno=args.fd)
-    import importlib
-
     for name in PRELOAD:
         importlib.import_module(name)
     if _threads() != 1:

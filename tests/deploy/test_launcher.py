@@ -62,6 +62,9 @@ def test_a_detector_forked_by_the_launcher_is_the_agents_child_gets_ready_and_de
         assert info["pid"] not in [c.pid for c in psutil.Process(launcher.pid).children()]
         _, first = markers.wait_for(lambda d: d["instance"] == "forked1" and d["ids"])
         assert first["ids"] == [7] and first["config"] == DAY and first["host"] == "onboard"
+        # Run as its preloaded module's main: no second copy as __main__ (runpy warned of it in its output).
+        output = "\n".join(client.status("onboard", "forked1").get("output") or [])
+        assert "RuntimeWarning" not in output, output
         stopped = client.stop("onboard", "forked1")
         assert stopped["state"] == "stopped" and stopped["returncode"] == 0  # SIGINT stops it cleanly
     finally:
