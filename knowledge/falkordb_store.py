@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import Any, Mapping, Sequence
 
 import redis
@@ -25,6 +26,7 @@ from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, St
 from kgadapt.shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
+_LOADING_POLL_S = 0.1  # how often a query asks again while a restarted server reads its AOF
 
 
 class FalkorDBStore(GraphStore):
@@ -54,11 +56,19 @@ class FalkorDBStore(GraphStore):
             kwargs["password"] = self.settings.password
         if self.settings.username:
             kwargs["username"] = self.settings.username
-        try:
-            db = FalkorDB(socket_connect_timeout=timeout, socket_timeout=self.settings.socket_timeout, **kwargs)
-            db.connection.ping()
-        except (redis.RedisError, OSError) as exc:
-            raise StoreUnavailable(f"cannot reach FalkorDB at {self.settings.url}: {exc}") from exc
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                db = FalkorDB(socket_connect_timeout=timeout, socket_timeout=self.settings.socket_timeout, **kwargs)
+                db.connection.ping()
+                break
+            except redis.BusyLoadingError as exc:
+                if time.monotonic() >= deadline:
+                    raise StoreUnavailable(f"FalkorDB at {self.settings.url} still loading its data after "
+                                           f"{timeout:g} s: {exc}") from exc
+                time.sleep(_LOADING_POLL_S)
+            except (redis.RedisError, OSError) as exc:
+                raise StoreUnavailable(f"cannot reach FalkorDB at {self.settings.url}: {exc}") from exc
         # Other threads keep using the old client until the new one is whole.
         self._graph = db.select_graph(self.settings.graph)
         self._db = db
@@ -113,11 +123,24 @@ class FalkorDBStore(GraphStore):
     def _run(self, query: str, read_only: bool, timeout_ms: int | None) -> Any:
         if self._graph is None:
             raise StoreUnavailable("store is not set up; call setup() first")
-        for attempt in (1, 2):
+        loading_until: float | None = None
+        attempt = 0
+        while True:
+            attempt += 1
             try:
                 if read_only:
                     return self._graph.ro_query(query, timeout=timeout_ms)
                 return self._graph.query(query, timeout=timeout_ms)
+            except redis.BusyLoadingError as exc:
+                # A restarted server answers "LOADING" until its AOF is read (20 s seen on a loaded
+                # machine): wait for it, bounded, instead of refusing the query.
+                now = time.monotonic()
+                loading_until = loading_until or now + self.settings.connect_timeout
+                if now >= loading_until:
+                    raise StoreUnavailable(f"FalkorDB at {self.settings.url} still loading its data after "
+                                           f"{self.settings.connect_timeout:g} s: {exc}") from exc
+                attempt -= 1
+                time.sleep(_LOADING_POLL_S)
             except redis.ResponseError as exc:
                 message = str(exc)
                 if read_only and "empty key" in message:
@@ -143,7 +166,6 @@ class FalkorDBStore(GraphStore):
                     raise StoreUnavailable(f"lost FalkorDB at {self.settings.url}: {exc}") from exc
                 log.warning("lost the embedded store (%s); reconnecting", exc)
                 self._reconnect(self._graph)
-        raise AssertionError("unreachable")
 
     def _restart_if_hung(self, failed_graph: Any) -> bool:
         """After a query hit the hard limit: if the embedded server answers no PING, it is hung, not busy

@@ -11,6 +11,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+# How long a part's first read from the graph waits for the knowledge service: it may be starting,
+# or its store reloading after a restart (20 s seen on a loaded machine); within systemd's TimeoutStartSec.
+STARTUP_WAIT_S = 30.0
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
@@ -102,7 +105,7 @@ class FlightPart:
         client = KnowledgeClient(session, self.robot, own=True, host=self.host)
         c = self.camera
         intrinsics = (CameraIntrinsics(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy) if c is not None
-                      else intrinsics_from_graph(client, self.camera_model))
+                      else intrinsics_from_graph(client, self.camera_model, wait_s=STARTUP_WAIT_S))
         settings = BridgeSettings(robot=self.robot, link=LinkSettings(url=self.url), intrinsics=intrinsics,
                                   camera=c, markers=self.markers, profile=self.profile,
                                   confirmation=ConfirmationSettings(site=load_site(self.site) if self.site else None))

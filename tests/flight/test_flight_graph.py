@@ -124,3 +124,34 @@ def test_a_figure_that_became_unknown_leaves_the_graph(knowledge):
     rows = store.execute(f"MATCH (c:{S.FLIGHT_CONTROL} {{name: 'flight_control'}}) RETURN c.landed_state AS landed, "
                          "c.mode AS mode, c.battery_pct AS pct, c.last_seen AS seen")
     assert rows == [{"landed": None, "mode": "LAND", "pct": 50.0, "seen": 2.0}]
+
+
+def test_intrinsics_are_asked_again_until_a_late_knowledge_service_answers(resp_store, caplog):
+    # The onboard agent's start: the soak saw it exit when the service refused its first read
+    # (the store reloading after a kill -9); now it asks again for a bounded time.
+    import logging
+    import threading
+
+    from kgadapt.shared.errors import RequestTimeout
+
+    resp_store.execute(f"CREATE (:{S.COMPONENT}:{S.SENSOR_COMPONENT} {{name: 'cam', fx: 1.0, fy: 2.0, cx: 3.0, cy: 4.0}})")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    server = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
+    client_session = open_session(ZenohSettings(mode="peer", connect=(endpoint,)))
+    client = KnowledgeClient(client_session, ROBOT, timeout=1.0)
+    service = KnowledgeService(resp_store, ServiceSettings(robot=ROBOT, mark_offline_at_start=False, workers=1))
+    got: list = []
+    try:
+        with pytest.raises(RequestTimeout):
+            intrinsics_from_graph(client, "cam")  # no service yet, no wait: the error at once
+        caplog.set_level(logging.INFO, logger="kgadapt.onboard.flight")
+        asking = threading.Thread(target=lambda: got.append(intrinsics_from_graph(client, "cam", wait_s=30.0)))
+        asking.start()
+        wait_until(lambda: "asking again" in caplog.text, 10, "a first unanswered ask")
+        service.setup(server)
+        asking.join(30)
+        assert got and (got[0].fx, got[0].cy) == (1.0, 4.0), got
+    finally:
+        service.shutdown()
+        client_session.close()
+        server.close()
