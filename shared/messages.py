@@ -22,6 +22,7 @@ checks that it is up to date.
 
 from __future__ import annotations
 
+import functools
 import re
 import sys
 import typing
@@ -331,7 +332,12 @@ def _plain(obj: object) -> object:
 # v is the first field of every kind; looked up once (msgspec.structs.fields resolves the annotations).
 _VERSIONS: dict[type[Message], int] = {cls: int(msgspec.structs.fields(cls)[0].default) for cls in KINDS.values()}
 # What encode checks its payload with: the Struct's own decoder, one typed pass.
-_DECODERS: dict[type[Message], msgspec.msgpack.Decoder[Any]] = {cls: msgspec.msgpack.Decoder(cls) for cls in KINDS.values()}
+
+
+@functools.cache
+def _decoder(cls: type[Message]) -> msgspec.msgpack.Decoder[Any]:
+    # Made on first use: building all 18 at import cost a new detector process ~50 ms before it was ready.
+    return msgspec.msgpack.Decoder(cls)
 
 
 def kind_of(cls: type[Message]) -> str:
@@ -367,7 +373,7 @@ def encode(message: Message | str, body: Mapping[str, Any] | None = None) -> byt
         raise MessageError(f"{kind} message of {len(payload)} bytes exceeds {cls.MAX_SIZE}")
     try:
         # Kind and version are ours, so the receiver's field checks suffice: one typed pass.
-        _DECODERS[cls].decode(payload)
+        _decoder(cls).decode(payload)
     except msgspec.ValidationError as exc:
         raise MessageError(_explain(kind, exc)) from exc
     return payload
@@ -520,9 +526,17 @@ def fields_of(cls: type[Struct]) -> dict[str, Field]:
     return out
 
 
-SCHEMAS: dict[str, Schema] = {
-    kind: Schema(kind, version_of(cls), fields_of(cls), cls.MAX_SIZE) for kind, cls in KINDS.items()
-}
+@functools.cache
+def schemas() -> dict[str, Schema]:
+    """Every kind's fields as the docs and the fuzz tests see them (``SCHEMAS``; inspected on first use)."""
+    return {kind: Schema(kind, version_of(cls), fields_of(cls), cls.MAX_SIZE) for kind, cls in KINDS.items()}
+
+
+def __getattr__(name: str) -> Any:
+    if name == "SCHEMAS":  # built lazily: inspecting every Struct cost ~30 ms at each process's import
+        return schemas()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 NESTED: tuple[type[Struct], ...] = (DeployDetail, ProcessDetail, Launcher, Decision)
 ENUMS = (ProcessState, ProcessEventKind, TriggerKind, Change)
 
@@ -539,7 +553,7 @@ def contract_table() -> str:
         return ", ".join(required) + (" | " if required else "— | ") + (", ".join(optional) or "—")
 
     lines = [BEGIN, "", "| kind | v | max bytes | fields | optional fields |", "|---|---|---|---|---|"]
-    for kind, schema in SCHEMAS.items():
+    for kind, schema in schemas().items():
         lines.append(f"| `{kind}` | {schema.version} | {schema.max_size} | {cells(schema.fields)} |")
     lines += ["", "Nested maps:", "", "| map | fields | optional fields |", "|---|---|---|"]
     for cls in NESTED:
