@@ -329,8 +329,6 @@ def _plain(obj: object) -> object:
     raise TypeError(f"cannot send a {type(obj).__name__}")
 
 
-# v is the first field of every kind; looked up once (msgspec.structs.fields resolves the annotations).
-_VERSIONS: dict[type[Message], int] = {cls: int(msgspec.structs.fields(cls)[0].default) for cls in KINDS.values()}
 # What encode checks its payload with: the Struct's own decoder, one typed pass.
 
 
@@ -344,8 +342,10 @@ def kind_of(cls: type[Message]) -> str:
     return str(cls.__struct_config__.tag)
 
 
+@functools.cache
 def version_of(cls: type[Message]) -> int:
-    return _VERSIONS[cls]
+    # v is the first field of every kind; looked up once, on first use (resolving the annotations costs).
+    return int(msgspec.structs.fields(cls)[0].default)
 
 
 def encode(message: Message | str, body: Mapping[str, Any] | None = None) -> bytes:
