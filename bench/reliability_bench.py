@@ -850,20 +850,20 @@ def fuzz(session: Any, robot: str, *, examples: int = 20, hosts: Sequence[str] =
                           st.lists(st.integers(), max_size=3), st.booleans(), st.none())
 
     def wire(kind: str) -> dict[str, Any]:
-        return {"kind": kind, "v": messages.SCHEMAS[kind].version, **good[kind]}
+        return {"kind": kind, "v": messages.schemas()[kind].version, **good[kind]}
 
     def packed(body: Any) -> bytes:
         return msgpack.packb(body, use_bin_type=True)
 
     def malformed(kind: str, *, deployer: bool) -> Any:
         data = packed(wire(kind))
-        fields = sorted(messages.SCHEMAS[kind].fields)
-        limit = messages.SCHEMAS[kind].max_size
+        fields = sorted(messages.schemas()[kind].fields)
+        limit = messages.schemas()[kind].max_size
         strategies = [
             st.binary(min_size=1, max_size=300),
             st.integers(1, len(data) - 1).map(lambda n: data[:n]),
             st.tuples(st.sampled_from(fields), any_value).map(lambda kv: packed({**wire(kind), kv[0]: kv[1]})),
-            st.sampled_from(sorted(set(messages.SCHEMAS) - {kind})).map(lambda o: packed({**wire(kind), "kind": o})),
+            st.sampled_from(sorted(set(messages.schemas()) - {kind})).map(lambda o: packed({**wire(kind), "kind": o})),
             st.integers(2, 99).map(lambda v: packed({**wire(kind), "v": v})),
             st.just(packed([wire(kind)])),
             st.integers(limit + 1, limit + 2048).map(lambda n: packed({**wire(kind), "padding": "x" * n})),

@@ -321,7 +321,8 @@ class Deployer:
         ready_timeout = request.get("ready_timeout")
         if ready_timeout is not None and (isinstance(ready_timeout, bool) or not isinstance(ready_timeout, (int, float))):
             raise DeploymentError("start request field 'ready_timeout' must be a number of seconds")
-        idle = request.get("idle") or False
+        idle = request.get("idle")
+        idle = False if idle is None else idle  # absent and nil alike
         if not isinstance(idle, bool):
             raise DeploymentError("start request field 'idle' must be true or false")
         info = self.start(

@@ -16,11 +16,16 @@ time, :class:`MessageError` when the reply itself is malformed.
 
 from __future__ import annotations
 
+import logging
+import time
 from typing import Any, Mapping
 
 from kgadapt.knowledge.fleet import FleetAnswer, FleetClient, FleetSettings  # noqa: F401 (the fleet's client, re-exported)
 from kgadapt.shared import keys, messages, rpc
-from kgadapt.shared.errors import RemoteError, RequestTimeout
+from kgadapt.shared.errors import RemoteError, RequestTimeout, TransportError
+
+log = logging.getLogger(__name__)
+_ASK_AGAIN_S = 0.2  # pause between asks while the service is not up or refuses (``wait_s``)
 
 
 class KnowledgeClient:
@@ -39,11 +44,24 @@ class KnowledgeClient:
         self.own = own
         self.last_elapsed_ms: float | None = None  # store time the service reported for the last request
 
-    def query(self, name: str, params: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
-        """Rows of named query ``name`` with ``params``."""
+    def query(self, name: str, params: Mapping[str, Any] | None = None, *, wait_s: float = 0.0) -> list[dict[str, Any]]:
+        """Rows of named query ``name`` with ``params``.
+
+        ``wait_s``: ask again for that long while no service answers or it refuses (it may be
+        starting, or its store reloading after a restart), as a part's first read at start should.
+        """
         payload = messages.encode("query_request", {"params": dict(params or {})})
         key_of = keys.knowledge_own_query if self.own else keys.knowledge_query
-        return self._ask(key_of(self.robot, keys.check_name(name, "query name")), payload, f"query {name!r}")
+        key = key_of(self.robot, keys.check_name(name, "query name"))
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                return self._ask(key, payload, f"query {name!r}")
+            except (TransportError, RemoteError) as exc:
+                if time.monotonic() >= deadline:
+                    raise
+                log.info("%s; asking again", exc)
+                time.sleep(_ASK_AGAIN_S)
 
     def cypher(self, text: str, params: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
         """Rows of a read-only Cypher statement (a write is refused by the service)."""

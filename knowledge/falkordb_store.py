@@ -56,17 +56,14 @@ class FalkorDBStore(GraphStore):
             kwargs["password"] = self.settings.password
         if self.settings.username:
             kwargs["username"] = self.settings.username
-        deadline = time.monotonic() + timeout
+        loading_since = time.monotonic()
         while True:
             try:
                 db = FalkorDB(socket_connect_timeout=timeout, socket_timeout=self.settings.socket_timeout, **kwargs)
                 db.connection.ping()
                 break
             except redis.BusyLoadingError as exc:
-                if time.monotonic() >= deadline:
-                    raise StoreUnavailable(f"FalkorDB at {self.settings.url} still loading its data after "
-                                           f"{timeout:g} s: {exc}") from exc
-                time.sleep(_LOADING_POLL_S)
+                self._wait_while_loading(loading_since, timeout, exc)
             except (redis.RedisError, OSError) as exc:
                 raise StoreUnavailable(f"cannot reach FalkorDB at {self.settings.url}: {exc}") from exc
         # Other threads keep using the old client until the new one is whole.
@@ -123,24 +120,16 @@ class FalkorDBStore(GraphStore):
     def _run(self, query: str, read_only: bool, timeout_ms: int | None) -> Any:
         if self._graph is None:
             raise StoreUnavailable("store is not set up; call setup() first")
-        loading_until: float | None = None
-        attempt = 0
+        loading_since: float | None = None
+        reconnected = False
         while True:
-            attempt += 1
             try:
                 if read_only:
                     return self._graph.ro_query(query, timeout=timeout_ms)
                 return self._graph.query(query, timeout=timeout_ms)
             except redis.BusyLoadingError as exc:
-                # A restarted server answers "LOADING" until its AOF is read (20 s seen on a loaded
-                # machine): wait for it, bounded, instead of refusing the query.
-                now = time.monotonic()
-                loading_until = loading_until or now + self.settings.connect_timeout
-                if now >= loading_until:
-                    raise StoreUnavailable(f"FalkorDB at {self.settings.url} still loading its data after "
-                                           f"{self.settings.connect_timeout:g} s: {exc}") from exc
-                attempt -= 1
-                time.sleep(_LOADING_POLL_S)
+                loading_since = loading_since or time.monotonic()
+                self._wait_while_loading(loading_since, self.settings.connect_timeout, exc)
             except redis.ResponseError as exc:
                 message = str(exc)
                 if read_only and "empty key" in message:
@@ -162,10 +151,19 @@ class FalkorDBStore(GraphStore):
             except (redis.ConnectionError, OSError) as exc:
                 # The embedded server may have been restarted by another of our
                 # processes; find (or start) it again, once.
-                if attempt == 2 or self.settings.kind != "embedded":
+                if reconnected or self.settings.kind != "embedded":
                     raise StoreUnavailable(f"lost FalkorDB at {self.settings.url}: {exc}") from exc
                 log.warning("lost the embedded store (%s); reconnecting", exc)
                 self._reconnect(self._graph)
+                reconnected = True
+
+    def _wait_while_loading(self, since: float, limit_s: float, exc: Exception) -> None:
+        """A restarted server answers LOADING until its AOF is read (20 s seen on a loaded machine):
+        wait a moment, or give up once it has been loading for ``limit_s``."""
+        if time.monotonic() - since >= limit_s:
+            raise StoreUnavailable(f"FalkorDB at {self.settings.url} still loading its data after {limit_s:g} s: "
+                                   f"{exc}") from exc
+        time.sleep(_LOADING_POLL_S)
 
     def _restart_if_hung(self, failed_graph: Any) -> bool:
         """After a query hit the hard limit: if the embedded server answers no PING, it is hung, not busy

@@ -114,8 +114,8 @@ def fetch_config(session: Any, robot: str, name: str, *, wait_s: float = 10.0) -
 def fetch_config_row(session: Any, robot: str, name: str, *, wait_s: float = 10.0) -> tuple[Any, dict[str, Any]]:
     """The configuration ``name`` from the knowledge service, as a checked DetectorConfig.
 
-    Retries while nothing answers (the service may be starting) for up to
-    ``wait_s``; raises UnknownConfiguration when the store has no such
+    Asks again while nothing answers or the service refuses (it may be starting, or
+    its store reloading) for up to ``wait_s``; raises UnknownConfiguration when the store has no such
     configuration, RequestTimeout when no service answered in time.
     """
     from kgadapt.knowledge.client import KnowledgeClient
@@ -123,18 +123,13 @@ def fetch_config_row(session: Any, robot: str, name: str, *, wait_s: float = 10.
 
     keys.check_name(name, "configuration name")
     client = KnowledgeClient(session, robot, own=True)
-    deadline = time.monotonic() + wait_s
-    while True:
-        try:
-            rows = client.query("detector_config", {"config": name})
-            break
-        except RequestTimeout:
-            if time.monotonic() >= deadline:
-                raise RequestTimeout(
-                    f"no knowledge service of robot {robot!r} answered for detector configuration {name!r} "
-                    f"within {wait_s:.0f} s"
-                ) from None
-            time.sleep(0.2)  # the service is not up yet; ask again
+    try:
+        rows = client.query("detector_config", {"config": name}, wait_s=wait_s)
+    except RequestTimeout:
+        raise RequestTimeout(
+            f"no knowledge service of robot {robot!r} answered for detector configuration {name!r} "
+            f"within {wait_s:.0f} s"
+        ) from None
     if not rows:
         raise UnknownConfiguration(f"detector configuration {name!r} is not in the knowledge store")
     row = rows[0]

@@ -33,7 +33,7 @@ from kgadapt.onboard.landing_targets import AutopilotProfile, CameraModel, Targe
 from kgadapt.onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
 from kgadapt.onboard.site import SiteMarkers
 from kgadapt.shared import keys, messages, rpc
-from kgadapt.shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, RemoteError, TransportError
+from kgadapt.shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
 
 log = logging.getLogger(__name__)
 
@@ -62,16 +62,7 @@ def intrinsics_from_graph(client: Any, camera: str, *, wait_s: float = 0.0) -> C
     ``wait_s``: ask again for that long while the knowledge service does not answer or refuses
     (it may be starting, or its store reloading after a restart), as an agent's start should.
     """
-    deadline = time.monotonic() + wait_s
-    while True:
-        try:
-            rows = client.query("camera_intrinsics", {"camera": camera})
-            break
-        except (TransportError, RemoteError) as exc:
-            if time.monotonic() >= deadline:
-                raise
-            log.info("camera intrinsics: %s; asking again", exc)
-            time.sleep(0.5)
+    rows = client.query("camera_intrinsics", {"camera": camera}, wait_s=wait_s)
     if not rows or any(rows[0].get(k) is None for k in ("fx", "fy", "cx", "cy")):
         raise ConfigError(f"camera {camera!r} has no intrinsics (fx, fy, cx, cy) in the knowledge graph")
     return CameraIntrinsics(**{k: float(rows[0][k]) for k in ("fx", "fy", "cx", "cy")})

@@ -528,14 +528,9 @@ def fields_of(cls: type[Struct]) -> dict[str, Field]:
 
 @functools.cache
 def schemas() -> dict[str, Schema]:
-    """Every kind's fields as the docs and the fuzz tests see them (``SCHEMAS``; inspected on first use)."""
+    """Every kind's fields as the docs and the fuzz tests see them; inspected on first use (at import
+    it cost every process ~30 ms)."""
     return {kind: Schema(kind, version_of(cls), fields_of(cls), cls.MAX_SIZE) for kind, cls in KINDS.items()}
-
-
-def __getattr__(name: str) -> Any:
-    if name == "SCHEMAS":  # built lazily: inspecting every Struct cost ~30 ms at each process's import
-        return schemas()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 NESTED: tuple[type[Struct], ...] = (DeployDetail, ProcessDetail, Launcher, Decision)
 ENUMS = (ProcessState, ProcessEventKind, TriggerKind, Change)

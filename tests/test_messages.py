@@ -192,7 +192,7 @@ def test_sending_checks_size_and_what_msgpack_cannot_carry():
 
 
 def test_the_schema_view_describes_each_kind():
-    schema = messages.SCHEMAS["detections"]
+    schema = messages.schemas()["detections"]
     assert schema.version == 1 and schema.max_size == messages.MAX_SMALL
     assert schema.fields["seq"].types == (int,) and schema.fields["seq"].required
     assert schema.fields["time"].types == (int, float)

@@ -144,7 +144,7 @@ def test_intrinsics_are_asked_again_until_a_late_knowledge_service_answers(resp_
     try:
         with pytest.raises(RequestTimeout):
             intrinsics_from_graph(client, "cam")  # no service yet, no wait: the error at once
-        caplog.set_level(logging.INFO, logger="kgadapt.onboard.flight")
+        caplog.set_level(logging.INFO, logger="kgadapt.knowledge.client")
         asking = threading.Thread(target=lambda: got.append(intrinsics_from_graph(client, "cam", wait_s=30.0)))
         asking.start()
         wait_until(lambda: "asking again" in caplog.text, 10, "a first unanswered ask")

@@ -1,4 +1,4 @@
-"""Hypothesis strategies for malformed wire messages of any kind (shared/messages.py SCHEMAS).
+"""Hypothesis strategies for malformed wire messages of any kind (shared/messages.py schemas()).
 
 ``malformed(kind, good)`` draws payloads no receiver may accept: random
 bytes, a valid message cut short, one field of a wrong type, a field
@@ -35,7 +35,7 @@ def packed(body: Any) -> bytes:
 
 def wire(kind: str, good: Mapping[str, Any]) -> dict[str, Any]:
     """``good`` as a complete ``kind`` message (checked, so the strategies start from a valid one)."""
-    message = {"kind": kind, "v": messages.SCHEMAS[kind].version, **good}
+    message = {"kind": kind, "v": messages.schemas()[kind].version, **good}
     messages.decode(packed(message), kind)
     return message
 
@@ -46,7 +46,7 @@ def truncated(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:
 
 
 def wrong_typed(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:
-    fields = messages.SCHEMAS[kind].fields
+    fields = messages.schemas()[kind].fields
 
     def refused(pair: tuple[str, Any]) -> bool:
         name, value = pair
@@ -62,14 +62,14 @@ def wrong_typed(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:
 
 
 def missing_field(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:
-    required = sorted(name for name, field in messages.SCHEMAS[kind].fields.items() if field.required)
+    required = sorted(name for name, field in messages.schemas()[kind].fields.items() if field.required)
     return st.sampled_from(required).map(lambda name: packed({k: v for k, v in wire(kind, good).items() if k != name}))
 
 
 def wrong_envelope(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:
     message = wire(kind, good)
     return st.one_of(
-        st.sampled_from(sorted(set(messages.SCHEMAS) - {kind})).map(lambda other: packed({**message, "kind": other})),
+        st.sampled_from(sorted(set(messages.schemas()) - {kind})).map(lambda other: packed({**message, "kind": other})),
         st.integers(2, 99).map(lambda v: packed({**message, "v": v})),
         st.just(packed({k: v for k, v in message.items() if k != "kind"})),
         st.just(packed([message])),
@@ -80,7 +80,7 @@ def wrong_envelope(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[byte
 
 
 def oversized(kind: str) -> st.SearchStrategy[bytes]:
-    return st.just(b"\x00" * (messages.SCHEMAS[kind].max_size + 1))
+    return st.just(b"\x00" * (messages.schemas()[kind].max_size + 1))
 
 
 def malformed(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:

@@ -48,12 +48,12 @@ def packed(body: dict[str, Any]) -> bytes:
 
 
 def wire(kind: str) -> dict[str, Any]:
-    return {"kind": kind, "v": messages.SCHEMAS[kind].version, **GOOD[kind]}
+    return {"kind": kind, "v": messages.schemas()[kind].version, **GOOD[kind]}
 
 
 def wrong_typed(kind: str) -> st.SearchStrategy[bytes]:
     """A valid ``kind`` message with one schema field replaced by a value of a type it does not take."""
-    fields = messages.SCHEMAS[kind].fields
+    fields = messages.schemas()[kind].fields
 
     def replace(pair: tuple[str, Any]) -> bytes:
         name, value = pair
@@ -74,7 +74,7 @@ def truncated(kind: str) -> st.SearchStrategy[bytes]:
 
 def wrong_envelope(kind: str) -> st.SearchStrategy[bytes]:
     return st.one_of(
-        st.sampled_from(sorted(set(messages.SCHEMAS) - {kind})).map(lambda other: packed({**wire(kind), "kind": other})),
+        st.sampled_from(sorted(set(messages.schemas()) - {kind})).map(lambda other: packed({**wire(kind), "kind": other})),
         st.integers(2, 99).map(lambda v: packed({**wire(kind), "v": v})),
         st.just(packed([wire(kind)])),
         st.just(packed("just a string")),
@@ -83,7 +83,7 @@ def wrong_envelope(kind: str) -> st.SearchStrategy[bytes]:
 
 
 def oversized(kind: str) -> st.SearchStrategy[bytes]:
-    limit = messages.SCHEMAS[kind].max_size
+    limit = messages.schemas()[kind].max_size
     return st.one_of(
         st.integers(limit + 1, limit + 4096).map(lambda n: b"\x00" * n),
         st.integers(limit + 1, limit + 4096).map(lambda n: packed({**wire(kind), "padding": "x" * n})),
