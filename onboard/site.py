@@ -160,8 +160,8 @@ def site_from_dict(data: Any, *, where: str, default_name: str = "", key_lines: 
             raise fail(f"marker {i} (id {mid}): size_m must be positive metres, not {size!r}", line)
         if size > MAX_SIZE_M:
             raise fail(f"marker {i} (id {mid}): size_m {size} m is not a marker's size (at most {MAX_SIZE_M:g} m)", line)
-        if "name" in m and not isinstance(m["name"], str):
-            raise fail(f"marker {i} (id {mid}): 'name' must be a string", line)
+        if "name" in m and (not isinstance(m["name"], str) or "'" in m["name"] or "\\" in m["name"]):
+            raise fail(f"marker {i} (id {mid}): 'name' must be a string without ' or \\", line)
         if "dictionary" in m and (not isinstance(m["dictionary"], str) or not m["dictionary"]):
             raise fail(f"marker {i} (id {mid}): 'dictionary' must be a dictionary's name", line)
         if "position" in m:

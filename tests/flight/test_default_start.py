@@ -121,3 +121,41 @@ def test_without_sizes_or_a_rangefinder_the_agent_warns_once_and_status_lists_it
         observer.undeclare()
     assert ANGLES_ONLY in data["problems"] and data["flight"]["angles_only"] is True
     assert caplog.text.count(ANGLES_ONLY) == 1  # once, not once a target
+
+
+def test_the_bridge_command_takes_the_graphs_site_as_the_sitl_runs_start_it(tmp_path):
+    """``kgadapt knowledge load`` + ``kgadapt knowledge serve`` + ``kgadapt flight bridge --camera camera``, as
+    child processes, no site file: positions from the graph's marker size, without a rangefinder."""
+    from kgadapt.cluster import ClusterSettings, LocalCluster, free_tcp_port
+
+    cluster = LocalCluster(ClusterSettings(workdir=tmp_path, robot=ROBOT, calibrate=False))
+    cluster.prepare_store()
+    cluster.port = free_tcp_port()
+    port = free_udp_port()
+    session = None
+    fc = None
+    stop = threading.Event()
+    try:
+        cluster.spawn("service", cluster.kgadapt("knowledge", "serve", "--robot", ROBOT, "--store",
+                                                 cluster.store_url, "--listen", cluster.endpoint))
+        cluster.spawn("bridge", cluster.kgadapt("flight", "bridge", "--robot", ROBOT, "--url",
+                                                f"udpin:127.0.0.1:{port}", "--camera", "camera",
+                                                "--connect", cluster.endpoint))
+        fc = FakeFlightController(FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=5.0, rangefinder=False,
+                                                 drain_pct_per_min=0.0),
+                                  VehicleState(armed=True, mode="LOITER", landed_state="IN_AIR", alt=6.0, yaw=0.4))
+        fc.setup()
+        session = open_session(ZenohSettings(mode="peer", connect=(cluster.endpoint,)))
+        wait_until(lambda: fc.stream_rate("ATTITUDE") and fc.stream_rate("LOCAL_POSITION_NED"), 15, "streams asked")
+        _fly_over_marker(session, fc, None, stop)
+        targets = fc.wait_for("LANDING_TARGET", 3, timeout=20)
+    finally:
+        stop.set()
+        if fc is not None:
+            fc.shutdown()
+        if session is not None:
+            session.close()
+        cluster.stop()
+    assert all(t.fields["position_valid"] == 1 and t.fields["distance"] > 0 for t in targets)
+    log = (tmp_path / "bridge.log").read_text()
+    assert "landing site demo-hall from graph" in log and ANGLES_ONLY not in log
