@@ -125,7 +125,7 @@ def dictionary_verdicts(names: list[str], path: str) -> dict[str, tuple[str | No
         return {}
     opencv = importlib.util.find_spec("cv2")
     if opencv is None or not opencv.origin:
-        return {name: (None, None) for name in names}  # no OpenCV here: the onboard side checks at start
+        return {name: (None, None) for name in names}  # no OpenCV on this host: nothing to ask (as for detectors)
     site_module = importlib.util.find_spec("kgadapt.onboard.site")
     digest = hashlib.sha256(Path(site_module.origin).read_bytes()).hexdigest() if site_module and site_module.origin else ""
     identity = [*_identity(opencv.origin), digest]
