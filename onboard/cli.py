@@ -80,7 +80,8 @@ def log_site(site: Any) -> None:
     """Say which site's markers the flight bridge takes (and that without one targets may carry angles only)."""
     if site is None:
         log.warning("no landing site known (none in the knowledge graph, no --site FILE): every marker id may "
-                    "become a landing target, and without marker sizes targets carry angles only")
+                    "become a landing target, and without marker sizes the targets carry angles only "
+                    "(kgadapt knowledge load knowledge/models loads the shipped site)")
     else:
         log.info("landing site %s from %s: markers %s", site.site, site.source or "?",
                  ", ".join(f"{mid} ({size:g} m)" for mid, size in sorted(site.sizes_m.items())))

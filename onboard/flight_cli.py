@@ -115,7 +115,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     bridge.add_argument("--camera-file", help="camera file (JSON: intrinsics, distortion, mounting), checked on load")
     bridge.add_argument("--site", metavar="FILE",
                         help="site file (*.site: marker ids, sizes, dictionary; onboard/site.py) instead of the "
-                             "graph's site: only its ids become targets, and they go with positions")
+                             "graph's site (read when the bridge uses the graph: --camera, --write-graph or "
+                             "--site-name): only its ids become targets, and they go with positions")
     bridge.add_argument("--site-name", metavar="NAME",
                         help="the graph's site to use when it holds several (default: the only one)")
     bridge.add_argument("--profile", default="auto", choices=("auto", "ardupilot", "px4"),
@@ -386,6 +387,8 @@ def status_lines(state, timeouts: dict[str, float], now: float) -> list[str]:
         lines.append(f"{stream:<20} {age:<12}{limit:<24} {shown[stream]}")
     if state.missing:
         lines.append("missing    " + ", ".join(state.missing))
+    if state.rejected:
+        lines.append(f"rejected   {state.rejected} command acknowledgement(s) rejected (retries included)")
     for refusal in state.refused:
         lines.append(f"refused    {refusal}")
     return lines
