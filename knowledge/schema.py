@@ -22,6 +22,8 @@ changed model replaces its old version)::
     ProcessProfile    name (instance id), pid, host, start_time, end_time, exit_status,
                       rss_mb_last, rss_mb_mean, rss_mb_max, cpu_percent_mean   (run time)
     AdaptationDecision name, time, trigger, inputs_json, query, config, host, duration_ms, outcome
+    FleetRobot        name (a robot), first_seen, last_seen, heard ("self"|"answer"|"announce"),
+                      zid, routers (list of Zenoh ids)      (run time: the fleet roster, knowledge/fleet.py)
 
 Relations (direction matters)::
 
@@ -65,6 +67,7 @@ DEPLOYMENT_FILE = "DeploymentFile"
 PLATFORM = "Platform"
 PROCESS_PROFILE = "ProcessProfile"
 ADAPTATION_DECISION = "AdaptationDecision"
+FLEET_ROBOT = "FleetRobot"
 
 REALIZES = "REALIZES"
 CONTAINS = "CONTAINS"
