@@ -30,6 +30,7 @@ reach exactly that (deploy/zenoh/router.json5).
 from __future__ import annotations
 
 import enum
+import random
 import threading
 import time
 from dataclasses import dataclass
@@ -311,9 +312,11 @@ class RosterSettings:
     cap: int = 1000  # robots remembered at most; a new one past it is not recorded (the known ones stay)
     # A roll call (a fleet question for every robot's roster, announcing this robot) at setup and at these
     # delays after it (a router link takes a moment), then every interval_s; 0: only those first ones.
-    first_calls_s: tuple[float, ...] = (0.0, 2.0, 10.0)
+    # A robot that starts later announces itself to those already up, so the first calls are few.
+    first_calls_s: tuple[float, ...] = (0.0, 5.0)
     interval_s: float = 600.0
     timeout_s: float = 2.0
+    jitter_s: float = 1.0  # each roll call up to this much later: services started together do not call together
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
@@ -461,6 +464,7 @@ class FleetRoster:
                 wait = self.settings.interval_s
             else:
                 return
+            wait += random.uniform(0.0, self.settings.jitter_s)
             if self._stop.wait(wait):
                 return
             try:
