@@ -238,7 +238,7 @@ def register(subparsers: Any) -> None:
                    f"changes (default {keys.DEFAULT_ROBOT})")
     add_zenoh_arguments(p)
     p.set_defaults(func=run)
-    sub = p.add_subparsers(dest="fleet_command", metavar="COMMAND")
+    sub = p.add_subparsers(dest="fleet_command", metavar="[forget ROBOT]")
     forget = sub.add_parser(
         "forget", help="remove a robot from the fleet roster of --robot's knowledge service",
         description="Remove ROBOT from the fleet roster that --robot's knowledge service keeps (the robots it "

@@ -348,8 +348,9 @@ def forget_robot(store: Any, *, robot: str) -> None:
     from kgadapt.knowledge import schema as S
     from kgadapt.shared.errors import NamedQueryError
 
-    if not isinstance(robot, str) or not _is_name(robot):
-        raise NamedQueryError(f"write 'fleet_forget': parameter 'robot' {robot!r} is not a robot name")
+    # Any text is a value, never code: one that names no remembered robot removes nothing.
+    if not isinstance(robot, str) or not robot:
+        raise NamedQueryError(f"write 'fleet_forget': parameter 'robot' must be a robot's name, not {robot!r}")
     store.execute(f"MATCH (r:{S.FLEET_ROBOT} {{name: $robot}}) DELETE r", {"robot": robot})
 
 

@@ -124,12 +124,12 @@ class ServiceSettings:
     # The host whose agent runs the adaptation manager and the flight bridge: the one that may write
     # decisions and the flight state on its write/<host>/<verb> key.
     manager_host: str = "onboard"
-    # The fleet roster (knowledge/fleet.py): robots heard on the fleet keys, at most roster_cap; a roll
-    # call at setup and every roster_interval_s (0: only at setup). roster=False: none kept.
     # Host statuses wait at most status_batch_s for others and are written together, the newest per
     # host, at most status_batch_max events a batch, in one store call (liveliness changes never wait).
     status_batch_s: float = 0.1
     status_batch_max: int = 1000
+    # The fleet roster (knowledge/fleet.py): robots heard on the fleet keys, at most roster_cap; roll
+    # calls at setup and 5 s later, then every roster_interval_s (0: no more). roster=False: none kept.
     roster: bool = True
     roster_cap: int = 1000
     roster_interval_s: float = 600.0

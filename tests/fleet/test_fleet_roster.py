@@ -90,8 +90,10 @@ def test_the_roster_is_bounded_and_forgets_on_request(resp_store):
     run_write(resp_store, "fleet_forget", {"robot": "r2"})
     assert set(roster_of(resp_store)) == {"me", "r1"}
     assert roster.remember("r3", how=Heard.ANNOUNCE)  # room again
+    forget_robot(resp_store, robot="me'}) DETACH DELETE r //")  # a value, never code: removes nothing
+    assert set(roster_of(resp_store)) == {"me", "r1", "r3"}
     with pytest.raises(NamedQueryError, match="'robot'"):
-        forget_robot(resp_store, robot="a/*")
+        forget_robot(resp_store, robot=7)
 
 
 def test_a_roll_call_with_a_bad_announcement_is_refused_naming_it(resp_store):
