@@ -126,7 +126,7 @@ class ServiceSettings:
     manager_host: str = "onboard"
     # Host statuses wait at most status_batch_s for others and are written together, the newest per
     # host, at most status_batch_max events a batch, in one store call (liveliness changes never wait).
-    status_batch_s: float = 0.1
+    status_batch_s: float = 0.02
     status_batch_max: int = 1000
     # The fleet roster (knowledge/fleet.py): robots heard on the fleet keys, at most roster_cap; roll
     # calls at setup and 5 s later, then every roster_interval_s (0: no more). roster=False: none kept.
