@@ -17,6 +17,7 @@ from typing import Any, Callable
 # In the order of `kgadapt bench --help`.
 BENCHES = (
     "kgadapt.bench.table1",
+    "kgadapt.bench.store_layer",
     "kgadapt.bench.zenoh_bench",
     "kgadapt.bench.deployer_bench",
     "kgadapt.bench.perception_bench",

@@ -21,6 +21,10 @@ store and add what the paper leaves implicit:
                   the node count (~0.35 ms at 30,000 nodes, ~3 ms at 300,000)
 ``query``         the production placement query, sent with ``store.execute``
 ``query_named``   the same through ``run_named`` (validation included: our overhead)
+``query_bare``    the same statement sent bare: the falkordb client's own ``ro_query`` on
+                  the same server and graph (FalkorDB stores only), no layer of ours
+``insert_bare``   ``record_process_start``'s statement for a new profile, sent bare the
+                  same way: ``insert`` / ``insert_bare`` is what our store layer costs
 ``fig5_literal``  the paper's Fig. 5 text (unbounded ``<-[*]->``), with a timeout,
                   few repetitions, small N only
 ``bulk_load``     loading the N models (samples: one per ``UNWIND`` batch)
@@ -84,6 +88,7 @@ TARGET_QUERY_P50_MS = 0.6
 TARGET_QUERY_AT = (10_000, 100_000)
 TARGET_LOAD_S = 10.0
 TARGET_LOAD_N = 100_000
+TARGET_LAYER_RATIO = 1.25  # issue 32: our store layer at most this over the same statement sent bare
 
 # The profile record_process_start writes, as one plain CREATE with inline
 # properties: the least the store can do for that write (op insert_create).
@@ -123,6 +128,7 @@ CREATE (g)-[:{S.REALIZES}]->(f), (g)-[:{S.CONTAINS}]->(c), (g)-[:{S.CONTAINS}]->
 SAMPLED_RUN = "sampled"  # the profile that ``sample`` updates
 
 OPS = ("floor", "disk_fsync", "insert", "insert_create", "query", "query_named",  # interleaved, side by side
+       "query_bare", "insert_bare",
        "sample", "sample_after_create",  # property updates, a phase of their own
        "fig5_literal", "bulk_load")
 
@@ -259,6 +265,7 @@ class Probe:
     store: GraphStore
     durable: bool | None
     disk_probe: int | None = None  # fd of a file beside the store's AOF, for disk_fsync
+    bare: Any = None  # the falkordb client's own Graph on the same server and graph (query_bare, insert_bare)
 
 
 Op = Callable[[int | str, int], Any]
@@ -312,6 +319,14 @@ def _operations(probe: Probe, sources: Sources, n: int) -> tuple[dict[str, Op], 
     }
     if probe.disk_probe is not None:
         ops["disk_fsync"] = lambda rep, model: _append_and_sync(probe.disk_probe)
+    if probe.bare is not None:
+        bare = probe.bare
+
+        def insert_bare(rep: int | str, model: int) -> None:
+            bare.query(runtime.START_NEW_PROFILE, profile(rep, model, "-bare"))
+
+        ops["query_bare"] = lambda rep, model: bare.ro_query(sources.placement, params(model)).result_set
+        ops["insert_bare"] = insert_bare
     return ops, sample, insert_create
 
 
@@ -464,6 +479,7 @@ def run_table1(settings: Table1Settings, *, progress: Callable[[str], None] = la
                     store = FalkorDBStore(parse_store_url(f"embedded:{data_dir}"), server=server)
                     probes.append(Probe(name, store, fsync))
                     store.setup()
+                    probes[-1].bare = _bare_graph(server.ensure().unix_socket, store.settings.graph)
                     if fsync:
                         probes[-1].disk_probe = os.open(data_dir / "disk-probe.bin",
                                                         os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
@@ -488,6 +504,13 @@ def run_table1(settings: Table1Settings, *, progress: Callable[[str], None] = la
               "data_fs": _filesystem(settings.data_dir or Path(tempfile.gettempdir())) if not settings.store_url else None,
               **machine_info()}
     return [{**r, **common} for r in records]
+
+
+def _bare_graph(unix_socket: str, graph: str) -> Any:
+    """The falkordb client's own Graph, for the same statements sent without our store layer."""
+    from falkordb import FalkorDB
+
+    return FalkorDB(unix_socket_path=unix_socket).select_graph(graph)
 
 
 def _open_foreign(settings: Table1Settings, open_store: Callable[..., GraphStore]) -> GraphStore:
@@ -632,6 +655,13 @@ def target_lines(records: Sequence[Mapping[str, Any]]) -> list[str]:
                 ok = r["p50_ms"] <= TARGET_QUERY_P50_MS
                 lines.append(f"{op} p50 <= {TARGET_QUERY_P50_MS} ms at N={n:,}: {r['p50_ms']:.3f} ms -> {verdict(ok)}"
                              + ("" if ok else _query_limit(ix, n, op, ns[0])))
+    for n in ns:
+        for op, bare in (("query_named", "query_bare"), ("insert", "insert_bare")):
+            ours, alone = _get(ix, ("embedded", n, op), "p50_ms"), _get(ix, ("embedded", n, bare), "p50_ms")
+            if ours is not None and alone:
+                ok = ours <= TARGET_LAYER_RATIO * alone
+                lines.append(f"{op} through the store API within {TARGET_LAYER_RATIO}x of the statement sent bare at "
+                             f"N={n:,}: {ours:.3f} / {alone:.3f} ms = {ours / alone:.2f}x -> {verdict(ok)}")
     load = ix.get(("embedded", TARGET_LOAD_N, "bulk_load"))
     if load is None:
         lines.append(f"bulk load of {TARGET_LOAD_N:,} models <= {TARGET_LOAD_S:.0f} s: not measured (run --full)")

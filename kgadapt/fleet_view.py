@@ -40,6 +40,7 @@ class FleetViewSettings:
     timeout: float = 1.5  # per refresh, for every robot's answers
     interval: float = 2.0  # seconds between refreshes when nothing happens
     expect: tuple[str, ...] = ()  # robots to list even when they never answered
+    roster: str | None = None  # also list the robots this robot's fleet roster remembers
     subscribe: bool = True  # also listen to host liveliness and adaptation events
 
 
@@ -70,7 +71,8 @@ class FleetView:
 
         self.session = session
         self.settings = settings
-        self.fleet = FleetClient(session, FleetSettings(timeout=settings.timeout, expect=settings.expect))
+        self.fleet = FleetClient(session, FleetSettings(timeout=settings.timeout, expect=settings.expect,
+                                                          roster=settings.roster))
         self.changed = threading.Event()  # set by a liveliness change or an adaptation event
         self._lock = threading.Lock()
         self._alive: dict[str, set[str]] = {}  # robot -> hosts with a live token
@@ -231,8 +233,35 @@ def register(subparsers: Any) -> None:
     p.add_argument("--timeout", type=float, default=1.5, help="seconds to wait for the robots' answers (default 1.5)")
     p.add_argument("--expect", action="append", default=[], metavar="ROBOT",
                    help="a robot to list even when it does not answer (repeatable)")
+    p.add_argument("--robot", default=keys.DEFAULT_ROBOT,
+                   help=f"the robot whose fleet roster lists the robots to expect, and whose roster `forget` "
+                   f"changes (default {keys.DEFAULT_ROBOT})")
     add_zenoh_arguments(p)
     p.set_defaults(func=run)
+    sub = p.add_subparsers(dest="fleet_command", metavar="[forget ROBOT]")
+    forget = sub.add_parser(
+        "forget", help="remove a robot from the fleet roster of --robot's knowledge service",
+        description="Remove ROBOT from the fleet roster that --robot's knowledge service keeps (the robots it "
+        "has heard answer or announce), so fleet questions stop listing it as silent. A robot that answers or "
+        "announces again is remembered again. An operator's write: needs write access to that service.")
+    forget.add_argument("forget_robot", metavar="ROBOT", help="the robot to forget")
+    forget.set_defaults(func=run_forget)
+
+
+def run_forget(args: argparse.Namespace) -> int:
+    """``kgadapt fleet forget ROBOT``: the write verb ``fleet_forget`` on --robot's knowledge service."""
+    from kgadapt.knowledge.client import KnowledgeClient
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+
+    robot = keys.check_name(args.forget_robot, "robot name")  # before any network
+    zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
+    session = open_session(zenoh)
+    try:
+        KnowledgeClient(session, args.robot, timeout=args.timeout).write("fleet_forget", {"robot": robot})
+    finally:
+        session.close()
+    print(f"{args.robot} no longer remembers {robot}")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -241,7 +270,8 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.interval > 0 or not args.timeout > 0:
         raise ConfigError("--interval and --timeout: more than 0 s")
-    settings = FleetViewSettings(timeout=args.timeout, interval=args.interval, expect=tuple(args.expect))
+    settings = FleetViewSettings(timeout=args.timeout, interval=args.interval, expect=tuple(args.expect),
+                                 roster=args.robot)
     zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
     session = open_session(zenoh)
     try:

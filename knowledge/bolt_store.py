@@ -26,7 +26,7 @@ import neo4j
 from neo4j import exceptions as neo4j_errors
 from neo4j import graph as neo4j_graph
 
-from kgadapt.knowledge.dialect import FALKORDB, MEMGRAPH, NEO4J, Dialect
+from kgadapt.knowledge.dialect import FALKORDB, NEO4J, Dialect, dialect_for_agent
 from kgadapt.knowledge.params import check_params
 from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
 from kgadapt.shared.errors import QueryError, ReadOnlyViolation, StoreTimeout, StoreUnavailable
@@ -49,7 +49,10 @@ class BoltStore(GraphStore):
         self._session: neo4j.Session | None = None
         self._lock = threading.RLock()
         self._splices_params = False
-        self._dialect: Dialect = MEMGRAPH if settings.kind == "memgraph" else NEO4J
+        # Known once connected: from the server's announced agent (dialect_for_agent), or FalkorDB's
+        # listener found by behaviour. The URL's scheme chooses only the transport.
+        self._dialect: Dialect = NEO4J
+        self.server_agent: str | None = None
 
     # --- what this backend is -------------------------------------------------
 
@@ -78,10 +81,11 @@ class BoltStore(GraphStore):
             try:
                 self._driver = self._make_driver(min(1.0, timeout))
                 self._open_session()
-                self._fetch("RETURN 1 AS one", {}, None)
+                self.server_agent = self._announced_agent()
                 self._splices_params = self._probe_parameter_splicing()
-                if self._splices_params:
-                    self._dialect = FALKORDB
+                self._dialect = FALKORDB if self._splices_params else dialect_for_agent(self.server_agent)
+                log.info("Bolt server at %s announces itself as %r: %s dialect", self.settings.url,
+                         self.server_agent, self._dialect.name)
                 return
             except neo4j_errors.AuthError as exc:
                 self._close_quietly()
@@ -124,6 +128,13 @@ class BoltStore(GraphStore):
         if self._driver is None:
             raise StoreUnavailable("store is not set up; call setup() first")
         self._session = self._driver.session()
+
+    def _announced_agent(self) -> str | None:
+        """The agent the server announced in its HELLO reply, read from a first round trip on our session
+        (the driver's public ResultSummary.server; on the one connection FalkorDB's listener needs)."""
+        summary = self._current_session().run("RETURN 1 AS one").consume()
+        agent = summary.server.agent
+        return str(agent) if agent else None
 
     def _probe_parameter_splicing(self) -> bool:
         """True when the server pastes string parameters into the query text.

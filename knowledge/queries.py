@@ -363,6 +363,21 @@ RETURN r.instance AS instance, g.name AS config, r.host AS host, r.pid AS pid,
        a.trigger AS trigger""",
     ),
     NamedQuery(
+        "fleet_roster",
+        "The robots this robot's knowledge service has heard answer or announce on the fleet keys (itself "
+        "included), with when it first and last heard them and their Zenoh routers. A fleet question lists "
+        "one that does not answer as silent. The parameters are a roll call's: the asking robot announces "
+        "itself, its Zenoh id and its routers (knowledge/fleet.py).",
+        {"announce": Param("str", required=False, help="the asking robot, announcing itself"),
+         "zid": Param("str", required=False, help="its knowledge service's Zenoh id"),
+         "routers": Param("str", required=False, help="its Zenoh routers' ids, comma-separated")},
+        f"""
+MATCH (r:{S.FLEET_ROBOT})
+RETURN r.name AS robot, r.first_seen AS first_seen, r.last_seen AS last_seen, r.heard AS heard,
+       r.zid AS zid, r.routers AS routers
+ORDER BY robot""",
+    ),
+    NamedQuery(
         "fig4_literal",
         "The paper's Fig. 4 as written (unbounded undirected path; the second MATCH is not "
         "joined to the first). Kept for comparison; use feature_deployments.",

@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import inspect
 import math
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.fleet import forget_robot
 from kgadapt.knowledge.store import GraphStore
 from kgadapt.shared.errors import NamedQueryError
 
@@ -59,6 +60,40 @@ def update_platform(store: GraphStore, *, name: str, time: float, memory_total_m
                     memory_free_mb: float | None = None, cpu_load: float | None = None,
                     cpu_cores: int | None = None, online: bool | None = None) -> None:
     """A host's latest figures (a host the models do not know gets a Platform node too)."""
+    figures = _platform_figures(store, name=name, time=time, memory_total_mb=memory_total_mb,
+                                memory_free_mb=memory_free_mb, cpu_load=cpu_load, cpu_cores=cpu_cores, online=online)
+    store.execute(f"MERGE (p:{S.PLATFORM} {{name: $name}}) SET p += $figures, p.last_seen = $time",
+                  {"name": name, "figures": figures, "time": float(time)})
+
+
+def update_platforms(store: GraphStore, statuses: Sequence[Mapping[str, Any]]) -> dict[str, NamedQueryError]:
+    """Several hosts' latest figures in one store call (``UNWIND``), each checked as :func:`update_platform`
+    checks it; at most one per host (the last of a host wins). Returns the refused ones, by host, with why.
+
+    Not a write verb: the knowledge service's status worker writes a batch of host statuses with it.
+    """
+    rows: dict[str, dict[str, Any]] = {}
+    refused: dict[str, NamedQueryError] = {}
+    for status in statuses:
+        name = status.get("name")
+        try:
+            figures = _platform_figures(store, **status)
+        except NamedQueryError as exc:
+            refused[str(name)] = exc
+            rows.pop(str(name), None)
+            continue
+        refused.pop(str(name), None)
+        rows[str(name)] = {"name": name, "figures": figures, "time": float(status["time"])}
+    if rows:
+        store.execute(f"UNWIND $rows AS row MERGE (p:{S.PLATFORM} {{name: row.name}}) "
+                      "SET p += row.figures, p.last_seen = row.time", {"rows": list(rows.values())})
+    return refused
+
+
+def _platform_figures(store: GraphStore, *, name: str, time: float, memory_total_mb: float | None = None,
+                      memory_free_mb: float | None = None, cpu_load: float | None = None,
+                      cpu_cores: int | None = None, online: bool | None = None) -> dict[str, Any]:
+    """The checked figures of one host's status (NamedQueryError naming the field), None ones left out."""
     _check("platform", name=(name, (str,), False), time=(time, _NUM, False),
            memory_total_mb=(memory_total_mb, _NUM, True), memory_free_mb=(memory_free_mb, _NUM, True),
            cpu_load=(cpu_load, _NUM, True), cpu_cores=(cpu_cores, (int,), True), online=(online, (bool,), True))
@@ -71,11 +106,9 @@ def update_platform(store: GraphStore, *, name: str, time: float, memory_total_m
                                  {"name": name})
             total = rows[0]["total"] if rows and rows[0]["total"] is not None else MAX_MEMORY_MB
         _within("platform", memory_free_mb=(memory_free_mb, 0, total))
-    figures = {k: v for k, v in {"memory_total_mb": memory_total_mb, "memory_free_mb": memory_free_mb,
-                                 "cpu_load": cpu_load, "cpu_cores": cpu_cores, "online": online}.items()
-               if v is not None}
-    store.execute(f"MERGE (p:{S.PLATFORM} {{name: $name}}) SET p += $figures, p.last_seen = $time",
-                  {"name": name, "figures": figures, "time": float(time)})
+    return {k: v for k, v in {"memory_total_mb": memory_total_mb, "memory_free_mb": memory_free_mb,
+                              "cpu_load": cpu_load, "cpu_cores": cpu_cores, "online": online}.items()
+            if v is not None}
 
 
 def set_platform_online(store: GraphStore, *, name: str, online: bool, time: float) -> None:
@@ -105,14 +138,14 @@ def record_process_start(store: GraphStore, *, run_id: str, instance: str, deplo
     # profile is new (MERGE of relations costs about a third more here). Anything
     # else -- a retried start, an unknown host, deployment or configuration -- takes
     # the general, idempotent statement.
-    created = store.execute(_START_NEW, params)
+    created = store.execute(START_NEW_PROFILE, params)
     if not created or not created[0]["created"]:
         store.execute(_START_ANY, params)
 
 
 _PROFILE_PROPS = ("run_id: $run_id, instance: $instance, deployment: $deployment, config: $config, "
                   "host: $host, pid: $pid, start_time: $start_time")
-_START_NEW = f"""MATCH (d:{S.DEPLOYMENT} {{name: $deployment}}), (p:{S.PLATFORM} {{name: $host}}),
+START_NEW_PROFILE = f"""MATCH (d:{S.DEPLOYMENT} {{name: $deployment}}), (p:{S.PLATFORM} {{name: $host}}),
       (g:{S.PERCEPTION_GRAPH} {{name: $config}})
 OPTIONAL MATCH (old:{S.PROCESS_PROFILE} {{name: $run_id}})
 WITH d, p, g WHERE old IS NULL
@@ -199,6 +232,17 @@ def held_by_processes(store: GraphStore, *, host: str) -> float:
         "WHERE r.end_time IS NULL AND r.rss_mb_last IS NOT NULL RETURN sum(r.rss_mb_last) AS used",
         {"host": host})
     return float(rows[0]["used"] or 0.0) if rows else 0.0
+
+
+def held_by_processes_of(store: GraphStore, hosts: Sequence[str]) -> dict[str, float]:
+    """:func:`held_by_processes` of several hosts in one store call: host -> MiB (0 when none)."""
+    rows = store.execute(
+        f"UNWIND $hosts AS host MATCH (r:{S.PROCESS_PROFILE})-[:{S.RAN_ON}]->(:{S.PLATFORM} {{name: host}}) "
+        "WHERE r.end_time IS NULL AND r.rss_mb_last IS NOT NULL RETURN host, sum(r.rss_mb_last) AS used",
+        {"hosts": list(hosts)})
+    used = {host: 0.0 for host in hosts}
+    used.update({row["host"]: float(row["used"] or 0.0) for row in rows})
+    return used
 
 
 def record_process_end(store: GraphStore, *, run_id: str, end_time: float, exit_status: int | None) -> None:
@@ -313,6 +357,7 @@ WRITERS: dict[str, Callable[..., None]] = {
     "calibration": record_calibration,
     "decision": record_decision,
     "flight_state": update_flight_control,
+    "fleet_forget": forget_robot,  # the fleet roster (knowledge/fleet.py)
 }
 
 

@@ -25,6 +25,8 @@ changed model replaces its old version)::
     Site              name, dictionary                    (where the robot lands; a ``*.site`` model)
     Marker            name ("site/id"), marker_id, size_m (printed side, m), dictionary,
                       marker_name, position ([north, east, down] m; both optional)
+    FleetRobot        name (a robot), first_seen, last_seen, heard ("self"|"answer"|"announce"),
+                      zid, routers (list of Zenoh ids)      (run time: the fleet roster, knowledge/fleet.py)
 
 Relations (direction matters)::
 
@@ -71,6 +73,7 @@ PROCESS_PROFILE = "ProcessProfile"
 ADAPTATION_DECISION = "AdaptationDecision"
 SITE = "Site"
 MARKER = "Marker"
+FLEET_ROBOT = "FleetRobot"
 
 REALIZES = "REALIZES"
 CONTAINS = "CONTAINS"

@@ -56,8 +56,11 @@ offline; the liveliness history then marks the live ones online again.
 Threads: Zenoh callbacks only put work on queues. Request workers (two
 :class:`kgadapt.shared.rpc.Server` pools: ``workers`` for the robot's own requests,
 ``public_workers`` for other robots') answer queries; one status worker applies host statuses and
-liveliness changes, keeping only the newest of each per host when it falls
-behind, so a burst of statuses costs one write per host.
+liveliness changes. Statuses are gathered for at most ``status_batch_s`` (a
+liveliness change ends the wait at once) and the newest of each host written
+in one ``UNWIND`` store call per batch, each host's figures checked as a
+single write checks them; the profiles' memory StatusTrust needs is read for
+the batch in one call too.
 """
 
 from __future__ import annotations
@@ -76,6 +79,7 @@ import zenoh
 from kgadapt.knowledge import queries, runtime
 from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.cypher_guard import CypherLimits, check_cypher
+from kgadapt.knowledge.fleet import ROSTER_QUERY, FleetRoster, RosterSettings
 from kgadapt.knowledge.params import check_params
 from kgadapt.knowledge.service_lock import ServiceLock
 from kgadapt.knowledge.store import GraphStore
@@ -120,6 +124,15 @@ class ServiceSettings:
     # The host whose agent runs the adaptation manager and the flight bridge: the one that may write
     # decisions and the flight state on its write/<host>/<verb> key.
     manager_host: str = "onboard"
+    # Host statuses wait at most status_batch_s for others and are written together, the newest per
+    # host, at most status_batch_max events a batch, in one store call (liveliness changes never wait).
+    status_batch_s: float = 0.02
+    status_batch_max: int = 1000
+    # The fleet roster (knowledge/fleet.py): robots heard on the fleet keys, at most roster_cap; roll
+    # calls at setup and 5 s later, then every roster_interval_s (0: no more). roster=False: none kept.
+    roster: bool = True
+    roster_cap: int = 1000
+    roster_interval_s: float = 600.0
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
@@ -163,6 +176,9 @@ class KnowledgeService:
         # kgadapt.knowledge.sandbox.QuerySandbox, one per public worker: a kill costs only its own question
         self.sandboxes: list[Any] = []
         self._sandbox_pool: queue.Queue[Any] = queue.Queue()
+        self.roster = (FleetRoster(store, RosterSettings(robot=settings.robot, cap=settings.roster_cap,
+                                                         interval_s=settings.roster_interval_s))
+                       if settings.roster else None)
 
     # -- life cycle ---------------------------------------------------------
 
@@ -207,6 +223,9 @@ class KnowledgeService:
             self._public.serve(session, keys.knowledge_cypher(robot), self._handler("cypher"), what="cypher")
             self._public.serve(session, keys.knowledge_query(robot, "*"), self._handler("query"), what="query")
             self._own.serve(session, keys.knowledge_own_query(robot, "*"), self._handler("own"), what="own")
+            if self.roster is not None:  # after the queryables: whoever hears the roll call can ask back
+                stack.callback(self.roster.shutdown)
+                self.roster.setup(session)
             self._stack = stack.pop_all()
         log.info(
             "knowledge service for robot %s: %d named queries, cypher (read-only subset), %s; "
@@ -252,6 +271,11 @@ class KnowledgeService:
         else:
             params = {}
         query = queries.QUERIES[name]
+        if name == ROSTER_QUERY and self.roster is not None:
+            self._heard_roll_call(queries.check_params(name, params))
+            # Bounded by the roster's cap, so answered from the store itself: a roll call writes the
+            # roster, and a sandbox would copy the whole graph again for every robot's roll call.
+            public = False
         start = time.perf_counter()
         if public or query.time_limit_ms is not None:
             limit_ms = min(self.settings.public_time_limit_ms, query.time_limit_ms or self.settings.public_time_limit_ms)
@@ -266,6 +290,18 @@ class KnowledgeService:
             with self._store_lock:
                 rows = queries.run_named(self.store, name, params, timeout_ms=self.settings.query_timeout_ms)
         return _rows_reply(rows, (time.perf_counter() - start) * 1000, f"query {name!r}")
+
+    def _heard_roll_call(self, values: Mapping[str, Any]) -> None:
+        """Another robot's roll call announced it: remember it (a bad name is refused, naming it)."""
+        assert self.roster is not None
+        try:
+            with self._store_lock:
+                self.roster.heard(values)
+        except (ConfigError, MessageError) as exc:
+            raise MessageError(f"query {ROSTER_QUERY!r}: {exc}") from exc
+        except KgadaptError as exc:  # the store refused it: the question is still answered
+            self._count("roster_not_recorded")
+            log.warning("fleet roster: %s not recorded: %s", values.get("announce"), exc)
 
     def answer_cypher(self, payload: bytes | None) -> bytes:
         """A ``rows`` reply for read-only Cypher; a write is refused with ReadOnlyViolation."""
@@ -385,15 +421,21 @@ class KnowledgeService:
                 return
             batch = [first]
             stop = False
-            while len(batch) < 1000:  # drain what piled up: only the newest status per host matters
+            # Statuses wait up to status_batch_s for others, to be written together in one store call;
+            # a liveliness change ends the wait at once (the liveliness path is never delayed).
+            until = time.monotonic() + self.settings.status_batch_s if first[0] == "status" else 0.0
+            while len(batch) < self.settings.status_batch_max:  # only the newest status per host matters
                 try:
-                    item = self._events.get_nowait()
+                    wait = until - time.monotonic()
+                    item = self._events.get(timeout=wait) if wait > 0 else self._events.get_nowait()
                 except queue.Empty:
                     break
                 if item is _STOP:
                     stop = True
                     break
                 batch.append(item)
+                if item[0] != "status":
+                    until = 0.0
             try:
                 self._apply_events(batch)
             except Exception:
@@ -403,15 +445,15 @@ class KnowledgeService:
 
     def _apply_events(self, batch: list[tuple[Any, ...]]) -> None:
         statuses: dict[str, tuple[dict[str, Any], float]] = {}
-        used: dict[str, float] = {}  # what each host's open profiles hold, read once per batch
+        # What each host's open profiles hold, read for the whole batch in one store call.
+        used = self._held_by_processes(sorted({_host_or_none(key) or "" for kind, key, *_ in batch
+                                               if kind == "status"} - {""}))
         for kind, key, value, received in batch:
             try:
                 if kind == "status":
                     host = _host_of(key)
-                    if host not in used:
-                        used[host] = self._held_by_processes(host)
                     body = self._trust.admit(host, self._check_status(key, value), received=received,
-                                             used_mb=used[host])
+                                             used_mb=used.get(host, 0.0))
                     statuses[body["host"]] = (body, received)
                 else:
                     host = _host_of(key)
@@ -422,13 +464,26 @@ class KnowledgeService:
                 self._drop(f"{kind} on {key}: {exc}")
         self._count("events_received", len(batch))
         self._apply_liveliness()
-        for host, (body, received) in statuses.items():
-            self._apply(
-                runtime.update_platform, host, "status",
-                name=host, time=received,
-                memory_total_mb=float(body["memory_total_mb"]), memory_free_mb=float(body["memory_free_mb"]),
-                cpu_load=float(body["cpu_load"]), cpu_cores=body.get("cpu_cores"),
-            )
+        if statuses:
+            self._apply_statuses(statuses)
+
+    def _apply_statuses(self, statuses: Mapping[str, tuple[dict[str, Any], float]]) -> None:
+        """The newest status of each host, all written in one store call."""
+        figures = [{"name": host, "time": received, "memory_total_mb": float(body["memory_total_mb"]),
+                    "memory_free_mb": float(body["memory_free_mb"]), "cpu_load": float(body["cpu_load"]),
+                    "cpu_cores": body.get("cpu_cores")}
+                   for host, (body, received) in statuses.items()]
+        try:
+            with self._store_lock:
+                refused = runtime.update_platforms(self.store, figures)
+        except KgadaptError as exc:
+            for host in statuses:
+                self._drop(f"status of host {host}: store refused it: {exc}")
+            return
+        for host, why in refused.items():
+            self._drop(f"status of host {host}: store refused it: {why}")
+        self._count("status_writes")
+        self._count("status_applied", len(statuses) - len(refused))
 
     def _apply_liveliness(self) -> None:
         """Write the hosts' liveliness changes, oldest first; what the store refuses waits for the next try."""
@@ -461,25 +516,18 @@ class KnowledgeService:
             if not due:
                 del self._liveliness_due[host]
 
-    def _apply(self, writer: Callable[..., Any], host: str, what: str, **params: Any) -> None:
-        try:
-            with self._store_lock:
-                writer(self.store, **params)
-        except KgadaptError as exc:
-            self._drop(f"{what} of host {host}: store refused it: {exc}")
-            return
-        self._count(f"{what}_applied")
-
     def _check_status(self, key: str, payload: bytes) -> dict[str, Any]:
         return check_status(_host_of(key), messages.decode(payload, "host_status"))
 
-    def _held_by_processes(self, host: str) -> float:
+    def _held_by_processes(self, hosts: list[str]) -> dict[str, float]:
+        if not hosts:
+            return {}
         try:
             with self._store_lock:
-                return runtime.held_by_processes(self.store, host=host)
-        except KgadaptError as exc:  # e.g. the store restarting: the status is still applied
-            log.debug("no profile figures for %s: %s", host, exc)
-            return 0.0
+                return runtime.held_by_processes_of(self.store, hosts)
+        except KgadaptError as exc:  # e.g. the store restarting: the statuses are still applied
+            log.debug("no profile figures for %s: %s", ", ".join(hosts), exc)
+            return {}
 
     def _mark_all_offline(self) -> None:
         now = time.time()
@@ -554,6 +602,13 @@ def _rows_reply(rows: list[dict[str, Any]], elapsed_ms: float, what: str) -> byt
         raise MessageError(f"{what}: the answer cannot be sent: {exc}") from exc
     except (TypeError, ValueError, OverflowError) as exc:  # msgpack cannot pack a store value
         raise MessageError(f"{what}: the answer holds a value that cannot be sent: {exc}") from exc
+
+
+def _host_or_none(key: str) -> str | None:
+    try:
+        return _host_of(key)
+    except MessageError:
+        return None  # refused, naming it, when the status itself is read
 
 
 def _host_of(key: str) -> str:

@@ -10,6 +10,7 @@ then undeclares everything and stops the store if it started it.
     kgadapt ask placement --param feature=MarkerDetection
     kgadapt ask --robot quad2 --cypher 'MATCH (p:Platform) RETURN p.name AS name' --json
     kgadapt ask --fleet current_placement --expect quad1 --expect quad2   # every robot (knowledge/fleet.py)
+    kgadapt ask --fleet platforms --robot quad2   # robots quad2's roster remembers are listed, silent if gone
 """
 
 from __future__ import annotations
@@ -35,7 +36,9 @@ def register(subparsers: Any) -> None:
     ask.add_argument("query", nargs="?", metavar="QUERY", help="named query (see `kgadapt knowledge queries`)")
     ask.add_argument("--param", "-p", action="append", default=[], metavar="KEY=VALUE", help="query parameter (repeatable)")
     ask.add_argument("--cypher", metavar="TEXT", help="read-only Cypher instead of a named query")
-    ask.add_argument("--robot", default=DEFAULT_ROBOT, help=f"whose knowledge to ask (default {DEFAULT_ROBOT})")
+    ask.add_argument("--robot", default=DEFAULT_ROBOT,
+                     help=f"whose knowledge to ask (default {DEFAULT_ROBOT}); with --fleet, the robot whose fleet "
+                     "roster names the robots to expect (those its knowledge service has heard)")
     ask.add_argument("--fleet", metavar="QUERY",
                      help="ask named query QUERY of every robot at once; one table with a robot column")
     ask.add_argument("--expect", action="append", default=[], metavar="ROBOT",
@@ -180,7 +183,7 @@ def _run_fleet_ask(args: argparse.Namespace) -> int:
     check_name(args.fleet, "query name")  # before any network: a name is one key chunk, no wildcard
     raw = _parse_params(args.param)
     params: dict[str, Any] = coerce_params(args.fleet, raw) if args.fleet in QUERIES else dict(raw)
-    settings = FleetSettings(timeout=args.timeout, expect=tuple(args.expect))
+    settings = FleetSettings(timeout=args.timeout, expect=tuple(args.expect), roster=args.robot)
     zenoh = settings_from_args(args).with_defaults(mode="client", connect=[DEFAULT_ENDPOINT])
     session = open_session(zenoh)
     try:

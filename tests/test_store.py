@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from kgadapt.knowledge.store import assert_read_only, open_store, parse_store_url
+from kgadapt.knowledge.store import assert_read_only, open_store, parse_store_url, read_only_verdicts
 from kgadapt.shared.errors import ConfigError, QueryError, ReadOnlyViolation
 
 TRICKY = ['a"b', "it's", "back\\slash", "x\ny", "ü€", "a'}) DETACH DELETE n //", "$param", ""]
@@ -152,3 +152,20 @@ def test_the_embedded_store_stops_when_its_owner_is_killed(tmp_path):
     except psutil.NoSuchProcess:
         pass
     assert not psutil.pid_exists(server_pid) or psutil.Process(server_pid).status() == psutil.STATUS_ZOMBIE
+
+
+def test_the_read_only_guard_reads_each_statement_text_once_and_still_refuses_writes():
+    read_only_verdicts.cache_clear()
+    text = "MATCH (p:Platform {name: $name}) RETURN p.name AS name"
+    for _ in range(3):
+        assert_read_only(text)
+    assert (read_only_verdicts.cache_info().misses, read_only_verdicts.cache_info().hits) == (1, 2)
+    write = "MATCH (p:Platform) SET p.online = false"
+    for _ in range(2):  # the kept verdict is the refusal
+        with pytest.raises(ReadOnlyViolation, match="SET"):
+            assert_read_only(write)
+    long_write = "MATCH (n) RETURN n //" + "x" * 9000 + "\nCREATE (m)"
+    for _ in range(2):  # too long to keep: checked every time, never kept
+        with pytest.raises(ReadOnlyViolation, match="CREATE"):
+            assert_read_only(long_write)
+    assert read_only_verdicts.cache_info().currsize == 2

@@ -49,6 +49,8 @@ def test_a_small_run_times_every_op_on_both_embedded_stores(small_run):
     for store in ("embedded", "embedded-nofsync"):
         assert {op for s, op in ops if s == store} >= TIMED_OPS | {"bulk_load"}
     assert ("embedded", "fig5_literal") in ops and ("embedded", "disk_fsync") in ops
+    # the same statements sent bare, beside ours: what the store layer costs (issue 32)
+    assert {("embedded", "query_bare"), ("embedded", "insert_bare")} <= ops
     timed = [r for r in records if r["op"] in TIMED_OPS]
     assert all(r["reps"] == 5 and r["n"] == 10 for r in timed)
     assert {r["durable"] for r in records if r["store"] == "embedded"} == {True}

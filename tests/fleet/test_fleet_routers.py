@@ -47,6 +47,15 @@ while True:  # the routers' link and declarations take a moment after start
     if {"quad1", "quad2"} <= set(answer.answered) or time.monotonic() > deadline:
         break
 out["fleet"] = answer.as_json()
+# The roll calls crossed the router link too: quad2's roster remembers quad1 (heard on the fleet keys only).
+own = KnowledgeClient(operator, "quad2", timeout=3.0)
+deadline = time.monotonic() + 20
+while True:
+    roster = {r["robot"]: r["heard"] for r in own.query("fleet_roster")}
+    if "quad1" in roster or time.monotonic() > deadline:
+        break
+    time.sleep(0.5)
+out["roster_quad2"] = roster
 from kgadapt.fleet_view import FleetView, FleetViewSettings, as_json
 with FleetView(operator, FleetViewSettings(timeout=3.0)) as view:  # its subscriptions are denied: it asks
     out["view"] = as_json(view.snapshot())
@@ -154,6 +163,8 @@ def test_a_fleet_question_crosses_the_router_link_and_nothing_writes_the_other_r
     assert set(by_robot) == {"quad1", "quad2"}, fleet  # quad1 answered through quad2's router and the link
     assert by_robot["quad1"]["config"] == "marker_detection_day" and by_robot["quad2"]["config"] == "marker_detection_dusk"
     assert fleet["silent"] == ["quad3"]  # expected, not on the network: listed, not left out
+    assert out["roster_quad2"] == {"quad2": "self", "quad1": out["roster_quad2"].get("quad1")}
+    assert out["roster_quad2"]["quad1"] in ("answer", "announce")  # the roll calls crossed on the shipped ACL
     view = {r["robot"]: r for r in out["view"]}
     assert set(view) == {"quad1", "quad2"} and all(r["answering"] for r in view.values())
     assert (view["quad1"]["config"], view["quad1"]["band"]) == ("marker_detection_day", "day")

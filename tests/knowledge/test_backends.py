@@ -20,14 +20,16 @@ from neo4j import exceptions as neo4j_errors
 from kgadapt.knowledge import queries as Q
 from kgadapt.knowledge import runtime as R
 from kgadapt.knowledge.bolt_store import BoltStore
-from kgadapt.knowledge.dialect import FALKORDB, MEMGRAPH, NEO4J
+from kgadapt.knowledge.dialect import FALKORDB, MEMGRAPH, NEO4J, NEO4J_3, dialect_for_agent
 from kgadapt.knowledge.embedded import EmbeddedServer
+from kgadapt.knowledge.fleet import FleetRoster, Heard, RosterSettings
 from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.schema import INDEXED_NAMES, ensure_indexes
 from kgadapt.knowledge.store import open_store, parse_store_url
 from kgadapt.shared.errors import ConfigError, QueryError, StoreUnavailable
 from tests.conftest import free_port
 from tests.deploy.pki import TestCA
+from tests.knowledge.bolt_double import MEMGRAPH_AGENT, NEO4J_AGENT, BoltDouble
 from tests.support import wait_for
 
 SHIPPED = Path(__file__).resolve().parents[2] / "knowledge" / "models"
@@ -95,6 +97,7 @@ EXAMPLES = {
     "flight_control": {},
     "decisions": {"limit": 5},
     "current_placement": {},
+    "fleet_roster": {},
     "fig4_literal": {"platform": "remote"},
     "fig5_literal": {},
 }
@@ -106,6 +109,7 @@ def _robot_state(store) -> None:
     for host, free in (("onboard", 480.0), ("remote", 3000.0)):
         R.update_platform(store, name=host, time=100.0, memory_free_mb=free, cpu_load=12.5)
         R.set_platform_online(store, name=host, online=True, time=100.0)
+    FleetRoster(store, RosterSettings(robot="quad1")).remember("quad2", how=Heard.ANSWER, when=2.0, routers=["ab12"])
     R.record_calibration(store, config="marker_detection_dark", band="dark", detection_rate=0.9,
                          false_rate=0.01, ms_per_frame=7.5, time=50.0)
     R.record_process_start(store, run_id="r1", instance="i1", deployment="marker_detection_dark_onboard",
@@ -335,8 +339,63 @@ def test_store_urls_with_tls_are_parsed_and_bad_ones_named(tmp_path):
 
 def test_the_bolt_backend_is_the_driver_for_both_schemes():
     assert isinstance(open_store("memgraph://h:7687"), BoltStore)
-    assert open_store("memgraph://h:7687").dialect is MEMGRAPH
-    assert open_store("bolt://h:7687").dialect is NEO4J
+    assert isinstance(open_store("bolt://h:7687"), BoltStore)
+
+
+# --- the dialect from what the server announces, not from the URL ------------------
+
+def test_the_dialect_follows_the_announced_agent_and_version():
+    assert dialect_for_agent(MEMGRAPH_AGENT) is MEMGRAPH
+    assert dialect_for_agent("Neo4j/v4.4.0 compatible graph database server - memgraph") is MEMGRAPH
+    assert dialect_for_agent(NEO4J_AGENT) is NEO4J
+    assert dialect_for_agent("Neo4j/4.4.12") is NEO4J
+    assert dialect_for_agent("Neo4j/3.5.35") is NEO4J_3
+    assert NEO4J_3.create_index("Platform", "name") == "CREATE INDEX ON :Platform(name)"
+    assert dialect_for_agent(None) is NEO4J
+
+
+@pytest.fixture(params=[MEMGRAPH_AGENT, NEO4J_AGENT], ids=["memgraph", "neo4j"])
+def announcing_server(request):
+    server = BoltDouble(request.param)
+    server.setup()
+    yield server
+    server.shutdown()
+
+
+@pytest.mark.parametrize("scheme", ["bolt", "memgraph"])
+def test_a_bolt_servers_dialect_comes_from_its_announced_agent_whatever_the_scheme(announcing_server, scheme):
+    store = open_store(f"{scheme}://127.0.0.1:{announcing_server.port}")
+    store.setup(timeout=10)
+    try:
+        expected = MEMGRAPH if announcing_server.memgraph else NEO4J
+        assert store.server_agent == announcing_server.agent
+        assert store.dialect is expected
+        ensure_indexes(store)  # the server refuses the other dialect's statements, as the real one does
+        assert announcing_server.indexes == {(label, "name") for label in INDEXED_NAMES}
+        ensure_indexes(store)  # listed in the server's own form: nothing created twice
+        creates = [s for s in announcing_server.statements if s.startswith("CREATE INDEX")]
+        assert len(creates) == len(INDEXED_NAMES)
+        assert all(s == expected.create_index(label, "name") for s, label in zip(creates, INDEXED_NAMES))
+    finally:
+        store.shutdown()
+
+
+def test_memgraph_over_tls_with_a_bolt_scheme_gets_the_memgraph_dialect(tmp_path):
+    server = BoltDouble(MEMGRAPH_AGENT)
+    server.setup()
+    ca = TestCA(tmp_path / "pki")
+    cert, key = ca.issue("store")
+    terminator = TlsTerminator(cert, key, server.port)
+    store = open_store(f"bolt+ssc://localhost:{terminator.port}")
+    try:
+        store.setup(timeout=10)
+        assert store.dialect is MEMGRAPH
+        ensure_indexes(store)
+        assert ("Platform", "name") in server.indexes
+    finally:
+        store.shutdown()
+        terminator.close()
+        server.shutdown()
 
 
 def test_a_store_that_cannot_stop_a_query_gets_no_free_cypher_from_other_robots(bolt_store, resp_store):

@@ -102,7 +102,7 @@ def test_the_flight_state_lands_on_the_flight_control_component(known_store):
 def test_the_writers_are_the_contract_verbs():
     assert set(R.WRITERS) == {"platform", "platform_online", "process_start", "process_sample", "process_end",
                               "process_reconfigured",
-                              "calibration", "decision", "flight_state"}
+                              "calibration", "decision", "flight_state", "fleet_forget"}
     assert R.writer_params("process_end") == {"run_id": True, "end_time": True, "exit_status": True}
 
 

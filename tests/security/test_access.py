@@ -155,6 +155,7 @@ def write_params(verb: str) -> dict[str, Any]:
                         "ms_per_frame": 1.0, "time": 1.0},
         "decision": {"name": "forged-decision", "time": 1.0, "trigger": "forged"},
         "flight_state": {"name": "flight_control", "time": 1.0, "link": True, "mode": "FORGED"},
+        "fleet_forget": {"robot": "quad1"},
     }[verb]
 
 

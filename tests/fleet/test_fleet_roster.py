@@ -1,0 +1,105 @@
+"""The fleet roster: every knowledge service remembers the robots it heard on the fleet keys, so a robot that is
+gone is listed as silent by a fleet question that names no robot, until an operator forgets it."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from kgadapt.knowledge.fleet import FleetRoster, Heard, RosterSettings, forget_robot
+from kgadapt.knowledge.queries import run_named
+from kgadapt.knowledge.runtime import run_write
+from kgadapt.shared.errors import MessageError, NamedQueryError
+from kgadapt.shared.session import ZenohSettings, open_session
+from tests.conftest import REPO, free_port
+from tests.support import Child, wait_for
+
+
+def kgadapt(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "kgadapt", *args], capture_output=True, text=True, timeout=timeout,
+                          cwd=REPO)
+
+
+def roster_of(store) -> dict[str, dict]:
+    return {row["robot"]: row for row in run_named(store, "fleet_roster")}
+
+
+def test_a_killed_robot_is_listed_as_silent_by_a_new_fleet_question_without_expect(tmp_path):
+    prefix = f"r{os.getpid()}"
+    robots = [f"{prefix}a", f"{prefix}b", f"{prefix}c"]
+    endpoints = [f"tcp/127.0.0.1:{free_port()}" for _ in robots]
+    children = []
+    try:
+        for i, robot in enumerate(robots):  # three robots' services, b and c linked to a's router
+            args = ["knowledge", "serve", "--robot", robot, "--store", f"embedded:{tmp_path / robot}",
+                    "--listen", endpoints[i]] + (["--connect", endpoints[0]] if i else [])
+            children.append(Child.kgadapt(f"serve-{robot}", args, tmp_path))
+        for child in children:
+            child.wait_ready(60)
+        a, b, c = robots
+        session = open_session(ZenohSettings(mode="client", connect=(endpoints[0],)))
+        try:
+            from kgadapt.knowledge.client import KnowledgeClient
+
+            client = KnowledgeClient(session, a, timeout=2.0)
+
+            def a_remembers_all() -> bool:
+                rows = {row["robot"]: row for row in client.query("fleet_roster")}
+                return set(robots) <= set(rows) and rows
+            roster = wait_for(a_remembers_all, 30, f"{a}'s roster to list {robots}")
+        finally:
+            session.close()
+        assert roster[a]["heard"] == Heard.SELF.value and roster[a]["first_seen"] <= roster[a]["last_seen"]
+        assert {roster[b]["heard"], roster[c]["heard"]} <= {Heard.ANSWER.value, Heard.ANNOUNCE.value}
+        assert roster[c]["zid"]  # the robot's own Zenoh id, as it told it
+
+        children[2].kill9()  # kill -9 of c's knowledge service
+        done = kgadapt("ask", "--fleet", "platforms", "--robot", a, "--connect", endpoints[0], "--timeout", "2",
+                       "--json")
+        assert done.returncode == 3, done.stderr  # exit 3: some robot silent
+        answer = json.loads(done.stdout)
+        assert answer["silent"] == [c]
+        assert set(answer["answered"]) >= {a, b}
+
+        done = kgadapt("fleet", "--robot", a, "--connect", endpoints[0], "forget", c)
+        assert done.returncode == 0, done.stderr
+        done = kgadapt("ask", "--fleet", "platforms", "--robot", a, "--connect", endpoints[0], "--timeout", "2",
+                       "--json")
+        assert json.loads(done.stdout)["silent"] == [] and done.returncode == 0, done.stdout + done.stderr
+    finally:
+        for child in children:
+            if child.process.poll() is None:
+                child.stop()
+
+
+def test_the_roster_is_bounded_and_forgets_on_request(resp_store):
+    roster = FleetRoster(resp_store, RosterSettings(robot="me", cap=3))
+    for robot in ("me", "r1", "r2"):
+        assert roster.remember(robot, how=Heard.ANSWER, when=100.0, routers=["ab12"])
+    assert not roster.remember("r3", how=Heard.ANNOUNCE, when=101.0)  # full: a new robot is not recorded
+    assert roster.refused == 1
+    assert roster.remember("r1", how=Heard.ANNOUNCE, when=200.0)  # a known one still is
+    rows = roster_of(resp_store)
+    assert set(rows) == {"me", "r1", "r2"}
+    assert (rows["r1"]["first_seen"], rows["r1"]["last_seen"], rows["r1"]["heard"], rows["r1"]["routers"]) == (
+        100.0, 200.0, "announce", ["ab12"])
+    run_write(resp_store, "fleet_forget", {"robot": "r2"})
+    assert set(roster_of(resp_store)) == {"me", "r1"}
+    assert roster.remember("r3", how=Heard.ANNOUNCE)  # room again
+    forget_robot(resp_store, robot="me'}) DETACH DELETE r //")  # a value, never code: removes nothing
+    assert set(roster_of(resp_store)) == {"me", "r1", "r3"}
+    with pytest.raises(NamedQueryError, match="'robot'"):
+        forget_robot(resp_store, robot=7)
+
+
+def test_a_roll_call_with_a_bad_announcement_is_refused_naming_it(resp_store):
+    roster = FleetRoster(resp_store, RosterSettings(robot="me"))
+    with pytest.raises(MessageError, match="router id"):
+        roster.heard({"announce": "r1", "routers": "not-hex"})
+    with pytest.raises(Exception, match="robot"):
+        roster.heard({"announce": "r1/**"})
+    assert roster_of(resp_store) == {}
