@@ -36,7 +36,7 @@ import math
 from dataclasses import dataclass, field, fields, replace
 from enum import Enum
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -562,6 +562,40 @@ DEFAULT_MARKERS: tuple[MarkerPose, ...] = (
     MarkerPose(33, 0.62, 0.70, 0.26, roll=15),
     MarkerPose(42, 0.88, 0.74, 0.13, roll=-40, pitch=25),
 )
+
+
+def markers_for(dictionary_size: int, ids: Sequence[int] = (), sizes_m: Mapping[int, float] | None = None,
+                poses: Sequence[MarkerPose] = DEFAULT_MARKERS) -> tuple[MarkerPose, ...]:
+    """The scene's markers for a dictionary of ``dictionary_size`` markers, or for a site's ``ids`` and sizes.
+
+    Without ids, the default ids that the dictionary has, and for the others ids
+    spread over the dictionary (a 35-marker custom dictionary has no id 42).
+    With a site's ids, its first ones (as many as there are poses) take the
+    poses, and a marker printed smaller than the site's largest appears
+    smaller by as much (at the same distance).
+    """
+    if dictionary_size < 1:
+        raise ConfigError(f"a dictionary of {dictionary_size} markers")
+    if ids:
+        chosen = sorted({int(i) for i in ids if 0 <= int(i) < dictionary_size})[: len(poses)]
+        if not chosen:
+            raise ConfigError(f"none of the site's ids {sorted(ids)[:6]} is in a dictionary of {dictionary_size} markers")
+        known = [sizes_m[i] for i in chosen if sizes_m and sizes_m.get(i)]
+        largest = max(known) if known else 0.0
+        out = []
+        for pose, marker_id in zip(poses, chosen):
+            factor = (sizes_m[marker_id] / largest) if largest and sizes_m and sizes_m.get(marker_id) else 1.0
+            out.append(replace(pose, id=marker_id, size=min(max(pose.size * factor, 0.05), 0.6)))
+        return tuple(out)
+    taken: set[int] = set()
+    out = []
+    for k, pose in enumerate(poses):
+        marker_id = pose.id if pose.id < dictionary_size else (k * 7 + 3) % dictionary_size
+        while marker_id in taken:
+            marker_id = (marker_id + 1) % dictionary_size
+        taken.add(marker_id)
+        out.append(replace(pose, id=marker_id))
+    return tuple(out[:dictionary_size])
 
 
 @dataclass(frozen=True, kw_only=True)
