@@ -189,7 +189,7 @@ MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH}
 MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
 OPTIONAL MATCH (g)-[:{S.SUITED_FOR}]->(b:{S.ILLUMINATION_BAND})
 OPTIONAL MATCH (g)-[cal:{S.CALIBRATED} {{condition: $condition}}]->(b)
-WHERE coalesce(cal.source, 'synthetic') = $source
+WHERE coalesce(cal.source, $source) = $source
 OPTIONAL MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
 WITH g, b, cal, sum(c.memory_demand_mb) AS demand, max(c.ms_per_frame) AS design_ms
 RETURN g.name AS config, b.name AS band, b.min_level AS min_level, b.max_level AS max_level,
@@ -216,7 +216,7 @@ ORDER BY min_level, config""",
         f"""
 MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
       -[cal:{S.CALIBRATED}]->(b:{S.ILLUMINATION_BAND} {{name: $band}})
-WHERE cal.condition = $condition AND cal.ms_per_frame <= $max_ms AND coalesce(cal.source, 'synthetic') = $source
+WHERE cal.condition = $condition AND cal.ms_per_frame <= $max_ms AND coalesce(cal.source, $source) = $source
 OPTIONAL MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
 WITH g, cal, sum(c.memory_demand_mb) AS demand
 OPTIONAL MATCH (g)-[:{S.SUITED_FOR}]->(s:{S.ILLUMINATION_BAND})

@@ -212,6 +212,9 @@ def record_process_end(store: GraphStore, *, run_id: str, end_time: float, exit_
         {"run_id": run_id, "end_time": float(end_time), "exit_status": exit_status})
 
 
+SYNTHETIC_SOURCE = "synthetic"  # calibration figures from the synthetic scene; a recording's are frames:NAME
+
+
 def record_calibration(store: GraphStore, *, config: str, band: str, detection_rate: float,
                        ms_per_frame: float, time: float, condition: str = "all",
                        false_per_frame: float | None = None, false_per_reported: float | None = None,
@@ -247,12 +250,12 @@ def record_calibration(store: GraphStore, *, config: str, band: str, detection_r
         raise NamedQueryError(f"write 'calibration': false_per_frame {false_per_frame} is not between 0 and 1000")
     if not source or len(source) > 200:
         raise NamedQueryError(f"write 'calibration': source {source!r} must be 1 to 200 characters")
-    if source == "synthetic":
-        # Relations written before sources were named are the synthetic ones: name them, so they are replaced.
-        store.execute(
-            f"MATCH (:{S.PERCEPTION_GRAPH} {{name: $config}})-[c:{S.CALIBRATED} {{condition: $condition}}]->"
-            f"(:{S.ILLUMINATION_BAND} {{name: $band}}) WHERE c.source IS NULL SET c.source = $source",
-            {"config": config, "band": band, "condition": condition, "source": source})
+    # Relations written before sources were named are synthetic ones: name them first, so that a synthetic
+    # write replaces them and a recording's is written beside them. (Readers take an unnamed one as any source.)
+    store.execute(
+        f"MATCH (:{S.PERCEPTION_GRAPH} {{name: $config}})-[c:{S.CALIBRATED} {{condition: $condition}}]->"
+        f"(:{S.ILLUMINATION_BAND} {{name: $band}}) WHERE c.source IS NULL SET c.source = $synthetic",
+        {"config": config, "band": band, "condition": condition, "synthetic": SYNTHETIC_SOURCE})
     rows = store.execute(
         f"MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}}), (b:{S.ILLUMINATION_BAND} {{name: $band}}) "
         f"MERGE (g)-[c:{S.CALIBRATED} {{condition: $condition, source: $source}}]->(b) "
