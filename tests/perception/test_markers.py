@@ -113,8 +113,14 @@ def test_configurations_differ_in_the_dark_as_calibration_shows(calibrated):
     by = {(r.config, r.band): r for r in results if r.condition == "all"}
     assert {b.name for b in bands} == {"dark", "dusk", "day"}
     assert by[("marker_detection_day", "dark")].detection_rate < 0.3
-    assert by[("marker_detection_dark", "dark")].detection_rate > 0.6
-    assert by[("marker_detection_day", "day")].detection_rate >= 0.9
+    # Over every condition: the blur condition's markers are as small as the real photographs' and a 7 px
+    # blur defeats nearly all of them in the dark (docs/perception.md), so the band as a whole is lower.
+    assert by[("marker_detection_dark", "dark")].detection_rate > 0.45
+    clean_dark = {r.config: r.detection_rate for r in results if r.band == "dark" and r.condition == "clean"}
+    assert clean_dark["marker_detection_dark"] > 0.6 > clean_dark["marker_detection_day"]
+    assert by[("marker_detection_day", "day")].detection_rate >= 0.75  # the blur condition: about 10 %
+    assert {r.config: r.detection_rate for r in results if r.band == "day" and r.condition == "clean"}[
+        "marker_detection_day"] >= 0.9
     best = best_per_band(results)
     assert best["dark"] == "marker_detection_dark"
     # Every configuration in every band and condition, and the band as a whole.
