@@ -79,10 +79,10 @@ def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / 
 
     from kgadapt.bench import perception_quality as quality
     from kgadapt.bench import stats
-    from kgadapt.onboard.calibration import CalibrationSettings
-    from kgadapt.onboard.illumination import bands_from_rows
     from kgadapt.knowledge.queries import run_named
     from kgadapt.knowledge.store import open_store
+    from kgadapt.onboard.calibration import CalibrationSettings
+    from kgadapt.onboard.illumination import bands_from_rows
 
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="kgadapt-photos-") as tmp:
