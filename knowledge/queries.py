@@ -182,11 +182,14 @@ MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH}
         "ms_per_frame is the calibrated figure, else the design-time estimate. Calibration of the "
         "band as a whole (condition all) unless another condition is given.",
         {"feature": _FEATURE, "condition": Param("str", required=False, default="all",
-                                                 help="calibration condition (default all)")},
+                                                 help="calibration condition (default all)"),
+         "source": Param("str", required=False, default="synthetic",
+                         help="what the figures were measured on: synthetic or frames:NAME (default synthetic)")},
         f"""
 MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
 OPTIONAL MATCH (g)-[:{S.SUITED_FOR}]->(b:{S.ILLUMINATION_BAND})
 OPTIONAL MATCH (g)-[cal:{S.CALIBRATED} {{condition: $condition}}]->(b)
+WHERE coalesce(cal.source, $source) = $source
 OPTIONAL MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
 WITH g, b, cal, sum(c.memory_demand_mb) AS demand, max(c.ms_per_frame) AS design_ms
 RETURN g.name AS config, b.name AS band, b.min_level AS min_level, b.max_level AS max_level,
@@ -207,11 +210,13 @@ ORDER BY min_level, config""",
          "penalty": Param("float", required=False, default=1.0,
                           help="score lost per false marker per frame (default 1.0)"),
          "max_ms": Param("float", required=False, default=1000.0,
-                         help="leave out configurations slower than this, ms per frame (default 1000)")},
+                         help="leave out configurations slower than this, ms per frame (default 1000)"),
+         "source": Param("str", required=False, default="synthetic",
+                         help="what the figures were measured on: synthetic or frames:NAME (default synthetic)")},
         f"""
 MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
       -[cal:{S.CALIBRATED}]->(b:{S.ILLUMINATION_BAND} {{name: $band}})
-WHERE cal.condition = $condition AND cal.ms_per_frame <= $max_ms
+WHERE cal.condition = $condition AND cal.ms_per_frame <= $max_ms AND coalesce(cal.source, $source) = $source
 OPTIONAL MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
 WITH g, cal, sum(c.memory_demand_mb) AS demand
 OPTIONAL MATCH (g)-[:{S.SUITED_FOR}]->(s:{S.ILLUMINATION_BAND})

@@ -256,11 +256,18 @@ def record_process_end(store: GraphStore, *, run_id: str, end_time: float, exit_
         {"run_id": run_id, "end_time": float(end_time), "exit_status": exit_status})
 
 
+SYNTHETIC_SOURCE = "synthetic"  # calibration figures from the synthetic scene; a recording's are frames:NAME
+
+
 def record_calibration(store: GraphStore, *, config: str, band: str, detection_rate: float,
                        ms_per_frame: float, time: float, condition: str = "all",
                        false_per_frame: float | None = None, false_per_reported: float | None = None,
-                       false_rate: float | None = None) -> None:
+                       false_rate: float | None = None, source: str = "synthetic") -> None:
     """How well a configuration detected markers in a band and condition: one CALIBRATED relation each, replaced.
+
+    ``source`` says what the figures were measured on: ``synthetic`` (the
+    calibration scene) or ``frames:NAME`` (a recording); each source has its own
+    relations, side by side.
 
     False detections have two named figures: ``false_per_frame`` (false markers
     per frame) and ``false_per_reported`` (false markers per marker reported).
@@ -274,7 +281,8 @@ def record_calibration(store: GraphStore, *, config: str, band: str, detection_r
     if false_per_frame is None:
         false_per_frame = 0.0
     _check("calibration", config=(config, (str,), False), band=(band, (str,), False),
-           condition=(condition, (str,), False), detection_rate=(detection_rate, _NUM, False),
+           condition=(condition, (str,), False), source=(source, (str,), False),
+           detection_rate=(detection_rate, _NUM, False),
            false_per_frame=(false_per_frame, _NUM, False), false_per_reported=(false_per_reported, _NUM, False),
            ms_per_frame=(ms_per_frame, _NUM, False), time=(time, _NUM, False))
     _within("calibration", ms_per_frame=(ms_per_frame, 0, 3_600_000), time=(time, 0, math.inf))
@@ -284,13 +292,22 @@ def record_calibration(store: GraphStore, *, config: str, band: str, detection_r
             raise NamedQueryError(f"write 'calibration': {key} {rate} is not between 0 and 1")
     if not 0.0 <= false_per_frame <= 1000.0:
         raise NamedQueryError(f"write 'calibration': false_per_frame {false_per_frame} is not between 0 and 1000")
+    if not source or len(source) > 200:
+        raise NamedQueryError(f"write 'calibration': source {source!r} must be 1 to 200 characters")
+    # Relations written before sources were named are synthetic ones: name them first, so that a synthetic
+    # write replaces them and a recording's is written beside them. (Readers take an unnamed one as any source.)
+    store.execute(
+        f"MATCH (:{S.PERCEPTION_GRAPH} {{name: $config}})-[c:{S.CALIBRATED} {{condition: $condition}}]->"
+        f"(:{S.ILLUMINATION_BAND} {{name: $band}}) WHERE c.source IS NULL SET c.source = $synthetic",
+        {"config": config, "band": band, "condition": condition, "synthetic": SYNTHETIC_SOURCE})
     rows = store.execute(
         f"MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}}), (b:{S.ILLUMINATION_BAND} {{name: $band}}) "
-        f"MERGE (g)-[c:{S.CALIBRATED} {{condition: $condition}}]->(b) "
+        f"MERGE (g)-[c:{S.CALIBRATED} {{condition: $condition, source: $source}}]->(b) "
         "SET c.detection_rate = $detection_rate, c.false_per_frame = $false_per_frame, "
         "c.false_per_reported = $false_per_reported, c.ms_per_frame = $ms_per_frame, "
         "c.at = $time RETURN count(c) AS n",
-        {"config": config, "band": band, "condition": condition, "detection_rate": float(detection_rate),
+        {"config": config, "band": band, "condition": condition, "source": source,
+         "detection_rate": float(detection_rate),
          "false_per_frame": float(false_per_frame), "false_per_reported": float(false_per_reported),
          "ms_per_frame": float(ms_per_frame), "time": float(time)})
     if not rows or not rows[0]["n"]:

@@ -33,8 +33,8 @@ Relations (direction matters)::
     (PerceptionGraph)-[:REALIZES]->(Feature)
     (PerceptionGraph)-[:CONTAINS]->(Component)
     (PerceptionGraph)-[:SUITED_FOR]->(IlluminationBand)
-    (PerceptionGraph)-[:CALIBRATED {condition, detection_rate, false_per_frame, false_per_reported,
-                                    ms_per_frame, at}]->(IlluminationBand)
+    (PerceptionGraph)-[:CALIBRATED {condition, source, detection_rate, false_per_frame, false_per_reported,
+                                    ms_per_frame, at}]->(IlluminationBand)   source: synthetic | frames:NAME
     (Component)-[:HAS_PORT]->(Port)
     (Port)-[:CONNECTED_TO]->(Port)                 out port to in port
     (Feature)-[:REQUIRES]->(Feature)

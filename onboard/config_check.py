@@ -25,16 +25,24 @@ def verdict(name: str, config_json: str) -> dict[str, Any] | None:
     import cv2
     import numpy as np
 
-    from kgadapt.onboard.markers import MarkerDetector, parse_config
+    from kgadapt.onboard.markers import MarkerDetector, aruco_dictionary, parse_config
     from kgadapt.shared.errors import ConfigError
+    from kgadapt.shared.preprocessing import is_dictionary_file
 
     data = json.loads(config_json)
     dictionary = data.get("dictionary")
-    if not isinstance(getattr(cv2.aruco, str(dictionary), None), int):
+    if isinstance(dictionary, str) and is_dictionary_file(dictionary):
+        try:
+            found = aruco_dictionary(dictionary)
+        except ConfigError as exc:
+            return {"at": "dictionary", "key": dictionary, "message": str(exc)}
+    elif not isinstance(getattr(cv2.aruco, str(dictionary), None), int):
         known = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
         return {"at": "dictionary", "key": dictionary,
                 "message": f"dictionary {dictionary!r} is not one of OpenCV's ArUco dictionaries "
-                           f"({', '.join(known[:4])}, ... {len(known)} in all)"}
+                           f"({', '.join(known[:4])}, ... {len(known)} in all) nor a dictionary file (.yml)"}
+    else:
+        found = aruco_dictionary(dictionary)
     attributes = {a for a in dir(cv2.aruco.DetectorParameters()) if not a.startswith("_")}
     for key in data.get("parameters") or {}:
         if key not in attributes:
@@ -42,7 +50,7 @@ def verdict(name: str, config_json: str) -> dict[str, Any] | None:
                     "message": f"parameter {key!r} is not an attribute of cv2.aruco.DetectorParameters"}
     try:
         detector = MarkerDetector(parse_config(name, config_json))
-        marker = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)), 0, 40)
+        marker = cv2.aruco.generateImageMarker(found, 0, 40)
         detector.detect(np.pad(marker, 12, constant_values=255))  # a real marker: the full detection path runs
     except ConfigError as exc:
         return {"at": "detector", "key": None, "message": str(exc)}

@@ -20,23 +20,113 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.preprocessing import OPS as _OPS
-from kgadapt.shared.preprocessing import read_settings
+from kgadapt.shared.preprocessing import is_dictionary_file, read_settings
 
 
-def aruco_dictionary(name: str) -> Any:
-    """The predefined ArUco dictionary called ``name``; ConfigError when unknown."""
+def aruco_dictionary(name: str, *, base: str | Path | None = None) -> Any:
+    """The ArUco dictionary ``name``: a cv2.aruco DICT_* name or an OpenCV dictionary file; ConfigError when bad.
+
+    A file (``.yml``/``.yaml``, OpenCV's ``nmarkers``/``markersize``/``marker_N``
+    format) is read relative to ``base`` when its path is relative; it is
+    checked (see :func:`read_dictionary_file`) and kept until it changes.
+    """
     import cv2
 
+    if is_dictionary_file(name):
+        path = Path(name)
+        if base is not None and not path.is_absolute():
+            path = Path(base) / path
+        return read_dictionary_file(path)
     key = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
     if not isinstance(key, int):
-        raise ConfigError(f"unknown ArUco dictionary {name!r}: use a cv2.aruco DICT_* name such as DICT_4X4_50")
+        raise ConfigError(f"unknown ArUco dictionary {name!r}: use a cv2.aruco DICT_* name such as DICT_4X4_50 "
+                          f"or an OpenCV dictionary file (.yml)")
     return cv2.aruco.getPredefinedDictionary(key)
+
+
+_FILES: dict[tuple[str, int, int], Any] = {}
+
+
+def read_dictionary_file(path: str | Path) -> Any:
+    """A ``cv2.aruco.Dictionary`` read from OpenCV's YAML dictionary file; ConfigError naming the file when bad.
+
+    OpenCV's own reader takes a marker of the wrong length without a word (it
+    packs whatever bits it gets), so every marker is checked first: ``nmarkers``
+    markers ``marker_0`` .. ``marker_N-1``, each ``markersize`` x ``markersize``
+    bits of 0 and 1. A file that does not say ``maxCorrectionBits`` gets what its
+    markers allow: half the smallest distance between two of them (rotations
+    included) less one, as OpenCV computes it for dictionaries it makes.
+    """
+    import cv2
+
+    path = Path(path)
+    try:
+        stat = path.stat()
+    except OSError as exc:
+        raise ConfigError(f"dictionary file {path}: {exc.strerror or exc}") from exc
+    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    found = _FILES.get(key)
+    if found is not None:
+        return found
+    where = f"dictionary file {path}"
+    try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:  # a parse error surfaces as SystemError through the bindings
+        detail = str(exc.__cause__ or exc).strip().splitlines()
+        raise ConfigError(f"{where}: not OpenCV's YAML format: {detail[-1] if detail else exc}") from exc
+    if not storage.isOpened():
+        raise ConfigError(f"{where}: cannot be read as OpenCV's YAML format")
+    try:
+        root = storage.root()
+        count_node, size_node = root.getNode("nmarkers"), root.getNode("markersize")
+        if not count_node.isInt() or not size_node.isInt():
+            raise ConfigError(f"{where}: needs integers nmarkers and markersize")
+        count, size = int(count_node.real()), int(size_node.real())
+        if not 1 <= count <= 4096 or not 2 <= size <= 16:
+            raise ConfigError(f"{where}: nmarkers {count} in [1, 4096], markersize {size} in [2, 16]")
+        bits = []
+        for i in range(count):
+            node = root.getNode(f"marker_{i}")
+            text = node.string() if node.isString() else ""
+            if not text:
+                raise ConfigError(f"{where}: marker_{i} is missing (nmarkers is {count})")
+            if len(text) != size * size or set(text) - {"0", "1"}:
+                raise ConfigError(f"{where}: marker_{i} has {len(text)} characters, not markersize {size} x {size} = "
+                                  f"{size * size} bits of 0 and 1")
+            bits.append(np.frombuffer(text.encode(), np.uint8).reshape(size, size) - ord("0"))
+        correction_node = root.getNode("maxCorrectionBits")
+        correction = int(correction_node.real()) if correction_node.isInt() else _correction_bits(bits)
+    finally:
+        storage.release()
+    dictionary = cv2.aruco.Dictionary(np.concatenate([cv2.aruco.Dictionary.getByteListFromBits(b) for b in bits]),
+                                      size, correction)
+    _FILES[key] = dictionary
+    return dictionary
+
+
+def _correction_bits(bits: Sequence[np.ndarray]) -> int:
+    """How many wrong bits a marker may have and still be read as itself: (smallest distance - 1) // 2."""
+    if len(bits) < 2:
+        return max((bits[0].size - 1) // 2, 0) if bits else 0
+    flat = np.stack([b.ravel() for b in bits]).astype(np.int16)
+    rotated = [np.stack([np.rot90(b, k).ravel() for b in bits]).astype(np.int16) for k in range(4)]
+    smallest = bits[0].size
+    for i in range(len(bits)):
+        for turned in rotated:
+            distance = np.abs(turned[i + 1:] - flat[i]).sum(axis=1)
+            if distance.size:
+                smallest = min(smallest, int(distance.min()))
+        # A marker must not read as itself turned either (OpenCV's own dictionaries count this too).
+        for k in (1, 2, 3):
+            smallest = min(smallest, int(np.abs(rotated[k][i] - flat[i]).sum()) or smallest)
+    return max((smallest - 1) // 2, 0)
 
 
 @dataclass(frozen=True)

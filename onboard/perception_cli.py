@@ -4,7 +4,8 @@
 
     kgadapt perception camera [--source synthetic[:PROFILE] | device:N | file:PATH] [--fps 30] ...
     kgadapt perception detect --host H --instance I (--config NAME | --config-json JSON) [--connect EP]
-    kgadapt perception calibrate [--store URL] [--frames N] [--levels N] [--json]
+    kgadapt perception calibrate [--store URL] [--frames N] [--levels N] [--site FILE] [--json]
+    kgadapt perception calibrate --frames-from DIR_OR_VIDEO [--store URL] [--json]
     kgadapt perception profile FILE [--json]
 """
 
@@ -148,7 +149,16 @@ def _register_calibrate(sub: argparse._SubParsersAction) -> None:
                    help="comma-separated conditions (default all: clean,blur,uneven,window,small)")
     p.add_argument("--levels", type=int, default=4, help="levels per band (default 4)")
     p.add_argument("--quality", type=int, default=80, help="JPEG quality of the test frames (default 80)")
-    p.add_argument("--out", default=str(RESULTS_DIR / "calibration.json"), help="JSON output (default %(default)s)")
+    p.add_argument("--site", default=None, metavar="FILE",
+                   help="site file (JSON: dictionary, markers): its ids and sizes in the calibration scene")
+    p.add_argument("--frames-from", default=None, metavar="DIR_OR_VIDEO",
+                   help="calibrate on recorded frames (a folder of images or a video) instead of the synthetic "
+                        "scene, markers labelled by the configurations' agreement; recorded as source frames:NAME")
+    p.add_argument("--agree", type=int, default=2, metavar="N",
+                   help="with --frames-from: configurations that must find a marker for it to count (default 2)")
+    p.add_argument("--out", default=None,
+                   help=f"JSON output (default {RESULTS_DIR / 'calibration.json'}, with --frames-from "
+                        f"{RESULTS_DIR / 'calibration_frames.json'})")
     p.add_argument("--plot", default=str(RESULTS_DIR / "calibration.png"), help="PNG plot (default %(default)s)")
     p.add_argument("--no-record", action="store_true", help="do not write the figures into the graph")
     p.add_argument("--json", action="store_true", help="print the results as JSON")
@@ -156,14 +166,22 @@ def _register_calibrate(sub: argparse._SubParsersAction) -> None:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from kgadapt.onboard.calibration import CONDITIONS, CalibrationSettings, run_calibration
+    from kgadapt.onboard.calibration import CONDITIONS, RESULTS_DIR, CalibrationSettings, run_calibration
 
+    progress = None if args.json else (lambda line: print(line, file=sys.stderr, flush=True))
+    if args.frames_from:
+        return _calibrate_frames(args, progress)
     conditions = tuple(c.strip() for c in args.conditions.split(",")) if args.conditions else tuple(CONDITIONS)
     settings = CalibrationSettings(frames_per_level=args.frames, levels_per_band=args.levels,
                                    jpeg_quality=args.quality, conditions=conditions)
-    progress = None if args.json else (lambda line: print(line, file=sys.stderr, flush=True))
+    site = None
+    if args.site:
+        from kgadapt.onboard.site import load_site
+
+        site = load_site(args.site)
+    out = RESULTS_DIR / "calibration.json" if args.out is None else args.out
     data = run_calibration(args.store, feature=args.feature, settings=settings, write_store=not args.no_record,
-                           json_path=args.out or None, plot_path=args.plot or None, progress=progress)
+                           json_path=out or None, plot_path=args.plot or None, progress=progress, site=site)
     if args.json:
         print(json.dumps(data, indent=2))
         return 0
@@ -174,6 +192,30 @@ def _calibrate(args: argparse.Namespace) -> int:
     for key in ("json", "plot"):
         if key in data:
             print(f"wrote {data[key]}")
+    return 0
+
+
+def _calibrate_frames(args: argparse.Namespace, progress: Any) -> int:
+    from kgadapt.onboard.calibration import RESULTS_DIR
+    from kgadapt.onboard.recorded_calibration import AgreementSettings, run_frame_calibration
+
+    out = RESULTS_DIR / "calibration_frames.json" if args.out is None else args.out
+    data = run_frame_calibration(args.store, args.frames_from, feature=args.feature,
+                                 settings=AgreementSettings(min_configs=args.agree), write_store=not args.no_record,
+                                 json_path=out or None, progress=progress)
+    if args.json:
+        print(json.dumps(data, indent=2))
+        return 0
+    labels = data["labels"]
+    print(f"{data['source']}: frames per band {labels['frames_per_band']}, {labels['frames_outside']} outside every band")
+    print("markers agreed on: " + ("; ".join(f"{d}: {ids}" for d, ids in labels["real"].items()) or "none"))
+    for r in data["results"]:
+        print(f"  {r['config']:28s} {r['band']:6s} rate {r['detection_rate']:6.1%} of {r['markers']:5d} agreed, "
+              f"false/frame {r['false_per_frame']:6.3f}, {r['ms_per_frame']:6.2f} ms/frame")
+    if data["recorded"]:
+        print(f"recorded {len(data['results'])} CALIBRATED relations (source {data['source']}) in {data['store']}")
+    if "json" in data:
+        print(f"wrote {data['json']}")
     return 0
 
 

@@ -120,6 +120,14 @@ def _settings(cls: type[Step]) -> dict[str, Setting]:
 OPS: dict[str, dict[str, Setting]] = {op: _settings(cls) for op, cls in STEPS.items()}
 
 
+DICTIONARY_FILE_SUFFIXES = (".yml", ".yaml")
+
+
+def is_dictionary_file(name: str) -> bool:
+    """Whether a ``dictionary`` setting names a file of OpenCV's dictionary format rather than a DICT_* name."""
+    return name.lower().endswith(DICTIONARY_FILE_SUFFIXES)
+
+
 def read_settings(data: object, where: str, *, dictionary: str | None = None) -> DetectorSettings:
     """Check a decoded ``config_json``; ConfigError starting with ``where`` says what is wrong.
 

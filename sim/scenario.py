@@ -36,7 +36,7 @@ import math
 from dataclasses import dataclass, field, fields, replace
 from enum import Enum
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -81,12 +81,15 @@ class CameraModel:
     read_noise: float = 3.0  # electrons, sigma
     blur_px: float = 0.0
     blur_angle: float = 0.0
+    lens_sigma: float = 0.0  # the lens's blur (a Gaussian point spread, pixels): a real frame's edges are never a step
 
     def __post_init__(self) -> None:
         if not 10 <= self.full_well <= 1e6 or not 0 <= self.read_noise <= 1000:
             raise ConfigError(f"camera model: full_well {self.full_well} in [10, 1e6], read_noise {self.read_noise} in [0, 1000]")
         if not 0 <= self.blur_px <= 64:
             raise ConfigError(f"camera model: blur_px {self.blur_px} outside [0, 64]")
+        if not 0 <= self.lens_sigma <= 8:
+            raise ConfigError(f"camera model: lens_sigma {self.lens_sigma} outside [0, 8]")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -118,6 +121,9 @@ class LightLayout:
             raise ConfigError("light layout: spot_gain in [0, 1000]")
 
 
+LAYOUTS = ("default", "photos")  # the marker layouts a scene may use (SceneOptions.layout)
+
+
 @dataclass(frozen=True, kw_only=True)
 class SceneOptions:
     """What a profile changes in the scene: marker size, and printed patterns that are not the site's markers.
@@ -125,7 +131,10 @@ class SceneOptions:
     ``other_dict``: markers of another dictionary (DICT_6X6_250); ``charuco``:
     ChArUco-like boards (a chessboard with 6x6 markers in its white squares);
     ``texture``: patches of random high-contrast texture. ``markers: false``
-    leaves the site's markers out (scenes for phantom counts).
+    leaves the site's markers out (scenes for phantom counts). ``layout``:
+    ``default`` (six markers of 60-125 px) or ``photos`` (:data:`PHOTO_MARKERS`:
+    thirteen of 21-46 px, the small ones on a chessboard, as the real
+    photographs show them).
     """
 
     marker_scale: float = 1.0
@@ -133,10 +142,13 @@ class SceneOptions:
     other_dict: int = 0
     charuco: int = 0
     texture: int = 0
+    layout: str = "default"
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.marker_scale <= 3:
             raise ConfigError(f"scene: marker_scale {self.marker_scale} outside [0.05, 3]")
+        if self.layout not in LAYOUTS:
+            raise ConfigError(f"scene: layout {self.layout!r} is not one of {', '.join(LAYOUTS)}")
         for name in ("other_dict", "charuco", "texture"):
             if not 0 <= getattr(self, name) <= 20:
                 raise ConfigError(f"scene: {name} {getattr(self, name)} outside [0, 20]")
@@ -208,6 +220,8 @@ def camera_expose(
     linear = lit * gain
     if window is not None and window.any():
         linear[window] = window_gain
+    if camera.lens_sigma > 0:
+        linear = cv2.GaussianBlur(linear, (0, 0), camera.lens_sigma, borderType=cv2.BORDER_REFLECT)
     if camera.blur_px > 1:
         linear = cv2.filter2D(linear, -1, motion_kernel(camera.blur_px, camera.blur_angle), borderType=cv2.BORDER_REFLECT)
     electrons = np.maximum(linear, 0.0) * camera.full_well
@@ -552,6 +566,7 @@ class MarkerPose:
     roll: float = 0.0
     yaw: float = 0.0
     pitch: float = 0.0
+    on_board: bool = False  # printed in a chessboard's white square (a ChArUco board), see SceneSettings.board
 
 
 DEFAULT_MARKERS: tuple[MarkerPose, ...] = (
@@ -562,6 +577,58 @@ DEFAULT_MARKERS: tuple[MarkerPose, ...] = (
     MarkerPose(33, 0.62, 0.70, 0.26, roll=15),
     MarkerPose(42, 0.88, 0.74, 0.13, roll=-40, pitch=25),
 )
+
+
+def _photo_markers() -> tuple[MarkerPose, ...]:
+    # Sides (px at 480 rows) spread as the markers of the real photographs (sim/photographs) are at 640x480:
+    # nine of 21-30 px in a chessboard's white squares (the ChArUco boards), four of 34-46 px on their own.
+    sides = (21, 22, 23, 24, 25, 26, 27, 28, 30, 34, 38, 42, 46)
+    rng = np.random.default_rng(1)
+    out = []
+    for i, side in enumerate(sides):
+        x, y = 0.08 + 0.84 * ((i % 5) + 0.5) / 5, 0.1 + 0.8 * ((i // 5) + 0.5) / 3
+        roll, yaw, pitch = (float(v) for v in rng.uniform(-1, 1, 3) * (10, 15, 15))
+        out.append(MarkerPose(i * 17 % 250, x, y, side / 480, roll=roll, yaw=yaw, pitch=pitch, on_board=side < 32))
+    return tuple(out)
+
+
+# The markers as the real photographs show them: the calibration's blur condition uses these (docs/perception.md).
+PHOTO_MARKERS: tuple[MarkerPose, ...] = _photo_markers()
+PHOTO_QUIET_ZONE = 0.15
+
+
+def markers_for(dictionary_size: int, ids: Sequence[int] = (), sizes_m: Mapping[int, float] | None = None,
+                poses: Sequence[MarkerPose] = DEFAULT_MARKERS) -> tuple[MarkerPose, ...]:
+    """The scene's markers for a dictionary of ``dictionary_size`` markers, or for a site's ``ids`` and sizes.
+
+    Without ids, the default ids that the dictionary has, and for the others ids
+    spread over the dictionary (a 35-marker custom dictionary has no id 42).
+    With a site's ids, its first ones (as many as there are poses) take the
+    poses, and a marker printed smaller than the site's largest appears
+    smaller by as much (at the same distance).
+    """
+    if dictionary_size < 1:
+        raise ConfigError(f"a dictionary of {dictionary_size} markers")
+    if ids:
+        chosen = sorted({int(i) for i in ids if 0 <= int(i) < dictionary_size})[: len(poses)]
+        if not chosen:
+            raise ConfigError(f"none of the site's ids {sorted(ids)[:6]} is in a dictionary of {dictionary_size} markers")
+        known = [sizes_m[i] for i in chosen if sizes_m and sizes_m.get(i)]
+        largest = max(known) if known else 0.0
+        out = []
+        for pose, marker_id in zip(poses, chosen):
+            factor = (sizes_m[marker_id] / largest) if largest and sizes_m and sizes_m.get(marker_id) else 1.0
+            out.append(replace(pose, id=marker_id, size=min(max(pose.size * factor, 0.05), 0.6)))
+        return tuple(out)
+    taken: set[int] = set()
+    out = []
+    for k, pose in enumerate(poses):
+        marker_id = pose.id if pose.id < dictionary_size else (k * 7 + 3) % dictionary_size
+        while marker_id in taken:
+            marker_id = (marker_id + 1) % dictionary_size
+        taken.add(marker_id)
+        out.append(replace(pose, id=marker_id))
+    return tuple(out[:dictionary_size])
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -579,12 +646,18 @@ class SceneSettings:
     other_dict: int = 0  # markers of DICT_6X6_250 printed in the background
     charuco: int = 0  # ChArUco-like boards in the background
     texture: int = 0  # patches of random high-contrast texture
+    quiet_zone: float = 0.25  # white margin around each marker, as a fraction of its side
+    board: float = 0.15  # markers on_board: the chessboard's black squares beside theirs, this deep (x side)
     seed: int = 1
 
     def with_options(self, options: "SceneOptions") -> "SceneSettings":
         """These settings as a profile's ``scene`` object changes them."""
-        return replace(self, markers=self.markers if options.markers else (), marker_scale=options.marker_scale,
-                       other_dict=options.other_dict, charuco=options.charuco, texture=options.texture)
+        markers, quiet = self.markers, self.quiet_zone
+        if options.layout == "photos":
+            markers, quiet = PHOTO_MARKERS, PHOTO_QUIET_ZONE
+        return replace(self, markers=markers if options.markers else (), marker_scale=options.marker_scale,
+                       other_dict=options.other_dict, charuco=options.charuco, texture=options.texture,
+                       quiet_zone=quiet)
 
 
 @dataclass(frozen=True)
@@ -609,7 +682,7 @@ class RenderedFrame:
     extras: dict[str, Any] = field(default_factory=dict)
 
 
-_WHITE, _BLACK, _QUIET = 0.92, 0.04, 0.25  # reflectances; quiet zone as a fraction of the side
+_WHITE, _BLACK = 0.92, 0.04  # reflectances
 
 
 class SyntheticScene:
@@ -634,11 +707,17 @@ class SyntheticScene:
         for pose in self._poses:
             side = max(16, int(round(pose.size * h * 1.2)))
             code = cv2.aruco.generateImageMarker(dictionary, pose.id, side).astype(np.float32) / 255.0
-            quiet = int(round(side * _QUIET))
-            patch = np.ones((side + 2 * quiet, side + 2 * quiet), np.float32)
-            patch[quiet:quiet + side, quiet:quiet + side] = code
+            quiet = int(round(side * settings.quiet_zone))
+            ring = int(round(side * settings.board)) if pose.on_board else 0
+            pad = quiet + ring
+            patch = np.ones((side + 2 * pad, side + 2 * pad), np.float32)
+            if ring:
+                # The chessboard squares beside the marker's white square are black; those at its corners white.
+                inner = slice(ring, ring + side + 2 * quiet)
+                patch[:ring, inner] = patch[-ring:, inner] = patch[inner, :ring] = patch[inner, -ring:] = 0.0
+            patch[pad:pad + side, pad:pad + side] = code
             patch = _BLACK + (_WHITE - _BLACK) * patch
-            self._patches[pose.id] = (patch, float(quiet), side)
+            self._patches[pose.id] = (patch, float(pad), side)
 
     def _make_background(self, cv2: Any, w: int, h: int) -> np.ndarray:
         # Low-contrast blotches (a floor or wall) plus dark squares without a valid code.

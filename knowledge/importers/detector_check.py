@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from kgadapt.shared.errors import ModelError
+from kgadapt.shared.preprocessing import is_dictionary_file
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,8 @@ def verdicts(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
     if opencv is None or not opencv.origin:
         return [None] * len(configs)  # no OpenCV here: the detector program checks at start
     identity = _identity(opencv.origin)
-    keys = [hashlib.sha256(json.dumps([identity, name, config]).encode()).hexdigest() for name, config in configs]
+    keys = [hashlib.sha256(json.dumps([identity, name, config, _dictionary_file(config)]).encode()).hexdigest()
+            for name, config in configs]
     for key in keys:
         if key not in _memory:
             found = _read(key)
@@ -75,6 +77,20 @@ def _identity(opencv_origin: str) -> list[Any]:
         if spec is not None and spec.origin:
             digest.update(Path(spec.origin).read_bytes())
     return [opencv_origin, stat.st_size, stat.st_mtime_ns, digest.hexdigest()]
+
+
+def _dictionary_file(config: str) -> str | None:
+    """A digest of the dictionary file a configuration names: a changed file is asked about again."""
+    try:
+        name = json.loads(config).get("dictionary")
+    except (ValueError, AttributeError):
+        return None
+    if not isinstance(name, str) or not is_dictionary_file(name):
+        return None
+    try:
+        return hashlib.sha256(Path(name).read_bytes()).hexdigest()
+    except OSError:
+        return "unreadable"
 
 
 def _read(key: str) -> tuple[Verdict] | None:

@@ -20,6 +20,7 @@ Blocks open with ``rpsl.KIND do`` and close with ``end``::
       cpu_load 30
       ms_per_frame 4
       dictionary "DICT_4X4_50"          # makes it a marker detector: config_json is built
+                                        # (or "site_dict.yml": OpenCV's dictionary file, beside this file)
       parameter "adaptiveThreshConstant", 7
       preprocess :gamma, gamma: 0.5     # run in the order written
     end
@@ -45,6 +46,7 @@ and line.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from kgadapt.knowledge import schema as S
@@ -182,10 +184,8 @@ def _statement(b: _Block, st: Statement) -> None:
         expect_args(st, 1, "fps NUMBER")
         _once(b, st, "fps", number_arg(st, st.args[0], "fps", positive=True))
     elif b.kind == "rpsl.processing_component" and kw == "dictionary":
-        expect_args(st, 1, 'dictionary "DICT_4X4_50"')
-        value = name_arg(st, st.args[0], "dictionary")
-        if not value.startswith("DICT_"):
-            raise st.origin.error(f"dictionary {value!r} is not an ArUco dictionary name (DICT_...)")
+        expect_args(st, 1, 'dictionary "DICT_4X4_50" or dictionary "FILE.yml"')
+        value = _dictionary(st)
         _once(b, st, "dictionary", value)
         b.origins["dictionary"] = st.origin
     elif b.kind == "rpsl.processing_component" and kw == "parameter":
@@ -224,6 +224,26 @@ def _statement(b: _Block, st: Statement) -> None:
         b.connects.append((names[0], names[1], names[2], names[3], st.origin))
     else:
         raise st.origin.error(f"unknown statement {kw!r} in {b.kind} block")
+
+
+def _dictionary(st: Statement) -> str:
+    """A DICT_* name, or an OpenCV dictionary file (relative to the model file) as its absolute path.
+
+    Whether the file holds a dictionary is OpenCV's to say (:func:`_check_detectors`); that it
+    is there is said here, so a missing file is named even where OpenCV is not installed.
+    """
+    raw = st.args[0]
+    if isinstance(raw, str) and not isinstance(raw, Symbol) and preprocessing.is_dictionary_file(raw):
+        text = text_arg(st, raw, "dictionary file")
+        path = Path(text) if Path(text).is_absolute() else Path(st.origin.path).parent / text
+        if not path.is_file():
+            raise st.origin.error(f"dictionary file {text!r} not found (looked for {path})")
+        return str(path.resolve())
+    value = name_arg(st, raw, "dictionary")
+    if not value.startswith("DICT_"):
+        raise st.origin.error(f"dictionary {value!r} is neither an ArUco dictionary name (DICT_...) "
+                              f"nor a dictionary file ({', '.join(preprocessing.DICTIONARY_FILE_SUFFIXES)})")
+    return value
 
 
 def _once(b: _Block, st: Statement, key: str, value: Any) -> None:

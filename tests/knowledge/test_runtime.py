@@ -66,6 +66,30 @@ def test_a_profile_of_an_unknown_deployment_is_still_recorded_without_dangling_l
     assert (row["d"], row["m"], row["links"]) == ("ghost", 1.0, ["RAN_ON"])
 
 
+def test_a_recording_figures_sit_beside_the_synthetic_ones_and_an_unnamed_old_one_is_taken_as_synthetic(known_store):
+    from kgadapt.knowledge.queries import run_named
+
+    # A relation written before sources were named.
+    known_store.execute("MATCH (g:PerceptionGraph {name: $g}), (b:IlluminationBand {name: $b}) "
+                        "CREATE (g)-[:CALIBRATED {condition: $c, detection_rate: 0.5, false_per_frame: 0.0, "
+                        "ms_per_frame: 6.0, at: 1.0}]->(b)", {"g": "g_a", "b": "day", "c": "all"})
+    before = run_named(known_store, "config_ranking", {"band": "day"})
+    R.record_calibration(known_store, config="g_a", band="day", detection_rate=0.9, ms_per_frame=5.0, time=2.0,
+                         source="frames:flight-7")
+    rows = known_store.execute("MATCH (:PerceptionGraph {name: $g})-[c:CALIBRATED]->(:IlluminationBand {name: $b}) "
+                               "RETURN c.source AS source, c.detection_rate AS rate ORDER BY source",
+                               {"g": "g_a", "b": "day"})
+    assert rows == [{"source": "frames:flight-7", "rate": 0.9}, {"source": "synthetic", "rate": 0.5}]
+    after = run_named(known_store, "config_ranking", {"band": "day"})
+    recorded = run_named(known_store, "config_ranking", {"band": "day",
+                                                         "source": "frames:flight-7"})
+    assert [r["detection_rate"] for r in before] == [r["detection_rate"] for r in after] == [0.5]
+    assert [r["detection_rate"] for r in recorded] == [0.9]
+    R.record_calibration(known_store, config="g_a", band="day", detection_rate=0.7, ms_per_frame=5.0, time=3.0)
+    assert [r["detection_rate"] for r in run_named(known_store, "config_ranking",
+                                                   {"band": "day"})] == [0.7]
+
+
 def test_calibration_is_one_relation_per_configuration_and_band_replaced_by_the_next(known_store):
     R.record_calibration(known_store, config="g_a", band="day", detection_rate=0.5, false_rate=0.1,
                          ms_per_frame=6.0, time=1.0)
