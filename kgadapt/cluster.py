@@ -86,6 +86,9 @@ class ClusterSettings:
     # None: their default (peer). "client" sends all traffic through the service's router.
     agent_mode: str | None = None
     env: tuple[tuple[str, str], ...] = ()  # extra environment of every child (e.g. ZENOH_RUNTIME)
+    # The camera as a process of its own ("camera": kgadapt perception camera) instead of a part of the
+    # onboard agent, so the agent (its adaptation manager) can be stopped while frames keep coming.
+    camera_process: bool = False
 
 
 @dataclass(frozen=True)
@@ -152,9 +155,15 @@ class LocalCluster:
             self._spawn("remote", self.kgadapt("remote", "--robot", s.robot, "--host", "remote",
                                                "--memory-budget", s.remote_budget, *connect, *s.extra_remote_args),
                         host="remote")
+            source = f"synthetic:{s.profile}" if s.profile else "synthetic"
             onboard = ["onboard", "--robot", s.robot, "--host", "onboard", "--memory-budget", s.onboard_budget,
-                       "--camera-source", f"synthetic:{s.profile}" if s.profile else "synthetic",
-                       "--fps", str(s.fps), "--scenario-speed", str(s.scenario_speed), *connect]
+                       *connect]
+            if s.camera_process:
+                self._spawn("camera", self.kgadapt("perception", "camera", "--robot", s.robot, "--source", source,
+                                                   "--fps", str(s.fps), "--speed", str(s.scenario_speed), *connect),
+                            ready=False, host="onboard")
+            else:
+                onboard += ["--camera-source", source, "--fps", str(s.fps), "--scenario-speed", str(s.scenario_speed)]
             if s.fake_fc:
                 fc = ["flight", "fake-fc", "--url", f"udpout:127.0.0.1:{self.fc_port}", "--armed"]
                 if s.land_after_s is not None:

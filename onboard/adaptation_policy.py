@@ -60,6 +60,7 @@ class AdaptationSettings:
     standby: bool = False  # keep the neighbouring band's configuration started but idle where a host has room
     standby_check_s: float = 1.0  # how often the standby is checked against the graph
     startup_poll_s: float = 0.2  # nothing runs yet: how often the first placement is reconsidered without news
+    reflex_hold_s: float = 2.0  # after a detector's reflex, how long the smoothed light is given to agree
     history_size: int = 1000  # decisions kept in memory (``AdaptationManager.history``); the graph has them all
 
     def __post_init__(self) -> None:
@@ -93,6 +94,29 @@ def after_change(state: LoopState, plan: Plan, *, wall: float, settle_s: float) 
     return dataclasses.replace(state, changed_at=wall, settled_after=wall + settle_s, held_checked=0.0,
                                expected=(plan.target.config, plan.inputs.get("band"),
                                          float(rate) if rate is not None else None))
+
+
+def after_reflex(state: LoopState, *, config: str, band: str | None, rate: float | None, wall: float,
+                 settle_s: float) -> LoopState:
+    """The running detector took ``config`` on its own (a reflex): what is expected of it now."""
+    return dataclasses.replace(state, changed_at=wall, settled_after=wall + settle_s,
+                               expected=(config, band, rate))
+
+
+def reflex_trigger_detail(m: Mapping[str, Any]) -> dict[str, Any]:
+    """A ``reflex`` trigger's detail from the detector's message: its inputs, as ``why`` shows them."""
+    keep = ("evidence", "previous", "config", "band", "from_band", "level", "elsewhere")
+    return {k: m[k] for k in keep if m.get(k) is not None}
+
+
+REFLEX_MESSAGE_WAIT_S = 0.5  # a reflex seen in detections waits this long for its own message
+
+
+def reflex_message_overdue(pending: tuple[int, float] | None, count: int, now: float) -> bool:
+    """The detections show a reflex (``count``) whose message has not come in ``REFLEX_MESSAGE_WAIT_S``
+    since they first did: act on the detections (the message goes from another thread of the detector,
+    so it may come a frame after them; lost, it never comes)."""
+    return pending is not None and count >= pending[0] and now - pending[1] >= REFLEX_MESSAGE_WAIT_S
 
 
 def held_refresh(state: LoopState, *, wall: float, every_s: float, force: bool = False) -> LoopState | None:
