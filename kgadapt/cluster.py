@@ -89,6 +89,7 @@ class ClusterSettings:
     # The camera as a process of its own ("camera": kgadapt perception camera) instead of a part of the
     # onboard agent, so the agent (its adaptation manager) can be stopped while frames keep coming.
     camera_process: bool = False
+    models: Path | None = None  # the model folder to load (None: the shipped models)
 
 
 @dataclass(frozen=True)
@@ -129,7 +130,7 @@ class LocalCluster:
         s = self.settings
         s.workdir.mkdir(parents=True, exist_ok=True)
         out = []
-        steps = [self.kgadapt("knowledge", "load", str(models()), "--store", self.store_url)]
+        steps = [self.kgadapt("knowledge", "load", str(s.models or models()), "--store", self.store_url)]
         if s.calibrate:
             steps.append(self.kgadapt("perception", "calibrate", "--store", self.store_url,
                                       "--out", str(s.workdir / "calibration.json"),
@@ -394,6 +395,17 @@ class HostNetwork:
 
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
+
+
+def models_without_in_place(folder: Path) -> Path:
+    """A copy of the shipped models in ``folder`` whose detector deployments may not change in place (no
+    ``reconfigurable_as``): every change of configuration is a new process, as the graph says."""
+    shutil.copytree(models(), folder, dirs_exist_ok=True)
+    for path in (folder / "deployments").iterdir():
+        lines = path.read_text().splitlines(keepends=True)
+        path.write_text("".join(line for line in lines if not line.lower().replace(" ", "").startswith(
+            ("reconfigurable_as:", "reconfigurableas="))))
+    return folder
 
 
 def write_profile(path: Path, points: list[list[float]], *, loop: bool = False) -> str:

@@ -1,8 +1,8 @@
 """What happened during a run, as seen on the Zenoh network: the demo's timeline.
 
 :class:`Recorder` subscribes (callbacks only append under a lock) to
-illumination, host status, the adaptation manager's decisions and every
-detector's detections, and can print decisions live. Afterwards it answers:
+illumination, host status, the adaptation manager's decisions, every
+detector's detections and reflexes, and can print decisions and reflexes live. Afterwards it answers:
 detection rate over time, frames that no detector processed around each
 planned migration, the summary table, and a PNG timeline.
 """
@@ -55,12 +55,28 @@ class LightStep:
 
 
 @dataclass
+class ReflexSeen:
+    """A detector's own switch (or report) as it put it on its ``reflex`` key."""
+
+    time: float  # when the detector put it
+    instance: str
+    previous: str
+    config: str | None  # None: nothing it may take in place is for the band
+    band: str
+    evidence: str
+    level: float | None
+    seq: int
+    frame_time: float
+
+
+@dataclass
 class Recorder:
     """Records one robot's run. ``setup(session)`` subscribes; ``shutdown()`` stops."""
 
     robot: str
     camera: str = "cam0"
     on_decision: Callable[[Decision], None] | None = None
+    on_reflex: Callable[[ReflexSeen], None] | None = None
     t0: float = field(default_factory=time.time)
     light: list[tuple[float, float, int]] = field(default_factory=list)  # (time, smoothed level, frame seq)
     memory: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # host -> (time, free MiB)
@@ -70,6 +86,9 @@ class Recorder:
     # per frame: seq -> (capture time, the scenario's light level, marker ids it shows)
     frames: dict[int, tuple[float, float | None, frozenset[int]]] = field(default_factory=dict)
     found: list[tuple[int, float, frozenset[int]]] = field(default_factory=list)  # (seq, published, ids)
+    reflexes: list[ReflexSeen] = field(default_factory=list)
+    # per detection: (time, processing ms of the published configuration, ms of the hedge run beside it or 0)
+    work: list[tuple[float, float, float]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self._lock = threading.Lock()
@@ -84,6 +103,7 @@ class Recorder:
                                   (keys.host_status(r), self._on_status),
                                   (keys.adaptation_events(r), self._on_event),
                                   (keys.detector_markers(r), self._on_detections),
+                                  (keys.detector_reflex(r), self._on_reflex),
                                   (keys.camera_frame(r, self.camera), self._on_frame)):
                 rpc.declared(stack, session.declare_subscriber(key, callback))
             self._stack = stack.pop_all()
@@ -123,8 +143,34 @@ class Recorder:
                                         int(m["seq"]), len(m["ids"])))
                 self._detected_seqs.add(int(m["seq"]))
                 self._dropped[(str(m["instance"]), int(m["seq"]))] = int(m.get("dropped") or 0)
+                self.work.append((time.time(), float(m["processing_ms"]), float(m.get("hedge_ms") or 0.0)))
                 if m["ids"]:
                     self.found.append((int(m["seq"]), float(m["time"]), frozenset(int(i) for i in m["ids"])))
+
+    def _on_reflex(self, sample: Any) -> None:
+        m = self._decode(sample, "reflex")
+        if not m:
+            return
+        seen = ReflexSeen(time=float(m["time"]), instance=str(m["instance"]), previous=str(m["previous"]),
+                          config=m.get("config"), band=str(m["band"]), evidence=str(m["evidence"]),
+                          level=m.get("level"), seq=int(m["seq"]), frame_time=float(m["frame_time"]))
+        with self._lock:
+            self.reflexes.append(seen)
+        if self.on_reflex:
+            self.on_reflex(seen)
+
+    def hedging(self) -> dict[str, Any]:
+        """What hedging cost: ms per processed frame on average, the share of frames hedged, and ms per
+        hedged frame (the second configuration's detection time)."""
+        with self._lock:
+            work = list(self.work)
+        if not work:
+            return {"frames": 0}
+        hedged = [h for _, _, h in work if h > 0]
+        return {"frames": len(work), "hedged_share": round(len(hedged) / len(work), 4),
+                "hedge_ms_per_frame": round(sum(hedged) / len(work), 3),
+                "hedge_ms_when_hedged": round(sum(hedged) / len(hedged), 3) if hedged else None,
+                "detect_ms_per_frame": round(sum(p for _, p, _ in work) / len(work), 3)}
 
     def _on_frame(self, sample: Any) -> None:
         m = self._decode(sample, "frame")
@@ -275,7 +321,7 @@ class Recorder:
         self.attribute_losses()
         return [{
             "t_s": round(d.time - self.t0, 1), "trigger": d.trigger[:44], "chosen": f"{d.config}@{d.host}",
-            "outcome": d.outcome.split(":")[0], "latency_ms": d.latency_ms, "frames_lost": d.frames_lost,
+            "outcome": d.outcome.split(":")[0].split(";")[0], "latency_ms": d.latency_ms, "frames_lost": d.frames_lost,
             "busy_drops": d.frames_dropped,
         } for d in self.decisions]
 
@@ -293,6 +339,7 @@ class Recorder:
             memory = {h: list(v) for h, v in self.memory.items()}
             decisions = list(self.decisions)
             marks = list(self.marks)
+            reflexes = list(self.reflexes)
         t0 = self.t0
         fig, axes = plt.subplots(5, 1, figsize=(11, 10), sharex=True,
                                  gridspec_kw={"height_ratios": [2, 1, 1, 1.3, 1.5]})
@@ -335,12 +382,16 @@ class Recorder:
         for d in decisions:
             for a in axes:
                 a.axvline(d.time - t0, color="red", lw=0.6, alpha=0.6)
+        for seen in reflexes:
+            for a in axes:
+                a.axvline(seen.time - t0, color="blue", lw=0.6, ls=":", alpha=0.8)
+            axes[1].text(seen.time - t0, 0, f" reflex: {seen.band}", fontsize=7, color="blue", rotation=90, va="bottom")
         for t, text in marks:
             for a in axes:
                 a.axvline(t - t0, color="black", lw=0.8, ls="--", alpha=0.7)
             axes[4].text(t - t0, axes[4].get_ylim()[1] * 0.9, " " + text, fontsize=7)
         fig.suptitle("kgadapt demo: illumination, chosen detector, host, detection rate, free memory "
-                     "(red: adaptation decisions)", fontsize=10)
+                     "(red: adaptation decisions; blue dotted: the detector's reflexes)", fontsize=10)
         fig.tight_layout()
         path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, dpi=90)

@@ -641,8 +641,11 @@ class AdaptationManager:
         elif kept:
             self._record(Outcome(trigger=trigger, plan=shown, outcome="kept: the reflex changed nothing"))
         if self.landing:
-            if not kept:
+            if not kept and trigger.kind not in self._deferred:  # one per descent, as for any kind of change
+                self._deferred.add(trigger.kind)
                 self._record(Outcome(trigger=trigger, outcome="deferred: final descent"))
+            elif not kept:
+                log.info("adaptation: %s deferred again (final descent)", trigger.describe())
             return True
         return kept or plan is None
 

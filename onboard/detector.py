@@ -224,7 +224,7 @@ class Detector:
         self._reflexes: tuple[Any, dict[str, Any]] | None = None
         self._reflex_generation = 0  # the generation the reflex last knew of
         self._own_generations: set[int] = set()  # generations the reflex made (not the manager's)
-        self.reflexes = 0  # switches made on the detector's own evidence
+        self.reflexes = 0  # reflexes so far: switches made on its own evidence, and bands it could not take
         self._hedge_ms: dict[str, float] = {}  # measured ms per frame of each configuration run as a hedge
         self._seen_markers: tuple[float, list[Any]] = (0.0, [])  # (time, corners) of the last markers found
         self._reflex_pub: Any = None
@@ -413,13 +413,13 @@ class Detector:
                      config: Any) -> tuple[Any, Any, int]:
         """Carry a reflex out between two frames, tell the manager and the deployer; the new active triple."""
         active = self._active
+        self.reflexes += 1  # switches and reports alike: the manager counts them
         if swap.config is not None and swap.config in cores:
             core = cores[swap.config]
             active = (core.config, core, active[2] + 1)
             self._own_generations.add(active[2])
             self._reflex_generation = active[2]
             self._active = active
-            self.reflexes += 1
             if swap.deployment:
                 self.deployment = swap.deployment
                 print(f"{CONFIGURED_TOKEN} {swap.config} {swap.deployment}", flush=True)  # the deployer's record

@@ -14,8 +14,8 @@ gives and says what to run:
   configuration of that band may run here in place, say so (``Swap`` with no
   configuration: the manager starts one elsewhere);
 * collapse: markers were seen within ``memory_s`` and the last
-  ``collapse_frames`` frames found none: try the next candidate (evidence
-  ``collapse``);
+  ``collapse_frames`` frames found none: try the next candidate once (evidence
+  ``collapse``), and go back (``revert``) when it finds nothing either;
 * evidence, not waiting, is the hysteresis: after a switch the previous
   configuration runs beside the new one on the same frames (a hedge, within the
   graph's ms-per-frame budget) for ``trial_frames``; the new one stays when it
@@ -192,6 +192,7 @@ class Reflex:
     misses: int = 0
     muted: bool = False  # a collapse was tried: none again until markers are seen
     trial: tuple[str, int] | None = None  # (previous configuration, frames left to run it beside)
+    trying: str | None = None  # after a collapse: the previous configuration, to go back to if the try finds nothing
     wins: int = 0  # frames in a row the hedge found markers and the running one did not
     swaps: int = 0
 
@@ -237,11 +238,13 @@ class Reflex:
                   level: float | None = None) -> Swap | None:
         """What the running configuration (and the hedge, if one ran) found on this frame; a Swap when
         the evidence says to change."""
+        expired = False
         if self.trial is not None:
             previous, left = self.trial
             self.trial = (previous, left - 1) if left > 1 else None
+            expired = self.trial is None
         if found > 0:
-            self.last_seen, self.misses, self.muted, self.wins = now, 0, False, 0
+            self.last_seen, self.misses, self.muted, self.wins, self.trying = now, 0, False, 0, None
             if self.trial is not None and hedge == self.trial[0]:
                 self.trial = None  # the new one finds the markers: it stays
             return None
@@ -251,12 +254,18 @@ class Reflex:
                 choice = self.table.choices().get(hedge)
                 if choice is not None:
                     reverting = self.trial is not None and hedge == self.trial[0]
-                    self.trial = None
+                    self.trial, self.trying = None, None
                     self.last_seen, self.misses = now, 0
                     return self._swap(choice, ReflexEvidence.REVERT if reverting else ReflexEvidence.HEDGE, level,
                                       trial=False)
             return None
         self.wins = 0
+        if expired and self.trying is not None:
+            # The try after a collapse found nothing either: back to the band's own choice, no cascade.
+            back = self.table.choices().get(self.trying)
+            self.trying = None
+            if back is not None:
+                return self._swap(back, ReflexEvidence.REVERT, level, trial=False)
         if self.muted or self.last_seen is None or now - self.last_seen > self.settings.memory_s:
             return None
         self.misses += 1
@@ -265,7 +274,10 @@ class Reflex:
         self.misses = 0
         self.muted = True  # one try per collapse: no cascade down the table
         nxt = self._next_candidate(level)
-        return None if nxt is None else self._swap(nxt, ReflexEvidence.COLLAPSE, level)
+        if nxt is None:
+            return None
+        self.trying = self.running
+        return self._swap(nxt, ReflexEvidence.COLLAPSE, level)
 
     def _next_candidate(self, level: float | None) -> Choice | None:
         """After a collapse: the band's other choices, then the neighbouring bands' best, nearest first."""
@@ -297,6 +309,6 @@ class Reflex:
     def taken(self, config: str, level: float | None = None) -> None:
         """The detector was told to run ``config`` (an in-place change from the manager): follow it."""
         self.running = config
-        self.trial, self.wins, self.misses = None, 0, 0
+        self.trial, self.trying, self.wins, self.misses = None, None, 0, 0
         if level is not None and math.isfinite(level) and self.table.entries:
             self.band = self.table.band_of(level).band.name
