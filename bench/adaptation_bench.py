@@ -157,7 +157,8 @@ def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cp
     others = [d for d in rec.decisions if d.kind not in (TriggerKind.STARTUP, TriggerKind.STANDBY) and d not in changes
               and not d.outcome.startswith("kept")]
     return {"steps": steps, "changes": changes, "others": others, "baseline": rec.baseline_loss(),
-            "hedging": rec.hedging(), "reflexes": len(rec.reflexes)}
+            "hedging": rec.hedging(), "reflexes": len(rec.reflexes), "pipeline": rec.pipeline_ms(),
+            "reflex_frames": rec.reflex_frames(steps)}
 
 
 def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, standby: bool = False) -> list[float]:
@@ -309,6 +310,16 @@ def _records(result: dict[str, Any], *, store: str, how: str, onboard: str) -> l
                                unit="frames", total=sum(lost), target=0, other_decisions=len(result["others"]),
                                steady_state_unanswered=base_lost, steady_state_frames=base_frames,
                                busy_drops_around_changes=sum(d.frames_dropped or 0 for d in changes), **common))
+    if result.get("pipeline"):
+        out.append(make_record(store=store, n=None, op="pipeline_latency", samples_ms=result["pipeline"],
+                               what="every frame: capture -> published detections with a marker it shows (camera, "
+                                    "transport, JPEG decode, light estimate, detection): the floor of any blind time",
+                               **common))
+    if result.get("reflex_frames"):
+        out.append(make_record(store=store, n=None, op="frames_to_reflex", unit="frames",
+                               samples_ms=[float(x) for x in result["reflex_frames"]],
+                               what="per step: its first frame -> the frame whose evidence made the detector's "
+                                    "first reflex (0: that frame itself)", **common))
     hedging = result.get("hedging") or {}
     if hedging.get("frames"):
         out.append(make_record(store=store, n=None, op="hedge_cost", samples_ms=[hedging["hedge_ms_per_frame"]],

@@ -305,6 +305,28 @@ class Recorder:
                 step.change = after.change or after.outcome.split(":")[0]
         return steps
 
+    def pipeline_ms(self) -> list[float]:
+        """Capture -> publication of detections with a marker the frame shows, every such frame: what any
+        blind time is bounded by from below (camera, transport, decoding, detection)."""
+        with self._lock:
+            truth = {seq: (t, ids) for seq, (t, _, ids) in self.frames.items()}
+            found = list(self.found)
+        return [(published - truth[seq][0]) * 1000.0 for seq, published, ids in found
+                if seq in truth and ids & truth[seq][1]]
+
+    def reflex_frames(self, steps: list[LightStep]) -> list[int]:
+        """Per step, frames from its first frame to the frame whose evidence made the detector's first reflex
+        after it (0: the step's own frame); steps without a reflex are left out."""
+        with self._lock:
+            seqs = sorted(r.seq for r in self.reflexes)
+        out = []
+        for i, step in enumerate(steps):
+            end = steps[i + 1].frame_seq if i + 1 < len(steps) else None
+            first = next((q for q in seqs if q >= step.frame_seq and (end is None or q < end)), None)
+            if first is not None:
+                out.append(first - step.frame_seq)
+        return out
+
     def baseline_loss(self) -> tuple[int, int]:
         """(frames no detector answered, frames) while a detector ran, outside migrations."""
         with self._lock:

@@ -629,7 +629,9 @@ class AdaptationManager:
         except (PlanningError, KgadaptError) as exc:
             log.info("adaptation: no plan after the reflex: %s", exc)
         kept = plan is not None and plan.same_as(running)
-        shown = plan if kept else None
+        # What the detector took, as the decision's choice; the manager's own plan, where it agrees, with it.
+        shown = plan if kept else Plan(target=running, reason=f"the detector's reflex took {running.config} in place "
+                                       f"on {running.host}", inputs={"band": band}, queries=("reflex_table",))
         if took is not None:
             outcome = "reconfigured by reflex" + ("" if kept or plan is None else f"; the plan for band {band} "
                                                   f"is {plan.target.config}@{plan.target.host}")
@@ -638,8 +640,8 @@ class AdaptationManager:
                                  detail={"change": Change.REFLEX, "instance": running.instance,
                                          "previous_instance": running.instance,
                                          "from": f"{d.get('previous')}@{running.host}"}))
-        elif kept:
-            self._record(Outcome(trigger=trigger, plan=shown, outcome="kept: the reflex changed nothing"))
+        elif kept:  # the light came back to the band of what runs: nothing happened, nothing to record
+            log.info("adaptation: %s: %s runs already", trigger.describe(), running.config)
         if self.landing:
             if not kept and trigger.kind not in self._deferred:  # one per descent, as for any kind of change
                 self._deferred.add(trigger.kind)

@@ -33,9 +33,9 @@ where the running configuration does not) it switches in place before the
 next detection, with no round trip to the adaptation manager, puts a
 ``reflex`` message on ``kgadapt/<R>/detector/<I>/reflex`` and prints the
 ``<CONFIGURED_TOKEN>`` line. After a switch, and near a band edge, it also
-runs a second configuration on the same frame when both fit the budget, and
-publishes whichever found more markers (``hedge``, ``hedge_ms`` in the
-detections).
+runs a second configuration on a frame the running one found no marker on,
+when both fit the budget, and publishes whichever found more markers
+(``hedge``, ``hedge_ms`` in the detections).
 
 Idle or active: a detector also answers ``kgadapt/<R>/host/<H>/detector/<I>/activity``
 (an ``activity_request``, ``{"active": false}`` or ``true``). An idle detector stays
@@ -347,8 +347,10 @@ class Detector:
         result = core.detect(gray)
         if armed is not None:
             reflex, cores = armed
-            hedge = self._hedge(reflex, cores, gray, level, result.processing_ms)
             found = _clean_count(result)
+            # Only a frame the running configuration found nothing on can be won by the hedge: the others
+            # are published at once, without its cost.
+            hedge = None if found else self._hedge(reflex, cores, gray, level, result.processing_ms)
             swap = reflex.on_result(found, time.time(), hedge=hedge[0] if hedge else None,
                                     hedge_found=_clean_count(hedge[1]) if hedge else 0, level=level)
             if hedge is not None and _clean_count(hedge[1]) > found:

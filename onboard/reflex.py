@@ -18,9 +18,11 @@ gives and says what to run:
   ``collapse``), and go back (``revert``) when it finds nothing either;
 * evidence, not waiting, is the hysteresis: after a switch the previous
   configuration runs beside the new one on the same frames (a hedge, within the
-  graph's ms-per-frame budget) for ``trial_frames``; the new one stays when it
-  finds markers, and the detector goes back (evidence ``revert``) when the old
-  one finds them and the new one does not, ``confirm_frames`` times running.
+  graph's ms-per-frame budget, on frames the running one found nothing on: the
+  detector asks :meth:`Reflex.hedge_for` only then) for ``trial_frames``; the
+  new one stays when it finds markers, and the detector goes back (evidence
+  ``revert``) when the old one finds them and the new one does not,
+  ``confirm_frames`` times running.
   Near a band edge (within its margin) the neighbouring band's configuration is
   the hedge; finding markers where the running one does not, ``confirm_frames``
   times running, makes it the running one (evidence ``hedge``).
@@ -137,6 +139,10 @@ class ReflexTable:
                 return e
         return min(self.entries, key=lambda e: min(abs(level - e.band.min_level), abs(level - e.band.max_level)))
 
+    def band_for_config(self, config: str) -> BandEntry | None:
+        """The band whose best in-place choice ``config`` is (what a detector started with it is configured for)."""
+        return next((e for e in self.entries if e.best is not None and e.best.config == config), None)
+
     def neighbours(self, name: str) -> tuple[BandEntry | None, BandEntry | None]:
         """The bands below and above ``name``."""
         names = [e.band.name for e in self.entries]
@@ -202,8 +208,9 @@ class Reflex:
             return None
         current = self.table.entry(self.band)
         if current is None:
-            self.band = self.table.band_of(level).band.name
-            return None
+            # Just started: the band it was configured for (a step while it started counts), else the light's.
+            current = self.table.band_for_config(self.running) or self.table.band_of(level)
+            self.band = current.band.name
         if current.band.contains(level, current.margin):
             return None
         new = self.table.band_of(level)

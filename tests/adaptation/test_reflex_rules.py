@@ -64,6 +64,14 @@ def test_a_frame_past_the_edge_by_the_margin_switches_before_it_is_detected():
     assert r.on_light(6.0) is None  # the same band: nothing more
 
 
+def test_a_detector_just_started_takes_its_configuration_s_band_so_a_step_during_its_start_counts():
+    r = Reflex(table=table(), running="dusk")
+    swap = r.on_light(120.0)  # started for dusk, the light is day already
+    assert (swap.config, swap.from_band, swap.band) == ("day", "dusk", "day")
+    r2 = Reflex(table=table(), running="dusk")
+    assert r2.on_light(20.0) is None and r2.band == "dusk"
+
+
 def test_a_band_nothing_may_take_in_place_is_reported_not_switched():
     rows = [row("day", 40, 255, "day"), row("dark", 0, 12, "dark_remote", in_place=False)]
     r = Reflex(table=ReflexTable.from_rows(rows, parse=parse), running="day")
@@ -140,3 +148,29 @@ def test_the_shipped_models_give_every_band_an_in_place_configuration_onboard(tm
     assert t.budget_ms == 33.0
     # detector_hd is not executable onboard: nothing may be taken in place from it there.
     assert remote_only and not any(r["in_place"] for r in remote_only)
+
+
+def test_the_manager_follows_a_reflex_and_the_smoothed_light_may_undo_it_only_after_the_hold():
+    from kgadapt.onboard.adaptation import Analyzer, Band, BandTracker
+    from kgadapt.shared.states import TriggerKind
+
+    bands = [Band("dark", 0, 12), Band("dusk", 12, 40), Band("day", 40, 255)]
+    a = Analyzer(tracker=BandTracker(bands=bands, hysteresis=4.0, dwell_s=1.0))
+    a.on_illumination(120.0, 0.0)
+    trigger = a.on_reflex("dark", 10.0, {"evidence": "light"}, hold_s=2.0)
+    assert trigger.kind == TriggerKind.REFLEX and a.tracker.current.name == "dark"
+    assert a.tracker.previous.name == "day"
+    # The smoothed level still says day (it lags): no band change back while the hold lasts ...
+    assert all(a.on_illumination(100.0, 10.0 + t / 10) is None for t in range(20))
+    # ... but a light that stays in the day past the hold and the dwell undoes it.
+    assert a.on_illumination(100.0, 12.1) is None
+    back = a.on_illumination(100.0, 13.2)
+    assert back is not None and back.kind == TriggerKind.BAND_CHANGED and back.detail["to"] == "day"
+
+
+def test_a_reflex_seen_only_in_detections_waits_a_moment_for_its_message():
+    from kgadapt.onboard.adaptation_policy import REFLEX_MESSAGE_WAIT_S, reflex_message_overdue
+
+    assert not reflex_message_overdue(None, 1, 5.0)
+    assert not reflex_message_overdue((1, 5.0), 1, 5.0 + REFLEX_MESSAGE_WAIT_S / 2)
+    assert reflex_message_overdue((1, 5.0), 1, 5.0 + REFLEX_MESSAGE_WAIT_S)
