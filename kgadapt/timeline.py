@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import MessageError
-from kgadapt.shared.states import TriggerKind
+from kgadapt.shared.states import Change, TriggerKind
 
 
 @dataclass
@@ -86,9 +86,10 @@ class Recorder:
     # per frame: seq -> (capture time, the scenario's light level, marker ids it shows)
     frames: dict[int, tuple[float, float | None, frozenset[int]]] = field(default_factory=dict)
     found: list[tuple[int, float, frozenset[int]]] = field(default_factory=list)  # (seq, published, ids)
-    reflexes: list[ReflexSeen] = field(default_factory=list)
-    # per detection: (time, processing ms of the published configuration, ms of the hedge run beside it or 0)
-    work: list[tuple[float, float, float]] = field(default_factory=list)
+    reflexes: list[ReflexSeen] = field(default_factory=list)  # each reflex once (not its repeats)
+    # per detector instance: its hedging so far (frames, frames hedged, ms), from its reflex messages
+    hedges: dict[str, tuple[int, int, float]] = field(default_factory=dict)
+    detect_ms: list[float] = field(default_factory=list)  # processing ms of every detection
 
     def __post_init__(self) -> None:
         self._lock = threading.Lock()
@@ -143,7 +144,7 @@ class Recorder:
                                         int(m["seq"]), len(m["ids"])))
                 self._detected_seqs.add(int(m["seq"]))
                 self._dropped[(str(m["instance"]), int(m["seq"]))] = int(m.get("dropped") or 0)
-                self.work.append((time.time(), float(m["processing_ms"]), float(m.get("hedge_ms") or 0.0)))
+                self.detect_ms.append(float(m["processing_ms"]))
                 if m["ids"]:
                     self.found.append((int(m["seq"]), float(m["time"]), frozenset(int(i) for i in m["ids"])))
 
@@ -155,22 +156,29 @@ class Recorder:
                           config=m.get("config"), band=str(m["band"]), evidence=str(m["evidence"]),
                           level=m.get("level"), seq=int(m["seq"]), frame_time=float(m["frame_time"]))
         with self._lock:
-            self.reflexes.append(seen)
-        if self.on_reflex:
+            if m.get("frames") is not None:
+                self.hedges[seen.instance] = (int(m["frames"]), int(m.get("hedged") or 0), float(m.get("hedge_ms") or 0))
+            new = not any(r.instance == seen.instance and r.seq == seen.seq for r in self.reflexes[-8:])
+            if new:
+                self.reflexes.append(seen)
+        if new and self.on_reflex:
             self.on_reflex(seen)
 
     def hedging(self) -> dict[str, Any]:
-        """What hedging cost: ms per processed frame on average, the share of frames hedged, and ms per
-        hedged frame (the second configuration's detection time)."""
+        """What hedging cost, from the detectors' reflex messages (their last figures): ms per processed
+        frame on average, the share of frames hedged, and ms per hedged frame."""
         with self._lock:
-            work = list(self.work)
-        if not work:
+            figures = list(self.hedges.values())
+            detect = list(self.detect_ms)
+        frames = sum(f for f, _, _ in figures)
+        hedged = sum(h for _, h, _ in figures)
+        ms = sum(t for _, _, t in figures)
+        if not frames:
             return {"frames": 0}
-        hedged = [h for _, _, h in work if h > 0]
-        return {"frames": len(work), "hedged_share": round(len(hedged) / len(work), 4),
-                "hedge_ms_per_frame": round(sum(hedged) / len(work), 3),
-                "hedge_ms_when_hedged": round(sum(hedged) / len(hedged), 3) if hedged else None,
-                "detect_ms_per_frame": round(sum(p for _, p, _ in work) / len(work), 3)}
+        return {"frames": frames, "hedged_share": round(hedged / frames, 4),
+                "hedge_ms_per_frame": round(ms / frames, 3),
+                "hedge_ms_when_hedged": round(ms / hedged, 3) if hedged else None,
+                "detect_ms_per_frame": round(sum(detect) / len(detect), 3) if detect else None}
 
     def _on_frame(self, sample: Any) -> None:
         m = self._decode(sample, "frame")
@@ -185,11 +193,15 @@ class Recorder:
         if not m:
             return
         d = m.get("decision") or {}
-        decision = Decision(time=float(m["time"]), trigger=str(m["trigger"]), kind=str(d.get("trigger_kind") or ""),
-                            config=d.get("config"), host=d.get("host"), outcome=str(m.get("outcome") or ""),
+        trigger, outcome = str(m["trigger"]), str(m.get("outcome") or "")
+        # A kind newer than the event's contract is left out of trigger_kind: the trigger's text names it.
+        kind = str(d.get("trigger_kind") or (trigger.split("(", 1)[0] if d else ""))
+        change = d.get("change") or (Change.REFLEX if outcome.startswith("reconfigured by reflex") else None)
+        decision = Decision(time=float(m["time"]), trigger=trigger, kind=kind,
+                            config=d.get("config"), host=d.get("host"), outcome=outcome,
                             latency_ms=d.get("latency_ms"), instance=d.get("instance"),
                             previous_instance=d.get("previous_instance"), trigger_time=d.get("trigger_time"),
-                            change=d.get("change"))
+                            change=change)
         with self._lock:
             self.decisions.append(decision)
         if self.on_decision:

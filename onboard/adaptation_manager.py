@@ -44,8 +44,9 @@ the first thing stopped when memory gets short: a ``memory_short`` trigger
 stops it and nothing else; a new one starts only after the next band change.
 
 Reflexes: the running detector may switch configuration in place on its own
-evidence (:mod:`kgadapt.onboard.reflex`) and says so on its ``reflex`` key (and
-in the count of reflexes its detections carry, should that message be lost).
+evidence (:mod:`kgadapt.onboard.reflex`) and says so on its ``reflex`` key (its
+last reflex again about once a second, should the message be lost; each count
+is acted on once).
 The manager takes the detector's configuration as what runs (it does not fight
 it), moves its band to the reflex's (the smoothed light gets ``reflex_hold_s``
 to agree; past that, a disagreement lasting the dwell undoes it as a band
@@ -133,7 +134,6 @@ class AdaptationManager:
         self._trust = StatusTrust(TrustSettings(window_s=settings.status_window_s))
         self._refusal_logged: dict[str, float] = {}
         self._reflexes_seen: tuple[str | None, int] = (None, 0)  # (instance, its reflex count) last acted on
-        self._reflex_pending: tuple[int, float] | None = None  # a reflex count seen in detections, and when
 
     # -- lifecycle -------------------------------------------------------
 
@@ -304,21 +304,6 @@ class AdaptationManager:
                 if running is None or not policy.own_detection(running, body_instance=m["instance"],
                                                                key_instance=keys.last_chunk(key, 2)):
                     return None
-                count = m.get("reflexes")
-                if isinstance(count, int) and count > self._reflex_count(running.instance):
-                    self._reflex_pending = self._reflex_pending or (count, now)
-                if (isinstance(count, int) and count > self._reflex_count(running.instance)
-                        and m["config"] != running.config and m["config"] in self._configs
-                        and policy.reflex_message_overdue(self._reflex_pending, count, now)):
-                    # A reflex whose message did not reach us (lost while we were busy or stopped).
-                    light = m.get("light")
-                    band = a.tracker.band_of(float(light)).name if isinstance(light, (int, float)) else None
-                    before = a.tracker.current.name if a.tracker.current else None
-                    return self._on_reflex({"instance": running.instance, "config": m["config"],
-                                            "previous": running.config, "band": band, "from_band": before,
-                                            "count": count,
-                                            "evidence": "seen in its detections", "frame_time": m["frame_time"],
-                                            "time": m["time"], "seq": m["seq"], "level": light}, now)
                 band = a.tracker.current.name if a.tracker.current else None
                 found = policy.clean_markers(m["ids"], m.get("clean"))
                 expected = policy.expected_rate(self._state, self._configs, running.config, band)
@@ -339,7 +324,7 @@ class AdaptationManager:
         count = int(m.get("count") or 0)
         if count <= self._reflex_count(running.instance):
             return None  # already followed (its message and its detections both tell)
-        self._reflexes_seen, self._reflex_pending = (running.instance, count), None
+        self._reflexes_seen = (running.instance, count)
         config = m.get("config")
         detail = {**policy.reflex_trigger_detail(m), "answered_ms": round((float(m["time"]) - float(m["frame_time"]))
                                                                          * 1000.0, 1)}

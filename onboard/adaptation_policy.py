@@ -34,6 +34,12 @@ IDLE_WAKE_S = 1.0  # nothing of its own due: the loop still wakes this often
 
 Rows = list[dict[str, Any]]
 
+# Trigger kinds and changes newer than the adaptation_event contract that outside receivers were written
+# for (docs/CONTRACTS.md): the event leaves them out of ``trigger_kind`` and ``change``; its ``trigger``
+# text starts with the kind, and the graph's decision records both.
+NEWER_TRIGGERS = frozenset({TriggerKind.REFLEX})
+NEWER_CHANGES = frozenset({Change.REFLEX})
+
 
 @dataclass(frozen=True, kw_only=True)
 class AdaptationSettings:
@@ -107,16 +113,6 @@ def reflex_trigger_detail(m: Mapping[str, Any]) -> dict[str, Any]:
     """A ``reflex`` trigger's detail from the detector's message: its inputs, as ``why`` shows them."""
     keep = ("evidence", "previous", "config", "band", "from_band", "level", "elsewhere")
     return {k: m[k] for k in keep if m.get(k) is not None}
-
-
-REFLEX_MESSAGE_WAIT_S = 0.5  # a reflex seen in detections waits this long for its own message
-
-
-def reflex_message_overdue(pending: tuple[int, float] | None, count: int, now: float) -> bool:
-    """The detections show a reflex (``count``) whose message has not come in ``REFLEX_MESSAGE_WAIT_S``
-    since they first did: act on the detections (the message goes from another thread of the detector,
-    so it may come a frame after them; lost, it never comes)."""
-    return pending is not None and count >= pending[0] and now - pending[1] >= REFLEX_MESSAGE_WAIT_S
 
 
 def held_refresh(state: LoopState, *, wall: float, every_s: float, force: bool = False) -> LoopState | None:
@@ -488,13 +484,19 @@ def decision_record(outcome: Outcome, *, robot: str, wall: float, seq: int,
         "duration_ms": None if outcome.latency_ms is None else round(outcome.latency_ms, 1),
         "outcome": outcome.outcome if not plan else f"{outcome.outcome}: {plan.reason}",
     }
+    change = outcome.detail.get("change")
     event = {
         "time": wall, "trigger": trigger.describe(), "outcome": outcome.outcome[:256],
         "decision": {
             "config": params["config"], "host": params["host"], "latency_ms": params["duration_ms"],
-            "trigger_kind": trigger.kind, "frames_lost": outcome.frames_lost, "name": name,
+            # Values receivers of the first contract do not know are left out (the trigger's text names it).
+            "trigger_kind": trigger.kind if trigger.kind not in NEWER_TRIGGERS else None,
+            "frames_lost": outcome.frames_lost, "name": name,
             "instance": instance, "previous_instance": outcome.detail.get("previous_instance"),
-            "trigger_time": trigger.time, "change": outcome.detail.get("change"),
+            "trigger_time": trigger.time, "change": change if change not in NEWER_CHANGES else None,
         },
     }
+    for key in ("trigger_kind", "change"):
+        if event["decision"][key] is None:
+            del event["decision"][key]
     return params, event

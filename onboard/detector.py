@@ -34,8 +34,9 @@ next detection, with no round trip to the adaptation manager, puts a
 ``reflex`` message on ``kgadapt/<R>/detector/<I>/reflex`` and prints the
 ``<CONFIGURED_TOKEN>`` line. After a switch, and near a band edge, it also
 runs a second configuration on a frame the running one found no marker on,
-when both fit the budget, and publishes whichever found more markers
-(``hedge``, ``hedge_ms`` in the detections).
+when both fit the budget, and publishes whichever found more markers (its
+``config`` names it). The last reflex is put again about once a second, with
+what hedging has cost so far (``frames``, ``hedged``, ``hedge_ms``).
 
 Idle or active: a detector also answers ``kgadapt/<R>/host/<H>/detector/<I>/activity``
 (an ``activity_request``, ``{"active": false}`` or ``true``). An idle detector stays
@@ -60,7 +61,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
@@ -170,15 +171,20 @@ def _clean_count(result: Any) -> int:
     return sum(c is not False for c in clean[:len(result.ids)])
 
 
+_END = b""  # what ends the notifier's thread (no message is empty)
+
+
 class ReflexNotifier:
     """Puts ``reflex`` messages from a thread of its own: the frame path only queues them (a blocked
     put waits for a congested manager there, not in the worker). At most ``depth`` wait; the oldest goes."""
 
-    def __init__(self, publisher: Any, instance: str, depth: int = 32) -> None:
+    def __init__(self, publisher: Any, instance: str, *, again: Callable[[], bytes | None], again_s: float = 1.0,
+                 depth: int = 32) -> None:
         import queue
 
         self._publisher = publisher
         self._instance = instance
+        self._again, self._again_s = again, again_s
         self._queue: Any = queue.Queue(maxsize=depth)
         self._thread = threading.Thread(target=self._run, name="detector-reflex", daemon=True)
         self._thread.start()
@@ -197,14 +203,24 @@ class ReflexNotifier:
                     pass
 
     def _run(self) -> None:
-        while (payload := self._queue.get()) is not None:
+        import queue
+
+        while True:
+            try:
+                payload = self._queue.get(timeout=self._again_s)
+            except queue.Empty:
+                payload = self._again()  # the last one again: a receiver acts once per count
+                if payload is None:
+                    continue
+            if payload is _END:
+                return
             try:
                 self._publisher.put(payload)
-            except Exception as exc:  # the detections' reflex count still tells
+            except Exception as exc:  # put again within a second
                 log.warning("detector %s: reflex not published: %s", self._instance, exc)
 
     def close(self) -> None:
-        self.put(None)  # type: ignore[arg-type]  # the end
+        self.put(_END)
         self._thread.join(timeout=2)
         rpc.undeclare_quietly(self._publisher)
 
@@ -226,6 +242,9 @@ class Detector:
         self._own_generations: set[int] = set()  # generations the reflex made (not the manager's)
         self.reflexes = 0  # reflexes so far: switches made on its own evidence, and bands it could not take
         self._hedge_ms: dict[str, float] = {}  # measured ms per frame of each configuration run as a hedge
+        self.hedged = 0  # frames on which a hedge ran
+        self.hedge_ms_total = 0.0
+        self._last_reflex: dict[str, Any] | None = None  # the last reflex message's body, put again now and then
         self._seen_markers: tuple[float, list[Any]] = (0.0, [])  # (time, corners) of the last markers found
         self._reflex_pub: Any = None
         self._first_frame: dict[int, int] = {}  # generation -> seq of the first frame it processed
@@ -289,11 +308,11 @@ class Detector:
                 keys.detector_markers(s.robot, s.instance), congestion_control=zenoh.CongestionControl.DROP,
             )
             # BLOCK, from a thread of its own (ReflexNotifier): a stopped or slow manager gets the message
-            # when it can take it, and never holds up the frames. Its detections carry the count of
-            # reflexes too, so a message lost all the same is still noticed.
+            # when it can take it, and never holds up the frames; put again once a second, a message lost
+            # all the same (a stopped manager's link dropped) still arrives.
             self._reflex_pub = ReflexNotifier(session.declare_publisher(
                 keys.detector_reflex(s.robot, s.instance), congestion_control=zenoh.CongestionControl.BLOCK,
-            ), s.instance)
+            ), s.instance, again=self._reflex_again)
             self._worker = threading.Thread(target=self._work, name="detector-worker", daemon=True)
             self._worker.start()
             self._subscriber = session.declare_subscriber(keys.camera_frame(s.robot, s.camera), self._on_frame)
@@ -367,12 +386,9 @@ class Detector:
         }
         if isinstance(frame.get("sent"), (int, float)):
             body["frame_sent"] = frame["sent"]
-        if armed is not None:
-            body["reflexes"] = self.reflexes
-            if level is not None:
-                body["light"] = round(level, 2)
         if hedge is not None:
-            body["hedge"], body["hedge_ms"] = hedge[0], round(hedge[2], 3)
+            self.hedged += 1
+            self.hedge_ms_total += hedge[2]
         if result.ids:
             self._seen_markers = (float(frame["time"]), result.corners)
         self._publisher.put(messages.encode("detections", body))
@@ -381,6 +397,14 @@ class Detector:
             with self._generation_seen:
                 self._first_frame[generation] = int(frame["seq"])
                 self._generation_seen.notify_all()
+
+    def _hedging(self) -> dict[str, Any]:
+        return {"frames": self.processed, "hedged": self.hedged, "hedge_ms": round(self.hedge_ms_total, 3)}
+
+    def _reflex_again(self) -> bytes | None:
+        """The last reflex again, with the hedging figures so far (None before the first reflex)."""
+        last = self._last_reflex
+        return None if last is None else messages.encode("reflex", {**last, "again": True, **self._hedging()})
 
     def _light(self, gray: Any, frame_time: float) -> float | None:
         """This frame's light, weighted around the markers found within the last second (a window or a
@@ -431,7 +455,9 @@ class Detector:
                 "from_band": swap.from_band, "evidence": swap.evidence,
                 "level": None if swap.level is None else round(swap.level, 2), "seq": int(frame["seq"]),
                 "frame_time": float(frame["time"]), "time": time.time(), "count": self.reflexes}
-        self._reflex_pub.put(messages.encode("reflex", {k: v for k, v in body.items() if v is not None}))
+        body = {k: v for k, v in body.items() if v is not None}
+        self._last_reflex = body
+        self._reflex_pub.put(messages.encode("reflex", {**body, **self._hedging()}))
         log.info("detector %s: reflex (%s, light %s): %s -> %s", s.instance, swap.evidence, body["level"],
                  swap.previous, swap.config or f"nothing here for band {swap.band}")
         return active

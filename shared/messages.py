@@ -136,12 +136,6 @@ class Detections(Message, tag="detections", frozen=True, kw_only=True):
     dropped: int | None = None
     frame_sent: Number | None = None
     clean: Items | None = None  # per marker, whether its cells read clean (kgadapt.onboard.markers.cells_are_clean)
-    # kgadapt.onboard.reflex: the detector's own switches so far, and the configuration it ran beside
-    # on this frame (a hedge) with what that cost; ``config`` is whichever of the two is published
-    reflexes: int | None = None
-    hedge: Name | None = None
-    hedge_ms: Number | None = None
-    light: Number | None = None  # this frame's light estimate as the detector read it
 
 
 class Reflex(Message, tag="reflex", frozen=True, kw_only=True):
@@ -161,7 +155,14 @@ class Reflex(Message, tag="reflex", frozen=True, kw_only=True):
     seq: int  # the first frame of the camera processed with ``config``
     frame_time: Number  # its capture time
     time: Number
-    count: int  # the detector's reflexes so far (``reflexes`` of its detections)
+    count: int  # the detector's reflexes so far (a receiver acts once per count)
+    # The last reflex is put again about once a second (``again``), so a receiver that lost it (stopped,
+    # its link dropped) still gets it; with the detector's hedging so far: frames processed, frames on
+    # which it also ran a second configuration, and the ms that cost in all.
+    again: bool | None = None
+    frames: int | None = None
+    hedged: int | None = None
+    hedge_ms: Number | None = None
 
 
 class QueryRequest(Message, tag="query_request", frozen=True, kw_only=True):

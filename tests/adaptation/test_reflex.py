@@ -24,7 +24,7 @@ from kgadapt.shared import keys, messages
 
 pytestmark = pytest.mark.slow
 
-STEP_S = 9.0  # scenario second of the step day -> dark
+STEP_S = 30.0  # scenario second of the step day -> dark: after the robot's start, also on a loaded machine
 
 
 class Run(WatchedRobot):
@@ -36,9 +36,13 @@ class Run(WatchedRobot):
 
     def __enter__(self) -> "Run":
         super().__enter__()
-        self.session.declare_subscriber(keys.detector_reflex(self.cluster.settings.robot),
-                                        lambda s: self.reflexes.append(messages.decode(s.payload.to_bytes(), "reflex")))
+        self.session.declare_subscriber(keys.detector_reflex(self.cluster.settings.robot), self._on_reflex)
         return self
+
+    def _on_reflex(self, sample) -> None:
+        m = messages.decode(sample.payload.to_bytes(), "reflex")
+        if not m.get("again"):  # each reflex once; its repeats (for receivers that lost it) left out
+            self.reflexes.append(m)
 
     def wait_for(self, predicate, timeout: float, what: str):
         value = self.wait(predicate, timeout, interval=0.05)
@@ -76,7 +80,7 @@ def test_a_sudden_step_is_answered_by_the_detector_within_five_frames_while_the_
         os.kill(onboard.pid, signal.SIGSTOP)  # the agent only: its detector runs on as a process of its own
         stopped_at = time.time()
         try:
-            step = run.wait_for(lambda: first_frame_of(run, lambda level: level < 60), STEP_S + 20, "the step")
+            step = run.wait_for(lambda: first_frame_of(run, lambda level: level < 60), STEP_S + 30, "the step")
             answers = run.wait_for(lambda: (a := answered_after(run, step)) and len(a) >= 8 and a, 20,
                                    "eight frames processed after the step")
             still_stopped = onboard.process.poll() is None and open(f"/proc/{onboard.pid}/stat").read().split()[2] == "T"
@@ -129,7 +133,7 @@ def test_a_sudden_step_is_answered_by_the_detector_within_five_frames_while_the_
 
 def test_a_steady_scene_makes_no_reflex(tmp_path):
     # Light at the day level, and at the dusk/day edge (40 +- 3 at 0.7 Hz, inside the band's margin).
-    points = [[0, 40, 0.075, 0.7], [40, 40, 0.075, 0.7]]
+    points = [[0, 40, 0.075, 0.7], [120, 40, 0.075, 0.7]]
     with Run(tmp_path, points) as run:
         run.wait_for(lambda: next((d for d in run.recorder.decisions if d.kind == "startup"), None), 30,
                      "the first detector")
@@ -138,6 +142,6 @@ def test_a_steady_scene_makes_no_reflex(tmp_path):
         levels = [v for t, v, _ in run.recorder.light if t >= started]
         processed = sum(1 for t, *_ in run.recorder.detections if t >= started)
     assert max(levels) > 40 > min(levels), "the light did not cross the edge; the test proves nothing"
-    assert processed > 100
+    assert processed > 50  # frames the detector read the light of (fewer than 300 on a loaded machine)
     assert run.reflexes == [], run.reflexes
     assert [d.kind for d in run.recorder.decisions] == ["startup"], run.recorder.decisions

@@ -168,9 +168,21 @@ def test_the_manager_follows_a_reflex_and_the_smoothed_light_may_undo_it_only_af
     assert back is not None and back.kind == TriggerKind.BAND_CHANGED and back.detail["to"] == "day"
 
 
-def test_a_reflex_seen_only_in_detections_waits_a_moment_for_its_message():
-    from kgadapt.onboard.adaptation_policy import REFLEX_MESSAGE_WAIT_S, reflex_message_overdue
+def test_a_reflex_decision_leaves_out_what_receivers_of_the_first_contract_do_not_know():
+    # tests/contract's outsider checks trigger_kind and change against the values it was written for.
+    from kgadapt.onboard.adaptation import Placement, Plan, Trigger
+    from kgadapt.onboard.adaptation_policy import Outcome, decision_record
+    from kgadapt.shared import messages
+    from kgadapt.shared.states import Change, TriggerKind
 
-    assert not reflex_message_overdue(None, 1, 5.0)
-    assert not reflex_message_overdue((1, 5.0), 1, 5.0 + REFLEX_MESSAGE_WAIT_S / 2)
-    assert reflex_message_overdue((1, 5.0), 1, 5.0 + REFLEX_MESSAGE_WAIT_S)
+    target = Placement(config="marker_detection_dark", deployment="detector_dark", host="onboard", instance="d1")
+    outcome = Outcome(trigger=Trigger(TriggerKind.REFLEX, 1.0, {"evidence": "light", "band": "dark"}),
+                      plan=Plan(target=target, reason="the detector's reflex", inputs={"band": "dark"},
+                                queries=("reflex_table",)),
+                      outcome="reconfigured by reflex", latency_ms=40.0, frames_lost=0,
+                      detail={"change": Change.REFLEX, "previous_instance": "d1"})
+    params, event = decision_record(outcome, robot="quad1", wall=2.0, seq=1, instance="d1")
+    assert params["trigger"].startswith("reflex(evidence=light") and '"change": "reflex"' in params["inputs_json"]
+    decoded = messages.decode(messages.encode("adaptation_event", event), "adaptation_event")
+    assert "trigger_kind" not in decoded["decision"] and "change" not in decoded["decision"]
+    assert decoded["trigger"].startswith("reflex(") and decoded["decision"]["config"] == "marker_detection_dark"
