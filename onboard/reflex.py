@@ -201,6 +201,7 @@ class Reflex:
     trying: str | None = None  # after a collapse: the previous configuration, to go back to if the try finds nothing
     wins: int = 0  # frames in a row the hedge found markers and the running one did not
     swaps: int = 0
+    told: bool = False  # the last band change was only told (nothing here could take it in place)
 
     def on_light(self, level: float | None) -> Swap | None:
         """This frame's light; a Swap when it is past an edge of the band by more than the margin."""
@@ -219,9 +220,13 @@ class Reflex:
         self.band = new.band.name
         best = new.best
         if best is None:  # nothing of that band runs here in place: tell, keep detecting with what runs
+            self.told = True
             return Swap(None, self.running, new.band.name, current.band.name, ReflexEvidence.LIGHT, level,
                         elsewhere=new.best_elsewhere)
         if best.config == self.running:
+            if self.told:  # the manager was told of another band: tell it the light is back in this one
+                self.told = False
+                return Swap(None, self.running, new.band.name, current.band.name, ReflexEvidence.LIGHT, level)
             return None
         return self._swap(best, ReflexEvidence.LIGHT, level, from_band=current.band.name)
 
@@ -306,6 +311,7 @@ class Reflex:
 
     def _swap(self, choice: Choice, evidence: ReflexEvidence, level: float | None, *, from_band: str | None = None,
               trial: bool = True) -> Swap:
+        self.told = False
         previous, self.running = self.running, choice.config
         self.trial = (previous, self.settings.trial_frames) if trial and self.settings.trial_frames else None
         self.wins = 0

@@ -78,6 +78,10 @@ def test_a_band_nothing_may_take_in_place_is_reported_not_switched():
     r.on_light(120.0)
     swap = r.on_light(5.0)
     assert swap.config is None and swap.elsewhere == "dark_remote" and r.running == "day"
+    # Back in the band of what runs: told too, so the manager's band follows.
+    back = r.on_light(120.0)
+    assert (back.config, back.band, back.from_band, back.elsewhere) == (None, "day", "dark", None)
+    assert r.on_light(5.0).config is None and r.on_light(6.0) is None
 
 
 def test_after_a_switch_the_new_one_stays_when_it_finds_the_markers():
