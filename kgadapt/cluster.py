@@ -86,6 +86,10 @@ class ClusterSettings:
     # None: their default (peer). "client" sends all traffic through the service's router.
     agent_mode: str | None = None
     env: tuple[tuple[str, str], ...] = ()  # extra environment of every child (e.g. ZENOH_RUNTIME)
+    # The camera as a process of its own ("camera": kgadapt perception camera) instead of a part of the
+    # onboard agent, so the agent (its adaptation manager) can be stopped while frames keep coming.
+    camera_process: bool = False
+    models: Path | None = None  # the model folder to load (None: the shipped models)
 
 
 @dataclass(frozen=True)
@@ -126,7 +130,7 @@ class LocalCluster:
         s = self.settings
         s.workdir.mkdir(parents=True, exist_ok=True)
         out = []
-        steps = [self.kgadapt("knowledge", "load", str(models()), "--store", self.store_url)]
+        steps = [self.kgadapt("knowledge", "load", str(s.models or models()), "--store", self.store_url)]
         if s.calibrate:
             steps.append(self.kgadapt("perception", "calibrate", "--store", self.store_url,
                                       "--out", str(s.workdir / "calibration.json"),
@@ -152,9 +156,15 @@ class LocalCluster:
             self._spawn("remote", self.kgadapt("remote", "--robot", s.robot, "--host", "remote",
                                                "--memory-budget", s.remote_budget, *connect, *s.extra_remote_args),
                         host="remote")
+            source = f"synthetic:{s.profile}" if s.profile else "synthetic"
             onboard = ["onboard", "--robot", s.robot, "--host", "onboard", "--memory-budget", s.onboard_budget,
-                       "--camera-source", f"synthetic:{s.profile}" if s.profile else "synthetic",
-                       "--fps", str(s.fps), "--scenario-speed", str(s.scenario_speed), *connect]
+                       *connect]
+            if s.camera_process:
+                self._spawn("camera", self.kgadapt("perception", "camera", "--robot", s.robot, "--source", source,
+                                                   "--fps", str(s.fps), "--speed", str(s.scenario_speed), *connect),
+                            ready=False, host="onboard")
+            else:
+                onboard += ["--camera-source", source, "--fps", str(s.fps), "--scenario-speed", str(s.scenario_speed)]
             if s.fake_fc:
                 fc = ["flight", "fake-fc", "--url", f"udpout:127.0.0.1:{self.fc_port}", "--armed"]
                 if s.land_after_s is not None:
@@ -385,6 +395,17 @@ class HostNetwork:
 
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
+
+
+def models_without_in_place(folder: Path) -> Path:
+    """A copy of the shipped models in ``folder`` whose detector deployments may not change in place (no
+    ``reconfigurable_as``): every change of configuration is a new process, as the graph says."""
+    shutil.copytree(models(), folder, dirs_exist_ok=True)
+    for path in (folder / "deployments").iterdir():
+        lines = path.read_text().splitlines(keepends=True)
+        path.write_text("".join(line for line in lines if not line.lower().replace(" ", "").startswith(
+            ("reconfigurable_as:", "reconfigurableas="))))
+    return folder
 
 
 def write_profile(path: Path, points: list[list[float]], *, loop: bool = False) -> str:

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from kgadapt.cluster import ClusterSettings, LocalCluster, WatchedRobot
-from kgadapt.timeline import Decision
+from kgadapt.timeline import Decision, ReflexSeen
 
 # (scenario second, action, argument): the demo profile is dark from 26 s to 36 s.
 SCRIPT = (
@@ -46,7 +46,15 @@ def run_scenario(args: argparse.Namespace) -> int:
         latency = "" if d.latency_ms is None else f" in {d.latency_ms:.0f} ms"
         say(f"{d.time - recorder.t0:6.1f} s  {d.trigger:<46} -> {d.config}@{d.host}: {d.outcome.split(':')[0]}{latency}")
 
+    def on_reflex(r: ReflexSeen) -> None:
+        level = "" if r.level is None else f", light {r.level:.0f}"
+        what = (f"{r.previous} -> {r.config} between two frames" if r.config
+                else f"nothing it may take in place is for band {r.band}: asks the manager")
+        say(f"{r.time - recorder.t0:6.1f} s  detector reflex ({r.evidence}{level}, band {r.band}): {what}, "
+            f"{(r.time - r.frame_time) * 1000:.0f} ms after the frame's capture")
+
     recorder.on_decision = on_decision
+    recorder.on_reflex = on_reflex
     with robot:
         session = robot.session
         say(f"  models loaded and every detector configuration calibrated in {robot.timings['prepare']:.1f} s:")
@@ -84,35 +92,43 @@ def run_scenario(args: argparse.Namespace) -> int:
     lost, steady = recorder.baseline_loss()
     say("\nSummary of adaptations")
     say(rows_as_table(rows))
-    migrations = [r for r in rows if r["outcome"] in ("migrated", "reconfigured")]
-    in_place = sum(r["outcome"] == "reconfigured" for r in rows)
+    migrations = [r for r in rows if r["outcome"] in ("migrated", "reconfigured", "reconfigured by reflex")]
+    in_place = sum(r["outcome"].startswith("reconfigured") for r in migrations)
+    reflexes = sum(r["outcome"] == "reconfigured by reflex" for r in migrations)
     latencies = sorted(r["latency_ms"] for r in rows if r["latency_ms"] is not None)
     if latencies:
-        say(f"\n{len(rows)} decisions, {len(migrations)} planned changes ({in_place} in place, "
-            f"{len(migrations) - in_place} new processes); latency from trigger to the first detection with the "
+        say(f"\n{len(rows)} decisions, {len(migrations)} changes ({in_place} in place, {reflexes} of them the "
+            f"detector's own reflexes, {len(migrations) - in_place} new processes); latency from trigger to the "
+            f"first detection with the "
             f"new configuration: median {latencies[len(latencies) // 2]:.0f} ms, max {latencies[-1]:.0f} ms")
-    say(f"frames lost in planned changes (between the last answer with the old configuration and the first with "
+    say(f"frames lost in changes (between the last answer with the old configuration and the first with "
         f"the new one): {sum(r['frames_lost'] or 0 for r in migrations)}; frames dropped by busy detectors around "
         f"them: {sum(r['busy_drops'] or 0 for r in migrations)}, outside them: {lost} of {steady}")
     bands = _bands(cluster)
     steps = recorder.light_steps(_classifier(bands)) if bands else []
     if steps:
-        say("\nBlind time after each change of the scenario's light band (first frame in the new band -> "
-            "first detections showing a marker of the frame; the band's wait is the light monitor's EMA, "
-            "hysteresis and dwell):")
+        say("\nTotal blind time after each change of the scenario's light band (first frame in the new band -> "
+            "first published detections showing a marker of that frame); decided_ms: until the change was decided "
+            "(the detector's reflex, or the manager's light EMA, hysteresis and dwell), beyond_ms: the rest:")
         say(rows_as_table([{"t_s": round(st.frame_time - recorder.t0, 1), "step": st.kind,
                             "blind_ms": None if st.blind_ms is None else round(st.blind_ms),
-                            "band_wait_ms": None if st.band_ms is None else round(st.band_ms),
-                            "beyond_band_ms": (None if st.blind_ms is None or st.band_ms is None
-                                               else round(max(0.0, st.blind_ms - st.band_ms))),
+                            "decided_ms": None if st.band_ms is None else round(st.band_ms),
+                            "beyond_ms": (None if st.blind_ms is None or st.band_ms is None
+                                          else round(max(0.0, st.blind_ms - st.band_ms))),
                             "change": st.change} for st in steps]))
+        blind = sorted(st.blind_ms for st in steps if st.blind_ms is not None)
+        if blind:
+            say(f"total blind time per step: median {blind[len(blind) // 2]:.0f} ms, max {blind[-1]:.0f} ms "
+                f"over {len(blind)} steps" + (f" ({len(steps) - len(blind)} never saw a marker)"
+                                              if len(blind) < len(steps) else ""))
     png = recorder.plot(workdir / "timeline.png", bands)
     say(f"timeline plot: {png}")
     if bad:
         say(f"processes that did not stop cleanly: {bad}")
     if args.json:
         print(json.dumps({"decisions": rows, "baseline_lost": lost, "baseline_frames": steady, "exit_codes": codes,
-                          "light_steps": [vars(st) for st in steps]}))
+                          "light_steps": [vars(st) for st in steps],
+                          "reflexes": [vars(r) for r in recorder.reflexes]}))
     return 1 if bad or not rows else 0
 
 

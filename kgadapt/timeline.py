@@ -1,8 +1,8 @@
 """What happened during a run, as seen on the Zenoh network: the demo's timeline.
 
 :class:`Recorder` subscribes (callbacks only append under a lock) to
-illumination, host status, the adaptation manager's decisions and every
-detector's detections, and can print decisions live. Afterwards it answers:
+illumination, host status, the adaptation manager's decisions, every
+detector's detections and reflexes, and can print decisions and reflexes live. Afterwards it answers:
 detection rate over time, frames that no detector processed around each
 planned migration, the summary table, and a PNG timeline.
 """
@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import MessageError
-from kgadapt.shared.states import TriggerKind
+from kgadapt.shared.states import Change, TriggerKind
 
 
 @dataclass
@@ -55,12 +55,28 @@ class LightStep:
 
 
 @dataclass
+class ReflexSeen:
+    """A detector's own switch (or report) as it put it on its ``reflex`` key."""
+
+    time: float  # when the detector put it
+    instance: str
+    previous: str
+    config: str | None  # None: nothing it may take in place is for the band
+    band: str
+    evidence: str
+    level: float | None
+    seq: int
+    frame_time: float
+
+
+@dataclass
 class Recorder:
     """Records one robot's run. ``setup(session)`` subscribes; ``shutdown()`` stops."""
 
     robot: str
     camera: str = "cam0"
     on_decision: Callable[[Decision], None] | None = None
+    on_reflex: Callable[[ReflexSeen], None] | None = None
     t0: float = field(default_factory=time.time)
     light: list[tuple[float, float, int]] = field(default_factory=list)  # (time, smoothed level, frame seq)
     memory: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # host -> (time, free MiB)
@@ -70,6 +86,10 @@ class Recorder:
     # per frame: seq -> (capture time, the scenario's light level, marker ids it shows)
     frames: dict[int, tuple[float, float | None, frozenset[int]]] = field(default_factory=dict)
     found: list[tuple[int, float, frozenset[int]]] = field(default_factory=list)  # (seq, published, ids)
+    reflexes: list[ReflexSeen] = field(default_factory=list)  # each reflex once (not its repeats)
+    # per detector instance: its hedging so far (frames, frames hedged, ms), from its reflex messages
+    hedges: dict[str, tuple[int, int, float]] = field(default_factory=dict)
+    detect_ms: list[float] = field(default_factory=list)  # processing ms of every detection
 
     def __post_init__(self) -> None:
         self._lock = threading.Lock()
@@ -84,6 +104,7 @@ class Recorder:
                                   (keys.host_status(r), self._on_status),
                                   (keys.adaptation_events(r), self._on_event),
                                   (keys.detector_markers(r), self._on_detections),
+                                  (keys.detector_reflex(r), self._on_reflex),
                                   (keys.camera_frame(r, self.camera), self._on_frame)):
                 rpc.declared(stack, session.declare_subscriber(key, callback))
             self._stack = stack.pop_all()
@@ -123,8 +144,41 @@ class Recorder:
                                         int(m["seq"]), len(m["ids"])))
                 self._detected_seqs.add(int(m["seq"]))
                 self._dropped[(str(m["instance"]), int(m["seq"]))] = int(m.get("dropped") or 0)
+                self.detect_ms.append(float(m["processing_ms"]))
                 if m["ids"]:
                     self.found.append((int(m["seq"]), float(m["time"]), frozenset(int(i) for i in m["ids"])))
+
+    def _on_reflex(self, sample: Any) -> None:
+        m = self._decode(sample, "reflex")
+        if not m:
+            return
+        seen = ReflexSeen(time=float(m["time"]), instance=str(m["instance"]), previous=str(m["previous"]),
+                          config=m.get("config"), band=str(m["band"]), evidence=str(m["evidence"]),
+                          level=m.get("level"), seq=int(m["seq"]), frame_time=float(m["frame_time"]))
+        with self._lock:
+            if m.get("frames") is not None:
+                self.hedges[seen.instance] = (int(m["frames"]), int(m.get("hedged") or 0), float(m.get("hedge_ms") or 0))
+            new = not any(r.instance == seen.instance and r.seq == seen.seq for r in self.reflexes[-8:])
+            if new:
+                self.reflexes.append(seen)
+        if new and self.on_reflex:
+            self.on_reflex(seen)
+
+    def hedging(self) -> dict[str, Any]:
+        """What hedging cost, from the detectors' reflex messages (their last figures): ms per processed
+        frame on average, the share of frames hedged, and ms per hedged frame."""
+        with self._lock:
+            figures = list(self.hedges.values())
+            detect = list(self.detect_ms)
+        frames = sum(f for f, _, _ in figures)
+        hedged = sum(h for _, h, _ in figures)
+        ms = sum(t for _, _, t in figures)
+        if not frames:
+            return {"frames": 0}
+        return {"frames": frames, "hedged_share": round(hedged / frames, 4),
+                "hedge_ms_per_frame": round(ms / frames, 3),
+                "hedge_ms_when_hedged": round(ms / hedged, 3) if hedged else None,
+                "detect_ms_per_frame": round(sum(detect) / len(detect), 3) if detect else None}
 
     def _on_frame(self, sample: Any) -> None:
         m = self._decode(sample, "frame")
@@ -139,11 +193,15 @@ class Recorder:
         if not m:
             return
         d = m.get("decision") or {}
-        decision = Decision(time=float(m["time"]), trigger=str(m["trigger"]), kind=str(d.get("trigger_kind") or ""),
-                            config=d.get("config"), host=d.get("host"), outcome=str(m.get("outcome") or ""),
+        trigger, outcome = str(m["trigger"]), str(m.get("outcome") or "")
+        # A kind newer than the event's contract is left out of trigger_kind: the trigger's text names it.
+        kind = str(d.get("trigger_kind") or (trigger.split("(", 1)[0] if d else ""))
+        change = d.get("change") or (Change.REFLEX if outcome.startswith("reconfigured by reflex") else None)
+        decision = Decision(time=float(m["time"]), trigger=trigger, kind=kind,
+                            config=d.get("config"), host=d.get("host"), outcome=outcome,
                             latency_ms=d.get("latency_ms"), instance=d.get("instance"),
                             previous_instance=d.get("previous_instance"), trigger_time=d.get("trigger_time"),
-                            change=d.get("change"))
+                            change=change)
         with self._lock:
             self.decisions.append(decision)
         if self.on_decision:
@@ -259,6 +317,28 @@ class Recorder:
                 step.change = after.change or after.outcome.split(":")[0]
         return steps
 
+    def pipeline_ms(self) -> list[float]:
+        """Capture -> publication of detections with a marker the frame shows, every such frame: what any
+        blind time is bounded by from below (camera, transport, decoding, detection)."""
+        with self._lock:
+            truth = {seq: (t, ids) for seq, (t, _, ids) in self.frames.items()}
+            found = list(self.found)
+        return [(published - truth[seq][0]) * 1000.0 for seq, published, ids in found
+                if seq in truth and ids & truth[seq][1]]
+
+    def reflex_frames(self, steps: list[LightStep]) -> list[int]:
+        """Per step, frames from its first frame to the frame whose evidence made the detector's first reflex
+        after it (0: the step's own frame); steps without a reflex are left out."""
+        with self._lock:
+            seqs = sorted(r.seq for r in self.reflexes)
+        out = []
+        for i, step in enumerate(steps):
+            end = steps[i + 1].frame_seq if i + 1 < len(steps) else None
+            first = next((q for q in seqs if q >= step.frame_seq and (end is None or q < end)), None)
+            if first is not None:
+                out.append(first - step.frame_seq)
+        return out
+
     def baseline_loss(self) -> tuple[int, int]:
         """(frames no detector answered, frames) while a detector ran, outside migrations."""
         with self._lock:
@@ -275,7 +355,7 @@ class Recorder:
         self.attribute_losses()
         return [{
             "t_s": round(d.time - self.t0, 1), "trigger": d.trigger[:44], "chosen": f"{d.config}@{d.host}",
-            "outcome": d.outcome.split(":")[0], "latency_ms": d.latency_ms, "frames_lost": d.frames_lost,
+            "outcome": d.outcome.split(":")[0].split(";")[0], "latency_ms": d.latency_ms, "frames_lost": d.frames_lost,
             "busy_drops": d.frames_dropped,
         } for d in self.decisions]
 
@@ -293,6 +373,7 @@ class Recorder:
             memory = {h: list(v) for h, v in self.memory.items()}
             decisions = list(self.decisions)
             marks = list(self.marks)
+            reflexes = list(self.reflexes)
         t0 = self.t0
         fig, axes = plt.subplots(5, 1, figsize=(11, 10), sharex=True,
                                  gridspec_kw={"height_ratios": [2, 1, 1, 1.3, 1.5]})
@@ -335,12 +416,16 @@ class Recorder:
         for d in decisions:
             for a in axes:
                 a.axvline(d.time - t0, color="red", lw=0.6, alpha=0.6)
+        for seen in reflexes:
+            for a in axes:
+                a.axvline(seen.time - t0, color="blue", lw=0.6, ls=":", alpha=0.8)
+            axes[1].text(seen.time - t0, 0, f" reflex: {seen.band}", fontsize=7, color="blue", rotation=90, va="bottom")
         for t, text in marks:
             for a in axes:
                 a.axvline(t - t0, color="black", lw=0.8, ls="--", alpha=0.7)
             axes[4].text(t - t0, axes[4].get_ylim()[1] * 0.9, " " + text, fontsize=7)
         fig.suptitle("kgadapt demo: illumination, chosen detector, host, detection rate, free memory "
-                     "(red: adaptation decisions)", fontsize=10)
+                     "(red: adaptation decisions; blue dotted: the detector's reflexes)", fontsize=10)
         fig.tight_layout()
         path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, dpi=90)

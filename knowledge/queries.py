@@ -227,6 +227,40 @@ RETURN g.name AS config, cal.detection_rate AS detection_rate, cal.false_per_fra
 ORDER BY score DESC, ms_per_frame ASC, config""",
     ),
     NamedQuery(
+        "reflex_table",
+        "What a running detector may switch to on its own, between two frames: for every illumination "
+        "band (lowest first; its edges and margin) each configuration of the feature calibrated in it "
+        "(condition, default all) or suited for it, with its settings, its figures, whether the running "
+        "deployment may take it in place on the host (in_place_change's rule) and the feature's "
+        "ms-per-frame budget. The detector ranks the rows as config_ranking does.",
+        {"feature": _FEATURE, "deployment": Param("str", help="deployment of the running detector"),
+         "host": Param("str", help="platform it runs on"),
+         "condition": Param("str", required=False, default="all", help="calibration condition (default all)"),
+         "source": Param("str", required=False, default="synthetic",
+                         help="what the figures were measured on: synthetic or frames:NAME (default synthetic)")},
+        f"""
+MATCH (f:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
+MATCH (b:{S.ILLUMINATION_BAND})
+OPTIONAL MATCH (g)-[cal:{S.CALIBRATED} {{condition: $condition}}]->(b)
+WHERE coalesce(cal.source, $source) = $source
+OPTIONAL MATCH (g)-[suit:{S.SUITED_FOR}]->(b)
+WITH f, g, b, cal, suit
+WHERE cal IS NOT NULL OR suit IS NOT NULL
+MATCH (g)-[:{S.CONTAINS}]->(m:{S.PROCESSING_COMPONENT})
+WHERE m.config_json IS NOT NULL
+OPTIONAL MATCH (g)<-[:{S.DEPLOYS}]-(d:{S.DEPLOYMENT})-[:{S.EXECUTABLE_ON}]->(:{S.PLATFORM} {{name: $host}})
+OPTIONAL MATCH (a:{S.DEPLOYMENT} {{name: $deployment}})-[:{S.EXECUTABLE_ON}]->(:{S.PLATFORM} {{name: $host}})
+WITH f, g, b, cal, suit, m, d,
+     d IS NOT NULL AND a IS NOT NULL AND (d.name = a.name OR (a.reconfigurable_as IS NOT NULL
+         AND a.reconfigurable_as = d.reconfigurable_as AND a.executable = d.executable)) AS here
+RETURN b.name AS band, b.min_level AS min_level, b.max_level AS max_level, b.margin AS margin,
+       g.name AS config, m.dictionary AS dictionary, m.config_json AS config_json,
+       cal.detection_rate AS detection_rate, cal.false_per_frame AS false_per_frame,
+       coalesce(cal.ms_per_frame, m.ms_per_frame) AS ms_per_frame, suit IS NOT NULL AS suited,
+       d.name AS deployment, here AS in_place, f.frame_budget_ms AS budget_ms
+ORDER BY min_level, config, in_place DESC, deployment""",
+    ),
+    NamedQuery(
         "detector_config",
         "One detector configuration: its ArUco dictionary, detector settings (config_json), "
         "memory demand and deployment. No row when the configuration is unknown.",

@@ -53,6 +53,7 @@ class BandTracker:
     previous: Band | None = None  # the band before the last change
     _pending: Band | None = field(default=None, repr=False)
     _pending_since: float = field(default=0.0, repr=False)
+    _hold_until: float = field(default=0.0, repr=False)
 
     def band_of(self, level: float) -> Band | None:
         for band in self.bands:
@@ -81,6 +82,17 @@ class BandTracker:
         return min(around, key=lambda b: abs(level - (b.max_level if b.max_level <= self.current.min_level
                                                         else b.min_level)))
 
+    def jump(self, name: str, now: float, hold_s: float) -> Band | None:
+        """The detector's reflex says the light is in band ``name`` now: take it, and give the smoothed
+        level ``hold_s`` to catch up before its disagreement counts (then, past the dwell, it undoes it)."""
+        band = next((b for b in self.bands if b.name == name), None)
+        if band is None:
+            return None
+        if band != self.current:
+            self.previous, self.current = self.current, band
+        self._pending, self._hold_until = None, now + hold_s
+        return band
+
     def update(self, level: float, now: float) -> Band | None:
         """Feed one smoothed level; return the new band when it changes, else None."""
         if not math.isfinite(level):
@@ -88,7 +100,7 @@ class BandTracker:
         if self.current is None:
             self.current = self.band_of(level)
             return self.current
-        if self.current.contains(level, self.hysteresis):
+        if self.current.contains(level, self.hysteresis) or now < self._hold_until:
             self._pending = None
             return None
         candidate = self.band_of(level)
@@ -252,6 +264,17 @@ class Analyzer:
         self.collapsed.clear()
         self.collapse.rearm()
         return Trigger(TriggerKind.BAND_CHANGED, now, {"from": before.name, "to": band.name, "level": round(level, 1)})
+
+    def on_reflex(self, band: str, now: float, detail: Mapping[str, Any], *, hold_s: float) -> Trigger:
+        """The running detector switched on its own (or found its band needs another process): a
+        ``reflex`` trigger; the band follows it (see :meth:`BandTracker.jump`)."""
+        before = self.tracker.current
+        after = self.tracker.jump(band, now, hold_s)
+        if after is not None and after != before:
+            self.collapsed.clear()
+            self.collapse.rearm()
+        self.collapse.reset()
+        return Trigger(TriggerKind.REFLEX, now, detail)
 
     def on_host_status(self, host: str, *, free_mb: float, cpu_load: float, now: float,
                        running: Placement | None) -> Trigger | None:

@@ -95,6 +95,12 @@ def render(data: dict[str, Any]) -> str:
                          f"(first frame {inputs.get('first_seq')}); {inputs.get('change_why')}")
         elif inputs.get("change") == Change.MIGRATE:
             lines.append(f"  carried out as a new process (make-before-break): {inputs.get('change_why')}")
+        elif inputs.get("change") == Change.REFLEX:
+            t = inputs.get("trigger") or {}
+            lines.append(f"  the detector's own reflex ({t.get('evidence')}): it took {t.get('config')} in place "
+                         f"between two frames, no round trip (light {t.get('level')}, band {t.get('from_band')} -> "
+                         f"{t.get('band')}, {t.get('answered_ms')} ms after the frame's capture); the manager "
+                         f"recorded it and planned for the band" + ("; its plan agrees" if inputs.get("ranking") else ""))
         elif inputs.get("change") == Change.STANDBY:
             sb = inputs.get("standby") or {}
             lines.append(f"  carried out as a switch to the warm standby {sb.get('instance')} (started idle for "

@@ -43,6 +43,18 @@ band's configuration if needed) rather than starting a process. The standby is
 the first thing stopped when memory gets short: a ``memory_short`` trigger
 stops it and nothing else; a new one starts only after the next band change.
 
+Reflexes: the running detector may switch configuration in place on its own
+evidence (:mod:`kgadapt.onboard.reflex`) and says so on its ``reflex`` key (its
+last reflex again about once a second, should the message be lost; each count
+is acted on once).
+The manager takes the detector's configuration as what runs (it does not fight
+it), moves its band to the reflex's (the smoothed light gets ``reflex_hold_s``
+to agree; past that, a disagreement lasting the dwell undoes it as a band
+change), records a decision with trigger ``reflex`` and its inputs, and plans
+for the band as for any trigger: where the band's best configuration is
+another, or needs another host (the reflex took the best this host can run in
+place, or nothing), it reconfigures or migrates as usual.
+
 Reconciliation: what the manager believes runs is checked against what the
 deployers report, on their events for our instance and every
 ``reconcile_s``. A detector stopped, migrated or killed by anyone else, or
@@ -121,6 +133,7 @@ class AdaptationManager:
         self._leftovers: list[tuple[str, str]] = []
         self._trust = StatusTrust(TrustSettings(window_s=settings.status_window_s))
         self._refusal_logged: dict[str, float] = {}
+        self._reflexes_seen: tuple[str | None, int] = (None, 0)  # (instance, its reflex count) last acted on
 
     # -- lifecycle -------------------------------------------------------
 
@@ -146,6 +159,7 @@ class AdaptationManager:
         declared(stack, session.liveliness().declare_subscriber(keys.host_alive(s.robot), self._on_alive, history=True))
         declared(stack, session.declare_subscriber(keys.flight_state(s.robot), self._on("flight_state")))
         declared(stack, session.declare_subscriber(keys.detector_markers(s.robot), self._on("detections")))
+        declared(stack, session.declare_subscriber(keys.detector_reflex(s.robot), self._on("reflex")))
         declared(stack, session.declare_subscriber(keys.deployer_events(s.robot), self._on("deploy_event")))
         self._declarations = stack
         self._state = LoopState(setup_at=time.monotonic())
@@ -278,6 +292,12 @@ class AdaptationManager:
                 if policy.ended(self.current, instance=m["instance"], event=m["event"]):
                     self._state = dataclasses.replace(self._state, next_check=0.0)  # ask its deployer now
                 return None
+            if kind == "reflex":
+                m = messages.decode(payload, "reflex")
+                if not policy.own_detection(self.current, body_instance=m["instance"],
+                                            key_instance=keys.last_chunk(key, 2)):
+                    return None
+                return self._on_reflex(m, now)
             if kind == "detections":
                 m = messages.decode(payload, "detections")
                 running = self.current
@@ -292,6 +312,34 @@ class AdaptationManager:
         except MessageError as exc:
             log.info("adaptation: dropped a %s message on %s: %s", kind, key, exc)
         return None
+
+    def _reflex_count(self, instance: str | None) -> int:
+        seen_instance, count = self._reflexes_seen
+        return count if seen_instance == instance else 0
+
+    def _on_reflex(self, m: dict[str, Any], now: float) -> Trigger | None:
+        """The running detector switched on its own: follow it (see the module's docstring)."""
+        running = self.current
+        assert running is not None  # own_detection: it is our running detector's
+        count = int(m.get("count") or 0)
+        if count <= self._reflex_count(running.instance):
+            return None  # already followed (its message and its detections both tell)
+        self._reflexes_seen = (running.instance, count)
+        config = m.get("config")
+        detail = {**policy.reflex_trigger_detail(m), "answered_ms": round((float(m["time"]) - float(m["frame_time"]))
+                                                                         * 1000.0, 1)}
+        if config is not None and config != running.config:
+            row = self._configs.get(str(config), {})
+            deployment = m.get("deployment") or row.get("deployment") or running.deployment
+            self.current = dataclasses.replace(running, config=str(config), deployment=str(deployment),
+                                               demand_mb=float(row.get("memory_demand_mb") or running.demand_mb))
+            band = m.get("band")
+            self._state = policy.after_reflex(
+                self._state, config=str(config), band=band,
+                rate=policy.expected_rate(LoopState(), self._configs, str(config), band), wall=now,
+                settle_s=self.settings.settle_s)
+        band = m.get("band") or (self._analyzer.tracker.current.name if self._analyzer.tracker.current else None)
+        return self._analyzer.on_reflex(str(band), now, detail, hold_s=self.settings.reflex_hold_s)
 
     def _on_host_status(self, host: str, payload: bytes, received: float, now: float) -> Trigger | None:
         # Refused: what the knowledge service refuses, a host without a liveliness token,
@@ -478,6 +526,8 @@ class AdaptationManager:
             self._set_landing(self._landed_state() == "LANDING")
         if trigger.kind == TriggerKind.BAND_CHANGED:
             self._state = dataclasses.replace(self._state, standby_paused=False)
+        if trigger.kind == TriggerKind.REFLEX and self._record_reflex(trigger, band.name):
+            return
         lost = policy.lost_hosts(a.hosts)
         action = policy.triage(trigger, running=self.current, standby=self.standby, lost=lost, landing=self.landing,
                                deferred=self._deferred, waiting=waiting is not None)
@@ -547,6 +597,44 @@ class AdaptationManager:
             a.reset_rate()
         elif running_lost:
             self._retry_later(trigger)
+
+    def _record_reflex(self, trigger: Trigger, band: str) -> bool:
+        """Record what the detector did on its own; True when nothing is left to plan (the plan for the
+        band is what runs now, or final descent: placement is not reconsidered then)."""
+        d, running = trigger.detail, self.current
+        assert running is not None  # a reflex comes from the running detector
+        took = d.get("config")
+        plan: Plan | None = None
+        try:
+            plan = self._planner.plan(band=band, running=running, exclude=tuple(sorted(self._analyzer.collapsed)),
+                                      lost_hosts=policy.lost_hosts(self._analyzer.hosts),
+                                      live_free=policy.live_free(self._analyzer.hosts, here=running.host,
+                                                                 roomiest=lambda h: self._trust.roomiest(h, time.time()),
+                                                                 confirmed=lambda h: self._trust.confirmed_free(h, time.time())))
+        except (PlanningError, KgadaptError) as exc:
+            log.info("adaptation: no plan after the reflex: %s", exc)
+        kept = plan is not None and plan.same_as(running)
+        # What the detector took, as the decision's choice; the manager's own plan, where it agrees, with it.
+        shown = plan if kept else Plan(target=running, reason=f"the detector's reflex took {running.config} in place "
+                                       f"on {running.host}", inputs={"band": band}, queries=("reflex_table",))
+        if took is not None:
+            outcome = "reconfigured by reflex" + ("" if kept or plan is None else f"; the plan for band {band} "
+                                                  f"is {plan.target.config}@{plan.target.host}")
+            self._record(Outcome(trigger=trigger, plan=shown, outcome=outcome, latency_ms=d.get("answered_ms"),
+                                 frames_lost=0,
+                                 detail={"change": Change.REFLEX, "instance": running.instance,
+                                         "previous_instance": running.instance,
+                                         "from": f"{d.get('previous')}@{running.host}"}))
+        elif kept:  # the light came back to the band of what runs: nothing happened, nothing to record
+            log.info("adaptation: %s: %s runs already", trigger.describe(), running.config)
+        if self.landing:
+            if not kept and trigger.kind not in self._deferred:  # one per descent, as for any kind of change
+                self._deferred.add(trigger.kind)
+                self._record(Outcome(trigger=trigger, outcome="deferred: final descent"))
+            elif not kept:
+                log.info("adaptation: %s deferred again (final descent)", trigger.describe())
+            return True
+        return kept or plan is None
 
     def _retry_later(self, trigger: Trigger) -> None:
         """The detector is gone and none replaced it: act on ``trigger`` again after ``retry_s``.

@@ -34,6 +34,12 @@ IDLE_WAKE_S = 1.0  # nothing of its own due: the loop still wakes this often
 
 Rows = list[dict[str, Any]]
 
+# Trigger kinds and changes newer than the adaptation_event contract that outside receivers were written
+# for (docs/CONTRACTS.md): the event leaves them out of ``trigger_kind`` and ``change``; its ``trigger``
+# text starts with the kind, and the graph's decision records both.
+NEWER_TRIGGERS = frozenset({TriggerKind.REFLEX})
+NEWER_CHANGES = frozenset({Change.REFLEX})
+
 
 @dataclass(frozen=True, kw_only=True)
 class AdaptationSettings:
@@ -60,6 +66,7 @@ class AdaptationSettings:
     standby: bool = False  # keep the neighbouring band's configuration started but idle where a host has room
     standby_check_s: float = 1.0  # how often the standby is checked against the graph
     startup_poll_s: float = 0.2  # nothing runs yet: how often the first placement is reconsidered without news
+    reflex_hold_s: float = 2.0  # after a detector's reflex, how long the smoothed light is given to agree
     history_size: int = 1000  # decisions kept in memory (``AdaptationManager.history``); the graph has them all
 
     def __post_init__(self) -> None:
@@ -93,6 +100,19 @@ def after_change(state: LoopState, plan: Plan, *, wall: float, settle_s: float) 
     return dataclasses.replace(state, changed_at=wall, settled_after=wall + settle_s, held_checked=0.0,
                                expected=(plan.target.config, plan.inputs.get("band"),
                                          float(rate) if rate is not None else None))
+
+
+def after_reflex(state: LoopState, *, config: str, band: str | None, rate: float | None, wall: float,
+                 settle_s: float) -> LoopState:
+    """The running detector took ``config`` on its own (a reflex): what is expected of it now."""
+    return dataclasses.replace(state, changed_at=wall, settled_after=wall + settle_s,
+                               expected=(config, band, rate))
+
+
+def reflex_trigger_detail(m: Mapping[str, Any]) -> dict[str, Any]:
+    """A ``reflex`` trigger's detail from the detector's message: its inputs, as ``why`` shows them."""
+    keep = ("evidence", "previous", "config", "band", "from_band", "level", "elsewhere")
+    return {k: m[k] for k in keep if m.get(k) is not None}
 
 
 def held_refresh(state: LoopState, *, wall: float, every_s: float, force: bool = False) -> LoopState | None:
@@ -464,13 +484,19 @@ def decision_record(outcome: Outcome, *, robot: str, wall: float, seq: int,
         "duration_ms": None if outcome.latency_ms is None else round(outcome.latency_ms, 1),
         "outcome": outcome.outcome if not plan else f"{outcome.outcome}: {plan.reason}",
     }
+    change = outcome.detail.get("change")
     event = {
         "time": wall, "trigger": trigger.describe(), "outcome": outcome.outcome[:256],
         "decision": {
             "config": params["config"], "host": params["host"], "latency_ms": params["duration_ms"],
-            "trigger_kind": trigger.kind, "frames_lost": outcome.frames_lost, "name": name,
+            # Values receivers of the first contract do not know are left out (the trigger's text names it).
+            "trigger_kind": trigger.kind if trigger.kind not in NEWER_TRIGGERS else None,
+            "frames_lost": outcome.frames_lost, "name": name,
             "instance": instance, "previous_instance": outcome.detail.get("previous_instance"),
-            "trigger_time": trigger.time, "change": outcome.detail.get("change"),
+            "trigger_time": trigger.time, "change": change if change not in NEWER_CHANGES else None,
         },
     }
+    for key in ("trigger_kind", "change"):
+        if event["decision"][key] is None:
+            del event["decision"][key]
     return params, event

@@ -21,6 +21,23 @@ processed with it. It then prints ``<CONFIGURED_TOKEN> <config> <deployment>``
 so its deployer's record (and a restart) follow. Anything refused leaves the
 running configuration untouched.
 
+Reflexes (kgadapt.onboard.reflex): a detector configured from the graph also
+fetches, at its start and after each in-place change, the named query
+``reflex_table`` (what it may take in place on this host, band by band, with
+the bands' edges and margins and the feature's ms-per-frame budget), builds a
+detector for every configuration in it beforehand, and per frame reads the
+frame's light (the window-proof estimate, weighted around the markers it saw
+within the last second). On the evidence of a frame (its light past a band
+edge by the margin, its detections collapsing, a hedge finding the markers
+where the running configuration does not) it switches in place before the
+next detection, with no round trip to the adaptation manager, puts a
+``reflex`` message on ``kgadapt/<R>/detector/<I>/reflex`` and prints the
+``<CONFIGURED_TOKEN>`` line. After a switch, and near a band edge, it also
+runs a second configuration on a frame the running one found no marker on,
+when both fit the budget, and publishes whichever found more markers (its
+``config`` names it). The last reflex is put again about once a second, with
+what hedging has cost so far (``frames``, ``hedged``, ``hedge_ms``).
+
 Idle or active: a detector also answers ``kgadapt/<R>/host/<H>/detector/<I>/activity``
 (an ``activity_request``, ``{"active": false}`` or ``true``). An idle detector stays
 subscribed but drops every frame unread and publishes nothing: a warm standby the
@@ -44,7 +61,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
@@ -138,16 +155,98 @@ def fetch_config_row(session: Any, robot: str, name: str, *, wait_s: float = 10.
     return parse_config(name, row["config_json"], dictionary=row.get("dictionary")), row
 
 
+def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, wait_s: float = 2.0) -> Any:
+    """The ``reflex_table`` of a detector of ``deployment`` on ``host``, compiled (kgadapt.onboard.reflex)."""
+    from kgadapt.knowledge.client import KnowledgeClient
+    from kgadapt.onboard.markers import parse_config
+    from kgadapt.onboard.reflex import ReflexTable
+
+    rows = KnowledgeClient(session, robot, own=True).query(
+        "reflex_table", {"deployment": deployment, "host": host}, wait_s=wait_s)
+    return ReflexTable.from_rows(rows, parse=lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary))
+
+
+def _clean_count(result: Any) -> int:
+    clean = result.clean or [True] * len(result.ids)
+    return sum(c is not False for c in clean[:len(result.ids)])
+
+
+_END = b""  # what ends the notifier's thread (no message is empty)
+
+
+class ReflexNotifier:
+    """Puts ``reflex`` messages from a thread of its own: the frame path only queues them (a blocked
+    put waits for a congested manager there, not in the worker). At most ``depth`` wait; the oldest goes."""
+
+    def __init__(self, publisher: Any, instance: str, *, again: Callable[[], bytes | None], again_s: float = 1.0,
+                 depth: int = 32) -> None:
+        import queue
+
+        self._publisher = publisher
+        self._instance = instance
+        self._again, self._again_s = again, again_s
+        self._queue: Any = queue.Queue(maxsize=depth)
+        self._thread = threading.Thread(target=self._run, name="detector-reflex", daemon=True)
+        self._thread.start()
+
+    def put(self, payload: bytes) -> None:
+        import queue
+
+        while True:
+            try:
+                self._queue.put_nowait(payload)
+                return
+            except queue.Full:
+                try:
+                    self._queue.get_nowait()
+                except queue.Empty:
+                    pass
+
+    def _run(self) -> None:
+        import queue
+
+        while True:
+            try:
+                payload = self._queue.get(timeout=self._again_s)
+            except queue.Empty:
+                payload = self._again()  # the last one again: a receiver acts once per count
+                if payload is None:
+                    continue
+            if payload is _END:
+                return
+            try:
+                self._publisher.put(payload)
+            except Exception as exc:  # put again within a second
+                log.warning("detector %s: reflex not published: %s", self._instance, exc)
+
+    def close(self) -> None:
+        self.put(_END)
+        self._thread.join(timeout=2)
+        rpc.undeclare_quietly(self._publisher)
+
+
 class Detector:
     """Subscribes to frames, detects markers on a worker thread, publishes detections."""
 
-    def __init__(self, settings: DetectorSettings, config: Any) -> None:
+    def __init__(self, settings: DetectorSettings, config: Any, *, deployment: str | None = None) -> None:
         from kgadapt.onboard.markers import MarkerDetector
 
         self.settings = settings
+        self.deployment = deployment  # of the configuration it runs, when it came from the graph
         # (configuration, its detector, generation): replaced whole, read once per frame by the worker,
         # so a reconfiguration lands between two frames.
         self._active = (config, MarkerDetector(config), 0)
+        # (Reflex, detectors by configuration name): replaced whole by arm(), read once per frame.
+        self._reflexes: tuple[Any, dict[str, Any]] | None = None
+        self._reflex_generation = 0  # the generation the reflex last knew of
+        self._own_generations: set[int] = set()  # generations the reflex made (not the manager's)
+        self.reflexes = 0  # reflexes so far: switches made on its own evidence, and bands it could not take
+        self._hedge_ms: dict[str, float] = {}  # measured ms per frame of each configuration run as a hedge
+        self.hedged = 0  # frames on which a hedge ran
+        self.hedge_ms_total = 0.0
+        self._last_reflex: dict[str, Any] | None = None  # the last reflex message's body, put again now and then
+        self._seen_markers: tuple[float, list[Any]] = (0.0, [])  # (time, corners) of the last markers found
+        self._reflex_pub: Any = None
         self._first_frame: dict[int, int] = {}  # generation -> seq of the first frame it processed
         self._generation_seen = threading.Condition()
         self.slot = LatestSlot()
@@ -179,6 +278,21 @@ class Detector:
         self._active = (config, core, generation)
         return generation
 
+    def arm(self, table: Any) -> None:
+        """Hold the reflex ``table`` (kgadapt.onboard.reflex.ReflexTable): its detectors are built here,
+        off the frame path, so a reflex costs the frame nothing."""
+        from kgadapt.onboard.markers import MarkerDetector
+        from kgadapt.onboard.reflex import Reflex
+
+        cores = {name: MarkerDetector(choice.settings) for name, choice in table.choices().items()}
+        config, _core, generation = self._active
+        reflex = Reflex(table=table, running=config.name)
+        previous = self._reflexes
+        if previous is not None:  # the band it believed in and the markers it saw carry over
+            reflex.band, reflex.last_seen = previous[0].band, previous[0].last_seen
+        self._reflex_generation = generation
+        self._reflexes = (reflex, cores)
+
     def first_frame(self, generation: int, timeout: float) -> int | None:
         """The sequence number of the first frame processed with ``generation``, waiting up to ``timeout``."""
         with self._generation_seen:
@@ -193,6 +307,12 @@ class Detector:
             self._publisher = session.declare_publisher(
                 keys.detector_markers(s.robot, s.instance), congestion_control=zenoh.CongestionControl.DROP,
             )
+            # BLOCK, from a thread of its own (ReflexNotifier): a stopped or slow manager gets the message
+            # when it can take it, and never holds up the frames; put again once a second, a message lost
+            # all the same (a stopped manager's link dropped) still arrives.
+            self._reflex_pub = ReflexNotifier(session.declare_publisher(
+                keys.detector_reflex(s.robot, s.instance), congestion_control=zenoh.CongestionControl.BLOCK,
+            ), s.instance, again=self._reflex_again)
             self._worker = threading.Thread(target=self._work, name="detector-worker", daemon=True)
             self._worker.start()
             self._subscriber = session.declare_subscriber(keys.camera_frame(s.robot, s.camera), self._on_frame)
@@ -230,7 +350,32 @@ class Detector:
             raise MessageError(f"frame {frame['seq']} of camera {frame['camera']}: JPEG does not decode")
         decode_ms = (time.perf_counter() - start) * 1e3
         config, core, generation = self._active
+        armed = self._reflexes
+        level = None
+        hedge: tuple[str, Any, float] | None = None  # (configuration, its result, ms)
+        if armed is not None:
+            reflex, cores = armed
+            if generation != self._reflex_generation:
+                if generation not in self._own_generations:
+                    reflex.taken(config.name)  # the manager changed it: follow, do not fight
+                self._reflex_generation = generation
+            level = self._light(gray, float(frame["time"]))
+            swap = reflex.on_light(level)
+            if swap is not None:
+                config, core, generation = self._reflex_swap(swap, cores, frame, config)
         result = core.detect(gray)
+        if armed is not None:
+            reflex, cores = armed
+            found = _clean_count(result)
+            # Only a frame the running configuration found nothing on can be won by the hedge: the others
+            # are published at once, without its cost.
+            hedge = None if found else self._hedge(reflex, cores, gray, level, result.processing_ms)
+            swap = reflex.on_result(found, time.time(), hedge=hedge[0] if hedge else None,
+                                    hedge_found=_clean_count(hedge[1]) if hedge else 0, level=level)
+            if hedge is not None and _clean_count(hedge[1]) > found:
+                config, result = cores[hedge[0]].config, hedge[1]  # keep whichever finds the markers
+            if swap is not None:
+                self._reflex_swap(swap, cores, frame, config)
         s = self.settings
         body = {
             "instance": s.instance, "config": config.name, "host": s.host, "seq": frame["seq"],
@@ -241,12 +386,81 @@ class Detector:
         }
         if isinstance(frame.get("sent"), (int, float)):
             body["frame_sent"] = frame["sent"]
+        if hedge is not None:
+            self.hedged += 1
+            self.hedge_ms_total += hedge[2]
+        if result.ids:
+            self._seen_markers = (float(frame["time"]), result.corners)
         self._publisher.put(messages.encode("detections", body))
         self.processed += 1
         if generation not in self._first_frame:
             with self._generation_seen:
                 self._first_frame[generation] = int(frame["seq"])
                 self._generation_seen.notify_all()
+
+    def _hedging(self) -> dict[str, Any]:
+        return {"frames": self.processed, "hedged": self.hedged, "hedge_ms": round(self.hedge_ms_total, 3)}
+
+    def _reflex_again(self) -> bytes | None:
+        """The last reflex again, with the hedging figures so far (None before the first reflex)."""
+        last = self._last_reflex
+        return None if last is None else messages.encode("reflex", {**last, "again": True, **self._hedging()})
+
+    def _light(self, gray: Any, frame_time: float) -> float | None:
+        """This frame's light, weighted around the markers found within the last second (a window or a
+        lamp in view does not fool it; kgadapt.onboard.illumination.estimate_light)."""
+        from kgadapt.onboard.illumination import estimate_light
+
+        at, corners = self._seen_markers
+        try:
+            return estimate_light(gray, corners if frame_time - at <= 1.0 else ()).level
+        except KgadaptError as exc:
+            log.debug("detector %s: no light estimate: %s", self.settings.instance, exc)
+            return None
+
+    def _hedge(self, reflex: Any, cores: dict[str, Any], gray: Any, level: float | None,
+               spent_ms: float) -> tuple[str, Any, float] | None:
+        """Run the reflex's hedge on this frame too, if it fits the graph's ms-per-frame budget."""
+        name = reflex.hedge_for(level)
+        budget = reflex.table.budget_ms
+        if name is None or budget is None or name not in cores:
+            return None
+        choice = reflex.table.choices().get(name)
+        cost = self._hedge_ms.get(name, choice.ms_per_frame if choice and choice.ms_per_frame else spent_ms)
+        if spent_ms + cost > budget:
+            return None
+        start = time.perf_counter()
+        result = cores[name].detect(gray)
+        ms = (time.perf_counter() - start) * 1e3
+        self._hedge_ms[name] = ms if name not in self._hedge_ms else 0.8 * self._hedge_ms[name] + 0.2 * ms
+        return name, result, ms
+
+    def _reflex_swap(self, swap: Any, cores: dict[str, Any], frame: Mapping[str, Any],
+                     config: Any) -> tuple[Any, Any, int]:
+        """Carry a reflex out between two frames, tell the manager and the deployer; the new active triple."""
+        active = self._active
+        self.reflexes += 1  # switches and reports alike: the manager counts them
+        if swap.config is not None and swap.config in cores:
+            core = cores[swap.config]
+            active = (core.config, core, active[2] + 1)
+            self._own_generations.add(active[2])
+            self._reflex_generation = active[2]
+            self._active = active
+            if swap.deployment:
+                self.deployment = swap.deployment
+                print(f"{CONFIGURED_TOKEN} {swap.config} {swap.deployment}", flush=True)  # the deployer's record
+        s = self.settings
+        body = {"instance": s.instance, "host": s.host, "config": swap.config, "previous": swap.previous,
+                "deployment": swap.deployment, "elsewhere": swap.elsewhere, "band": swap.band,
+                "from_band": swap.from_band, "evidence": swap.evidence,
+                "level": None if swap.level is None else round(swap.level, 2), "seq": int(frame["seq"]),
+                "frame_time": float(frame["time"]), "time": time.time(), "count": self.reflexes}
+        body = {k: v for k, v in body.items() if v is not None}
+        self._last_reflex = body
+        self._reflex_pub.put(messages.encode("reflex", {**body, **self._hedging()}))
+        log.info("detector %s: reflex (%s, light %s): %s -> %s", s.instance, swap.evidence, body["level"],
+                 swap.previous, swap.config or f"nothing here for band {swap.band}")
+        return active
 
     def shutdown(self) -> None:
         for name in ("_token", "_subscriber"):
@@ -259,6 +473,9 @@ class Detector:
         if self._worker is not None:
             self._worker.join(timeout=5)
             self._worker = None
+        if self._reflex_pub is not None:
+            self._reflex_pub.close()
+            self._reflex_pub = None
         if self._publisher is not None:
             rpc.undeclare_quietly(self._publisher)
             self._publisher = None
@@ -348,6 +565,18 @@ def set_active(session: Any, robot: str, host: str, instance: str, active: bool,
         raise DeploymentError(f"activity of {instance} on {host}: bad reply: {exc}") from exc
 
 
+def arm(detector: Detector, session: Any) -> None:
+    """Give ``detector`` its reflex table from the graph; without one (no answer, a bad row) it keeps
+    the one it has, or runs without reflexes: the manager's loop still adapts it."""
+    s = detector.settings
+    if detector.deployment is None:
+        return
+    try:
+        detector.arm(fetch_reflex_table(session, s.robot, deployment=detector.deployment, host=s.host))
+    except KgadaptError as exc:
+        log.warning("detector %s: no reflex table (%s); the adaptation manager alone changes it", s.instance, exc)
+
+
 class Reconfigurer:
     """Answers in-place reconfiguration requests for one detector (see the module's docstring).
 
@@ -355,9 +584,8 @@ class Reconfigurer:
     and swaps, and replies, so nothing blocks inside Zenoh.
     """
 
-    def __init__(self, detector: Detector, *, deployment: str, first_frame_s: float = 2.0) -> None:
+    def __init__(self, detector: Detector, *, first_frame_s: float = 2.0) -> None:
         self.detector = detector
-        self.deployment = deployment
         self.first_frame_s = first_frame_s
         instance = detector.settings.instance
         self._server = rpc.Server(f"detector {instance}", workers=1, max_pending=8, prefix=f"detector {instance}: ")
@@ -392,21 +620,23 @@ class Reconfigurer:
         target = row.get("deployment")
         if not target:
             raise DeploymentError(f"configuration {name!r} has no deployment in the knowledge graph")
-        if target != self.deployment:
+        running = d.deployment
+        if target != running:
             rows = KnowledgeClient(self._session, s.robot, own=True).query(
-                "in_place_change", {"from": self.deployment, "to": target, "host": s.host})
+                "in_place_change", {"from": running, "to": target, "host": s.host})
             if not rows:
-                raise DeploymentError(f"the knowledge graph does not let deployment {self.deployment} take "
+                raise DeploymentError(f"the knowledge graph does not let deployment {running} take "
                                       f"{target} ({name}) in place on host {s.host}: start a new detector")
         check_ms = (time.perf_counter() - started) * 1e3
         built = time.perf_counter()
         generation = d.swap(config)
         build_ms = (time.perf_counter() - built) * 1e3
-        self.deployment = str(target)
+        d.deployment = str(target)
         print(f"{CONFIGURED_TOKEN} {name} {target}", flush=True)  # the deployer's record follows
         log.info("detector %s: %s -> %s in place", s.instance, previous, name)
         swapped = time.perf_counter()
         first = d.first_frame(generation, self.first_frame_s)
+        arm(d, self._session)  # what it may take in place from the new deployment
         body: dict[str, Any] = {"instance": s.instance, "config": name, "previous": previous,
                                 "deployment": str(target), "check_ms": round(check_ms, 3),
                                 "build_ms": round(build_ms, 3)}
@@ -477,12 +707,13 @@ def run(args: argparse.Namespace) -> int:
             row: dict[str, Any] = {}
             if args.config is not None:
                 config, row = fetch_config_row(session, args.robot, args.config, wait_s=args.config_wait)
-            detector = Detector(settings, config)
+            detector = Detector(settings, config, deployment=str(row["deployment"]) if row.get("deployment") else None)
+            arm(detector, session)
             detector.setup(session)
             switch = ActivitySwitch(detector)
             switch.setup(session)
             if row.get("deployment"):  # only a configuration from the graph can be changed from the graph
-                reconfigurer = Reconfigurer(detector, deployment=str(row["deployment"]))
+                reconfigurer = Reconfigurer(detector)
                 reconfigurer.setup(session)
             announce_ready(instance=args.instance, config=config.name)
             log.info("detector %s ready: config %s, camera %s", args.instance, config.name, args.camera)

@@ -14,6 +14,7 @@ key                                             what travels there
 ``kgadapt/<robot>/camera/<cam>/illumination``   luminance figures per frame
 ``kgadapt/<robot>/detector/<instance>/markers`` detections of one detector instance
 ``kgadapt/<robot>/detector/<instance>/alive``   liveliness token of a detector instance
+``kgadapt/<robot>/detector/<instance>/reflex``  the detector's own switches of configuration
 ``kgadapt/<robot>/host/<host>/detector/<i>/..`` ``.../configure``: queryable, reconfigure detector <i> in place;
                                                 ``.../activity``: queryable, make it idle or active (a standby)
 ``kgadapt/<robot>/flight/state``                flight state from the MAVLink bridge
@@ -80,6 +81,11 @@ def camera_illumination(robot: str, camera: str = "*") -> str:
 
 def detector_markers(robot: str, instance: str = "*") -> str:
     return f"{robot_root(robot)}/detector/{_name_or_star(instance, 'instance')}/markers"
+
+
+def detector_reflex(robot: str, instance: str = "*") -> str:
+    """Where a detector says it switched configuration on its own (kgadapt.onboard.reflex)."""
+    return f"{robot_root(robot)}/detector/{_name_or_star(instance, 'instance')}/reflex"
 
 
 def detector_configure(robot: str, host: str, instance: str = "*") -> str:

@@ -35,7 +35,7 @@ import msgspec
 from msgspec import Meta, Struct
 
 from kgadapt.shared.errors import MessageError
-from kgadapt.shared.states import Change, ProcessEventKind, ProcessState, TriggerKind
+from kgadapt.shared.states import Change, ProcessEventKind, ProcessState, ReflexEvidence, TriggerKind
 
 MAX_PAYLOAD = 8 * 1024 * 1024  # a 1080p JPEG is well under this
 MAX_SMALL = 256 * 1024  # everything that is not a frame
@@ -136,6 +136,33 @@ class Detections(Message, tag="detections", frozen=True, kw_only=True):
     dropped: int | None = None
     frame_sent: Number | None = None
     clean: Items | None = None  # per marker, whether its cells read clean (kgadapt.onboard.markers.cells_are_clean)
+
+
+class Reflex(Message, tag="reflex", frozen=True, kw_only=True):
+    """A running detector switched configuration on its own, between two frames (kgadapt.onboard.reflex),
+    or (``config`` nil) found the light in a band nothing it may take in place is for."""
+
+    instance: Name
+    host: Name
+    config: Name | None = None  # what it runs from frame ``seq`` on
+    previous: Name  # what it ran before
+    deployment: Name | None = None  # the deployment ``config`` belongs to
+    elsewhere: Name | None = None  # config nil: the band's best, which needs another process
+    band: Name
+    from_band: Name | None = None
+    evidence: ReflexEvidence
+    level: Number | None = None  # the frame's light estimate
+    seq: int  # the first frame of the camera processed with ``config``
+    frame_time: Number  # its capture time
+    time: Number
+    count: int  # the detector's reflexes so far (a receiver acts once per count)
+    # The last reflex is put again about once a second (``again``), so a receiver that lost it (stopped,
+    # its link dropped) still gets it; with the detector's hedging so far: frames processed, frames on
+    # which it also ran a second configuration, and the ms that cost in all.
+    again: bool | None = None
+    frames: int | None = None
+    hedged: int | None = None
+    hedge_ms: Number | None = None
 
 
 class QueryRequest(Message, tag="query_request", frozen=True, kw_only=True):
@@ -316,7 +343,7 @@ class AdaptationEvent(Message, tag="adaptation_event", frozen=True, kw_only=True
 
 # The tagged union of every kind: msgspec picks the Struct by ``kind``.
 AnyMessage = Union[
-    HostStatus, SqueezeRequest, Frame, Illumination, Detections, QueryRequest, CypherRequest, Rows, WriteRequest,
+    HostStatus, SqueezeRequest, Frame, Illumination, Detections, Reflex, QueryRequest, CypherRequest, Rows, WriteRequest,
     DeployRequest, ConfigureRequest, ConfigureReply, ActivityRequest, ActivityReply, DeployReply, DeployEvent,
     FlightState, AdaptationEvent,
 ]

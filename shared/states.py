@@ -66,6 +66,7 @@ class TriggerKind(StrEnum):
     RATE_COLLAPSED = "rate_collapsed"  # the running detector finds far fewer markers than calibration promised
     DETECTOR_GONE = "detector_gone"  # its deployer says our detector no longer runs
     STANDBY = "standby"  # time to start a warm standby
+    REFLEX = "reflex"  # the running detector switched on its own evidence (or says its band needs another process)
 
 
 # Acted on even during final descent: the detector is gone or about to be.
@@ -83,3 +84,13 @@ class Change(StrEnum):
     STANDBY = "standby"  # switched to the idle warm standby
     STANDBY_START = "standby_start"  # a warm standby started (idle)
     STANDBY_STOPPED = "standby_stopped"  # the warm standby stopped to free memory
+    REFLEX = "reflex"  # the running detector took the configuration in place on its own (its reflex)
+
+
+class ReflexEvidence(StrEnum):
+    """What made a detector switch on its own (``evidence`` of a ``reflex`` message; kgadapt.onboard.reflex)."""
+
+    LIGHT = "light"  # this frame's light is past the band's edge by more than its margin
+    COLLAPSE = "collapse"  # no marker for a few frames right after markers were seen
+    HEDGE = "hedge"  # the configuration run beside it found the markers where it did not
+    REVERT = "revert"  # after a switch, the previous configuration found them and the new one did not

@@ -21,12 +21,13 @@ from kgadapt.shared.states import (
     Change,
     ProcessEventKind,
     ProcessState,
+    ReflexEvidence,
     TriggerKind,
 )
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 ENUMS: dict[str, type[StrEnum]] = {"ProcessState": ProcessState, "ProcessEventKind": ProcessEventKind,
-                                   "TriggerKind": TriggerKind, "Change": Change}
+                                   "TriggerKind": TriggerKind, "Change": Change, "ReflexEvidence": ReflexEvidence}
 
 
 def _contract_table() -> dict[str, list[str]]:
@@ -74,7 +75,7 @@ def test_the_sets_partition_the_states_as_documented():
     assert ENDED_EVENTS == {"exited", "stopped", "failed"}
 
 
-MEMBERS = [*ProcessState, *ProcessEventKind, *TriggerKind, *Change]
+MEMBERS = [*ProcessState, *ProcessEventKind, *TriggerKind, *Change, *ReflexEvidence]
 
 
 @pytest.mark.parametrize("member", MEMBERS, ids=lambda m: f"{type(m).__name__}.{m.name}")
@@ -92,6 +93,11 @@ def test_a_member_is_its_plain_string_on_the_wire(member):
     if isinstance(member, ProcessState):
         reply = messages.decode(messages.encode("deploy_reply", {"ok": True, "detail": {"state": member}}), "deploy_reply")
         values.append(reply["detail"]["state"])
+    if isinstance(member, ReflexEvidence):
+        reflex = messages.decode(messages.encode("reflex", {
+            "instance": "det1", "host": "onboard", "previous": "a", "band": "dark", "evidence": member, "seq": 1,
+            "frame_time": 1.0, "time": 1.0, "count": 1}), "reflex")
+        values.append(reflex["evidence"])
     assert len(values) == 2
     for value in values:
         assert type(value) is str and value == member.value and value == member

@@ -16,12 +16,16 @@
       description "Mean luminance below 12 of 255"
       min_level 0
       max_level 12
+      margin 3
     end
 
-Features become ``Feature`` nodes (``requires`` gives ``(Feature)-[:REQUIRES]->(Feature)``).
+Features become ``Feature`` nodes (``requires`` gives ``(Feature)-[:REQUIRES]->(Feature)``);
+``frame_budget_ms`` is what one frame's detection may cost (a hedging detector
+runs a second configuration only within it).
 Bands become ``IlluminationBand`` nodes over mean luminance 0..255, half-open
 ``[min_level, max_level)`` (the top band includes 255); the bands of one file
-may touch but not overlap.
+may touch but not overlap. ``margin`` (optional, levels): how far past an edge
+a frame's light must be before the detector's reflex leaves the band.
 """
 
 from __future__ import annotations
@@ -85,6 +89,18 @@ def _statement(b: _Block, st: Statement) -> None:
         if value > 255:
             raise st.origin.error(f"{kw} {value} is above 255 (levels are mean luminance 0..255)")
         _once(b, st, kw, float(value))
+    elif b.kind == "band" and kw == "margin":
+        expect_args(st, 1, "margin NUMBER (levels, >= 0)")
+        value = number_arg(st, st.args[0], kw)
+        if value < 0 or value > 64:
+            raise st.origin.error(f"margin {value} is outside 0..64 (levels of mean luminance)")
+        _once(b, st, kw, float(value))
+    elif b.kind == "feature" and kw == "frame_budget_ms":
+        expect_args(st, 1, "frame_budget_ms NUMBER (> 0)")
+        value = number_arg(st, st.args[0], kw)
+        if not 0 < value <= 10_000:
+            raise st.origin.error(f"frame_budget_ms {value} is outside (0, 10000] ms")
+        _once(b, st, kw, float(value))
     else:
         raise st.origin.error(f"unknown statement {kw!r} in {b.kind} {b.name}")
 
@@ -103,6 +119,9 @@ def _close(model: ParsedModel, b: _Block, bands: list[_Block]) -> None:
         low, high = b.props["min_level"], b.props["max_level"]
         if low >= high:
             raise b.origin.error(f"band {b.name}: min_level {low:g} is not below max_level {high:g}")
+        if b.props.get("margin", 0.0) * 2 >= high - low:
+            raise b.origin.error(f"band {b.name}: margin {b.props['margin']:g} is not below half the band's "
+                                 f"width ({high - low:g})")
         for other in bands:
             if low < other.props["max_level"] and other.props["min_level"] < high:
                 raise b.origin.error(f"band {b.name} [{low:g}, {high:g}) overlaps band {other.name} "

@@ -52,37 +52,58 @@ class Run(WatchedRobot):
 
 
 def test_the_detector_follows_the_light_through_the_bands_without_losing_frames(tmp_path):
+    # The running detector's reflexes take each band's configuration in place as the frames' light crosses
+    # into it; the manager records each with its inputs and (its own plan agreeing) changes nothing more.
     points = [[0, 120], [5, 120], [6, 16], [11, 16], [12, 5], [18, 5]]
     with Run(tmp_path, points) as run:
         run.wait_for(run.decision("startup"), 20, "the first detector")
-        dusk = run.wait_for(run.decision("band_changed", config="marker_detection_dusk"), 20, "dusk")
-        dark = run.wait_for(run.decision("band_changed", config="marker_detection_dark"), 20, "dark")
+        dusk = run.wait_for(run.decision("reflex", config="marker_detection_dusk"), 20, "dusk")
+        dark = run.wait_for(run.decision("reflex", config="marker_detection_dark"), 20, "dark")
         run.wait_for(lambda: ("marker_detection_dark", "onboard") in run.running(dark.time), 5, "dark detections")
-        time.sleep(1.0)  # frames of the last migration's margin
+        time.sleep(3.0)  # past the smoothed light's catching up: the manager's own band decision would come now
         why = subprocess.run([sys.executable, "-m", "kgadapt", "why", "--json", "--connect", run.cluster.endpoint],
                              capture_output=True, text=True, timeout=30)
     assert why.returncode == 0, why.stderr
     explained = json.loads(why.stdout)
     assert (explained["running"]["config"], explained["running"]["host"]) == ("marker_detection_dark", "onboard"), (
         f"why said {explained['running']}; decisions {run.recorder.decisions}")
-    assert explained["decision"]["trigger"].startswith("band_changed(from=dusk, to=dark")
+    assert explained["decision"]["trigger"].startswith("reflex(evidence=light, previous=marker_detection_dusk"), (
+        explained["decision"])
     assert [p["platform"] for p in explained["placement_now"]] == ["remote", "onboard"]  # most free memory first
     startup = run.recorder.decisions[0]
     assert (startup.config, startup.host) == ("marker_detection_day", "onboard")
     # Same host, and the graph says the detector deployments may change in place: no new process.
-    assert (dusk.outcome, dark.outcome) == ("reconfigured", "reconfigured"), run.recorder.decisions
-    assert (dusk.change, dark.change) == ("reconfigure", "reconfigure")
+    assert (dusk.outcome, dark.outcome) == ("reconfigured by reflex", "reconfigured by reflex"), run.recorder.decisions
+    assert (dusk.change, dark.change) == ("reflex", "reflex")
     assert dusk.instance == dark.instance == startup.instance
-    assert explained["decision"]["inputs"]["change"] == "reconfigure"
-    assert "in_place_change" in explained["decision"]["inputs"]["change_why"]
+    assert explained["decision"]["inputs"]["change"] == "reflex"
+    assert explained["decision"]["inputs"]["trigger"]["band"] == "dark"
     run.recorder.attribute_losses()
     # No frame falls between the configurations: any frame of the gap is one the detector replaced in its
     # one-frame slot because the CPU was behind (seen under a load of 10), as it does at any other time.
     assert [(d.frames_lost or 0) - (d.frames_lost_busy or 0) for d in (dusk, dark)] == [0, 0], (
         [(d.frames_lost, d.frames_lost_busy) for d in (dusk, dark)])
     assert all(d.frames_lost is not None for d in (dusk, dark))
-    # Exactly one planned change per band change: no extra decisions.
-    assert [d.kind for d in run.recorder.decisions] == ["startup", "band_changed", "band_changed"]
+    # Exactly one change per band change: no extra decisions (the manager does not fight the reflexes).
+    assert [d.kind for d in run.recorder.decisions] == ["startup", "reflex", "reflex"]
+
+
+def test_without_in_place_changes_the_reflex_asks_and_the_manager_starts_a_process_at_once(tmp_path):
+    # The graph lets no detector deployment change in place: the detector's reflex can only say the band
+    # changed, and the manager starts the band's configuration as a new process without the band's wait.
+    from kgadapt.cluster import models_without_in_place
+
+    points = [[0, 120], [5, 120], [5.001, 5], [30, 5]]
+    with Run(tmp_path, points, models=models_without_in_place(tmp_path / "models")) as run:
+        first = run.wait_for(run.decision("startup"), 20, "the first detector")
+        moved = run.wait_for(run.decision("reflex", config="marker_detection_dark"), 20, "the move to dark")
+        run.wait_for(lambda: run.running(moved.time) == {("marker_detection_dark", "onboard")}, 10,
+                     "dark detections only")
+    assert (moved.outcome, moved.change) == ("migrated", "migrate"), moved
+    assert moved.instance != first.instance
+    assert moved.trigger.startswith("reflex(evidence=light, previous=marker_detection_day, band=dark, from_band=day"), (
+        moved.trigger)
+    assert "band_changed" not in [d.kind for d in run.recorder.decisions], run.recorder.decisions
 
 
 def test_light_hovering_at_a_band_edge_makes_no_change(tmp_path):
@@ -144,15 +165,35 @@ def test_with_remote_first_the_detector_returns_to_the_remote_host_when_it_comes
 
 
 def test_no_planned_change_happens_during_final_descent(tmp_path):
-    # The fake flight controller starts its final descent (LANDING) 1 s in, for 30 s;
-    # the light goes dark at 6 s. The band change is recorded and deferred, not acted on.
-    with Run(tmp_path, [[0, 120], [6, 120], [7, 5], [40, 5]], land_after_s=1.0, descent_s=30.0) as run:
+    # The fake flight controller starts its final descent (LANDING) 1 s in, for 30 s; the light goes dark
+    # at 6 s. With no in-place change in the graph, the detector's reflex can only tell: the change of
+    # configuration (a new process) is recorded and deferred, not acted on.
+    from kgadapt.cluster import models_without_in_place
+
+    with Run(tmp_path, [[0, 120], [6, 120], [7, 5], [40, 5]], land_after_s=1.0, descent_s=30.0,
+             models=models_without_in_place(tmp_path / "models")) as run:
         first = run.wait_for(run.decision("startup"), 20, "the first detector")
-        deferred = run.wait_for(run.decision("band_changed"), 20, "the band change to dark")
-        assert deferred.outcome.startswith("deferred: final descent"), deferred
+        deferred = run.wait_for(lambda: next((d for d in run.recorder.decisions if d.outcome.startswith("deferred")),
+                                             None), 20, "the band change to dark")
+        assert deferred.kind == "reflex" and deferred.outcome.startswith("deferred: final descent"), deferred
         later = deferred.time + 1.0
         run.wait_for(lambda: any(t >= later for t, *_ in run.recorder.detections), 10,
                      "detections a second after the deferral")
+        time.sleep(3.0)  # the manager's own band decision would come by now: it is not acted on either
         kept = {(c, h) for t, _, c, h, _, _ in run.recorder.detections if t >= deferred.time}
         assert kept == {("marker_detection_day", first.host)}
-    assert [d.kind for d in run.recorder.decisions] == ["startup", "band_changed"]
+    assert [d.kind for d in run.recorder.decisions] == ["startup", "reflex"]
+
+
+def test_during_final_descent_the_detector_still_answers_a_step_in_place(tmp_path):
+    # What a landing needs most: the pad's markers back within frames of a shadow. The detector's own
+    # reflex is not a planned change (no process starts or stops): it acts during the descent, the
+    # manager records it and moves nothing else.
+    with Run(tmp_path, [[0, 120], [6, 120], [6.001, 5], [40, 5]], land_after_s=1.0, descent_s=30.0) as run:
+        first = run.wait_for(run.decision("startup"), 20, "the first detector")
+        reflex = run.wait_for(run.decision("reflex"), 20, "the reflex into the dark")
+        run.wait_for(lambda: run.running(reflex.time) == {("marker_detection_dark", first.host)}, 10,
+                     "dark detections")
+        time.sleep(3.0)
+    assert (reflex.config, reflex.change, reflex.instance) == ("marker_detection_dark", "reflex", first.instance)
+    assert [d.kind for d in run.recorder.decisions] == ["startup", "reflex"], run.recorder.decisions

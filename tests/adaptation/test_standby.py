@@ -5,8 +5,9 @@ everything the standby is for, so the whole robot starts once: the manager keeps
 the neighbouring band's configuration started but idle where the graph says a
 host has room for it as well; its memory is in the graph like any process's;
 losing the remote host activates it (reconfigured in place) instead of starting
-a process; a band change to it is a switch (no process started or stopped); and
-it is the first thing stopped when memory gets short.
+a process; a step of the light is the running detector's own reflex (in place,
+faster than a switch), after which the standby follows the new neighbouring
+band; and it is the first thing stopped when memory gets short.
 """
 
 from __future__ import annotations
@@ -74,17 +75,22 @@ def test_the_standby_is_counted_takes_over_a_lost_host_is_switched_to_and_goes_f
 
         second = run.wait_for(lambda: idle_standbys(run)[1:], 30, "the next standby")[0]
         before_switch = detectors(run, "onboard")
-        switch = run.wait_for(run.decision("band_changed"), 60, "the band change to dark")
+        # The step into the dark: the running detector takes the dark configuration itself, in place.
+        switch = run.wait_for(run.decision("reflex"), 60, "the reflex into the dark")
         run.wait_for(lambda: (DARK, "onboard") in run.running(switch.time), 30, "dark detections")
-        after_switch = detectors(run, "onboard")
         since = time.time()
-        time.sleep(1.0)  # a second of detections: only the new running detector's
+        time.sleep(1.0)  # a second of detections: only the running detector's
         running = run.running(since)
         explained = explain(KnowledgeClient(run.session, "quad1", own=True, timeout=10.0).query)
+        # The dark standby is the running configuration now: a dusk one (the band the light left) replaces it.
+        third = run.wait_for(lambda: [d for d in idle_standbys(run)[2:] if d.config == DUSK], 60,
+                             "the dusk standby")[0]
+        dusk_standby = run.wait_for(lambda: [i for i, (_, _, c) in detectors(run, "onboard").items()
+                                             if c == DUSK and i != switch.instance], 30, "the dusk standby's process")
 
         squeeze(run.session, "quad1", "onboard", 350.0, timeout=10.0)  # dark needs 300 MiB: short now
         short = run.wait_for(run.decision("memory_short"), 30, "the squeeze to be noticed")
-        run.wait_for(lambda: lost.instance not in detectors(run, "onboard"), 30, "the standby's process gone")
+        run.wait_for(lambda: dusk_standby[0] not in detectors(run, "onboard"), 30, "the standby's process gone")
         after_squeeze = detectors(run, "onboard")
 
     # Its memory counts in the graph like any process's, though it publishes nothing.
@@ -97,18 +103,18 @@ def test_the_standby_is_counted_takes_over_a_lost_host_is_switched_to_and_goes_f
     assert lost.instance in standby and after_failover[lost.instance][:2] == standby[lost.instance][:2], after_failover
     assert not [i for i, (_, _, config) in after_failover.items() if i != lost.instance and config != DARK], (
         f"no new process for the failover: {after_failover}")
-    # A standby again (dark beside the running dusk, a process of its own), then the band change: a switch.
+    # A standby again (dark beside the running dusk, a process of its own), then the step: the running
+    # detector's reflex, the same process, on the frame that showed the dark.
     assert (second.config, second.host) == (DARK, "onboard"), second
-    assert (switch.change, switch.config, switch.host) == ("standby", DARK, "onboard"), switch
-    assert switch.instance not in standby and switch.instance in before_switch, switch
-    assert switch.previous_instance == lost.instance
-    assert after_switch == before_switch, "a switch starts no process and stops none (the old one is the standby now)"
-    assert running == {(DARK, "onboard")}, "the old detector, idle, publishes nothing"
-    assert explained["running"]["instance"] == switch.instance  # not the old one, idle beside it
-    assert explained["decision"]["inputs"]["change"] == "standby"
-    assert "switch to the warm standby" in render(explained), render(explained)
+    assert (switch.change, switch.config, switch.host) == ("reflex", DARK, "onboard"), switch
+    assert switch.instance == lost.instance and switch.instance in before_switch, switch
+    assert running == {(DARK, "onboard")}, "the idle standby publishes nothing"
+    assert explained["running"]["instance"] == switch.instance
+    assert explained["decision"]["inputs"]["change"] == "reflex"
+    assert "the detector's own reflex" in render(explained), render(explained)
+    assert (third.config, third.host) == (DUSK, "onboard"), third
     # Memory short: the standby is stopped first, the running detector stays.
-    assert short.change == "standby_stopped" and short.outcome.startswith(f"stopped the standby {lost.instance}"), short
+    assert short.change == "standby_stopped" and short.outcome.startswith(f"stopped the standby {dusk_standby[0]}"), short
     assert list(after_squeeze) == [switch.instance], after_squeeze
 
 

@@ -210,6 +210,9 @@ MALFORMED = [
     ("inverted.features", "band odd\n  min_level 50\n  max_level 20\nend\n", 1, r"min_level 50 is not below max_level 20"),
     ("too_bright.features", "band glare\n  min_level 200\n  max_level 300\nend\n", 3, r"above 255"),
     ("requires.features", "feature Flying\n  requires Hovering\nend\n", 2, r"unknown feature 'Hovering'"),
+    ("wide_margin.features", "band thin\n  min_level 10\n  max_level 16\n  margin 3\nend\n", 1,
+     r"band thin: margin 3 is not below half the band's width \(6\)"),
+    ("budget.features", "feature Fast\n  frame_budget_ms 0\nend\n", 2, r"frame_budget_ms 0 is outside"),
 ]
 
 

@@ -117,21 +117,26 @@ def test_forged_and_implausible_statuses_never_move_the_detector(tmp_path):
 
 @pytest.mark.slow
 def test_a_forged_final_descent_does_not_hold_back_a_band_change(tmp_path):
-    # The fake autopilot reports IN_AIR throughout; a forger says LANDING ten times a second.
-    with Run(tmp_path, [[0, 120], [5, 120], [6, 5], [40, 5]]) as run:
+    # The fake autopilot reports IN_AIR throughout; a forger says LANDING ten times a second. The graph
+    # allows no in-place change, so the step into the dark is a planned change (a new process), which the
+    # detector's reflex asks for at once.
+    from kgadapt.cluster import models_without_in_place
+
+    with Run(tmp_path, [[0, 120], [5, 120], [5.001, 5], [40, 5]],
+             models=models_without_in_place(tmp_path / "models")) as run:
         run.wait_for(run.decision("startup"), 20, "the first detector")
         forger = open_session(ZenohSettings(mode="peer", connect=(run.cluster.endpoint,)))
         stop = time.time() + 12
         try:
-            while time.time() < stop and not run.decision("band_changed")():
+            while time.time() < stop and not run.decision("reflex")():
                 forger.put(keys.flight_state("quad1"), messages.encode(
                     "flight_state", {"time": time.time(), "link": True, "armed": True, "landed_state": "LANDING"}))
                 time.sleep(0.1)
         finally:
             forger.close()
-        changed = run.wait_for(run.decision("band_changed"), 10, "the band change to dark")
-    assert changed.outcome.startswith(("migrated", "reconfigured")), changed  # carried out, not deferred
-    assert [d.kind for d in run.recorder.decisions] == ["startup", "band_changed"]
+        changed = run.wait_for(run.decision("reflex"), 10, "the change to dark")
+    assert changed.outcome.startswith("migrated") and changed.config == "marker_detection_dark", changed
+    assert [d.kind for d in run.recorder.decisions] == ["startup", "reflex"]
 
 
 @pytest.mark.slow
@@ -141,12 +146,14 @@ def test_forged_detections_and_a_forged_descent_heard_on_zenoh(tmp_path):
     certificate first sends empty detections fifty a second in the running instance's name on another
     instance's key: the manager counts only frames whose key and body name the instance it started, so
     the rate it watches does not collapse. Then it says LANDING twenty times a second while the light
-    flaps between dusk and day every 3 s: each kind of change is deferred, and recorded, once."""
+    flaps between dusk and day every 3 s: each kind of change is deferred, and recorded, once. (The graph
+    allows no in-place change here, so each flap is a planned change the detector's reflex asks for.)"""
+    from kgadapt.cluster import models_without_in_place
     from kgadapt.knowledge.client import KnowledgeClient
 
     light = [[0, 120], [7, 120], [8, 16], [15, 16], [16, 120], [18, 120], [19, 16], [21, 16], [22, 120],
              [24, 120], [25, 16], [60, 16]]
-    with Run(tmp_path, light, fake_fc=False) as run:
+    with Run(tmp_path, light, fake_fc=False, models=models_without_in_place(tmp_path / "models")) as run:
         started = time.monotonic()  # about when the light profile began
         run.wait_for(run.decision("startup"), 20, "the first detector")
         forger = open_session(ZenohSettings(mode="peer", connect=(run.cluster.endpoint,)))
@@ -155,7 +162,7 @@ def test_forged_detections_and_a_forged_descent_heard_on_zenoh(tmp_path):
             KnowledgeClient(forger, "quad1", timeout=5.0).write("calibration", {
                 "config": "marker_detection_dusk", "band": "dusk", "detection_rate": 0.6, "ms_per_frame": 10.0,
                 "time": time.time()})
-            dusk = run.wait_for(run.decision("band_changed"), 20, "the change to dusk")
+            dusk = run.wait_for(run.decision("reflex"), 20, "the change to dusk")
             assert dusk.config == "marker_detection_dusk", run.recorder.decisions
             run.wait_for(lambda: any(n for t, i, *_, n in run.recorder.detections
                                      if i == dusk.instance and t > dusk.time), 10, "markers found at dusk")
@@ -166,7 +173,7 @@ def test_forged_detections_and_a_forged_descent_heard_on_zenoh(tmp_path):
                     "processing_ms": 1.0}))
                 time.sleep(0.02)
             assert run.running(time.time() - 1.0) == {(dusk.config, dusk.host)}
-            assert [d.kind for d in run.recorder.decisions] == ["startup", "band_changed"], run.recorder.decisions
+            assert [d.kind for d in run.recorder.decisions] == ["startup", "reflex"], run.recorder.decisions
             while time.monotonic() < started + 29:  # past the last flap and its dwell
                 forger.put(keys.flight_state("quad1"), messages.encode(
                     "flight_state", {"time": time.time(), "link": True, "armed": True, "landed_state": "LANDING"}))
@@ -175,4 +182,4 @@ def test_forged_detections_and_a_forged_descent_heard_on_zenoh(tmp_path):
             forger.close()
     kinds = [(d.kind, d.outcome) for d in run.recorder.decisions]
     assert "rate_collapsed" not in [k for k, _ in kinds], kinds
-    assert [k for k, o in kinds if o.startswith("deferred")] == ["band_changed"], kinds  # once, not per change
+    assert [k for k, o in kinds if o.startswith("deferred")] == ["reflex"], kinds  # once, not per change

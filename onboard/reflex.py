@@ -1,0 +1,327 @@
+"""The detector's reflexes: what it switches to on its own, between two frames, and on which evidence.
+
+The adaptation manager's loop decides on a smoothed light level, past a
+hysteresis and a dwell, and then asks the detector to change: seconds after a
+sudden step of the light. A running detector does not have to wait for it. When
+it is configured it reads from the graph (named query ``reflex_table``) what it
+may take in place on its host, band by band, and compiles it into a
+:class:`ReflexTable`; per frame, :class:`Reflex` weighs the evidence the frame
+gives and says what to run:
+
+* light: this frame's light estimate (window-proof, :func:`~kgadapt.onboard.illumination.estimate_light`)
+  is past an edge of the current band by more than the band's margin: take the
+  new band's best configuration (``Swap``, evidence ``light``); where no
+  configuration of that band may run here in place, say so (``Swap`` with no
+  configuration: the manager starts one elsewhere);
+* collapse: markers were seen within ``memory_s`` and the last
+  ``collapse_frames`` frames found none: try the next candidate once (evidence
+  ``collapse``), and go back (``revert``) when it finds nothing either;
+* evidence, not waiting, is the hysteresis: after a switch the previous
+  configuration runs beside the new one on the same frames (a hedge, within the
+  graph's ms-per-frame budget, on frames the running one found nothing on: the
+  detector asks :meth:`Reflex.hedge_for` only then) for ``trial_frames``; the
+  new one stays when it finds markers, and the detector goes back (evidence
+  ``revert``) when the old one finds them and the new one does not,
+  ``confirm_frames`` times running.
+  Near a band edge (within its margin) the neighbouring band's configuration is
+  the hedge; finding markers where the running one does not, ``confirm_frames``
+  times running, makes it the running one (evidence ``hedge``).
+
+Nothing here does I/O or reads a clock: times are arguments.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+from kgadapt.onboard.illumination import Band
+from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.states import ReflexEvidence
+
+
+@dataclass(frozen=True)
+class Choice:
+    """A configuration a band may switch to in place."""
+
+    config: str
+    deployment: str
+    ms_per_frame: float | None
+    settings: Any  # the parsed configuration (kgadapt.onboard.markers.DetectorConfig)
+
+
+@dataclass(frozen=True)
+class BandEntry:
+    """One band of the table: its edges, margin and in-place choices, best first."""
+
+    band: Band
+    margin: float
+    choices: tuple[Choice, ...]
+    best_elsewhere: str | None = None  # the band's best configuration when it may not run here in place
+
+    @property
+    def best(self) -> Choice | None:
+        return self.choices[0] if self.choices else None
+
+
+@dataclass(frozen=True)
+class ReflexTable:
+    """What a detector may switch to on its own, compiled from ``reflex_table`` rows."""
+
+    entries: tuple[BandEntry, ...]  # lowest band first
+    budget_ms: float | None = None  # ms per frame a hedge must fit in (None: no hedging)
+
+    @classmethod
+    def from_rows(cls, rows: Sequence[Mapping[str, Any]], *, parse: Callable[[str, str, str | None], Any],
+                  default_margin: float = 3.0, penalty: float = 1.0, tie_rate: float = 0.005) -> "ReflexTable":
+        """The table of ``reflex_table`` rows; ``parse(name, config_json, dictionary)`` checks a configuration.
+
+        Ranked as the planner ranks (``config_ranking``): calibrated configurations by detection
+        rate minus ``penalty`` x false markers per frame, within ``tie_rate`` the faster first; a band
+        without calibration falls back to the configurations suited for it.
+        """
+        from kgadapt.onboard.calibration import rank_rows
+
+        by_band: dict[str, list[Mapping[str, Any]]] = {}
+        bands: dict[str, tuple[Band, float]] = {}
+        budget: float | None = None
+        for row in rows:
+            name = row.get("band")
+            low, high = row.get("min_level"), row.get("max_level")
+            if name is None or not isinstance(low, (int, float)) or not isinstance(high, (int, float)):
+                raise ConfigError(f"reflex table: band {name!r} has bad limits {low!r}..{high!r}")
+            margin = row.get("margin")
+            bands[str(name)] = (Band(str(name), float(low), float(high)),
+                                float(margin) if isinstance(margin, (int, float)) else default_margin)
+            by_band.setdefault(str(name), []).append(row)
+            if isinstance(row.get("budget_ms"), (int, float)) and row["budget_ms"] > 0:
+                budget = float(row["budget_ms"])
+        entries = []
+        parsed: dict[str, Any] = {}
+        for name, band_rows in by_band.items():
+            calibrated = [r for r in band_rows if r.get("detection_rate") is not None]
+
+            def score(r: Mapping[str, Any]) -> float:
+                return float(r["detection_rate"]) - penalty * float(r.get("false_per_frame") or 0.0)
+
+            def ms(r: Mapping[str, Any]) -> float:
+                return float(r.get("ms_per_frame") or math.inf)
+
+            ranked = (rank_rows(calibrated, score=score, ms=ms, tie_rate=tie_rate) if calibrated
+                      else [r for r in band_rows if r.get("suited")])
+            choices: list[Choice] = []
+            elsewhere = None
+            for r in ranked:
+                config = str(r["config"])
+                if r.get("in_place") and r.get("deployment") and all(c.config != config for c in choices):
+                    if config not in parsed:
+                        parsed[config] = parse(config, str(r["config_json"]), r.get("dictionary"))
+                    choices.append(Choice(config, str(r["deployment"]),
+                                          float(r["ms_per_frame"]) if r.get("ms_per_frame") is not None else None,
+                                          parsed[config]))
+                elif not choices and elsewhere is None:
+                    elsewhere = config
+            band, margin = bands[name]
+            entries.append(BandEntry(band, margin, tuple(choices), elsewhere))
+        entries.sort(key=lambda e: e.band.min_level)
+        return cls(tuple(entries), budget)
+
+    def entry(self, name: str | None) -> BandEntry | None:
+        return next((e for e in self.entries if e.band.name == name), None)
+
+    def band_of(self, level: float) -> BandEntry:
+        """The band holding ``level``; outside every band, the nearest."""
+        if not self.entries:
+            raise ConfigError("the reflex table has no band")
+        for e in self.entries:
+            if e.band.contains(level):
+                return e
+        return min(self.entries, key=lambda e: min(abs(level - e.band.min_level), abs(level - e.band.max_level)))
+
+    def band_for_config(self, config: str) -> BandEntry | None:
+        """The band whose best in-place choice ``config`` is (what a detector started with it is configured for)."""
+        return next((e for e in self.entries if e.best is not None and e.best.config == config), None)
+
+    def neighbours(self, name: str) -> tuple[BandEntry | None, BandEntry | None]:
+        """The bands below and above ``name``."""
+        names = [e.band.name for e in self.entries]
+        if name not in names:
+            return None, None
+        i = names.index(name)
+        return (self.entries[i - 1] if i > 0 else None, self.entries[i + 1] if i + 1 < len(names) else None)
+
+    def choices(self) -> dict[str, Choice]:
+        """Every configuration the table may switch to, by name (to build their detectors beforehand)."""
+        return {c.config: c for e in self.entries for c in e.choices}
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReflexSettings:
+    """How readily a detector acts on its own evidence."""
+
+    collapse_frames: int = 3  # frames in a row without a marker ...
+    memory_s: float = 1.0  # ... after markers were seen this recently
+    trial_frames: int = 6  # after a switch: frames the previous configuration runs beside it (within budget)
+    confirm_frames: int = 2  # frames in a row a hedge must win before it counts
+
+    def __post_init__(self) -> None:
+        if self.collapse_frames < 1 or self.trial_frames < 0 or self.confirm_frames < 1 or self.memory_s <= 0:
+            raise ConfigError("reflex settings: collapse_frames >= 1, trial_frames >= 0, confirm_frames >= 1, "
+                              "memory_s > 0")
+
+
+@dataclass(frozen=True)
+class Swap:
+    """A reflex: run ``config`` from now on (None: nothing here may run band ``band``; the manager must)."""
+
+    config: str | None
+    previous: str
+    band: str
+    from_band: str | None
+    evidence: ReflexEvidence
+    level: float | None
+    deployment: str | None = None
+    elsewhere: str | None = None  # with config None: the band's best, which needs another process
+
+
+@dataclass
+class Reflex:
+    """The per-frame reflex of one detector. ``on_light`` before detecting a frame, ``hedge_for`` to know
+    what to run beside it, ``on_result`` with what both found."""
+
+    table: ReflexTable
+    running: str  # the configuration the detector runs
+    settings: ReflexSettings = field(default_factory=ReflexSettings)
+    band: str | None = None  # the band the reflex believes the light is in
+    last_seen: float | None = None  # when the running configuration last found a marker
+    misses: int = 0
+    muted: bool = False  # a collapse was tried: none again until markers are seen
+    trial: tuple[str, int] | None = None  # (previous configuration, frames left to run it beside)
+    trying: str | None = None  # after a collapse: the previous configuration, to go back to if the try finds nothing
+    wins: int = 0  # frames in a row the hedge found markers and the running one did not
+    swaps: int = 0
+    told: bool = False  # the last band change was only told (nothing here could take it in place)
+
+    def on_light(self, level: float | None) -> Swap | None:
+        """This frame's light; a Swap when it is past an edge of the band by more than the margin."""
+        if level is None or not math.isfinite(level) or not self.table.entries:
+            return None
+        current = self.table.entry(self.band)
+        if current is None:
+            # Just started: the band it was configured for (a step while it started counts), else the light's.
+            current = self.table.band_for_config(self.running) or self.table.band_of(level)
+            self.band = current.band.name
+        if current.band.contains(level, current.margin):
+            return None
+        new = self.table.band_of(level)
+        if new.band.name == current.band.name:
+            return None
+        self.band = new.band.name
+        best = new.best
+        if best is None:  # nothing of that band runs here in place: tell, keep detecting with what runs
+            self.told = True
+            return Swap(None, self.running, new.band.name, current.band.name, ReflexEvidence.LIGHT, level,
+                        elsewhere=new.best_elsewhere)
+        if best.config == self.running:
+            if self.told:  # the manager was told of another band: tell it the light is back in this one
+                self.told = False
+                return Swap(None, self.running, new.band.name, current.band.name, ReflexEvidence.LIGHT, level)
+            return None
+        return self._swap(best, ReflexEvidence.LIGHT, level, from_band=current.band.name)
+
+    def hedge_for(self, level: float | None) -> str | None:
+        """The configuration to run beside the running one on this frame, if any: the previous one
+        during a trial, else near an edge (within the band's margin) the neighbouring band's best."""
+        if self.trial is not None:
+            return self.trial[0]
+        current = self.table.entry(self.band)
+        if current is None or level is None or not math.isfinite(level):
+            return None
+        if current.band.contains(level, -current.margin):
+            return None  # well inside the band
+        below, above = self.table.neighbours(current.band.name)
+        middle = (current.band.min_level + current.band.max_level) / 2
+        side = below if level < middle else above
+        best = side.best if side is not None else None
+        return best.config if best is not None and best.config != self.running else None
+
+    def on_result(self, found: int, now: float, *, hedge: str | None = None, hedge_found: int = 0,
+                  level: float | None = None) -> Swap | None:
+        """What the running configuration (and the hedge, if one ran) found on this frame; a Swap when
+        the evidence says to change."""
+        expired = False
+        if self.trial is not None:
+            previous, left = self.trial
+            self.trial = (previous, left - 1) if left > 1 else None
+            expired = self.trial is None
+        if found > 0:
+            self.last_seen, self.misses, self.muted, self.wins, self.trying = now, 0, False, 0, None
+            if self.trial is not None and hedge == self.trial[0]:
+                self.trial = None  # the new one finds the markers: it stays
+            return None
+        if hedge is not None and hedge_found > 0:
+            self.wins += 1
+            if self.wins >= self.settings.confirm_frames:
+                choice = self.table.choices().get(hedge)
+                if choice is not None:
+                    reverting = self.trial is not None and hedge == self.trial[0]
+                    self.trial, self.trying = None, None
+                    self.last_seen, self.misses = now, 0
+                    return self._swap(choice, ReflexEvidence.REVERT if reverting else ReflexEvidence.HEDGE, level,
+                                      trial=False)
+            return None
+        self.wins = 0
+        if expired and self.trying is not None:
+            # The try after a collapse found nothing either: back to the band's own choice, no cascade.
+            back = self.table.choices().get(self.trying)
+            self.trying = None
+            if back is not None:
+                return self._swap(back, ReflexEvidence.REVERT, level, trial=False)
+        if self.muted or self.last_seen is None or now - self.last_seen > self.settings.memory_s:
+            return None
+        self.misses += 1
+        if self.misses < self.settings.collapse_frames:
+            return None
+        self.misses = 0
+        self.muted = True  # one try per collapse: no cascade down the table
+        nxt = self._next_candidate(level)
+        if nxt is None:
+            return None
+        self.trying = self.running
+        return self._swap(nxt, ReflexEvidence.COLLAPSE, level)
+
+    def _next_candidate(self, level: float | None) -> Choice | None:
+        """After a collapse: the band's other choices, then the neighbouring bands' best, nearest first."""
+        current = self.table.entry(self.band)
+        if current is None:
+            return None
+        for c in current.choices:
+            if c.config != self.running:
+                return c
+        below, above = self.table.neighbours(current.band.name)
+        sides = [e for e in (below, above) if e is not None]
+        if level is not None and math.isfinite(level):
+            sides.sort(key=lambda e: min(abs(level - e.band.min_level), abs(level - e.band.max_level)))
+        for e in sides:
+            for c in e.choices:
+                if c.config != self.running:
+                    return c
+        return None
+
+    def _swap(self, choice: Choice, evidence: ReflexEvidence, level: float | None, *, from_band: str | None = None,
+              trial: bool = True) -> Swap:
+        self.told = False
+        previous, self.running = self.running, choice.config
+        self.trial = (previous, self.settings.trial_frames) if trial and self.settings.trial_frames else None
+        self.wins = 0
+        self.swaps += 1
+        return Swap(choice.config, previous, self.band or "", from_band if from_band is not None else self.band,
+                    evidence, level, deployment=choice.deployment)
+
+    def taken(self, config: str, level: float | None = None) -> None:
+        """The detector was told to run ``config`` (an in-place change from the manager): follow it."""
+        self.running = config
+        self.trial, self.trying, self.wins, self.misses = None, None, 0, 0
+        if level is not None and math.isfinite(level) and self.table.entries:
+            self.band = self.table.band_of(level).band.name

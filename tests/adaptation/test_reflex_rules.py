@@ -1,0 +1,192 @@
+"""The detector's reflex rules (kgadapt.onboard.reflex) over plain values: the table the graph gives,
+and what each frame's evidence leads to. The whole path with processes is tests/adaptation/test_reflex.py."""
+
+from __future__ import annotations
+
+import pytest
+
+from kgadapt.knowledge.loader import load_models
+from kgadapt.knowledge.queries import run_named
+from kgadapt.knowledge.store import open_store
+from kgadapt.onboard.markers import parse_config
+from kgadapt.onboard.reflex import Reflex, ReflexSettings, ReflexTable
+from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.resources import models
+from kgadapt.shared.states import ReflexEvidence
+
+CONFIG = '{"dictionary": "DICT_4X4_50", "preprocess": [], "parameters": {}}'
+
+
+def row(band, low, high, config, *, rate=None, in_place=True, suited=True, ms=3.0, margin=5.0, budget=33.0,
+        deployment=None, false=0.0):
+    return {"band": band, "min_level": low, "max_level": high, "margin": margin, "config": config,
+            "dictionary": "DICT_4X4_50", "config_json": CONFIG, "detection_rate": rate, "false_per_frame": false,
+            "ms_per_frame": ms, "suited": suited, "deployment": deployment or f"d_{config}", "in_place": in_place,
+            "budget_ms": budget}
+
+
+def parse(name, raw, dictionary):
+    return parse_config(name, raw, dictionary=dictionary)
+
+
+BANDS = [("dark", 0, 12), ("dusk", 12, 40), ("day", 40, 255)]
+
+
+def table(**extra):
+    return ReflexTable.from_rows([row(b, lo, hi, b, **extra) for b, lo, hi in BANDS], parse=parse)
+
+
+def test_the_table_ranks_calibrated_configurations_and_keeps_only_what_may_run_here_in_place():
+    rows = [row("dark", 0, 12, "dark_a", rate=0.9, suited=False), row("dark", 0, 12, "dark_b", rate=0.95, ms=9),
+            row("dark", 0, 12, "dark_hd", rate=1.0, in_place=False, suited=False),
+            row("day", 40, 255, "day", suited=True, margin=None)]
+    t = ReflexTable.from_rows(rows, parse=parse, default_margin=4.0)
+    dark = t.entry("dark")
+    assert [c.config for c in dark.choices] == ["dark_b", "dark_a"]  # the best one needs another process
+    assert dark.best_elsewhere == "dark_hd"
+    assert t.entry("day").margin == 4.0 and t.budget_ms == 33.0
+    assert [e.band.name for e in t.entries] == ["dark", "day"]
+
+
+def test_a_bad_band_row_is_refused_naming_the_band():
+    with pytest.raises(ConfigError, match="band 'dark'"):
+        ReflexTable.from_rows([{**row("dark", 0, 12, "x"), "max_level": None}], parse=parse)
+
+
+def test_a_frame_past_the_edge_by_the_margin_switches_before_it_is_detected():
+    r = Reflex(table=table(), running="day")
+    assert r.on_light(120.0) is None and r.band == "day"
+    assert r.on_light(36.0) is None  # within the margin below the edge (40 - 5)
+    swap = r.on_light(5.0)
+    assert (swap.config, swap.previous, swap.band, swap.from_band, swap.evidence) == (
+        "dark", "day", "dark", "day", ReflexEvidence.LIGHT)
+    assert swap.deployment == "d_dark" and r.running == "dark"
+    assert r.on_light(6.0) is None  # the same band: nothing more
+
+
+def test_a_detector_just_started_takes_its_configuration_s_band_so_a_step_during_its_start_counts():
+    r = Reflex(table=table(), running="dusk")
+    swap = r.on_light(120.0)  # started for dusk, the light is day already
+    assert (swap.config, swap.from_band, swap.band) == ("day", "dusk", "day")
+    r2 = Reflex(table=table(), running="dusk")
+    assert r2.on_light(20.0) is None and r2.band == "dusk"
+
+
+def test_a_band_nothing_may_take_in_place_is_reported_not_switched():
+    rows = [row("day", 40, 255, "day"), row("dark", 0, 12, "dark_remote", in_place=False)]
+    r = Reflex(table=ReflexTable.from_rows(rows, parse=parse), running="day")
+    r.on_light(120.0)
+    swap = r.on_light(5.0)
+    assert swap.config is None and swap.elsewhere == "dark_remote" and r.running == "day"
+    # Back in the band of what runs: told too, so the manager's band follows.
+    back = r.on_light(120.0)
+    assert (back.config, back.band, back.from_band, back.elsewhere) == (None, "day", "dark", None)
+    assert r.on_light(5.0).config is None and r.on_light(6.0) is None
+
+
+def test_after_a_switch_the_new_one_stays_when_it_finds_the_markers():
+    r = Reflex(table=table(), running="day")
+    r.on_light(120.0)
+    r.on_light(5.0)
+    assert r.hedge_for(5.0) == "day"  # the previous one runs beside it on the next frames
+    assert r.on_result(4, 1.0, hedge="day", hedge_found=0) is None
+    assert r.trial is None and r.running == "dark" and r.hedge_for(5.0) is None
+
+
+def test_after_a_switch_it_goes_back_when_only_the_old_one_finds_the_markers():
+    r = Reflex(table=table(), running="day", settings=ReflexSettings(confirm_frames=2))
+    r.on_light(120.0)
+    r.on_light(5.0)
+    assert r.on_result(0, 1.0, hedge="day", hedge_found=3) is None  # once is not yet evidence
+    back = r.on_result(0, 1.03, hedge="day", hedge_found=3)
+    assert (back.config, back.evidence) == ("day", ReflexEvidence.REVERT) and r.running == "day"
+    assert r.on_light(5.0) is None  # still the dark band: the light alone does not flip it again
+
+
+def test_near_an_edge_the_neighbouring_configuration_is_the_hedge_and_wins_on_evidence():
+    r = Reflex(table=table(), running="day")
+    r.on_light(120.0)
+    assert r.hedge_for(120.0) is None
+    assert r.hedge_for(42.0) == "dusk"  # within the day band's margin of its lower edge
+    r.on_result(0, 1.0, hedge="dusk", hedge_found=2)
+    swap = r.on_result(0, 1.03, hedge="dusk", hedge_found=2)
+    assert (swap.config, swap.evidence) == ("dusk", ReflexEvidence.HEDGE)
+
+
+def test_a_collapse_after_markers_tries_the_next_candidate_once_and_then_goes_back():
+    s = ReflexSettings(collapse_frames=3, trial_frames=4, memory_s=1.0)
+    r = Reflex(table=table(), running="dusk", settings=s)
+    r.on_light(30.0)
+    r.on_result(5, 10.0)
+    assert r.on_result(0, 10.03) is None and r.on_result(0, 10.06) is None
+    swap = r.on_result(0, 10.1, level=14.0)
+    assert (swap.config, swap.evidence) == ("dark", ReflexEvidence.COLLAPSE)  # the nearer neighbour
+    # Nothing found by either: back to the band's own choice once the try is over, no cascade down the table.
+    swaps = [r.on_result(0, 10.2 + i * 0.03, hedge=r.hedge_for(14.0), hedge_found=0) for i in range(12)]
+    back = [x for x in swaps if x is not None]
+    assert [(x.config, x.evidence) for x in back] == [("dusk", ReflexEvidence.REVERT)] and r.running == "dusk"
+    assert swaps.index(back[0]) == s.trial_frames - 1
+    # Markers long gone (left the view): no collapse.
+    r2 = Reflex(table=table(), running="dusk", settings=s)
+    r2.on_light(30.0)
+    r2.on_result(5, 10.0)
+    assert all(r2.on_result(0, 12.0 + i * 0.03) is None for i in range(5))
+
+
+def test_what_the_manager_sets_is_followed_not_fought():
+    r = Reflex(table=table(), running="dark")
+    r.on_light(5.0)
+    r.taken("day", level=5.0)  # the manager reconfigured it (its own reasons)
+    assert r.running == "day" and r.on_light(5.0) is None and r.trial is None
+
+
+def test_the_shipped_models_give_every_band_an_in_place_configuration_onboard(tmp_path):
+    with open_store(f"embedded:{tmp_path / 'store'}") as store:
+        load_models(store, [str(models())])
+        rows = run_named(store, "reflex_table", {"deployment": "detector_day", "host": "onboard"})
+        remote_only = run_named(store, "reflex_table", {"deployment": "detector_hd", "host": "onboard"})
+    t = ReflexTable.from_rows(rows, parse=parse)
+    assert [(e.band.name, e.margin, e.best.config) for e in t.entries] == [
+        ("dark", 5.0, "marker_detection_dark"), ("dusk", 5.0, "marker_detection_dusk"),
+        ("day", 5.0, "marker_detection_day")]
+    assert t.budget_ms == 33.0
+    # detector_hd is not executable onboard: nothing may be taken in place from it there.
+    assert remote_only and not any(r["in_place"] for r in remote_only)
+
+
+def test_the_manager_follows_a_reflex_and_the_smoothed_light_may_undo_it_only_after_the_hold():
+    from kgadapt.onboard.adaptation import Analyzer, Band, BandTracker
+    from kgadapt.shared.states import TriggerKind
+
+    bands = [Band("dark", 0, 12), Band("dusk", 12, 40), Band("day", 40, 255)]
+    a = Analyzer(tracker=BandTracker(bands=bands, hysteresis=4.0, dwell_s=1.0))
+    a.on_illumination(120.0, 0.0)
+    trigger = a.on_reflex("dark", 10.0, {"evidence": "light"}, hold_s=2.0)
+    assert trigger.kind == TriggerKind.REFLEX and a.tracker.current.name == "dark"
+    assert a.tracker.previous.name == "day"
+    # The smoothed level still says day (it lags): no band change back while the hold lasts ...
+    assert all(a.on_illumination(100.0, 10.0 + t / 10) is None for t in range(20))
+    # ... but a light that stays in the day past the hold and the dwell undoes it.
+    assert a.on_illumination(100.0, 12.1) is None
+    back = a.on_illumination(100.0, 13.2)
+    assert back is not None and back.kind == TriggerKind.BAND_CHANGED and back.detail["to"] == "day"
+
+
+def test_a_reflex_decision_leaves_out_what_receivers_of_the_first_contract_do_not_know():
+    # tests/contract's outsider checks trigger_kind and change against the values it was written for.
+    from kgadapt.onboard.adaptation import Placement, Plan, Trigger
+    from kgadapt.onboard.adaptation_policy import Outcome, decision_record
+    from kgadapt.shared import messages
+    from kgadapt.shared.states import Change, TriggerKind
+
+    target = Placement(config="marker_detection_dark", deployment="detector_dark", host="onboard", instance="d1")
+    outcome = Outcome(trigger=Trigger(TriggerKind.REFLEX, 1.0, {"evidence": "light", "band": "dark"}),
+                      plan=Plan(target=target, reason="the detector's reflex", inputs={"band": "dark"},
+                                queries=("reflex_table",)),
+                      outcome="reconfigured by reflex", latency_ms=40.0, frames_lost=0,
+                      detail={"change": Change.REFLEX, "previous_instance": "d1"})
+    params, event = decision_record(outcome, robot="quad1", wall=2.0, seq=1, instance="d1")
+    assert params["trigger"].startswith("reflex(evidence=light") and '"change": "reflex"' in params["inputs_json"]
+    decoded = messages.decode(messages.encode("adaptation_event", event), "adaptation_event")
+    assert "trigger_kind" not in decoded["decision"] and "change" not in decoded["decision"]
+    assert decoded["trigger"].startswith("reflex(") and decoded["decision"]["config"] == "marker_detection_dark"
