@@ -10,6 +10,7 @@ key                          request                               reply
 ``cypher``                   ``cypher_request {cypher, params}``   ``rows`` (read-only subset only)
 ``write/<verb>``             ``write_request {params}``            ``rows {rows: []}`` (operators)
 ``write/<host>/<verb>``      ``write_request {params}``            ``rows {rows: []}`` (host's own)
+``own/stats``                (none)                                ``rows`` (one row: counters)
 ===========================  ====================================  ==========================
 
 ``<name>`` is any of ``kgadapt.knowledge.queries.QUERIES``, ``<verb>`` any of
@@ -50,7 +51,11 @@ It also keeps each ``Platform``'s run-time figures current: host statuses
 (the service's receive time, so hosts' clocks need not agree), and host
 liveliness (``host/<host>/alive``, subscribed with history) sets ``online``.
 A status never sets ``online``: only the token does, so a late status cannot
-revive a host whose token is gone. At setup every platform is first marked
+revive a host whose token is gone. Only the models add hosts: a status, a
+token or a write naming a host no ``Platform`` of the models names is refused
+(logged once per host, counted as ``unknown_host_refused``, the names in
+``own/stats`` and ``kgadapt status``), and a decision's ``time`` is the
+service's receive time, not the sender's clock. At setup every platform is first marked
 offline; the liveliness history then marks the live ones online again.
 
 Threads: Zenoh callbacks only put work on queues. Request workers (two
@@ -88,6 +93,7 @@ from kgadapt.shared.errors import (
     QueryError,
     QueryTimeLimit,
     TransportError,
+    UnknownHost,
 )
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
 
@@ -95,6 +101,8 @@ log = logging.getLogger(__name__)
 
 _STOP = object()
 _MAX_LIVELINESS_DUE = 100  # per host: a flapping token while the store is away
+_MAX_REFUSED_HOSTS = 256  # names of refused hosts remembered (and logged); past that only counted
+_UNKNOWN_RECHECK_S = 10.0  # a refused host is looked up again this often (the models may be reloaded)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -163,6 +171,11 @@ class KnowledgeService:
         # kgadapt.knowledge.sandbox.QuerySandbox, one per public worker: a kill costs only its own question
         self.sandboxes: list[Any] = []
         self._sandbox_pool: queue.Queue[Any] = queue.Queue()
+        # Hosts of the models seen so far, and when each refused one was last looked up (status worker only);
+        # the refused names, for stats (under _stats_lock).
+        self._known_hosts: set[str] = set()
+        self._unknown_checked: dict[str, float] = {}
+        self._refused_hosts: list[str] = []
 
     # -- life cycle ---------------------------------------------------------
 
@@ -207,6 +220,7 @@ class KnowledgeService:
             self._public.serve(session, keys.knowledge_cypher(robot), self._handler("cypher"), what="cypher")
             self._public.serve(session, keys.knowledge_query(robot, "*"), self._handler("query"), what="query")
             self._own.serve(session, keys.knowledge_own_query(robot, "*"), self._handler("own"), what="own")
+            self._own.serve(session, keys.knowledge_own_stats(robot), self._handler("stats"), what="stats")
             self._stack = stack.pop_all()
         log.info(
             "knowledge service for robot %s: %d named queries, cypher (read-only subset), %s; "
@@ -229,9 +243,10 @@ class KnowledgeService:
         with self._stats_lock:
             counts: collections.Counter[str] = collections.Counter(self._stats)
             last_drop = self._last_drop
+            refused = list(self._refused_hosts)
         for server in (self._own, self._public):
             counts.update({f"requests_{what}": n for what, n in server.stats().items() if n})
-        return {**counts, "last_drop": last_drop}
+        return {**counts, "last_drop": last_drop, "unknown_hosts": refused}
 
     # -- request handling, Zenoh-free (tests call these directly) -----------
 
@@ -315,11 +330,17 @@ class KnowledgeService:
         params = check_params(request.params, what=f"write verb {verb!r}", error=MessageError)
         if verb == "process_sample":  # ours, not the sender's: a late sample must not reopen a lost host's profile
             params["received"] = time.time() if received is None else received
+        elif verb == "decision" and "time" in params:  # ours too: a sender's clock cannot date one ahead
+            params["time"] = time.time() if received is None else received
         start = time.perf_counter()
-        with self._store_lock:
-            if host is not None:
-                check_owner(self.store, verb, params, host=host, manager_host=self.settings.manager_host)
-            runtime.run_write(self.store, verb, params)  # checks names, types and bounds, naming them
+        try:
+            with self._store_lock:
+                if host is not None:
+                    check_owner(self.store, verb, params, host=host, manager_host=self.settings.manager_host)
+                runtime.run_write(self.store, verb, params)  # checks names, types and bounds, naming them
+        except UnknownHost as exc:
+            self._refuse_host(exc.host, f"write {verb!r}")
+            raise
         return _rows_reply([], (time.perf_counter() - start) * 1000, f"write verb {verb!r}")
 
     # -- Zenoh: requests through rpc.Server, events queued ---------------------------
@@ -339,6 +360,9 @@ class KnowledgeService:
         elif kind == "cypher":
             body = self.answer_cypher(payload)
             reply_key = keys.knowledge_cypher(robot)
+        elif kind == "stats":
+            body = _rows_reply([self.stats()], 0.0, "service stats")
+            reply_key = keys.knowledge_own_stats(robot)
         else:
             verb = keys.last_chunk(key)
             if key.split("/")[-3] == "write":  # write/<host>/<verb>: a host's own
@@ -406,6 +430,8 @@ class KnowledgeService:
         used: dict[str, float] = {}  # what each host's open profiles hold, read once per batch
         for kind, key, value, received in batch:
             try:
+                if not self._admit_host(_host_of(key), kind):
+                    continue
                 if kind == "status":
                     host = _host_of(key)
                     if host not in used:
@@ -443,6 +469,10 @@ class KnowledgeService:
                             # Its processes are beyond reach: the profiles they opened before the loss end
                             # with the token. One that outlived a partition reopens with its next sample.
                             runtime.close_host_profiles(self.store, name=host, time=received)
+                except UnknownHost:
+                    self._refuse_host(host, "alive")
+                    due.clear()
+                    break
                 except KgadaptError as exc:
                     self._count("liveliness_retried")
                     log.warning("liveliness of host %s (%s): the store refused it, trying again: %s",
@@ -465,10 +495,46 @@ class KnowledgeService:
         try:
             with self._store_lock:
                 writer(self.store, **params)
+        except UnknownHost:
+            self._refuse_host(host, what)
+            return
         except KgadaptError as exc:
             self._drop(f"{what} of host {host}: store refused it: {exc}")
             return
         self._count(f"{what}_applied")
+
+    def _admit_host(self, host: str, what: str) -> bool:
+        """Whether a Platform of the models is named ``host`` (status worker); a refusal is counted."""
+        if host in self._known_hosts:
+            return True
+        now = time.monotonic()
+        checked = self._unknown_checked.get(host)
+        if checked is None or now - checked >= _UNKNOWN_RECHECK_S:
+            try:
+                with self._store_lock:
+                    known = runtime.is_known_host(self.store, host)
+            except KgadaptError:
+                return True  # the store is away: its writer refuses an unknown host itself
+            if known:
+                self._known_hosts.add(host)
+                self._unknown_checked.pop(host, None)
+                return True
+            if len(self._unknown_checked) >= _MAX_REFUSED_HOSTS:
+                self._unknown_checked.pop(next(iter(self._unknown_checked)))
+            self._unknown_checked[host] = now
+        self._refuse_host(host, what)
+        return False
+
+    def _refuse_host(self, host: str, what: str) -> None:
+        """Count a refusal of a host no model names; log it the first time that host is refused."""
+        with self._stats_lock:
+            self._stats["unknown_host_refused"] += 1
+            first = host not in self._refused_hosts and len(self._refused_hosts) < _MAX_REFUSED_HOSTS
+            if first:
+                self._refused_hosts.append(host)
+        if first:
+            log.warning("refused host %r (%s): no Platform of the models names it, and only the models add hosts; "
+                        "further refusals of it are counted, not logged", host, what)
 
     def _check_status(self, key: str, payload: bytes) -> dict[str, Any]:
         return check_status(_host_of(key), messages.decode(payload, "host_status"))
