@@ -123,6 +123,10 @@ class ServiceSettings:
     public_workers: int = 2
     public_time_limit_ms: int = 1000
     max_pending_public: int = 32
+    # Other robots' questions wait, before they run and before their answer is encoded, while the robot's
+    # own requests are being answered (at most this long each time): on 2 cores their parsing and encoding
+    # otherwise takes the interpreter from the robot's own. 0: no waiting.
+    own_first_wait_s: float = 1.0
     sandbox: bool = True  # serve them from a QuerySandbox when the store is FalkorDB
     lock: bool = True  # refuse to start beside another service on the same store
     # The host whose agent runs the adaptation manager and the flight bridge: the one that may write
@@ -153,6 +157,7 @@ class KnowledgeService:
         self._own = rpc.Server("knowledge service", workers=settings.workers, max_pending=settings.max_pending_requests)
         self._public = rpc.Server("knowledge service", workers=settings.public_workers,
                                   max_pending=settings.max_pending_public)
+        self.own_first = OwnFirst(max_wait_s=settings.own_first_wait_s)
         self._events: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_statuses)
         self._event_thread: threading.Thread | None = None
         # Per host, its liveliness changes not yet in the store, oldest first (only the status worker touches it).
@@ -277,6 +282,7 @@ class KnowledgeService:
                 # fig4_literal's 21,344 rows cost them tens of ms. Same bound as free Cypher.
                 text = f"{text.rstrip()}\nLIMIT {CypherLimits().max_rows}"
             rows = self._run_untrusted(text, values, limit_ms, f"query {name!r}")
+            self.own_first.wait_turn()  # encoding a large answer holds the interpreter too
         else:
             with self._store_lock:
                 rows = queries.run_named(self.store, name, params, timeout_ms=self.settings.query_timeout_ms)
@@ -291,10 +297,12 @@ class KnowledgeService:
         params = check_params(request.params or {}, what="cypher", error=MessageError)
         start = time.perf_counter()
         rows = self._run_untrusted(text, params, self.settings.public_time_limit_ms, "cypher")
+        self.own_first.wait_turn()
         return _rows_reply(rows, (time.perf_counter() - start) * 1000, "cypher")
 
     def _run_untrusted(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str) -> list[dict[str, Any]]:
         """In the sandbox when there is one (killed past the limit), else on the store with its timeout."""
+        self.own_first.wait_turn()
         try:
             if self.sandboxes:
                 sandbox = self._sandbox_pool.get()  # as many as public workers: never waits
@@ -350,6 +358,12 @@ class KnowledgeService:
 
     def _serve(self, kind: str, request: rpc.Request) -> rpc.Reply:
         """The reply to one request (on a server's worker); a KgadaptError is answered with its text."""
+        if kind in ("query", "cypher"):
+            return self._answer(kind, request)
+        with self.own_first.serving():  # the robot's own: other robots' questions wait meanwhile
+            return self._answer(kind, request)
+
+    def _answer(self, kind: str, request: rpc.Request) -> rpc.Reply:
         robot = self.settings.robot
         key, payload = request.key, request.payload
         if kind in ("query", "own"):
@@ -633,6 +647,42 @@ def _store_lock(store: GraphStore) -> Any:
     """Every backend is safe to call from several threads (FalkorDB's client has a connection
     pool; the Bolt backend serializes its one session itself), so no lock of ours is needed."""
     return contextlib.nullcontext()
+
+
+class OwnFirst:
+    """The robot's own requests first: other robots' questions wait while one is being answered.
+
+    Python runs one thread at a time: a public worker parsing a 1,000-row answer from its sandbox
+    (tens of ms) makes the robot's own request wait for the interpreter at every step. The public
+    workers therefore wait at their steps (before a question runs, before its answer is encoded)
+    until no own request is being answered, at most ``max_wait_s`` each time, so a steady stream
+    of the robot's own requests slows other robots' answers but never stops them.
+    """
+
+    def __init__(self, *, max_wait_s: float) -> None:
+        self.max_wait_s = max_wait_s
+        self._serving = 0
+        self._idle = threading.Condition()
+        self._mine = threading.local()  # set on a thread answering an own request: it never waits
+
+    @contextlib.contextmanager
+    def serving(self) -> Any:
+        with self._idle:
+            self._serving += 1
+        self._mine.own = True
+        try:
+            yield
+        finally:
+            self._mine.own = False
+            with self._idle:
+                self._serving -= 1
+                if not self._serving:
+                    self._idle.notify_all()
+
+    def wait_turn(self) -> None:
+        if self.max_wait_s > 0 and not getattr(self._mine, "own", False):
+            with self._idle:
+                self._idle.wait_for(lambda: not self._serving, timeout=self.max_wait_s)
 
 
 class _RateLimitedLog:

@@ -233,3 +233,21 @@ def test_a_decisions_time_is_the_services_not_the_senders(client, resp_store):
     client.write("decision", {"name": "dated", "time": sent, "trigger": "startup", "host": "onboard"})
     taken = resp_store.execute("MATCH (a:AdaptationDecision {name: 'dated'}) RETURN a.time AS t")[0]["t"]
     assert taken <= time.time() < sent
+
+
+def test_another_robots_question_waits_while_the_robots_own_request_is_answered(resp_store, robot):
+    import threading
+
+    schema.ensure_indexes(resp_store)
+    svc = KnowledgeService(resp_store, ServiceSettings(robot=robot, own_first_wait_s=60.0))  # not set up: no Zenoh
+    answered = threading.Event()
+    asker = threading.Thread(target=lambda: (svc.answer_named("platforms", None, public=True), answered.set()))
+    with svc.own_first.serving():  # an own request being answered
+        asker.start()
+        assert not answered.wait(0.5)  # the public question has not run meanwhile
+        # The own request's own steps never wait for it: a literal query on the own door answers at once.
+        started = time.monotonic()
+        svc.answer_named("fig5_literal", None)
+        assert time.monotonic() - started < 30.0
+    assert answered.wait(10)  # and it runs as soon as the own request is done
+    asker.join()
