@@ -31,7 +31,10 @@ as fresh as the primary.
 Each of those questions has a hard time limit (``public_time_limit_ms``,
 or a literal paper query's own shorter one): past it the answer is
 abandoned and the sandbox server killed, so the work stops. Free Cypher must
-parse in the subset of :mod:`kgadapt.knowledge.cypher_guard`. A flood of questions
+parse in the subset of :mod:`kgadapt.knowledge.cypher_guard`. Their workers wait
+(before a question runs, before its answer is encoded) while one of the robot's
+own requests is being answered (:class:`OwnFirst`): parsing and encoding a large
+answer would otherwise take the interpreter from it. A flood of questions
 thus costs other robots their answers, never the robot its own. One service
 per store: :class:`~kgadapt.knowledge.service_lock.ServiceLock`.
 
