@@ -60,6 +60,19 @@ def robot_name(i: int) -> str:
     return f"robot{i:03d}"
 
 
+def load_sim_platforms(store: Any, names: list[str], directory: Path) -> None:
+    """The simulated hosts as Platforms of models, one ``.platform`` file each in ``directory``: only
+    the models add hosts, and the knowledge service refuses statuses of any other."""
+    from kgadapt.knowledge.loader import load_models
+
+    directory.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        (directory / f"{name}.platform").write_text(
+            f'platform {name}\n  description => "simulated host"\n  processor cpu\n    cores => 4\n  end cpu\n'
+            f'  memory ram\n    size_mb => 4096\n  end ram\nend {name}\n')
+    load_models(store, [directory])
+
+
 def seed_robot(store: Any, robot: str, index: int, *, now: float | None = None, models: Path = MODELS) -> dict[str, Any]:
     """Load the shipped models into ``store`` and give ``robot`` a running detector and the decision behind it.
 
@@ -379,6 +392,12 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
 
     per_robot = max(1, args.hosts // len(fleet.robots))
     hosts = per_robot * len(fleet.robots)
+    for robot in fleet.robots:  # the publisher's sim000... hosts, as each robot's models
+        store = graph_store(fleet.socket, robot)
+        try:
+            load_sim_platforms(store, [f"sim{h:03d}" for h in range(per_robot)], fleet.workdir / "sim-platforms")
+        finally:
+            store.shutdown()
     pids = fleet.pids()
     store_pids = _store_pids(fleet)
     idle = measure_cpu(pids, args.fanin_s / 2)

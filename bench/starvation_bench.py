@@ -10,7 +10,11 @@ light goes dark, and the dark detector must still take over.
 
 Results to ``bench/results/starvation.json``. Targets (issue 13): own
 ``placement`` p99 <= 50 ms and 0 unanswered under attack; the light change
-still migrates.
+still migrates. ``--attack literal``: the attackers ask only the paper's
+literal queries (``fig4_literal``, 1,000 rows of deployments, and
+``fig5_literal``) without pause; results to
+``bench/results/starvation_literal.json``, target (issue 33): own
+``placement`` p90 <= 3x its quiet p90 and <= 25 ms, 0 unanswered.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from kgadapt.shared.resources import results_dir
 from kgadapt.shared.states import TriggerKind
 
 RESULTS = results_dir() / "starvation.json"
+LITERAL_RESULTS = results_dir() / "starvation_literal.json"
 DARK = "marker_detection_dark"
 HEAVY = "MATCH (a), (b), (c), (d), (e) RETURN count(*) AS n"
 
@@ -42,7 +47,9 @@ def register(bench_subparsers: Any) -> None:
     p.add_argument("--seconds", type=float, default=60.0, help="attack duration (default 60)")
     p.add_argument("--baseline", type=float, default=15.0, help="quiet seconds measured first (default 15)")
     p.add_argument("--attackers", type=int, default=4, help="parallel hostile askers (default 4)")
-    p.add_argument("--out", default=str(RESULTS), help="results file (default %(default)s)")
+    p.add_argument("--attack", choices=("mixed", "literal"), default="mixed",
+                   help="mixed hostile questions (default), or only the paper's literal queries")
+    p.add_argument("--out", default=None, help=f"results file (default {RESULTS}, {LITERAL_RESULTS} for literal)")
     p.add_argument("--json", action="store_true", help="print the records as JSON")
     p.set_defaults(func=run)
 
@@ -77,6 +84,13 @@ def _probe(client: Any, seconds: float) -> tuple[list[float], int]:
     return latencies, unanswered
 
 
+def _p90(samples: list[float]) -> float:
+    if not samples:
+        return float("nan")
+    ordered = sorted(samples)
+    return ordered[min(len(ordered) - 1, int(0.9 * len(ordered)))]
+
+
 def run(args: argparse.Namespace) -> int:
     import socket
 
@@ -101,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
             robot.wait(lambda: robot.recorder.decisions, 30)
             own = KnowledgeClient(robot.session, DEFAULT_ROBOT, timeout=2.0, own=True)
             quiet, quiet_lost = _probe(own, args.baseline)
+            quiet_load = os.getloadavg()[0]
             attacks = _attacks(listener.getsockname()[1])
             answers = {name: [] for name in attacks}
             stop = threading.Event()
@@ -109,7 +124,8 @@ def run(args: argparse.Namespace) -> int:
 
             def attacker(i: int) -> None:
                 outsider = Outsider(sessions[i], DEFAULT_ROBOT)
-                names = ["heavy", "literal", "nested", "heavy", "bypass", "literal4", "heavy", "load_csv", "flood"]
+                names = (["literal4", "literal"] if args.attack == "literal" else
+                         ["heavy", "literal", "nested", "heavy", "bypass", "literal4", "heavy", "load_csv", "flood"])
                 k = i * 2
                 while not stop.is_set():
                     name = names[k % len(names)]
@@ -141,24 +157,30 @@ def run(args: argparse.Namespace) -> int:
     store = "embedded (FalkorDB, fsync always)"
     counts = {name: len(a) for name, a in answers.items()}
     killed = sum(1 for a in answers.get("heavy", []) + answers.get("literal4", []) if "hard time limit" in a.error)
+    literal = args.attack == "literal"
     records = [
-        make_record(store=store, n=None, op="own_placement_quiet", samples_ms=quiet, unanswered=quiet_lost),
-        make_record(store=store, n=None, op="own_placement_under_attack", samples_ms=loud, unanswered=loud_lost,
-                    target="p99 <= 50 ms, 0 unanswered", attackers=args.attackers, attack_s=args.seconds,
+        make_record(store=store, n=None, op="own_placement_quiet", samples_ms=quiet, unanswered=quiet_lost,
+                    p90_ms=round(_p90(quiet), 4), load_average=quiet_load),
+        make_record(store=store, n=None, op="own_placement_under_literal_flood" if literal else "own_placement_under_attack",
+                    samples_ms=loud, unanswered=loud_lost, p90_ms=round(_p90(loud), 4),
+                    target=("p90 <= 3x quiet p90 and <= 25 ms, 0 unanswered" if literal
+                            else "p99 <= 50 ms, 0 unanswered"), attackers=args.attackers, attack_s=args.seconds,
                     attack_answers=counts, stopped_at_time_limit=killed, load_csv_connections=len(connections),
                     light_change_during_attack=[f"{d.config}@{d.host}: {d.outcome}" for d in migrated],
                     load_average=os.getloadavg()[0]),
     ]
     for r in records:
         r.update(machine_info(), measured_at=time.strftime("%Y-%m-%d %H:%M", time.gmtime(started)))
-    write_records(args.out, records)
+    out = args.out or str(LITERAL_RESULTS if literal else RESULTS)
+    write_records(out, records)
     if args.json:
         print(json.dumps(records, indent=1))
     else:
-        rows = [[r["op"], r["reps"], r["p50_ms"], r["p99_ms"], r["max_ms"], r["unanswered"]] for r in records]
-        print(format_table(rows, ["own placement", "n", "p50", "p99", "max", "unanswered"]))
+        rows = [[r["op"], r["reps"], r["p50_ms"], r["p90_ms"], r["p99_ms"], r["max_ms"], r["unanswered"],
+                 r["load_average"]] for r in records]
+        print(format_table(rows, ["own placement", "n", "p50", "p90", "p99", "max", "unanswered", "load"]))
         print(f"attack answers {counts}; heavy questions stopped at their limit: {killed}; "
               f"LOAD CSV connections: {len(connections)}; light change during the attack: "
               f"{[f'{d.config}@{d.host}: {d.outcome}' for d in migrated] or 'none'}")
-        print(f"wrote {args.out}")
+        print(f"wrote {out}")
     return 0

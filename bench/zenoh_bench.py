@@ -240,6 +240,9 @@ def _fan_in(fabric: _Fabric, *, hosts: int, rate: float, duration: float, probe_
     service = psutil.Process(fabric.service.pid)
     store_proc = psutil.Process(fabric.store_pid)
     names = [f"simhost{i:03d}" for i in range(hosts)]
+    from kgadapt.bench.fleet_bench import load_sim_platforms
+
+    load_sim_platforms(fabric.store, names, fabric.tmp / "sim-platforms")  # only the models add hosts
     publishers = {name: fabric.session.declare_publisher(keys.host_status(ROBOT, name)) for name in names}
 
     # Idle baseline: what the service and its store burn with no status flowing.

@@ -115,11 +115,19 @@ class Deployer:
     name = "deployer"
 
     def __init__(self, settings: DeployerSettings, *, knowledge: Any = None,
-                 free_memory: Callable[[], float] | None = None) -> None:
+                 free_memory: Callable[[], float] | None = None,
+                 budget: Callable[[], float] | None = None) -> None:
         self.settings = settings
         self._knowledge = knowledge
         # MiB this host may still give (the host monitor's figure, within its budget); None: no check.
         self._free_memory = free_memory
+        # MiB this host gives our processes in all (its --memory-budget, else the machine's memory): what
+        # the graph declares for every process it runs must fit in it. None: no check.
+        self._budget = budget
+        # Admission: one start decided at a time, and the starts admitted but not yet in the supervisor's
+        # list (instance -> (config, declared MiB)), so that raced starts cannot pass together.
+        self._admission = threading.Lock()
+        self._admitted: dict[str, tuple[str, float]] = {}
         self.supervisor = Supervisor(SupervisorSettings(use_launcher=settings.launcher, python=settings.python))
         self.recorder: ProfileRecorder | None = None
         self._session: Any = None
@@ -242,25 +250,70 @@ class Deployer:
 
         ``idle``: the process is told to start idle (``$KGADAPT_START_IDLE``), as a warm standby does."""
         spec = self.resolve(deployment, config, instance, ready_timeout=ready_timeout, idle=idle)
-        self._check_memory(config)
-        log.info("host %s: starting %s (%s, %s): %s", self.settings.host, spec.instance, deployment, config, " ".join(spec.argv))
-        return self.supervisor.start(spec, wait_ready=wait_ready)
-
-    def _check_memory(self, config: str) -> None:
-        """Refuse a start whose declared memory demand exceeds what the host has free."""
-        if self._free_memory is None:
-            return
+        self._admit(spec.instance, config)
         try:
-            rows = self._knowledge.query("detector_config", {"config": config})
-        except (RemoteError, TransportError) as exc:
-            raise DeploymentError(f"cannot look up the memory demand of {config}: {exc}") from exc
-        demand = float((rows[0].get("memory_demand_mb") or 0.0) if rows else 0.0)
-        free = float(self._free_memory())
-        if demand > free:
-            raise DeploymentError(
-                f"start of {config} refused: it needs {demand:.0f} MiB and host {self.settings.host} has "
-                f"{free:.0f} MiB free within its memory budget"
-            )
+            log.info("host %s: starting %s (%s, %s): %s", self.settings.host, spec.instance, deployment, config,
+                     " ".join(spec.argv))
+            return self.supervisor.start(spec, wait_ready=wait_ready)
+        finally:
+            with self._admission:  # from now on the supervisor's list holds it (or it failed)
+                self._admitted.pop(spec.instance, None)
+
+    def _admit(self, instance: str, config: str) -> None:
+        """Admit a start of ``config`` as ``instance`` or raise DeploymentError naming the figures.
+
+        Two checks, under one lock with the starts already admitted:
+
+        - by declaration: the memory the graph declares for every live process of this host, the
+          starts admitted meanwhile and this one must fit the host's budget. A detector that has
+          just started has not yet taken its memory, so only this check holds against raced starts;
+        - by measure: the host monitor's free memory, less what the starts under way have declared
+          and not yet taken, must cover this one's demand.
+        """
+        if self._free_memory is None and self._budget is None:
+            return
+        host = self.settings.host
+        with self._admission:
+            if instance in self._admitted:
+                raise DeploymentError(f"instance {instance} is already being started on host {host}")
+            held: dict[str, tuple[str, bool]] = {  # instance -> (config, still starting)
+                info.instance: (info.config, False) for info in self.supervisor.list(include_finished=False)}
+            for name, (other, _) in self._admitted.items():
+                held[name] = (other, True)
+            demands = self._declared_demands({config, *(c for c, _ in held.values())})
+            demand = demands[config]
+            if self._budget is not None:
+                budget = float(self._budget())
+                declared = sum(demands[c] for c, _ in held.values())
+                if declared + demand > budget:
+                    each = ", ".join(f"{name} {c} {demands[c]:.0f} MiB" for name, (c, _) in sorted(held.items()))
+                    raise DeploymentError(
+                        f"start of {config} refused: it declares {demand:.0f} MiB and host {host}'s "
+                        f"{len(held)} process(es) already declare {declared:.0f} MiB ({each or 'none'}): "
+                        f"{declared + demand:.0f} MiB would exceed its memory budget of {budget:.0f} MiB"
+                    )
+            if self._free_memory is not None:
+                free = float(self._free_memory())
+                starting = sum(demands[c] for c, still in held.values() if still)
+                if demand > free - starting:
+                    under_way = f" less {starting:.0f} MiB declared by starts under way" if starting else ""
+                    raise DeploymentError(
+                        f"start of {config} refused: it needs {demand:.0f} MiB and host {host} has "
+                        f"{max(0.0, free - starting):.0f} MiB free within its memory budget "
+                        f"(measured {free:.0f} MiB{under_way})"
+                    )
+            self._admitted[instance] = (config, demand)
+
+    def _declared_demands(self, configs: set[str]) -> dict[str, float]:
+        """Each configuration's declared memory demand (MiB; 0 for one the graph does not know)."""
+        demands: dict[str, float] = {}
+        for config in sorted(configs):
+            try:
+                rows = self._knowledge.query("detector_config", {"config": config})
+            except (RemoteError, TransportError) as exc:
+                raise DeploymentError(f"cannot look up the memory demand of {config}: {exc}") from exc
+            demands[config] = float((rows[0].get("memory_demand_mb") or 0.0) if rows else 0.0)
+        return demands
 
     def stop(self, instance: str) -> ProcessInfo:
         """Stop one instance (SIGINT, SIGTERM, SIGKILL)."""

@@ -12,6 +12,8 @@ What it shows, and where each figure comes from (nothing is computed twice):
 - the flight phase (the bridge's ``flight_state``, the same message
   ``kgadapt flight status`` prints, judged by kgadapt.onboard.flight_phase);
 - the last decisions with their reasons (``decisions``);
+- hosts the knowledge service refused because no model names them (its
+  ``own/stats``: counted, never added to the graph);
 - problems: anything above that is missing or wrong.
 
 Live in a terminal (redrawn every ``--interval``), ``--once`` or ``--json``
@@ -152,6 +154,19 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
         host_status = dict(listener.host_status)
         light, flight = listener.light, listener.flight
         detections = {k: dict(v) for k, v in listener.detections.items()}
+
+    # Hosts the knowledge service refused because no model names them (it never adds them to the graph).
+    stats: dict[str, Any] = {}
+    if out.get("service", {}).get("reachable"):
+        try:
+            stats = client.service_stats()
+        except KgadaptError:
+            pass  # a service without own/stats: nothing to count
+    refused = {"count": int(stats.get("unknown_host_refused") or 0), "hosts": list(stats.get("unknown_hosts") or [])}
+    out["refused_hosts"] = refused
+    if refused["count"]:
+        problems.append(f"the knowledge service refused {refused['count']} message(s) naming hosts no model names: "
+                        f"{', '.join(refused['hosts']) or '?'} (not in the graph; a wrong --host, or a forger)")
 
     # Hosts: the graph's platforms, plus any live host the graph does not know.
     platforms = {row["platform"]: row for row in graph.get("platforms", [])}

@@ -76,6 +76,11 @@ class KnowledgeClient:
                else keys.knowledge_host_write(self.robot, self.host, verb))
         return self._ask(key, payload, f"write {verb!r}")
 
+    def service_stats(self) -> dict[str, Any]:
+        """The service's own counters (``knowledge/own/stats``): requests, statuses, refused hosts."""
+        rows = self._ask(keys.knowledge_own_stats(self.robot), b"", "service stats")
+        return rows[0] if rows else {}
+
     def _ask(self, key: str, payload: bytes, what: str) -> list[dict[str, Any]]:
         try:
             # Sent again while nothing answers at once: just after open(), or while the service restarts.

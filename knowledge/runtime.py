@@ -2,8 +2,10 @@
 
 The models create the nodes whose figures are unknown at design time
 (``Platform``: free memory, CPU load, online); the agents, the deployer and
-the adaptation manager fill them in through these writers, each one
-parameterised statement, idempotent where it can be (MERGE on name), all
+the adaptation manager fill them in through these writers. Only the models
+add hosts: a write naming a host that no ``Platform`` of the models names is
+refused with :class:`UnknownHost` and changes nothing. Each writer runs
+parameterised statements only, idempotent where it can be (MERGE on name), all
 through the store interface. The knowledge service exposes exactly
 :data:`WRITERS` as its write verbs; :func:`run_write` checks a verb's
 parameters (names and types) so a malformed request is refused with a
@@ -22,7 +24,7 @@ from typing import Any, Callable, Mapping, Sequence
 from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.fleet import forget_robot
 from kgadapt.knowledge.store import GraphStore
-from kgadapt.shared.errors import NamedQueryError
+from kgadapt.shared.errors import NamedQueryError, UnknownHost
 
 _NUM = (int, float)
 # Bounds of what a real host can report: a value outside them is a forgery or a bug, refused naming the field.
@@ -56,19 +58,33 @@ def _within(verb: str, **values: tuple[Any, float, float]) -> None:
             raise NamedQueryError(f"write {verb!r}: {key} {value!r} is not between {low:g} and {high:g}")
 
 
+def unknown_host(verb: str, host: str) -> UnknownHost:
+    return UnknownHost(host, f"write {verb!r}: host {host!r} is no Platform of the models; only the models add "
+                             "hosts (kgadapt knowledge load)")
+
+
+def is_known_host(store: GraphStore, host: str) -> bool:
+    """Whether a Platform of the models is named ``host``."""
+    rows = store.execute(f"MATCH (p:{S.PLATFORM} {{name: $name}}) RETURN count(p) AS n", {"name": host})
+    return bool(rows and rows[0]["n"])
+
+
 def update_platform(store: GraphStore, *, name: str, time: float, memory_total_mb: float | None = None,
                     memory_free_mb: float | None = None, cpu_load: float | None = None,
                     cpu_cores: int | None = None, online: bool | None = None) -> None:
-    """A host's latest figures (a host the models do not know gets a Platform node too)."""
+    """A host's latest figures; UnknownHost for a host the models do not name."""
     figures = _platform_figures(store, name=name, time=time, memory_total_mb=memory_total_mb,
                                 memory_free_mb=memory_free_mb, cpu_load=cpu_load, cpu_cores=cpu_cores, online=online)
-    store.execute(f"MERGE (p:{S.PLATFORM} {{name: $name}}) SET p += $figures, p.last_seen = $time",
-                  {"name": name, "figures": figures, "time": float(time)})
+    rows = store.execute(f"MATCH (p:{S.PLATFORM} {{name: $name}}) SET p += $figures, p.last_seen = $time "
+                         "RETURN count(p) AS n", {"name": name, "figures": figures, "time": float(time)})
+    if not rows or not rows[0]["n"]:
+        raise unknown_host("platform", name)
 
 
 def update_platforms(store: GraphStore, statuses: Sequence[Mapping[str, Any]]) -> dict[str, NamedQueryError]:
     """Several hosts' latest figures in one store call (``UNWIND``), each checked as :func:`update_platform`
-    checks it; at most one per host (the last of a host wins). Returns the refused ones, by host, with why.
+    checks it; at most one per host (the last of a host wins). Returns the refused ones, by host, with why
+    (UnknownHost for a host the models do not name: the batch only updates Platforms, never adds one).
 
     Not a write verb: the knowledge service's status worker writes a batch of host statuses with it.
     """
@@ -85,8 +101,11 @@ def update_platforms(store: GraphStore, statuses: Sequence[Mapping[str, Any]]) -
         refused.pop(str(name), None)
         rows[str(name)] = {"name": name, "figures": figures, "time": float(status["time"])}
     if rows:
-        store.execute(f"UNWIND $rows AS row MERGE (p:{S.PLATFORM} {{name: row.name}}) "
-                      "SET p += row.figures, p.last_seen = row.time", {"rows": list(rows.values())})
+        written = store.execute(f"UNWIND $rows AS row MATCH (p:{S.PLATFORM} {{name: row.name}}) "
+                                "SET p += row.figures, p.last_seen = row.time RETURN p.name AS name",
+                                {"rows": list(rows.values())})
+        for name in set(rows) - {str(row["name"]) for row in written}:
+            refused[name] = unknown_host("platform", name)
     return refused
 
 
@@ -100,12 +119,14 @@ def _platform_figures(store: GraphStore, *, name: str, time: float, memory_total
     _within("platform", time=(time, 0, math.inf), memory_total_mb=(memory_total_mb, 1, MAX_MEMORY_MB),
             cpu_cores=(cpu_cores, 1, MAX_CORES), cpu_load=(cpu_load, 0, 100 * (cpu_cores or MAX_CORES)))
     if memory_free_mb is not None:
-        total = memory_total_mb
-        if total is None:  # free memory alone: bounded by the total the host reported before
+        _within("platform", memory_free_mb=(memory_free_mb, 0, memory_total_mb or MAX_MEMORY_MB))
+        if memory_total_mb is None:  # free memory alone: bounded by the total the host reported before
             rows = store.execute(f"MATCH (p:{S.PLATFORM} {{name: $name}}) RETURN p.memory_total_mb AS total",
                                  {"name": name})
-            total = rows[0]["total"] if rows and rows[0]["total"] is not None else MAX_MEMORY_MB
-        _within("platform", memory_free_mb=(memory_free_mb, 0, total))
+            if not rows:
+                raise unknown_host("platform", name)
+            total = rows[0]["total"] if rows[0]["total"] is not None else MAX_MEMORY_MB
+            _within("platform", memory_free_mb=(memory_free_mb, 0, total))
     return {k: v for k, v in {"memory_total_mb": memory_total_mb, "memory_free_mb": memory_free_mb,
                               "cpu_load": cpu_load, "cpu_cores": cpu_cores, "online": online}.items()
             if v is not None}
@@ -114,11 +135,13 @@ def _platform_figures(store: GraphStore, *, name: str, time: float, memory_total
 def set_platform_online(store: GraphStore, *, name: str, online: bool, time: float) -> None:
     """A host came or went (liveliness). ``last_seen`` moves only when it is online."""
     _check("platform_online", name=(name, (str,), False), online=(online, (bool,), False), time=(time, _NUM, False))
-    store.execute(
-        f"MERGE (p:{S.PLATFORM} {{name: $name}}) "
+    rows = store.execute(
+        f"MATCH (p:{S.PLATFORM} {{name: $name}}) "
         "SET p.online = $online, p.online_since = $time, "
-        "p.last_seen = CASE WHEN $online THEN $time ELSE p.last_seen END",
+        "p.last_seen = CASE WHEN $online THEN $time ELSE p.last_seen END RETURN count(p) AS n",
         {"name": name, "online": online, "time": float(time)})
+    if not rows or not rows[0]["n"]:
+        raise unknown_host("platform_online", name)
 
 
 def record_process_start(store: GraphStore, *, run_id: str, instance: str, deployment: str, config: str | None,
@@ -126,7 +149,8 @@ def record_process_start(store: GraphStore, *, run_id: str, instance: str, deplo
     """A started process: its ProcessProfile, PROFILE_OF its deployment, RAN_ON its host, RAN_CONFIG its configuration.
 
     Relations to a deployment or configuration the graph does not know are left
-    out (the profile still records their names); the host gets a Platform node.
+    out (the profile still records their names); a host the models do not name is
+    refused (UnknownHost) and nothing is written.
     """
     _check("process_start", run_id=(run_id, (str,), False), instance=(instance, (str,), False),
            deployment=(deployment, (str,), False), config=(config, (str,), True), host=(host, (str,), False),
@@ -140,6 +164,8 @@ def record_process_start(store: GraphStore, *, run_id: str, instance: str, deplo
     # the general, idempotent statement.
     created = store.execute(START_NEW_PROFILE, params)
     if not created or not created[0]["created"]:
+        if not is_known_host(store, host):
+            raise unknown_host("process_start", host)
         store.execute(_START_ANY, params)
 
 
@@ -154,7 +180,8 @@ CREATE (r)-[:{S.PROFILE_OF}]->(d), (r)-[:{S.RAN_ON}]->(p), (r)-[:{S.RAN_CONFIG}]
 RETURN count(r) AS created"""
 _START_ANY = f"""MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}})
 SET r += {{{_PROFILE_PROPS}}}
-MERGE (p:{S.PLATFORM} {{name: $host}})
+WITH r
+MATCH (p:{S.PLATFORM} {{name: $host}})
 MERGE (r)-[:{S.RAN_ON}]->(p)
 WITH r
 OPTIONAL MATCH (d:{S.DEPLOYMENT} {{name: $deployment}})
@@ -318,11 +345,16 @@ def record_calibration(store: GraphStore, *, config: str, band: str, detection_r
 def record_decision(store: GraphStore, *, name: str, time: float, trigger: str, inputs_json: str | None = None,
                     query: str | None = None, config: str | None = None, host: str | None = None,
                     duration_ms: float | None = None, outcome: str | None = None) -> None:
-    """An adaptation decision: what triggered it, what it chose (CHOSE the configuration, PLACED_ON the host)."""
+    """An adaptation decision: what triggered it, what it chose (CHOSE the configuration, PLACED_ON the host).
+
+    ``host``, when given, must be a Platform of the models (else UnknownHost). Through the knowledge
+    service ``time`` is the service's receive time, not the sender's clock."""
     _check("decision", name=(name, (str,), False), time=(time, _NUM, False), trigger=(trigger, (str,), False),
            inputs_json=(inputs_json, (str,), True), query=(query, (str,), True), config=(config, (str,), True),
            host=(host, (str,), True), duration_ms=(duration_ms, _NUM, True), outcome=(outcome, (str,), True))
     _within("decision", time=(time, 0, math.inf), duration_ms=(duration_ms, 0, math.inf))
+    if host is not None and not is_known_host(store, host):
+        raise unknown_host("decision", host)
     store.execute(
         f"""MERGE (a:{S.ADAPTATION_DECISION} {{name: $name}})
 SET a.time = $time, a.trigger = $trigger, a.inputs_json = $inputs_json, a.query = $query,

@@ -10,6 +10,7 @@ key                          request                               reply
 ``cypher``                   ``cypher_request {cypher, params}``   ``rows`` (read-only subset only)
 ``write/<verb>``             ``write_request {params}``            ``rows {rows: []}`` (operators)
 ``write/<host>/<verb>``      ``write_request {params}``            ``rows {rows: []}`` (host's own)
+``own/stats``                (none)                                ``rows`` (one row: counters)
 ===========================  ====================================  ==========================
 
 ``<name>`` is any of ``kgadapt.knowledge.queries.QUERIES``, ``<verb>`` any of
@@ -30,7 +31,10 @@ as fresh as the primary.
 Each of those questions has a hard time limit (``public_time_limit_ms``,
 or a literal paper query's own shorter one): past it the answer is
 abandoned and the sandbox server killed, so the work stops. Free Cypher must
-parse in the subset of :mod:`kgadapt.knowledge.cypher_guard`. A flood of questions
+parse in the subset of :mod:`kgadapt.knowledge.cypher_guard`. Their workers wait
+(before a question runs, before its answer is encoded) while one of the robot's
+own requests is being answered (:class:`OwnFirst`): parsing and encoding a large
+answer would otherwise take the interpreter from it. A flood of questions
 thus costs other robots their answers, never the robot its own. One service
 per store: :class:`~kgadapt.knowledge.service_lock.ServiceLock`.
 
@@ -50,7 +54,11 @@ It also keeps each ``Platform``'s run-time figures current: host statuses
 (the service's receive time, so hosts' clocks need not agree), and host
 liveliness (``host/<host>/alive``, subscribed with history) sets ``online``.
 A status never sets ``online``: only the token does, so a late status cannot
-revive a host whose token is gone. At setup every platform is first marked
+revive a host whose token is gone. Only the models add hosts: a status, a
+token or a write naming a host no ``Platform`` of the models names is refused
+(logged once per host, counted as ``unknown_host_refused``, the names in
+``own/stats`` and ``kgadapt status``), and a decision's ``time`` is the
+service's receive time, not the sender's clock. At setup every platform is first marked
 offline; the liveliness history then marks the live ones online again.
 
 Threads: Zenoh callbacks only put work on queues. Request workers (two
@@ -92,6 +100,7 @@ from kgadapt.shared.errors import (
     QueryError,
     QueryTimeLimit,
     TransportError,
+    UnknownHost,
 )
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
 
@@ -99,6 +108,8 @@ log = logging.getLogger(__name__)
 
 _STOP = object()
 _MAX_LIVELINESS_DUE = 100  # per host: a flapping token while the store is away
+_MAX_REFUSED_HOSTS = 256  # names of refused hosts remembered (and logged); past that only counted
+_UNKNOWN_RECHECK_S = 10.0  # a refused host is looked up again this often (the models may be reloaded)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -119,6 +130,10 @@ class ServiceSettings:
     public_workers: int = 2
     public_time_limit_ms: int = 1000
     max_pending_public: int = 32
+    # Other robots' questions wait, before they run and before their answer is encoded, while the robot's
+    # own requests are being answered (at most this long each time): on 2 cores their parsing and encoding
+    # otherwise takes the interpreter from the robot's own. 0: no waiting.
+    own_first_wait_s: float = 1.0
     sandbox: bool = True  # serve them from a QuerySandbox when the store is FalkorDB
     lock: bool = True  # refuse to start beside another service on the same store
     # The host whose agent runs the adaptation manager and the flight bridge: the one that may write
@@ -158,6 +173,7 @@ class KnowledgeService:
         self._own = rpc.Server("knowledge service", workers=settings.workers, max_pending=settings.max_pending_requests)
         self._public = rpc.Server("knowledge service", workers=settings.public_workers,
                                   max_pending=settings.max_pending_public)
+        self.own_first = OwnFirst(max_wait_s=settings.own_first_wait_s)
         self._events: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_statuses)
         self._event_thread: threading.Thread | None = None
         # Per host, its liveliness changes not yet in the store, oldest first (only the status worker touches it).
@@ -179,6 +195,11 @@ class KnowledgeService:
         self.roster = (FleetRoster(store, RosterSettings(robot=settings.robot, cap=settings.roster_cap,
                                                          interval_s=settings.roster_interval_s))
                        if settings.roster else None)
+        # Hosts of the models seen so far, and when each refused one was last looked up (status worker only);
+        # the refused names, for stats (under _stats_lock).
+        self._known_hosts: set[str] = set()
+        self._unknown_checked: dict[str, float] = {}
+        self._refused_hosts: list[str] = []
 
     # -- life cycle ---------------------------------------------------------
 
@@ -226,6 +247,7 @@ class KnowledgeService:
             if self.roster is not None:  # after the queryables: whoever hears the roll call can ask back
                 stack.callback(self.roster.shutdown)
                 self.roster.setup(session)
+            self._own.serve(session, keys.knowledge_own_stats(robot), self._handler("stats"), what="stats")
             self._stack = stack.pop_all()
         log.info(
             "knowledge service for robot %s: %d named queries, cypher (read-only subset), %s; "
@@ -248,9 +270,10 @@ class KnowledgeService:
         with self._stats_lock:
             counts: collections.Counter[str] = collections.Counter(self._stats)
             last_drop = self._last_drop
+            refused = list(self._refused_hosts)
         for server in (self._own, self._public):
             counts.update({f"requests_{what}": n for what, n in server.stats().items() if n})
-        return {**counts, "last_drop": last_drop}
+        return {**counts, "last_drop": last_drop, "unknown_hosts": refused}
 
     # -- request handling, Zenoh-free (tests call these directly) -----------
 
@@ -286,6 +309,7 @@ class KnowledgeService:
                 # fig4_literal's 21,344 rows cost them tens of ms. Same bound as free Cypher.
                 text = f"{text.rstrip()}\nLIMIT {CypherLimits().max_rows}"
             rows = self._run_untrusted(text, values, limit_ms, f"query {name!r}")
+            self.own_first.wait_turn()  # encoding a large answer holds the interpreter too
         else:
             with self._store_lock:
                 rows = queries.run_named(self.store, name, params, timeout_ms=self.settings.query_timeout_ms)
@@ -312,10 +336,12 @@ class KnowledgeService:
         params = check_params(request.params or {}, what="cypher", error=MessageError)
         start = time.perf_counter()
         rows = self._run_untrusted(text, params, self.settings.public_time_limit_ms, "cypher")
+        self.own_first.wait_turn()
         return _rows_reply(rows, (time.perf_counter() - start) * 1000, "cypher")
 
     def _run_untrusted(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str) -> list[dict[str, Any]]:
         """In the sandbox when there is one (killed past the limit), else on the store with its timeout."""
+        self.own_first.wait_turn()
         try:
             if self.sandboxes:
                 sandbox = self._sandbox_pool.get()  # as many as public workers: never waits
@@ -351,11 +377,17 @@ class KnowledgeService:
         params = check_params(request.params, what=f"write verb {verb!r}", error=MessageError)
         if verb == "process_sample":  # ours, not the sender's: a late sample must not reopen a lost host's profile
             params["received"] = time.time() if received is None else received
+        elif verb == "decision" and "time" in params:  # ours too: a sender's clock cannot date one ahead
+            params["time"] = time.time() if received is None else received
         start = time.perf_counter()
-        with self._store_lock:
-            if host is not None:
-                check_owner(self.store, verb, params, host=host, manager_host=self.settings.manager_host)
-            runtime.run_write(self.store, verb, params)  # checks names, types and bounds, naming them
+        try:
+            with self._store_lock:
+                if host is not None:
+                    check_owner(self.store, verb, params, host=host, manager_host=self.settings.manager_host)
+                runtime.run_write(self.store, verb, params)  # checks names, types and bounds, naming them
+        except UnknownHost as exc:
+            self._refuse_host(exc.host, f"write {verb!r}")
+            raise
         return _rows_reply([], (time.perf_counter() - start) * 1000, f"write verb {verb!r}")
 
     # -- Zenoh: requests through rpc.Server, events queued ---------------------------
@@ -365,6 +397,12 @@ class KnowledgeService:
 
     def _serve(self, kind: str, request: rpc.Request) -> rpc.Reply:
         """The reply to one request (on a server's worker); a KgadaptError is answered with its text."""
+        if kind in ("query", "cypher"):
+            return self._answer(kind, request)
+        with self.own_first.serving():  # the robot's own: other robots' questions wait meanwhile
+            return self._answer(kind, request)
+
+    def _answer(self, kind: str, request: rpc.Request) -> rpc.Reply:
         robot = self.settings.robot
         key, payload = request.key, request.payload
         if kind in ("query", "own"):
@@ -375,6 +413,9 @@ class KnowledgeService:
         elif kind == "cypher":
             body = self.answer_cypher(payload)
             reply_key = keys.knowledge_cypher(robot)
+        elif kind == "stats":
+            body = _rows_reply([self.stats()], 0.0, "service stats")
+            reply_key = keys.knowledge_own_stats(robot)
         else:
             verb = keys.last_chunk(key)
             if key.split("/")[-3] == "write":  # write/<host>/<verb>: a host's own
@@ -450,6 +491,8 @@ class KnowledgeService:
                                                if kind == "status"} - {""}))
         for kind, key, value, received in batch:
             try:
+                if not self._admit_host(_host_of(key), kind):
+                    continue
                 if kind == "status":
                     host = _host_of(key)
                     body = self._trust.admit(host, self._check_status(key, value), received=received,
@@ -481,7 +524,10 @@ class KnowledgeService:
                 self._drop(f"status of host {host}: store refused it: {exc}")
             return
         for host, why in refused.items():
-            self._drop(f"status of host {host}: store refused it: {why}")
+            if isinstance(why, UnknownHost):
+                self._refuse_host(host, "status")
+            else:
+                self._drop(f"status of host {host}: store refused it: {why}")
         self._count("status_writes")
         self._count("status_applied", len(statuses) - len(refused))
 
@@ -498,6 +544,10 @@ class KnowledgeService:
                             # Its processes are beyond reach: the profiles they opened before the loss end
                             # with the token. One that outlived a partition reopens with its next sample.
                             runtime.close_host_profiles(self.store, name=host, time=received)
+                except UnknownHost:
+                    self._refuse_host(host, "alive")
+                    due.clear()
+                    break
                 except KgadaptError as exc:
                     self._count("liveliness_retried")
                     log.warning("liveliness of host %s (%s): the store refused it, trying again: %s",
@@ -515,6 +565,39 @@ class KnowledgeService:
                 due[:] = sorted(set(losses[-1:] + due[-1:]), key=lambda change: change[1])
             if not due:
                 del self._liveliness_due[host]
+
+    def _admit_host(self, host: str, what: str) -> bool:
+        """Whether a Platform of the models is named ``host`` (status worker); a refusal is counted."""
+        if host in self._known_hosts:
+            return True
+        now = time.monotonic()
+        checked = self._unknown_checked.get(host)
+        if checked is None or now - checked >= _UNKNOWN_RECHECK_S:
+            try:
+                with self._store_lock:
+                    known = runtime.is_known_host(self.store, host)
+            except KgadaptError:
+                return True  # the store is away: its writer refuses an unknown host itself
+            if known:
+                self._known_hosts.add(host)
+                self._unknown_checked.pop(host, None)
+                return True
+            if len(self._unknown_checked) >= _MAX_REFUSED_HOSTS:
+                self._unknown_checked.pop(next(iter(self._unknown_checked)))
+            self._unknown_checked[host] = now
+        self._refuse_host(host, what)
+        return False
+
+    def _refuse_host(self, host: str, what: str) -> None:
+        """Count a refusal of a host no model names; log it the first time that host is refused."""
+        with self._stats_lock:
+            self._stats["unknown_host_refused"] += 1
+            first = host not in self._refused_hosts and len(self._refused_hosts) < _MAX_REFUSED_HOSTS
+            if first:
+                self._refused_hosts.append(host)
+        if first:
+            log.warning("refused host %r (%s): no Platform of the models names it, and only the models add hosts; "
+                        "further refusals of it are counted, not logged", host, what)
 
     def _check_status(self, key: str, payload: bytes) -> dict[str, Any]:
         return check_status(_host_of(key), messages.decode(payload, "host_status"))
@@ -622,6 +705,42 @@ def _store_lock(store: GraphStore) -> Any:
     """Every backend is safe to call from several threads (FalkorDB's client has a connection
     pool; the Bolt backend serializes its one session itself), so no lock of ours is needed."""
     return contextlib.nullcontext()
+
+
+class OwnFirst:
+    """The robot's own requests first: other robots' questions wait while one is being answered.
+
+    Python runs one thread at a time: a public worker parsing a 1,000-row answer from its sandbox
+    (tens of ms) makes the robot's own request wait for the interpreter at every step. The public
+    workers therefore wait at their steps (before a question runs, before its answer is encoded)
+    until no own request is being answered, at most ``max_wait_s`` each time, so a steady stream
+    of the robot's own requests slows other robots' answers but never stops them.
+    """
+
+    def __init__(self, *, max_wait_s: float) -> None:
+        self.max_wait_s = max_wait_s
+        self._serving = 0
+        self._idle = threading.Condition()
+        self._mine = threading.local()  # set on a thread answering an own request: it never waits
+
+    @contextlib.contextmanager
+    def serving(self) -> Any:
+        with self._idle:
+            self._serving += 1
+        self._mine.own = True
+        try:
+            yield
+        finally:
+            self._mine.own = False
+            with self._idle:
+                self._serving -= 1
+                if not self._serving:
+                    self._idle.notify_all()
+
+    def wait_turn(self) -> None:
+        if self.max_wait_s > 0 and not getattr(self._mine, "own", False):
+            with self._idle:
+                self._idle.wait_for(lambda: not self._serving, timeout=self.max_wait_s)
 
 
 class _RateLimitedLog:

@@ -155,7 +155,8 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
     monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))
     parts: list[Any] = [
         monitor,
-        Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb),
+        Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb,
+                 budget=monitor.budget_mb),
     ]
     if args.camera_source:
         from kgadapt.onboard.camera import CameraPart, CameraSettings, make_source

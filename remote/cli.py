@@ -55,7 +55,9 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
     from kgadapt.shared.hostmonitor import HostMonitor, settings_from_args
 
     monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))
-    return [monitor, Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb)]
+    deployer = Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb,
+                        budget=monitor.budget_mb)
+    return [monitor, deployer]
 
 
 def run(args: argparse.Namespace) -> int:

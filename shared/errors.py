@@ -15,6 +15,7 @@ translated at the boundary where we call it, with ``raise ... from exc``.
      │    │    └── QueryTimeLimit past its hard limit: abandoned (its server killed where ours)
      │    └── ReadOnlyViolation   a write was sent through a read-only path
      ├── NamedQueryError          unknown named query, missing or ill-typed parameter
+     │    └── UnknownHost         a write, status or token names a host no model names
      ├── MessageError             a wire message is malformed, of an unknown version, or too big
      ├── TransportError           Zenoh failed (open, declare, get)
      │    └── RequestTimeout      no (good) reply in time
@@ -89,6 +90,14 @@ class ReadOnlyViolation(StoreError):
 
 class NamedQueryError(KgadaptError):
     """A named query does not exist, or its parameters are missing or ill-typed."""
+
+
+class UnknownHost(NamedQueryError):
+    """A run-time fact names a host that no model names: only the models add Platforms."""
+
+    def __init__(self, host: str, message: str) -> None:
+        self.host = host
+        super().__init__(message)
 
 
 class MessageError(KgadaptError):

@@ -336,6 +336,14 @@ class HostMonitor:
         available: float = psutil.virtual_memory().available
         return max(0.0, available / MIB - self._reserved_mb)
 
+    def budget_mb(self) -> float:
+        """What this host gives our processes in all: the budget, else the machine's memory (the deployer
+        fits the memory the graph declares for its processes into it)."""
+        if self.settings.memory_budget_mb is not None:
+            return self.settings.memory_budget_mb
+        total: float = psutil.virtual_memory().total
+        return total / MIB
+
     def sample(self) -> dict[str, Any]:
         """One ``host_status`` body measured now."""
         s = self.settings

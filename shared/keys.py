@@ -117,6 +117,11 @@ def knowledge_own_query(robot: str, name: str = "*") -> str:
     return f"{robot_root(robot)}/knowledge/own/query/{_name_or_star(name, 'query name')}"
 
 
+def knowledge_own_stats(robot: str) -> str:
+    """The knowledge service's own counters (refused hosts, dropped statuses): for the robot's own tools."""
+    return f"{robot_root(robot)}/knowledge/own/stats"
+
+
 def knowledge_cypher(robot: str) -> str:
     return f"{robot_root(robot)}/knowledge/cypher"
 

@@ -305,9 +305,10 @@ def test_writes_and_what_a_host_may_write(robot: Robot) -> None:
     now = time.time()
     ghost = {"name": "contract_ghost", "time": now, "memory_total_mb": 1000.0, "memory_free_mb": 400.0,
              "cpu_load": 10.0}
-    assert ok_rows(c.write("platform", ghost)) == []
-    row = next(r for r in ok_rows(c.query("platforms")) if r["platform"] == "contract_ghost")
-    assert row["memory_free_mb"] == 400.0 and row["memory_total_mb"] == 1000.0
+    # Only the models add hosts: a write about a host no Platform names is refused, naming it.
+    refused(c.write("platform", ghost), "contract_ghost")
+    assert "contract_ghost" not in {r["platform"] for r in ok_rows(c.query("platforms"))}
+    assert ok_rows(c.write("platform", {**ghost, "name": REMOTE, "memory_total_mb": 2048.0})) == []
     refused(c.write("platform", {**ghost, "memory_free_mb": 2000.0}), "memory_free_mb")
     refused(c.write("platform", {**ghost, "cpu_load": -1.0}), "cpu_load")
     refused(c.write("platform", {**ghost, "surprise": 1}), "surprise")

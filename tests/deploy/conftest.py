@@ -95,7 +95,7 @@ def peer_session(endpoint: str) -> Any:
 class DeployerHost:
     """A deployer in its own peer session, as an agent would run it."""
 
-    def __init__(self, endpoint: str, host: str, **changes: Any) -> None:
+    def __init__(self, endpoint: str, host: str, *, memory: dict[str, Any] | None = None, **changes: Any) -> None:
         settings = DeployerSettings(
             robot=ROBOT, host=host, connect=endpoint, ready_timeout=10.0,
             restart=RestartPolicy(max_restarts=1, backoff_initial=0.05),
@@ -104,7 +104,7 @@ class DeployerHost:
         # The launcher costs an interpreter's imports per deployer; the echo tests do not need it.
         settings = replace(settings, **{"launcher": False, **changes})
         self.session = peer_session(endpoint)
-        self.deployer = Deployer(settings)
+        self.deployer = Deployer(settings, **(memory or {}))  # memory: free_memory and budget callables
         self.deployer.setup(self.session)
 
     def close(self) -> None:

@@ -148,3 +148,38 @@ def test_killing_an_agent_with_sigkill_leaves_no_detector_running(knowledge, end
         wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="detector gone after kill -9 of its agent")
     finally:
         agent.stop()
+
+
+def test_raced_starts_pass_only_while_the_declared_memory_fits_the_budget(graph, knowledge, endpoint, test_session):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tests.deploy.conftest import DeployerHost
+
+    # A configuration that declares 300 MiB; the host measures plenty free, as it does while the
+    # detectors it has just started have not yet taken their memory.
+    graph.execute("MATCH (g:PerceptionGraph {name: $c}) MERGE (x:Component {name: 'heavy'}) "
+                  "SET x.memory_demand_mb = 300 MERGE (g)-[:CONTAINS]->(x)", {"c": CONFIG})
+    host = DeployerHost(endpoint, "onboard", memory={"free_memory": lambda: 10_000.0, "budget": lambda: 700.0})
+    try:
+        wait_for_deployers(test_session, ["onboard"])
+        client = DeployerClient(test_session, ROBOT)
+
+        def start(i: int):
+            try:
+                return client.start("onboard", "echo", CONFIG, instance=f"heavy{i}")
+            except DeploymentError as exc:
+                return exc
+
+        with ThreadPoolExecutor(3) as pool:
+            outcomes = list(pool.map(start, range(3)))
+        started = [o for o in outcomes if isinstance(o, dict)]
+        refused = [str(o) for o in outcomes if isinstance(o, DeploymentError)]
+        assert len(started) == 2 and len(refused) == 1, outcomes  # 2 x 300 fit 700; a third would not
+        assert ("it declares 300 MiB and host onboard's 2 process(es) already declare 600 MiB" in refused[0]
+                and "900 MiB would exceed its memory budget of 700 MiB" in refused[0]), refused
+        # A stop gives the declared memory back.
+        client.stop("onboard", started[0]["instance"])
+        again = client.start("onboard", "echo", CONFIG, instance="heavy3")
+        assert again["state"] == "ready"
+    finally:
+        host.close()

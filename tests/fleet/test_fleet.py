@@ -11,6 +11,7 @@ import pytest
 
 from kgadapt.bench.fleet_bench import seed_robot
 from kgadapt.fleet_view import FleetView, FleetViewSettings, render
+from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.fleet import FleetClient, FleetSettings, RobotState
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
 from kgadapt.shared import keys, messages
@@ -118,14 +119,18 @@ def test_the_view_refreshes_on_what_robots_publish_and_writes_nothing(fleet):
     robot = next(iter(fleet.robots))
     watcher = fleet.client("b")
     robot_side = fleet.client("a")  # the robot's own agents publish through its router
+    # A host of the models going offline first, to come online below (only the models add hosts).
+    KnowledgeClient(robot_side, robot, timeout=3.0).write("platform_online",
+                                                          {"name": "remote", "online": False, "time": time.time()})
     before = {r: _decisions_and_runs(store) for r, store in fleet.stores.items()}
     with FleetView(watcher, FleetViewSettings(timeout=2.0)) as view:
         first = {r.robot: r for r in view.snapshot()}
         assert first[robot].decision_trigger.startswith("band_changed")
-        token = robot_side.liveliness().declare_token(keys.host_alive(robot, "spare"))
+        assert "remote" not in first[robot].hosts_online
+        token = robot_side.liveliness().declare_token(keys.host_alive(robot, "remote"))
         try:
             assert view.changed.wait(5), "no refresh signal for a host coming online"
-            wait_for(lambda: "spare" in {r.robot: r for r in view.snapshot()}[robot].hosts_online, 5,
+            wait_for(lambda: "remote" in {r.robot: r for r in view.snapshot()}[robot].hosts_online, 5,
                      "the new host among the online hosts")
             view.changed.clear()
             event = {"time": time.time(), "trigger": "memory_short(host=onboard)", "outcome": "migrated",

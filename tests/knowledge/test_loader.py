@@ -120,7 +120,8 @@ def test_a_single_model_file_may_name_what_an_earlier_load_defined(known_store, 
 
 
 def test_a_platform_known_only_from_run_time_does_not_count_as_modelled(known_store, tmp_path):
-    R.update_platform(known_store, name="gamma", time=1.0, memory_free_mb=10.0)
+    # A Platform no model made (written by a version that still let run-time facts add hosts).
+    known_store.execute("CREATE (:Platform {name: 'gamma', last_seen: 1.0, memory_free_mb: 10.0})")
     extra = tmp_path / "d_gamma.deploy"
     extra.write_text("deploys: g_b\nexecutable: /bin/true\nexecutable_on: gamma\n")
     with pytest.raises(ModelError, match="unknown platform 'gamma'"):

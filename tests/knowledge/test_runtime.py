@@ -23,17 +23,32 @@ def test_platform_figures_fill_in_the_modelled_node_and_keep_what_a_later_update
     assert _row(known_store, "MATCH (p:Platform) RETURN count(p) AS n")["n"] == 2
 
 
-def test_a_host_the_models_do_not_know_gets_a_platform_node(store):
-    R.update_platform(store, name="visitor", time=5.0, memory_total_mb=2048.0, memory_free_mb=1024.0, cpu_cores=2)
-    row = _row(store, "MATCH (p:Platform {name: 'visitor'}) RETURN p.memory_total_mb AS t, p.cpu_cores AS c, "
-                      "p.model_file AS f")
-    assert row == {"t": 2048.0, "c": 2, "f": None}
+def test_a_host_the_models_do_not_name_is_refused_by_every_writer_and_gets_no_platform_node(known_store):
+    from kgadapt.shared.errors import UnknownHost
+
+    before = _row(known_store, "MATCH (n) RETURN count(n) AS n")["n"]
+    for writer, params in [
+        (R.update_platform, {"name": "visitor", "time": 5.0, "memory_total_mb": 2048.0, "memory_free_mb": 1024.0}),
+        (R.update_platform, {"name": "visitor", "time": 5.0, "memory_free_mb": 10.0}),
+        (R.update_platform, {"name": "visitor", "time": 5.0, "cpu_load": 1.0}),
+        (R.set_platform_online, {"name": "visitor", "online": True, "time": 5.0}),
+        (R.record_process_start, {"run_id": "v-run", "instance": "v", "deployment": "d_b", "config": "g_b",
+                                  "host": "visitor", "pid": 5, "start_time": 5.0}),
+        (R.record_decision, {"name": "v-decision", "time": 5.0, "trigger": "startup", "config": "g_b",
+                             "host": "visitor"}),
+    ]:
+        with pytest.raises(UnknownHost, match="host 'visitor' is no Platform of the models"):
+            writer(known_store, **params)
+    # Nothing written: no Platform, no profile, no decision.
+    assert _row(known_store, "MATCH (n) RETURN count(n) AS n")["n"] == before
+    # A decision that names no host is still taken.
+    R.record_decision(known_store, name="no-host", time=5.0, trigger="startup")
 
 
-def test_going_offline_keeps_the_last_time_the_host_was_seen(store):
-    R.set_platform_online(store, name="beta", online=True, time=20.0)
-    R.set_platform_online(store, name="beta", online=False, time=25.0)
-    row = _row(store, "MATCH (p:Platform {name: 'beta'}) RETURN p.online AS online, p.last_seen AS seen")
+def test_going_offline_keeps_the_last_time_the_host_was_seen(known_store):
+    R.set_platform_online(known_store, name="beta", online=True, time=20.0)
+    R.set_platform_online(known_store, name="beta", online=False, time=25.0)
+    row = _row(known_store, "MATCH (p:Platform {name: 'beta'}) RETURN p.online AS online, p.last_seen AS seen")
     assert row == {"online": False, "seen": 20.0}
 
 

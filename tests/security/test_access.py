@@ -142,7 +142,7 @@ def graph_snapshot(knowledge: KnowledgeClient) -> tuple[Any, ...]:
 def write_params(verb: str) -> dict[str, Any]:
     """Valid parameters for each write verb, so that only the identity decides."""
     return {
-        "platform": {"name": "forged_host", "time": 1.0, "memory_free_mb": 1.0},
+        "platform": {"name": "remote", "time": 1.0, "memory_free_mb": 1.0},
         "platform_online": {"name": "onboard", "online": False, "time": 1.0},
         "process_start": {"run_id": "forged-run", "instance": "forged", "deployment": "detector_day",
                           "config": "marker_detection_day", "host": "onboard", "pid": 1, "start_time": 1.0},
@@ -271,16 +271,17 @@ def test_another_robot_cannot_put_statuses_or_liveliness_into_the_graph(session_
     other = session_as(OTHER)
     operator_session = session_as(OPERATOR)
     operator = KnowledgeClient(operator_session, ROBOT, timeout=3.0)
-    status = {"time": 1.0, "memory_total_mb": 100.0, "memory_free_mb": 1.0, "cpu_load": 0.0}
-    other.put(keys.host_status(ROBOT, "forged_status"),
-              messages.encode("host_status", {"host": "forged_status", **status}))
-    token = other.liveliness().declare_token(keys.host_alive(ROBOT, "forged_alive"))
+    # For a host of the models that has no agent up here: a forged status would leave its cpu_cores
+    # (later statuses without them keep them), a forged token would set it online.
+    status = {"host": "remote", "time": 1.0, "memory_total_mb": 100.0, "memory_free_mb": 1.0, "cpu_load": 0.0}
+    other.put(keys.host_status(ROBOT, "remote"), messages.encode("host_status", {**status, "cpu_cores": 55}))
+    token = other.liveliness().declare_token(keys.host_alive(ROBOT, "remote"))
     try:
-        operator_session.put(keys.host_status(ROBOT, "operator_box"),
-                             messages.encode("host_status", {"host": "operator_box", **status}))
-        names = lambda: {r["platform"] for r in operator.query("platforms", {})}  # noqa: E731
-        wait_for(lambda: "operator_box" in names(), 5, "the operator's status to reach the graph")
-        assert not {"forged_status", "forged_alive"} & names()
+        operator_session.put(keys.host_status(ROBOT, "remote"),
+                             messages.encode("host_status", {**status, "memory_free_mb": 2.0}))
+        row = lambda: next(r for r in operator.query("platforms", {}) if r["platform"] == "remote")  # noqa: E731
+        wait_for(lambda: row()["memory_free_mb"] == 2.0, 5, "the operator's status to reach the graph")
+        assert row()["cpu_cores"] != 55 and row()["online"] is not True
     finally:
         token.undeclare()
 

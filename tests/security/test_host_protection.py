@@ -38,7 +38,8 @@ def test_a_wildcard_start_reaches_no_host(loopback_robot):
 def test_a_start_beyond_the_hosts_memory_budget_is_refused_with_that_reason(loopback_robot):
     robot = loopback_robot(remote_budget="300M")
     deployers = DeployerClient(robot["session"](), robot["robot"])
-    with pytest.raises(DeploymentError, match=r"needs 324 MiB and host remote has \d+ MiB free within its memory budget"):
+    with pytest.raises(DeploymentError, match=r"declares 324 MiB and host remote's 0 process\(es\) already declare "
+                                              r"0 MiB \(none\): 324 MiB would exceed its memory budget of 300 MiB"):
         deployers.start("remote", "detector_dark", DARK)
     assert deployers.list("remote") == []
     # What fits still starts: the check refuses by the figures, not by the request.

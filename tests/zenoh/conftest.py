@@ -48,11 +48,16 @@ def zenoh_pair():
     server.close()
 
 
+# The hosts these tests' statuses and tokens name, as Platforms of their models: only the models add hosts.
+MODEL_HOSTS = ("fuzzhost", "goodhost", "h1", "h2", "onboard", "remote")
+
+
 @pytest.fixture
 def service(resp_store, zenoh_pair, robot):
-    """An in-process knowledge service on the test's own graph and robot name."""
+    """An in-process knowledge service on the test's own graph (its platforms: MODEL_HOSTS) and robot name."""
     server, _ = zenoh_pair
     ensure_indexes(resp_store)  # as `kgadapt knowledge serve` does; it also creates the graph
+    resp_store.execute("UNWIND $names AS name MERGE (:Platform {name: name})", {"names": list(MODEL_HOSTS)})
     svc = KnowledgeService(resp_store, ServiceSettings(robot=robot))
     svc.setup(server)
     yield svc

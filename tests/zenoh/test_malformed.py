@@ -30,7 +30,7 @@ FUZZ = settings(
 GOOD = {
     "query_request": {"params": {"feature": "MarkerDetection"}},
     "cypher_request": {"cypher": "RETURN $x AS x", "params": {"x": 1}},
-    "write_request": {"params": {"name": "fuzzed", "time": 1.0, "memory_free_mb": 10.0}},
+    "write_request": {"params": {"name": "fuzzhost", "time": 1.0, "memory_free_mb": 10.0}},
     "squeeze_request": {"reserve_mb": 10.0},
     "host_status": {"host": "fuzzhost", "time": 1.0, "memory_total_mb": 100.0, "memory_free_mb": 50.0, "cpu_load": 1.0},
 }
@@ -125,7 +125,7 @@ def test_every_knowledge_queryable_answers_malformed_payloads_with_an_error_repl
 
     check()
     assert ask_raw(session, key, packed(wire(kind)))[0] == "ok"  # still serving
-    assert resp_store.execute("MATCH (p:Platform {name: 'fuzzed'}) RETURN count(p) AS n")[0]["n"] <= 1
+    assert resp_store.execute("MATCH (p:Platform {name: 'fuzzhost'}) RETURN count(p) AS n")[0]["n"] == 1
 
 
 @pytest.mark.parametrize("params", [
@@ -182,7 +182,7 @@ def test_the_status_subscriber_drops_malformed_statuses_with_a_reason_and_keeps_
         assert service.stats()["last_drop"].startswith(f"status on {key}")
 
     check()
-    assert platform_row(client, "fuzzhost") is None  # nothing malformed reached the graph
+    assert platform_row(client, "fuzzhost")["memory_free_mb"] is None  # nothing malformed reached the graph
     session.put(key, messages.encode("host_status", {**GOOD["host_status"], "memory_free_mb": 42.0}),
                 congestion_control=BLOCK)
     wait_for(lambda: (platform_row(client, "fuzzhost") or {}).get("memory_free_mb") == 42.0, 3, "the good status")
@@ -213,8 +213,8 @@ def test_the_liveliness_subscriber_drops_tokens_with_bad_host_names(zenoh_pair, 
         wait_for(lambda: (platform_row(client, "goodhost") or {}).get("online") is True, 3, "the good token")
     finally:
         token.undeclare()
-    names = [row["platform"] for row in client.query("platforms", {})]
-    assert names == ["goodhost"]
+    online = [row["platform"] for row in client.query("platforms", {}) if row["online"] is not None]
+    assert online == ["goodhost"]  # no token with a bad name reached the graph
 
 
 def test_a_flood_of_statuses_is_coalesced_to_the_newest_per_host(zenoh_pair, client, service, robot):

@@ -16,14 +16,17 @@ from tests.zenoh.conftest import platform_row, wait_for, wait_until_serving
 
 def load_tiny_graph(store, *, onboard_free: float = 100.0, remote_free: float = 1000.0) -> None:
     """One feature, one detector configuration of 200 MiB, deployable on two online platforms."""
+    # The platforms are the fixture's (the models' hosts): given their figures here.
     store.execute(
-        f"CREATE (f:{schema.FEATURE} {{name: 'MarkerDetection'}}), "
+        f"MERGE (on:{schema.PLATFORM} {{name: 'onboard'}}) "
+        "SET on += {memory_total_mb: 2048.0, memory_free_mb: $onboard_free, online: true} "
+        f"MERGE (re:{schema.PLATFORM} {{name: 'remote'}}) "
+        "SET re += {memory_total_mb: 8192.0, memory_free_mb: $remote_free, online: true} "
+        f"WITH on, re CREATE (f:{schema.FEATURE} {{name: 'MarkerDetection'}}), "
         f"(pg:{schema.PERCEPTION_GRAPH} {{name: 'marker_detection_day'}}), "
         f"(cam:{schema.COMPONENT}:{schema.SENSOR_COMPONENT}:{schema.CAMERA} {{name: 'camera', memory_demand_mb: 50.0}}), "
         f"(det:{schema.COMPONENT}:{schema.PROCESSING_COMPONENT} {{name: 'detector_day', memory_demand_mb: 150.0}}), "
         f"(d:{schema.DEPLOYMENT} {{name: 'detector_day_service', kind: 'SystemdServiceFile'}}), "
-        f"(on:{schema.PLATFORM} {{name: 'onboard', memory_total_mb: 2048.0, memory_free_mb: $onboard_free, online: true}}), "
-        f"(re:{schema.PLATFORM} {{name: 'remote', memory_total_mb: 8192.0, memory_free_mb: $remote_free, online: true}}), "
         f"(pg)-[:{schema.REALIZES}]->(f), (pg)-[:{schema.CONTAINS}]->(cam), (pg)-[:{schema.CONTAINS}]->(det), "
         f"(d)-[:{schema.DEPLOYS}]->(pg), (d)-[:{schema.EXECUTABLE_ON}]->(on), (d)-[:{schema.EXECUTABLE_ON}]->(re)",
         {"onboard_free": onboard_free, "remote_free": remote_free},
@@ -101,8 +104,8 @@ def test_cypher_the_store_rejects_is_answered_with_the_stores_reason(client):
 
 
 def test_a_write_verb_changes_the_graph(client, resp_store):
-    client.write("platform", {"name": "spare", "time": 1.0, "memory_free_mb": 321.0})
-    rows = resp_store.execute("MATCH (p:Platform {name: 'spare'}) RETURN p.memory_free_mb AS free")
+    client.write("platform", {"name": "h1", "time": 1.0, "memory_free_mb": 321.0})
+    rows = resp_store.execute("MATCH (p:Platform {name: 'h1'}) RETURN p.memory_free_mb AS free")
     assert rows == [{"free": 321.0}]
 
 
@@ -167,7 +170,8 @@ def test_a_status_naming_another_host_than_its_key_is_dropped(zenoh_pair, client
     session.put(keys.host_status(robot, "remote"), messages.encode("host_status", status))
     wait_for(lambda: service.stats().get("events_dropped"), 3, "the drop")
     assert "names host 'onboard'" in service.stats()["last_drop"]
-    assert platform_row(client, "onboard") is None and platform_row(client, "remote") is None
+    assert platform_row(client, "onboard")["memory_free_mb"] is None
+    assert platform_row(client, "remote")["memory_free_mb"] is None
 
 
 def test_a_liveliness_token_marks_its_platform_online_and_offline(zenoh_pair, client, robot):
@@ -182,6 +186,7 @@ def test_a_host_alive_before_the_service_starts_is_seen_online(resp_store, zenoh
     server, session = zenoh_pair
     token = session.liveliness().declare_token(keys.host_alive(robot, "remote"))
     resp_store.execute("CREATE (:Platform {name: 'onboard', online: true})")  # stale: nobody holds its token
+    resp_store.execute("CREATE (:Platform {name: 'remote'})")
     svc = KnowledgeService(resp_store, ServiceSettings(robot=robot))
     svc.setup(server)
     try:
@@ -192,3 +197,63 @@ def test_a_host_alive_before_the_service_starts_is_seen_online(resp_store, zenoh
     finally:
         svc.shutdown()
         token.undeclare()
+
+
+def test_only_the_models_add_hosts_a_ghost_is_refused_counted_and_logged_once(zenoh_pair, client, service, robot,
+                                                                               resp_store, caplog):
+    _, session = zenoh_pair
+    platforms = lambda: sorted(r["platform"] for r in client.query("platforms", {}))  # noqa: E731
+    before = platforms()
+    status = {"time": time.time(), "memory_total_mb": 4096.0, "memory_free_mb": 100.0, "cpu_load": 0.0}
+    with caplog.at_level("WARNING", logger="kgadapt.knowledge.service"):
+        token = session.liveliness().declare_token(keys.host_alive(robot, "ghost"))
+        for _ in range(3):
+            session.put(keys.host_status(robot, "ghost"), messages.encode("host_status", {"host": "ghost", **status}))
+        wait_for(lambda: service.stats().get("unknown_host_refused", 0) >= 4, 5, "the ghost's token and statuses refused")
+        token.undeclare()
+        wait_for(lambda: service.stats().get("unknown_host_refused", 0) >= 5, 5, "the end of the ghost's token refused")
+        for verb, params in [
+            ("platform", {"name": "ghost", "time": 1.0, "memory_free_mb": 1.0}),
+            ("platform_online", {"name": "ghost", "online": True, "time": 1.0}),
+            ("process_start", {"run_id": "ghost-run", "instance": "g", "deployment": "d", "config": "c",
+                               "host": "ghost", "pid": 1, "start_time": 1.0}),
+            ("decision", {"name": "ghost-decision", "time": 1.0, "trigger": "host_lost", "host": "ghost"}),
+        ]:
+            with pytest.raises(RemoteError, match="host 'ghost' is no Platform of the models"):
+                client.write(verb, params)
+    assert platforms() == before  # no Platform, and nothing else written about the ghost
+    assert resp_store.execute("MATCH (n) WHERE n.name STARTS WITH 'ghost' RETURN n.name AS n") == []
+    stats = client.service_stats()  # knowledge/own/stats: what `kgadapt status` counts
+    assert stats["unknown_host_refused"] == 9 and stats["unknown_hosts"] == ["ghost"]
+    assert len([r for r in caplog.records if "refused host 'ghost'" in r.getMessage()]) == 1  # logged once
+    from kgadapt.status import gather
+
+    shown = gather(session, robot, listen_s=0.0, timeout=2.0)  # what `kgadapt status` shows
+    assert shown["refused_hosts"] == {"count": 9, "hosts": ["ghost"]}
+    assert any("refused 9 message(s) naming hosts no model names: ghost" in p for p in shown["problems"])
+    assert "ghost" not in {h["host"] for h in shown["hosts"]}
+
+
+def test_a_decisions_time_is_the_services_not_the_senders(client, resp_store):
+    sent = time.time() + 3600.0  # a sender's clock an hour ahead
+    client.write("decision", {"name": "dated", "time": sent, "trigger": "startup", "host": "onboard"})
+    taken = resp_store.execute("MATCH (a:AdaptationDecision {name: 'dated'}) RETURN a.time AS t")[0]["t"]
+    assert taken <= time.time() < sent
+
+
+def test_another_robots_question_waits_while_the_robots_own_request_is_answered(resp_store, robot):
+    import threading
+
+    schema.ensure_indexes(resp_store)
+    svc = KnowledgeService(resp_store, ServiceSettings(robot=robot, own_first_wait_s=60.0))  # not set up: no Zenoh
+    answered = threading.Event()
+    asker = threading.Thread(target=lambda: (svc.answer_named("platforms", None, public=True), answered.set()))
+    with svc.own_first.serving():  # an own request being answered
+        asker.start()
+        assert not answered.wait(0.5)  # the public question has not run meanwhile
+        # The own request's own steps never wait for it: a literal query on the own door answers at once.
+        started = time.monotonic()
+        svc.answer_named("fig5_literal", None)
+        assert time.monotonic() - started < 30.0
+    assert answered.wait(10)  # and it runs as soon as the own request is done
+    asker.join()

@@ -232,6 +232,7 @@ def test_a_loss_while_the_store_is_away_still_ends_the_hosts_profiles_once_it_is
                                         unix_socket=address.unix_socket, graph="g", socket_timeout=2.0))
     store.setup()
     ensure_indexes(store)
+    store.execute("MERGE (:Platform {name: 'remote'})")  # the models' host
     svc = KnowledgeService(store, ServiceSettings(robot=robot, liveliness_retry_s=0.2))
     svc.setup(server_side)
     profile = "MATCH (r:ProcessProfile {name: $run}) RETURN r.end_time AS end, r.end_reason AS why"
