@@ -319,8 +319,8 @@ def record_calibration(store: GraphStore, *, config: str, band: str, detection_r
             raise NamedQueryError(f"write 'calibration': {key} {rate} is not between 0 and 1")
     if not 0.0 <= false_per_frame <= 1000.0:
         raise NamedQueryError(f"write 'calibration': false_per_frame {false_per_frame} is not between 0 and 1000")
-    if not source or len(source) > 200:
-        raise NamedQueryError(f"write 'calibration': source {source!r} must be 1 to 200 characters")
+    if not source:
+        raise NamedQueryError("write 'calibration': source must not be empty (synthetic or frames:NAME)")
     # Relations written before sources were named are synthetic ones: name them first, so that a synthetic
     # write replaces them and a recording's is written beside them. (Readers take an unnamed one as any source.)
     store.execute(

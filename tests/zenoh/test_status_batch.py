@@ -11,9 +11,11 @@ BLOCK = zenoh.CongestionControl.BLOCK
 HOSTS = 300
 
 
-def test_a_batched_status_write_keeps_every_hosts_figures(zenoh_pair, client, service, robot):
+def test_a_batched_status_write_keeps_every_hosts_figures(zenoh_pair, client, service, robot, resp_store):
     _, session = zenoh_pair
     hosts = [f"h{i:03d}" for i in range(HOSTS)]
+    # Platforms of the test's models: the service takes statuses only of hosts the models name.
+    resp_store.execute("UNWIND $names AS name MERGE (:Platform {name: name})", {"names": hosts})
     publishers = {h: session.declare_publisher(keys.host_status(robot, h), congestion_control=BLOCK) for h in hosts}
     try:
         for round_ in (0, 1):  # two statuses per host; the second is the one the graph must hold
