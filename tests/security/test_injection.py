@@ -200,7 +200,8 @@ NUMBERS = {"time": 5.0, "memory_total_mb": 100.0, "memory_free_mb": 50.0, "cpu_l
            "cpu_percent_mean": 4.0, "end_time": 7.0, "exit_status": 0, "detection_rate": 0.5, "false_rate": 0.1,
            "false_per_frame": 0.2, "false_per_reported": 0.1,
            "ms_per_frame": 8.0, "duration_ms": 9.0, "battery_pct": 80.0, "battery_v": 12.0,
-           "autopilot_load_pct": 30.0, "last_heartbeat": 10.0, "received": 11.0}
+           "autopilot_load_pct": 30.0, "last_heartbeat": 10.0, "received": 11.0,
+           "frames": 12, "frames_expected": 10, "frames_seen": 5, "since": 4.0}
 FLAGS = {"online": True, "link": True, "armed": False}
 
 
