@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.onboard.illumination import Band, bands_from_rows
-from kgadapt.onboard.live_rate import LIVE, LiveSettings, weigh
+from kgadapt.onboard.live_rate import LIVE, LiveSettings, decided_by, weigh
 from kgadapt.shared.states import URGENT_TRIGGERS, Change, TriggerKind
 
 __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",
@@ -426,14 +426,18 @@ class Planner:
                   f"({evidence}rate {_fmt(config_row.get('detection_rate'))}, "
                   f"false/frame {_fmt(config_row.get('false_per_frame'))}, {_fmt(config_row.get('ms_per_frame'))} ms)"
                   + (f", {', '.join(exclude)} left out" if exclude else "")
+                  + (f", above {', '.join(str(r['config']) for r in full[position:] if r.get('evidence') == LIVE)} "
+                     "on their live evidence" if not live and decided_by(full, config_row, tie=self.tie_rate) == LIVE
+                     else "")
                   + f"; {host} has {_fmt(row.get('free_mb'))} MiB free for {demand:.0f} MiB ({self.preference})")
         inputs = {
             "band": band,
             "ranking": [{**{k: r.get(k) for k in ("config", "score", "detection_rate", "false_per_frame",
                                                    "ms_per_frame", "memory_demand_mb")},
-                         **{k: r[k] for k in ("evidence", "live_rate", "live_frames_expected", "live_age_s") if k in r}}
+                         **{k: r[k] for k in ("evidence", "calibrated_score", "live_rate", "live_frames_expected",
+                                              "live_age_s", "live_agrees") if k in r}}
                         for r in full],
-            "evidence": config_row.get("evidence"),
+            "evidence": decided_by(full, config_row, tie=self.tie_rate),
             "excluded": list(exclude),
             "skipped": skipped,
             "expected_rate": config_row.get("live_rate") if live else config_row.get("detection_rate"),

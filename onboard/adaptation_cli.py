@@ -129,14 +129,16 @@ def _evidence(c: dict[str, Any]) -> str:
         return (f" from live evidence (rate {_num(live)} over {c.get('live_frames_expected')} frames with markers "
                 f"expected, {_num(c.get('live_age_s'))} s old; {rate})")
     source = f" from {c['evidence']} calibration" if c.get("evidence") else ""
-    unused = (f"; live rate {_num(live)} over {c.get('live_frames_expected')} frames, {_num(c.get('live_age_s'))} "
-              "s old, not counted: too few frames or too old" if live is not None else "")
+    figure = f"; live rate {_num(live)} over {c.get('live_frames_expected')} frames, {_num(c.get('live_age_s'))} s old"
+    unused = ("" if live is None else f"{figure}, agrees with it" if c.get("live_agrees")
+              else f"{figure}, not counted: too few frames or too old")
     return f"{source} ({rate}{unused})"
 
 
 def _decided_by(evidence: str) -> str:
     if evidence == "live":
-        return "live evidence (this robot's own detections in the band, fresh and on enough frames)"
+        return ("live evidence (this robot's own detections in the band, fresh, on enough frames and "
+                "disagreeing with calibration)")
     if evidence.startswith("frames:"):
         return f"calibration on recorded frames ({evidence})"
     return f"{evidence} calibration"

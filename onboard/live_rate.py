@@ -12,10 +12,13 @@ within the last ``expect_s`` (by whichever configuration ran then), or the
 flight phase says the pad is in view (final descent).
 
 :func:`weigh` is the rule the planner ranks by: a configuration's live figure
-replaces its calibrated rate when it is fresh (updated within ``max_age_s``)
-and rests on at least ``min_expected`` frames with markers expected; otherwise
-the calibration decides. Each row says which evidence decided (``evidence``:
-``live``, or the calibration's source).
+replaces its calibrated rate when it is fresh (updated within ``max_age_s``),
+rests on at least ``min_expected`` frames with markers expected, and disagrees
+with the calibrated rate by more than ``agree``; otherwise the calibration
+decides (a live figure that agrees confirms it: real frames are seldom as
+clean as the calibration scene, and a working configuration should not lose
+its place to an untried one for that). Each row says which evidence scored it
+(``evidence``: ``live``, or the calibration's source).
 
 Nothing here does I/O or reads a clock: times are arguments.
 """
@@ -39,12 +42,29 @@ class LiveSettings:
     write_every_s: float = 2.0  # how often changed windows are written
     max_age_s: float = 120.0  # a live figure older than this no longer outweighs calibration
     min_expected: int = 30  # ... nor one resting on fewer frames with markers expected
+    agree: float = 0.15  # a fresh live rate this close to the calibrated one confirms it: calibration's figure ranks
 
     def __post_init__(self) -> None:
         if self.window < 1 or self.min_expected < 1:
             raise ValueError(f"window {self.window!r}, min_expected {self.min_expected!r}: at least 1 each")
         if self.min_expected > self.window:
             raise ValueError(f"min_expected {self.min_expected} is more than a window holds ({self.window})")
+
+
+def decided_by(ranking: Sequence[Mapping[str, Any]], chosen: Mapping[str, Any], *, tie: float = 0.005) -> str | None:
+    """Which evidence put ``chosen`` where it is in ``ranking`` (rows from :func:`weigh`, best first):
+    ``live`` when its own score is live, or when a configuration that calibration put above it was
+    ranked below it on live evidence; else its calibration's source (None: rows not weighed)."""
+    if chosen.get("evidence") is None or chosen.get("evidence") == LIVE:
+        return chosen.get("evidence")
+    mine = chosen.get("calibrated_score")
+    after = list(ranking)[list(ranking).index(chosen) + 1:] if chosen in ranking else []
+    for row in after:
+        theirs = row.get("calibrated_score")
+        if (row.get("evidence") == LIVE and isinstance(mine, (int, float)) and isinstance(theirs, (int, float))
+                and theirs > mine + tie):
+            return LIVE
+    return str(chosen["evidence"])
 
 
 def fresh(live: Mapping[str, Any], *, now: float, settings: LiveSettings) -> bool:
@@ -60,23 +80,31 @@ def weigh(ranking: Sequence[Mapping[str, Any]], live: Sequence[Mapping[str, Any]
     """``config_ranking`` rows with their ``score`` from the evidence that decides, and which (``evidence``).
 
     ``live``: ``live_rates`` rows of the same band and condition. A fresh one
-    (:func:`fresh`) replaces the calibrated rate in the score (rate minus
-    ``penalty`` x false markers per frame; the live window does not count false
-    markers, the calibration's figure stays). Every row with a live figure
-    carries it (``live_rate``, ``live_frames_expected``, ``live_age_s``), fresh or not.
+    (:func:`fresh`) that disagrees with the calibrated rate by more than
+    ``agree`` replaces it in the score (rate minus ``penalty`` x false markers
+    per frame; the live window does not count false markers, the calibration's
+    figure stays). Every row keeps its calibration's score as
+    ``calibrated_score`` and carries its live figure (``live_rate``,
+    ``live_frames_expected``, ``live_age_s``, ``live_agrees``) when it has one, fresh or not.
     """
     by_config = {str(r.get("config")): r for r in live}
     out = []
     for row in ranking:
-        weighed = {**row, "evidence": source}
+        weighed = {**row, "evidence": source, "calibrated_score": row.get("score")}
         found = by_config.get(str(row.get("config")))
         if found is not None:
             at = found.get("at")
             weighed.update(live_rate=found.get("detection_rate"), live_frames_expected=found.get("frames_expected"),
                            live_age_s=round(now - at, 1) if isinstance(at, (int, float)) else None)
             if fresh(found, now=now, settings=settings):
-                weighed["score"] = float(found["detection_rate"]) - penalty * float(row.get("false_per_frame") or 0.0)
-                weighed["evidence"] = LIVE
+                calibrated = row.get("detection_rate")
+                agrees = (isinstance(calibrated, (int, float))
+                          and abs(float(found["detection_rate"]) - float(calibrated)) <= settings.agree)
+                weighed["live_agrees"] = agrees
+                if not agrees:
+                    weighed["score"] = (float(found["detection_rate"])
+                                        - penalty * float(row.get("false_per_frame") or 0.0))
+                    weighed["evidence"] = LIVE
         out.append(weighed)
     return out
 

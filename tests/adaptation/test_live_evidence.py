@@ -57,7 +57,7 @@ def test_live_evidence_changes_the_ranking_and_why_names_it(resp_store):
         update_platform(resp_store, name=host, time=1.0, memory_total_mb=4096, memory_free_mb=2000, online=True)
     record_calibration(resp_store, config=A, band="dark", detection_rate=0.95, false_per_frame=0.0,
                        ms_per_frame=4.0, time=1.0)
-    record_calibration(resp_store, config=B, band="dark", detection_rate=0.80, false_per_frame=0.0,
+    record_calibration(resp_store, config=B, band="dark", detection_rate=0.70, false_per_frame=0.0,
                        ms_per_frame=9.0, time=1.0)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohSettings(mode="router", listen=(endpoint,)))

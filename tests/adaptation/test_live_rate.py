@@ -5,9 +5,10 @@ from __future__ import annotations
 import pytest
 
 from kgadapt.onboard.calibration import rank_rows
-from kgadapt.onboard.live_rate import LiveRates, LiveSettings, fresh, weigh
+from kgadapt.onboard.live_rate import LiveRates, LiveSettings, decided_by, fresh, weigh
 
-SETTINGS = LiveSettings(max_age_s=60.0, min_expected=30, window=100, write_every_s=2.0, expect_s=1.0)
+SETTINGS = LiveSettings(max_age_s=60.0, min_expected=30, window=100, write_every_s=2.0, expect_s=1.0,
+                        agree=0.15)
 # Synthetic calibration ranks A over B in the band.
 RANKING = [{"config": "A", "detection_rate": 0.95, "false_per_frame": 0.0, "ms_per_frame": 5.0, "score": 0.95},
            {"config": "B", "detection_rate": 0.80, "false_per_frame": 0.05, "ms_per_frame": 9.0, "score": 0.75}]
@@ -29,9 +30,23 @@ def test_fresh_live_evidence_on_enough_frames_outweighs_synthetic_calibration():
     a, b = (next(r for r in rows if r["config"] == c) for c in "AB")
     assert (a["evidence"], a["score"], a["live_age_s"]) == ("live", 0.0, 3.0)
     assert b["evidence"] == "live" and b["score"] == pytest.approx(1.0 - 0.05)  # calibration's false markers stay
-    # A collapse alone is enough: B keeps its synthetic figure and still comes first.
-    alone = weigh(RANKING, [live("A", 0.1)], now=1003.0, settings=SETTINGS)
-    assert ranked(alone) == ["B", "A"] and next(r for r in alone if r["config"] == "B")["evidence"] == "synthetic"
+    assert decided_by(rank_rows(rows, score=lambda r: r["score"], ms=lambda r: 0.0), b) == "live"
+    # A collapse alone is enough: B keeps its synthetic figure and still comes first; the live evidence
+    # (on A) is what decided.
+    alone = rank_rows(weigh(RANKING, [live("A", 0.1)], now=1003.0, settings=SETTINGS), score=lambda r: r["score"],
+                      ms=lambda r: r["ms_per_frame"])
+    assert [r["config"] for r in alone] == ["B", "A"] and alone[0]["evidence"] == "synthetic"
+    assert decided_by(alone, alone[0]) == "live"
+
+
+def test_live_evidence_that_agrees_with_calibration_confirms_it_and_calibration_ranks():
+    # Real frames are seldom as clean as the scene: A working at 0.85 of its 0.95 keeps its place above B.
+    rows = weigh(RANKING, [live("A", 0.85), live("B", 0.7)], now=1003.0, settings=SETTINGS)
+    order = rank_rows(rows, score=lambda r: r["score"], ms=lambda r: r["ms_per_frame"])
+    assert [r["config"] for r in order] == ["A", "B"]
+    assert [(r["evidence"], r["live_agrees"], r["score"]) for r in order] == [
+        ("synthetic", True, 0.95), ("synthetic", True, 0.75)]
+    assert decided_by(order, order[0]) == "synthetic"
 
 
 @pytest.mark.parametrize("why, figure, now", [
