@@ -227,6 +227,23 @@ RETURN g.name AS config, cal.detection_rate AS detection_rate, cal.false_per_fra
 ORDER BY score DESC, ms_per_frame ASC, config""",
     ),
     NamedQuery(
+        "live_rates",
+        "What this robot's running detectors found in a band and condition (all = the band as a whole): "
+        "per configuration of the feature its live detection rate (markers found per marker expected), the "
+        "frames of its window (frames, with markers expected, with markers seen), the window's start and "
+        "last update (since, at) and the process measured (run_id, host). The planner weighs fresh "
+        "figures with enough frames above calibration (kgadapt.onboard.live_rate).",
+        {"feature": _FEATURE, "band": Param("str", help="illumination band, e.g. dark"),
+         "condition": Param("str", required=False, default="all", help="condition (default all)")},
+        f"""
+MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
+      -[l:{S.LIVE_RATE} {{condition: $condition}}]->(:{S.ILLUMINATION_BAND} {{name: $band}})
+RETURN g.name AS config, l.detection_rate AS detection_rate, l.frames AS frames,
+       l.frames_expected AS frames_expected, l.frames_seen AS frames_seen, l.since AS since, l.at AS at,
+       l.run_id AS run_id, l.host AS host
+ORDER BY config""",
+    ),
+    NamedQuery(
         "reflex_table",
         "What a running detector may switch to on its own, between two frames: for every illumination "
         "band (lowest first; its edges and margin) each configuration of the feature calibrated in it "

@@ -342,6 +342,42 @@ def record_calibration(store: GraphStore, *, config: str, band: str, detection_r
                               f"or no illumination band {band!r} in the graph")
 
 
+MAX_LIVE_FRAMES = 10**9  # a live window's frame counts: beyond any real run
+
+
+def record_live_rate(store: GraphStore, *, config: str, band: str, detection_rate: float, frames: int,
+                     frames_expected: int, frames_seen: int, since: float, time: float, condition: str = "all",
+                     run_id: str | None = None, host: str | None = None) -> None:
+    """What the running detector of ``config`` finds in ``band`` on this robot: one LIVE_RATE relation per
+    configuration, band and condition, replaced by each write (never appended).
+
+    ``frames``: frames of ``config`` in ``band`` the adaptation manager saw; ``frames_expected``: those of
+    the window with markers expected (seen within the last second, or the pad in view in final descent);
+    ``frames_seen``: of these, those with markers found; ``detection_rate``: markers found per marker
+    expected over the window; ``since``..``time``: the window. ``run_id``/``host``: the process measured.
+    """
+    _check("live_rate", config=(config, (str,), False), band=(band, (str,), False),
+           condition=(condition, (str,), False), detection_rate=(detection_rate, _NUM, False),
+           frames=(frames, (int,), False), frames_expected=(frames_expected, (int,), False),
+           frames_seen=(frames_seen, (int,), False), since=(since, _NUM, False), time=(time, _NUM, False),
+           run_id=(run_id, (str,), True), host=(host, (str,), True))
+    _within("live_rate", detection_rate=(detection_rate, 0.0, 1.0), frames=(frames, 0, MAX_LIVE_FRAMES),
+            frames_expected=(frames_expected, 0, frames), frames_seen=(frames_seen, 0, frames_expected),
+            since=(since, 0, time), time=(time, 0, math.inf))
+    rows = store.execute(
+        f"MATCH (g:{S.PERCEPTION_GRAPH} {{name: $config}}), (b:{S.ILLUMINATION_BAND} {{name: $band}}) "
+        f"MERGE (g)-[l:{S.LIVE_RATE} {{condition: $condition}}]->(b) "
+        "SET l.detection_rate = $detection_rate, l.frames = $frames, l.frames_expected = $frames_expected, "
+        "l.frames_seen = $frames_seen, l.since = $since, l.at = $time, l.run_id = $run_id, l.host = $host "
+        "RETURN count(l) AS n",
+        {"config": config, "band": band, "condition": condition, "detection_rate": float(detection_rate),
+         "frames": frames, "frames_expected": frames_expected, "frames_seen": frames_seen,
+         "since": float(since), "time": float(time), "run_id": run_id, "host": host})
+    if not rows or not rows[0]["n"]:
+        raise NamedQueryError(f"write 'live_rate': no detector configuration {config!r} "
+                              f"or no illumination band {band!r} in the graph")
+
+
 def record_decision(store: GraphStore, *, name: str, time: float, trigger: str, inputs_json: str | None = None,
                     query: str | None = None, config: str | None = None, host: str | None = None,
                     duration_ms: float | None = None, outcome: str | None = None) -> None:
@@ -404,6 +440,7 @@ WRITERS: dict[str, Callable[..., None]] = {
     "process_end": record_process_end,
     "process_reconfigured": record_process_reconfigured,
     "calibration": record_calibration,
+    "live_rate": record_live_rate,
     "decision": record_decision,
     "flight_state": update_flight_control,
     "fleet_forget": forget_robot,  # the fleet roster (knowledge/fleet.py)

@@ -35,6 +35,9 @@ Relations (direction matters)::
     (PerceptionGraph)-[:SUITED_FOR]->(IlluminationBand)
     (PerceptionGraph)-[:CALIBRATED {condition, source, detection_rate, false_per_frame, false_per_reported,
                                     ms_per_frame, at}]->(IlluminationBand)   source: synthetic | frames:NAME
+    (PerceptionGraph)-[:LIVE_RATE {condition, detection_rate, frames, frames_expected, frames_seen, since, at,
+                                   run_id, host}]->(IlluminationBand)   (run time: this robot's own detections,
+                                   one per configuration x band x condition, updated: knowledge/runtime.py)
     (Component)-[:HAS_PORT]->(Port)
     (Port)-[:CONNECTED_TO]->(Port)                 out port to in port
     (Feature)-[:REQUIRES]->(Feature)
@@ -79,6 +82,7 @@ REALIZES = "REALIZES"
 CONTAINS = "CONTAINS"
 SUITED_FOR = "SUITED_FOR"
 CALIBRATED = "CALIBRATED"
+LIVE_RATE = "LIVE_RATE"
 HAS_PORT = "HAS_PORT"
 CONNECTED_TO = "CONNECTED_TO"
 REQUIRES = "REQUIRES"

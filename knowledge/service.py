@@ -639,7 +639,7 @@ class KnowledgeService:
 # The parameter naming the host a write is about, for the verbs a host writes about itself.
 _HOST_PARAM = {"platform": "name", "platform_online": "name", "process_start": "host"}
 _RUN_VERBS = ("process_sample", "process_end", "process_reconfigured")  # about a profile, by run_id
-_MANAGER_VERBS = ("decision", "flight_state")  # the adaptation manager's and the flight bridge's
+_MANAGER_VERBS = ("decision", "flight_state", "live_rate")  # the adaptation manager's and the flight bridge's
 
 
 def check_owner(store: GraphStore, verb: str, params: Mapping[str, Any], *, host: str, manager_host: str) -> None:

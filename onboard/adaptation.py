@@ -26,10 +26,12 @@ Plan
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.onboard.illumination import Band, bands_from_rows
+from kgadapt.onboard.live_rate import LIVE, LiveSettings, decided_by, weigh
 from kgadapt.shared.states import URGENT_TRIGGERS, Change, TriggerKind
 
 __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",
@@ -328,7 +330,10 @@ class Planner:
     ``penalty`` x false markers per frame, none slower than ``max_ms``; within
     ``tie_rate`` the faster first). The first in the ranking that a host can hold
     wins. A graph without calibration falls back to the configuration
-    ``SUITED_FOR`` the band.
+    ``SUITED_FOR`` the band. Calibration of ``source`` (synthetic, or a recording's
+    ``frames:NAME``) gives way to this robot's own live figures (named query
+    ``live_rates``) where they are fresh and rest on enough frames
+    (:func:`kgadapt.onboard.live_rate.weigh`; ``clock`` says what now is).
     """
 
     ask: KnowledgeAsk
@@ -339,6 +344,9 @@ class Planner:
     max_ms: float = 1000.0
     tie_rate: float = 0.005
     in_place: bool = True  # False: every change is a new process (for comparison)
+    source: str = "synthetic"  # the calibration ranked by
+    live: LiveSettings = field(default_factory=LiveSettings)
+    clock: Callable[[], float] = time.time  # the wall clock live figures are aged by
 
     def __post_init__(self) -> None:
         if self.preference not in PREFERENCES:
@@ -352,7 +360,10 @@ class Planner:
         from kgadapt.onboard.calibration import rank_rows
 
         rows = self.ask("config_ranking", {"feature": self.feature, "band": band, "condition": condition,
-                                           "penalty": self.penalty, "max_ms": self.max_ms})
+                                           "penalty": self.penalty, "max_ms": self.max_ms, "source": self.source})
+        if rows:
+            live = self.ask("live_rates", {"feature": self.feature, "band": band, "condition": condition})
+            rows = weigh(rows, live, now=self.clock(), settings=self.live, penalty=self.penalty, source=self.source)
         return rank_rows(rows, score=lambda r: float(r.get("score") or 0.0),
                          ms=lambda r: float(r.get("ms_per_frame") or math.inf), tie_rate=self.tie_rate)
 
@@ -406,22 +417,36 @@ class Planner:
         row = fits[host]
         target = Placement(config=config, deployment=str(row["deployment"]), host=host, demand_mb=demand)
         position = full.index(config_row) + 1
+        live = config_row.get("evidence") == LIVE
+        evidence = (f"live rate {_fmt(config_row.get('live_rate'))} on this robot over "
+                    f"{config_row.get('live_frames_expected')} frames with markers expected, "
+                    f"{_fmt(config_row.get('live_age_s'))} s old; calibrated " if live
+                    else f"{config_row['evidence']} calibration: " if config_row.get("evidence") else "")
         reason = (f"band {band}: {config} is {_ordinal(position)} in the ranking "
-                  f"(rate {_fmt(config_row.get('detection_rate'))}, "
+                  f"({evidence}rate {_fmt(config_row.get('detection_rate'))}, "
                   f"false/frame {_fmt(config_row.get('false_per_frame'))}, {_fmt(config_row.get('ms_per_frame'))} ms)"
                   + (f", {', '.join(exclude)} left out" if exclude else "")
+                  + (f", above {', '.join(str(r['config']) for r in full[position:] if r.get('evidence') == LIVE)} "
+                     "on their live evidence" if not live and decided_by(full, config_row, tie=self.tie_rate) == LIVE
+                     else "")
                   + f"; {host} has {_fmt(row.get('free_mb'))} MiB free for {demand:.0f} MiB ({self.preference})")
         inputs = {
             "band": band,
-            "ranking": [{k: r.get(k) for k in ("config", "score", "detection_rate", "false_per_frame",
-                                                "ms_per_frame", "memory_demand_mb")} for r in full],
+            "ranking": [{**{k: r.get(k) for k in ("config", "score", "detection_rate", "false_per_frame",
+                                                   "ms_per_frame", "memory_demand_mb")},
+                         **{k: r[k] for k in ("evidence", "calibrated_score", "live_rate", "live_frames_expected",
+                                              "live_age_s", "live_agrees") if k in r}}
+                        for r in full],
+            "evidence": decided_by(full, config_row, tie=self.tie_rate),
             "excluded": list(exclude),
             "skipped": skipped,
-            "expected_rate": config_row.get("detection_rate"),
+            "expected_rate": config_row.get("live_rate") if live else config_row.get("detection_rate"),
             "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in order],
             "running": None if running is None else {"config": running.config, "host": running.host},
         }
         queries: tuple[str, ...] = ("config_ranking", "placement")
+        if any(r.get("live_rate") is not None for r in full):
+            queries = ("config_ranking", "live_rates", "placement")
         if running is not None and running.instance and (running.config, running.host) != (config, host):
             inputs["change"], inputs["change_why"] = self.change(running, target)
             queries += ("in_place_change",)

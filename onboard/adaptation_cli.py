@@ -74,13 +74,15 @@ def render(data: dict[str, Any]) -> str:
             excluded = set(inputs.get("excluded") or [])
             skipped = {k.get("config"): k.get("why") for k in inputs.get("skipped") or []}
             lines.append(f"  ranking for band {inputs.get('band')} (named query config_ranking: "
-                         f"rate - false markers per frame, then ms):")
+                         f"rate - false markers per frame, then ms; live_rates: this robot's own figures):")
             for i, c in enumerate(inputs["ranking"], start=1):
                 note = (" (left out: its detections collapsed)" if c.get("config") in excluded
                         else f" (skipped: {skipped[c.get('config')]})" if c.get("config") in skipped else "")
-                lines.append(f"   {i}. {c.get('config')}: score {_num(c.get('score'))}, rate {_num(c.get('detection_rate'))}, "
+                lines.append(f"   {i}. {c.get('config')}: score {_num(c.get('score'))}{_evidence(c)}, "
                              f"false/frame {_num(c.get('false_per_frame'))}, {_num(c.get('ms_per_frame'))} ms/frame, "
                              f"{_num(c.get('memory_demand_mb'))} MiB{note}")
+            if inputs.get("evidence"):
+                lines.append(f"  decided by: {_decided_by(inputs['evidence'])}")
         for c in inputs.get("candidates") or []:
             rate = c.get("detection_rate")
             rate_text = ("not calibrated (run `kgadapt perception calibrate`)" if rate is None
@@ -117,6 +119,29 @@ def render(data: dict[str, Any]) -> str:
         for h in data["history"]:
             lines.append(f"  {_ago(h.get('time'))}  {h.get('trigger')} -> {h.get('config')}@{h.get('host')}")
     return "\n".join(lines)
+
+
+def _evidence(c: dict[str, Any]) -> str:
+    """Which figure scored a ranking row: live (with the calibrated one beside it) or the calibration's."""
+    rate = f"calibrated rate {_num(c.get('detection_rate'))}"
+    live = c.get("live_rate")
+    if c.get("evidence") == "live":
+        return (f" from live evidence (rate {_num(live)} over {c.get('live_frames_expected')} frames with markers "
+                f"expected, {_num(c.get('live_age_s'))} s old; {rate})")
+    source = f" from {c['evidence']} calibration" if c.get("evidence") else ""
+    figure = f"; live rate {_num(live)} over {c.get('live_frames_expected')} frames, {_num(c.get('live_age_s'))} s old"
+    unused = ("" if live is None else f"{figure}, agrees with it" if c.get("live_agrees")
+              else f"{figure}, not counted: too few frames or too old")
+    return f"{source} ({rate}{unused})"
+
+
+def _decided_by(evidence: str) -> str:
+    if evidence == "live":
+        return ("live evidence (this robot's own detections in the band, fresh, on enough frames and "
+                "disagreeing with calibration)")
+    if evidence.startswith("frames:"):
+        return f"calibration on recorded frames ({evidence})"
+    return f"{evidence} calibration"
 
 
 def _num(value: Any) -> str:

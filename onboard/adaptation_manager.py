@@ -55,6 +55,13 @@ for the band as for any trigger: where the band's best configuration is
 another, or needs another host (the reflex took the best this host can run in
 place, or nothing), it reconfigures or migrates as usual.
 
+Live evidence: every frame of the running detector counts towards its live
+detection rate in the band the manager holds, while markers are expected (seen
+within a second, or the pad in view in final descent); the changed windows are
+written every few seconds (write verb ``live_rate``: one ``LIVE_RATE`` relation
+per configuration, band and condition, updated), and the planner ranks by them
+where they are fresh (:mod:`kgadapt.onboard.live_rate`).
+
 Reconciliation: what the manager believes runs is checked against what the
 deployers report, on their events for our instance and every
 ``reconcile_s``. A detector stopped, migrated or killed by anyone else, or
@@ -83,6 +90,7 @@ from kgadapt.onboard.adaptation import Analyzer, BandTracker, Placement, Plan, P
 from kgadapt.onboard.adaptation_policy import Action, AdaptationSettings, Execution, LoopState, Outcome, StandbyStep
 from kgadapt.onboard.detector import set_active
 from kgadapt.onboard.flight_phase import in_final_descent
+from kgadapt.onboard.live_rate import LiveRates
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
@@ -134,6 +142,7 @@ class AdaptationManager:
         self._trust = StatusTrust(TrustSettings(window_s=settings.status_window_s))
         self._refusal_logged: dict[str, float] = {}
         self._reflexes_seen: tuple[str | None, int] = (None, 0)  # (instance, its reflex count) last acted on
+        self._live = LiveRates(settings=settings.live)  # the running detector's live rate per band
 
     # -- lifecycle -------------------------------------------------------
 
@@ -151,7 +160,7 @@ class AdaptationManager:
             raise KgadaptError(f"the knowledge graph has no detector configuration with a band for {s.feature}")
         self._analyzer = Analyzer(tracker=BandTracker(bands=bands, hysteresis=s.hysteresis, dwell_s=s.dwell_s))
         self._planner = Planner(ask=self._knowledge.query, feature=s.feature, preference=s.preference,
-                                onboard_host=s.onboard_host, in_place=s.in_place)
+                                onboard_host=s.onboard_host, in_place=s.in_place, live=s.live)
         stack = contextlib.ExitStack()
         self._events_pub = declared(stack, session.declare_publisher(keys.adaptation_events(s.robot)))
         declared(stack, session.declare_subscriber(keys.camera_illumination(s.robot, s.camera), self._on("illumination")))
@@ -308,10 +317,25 @@ class AdaptationManager:
                 found = policy.clean_markers(m["ids"], m.get("clean"))
                 expected = policy.expected_rate(self._state, self._configs, running.config, band)
                 trigger = a.on_detection(found, now, expected, running.config)
+                if band is not None:
+                    # The frame's own configuration: a reflex may have changed it before its message arrives.
+                    pad = self.landing or (self._landed_state is not None and self._landed_state() == "LANDING")
+                    self._live.add(config=str(m["config"]), band=band, found=found, now=now, pad_in_view=pad,
+                                   run_id=running.run_id, host=running.host)
+                    self._write_live(now)
                 return trigger
         except MessageError as exc:
             log.info("adaptation: dropped a %s message on %s: %s", kind, key, exc)
         return None
+
+    def _write_live(self, now: float) -> None:
+        """The live windows changed since the last write, every ``live.write_every_s`` (onboard/live_rate.py)."""
+        for params in self._live.due(now):
+            try:
+                self._knowledge.write("live_rate", params)
+            except KgadaptError as exc:  # the next window's write has the figures again
+                log.warning("adaptation: could not record the live rate of %s in %s: %s", params["config"],
+                            params["band"], exc)
 
     def _reflex_count(self, instance: str | None) -> int:
         seen_instance, count = self._reflexes_seen

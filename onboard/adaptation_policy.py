@@ -25,6 +25,7 @@ from enum import StrEnum
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from kgadapt.onboard.adaptation import FEATURE, Analyzer, HostView, Placement, Plan, Trigger, memory_short
+from kgadapt.onboard.live_rate import LiveSettings
 from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, ProcessEventKind, TriggerKind
 
 UNMEASURED_MB = 5.0  # a detector's profile below this has only its exec-time sample
@@ -68,6 +69,7 @@ class AdaptationSettings:
     startup_poll_s: float = 0.2  # nothing runs yet: how often the first placement is reconsidered without news
     reflex_hold_s: float = 2.0  # after a detector's reflex, how long the smoothed light is given to agree
     history_size: int = 1000  # decisions kept in memory (``AdaptationManager.history``); the graph has them all
+    live: LiveSettings = field(default_factory=LiveSettings)  # live evidence: gathered, written, weighed
 
     def __post_init__(self) -> None:
         if self.history_size < 1:

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from kgadapt.cluster import ClusterSettings, WatchedRobot, write_profile
+from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.shared.hostmonitor import squeeze
 
 pytestmark = pytest.mark.slow
@@ -63,7 +64,15 @@ def test_the_detector_follows_the_light_through_the_bands_without_losing_frames(
         time.sleep(3.0)  # past the smoothed light's catching up: the manager's own band decision would come now
         why = subprocess.run([sys.executable, "-m", "kgadapt", "why", "--json", "--connect", run.cluster.endpoint],
                              capture_output=True, text=True, timeout=30)
+        knowledge = KnowledgeClient(run.session, run.cluster.settings.robot, own=True)
+        live = {band: knowledge.query("live_rates", {"band": band}) for band in ("day", "dusk", "dark")}
     assert why.returncode == 0, why.stderr
+    # The manager recorded the running detector's live rate in the bands it ran in (one row per configuration
+    # and band, updated), with the process that measured it.
+    dark_live = [r for r in live["dark"] if r["config"] == "marker_detection_dark"]
+    assert len(dark_live) == 1 and dark_live[0]["frames_seen"] > 0 and dark_live[0]["host"] == "onboard", live
+    assert dark_live[0]["run_id"] and dark_live[0]["frames_expected"] <= dark_live[0]["frames"]
+    assert all(len({r["config"] for r in rows}) == len(rows) for rows in live.values())
     explained = json.loads(why.stdout)
     assert (explained["running"]["config"], explained["running"]["host"]) == ("marker_detection_dark", "onboard"), (
         f"why said {explained['running']}; decisions {run.recorder.decisions}")

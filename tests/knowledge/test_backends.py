@@ -87,6 +87,8 @@ EXAMPLES = {
     "cpu_overload": {"platform": "onboard"},
     "detector_configs": {},
     "config_ranking": {"band": "day"},
+    "live_rates": {"band": "dark"},
+    "reflex_table": {"deployment": "detector_day", "host": "onboard"},
     "detector_config": {"config": "marker_detection_dark"},
     "in_place_change": {"from": "detector_day", "to": "detector_dark", "host": "onboard"},
     "deployment": {"name": "marker_detection_dark_onboard"},
@@ -112,6 +114,8 @@ def _robot_state(store) -> None:
     FleetRoster(store, RosterSettings(robot="quad1")).remember("quad2", how=Heard.ANSWER, when=2.0, routers=["ab12"])
     R.record_calibration(store, config="marker_detection_dark", band="dark", detection_rate=0.9,
                          false_rate=0.01, ms_per_frame=7.5, time=50.0)
+    R.record_live_rate(store, config="marker_detection_dark", band="dark", detection_rate=0.75, frames=90,
+                       frames_expected=60, frames_seen=50, since=95.0, time=100.0, run_id="r1", host="onboard")
     R.record_process_start(store, run_id="r1", instance="i1", deployment="marker_detection_dark_onboard",
                            config="marker_detection_dark", host="onboard", pid=42, start_time=101.0)
     R.record_process_sample(store, run_id="r1", rss_mb_last=120.0, rss_mb_mean=110.0, rss_mb_max=130.0,

@@ -121,6 +121,26 @@ def test_calibration_is_one_relation_per_configuration_and_band_replaced_by_the_
                              ms_per_frame=1.0, time=3.0)
 
 
+def test_a_live_rate_is_one_relation_per_configuration_band_and_condition_updated_not_appended(known_store):
+    live = {"config": "g_a", "band": "day", "frames": 40, "frames_expected": 30, "frames_seen": 3, "since": 1.0}
+    R.record_live_rate(known_store, **live, detection_rate=0.1, time=2.0, run_id="r1", host="onboard")
+    R.record_live_rate(known_store, **{**live, "frames_seen": 30}, detection_rate=1.0, time=4.0, run_id="r2")
+    R.record_live_rate(known_store, **live, detection_rate=0.5, time=4.0, condition="blur")
+    rows = known_store.execute("MATCH (:PerceptionGraph {name: 'g_a'})-[l:LIVE_RATE]->(:IlluminationBand {name: 'day'}) "
+                               "RETURN l.condition AS c, l.detection_rate AS r, l.at AS at, l.run_id AS run, "
+                               "l.host AS host ORDER BY c")
+    assert rows == [{"c": "all", "r": 1.0, "at": 4.0, "run": "r2", "host": None},
+                    {"c": "blur", "r": 0.5, "at": 4.0, "run": None, "host": None}]
+    for bad, message in [({"frames_seen": 31}, "frames_seen 31 is not between 0 and 30"),
+                         ({"frames_expected": 41}, "frames_expected 41 is not between 0 and 40"),
+                         ({"since": 9.0}, "since 9.0 is not between 0 and 4"),
+                         ({"detection_rate": 1.2}, "detection_rate 1.2 is not between 0 and 1"),
+                         ({"config": "g_zz"}, "no detector configuration 'g_zz'")]:
+        with pytest.raises(NamedQueryError, match=message):
+            R.record_live_rate(known_store, **{**live, "detection_rate": 0.0, "time": 4.0, **bad})
+    assert known_store.execute("MATCH ()-[l:LIVE_RATE]->() RETURN count(l) AS n")[0]["n"] == 2
+
+
 def test_a_decision_links_to_the_configuration_and_host_it_chose(known_store):
     R.record_decision(known_store, name="d-1", time=1.5, trigger="illumination 5 (dark)", inputs_json='{"level": 5}',
                       query="placement", config="g_b", host="beta", duration_ms=2.5, outcome="started")
@@ -141,7 +161,7 @@ def test_the_flight_state_lands_on_the_flight_control_component(known_store):
 def test_the_writers_are_the_contract_verbs():
     assert set(R.WRITERS) == {"platform", "platform_online", "process_start", "process_sample", "process_end",
                               "process_reconfigured",
-                              "calibration", "decision", "flight_state", "fleet_forget"}
+                              "calibration", "live_rate", "decision", "flight_state", "fleet_forget"}
     assert R.writer_params("process_end") == {"run_id": True, "end_time": True, "exit_status": True}
 
 

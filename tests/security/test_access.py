@@ -154,6 +154,8 @@ def write_params(verb: str) -> dict[str, Any]:
         "calibration": {"config": "marker_detection_day", "band": "dark", "detection_rate": 1.0, "false_rate": 0.0,
                         "ms_per_frame": 1.0, "time": 1.0},
         "decision": {"name": "forged-decision", "time": 1.0, "trigger": "forged"},
+        "live_rate": {"config": "marker_detection_day", "band": "dark", "detection_rate": 0.0, "frames": 40,
+                      "frames_expected": 30, "frames_seen": 0, "since": 1.0, "time": 2.0},
         "flight_state": {"name": "flight_control", "time": 1.0, "link": True, "mode": "FORGED"},
         "fleet_forget": {"robot": "quad1"},
     }[verb]
@@ -426,6 +428,7 @@ def test_a_hosts_write_verbs_act_only_on_what_that_host_owns(session_as):
         ("flight_state", {**write_params("flight_state"), "landed_state": "LANDING"},
          "only the adaptation manager's host"),
         ("calibration", {**write_params("calibration"), "detection_rate": 0.0}, "no host's to write"),
+        ("live_rate", write_params("live_rate"), "only the adaptation manager's host"),
     ]:
         with pytest.raises(RemoteError, match=reason):
             remote.write(verb, params)

@@ -136,6 +136,10 @@ def known_graph(store):
                                   cpu_percent_mean=20.0)
     runtime.record_decision(store, name="dec1", time=2.0, trigger="startup", config="marker_detection_day",
                             host="onboard")
+    runtime.record_calibration(store, config="marker_detection_day", band="day", detection_rate=0.9,
+                               ms_per_frame=5.0, time=2.0)
+    runtime.record_live_rate(store, config="marker_detection_day", band="day", detection_rate=0.5, frames=40,
+                             frames_expected=30, frames_seen=20, since=1.0, time=2.0, run_id="run1", host="onboard")
     return store
 
 
@@ -143,8 +147,8 @@ def known_graph(store):
 REAL = {"feature": "MarkerDetection", "platform": "remote", "config": "marker_detection_day", "name": "detector_day",
         "threshold_mb": 1000.0, "limit": 20, "limit_pct": 80.0, "condition": "all", "band": "day", "penalty": 1.0,
         "max_ms": 1000.0, "from": "detector_day", "to": "detector_dark", "host": "onboard",
-        "standby": "standby", "run_id": "r1", "camera": "camera", "site": "demo-hall", "source": "synthetic", "deployment": "detector_day", "announce": "quad2",
-        "zid": "ab12", "routers": "ab12,cd34"}
+        "standby": "standby", "run_id": "r1", "camera": "camera", "site": "demo-hall", "announce": "quad2",
+        "zid": "ab12", "routers": "ab12,cd34", "source": "synthetic", "deployment": "detector_day"}
 
 
 def string_params() -> list[tuple[str, str]]:
@@ -200,7 +204,8 @@ NUMBERS = {"time": 5.0, "memory_total_mb": 100.0, "memory_free_mb": 50.0, "cpu_l
            "cpu_percent_mean": 4.0, "end_time": 7.0, "exit_status": 0, "detection_rate": 0.5, "false_rate": 0.1,
            "false_per_frame": 0.2, "false_per_reported": 0.1,
            "ms_per_frame": 8.0, "duration_ms": 9.0, "battery_pct": 80.0, "battery_v": 12.0,
-           "autopilot_load_pct": 30.0, "last_heartbeat": 10.0, "received": 11.0}
+           "autopilot_load_pct": 30.0, "last_heartbeat": 10.0, "received": 11.0,
+           "frames": 12, "frames_expected": 10, "frames_seen": 5, "since": 4.0}
 FLAGS = {"online": True, "link": True, "armed": False}
 
 
