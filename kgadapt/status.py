@@ -232,6 +232,10 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     out["flight"] = _flight(flight, graph.get("flight_control") or [])
     if out["flight"] and out["flight"].get("link") is False:
         problems.append("flight controller link lost")
+    if out["flight"] and out["flight"].get("angles_only"):
+        from kgadapt.onboard.site import ANGLES_ONLY
+
+        problems.append(ANGLES_ONLY)
 
     out["current"] = (graph.get("current") or [None])[0]
     out["decisions"] = [{k: d.get(k) for k in ("time", "trigger", "config", "host", "outcome", "duration_ms")}
@@ -261,7 +265,8 @@ def _flight(message: dict[str, Any] | None, graph_rows: list[dict[str, Any]]) ->
         phase = {"TAKEOFF": "taking off", "IN_AIR": "in the air", "LANDING": "landing"}[landed]
     else:
         phase = "unknown (no landed state)"
-    keep = ("link", "armed", "mode", "landed_state", "alt_rel_m", "rangefinder_m", "battery_pct", "time")
+    keep = ("link", "armed", "mode", "landed_state", "alt_rel_m", "rangefinder_m", "battery_pct", "time",
+            "angles_only", "rejected", "refused")
     return {**{k: state.get(k) for k in keep}, "phase": phase, "source": source}
 
 
@@ -307,6 +312,10 @@ def render(data: dict[str, Any], *, now: float | None = None) -> str:
         alt = "" if f.get("alt_rel_m") is None else f", {f['alt_rel_m']:.1f} m above home"
         lines.append(f"flight             {f['phase']}: mode {f.get('mode')}, armed {f.get('armed')}, "
                      f"landed {f.get('landed_state')}{alt}")
+        if f.get("rejected") or f.get("refused"):
+            refused = f.get("refused") or []
+            lines.append(f"flight commands    {f.get('rejected') or 0} rejected by the autopilot"
+                         + (f"; refused: {', '.join(map(str, refused))}" if refused else " (all accepted on retry)"))
     lines.append("last decisions")
     if not data["decisions"]:
         lines.append("  (none)")

@@ -24,10 +24,11 @@ EXPORT_LABEL = "KgadaptExport"
 EXPORT_KEY = "export_id"
 _IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _PRIMARY = (S.FEATURE, S.ILLUMINATION_BAND, S.PERCEPTION_GRAPH, S.COMPONENT, S.PORT, S.DEPLOYMENT,
-            S.PLATFORM, S.PROCESS_PROFILE, S.ADAPTATION_DECISION)
+            S.PLATFORM, S.PROCESS_PROFILE, S.ADAPTATION_DECISION, S.SITE, S.MARKER)
 _COLOURS = {S.FEATURE: "#f4d03f", S.ILLUMINATION_BAND: "#f9e79f", S.PERCEPTION_GRAPH: "#5dade2",
             S.COMPONENT: "#aed6f1", S.PORT: "#eaeded", S.DEPLOYMENT: "#82e0aa", S.PLATFORM: "#f5b041",
-            S.PROCESS_PROFILE: "#d7bde2", S.ADAPTATION_DECISION: "#f1948a"}
+            S.PROCESS_PROFILE: "#d7bde2", S.ADAPTATION_DECISION: "#f1948a", S.SITE: "#a3e4d7",
+            S.MARKER: "#d0ece7"}
 
 
 def snapshot(store: GraphStore) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:

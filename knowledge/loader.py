@@ -38,7 +38,8 @@ from kgadapt.shared.errors import ModelError
 log = logging.getLogger(__name__)
 
 # Labels whose nodes come from model files (the ones a reload may delete).
-MODEL_LABELS = (S.FEATURE, S.ILLUMINATION_BAND, S.PERCEPTION_GRAPH, S.COMPONENT, S.PORT, S.DEPLOYMENT, S.PLATFORM)
+MODEL_LABELS = (S.FEATURE, S.ILLUMINATION_BAND, S.PERCEPTION_GRAPH, S.COMPONENT, S.PORT, S.DEPLOYMENT, S.PLATFORM,
+                S.SITE, S.MARKER)
 # Sub-labels a node may lose when its model changes kind.
 _SUBLABELS = {S.COMPONENT: COMPONENT_KINDS, S.DEPLOYMENT: (S.SYSTEMD_SERVICE_FILE, S.DEPLOYMENT_FILE)}
 MODEL_KEYS = "model_keys"  # node property: the keys its model set (so a reload knows what to remove)

@@ -307,6 +307,23 @@ MATCH (c:{S.COMPONENT} {{name: $camera}})
 RETURN c.name AS camera, c.fx AS fx, c.fy AS fy, c.cx AS cx, c.cy AS cy""",
     ),
     NamedQuery(
+        "site_markers",
+        "The markers of a landing site (a *.site model): one row per marker with its id, printed size "
+        "(m), dictionary, optional name and position; every site's when none is given. The flight "
+        "bridge's confirmation and landing targets use them.",
+        {"site": Param("str", required=False, help="site name, e.g. demo-hall")},
+        f"""
+MATCH (s:{S.SITE} {{name: $site}})-[:{S.HAS_MARKER}]->(m:{S.MARKER})
+RETURN s.name AS site, s.dictionary AS site_dictionary, m.marker_id AS marker_id, m.size_m AS size_m,
+       m.dictionary AS dictionary, m.marker_name AS marker_name, m.position AS position
+ORDER BY site, marker_id""",
+        when_missing={"site": f"""
+MATCH (s:{S.SITE})-[:{S.HAS_MARKER}]->(m:{S.MARKER})
+RETURN s.name AS site, s.dictionary AS site_dictionary, m.marker_id AS marker_id, m.size_m AS size_m,
+       m.dictionary AS dictionary, m.marker_name AS marker_name, m.position AS position
+ORDER BY site, marker_id"""},
+    ),
+    NamedQuery(
         "decisions",
         "The adaptation decisions taken, newest first.",
         {"limit": Param("int", required=False, default=20, help="how many")},

@@ -22,6 +22,9 @@ changed model replaces its old version)::
     ProcessProfile    name (instance id), pid, host, start_time, end_time, exit_status,
                       rss_mb_last, rss_mb_mean, rss_mb_max, cpu_percent_mean   (run time)
     AdaptationDecision name, time, trigger, inputs_json, query, config, host, duration_ms, outcome
+    Site              name, dictionary                    (where the robot lands; a ``*.site`` model)
+    Marker            name ("site/id"), marker_id, size_m (printed side, m), dictionary,
+                      marker_name, position ([north, east, down] m; both optional)
 
 Relations (direction matters)::
 
@@ -39,6 +42,7 @@ Relations (direction matters)::
     (ProcessProfile)-[:RAN_ON]->(Platform)
     (ProcessProfile)-[:RAN_CONFIG]->(PerceptionGraph)
     (AdaptationDecision)-[:CHOSE]->(PerceptionGraph), (AdaptationDecision)-[:PLACED_ON]->(Platform)
+    (Site)-[:HAS_MARKER]->(Marker)
 
 Late binding: ``Platform`` run-time properties and every ``ProcessProfile``
 figure are unset until known; queries treat a missing figure as unknown.
@@ -65,6 +69,8 @@ DEPLOYMENT_FILE = "DeploymentFile"
 PLATFORM = "Platform"
 PROCESS_PROFILE = "ProcessProfile"
 ADAPTATION_DECISION = "AdaptationDecision"
+SITE = "Site"
+MARKER = "Marker"
 
 REALIZES = "REALIZES"
 CONTAINS = "CONTAINS"
@@ -80,6 +86,7 @@ RAN_ON = "RAN_ON"
 RAN_CONFIG = "RAN_CONFIG"
 CHOSE = "CHOSE"
 PLACED_ON = "PLACED_ON"
+HAS_MARKER = "HAS_MARKER"
 
 # Every query starts from a named node; these make that start an index seek.
 INDEXED_NAMES = (
@@ -92,6 +99,8 @@ INDEXED_NAMES = (
     PLATFORM,
     PROCESS_PROFILE,
     ADAPTATION_DECISION,
+    SITE,
+    MARKER,
 )
 
 

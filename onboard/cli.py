@@ -9,7 +9,10 @@ every part is up, so others see the host only when it can serve.
 from __future__ import annotations
 
 import argparse
+import logging
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 # How long a part's first read from the graph waits for the knowledge service: it may be starting,
 # or its store reloading after a restart (20 s seen on a loaded machine); within systemd's TimeoutStartSec.
@@ -49,12 +52,13 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
                     help="camera component in the graph whose intrinsics aim LANDING_TARGET (default camera)")
     fc.add_argument("--fc-camera-file", metavar="JSON",
                     help="camera file (intrinsics, distortion, mounting) instead of the graph's intrinsics")
-    fc.add_argument("--fc-markers", metavar="JSON",
-                    help="site marker file (ids and sizes): LANDING_TARGET then carries the marker's position")
     fc.add_argument("--fc-profile", choices=("auto", "ardupilot", "px4"), default="auto",
                     help="LANDING_TARGET frame per autopilot (default: from its heartbeat)")
     fc.add_argument("--site", metavar="FILE",
-                    help="site file naming the marker ids there (*.site); other ids never become LANDING_TARGET")
+                    help="site file (*.site: marker ids, sizes, dictionary) instead of the graph's site: only its "
+                         "ids become LANDING_TARGET, and they go with the marker's position")
+    fc.add_argument("--site-name", metavar="NAME",
+                    help="the graph's site to use when it holds several (default: the only one)")
     ad = parser.add_argument_group("adaptation")
     ad.add_argument("--adapt", action="store_true", help="run the adaptation manager on this agent")
     ad.add_argument("--prefer", choices=("onboard-first", "remote-first"), default="onboard-first",
@@ -72,27 +76,41 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
                     "says a host has room for it as well, so a band change or a lost host is a switch (default off)")
 
 
+def log_site(site: Any) -> None:
+    """Say which site's markers the flight bridge takes (and that without one targets may carry angles only)."""
+    if site is None:
+        log.warning("no landing site known (none in the knowledge graph, no --site FILE): every marker id may "
+                    "become a landing target, and without marker sizes the targets carry angles only "
+                    "(kgadapt knowledge load knowledge/models loads the shipped site)")
+    else:
+        log.info("landing site %s from %s: markers %s", site.site, site.source or "?",
+                 ", ".join(f"{mid} ({size:g} m)" for mid, size in sorted(site.sizes_m.items())))
+
+
 class FlightPart:
     """The MAVLink bridge, with the camera intrinsics read from the graph at setup."""
 
     name = "flight"
 
-    def __init__(self, *, robot: str, url: str, camera_model: str, camera: Any = None, markers: Any = None,
-                 profile: str = "auto", manager: Any = None, site: str | None = None, host: str = "onboard") -> None:
-        self.robot, self.url, self.camera_model, self.site = robot, url, camera_model, site
+    def __init__(self, *, robot: str, url: str, camera_model: str, camera: Any = None, site: Any = None,
+                 site_name: str | None = None, profile: str = "auto", manager: Any = None,
+                 host: str = "onboard") -> None:
+        self.robot, self.url, self.camera_model = robot, url, camera_model
         self.host = host  # its flight state is written as this host's (knowledge/write/<host>/flight_state)
-        self.camera, self.markers, self.profile = camera, markers, profile  # checked files (kgadapt.onboard.landing_targets)
+        self.camera, self.profile = camera, profile  # a checked camera file (kgadapt.onboard.landing_targets)
+        # A checked site file (kgadapt.onboard.site.SiteMarkers), else the graph's site (site_name: which one)
+        self.site, self.site_name = site, site_name
         self.manager = manager  # the adaptation manager beside it: only its chosen detector steers
+        self.bridge: Any = None
 
     def landed_state(self) -> str | None:
         """The flight controller's landed state as the bridge knows it (None before setup)."""
         bridge = self.bridge
         return bridge.state.landed_state if bridge is not None else None
-        self.bridge: Any = None
 
     def setup(self, session: Any) -> None:
         from kgadapt.knowledge.client import KnowledgeClient
-        from kgadapt.onboard.confirmation import ConfirmationSettings, load_site
+        from kgadapt.onboard.confirmation import ConfirmationSettings
         from kgadapt.onboard.flight import (
             BridgeSettings,
             CameraIntrinsics,
@@ -101,14 +119,18 @@ class FlightPart:
             intrinsics_from_graph,
         )
         from kgadapt.onboard.mavlink import LinkSettings
+        from kgadapt.onboard.site import site_from_graph
 
         client = KnowledgeClient(session, self.robot, own=True, host=self.host)
         c = self.camera
         intrinsics = (CameraIntrinsics(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy) if c is not None
                       else intrinsics_from_graph(client, self.camera_model, wait_s=STARTUP_WAIT_S))
+        site = self.site if self.site is not None else site_from_graph(client, self.site_name, wait_s=STARTUP_WAIT_S)
+        log_site(site)
+        # One site for both: its ids are the only ones confirmed, its sizes give the targets' positions.
         settings = BridgeSettings(robot=self.robot, link=LinkSettings(url=self.url), intrinsics=intrinsics,
-                                  camera=c, markers=self.markers, profile=self.profile,
-                                  confirmation=ConfirmationSettings(site=load_site(self.site) if self.site else None))
+                                  camera=c, markers=site, profile=self.profile,
+                                  confirmation=ConfirmationSettings(site=site))
         manager = self.manager
         chosen = None
         if manager is not None:
@@ -144,13 +166,14 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
         parts.append(CameraPart(settings, source))
     flight = None
     if args.fc:
-        from kgadapt.onboard.landing_targets import load_camera, load_site_markers
+        from kgadapt.onboard.landing_targets import load_camera
+        from kgadapt.onboard.site import load_site
 
         flight = FlightPart(  # the files are checked here, before anything starts
             robot=args.robot, url=args.fc, camera_model=args.camera_model,
             camera=load_camera(args.fc_camera_file) if getattr(args, "fc_camera_file", None) else None,
-            markers=load_site_markers(args.fc_markers) if getattr(args, "fc_markers", None) else None,
-            profile=getattr(args, "fc_profile", "auto"), site=getattr(args, "site", None), host=args.host)
+            site=load_site(args.site) if getattr(args, "site", None) else None,
+            site_name=getattr(args, "site_name", None), profile=getattr(args, "fc_profile", "auto"), host=args.host)
         parts.append(flight)
     if args.adapt:
         from kgadapt.onboard.adaptation_manager import AdaptationManager, AdaptationSettings

@@ -11,14 +11,25 @@ detector says (``clean``, :func:`kgadapt.onboard.markers.cells_are_clean`: a
 6x6 marker or a ChArUco square that decodes as a 4x4 code does not), and,
 when the site's marker set is known, only ids of that set. Detections themselves still carry every candidate.
 
-The site's markers come from a site file (:mod:`kgadapt.onboard.site`).
+**A moving vehicle.** Between two sightings a second apart, a vehicle that
+accelerates towards its target moves the marker across the image by many of
+its sides (ArduCopter SITL: no LANDING_TARGET for 3.6 s while the image rule
+kept restarting the count). When the caller knows where each marker lies in
+the local frame (:class:`Place`: the flight bridge places it from the
+vehicle's attitude and position at the frame's time), steadiness is judged
+there instead: the marker's position moves at most ``max_shift`` of its side
+plus ``range_share`` of its distance (the attitude's and timing's error
+grows with the distance), and its size in the image may change as the
+vehicle descends. Without a place, the image rule above holds.
+
+The site's markers come from the knowledge graph or a site file (:mod:`kgadapt.onboard.site`).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 from kgadapt.onboard.site import SiteMarkers, load_site  # noqa: F401  (load_site: where callers find it with the confirmer)
 from kgadapt.shared.errors import ConfigError, MessageError
@@ -34,11 +45,21 @@ class ConfirmationSettings:
     max_missed: int = 1  # frames a confirmed or confirming marker may be missed without losing its streak ...
     max_gap_s: float = 1.5  # ... or seconds since it was last seen: a marker seen once a second keeps its streak
     site: SiteMarkers | None = None  # when known, other ids never confirm
+    range_share: float = 0.02  # with places: allowed error per metre of distance (about 1.1 degrees)
 
     def __post_init__(self) -> None:
-        if self.frames < 1 or self.max_shift <= 0 or self.max_scale < 1 or self.max_missed < 0 or self.max_gap_s < 0:
+        if (self.frames < 1 or self.max_shift <= 0 or self.max_scale < 1 or self.max_missed < 0 or self.max_gap_s < 0
+                or not 0 <= self.range_share < 0.5):
             raise ConfigError("confirmation: frames >= 1, max_shift > 0, max_scale >= 1, max_missed >= 0, "
-                              "max_gap_s >= 0")
+                              "max_gap_s >= 0, 0 <= range_share < 0.5")
+
+
+class Place(NamedTuple):
+    """Where a marker lies in the local frame (NED, m), its side (m) and its distance from the camera (m)."""
+
+    ned: tuple[float, float, float]
+    size_m: float
+    range_m: float
 
 
 @dataclass
@@ -48,6 +69,7 @@ class _Track:
     streak: int
     last_frame: float
     missed: int = 0
+    place: Place | None = None
 
 
 @dataclass
@@ -62,9 +84,12 @@ class MarkerConfirmer:
     refused_unclean: int = 0  # candidates whose cells did not read clean (the detector says so)
 
     def update(self, ids: Sequence[Any], corners: Sequence[Any], frame_time: float,
-               clean: Sequence[Any] | None = None) -> list[int] | None:
+               clean: Sequence[Any] | None = None,
+               places: Sequence[Place | None] | None = None) -> list[int] | None:
         """Feed one frame's detections; the indices of the markers confirmed in it.
 
+        ``places`` (parallel to ``ids``, None where unknown): where each marker lies in
+        the local frame; steadiness is then judged there (see the module docstring).
         None when the frame is not newer than the last one fed (a second detector
         answering for the same frame during a migration): it neither confirms
         nor breaks a streak.
@@ -82,6 +107,7 @@ class MarkerConfirmer:
         self._last_frame = frame_time
         site = self.settings.site
         seen: dict[int, tuple[int, tuple[float, float], float]] = {}
+        placed: dict[int, Place | None] = {}
         for index, mid, (centre, side) in parsed:
             if site is not None and mid not in site.sizes_m:
                 self.refused_off_site += 1
@@ -91,16 +117,17 @@ class MarkerConfirmer:
                 continue  # not counted as seen: its streak, if any, takes a miss
             if mid in seen:  # the same id twice in one frame: neither is trusted
                 seen[mid] = (-1, centre, side)
+                placed[mid] = None
                 continue
             seen[mid] = (index, centre, side)
+            placed[mid] = places[index] if places is not None and index < len(places) else None
         confirmed = []
         for mid, (index, centre, side) in seen.items():
             track = self._tracks.get(mid)
-            steady = (track is not None and index >= 0
-                      and math.dist(centre, track.centre) <= self.settings.max_shift * max(side, track.side)
-                      and max(side, track.side) <= self.settings.max_scale * min(side, track.side))
+            place = placed[mid]
+            steady = track is not None and index >= 0 and self._steady(track, centre, side, place)
             streak = track.streak + 1 if steady else (1 if index >= 0 else 0)
-            self._tracks[mid] = _Track(centre, side, streak, frame_time)  # seen: missed starts over
+            self._tracks[mid] = _Track(centre, side, streak, frame_time, place=place)  # seen: missed starts over
             if index >= 0 and streak >= self.settings.frames:
                 confirmed.append(index)
             elif index >= 0:
@@ -112,7 +139,17 @@ class MarkerConfirmer:
                 del self._tracks[mid]  # missed too often and too long: the streak is broken
         return sorted(confirmed)
 
-    def keep(self, detections: Mapping[str, Any], frame_time: float) -> dict[str, Any] | None:
+    def _steady(self, track: _Track, centre: tuple[float, float], side: float, place: Place | None) -> bool:
+        s = self.settings
+        if place is not None and track.place is not None:  # in the local frame: the vehicle's motion taken out
+            size = max(place.size_m, track.place.size_m)
+            allowed = s.max_shift * size + s.range_share * max(place.range_m, track.place.range_m)
+            return math.dist(place.ned, track.place.ned) <= allowed
+        return (math.dist(centre, track.centre) <= s.max_shift * max(side, track.side)
+                and max(side, track.side) <= s.max_scale * min(side, track.side))
+
+    def keep(self, detections: Mapping[str, Any], frame_time: float,
+             places: Sequence[Place | None] | None = None) -> dict[str, Any] | None:
         """A ``detections`` message cut down to its confirmed markers (None: not a newer frame).
 
         ``poses``, when present, is cut the same way.
@@ -121,7 +158,7 @@ class MarkerConfirmer:
         if len(ids) != len(corners):
             raise MessageError(f"detections has {len(ids)} ids but {len(corners)} corner sets")
         clean = detections.get("clean")
-        indices = self.update(ids, corners, frame_time, clean if isinstance(clean, list) else None)
+        indices = self.update(ids, corners, frame_time, clean if isinstance(clean, list) else None, places)
         if indices is None:
             return None
         out = dict(detections)

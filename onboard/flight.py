@@ -20,6 +20,7 @@ as (forward, right, down) = (-y, x, z) and sets ``position_valid``.
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import queue
@@ -31,7 +32,7 @@ from typing import Any, Callable, Sequence
 from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer
 from kgadapt.onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, TargetHold
 from kgadapt.onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
-from kgadapt.onboard.site import SiteMarkers
+from kgadapt.onboard.site import ANGLES_ONLY, SiteMarkers
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
 
@@ -227,10 +228,13 @@ class FlightBridge:
         self._last_target_mono = time.monotonic()
         self._tokens = 2.0
         self._last_send_error = ""
+        self.sent_times: collections.deque[float] = collections.deque(maxlen=4096)  # epoch of each LANDING_TARGET
+        self.angles_only: bool | None = None  # the last target sent carried angles only (None: none sent yet)
+        self._angles_only_warned = False
         self.counters = {
             "detections": 0, "malformed": 0, "no_target": 0, "stale": 0, "duplicate": 0, "rate_limited": 0,
             "targets_sent": 0, "send_failed": 0, "published": 0, "queue_full": 0, "targets_resent": 0,
-            "not_chosen": 0, "unconfirmed": 0,
+            "not_chosen": 0, "unconfirmed": 0, "placed": 0,
         }
 
     # -- lifecycle
@@ -350,6 +354,7 @@ class FlightBridge:
             self.counters["send_failed"] += 1
             return
         self.counters["targets_resent"] += 1
+        self.sent_times.append(now)
 
     def _handle_detections(self, payload: bytes) -> None:
         self.counters["detections"] += 1
@@ -423,6 +428,18 @@ class FlightBridge:
         self._tokens -= 1.0
         self.counters["targets_sent"] += 1
         self._hold.confirm(held, time.time())
+        self.sent_times.append(time.time())
+        self._note_target_kind(target)
+
+    def _note_target_kind(self, target: LandingTarget) -> None:
+        """Warn once when targets carry angles only: ArduPilot then needs its own rangefinder."""
+        self.angles_only = target.position is None and not target.distance > 0
+        if self.angles_only:
+            self.counters["angles_only"] = self.counters.get("angles_only", 0) + 1
+            if not self._angles_only_warned:
+                self._angles_only_warned = True
+                log.warning("%s (no size for marker %d in the site's markers, no rangefinder distance heard)",
+                            ANGLES_ONLY, target.target_num)
 
     def _confirmed(self, detections: dict) -> dict | None:
         """Only confirmed markers (``kgadapt.onboard.confirmation``); None for a frame already seen.
@@ -433,14 +450,40 @@ class FlightBridge:
         age = time.time() - frame_time
         if age > self.settings.max_detection_age_s or age < -self.settings.max_clock_skew_s:
             return detections
-        return self.confirmer.keep(detections, frame_time)
+        return self.confirmer.keep(detections, frame_time, self._places(detections))
+
+    def _places(self, detections: dict) -> list | None:
+        """Where each candidate lies in the local frame (None where unknown), so that the confirmation
+        allows for the vehicle's motion between frames (kgadapt.onboard.confirmation)."""
+        ids, corners = detections["ids"], detections["corners"]
+        if not ids or len(ids) != len(corners) or self.link.pose_at(float(detections["frame_time"])) is None:
+            return None
+        site = self.settings.confirmation.site
+        state = self.link.state
+        places = []
+        for raw_id, c in zip(ids, corners):
+            mid = marker_id_of(raw_id)
+            try:
+                place = (None if mid is None or (site is not None and mid not in site.sizes_m)
+                         else self._targets.locate(marker_points(c), marker_id=mid,
+                                                   frame_time=float(detections["frame_time"]), state=state,
+                                                   pose_at=self.link.pose_at))
+            except MessageError:
+                place = None  # the confirmer names the malformed marker
+            places.append(place)
+            if place is not None:
+                self.counters["placed"] += 1
+        return places
 
     def _publish(self, state: FlightState) -> None:
         publisher = self._publisher
         if publisher is None:
             return
+        body = state.as_message()
+        if self.angles_only:  # absent while the targets carry a range (as every optional field: absent = no news)
+            body["angles_only"] = True
         try:
-            publisher.put(messages.encode("flight_state", state.as_message()))
+            publisher.put(messages.encode("flight_state", body))
         except Exception as exc:  # zenoh errors: log and try again next period
             log.warning("flight bridge: flight_state not published: %s", exc)
             return

@@ -113,9 +113,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     for name in ("fx", "fy", "cx", "cy"):
         bridge.add_argument(f"--{name}", type=float, help=f"camera intrinsic {name}, pixels (instead of --camera)")
     bridge.add_argument("--camera-file", help="camera file (JSON: intrinsics, distortion, mounting), checked on load")
-    bridge.add_argument("--site", "--markers", dest="site", metavar="FILE",
-                        help="site file (*.site, JSON: marker ids and sizes, onboard/site.py): only its ids become "
-                             "targets, and they go with positions (--markers: the same)")
+    bridge.add_argument("--site", metavar="FILE",
+                        help="site file (*.site: marker ids, sizes, dictionary; onboard/site.py) instead of the "
+                             "graph's site (read when the bridge uses the graph: --camera, --write-graph or "
+                             "--site-name): only its ids become targets, and they go with positions")
+    bridge.add_argument("--site-name", metavar="NAME",
+                        help="the graph's site to use when it holds several (default: the only one)")
     bridge.add_argument("--profile", default="auto", choices=("auto", "ardupilot", "px4"),
                         help="LANDING_TARGET frame: ardupilot = body FRD, px4 = local NED (default: from the heartbeat)")
     bridge.add_argument("--hold", type=float, default=1.5, metavar="S",
@@ -288,10 +291,11 @@ def _monitor(args: argparse.Namespace) -> int:
 
 
 def _bridge(args: argparse.Namespace) -> int:
+    from kgadapt.onboard.cli import log_site
     from kgadapt.onboard.confirmation import ConfirmationSettings
     from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter, intrinsics_from_graph
     from kgadapt.onboard.landing_targets import load_camera
-    from kgadapt.onboard.site import load_site
+    from kgadapt.onboard.site import load_site, site_from_graph
     from kgadapt.shared import session as zsession
     from kgadapt.shared.errors import ConfigError
     from kgadapt.shared.readiness import announce_ready
@@ -311,12 +315,15 @@ def _bridge(args: argparse.Namespace) -> int:
     bridge = None
     try:
         client = None
-        if args.camera or args.write_graph:
+        if args.camera or args.write_graph or args.site_name:
             from kgadapt.knowledge.client import KnowledgeClient
 
             client = KnowledgeClient(session, args.robot, own=True, host=args.host)
         intrinsics = (intrinsics_from_graph(client, args.camera) if args.camera
                       else CameraIntrinsics(fx=args.fx, fy=args.fy, cx=args.cx, cy=args.cy))
+        if site is None and client is not None:  # the graph's site, as the onboard agent takes it
+            site = site_from_graph(client, args.site_name, wait_s=10.0)
+        log_site(site)
         settings = BridgeSettings(robot=args.robot, link=_link_settings(args), detector=args.detector,
                                   target_id=args.target_id, intrinsics=intrinsics, camera=camera_file,
                                   markers=site, confirmation=ConfirmationSettings(site=site),
@@ -380,6 +387,8 @@ def status_lines(state, timeouts: dict[str, float], now: float) -> list[str]:
         lines.append(f"{stream:<20} {age:<12}{limit:<24} {shown[stream]}")
     if state.missing:
         lines.append("missing    " + ", ".join(state.missing))
+    if state.rejected:
+        lines.append(f"rejected   {state.rejected} command acknowledgement(s) rejected (retries included)")
     for refusal in state.refused:
         lines.append(f"refused    {refusal}")
     return lines
@@ -425,6 +434,8 @@ def _land_check(args: argparse.Namespace) -> int:
         print(f"landed={result.landed} error={result.error_m:.2f} m acquired={result.acquired} "
               f"in {result.seconds:.1f} s; detections {result.detections}, LANDING_TARGETs "
               f"{result.targets_sent} + {result.targets_resent} re-sent"
-              + ("" if result.streams_back_s is None else f"; streams back {result.streams_back_s:.1f} s after reboot"),
+              + ("" if result.max_gap_s is None else f"; longest gap after acquisition {result.max_gap_s:.2f} s")
+              + ("" if result.streams_back_s is None else f"; streams back {result.streams_back_s:.1f} s after reboot, "
+                 f"local position {result.origin_back_s:.1f} s"),
               flush=True)
     return 0 if result.landed else 1

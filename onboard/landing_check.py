@@ -57,7 +57,9 @@ class LandingResult:
     detections: int
     targets_sent: int
     targets_resent: int
-    streams_back_s: float | None = None  # after the reboot: from the reboot command to every stream heard again
+    streams_back_s: float | None = None  # after the reboot: from the reboot command to every stream sent at once
+    origin_back_s: float | None = None  # ... and to LOCAL_POSITION_NED (ArduPilot sends it once its EKF has an origin)
+    max_gap_s: float | None = None  # longest time without a LANDING_TARGET from the target's acquisition to touchdown
 
     def as_dict(self) -> dict:
         return self.__dict__.copy()
@@ -104,7 +106,7 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
         link = bridge.link
         link.wait_for_heartbeat(10)
         _wait(lambda: link.state.position_ned is not None and link.state.attitude is not None, 10, "position")
-        streams_back_s = _reboot(link) if s.reboot_first else None
+        streams_back_s, origin_back_s = _reboot(link) if s.reboot_first else (None, None)
         if fc is None or s.reboot_first:
             _take_off(link, s.alt_m)
         start = link.state.position_ned
@@ -122,12 +124,20 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
             raise FlightLinkError(f"the autopilot did not take LAND: {outcome.value}")
         landed = _wait(lambda: link.state.landed_state == "ON_GROUND", s.timeout_s, "touchdown", fail=False)
         final = fc.vehicle.position_ned if fc is not None else link.state.position_ned
+        landed_at = time.time()
+        if fc is not None:  # the fake says when its estimator acquired the target, and what it received
+            acquired_at = next((t for t, text in fc.text_times if text == "PrecLand: Init Complete"), None)
+            times = [m.time for m in fc.received("LANDING_TARGET")]
+        else:  # a real autopilot: from the first target sent
+            times = list(bridge.sent_times)
+            acquired_at = times[0] if times else None
         return LandingResult(
             error_m=horizontal_error(scene.north, scene.east, final), landed=bool(landed),
             acquired=(fc.precland.counters["acquired"] > 0) if fc is not None else None,
             seconds=time.monotonic() - started, detections=bridge.counters["detections"],
             targets_sent=bridge.counters["targets_sent"], targets_resent=bridge.counters["targets_resent"],
-            streams_back_s=streams_back_s,
+            streams_back_s=streams_back_s, origin_back_s=origin_back_s,
+            max_gap_s=_max_gap(times, acquired_at, landed_at),
         )
     finally:
         stop.set()
@@ -138,8 +148,17 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
             fc.shutdown()
 
 
-def _reboot(link) -> float:
-    """Reboot the autopilot (on the ground); seconds until the link saw it and every stream came back."""
+def _max_gap(times: list[float], start: float | None, end: float) -> float | None:
+    """The longest interval without a LANDING_TARGET between ``start`` and ``end`` (None: never started)."""
+    if start is None:
+        return None
+    inside = [start, *(t for t in times if start < t < end), end]
+    return max(b - a for a, b in zip(inside, inside[1:]))
+
+
+def _reboot(link) -> tuple[float, float]:
+    """Reboot the autopilot (on the ground); seconds until the link saw it and every stream it sends at once
+    came back, and until LOCAL_POSITION_NED came back (ArduPilot: once its EKF has an origin again)."""
     # The link sees a reboot by the autopilot's clock going back: let it run past what a restart shows first.
     _wait(lambda: (link.state.boot_ms or 0) > 2000, 10, "2 s of autopilot uptime")
     reboots = link.state.reboots
@@ -147,10 +166,14 @@ def _reboot(link) -> float:
     outcome = link.command(mavlink2.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1, label="reboot")
     if outcome is not CommandOutcome.ACCEPTED:
         raise FlightLinkError(f"the autopilot refused to reboot: {outcome.value}")
-    wanted = {name for name, _ in link.settings.stream_rates if name != "DISTANCE_SENSOR"}  # not on every vehicle
+    # Not DISTANCE_SENSOR (not on every vehicle); HOME_POSITION and LOCAL_POSITION_NED come once there is an origin.
+    later = {"DISTANCE_SENSOR", "HOME_POSITION", "LOCAL_POSITION_NED"}
+    wanted = {name for name, _ in link.settings.stream_rates if name not in later}
     _wait(lambda: link.state.reboots > reboots, 30, "reboot seen")
     _wait(lambda: wanted <= set(dict(link.state.heard)), 30, "every stream after the reboot")
-    return time.monotonic() - started
+    at_once = time.monotonic() - started
+    _wait(lambda: link.state.position_ned is not None, 120, "a local position after the reboot")
+    return at_once, time.monotonic() - started
 
 
 def _take_off(link, alt_m: float) -> None:

@@ -43,6 +43,7 @@ from typing import Any, Callable, Sequence
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from kgadapt.onboard.confirmation import Place
 from kgadapt.onboard.geometry import body_to_ned, camera_to_body, ned_to_body, norm
 from kgadapt.onboard.mavlink import FlightState, LandingTarget
 from kgadapt.onboard.site import SiteMarkers, load_site
@@ -184,6 +185,39 @@ class TargetBuilder:
         self.camera = camera
         self.markers = markers
         self.counters = {"position": 0, "rangefinder": 0, "angles": 0}
+
+    def locate(self, corners: Sequence[Sequence[float]], *, marker_id: int, frame_time: float, state: FlightState,
+               pose_at: PoseAt | None) -> Place | None:
+        """Where the marker lies in the local frame at the frame's time (for the confirmation); None if unknown.
+
+        Needs the vehicle's attitude and local position heard near the frame's time. The marker's
+        distance comes from its size when the site gives it, else from the height (the downward
+        rangefinder, or the height above the local origin: flat ground assumed).
+        """
+        pose = pose_at(frame_time) if pose_at is not None else None
+        if pose is None or pose[1] is None:
+            return None
+        attitude, position = pose
+        cam = self.camera
+        size = self.markers.size_of(marker_id) if self.markers is not None else None
+        tvec = marker_pose(corners, size, cam) if size else None
+        if tvec is not None and size:
+            body = camera_to_body(tvec, yaw_deg=cam.yaw_deg, offset=cam.offset_m)
+        else:
+            u = sum(p[0] for p in corners) / 4.0
+            v = sum(p[1] for p in corners) / 4.0
+            ray = camera_to_body(((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0), yaw_deg=cam.yaw_deg)
+            unit = tuple(c / norm(ray) for c in ray)
+            down = body_to_ned(attitude, unit)[2]
+            height = state.rangefinder_m or (-float(position[2]) if -float(position[2]) > 0.3 else None)
+            if not height or down <= 0.05:
+                return None
+            body = tuple(c * height / down for c in unit)
+            side_px = sum(math.dist(corners[i], corners[(i + 1) % 4]) for i in range(4)) / 4.0
+            size = side_px * norm(body) / cam.fx  # its side as the image shows it at that distance
+        rel = body_to_ned(attitude, body)
+        ned = (float(position[0]) + rel[0], float(position[1]) + rel[1], float(position[2]) + rel[2])
+        return Place(ned, float(size), norm(body))
 
     def build(self, corners: Sequence[Sequence[float]], *, marker_id: int, frame_time: float,
               profile: AutopilotProfile, state: FlightState,

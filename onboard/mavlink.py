@@ -493,6 +493,7 @@ class FlightState:
     reboots: int = 0  # autopilot reboots seen since our start
     missing: tuple[str, ...] = ()  # streams asked for that do not arrive
     refused: tuple[str, ...] = ()  # the last commands the autopilot refused or did not acknowledge
+    rejected: int = 0  # COMMAND_ACKs that rejected a command (temporary rejections retried and accepted included)
     system_id: int | None = None
     autopilot: str | None = None
     last_heartbeat: float | None = None  # epoch seconds
@@ -519,6 +520,7 @@ class FlightState:
             "rangefinder_m": self.rangefinder_m, "home": list(self.home) if self.home else None,
             "heard": dict(self.heard) or None, "boot_ms": self.boot_ms, "reboots": self.reboots,
             "missing": list(self.missing) or None, "refused": list(self.refused) or None,
+            "rejected": self.rejected or None,
             "system_id": self.system_id, "autopilot": self.autopilot,
             "last_heartbeat": self.last_heartbeat, "event": self.event,
         }
@@ -643,7 +645,8 @@ class FlightLink:
         self.commands = CommandSender(settings.commands or CommandSettings(), encoder=lambda: self._mav,
                                       send=self._send, alive=lambda: self.state.link,
                                       on_refusal=lambda r: self._update(
-                                          refused=tuple(str(x) for x in list(self.commands.refusals)[-5:])))
+                                          refused=tuple(str(x) for x in list(self.commands.refusals)[-5:])),
+                                      on_rejected=lambda: self._update(rejected=self.commands.counters["rejected"]))
 
     # -- lifecycle
 

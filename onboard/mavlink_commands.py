@@ -9,8 +9,11 @@ link's reader and ticker never wait: ``submit()`` returns a
 Outcomes (:class:`CommandOutcome`): ``ACCEPTED``; a refusal the autopilot
 stated (``DENIED``, ``FAILED``, ``UNSUPPORTED``, or ``TEMPORARILY_REJECTED``
 once the retries are spent) — kept in :attr:`CommandSender.refusals` and
-logged; ``NO_ACK`` when no acknowledgement came after every attempt.
-``IN_PROGRESS`` extends the wait without a resend.
+logged as a warning; ``NO_ACK`` when no acknowledgement came after every attempt.
+``IN_PROGRESS`` extends the wait without a resend. Every acknowledgement that
+rejects a command is logged at INFO when it comes and counted
+(``counters["rejected"]``, ``on_rejected``), so a rejection whose retry is
+accepted still shows.
 """
 
 from __future__ import annotations
@@ -118,6 +121,7 @@ class CommandSender:
 
     def __init__(self, settings: CommandSettings, *, encoder: Callable[[], object | None], send: SendFn,
                  on_refusal: Callable[[Refusal], None] | None = None,
+                 on_rejected: Callable[[], None] | None = None,
                  alive: Callable[[], bool] = lambda: True) -> None:
         self.settings = settings
         self._alive = alive  # False while the link is down: no point waiting for acks then
@@ -125,13 +129,14 @@ class CommandSender:
         self._encoder = encoder  # returns the link's MAVLink object (None while closed)
         self._send = send
         self._on_refusal = on_refusal
+        self._on_rejected = on_rejected  # every rejecting acknowledgement, final or not
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._current: PendingCommand | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.refusals: deque[Refusal] = deque(maxlen=settings.refusals_kept)
-        self.counters = {"sent": 0, "resent": 0, "accepted": 0, "refused": 0, "no_ack": 0}
+        self.counters = {"sent": 0, "resent": 0, "accepted": 0, "refused": 0, "no_ack": 0, "rejected": 0}
 
     def setup(self) -> None:
         self._stop.clear()
@@ -211,6 +216,9 @@ class CommandSender:
                     deadline = time.monotonic() + s.in_progress_wait_s
                     continue
                 last = _RESULTS.get(result, CommandOutcome.FAILED)
+                if last is not CommandOutcome.ACCEPTED:
+                    self._rejected(pending, last, retry_in=wait if last is CommandOutcome.TEMPORARILY_REJECTED
+                                   and attempt + 1 < s.attempts else None)
                 if last is CommandOutcome.TEMPORARILY_REJECTED:
                     break  # try again after the back-off
                 return last
@@ -218,6 +226,20 @@ class CommandSender:
                 self._stop.wait(wait)
             wait *= s.backoff
         return last
+
+    def _rejected(self, pending: PendingCommand, outcome: CommandOutcome, *, retry_in: float | None) -> None:
+        self.counters["rejected"] += 1
+        what = f"{command_name(pending.command)}({pending.label})"
+        if retry_in is not None:
+            log.info("autopilot rejected %s: %s (attempt %d); trying again in %.1f s", what, outcome.value,
+                     pending.attempts, retry_in)
+        else:
+            log.info("autopilot rejected %s: %s (attempt %d)", what, outcome.value, pending.attempts)
+        if self._on_rejected is not None:
+            try:
+                self._on_rejected()
+            except Exception:
+                log.exception("command rejection listener failed")
 
     def _finish(self, pending: PendingCommand, outcome: CommandOutcome) -> None:
         pending.outcome = outcome
@@ -228,7 +250,8 @@ class CommandSender:
             self.counters["no_ack" if outcome is CommandOutcome.NO_ACK else "refused"] += 1
             refusal = Refusal(time.time(), name, pending.label, outcome)
             self.refusals.append(refusal)
-            log.warning("autopilot did not accept %s after %d attempt(s)", refusal, pending.attempts)
+            spent = " (retries spent)" if outcome in (CommandOutcome.TEMPORARILY_REJECTED, CommandOutcome.NO_ACK) else ""
+            log.warning("autopilot did not accept %s after %d attempt(s)%s", refusal, pending.attempts, spent)
             if self._on_refusal is not None:
                 try:
                     self._on_refusal(refusal)

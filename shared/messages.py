@@ -279,6 +279,12 @@ class FlightState(Message, tag="flight_state", frozen=True, kw_only=True):
     reboots: int | None = None
     missing: Annotated[list[Any], Meta(max_length=16)] | None = None
     refused: Annotated[list[Any], Meta(max_length=16)] | None = None
+    # COMMAND_ACKs that rejected a command since the link started, a rejection later retried and
+    # accepted included (TEMPORARILY_REJECTED): a refusal stays visible after its retry succeeds. Absent: none.
+    rejected: int | None = None
+    # True while the landing targets sent carry angles only (no marker size known, no rangefinder
+    # distance): ArduPilot cannot place such a target without its own rangefinder. Absent otherwise.
+    angles_only: bool | None = None
     # Which autopilot the state is of (the bridge follows the first it hears): its MAVLink system id,
     # its kind (ardupilot, px4, generic, else the MAV_AUTOPILOT number) and its last HEARTBEAT, epoch s.
     system_id: int | None = None

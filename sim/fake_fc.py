@@ -10,7 +10,17 @@ no code copied) and has a test in ``tests/flight/test_fake_fc_ardupilot.py``:
   MAV_RESULT_FAILED. Rates set this way are not kept: after a reboot every
   stream is back at its default (the ``*_hz`` settings play ArduCopter's
   ``SRn_*`` parameters; ArduCopter's own defaults stream nothing but
-  HEARTBEAT on a companion port until asked).
+  HEARTBEAT on a companion port until asked). A stream given a new interval is
+  first sent one interval later, not at once (``set_ap_message_interval``
+  allocates its bucket with ``last_sent_ms = now``; re-asking for the same
+  interval leaves its schedule alone): BATTERY_STATUS at 1 Hz is back about
+  2.2 s after the first heartbeat of a reboot, as on SITL.
+- **Streams that need an origin** (GCS_Common.cpp ``send_home_position``: nothing
+  until ``AP::ahrs().home_is_set()``; ``send_local_position``: nothing while
+  ``get_relative_position_NED_origin`` fails, i.e. before the EKF has an origin):
+  after a reboot HOME_POSITION comes back ``home_after_reboot_s`` and
+  LOCAL_POSITION_NED ``origin_after_reboot_s`` after boot (ArduCopter SITL: 19 s
+  and 41 s), however early they were asked for; the others at once.
 - **Commands acknowledged or refused** (GCS_Common.cpp ``handle_command_long_packet``,
   ``handle_preflight_reboot``; ArduCopter/GCS_Mavlink.cpp; ArduCopter/mode.cpp
   ``Mode::allows_arming``; ArduCopter/takeoff.cpp ``Mode::do_user_takeoff``):
@@ -37,6 +47,12 @@ no code copied) and has a test in ``tests/flight/test_fake_fc_ardupilot.py``:
   before the target counts as acquired ("Init Failed" otherwise), and the
   target is lost 2 s after the last measurement. LAND then steers over the
   target and does not descend while farther than ``PLND_XY_DIST_MAX`` (2.5 m).
+- **The vehicle leans to move** (AC_PosControl.cpp ``accel_to_lean_angles``:
+  pitch ``atan(-a_forward / g)``, roll ``atan(a_right cos(pitch) / g)``): LAND's
+  correction towards the target accelerates at most ``xy_accel_ms2`` and the
+  reported attitude follows the acceleration, so between two frames a second
+  apart the marker moves across the image by many of its sides (what broke a
+  steadiness rule kept in the image on SITL).
 
 The estimator is a two-state Kalman filter per axis with AC_PrecLand's model
 (PosVelEKF.cpp: predicted with the vehicle's change of velocity and
@@ -46,7 +62,8 @@ textbook, not from ArduPilot's generated code.
 
 Simplified (documented, not relied on): ``PLND_LAG`` (measurements are taken as of
 now) and the retry logic (``PLND_STRICT``) are not modelled, and the vehicle moves
-kinematically (no wind, no tilt unless set).
+kinematically with an acceleration limit (no wind, no attitude lag; tilt only from
+LAND's horizontal acceleration, or when set).
 
 Run it alone with ``kgadapt flight fake-fc --url udpout:127.0.0.1:14550``.
 """
@@ -118,9 +135,15 @@ class FakeFCSettings:
     descent_fast_ms: float = 1.5  # WPNAV_SPEED_DN
     climb_ms: float = 2.5  # WPNAV_SPEED_UP
     xy_speed_ms: float = 2.0  # how fast LAND repositions over the target
+    xy_accel_ms2: float = 2.5  # ... accelerating at most this (WPNAV_ACCEL 250 cm/s/s): the vehicle leans to move
     rtl_speed_ms: float = 5.0
     reboot_s: float = 2.2  # silence during a reboot (ArduCopter SITL: 2.2 s heartbeat gap)
+    home_after_reboot_s: float = 19.0  # HOME_POSITION only once home is set again (SITL: 19 s after a reboot)
+    origin_after_reboot_s: float = 41.0  # LOCAL_POSITION_NED only once the EKF has an origin (SITL: 41 s)
     home: tuple[float, float, float] = (47.397742, 8.545594, 488.0)  # lat, lon, alt AMSL (m)
+    # (command, attempts): answer that command TEMPORARILY_REJECTED while its COMMAND_LONG's confirmation
+    # (the sender's attempt count) is below attempts, as a busy autopilot may.
+    temporarily_reject: tuple[tuple[int, int], ...] = ()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -235,7 +258,9 @@ class FakeFlightController:
         self._scripted_descent_ms: float | None = None
         self._takeoff_alt: float | None = None
         self.sent: collections.Counter[str] = collections.Counter()
+        self.sent_times: dict[str, collections.deque[float]] = {}  # per message type: when each was sent (epoch s)
         self.texts: list[str] = []  # STATUSTEXTs sent, like "PrecLand: Init Failed"
+        self.text_times: list[tuple[float, str]] = []  # ... with when (epoch s)
         self._send_lock = threading.Lock()
         self._defaults = {
             "HEARTBEAT": settings.heartbeat_hz, "SYS_STATUS": settings.sys_status_hz,
@@ -248,6 +273,8 @@ class FakeFlightController:
         for name in self._defaults:
             self._restore_default(name)
         self._boot_mono = time.monotonic()
+        self._home_at = self._origin_at = self._boot_mono  # powered on ready: home and origin known
+        self._first_due: dict[str, float] = {}  # stream -> when a newly set interval first sends it
         self._rebooting_until: float | None = None
         self.reboots = 0
         self.precland = PrecLandState()
@@ -447,6 +474,8 @@ class FakeFlightController:
             last = now
             with self._lock:
                 periods = dict(self._periods)
+                first_due, self._first_due = self._first_due, {}
+            due.update(first_due)
             silent = self._paused.is_set() or self._rebooting_until is not None
             for name, send in senders.items():
                 period = periods.get(name)
@@ -479,6 +508,10 @@ class FakeFlightController:
             mavlink2.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN: self._cmd_reboot,
         }
         handler = handlers.get(command)
+        busy = dict(self.settings.temporarily_reject).get(command, 0)
+        if message.confirmation < busy:
+            self._ack(message, mavlink2.MAV_RESULT_TEMPORARILY_REJECTED)
+            return
         result = mavlink2.MAV_RESULT_UNSUPPORTED if handler is None else handler(message)
         self._ack(message, result)
         if command == mavlink2.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN and result == mavlink2.MAV_RESULT_ACCEPTED:
@@ -499,12 +532,16 @@ class FakeFlightController:
             return mavlink2.MAV_RESULT_FAILED  # set_mavlink_message_id_interval: no such stream here
         interval_us = int(message.param2)
         with self._lock:
+            before = self._periods.get(name)
             if interval_us == -1:
                 self._periods.pop(name, None)
             elif interval_us == 0:
                 self._restore_default(name)
             else:
                 self._periods[name] = min(max(interval_us, 1000), 60_000_000) / 1e6
+            period = self._periods.get(name)
+            if period is not None and period != before:  # a new bucket: first sent one interval from now
+                self._first_due[name] = time.monotonic() + period
         return mavlink2.MAV_RESULT_ACCEPTED
 
     def _cmd_request_message(self, message) -> int:
@@ -699,16 +736,17 @@ class FakeFlightController:
             return replace(v, north=v.north - v.north / d * step, east=v.east - v.east / d * step)
         if not landing or alt <= 0 or v.landed_state == "ON_GROUND":
             return v
-        north, east = v.north, v.east
         descend = True
         p = self.precland
+        want = (0.0, 0.0)  # LAND without a target holds its position
         if self.settings.precland and p.acquired and p.target_ne is not None:
-            dn, de = p.target_ne[0] - north, p.target_ne[1] - east
+            dn, de = p.target_ne[0] - v.north, p.target_ne[1] - v.east
             d = math.hypot(dn, de)
-            step = min(d, self.settings.xy_speed_ms * dt, d * 2.0 * dt + 1e-9)
             if d > 1e-9:
-                north, east = north + dn / d * step, east + de / d * step
+                speed = min(self.settings.xy_speed_ms, 2.0 * d)  # towards the target, slowing on the way in
+                want = (dn / d * speed, de / d * speed)
             descend = not (self.settings.plnd_xy_dist_max_m > 0 and d > self.settings.plnd_xy_dist_max_m)
+        north, east, roll, pitch = self._move(v, want, dt)
         if self._scripted_descent_ms is not None:
             speed = self._scripted_descent_ms
         else:
@@ -717,13 +755,34 @@ class FakeFlightController:
             alt = max(0.0, alt - speed * dt)
         if alt <= 0.0:  # land_detector: touchdown, then disarm (ArduCopter disarms after LAND completes)
             self._scripted_descent_ms = None
-            return replace(v, north=north, east=east, alt=0.0, landed_state="ON_GROUND", armed=False)
-        return replace(v, north=north, east=east, alt=alt, landed_state="LANDING")
+            return replace(v, north=north, east=east, alt=0.0, landed_state="ON_GROUND", armed=False, roll=0.0,
+                           pitch=0.0)
+        return replace(v, north=north, east=east, alt=alt, landed_state="LANDING", roll=roll, pitch=pitch)
+
+    def _move(self, v: VehicleState, want: tuple[float, float], dt: float) -> tuple[float, float, float, float]:
+        """One step towards velocity ``want`` (NE m/s) within the acceleration limit: position and lean angles.
+
+        The lean follows the acceleration as AC_PosControl's accel_to_lean_angles turns one into the other.
+        """
+        vn, ve = self._velocity
+        an, ae = (want[0] - vn) / max(dt, 1e-6), (want[1] - ve) / max(dt, 1e-6)
+        accel = math.hypot(an, ae)
+        limit = self.settings.xy_accel_ms2
+        if accel > limit > 0:
+            an, ae = an * limit / accel, ae * limit / accel
+        vn, ve = vn + an * dt, ve + ae * dt
+        forward = an * math.cos(v.yaw) + ae * math.sin(v.yaw)
+        right = -an * math.sin(v.yaw) + ae * math.cos(v.yaw)
+        pitch = math.atan(-forward / 9.80665)
+        roll = math.atan(right * math.cos(pitch) / 9.80665)
+        return v.north + vn * dt, v.east + ve * dt, roll, pitch
 
     def _boot(self) -> None:
         """The end of a reboot: clock from 0, streams at their defaults, vehicle as at power-on."""
         self._rebooting_until = None
         self._boot_mono = time.monotonic()
+        self._home_at = self._boot_mono + self.settings.home_after_reboot_s
+        self._origin_at = self._boot_mono + self.settings.origin_after_reboot_s
         self.reboots += 1
         for name in self._defaults:
             self._restore_default(name)
@@ -738,6 +797,7 @@ class FakeFlightController:
 
     def _text(self, text: str) -> None:
         self.texts.append(text)
+        self.text_times.append((time.time(), text))
         try:
             self._send(self._mav.statustext_encode(mavlink2.MAV_SEVERITY_INFO, text.encode()))  # type: ignore[union-attr]
         except Exception as exc:
@@ -749,6 +809,7 @@ class FakeFlightController:
         with self._send_lock:  # the reader thread acknowledges commands while the sender streams
             self._mav.send(message)  # type: ignore[union-attr]
             self.sent[message.get_type()] += 1
+            self.sent_times.setdefault(message.get_type(), collections.deque(maxlen=256)).append(time.time())
 
     def _send_heartbeat(self) -> None:
         v = self.vehicle
@@ -802,9 +863,12 @@ class FakeFlightController:
         ))
 
     def _send_local_position(self) -> None:
+        if time.monotonic() < self._origin_at:
+            return  # send_local_position: no position relative to an origin yet
         v = self.vehicle
         n, e, d = v.position_ned
-        self._send(self._mav.local_position_ned_encode(self.boot_ms, n, e, d, 0.0, 0.0, 0.0))  # type: ignore[union-attr]
+        vn, ve = self._velocity
+        self._send(self._mav.local_position_ned_encode(self.boot_ms, n, e, d, vn, ve, 0.0))  # type: ignore[union-attr]
 
     def _send_distance(self) -> None:
         if not self.settings.rangefinder:
@@ -819,6 +883,8 @@ class FakeFlightController:
         ))
 
     def _send_home(self) -> None:
+        if time.monotonic() < self._home_at:
+            return  # send_home_position: home not set yet
         lat0, lon0, alt0 = self.settings.home
         self._send(self._mav.home_position_encode(  # type: ignore[union-attr]
             int(round(lat0 * 1e7)), int(round(lon0 * 1e7)), int(round(alt0 * 1000)), 0.0, 0.0, 0.0,

@@ -8,6 +8,7 @@ extension      notation                                     module
 ``.service``   deployment as a systemd service file         :mod:`.systemd`
 ``.deploy``    deployment as a plain deployment file        :mod:`.deployment_file`
 ``.features``  feature model and illumination bands         :mod:`.feature_model`
+``.site``      a landing site's markers (JSON)              :mod:`.site_model`
 =============  ===========================================  =========================
 
 Importers parse; they never evaluate model text. They check what one file
@@ -20,7 +21,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from kgadapt.knowledge.importers import aadl, deployment_file, feature_model, rpsl, systemd
+from kgadapt.knowledge.importers import aadl, deployment_file, feature_model, rpsl, site_model, systemd
 from kgadapt.knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
 from kgadapt.shared.errors import ModelError
 
@@ -32,6 +33,7 @@ IMPORTERS: dict[str, Importer] = {
     ".service": systemd.parse,
     ".deploy": deployment_file.parse,
     ".features": feature_model.parse,
+    ".site": site_model.parse,
 }
 
 __all__ = ["IMPORTERS", "EdgeSpec", "NodeSpec", "Origin", "ParsedModel", "Ref", "parse_file"]

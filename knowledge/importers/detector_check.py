@@ -112,3 +112,51 @@ def _ask(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
         raise ModelError(path, None, f"cannot check the detector configurations with OpenCV "
                                      f"(kgadapt.onboard.config_check exited {done.returncode}: {last})")
     return answer
+
+
+def dictionary_verdicts(names: list[str], path: str) -> dict[str, tuple[str | None, int | None]]:
+    """OpenCV's verdict on ArUco dictionary names (a site's): name -> (problem or None, ids it holds or None).
+
+    Asked of ``python -m kgadapt.onboard.site`` (which calls kgadapt.onboard.markers.aruco_dictionary);
+    verdicts on predefined names are kept like the detector verdicts, custom dictionary files never
+    (their content may change under the same name).
+    """
+    if not names:
+        return {}
+    opencv = importlib.util.find_spec("cv2")
+    if opencv is None or not opencv.origin:
+        return {name: (None, None) for name in names}  # no OpenCV on this host: nothing to ask (as for detectors)
+    site_module = importlib.util.find_spec("kgadapt.onboard.site")
+    digest = hashlib.sha256(Path(site_module.origin).read_bytes()).hexdigest() if site_module and site_module.origin else ""
+    identity = [*_identity(opencv.origin), digest]
+    keys = {name: hashlib.sha256(json.dumps([identity, "dictionary", name]).encode()).hexdigest() for name in names}
+    out: dict[str, tuple[str | None, int | None]] = {}
+    for name, key in keys.items():
+        if not name.startswith("DICT_"):
+            continue
+        if key not in _memory:
+            found = _read(key)
+            if found is not None:
+                _memory[key] = found[0]
+        kept: Any = _memory.get(key)
+        if isinstance(kept, list) and len(kept) == 2:
+            out[name] = (None if kept[0] is None else str(kept[0]), kept[1] if isinstance(kept[1], int) else None)
+    unknown = [name for name in names if name not in out]
+    if unknown:
+        try:
+            done = subprocess.run([sys.executable, "-m", "kgadapt.onboard.site"], input=json.dumps(unknown),
+                                  capture_output=True, text=True, timeout=120)
+            answer = json.loads(done.stdout) if done.returncode == 0 else None
+        except (OSError, subprocess.TimeoutExpired, ValueError) as exc:
+            raise ModelError(path, None, f"cannot check the site's dictionaries with OpenCV: {exc}") from exc
+        if not isinstance(answer, dict) or set(answer) != set(unknown):
+            last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+            raise ModelError(path, None, f"cannot check the site's dictionaries with OpenCV "
+                                         f"(kgadapt.onboard.site exited {done.returncode}: {last})")
+        for name in unknown:
+            problem, count = answer[name]
+            out[name] = (None if problem is None else str(problem), count if isinstance(count, int) else None)
+            if name.startswith("DICT_"):
+                _memory[keys[name]] = [problem, count]  # type: ignore[assignment]
+                _write(keys[name], [problem, count])  # type: ignore[arg-type]
+    return out

@@ -69,7 +69,10 @@ def test_a_refused_stream_request_is_reported(ardu):
 
 def test_after_a_reboot_on_the_ground_every_stream_is_back_and_the_state_follows(ardu):
     # ArduCopter SITL: the heartbeat gap of a reboot (2.2 s) is shorter than the 3 s link timeout.
-    link, fc = ardu(vehicle=VehicleState(mode="LOITER", north=1.0), link=dict(heartbeat_timeout_s=3.0))
+    # HOME_POSITION and LOCAL_POSITION_NED come back once the autopilot has an origin (SITL: 19 s and 41 s);
+    # here sooner, to keep the test short (test_fake_fc_ardupilot.py checks that they wait for it).
+    link, fc = ardu(vehicle=VehicleState(mode="LOITER", north=1.0), link=dict(heartbeat_timeout_s=3.0),
+                    fc=dict(home_after_reboot_s=1.0, origin_after_reboot_s=1.5))
     events: list[str] = []
     link.on_state(lambda s: s.event and events.append(s.event))
     before = wait_until(lambda: link.state.boot_ms if link.state.boot_ms > 1500 else None, 5, "1.5 s of uptime")

@@ -175,3 +175,75 @@ def test_a_single_outlier_is_rejected_and_three_in_a_row_are_taken(ardu):
     link.send_landing_target(far())  # the 4th in a row is fused: three were rejected before it
     wait_until(lambda: fc.precland.target_ne[1] > 0.5, 2, "the estimate moving right")
     assert fc.precland.counters["outliers"] == 3
+
+
+# -- AC_PosControl::accel_to_lean_angles: LAND's correction towards the target tilts the vehicle
+
+def test_lands_correction_leans_the_vehicle_and_moves_the_marker_across_the_image_between_slow_frames(ardu):
+    from kgadapt.onboard.geometry import ned_to_body
+    from kgadapt.onboard.landing_targets import CameraModel
+    from kgadapt.sim.landing_scene import MarkerScene
+
+    link, fc = ardu(vehicle=HOVER, fc=dict(land_speed_ms=0.5))
+    marker = (2.5, 2.0)
+
+    def target():
+        v = fc.vehicle
+        body = ned_to_body((v.roll, v.pitch, v.yaw), (marker[0] - v.north, marker[1] - v.east, v.alt))
+        return LandingTarget(time=time.time(), angle_x=0.0, angle_y=0.0, distance=math.sqrt(sum(c * c for c in body)),
+                             position=body)
+
+    assert link.command(mavlink2.MAV_CMD_DO_SET_MODE, CUSTOM, 9) is CommandOutcome.ACCEPTED  # LAND
+    scene = MarkerScene(CameraModel(fx=615.0, fy=615.0, cx=320.0, cy=240.0), north=marker[0], east=marker[1],
+                        size_m=0.5)
+    frames, leans = [], []
+    next_frame = time.monotonic()
+    stop = time.monotonic() + 6.0
+    while time.monotonic() < stop:
+        link.send_landing_target(target())
+        v = fc.vehicle
+        leans.append(max(abs(v.roll), abs(v.pitch)))
+        if time.monotonic() >= next_frame:  # what a camera at 1 frame a second sees
+            frames.append(scene.corners(((v.roll, v.pitch, v.yaw), v.position_ned)))
+            next_frame += 1.0
+        time.sleep(0.05)
+    assert fc.precland.acquired
+    assert max(leans) > math.radians(10)  # 2.5 m/s/s leans the vehicle about 14 degrees
+
+    def centre_and_side(corners):
+        centre = (sum(p[0] for p in corners) / 4, sum(p[1] for p in corners) / 4)
+        return centre, math.dist(corners[0], corners[1])
+
+    seen = [centre_and_side(c) for c in frames if c is not None]
+    jumps = [math.dist(a[0], b[0]) / max(a[1], b[1]) for a, b in zip(seen, seen[1:])]
+    assert max(jumps) > 0.5, jumps  # a rule "within half a side between frames" would start over
+
+
+# -- GCS_MAVLINK::send_home_position, send_local_position: nothing without home / an EKF origin;
+#    set_ap_message_interval: a new interval first sends one interval later
+
+def test_after_a_reboot_home_and_local_position_come_only_once_there_is_an_origin(ardu):
+    link, fc = ardu(fc=dict(home_after_reboot_s=3.0, origin_after_reboot_s=5.0), link=dict(heartbeat_timeout_s=3.0))
+    wait_until(lambda: (link.state.boot_ms or 0) > 1500, 5, "1.5 s of uptime")
+    assert link.command(mavlink2.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1, label="reboot") is CommandOutcome.ACCEPTED
+    wait_until(lambda: fc.reboots == 1, 5, "the reboot")
+    booted = time.monotonic()
+    wait_until(lambda: link.state.attitude is not None and link.state.landed_state is not None, 5, "ATTITUDE back")
+    assert link.state.position_ned is None and link.state.home is None  # asked for, but no origin yet
+    assert fc.stream_rate("LOCAL_POSITION_NED") == pytest.approx(20.0)  # the interval is set all the same
+    wait_until(lambda: link.state.home is not None, 6, "HOME_POSITION once home is set")
+    assert time.monotonic() - booted >= 3.0 - 0.1
+    wait_until(lambda: link.state.position_ned is not None, 6, "LOCAL_POSITION_NED once there is an origin")
+    assert time.monotonic() - booted >= 5.0 - 0.1
+
+
+def test_a_stream_given_a_new_interval_is_first_sent_one_interval_later(ardu):
+    from tests.flight.conftest import ALL_FAST
+
+    link, fc = ardu(link=dict(stream_rates=tuple(r for r in ALL_FAST if r[0] != "BATTERY_STATUS")))
+    assert "BATTERY_STATUS" not in fc.sent_times  # ArduCopter's default on a companion port: not streamed
+    asked = time.time()
+    assert link.command(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink2.MAVLINK_MSG_ID_BATTERY_STATUS,
+                        1_000_000) is CommandOutcome.ACCEPTED
+    got = wait_until(lambda: list(fc.sent_times.get("BATTERY_STATUS", ())), 3, "BATTERY_STATUS")
+    assert got[0] - asked >= 0.9  # a bucket of its own: last_sent_ms = now, so one interval from the request

@@ -144,7 +144,7 @@ def test_the_bridge_command_with_camera_and_marker_files_sends_positions_and_hol
     observer = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
     port = free_udp_port()
     bridge = _spawn(kgadapt_cmd, tmp_path, "flight", "bridge", "--robot", "clitest", "--url", f"udpin:127.0.0.1:{port}",
-                    "--camera-file", str(tmp_path / "camera.json"), "--markers", str(tmp_path / "markers.json"),
+                    "--camera-file", str(tmp_path / "camera.json"), "--site", str(tmp_path / "markers.json"),
                     "--connect", endpoint)
     vehicle = VehicleState(armed=True, mode="LOITER", landed_state="IN_AIR", alt=8.0, yaw=0.3)
     fc = FakeFlightController(FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=5), vehicle)

@@ -48,8 +48,21 @@ def test_without_the_held_target_one_detection_a_second_is_too_few(session):
     assert result.error_m > 2.0
 
 
+def test_at_one_detection_a_second_the_target_survives_the_vehicles_motion_during_the_descent(session):
+    # ArduCopter SITL lost the target from 1.9 to 5.5 s after LAND: leaning towards the marker moved it across
+    # the image by many of its sides between frames, and a steadiness rule kept in the image started over.
+    # The fake leans the same way (AC_PosControl::accel_to_lean_angles); confirmed by its place in the local
+    # frame, the marker keeps its streak: no gap over 1 s between LANDING_TARGETs after the acquisition.
+    result = run_landing_check(session, LandingCheckSettings(rate_hz=1.0, rangefinder=False, fake=REAL_SPEED))
+    assert result.landed and result.acquired and result.error_m < 0.5, result
+    assert result.max_gap_s is not None and result.max_gap_s <= 1.0, result
+
+
 def test_after_a_reboot_on_the_ground_it_takes_off_and_lands_on_the_marker(session):
+    # LOCAL_POSITION_NED comes back once the autopilot has an origin (SITL: 41 s after a reboot); 3 s here.
     result = run_landing_check(session, LandingCheckSettings(rate_hz=1.0, reboot_first=True,
-                                                             fake=dict(REAL_SPEED, climb_ms=5.0)))
+                                                             fake=dict(REAL_SPEED, climb_ms=5.0, home_after_reboot_s=2.0,
+                                                                       origin_after_reboot_s=3.0)))
     assert result.streams_back_s is not None and result.streams_back_s < 2.2 + 5.0  # reboot silence + 5 s
+    assert result.origin_back_s >= 3.0
     assert result.landed and result.acquired and result.error_m < 0.5, result

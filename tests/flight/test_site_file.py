@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -38,8 +39,32 @@ def test_names_are_kept_and_unknown_keys_are_refused(tmp_path):
     assert "pad.site" in str(info.value)
 
 
-@pytest.mark.parametrize("flag", ["--site", "--markers"])
-def test_the_bridge_takes_the_site_file_under_either_flag(flag):
-    args = build_parser().parse_args(["flight", "bridge", "--robot", "r", "--url", "udpin:0.0.0.0:14550",
-                                      "--camera-file", "c.json", flag, str(DEMO)])
-    assert args.site == str(DEMO)
+@pytest.mark.parametrize("command", [["flight", "bridge", "--robot", "r"], ["onboard"]])
+def test_one_site_option_for_the_bridge_and_the_agent(command):
+    args = build_parser().parse_args([*command, "--site", str(DEMO), "--site-name", "demo-hall"])
+    assert (args.site, args.site_name) == (str(DEMO), "demo-hall")
+    for old in ("--markers", "--fc-markers"):  # the one format replaced them
+        with pytest.raises(SystemExit):
+            build_parser().parse_args([*command, old, str(DEMO)])
+
+
+def test_a_site_file_with_a_misspelt_dictionary_is_refused_naming_file_and_line(tmp_path):
+    path = tmp_path / "hall.site"
+    path.write_text('{"site": "hall",\n "dictionary": "DICT_4X4_5O",\n "markers": [{"id": 7, "size_m": 0.3}]}')
+    with pytest.raises(ModelError, match=r"hall\.site:2: .*'DICT_4X4_5O'"):
+        load_site(path)
+    path.write_text('{"site": "hall",\n "markers": [\n  {"id": 7, "size_m": 0.3},\n'
+                    '  {"id": 9, "size_m": 0.3, "dictionary": "DICT_6X6_25O"}]}')
+    with pytest.raises(ModelError, match=r"hall\.site:4: .*'DICT_6X6_25O'"):
+        load_site(path)
+
+
+@pytest.mark.parametrize("command", [["onboard", "--host", "onboard", "--fc", "udpin:127.0.0.1:9"],
+                                     ["flight", "bridge", "--robot", "r", "--camera-file", "c.json"]])
+def test_the_agent_and_the_bridge_refuse_a_misspelt_dictionary_before_starting(kgadapt_cmd, tmp_path, command):
+    bad = tmp_path / "pad.site"
+    bad.write_text('{"site": "pad",\n "dictionary": "DICT_4X4_5O",\n "markers": [{"id": 7, "size_m": 0.3}]}')
+    (tmp_path / "c.json").write_text(json.dumps({"fx": 600, "fy": 600, "cx": 320, "cy": 240}))
+    done = subprocess.run([*kgadapt_cmd, *command, "--site", str(bad)], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 1 and f"{bad}:2: " in done.stderr and "DICT_4X4_5O" in done.stderr, done.stderr

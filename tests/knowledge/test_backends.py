@@ -91,6 +91,7 @@ EXAMPLES = {
     "platforms": {},
     "process_profile": {"run_id": "r1"},
     "camera_intrinsics": {"camera": "camera"},
+    "site_markers": {"site": "demo-hall"},
     "flight_control": {},
     "decisions": {"limit": 5},
     "current_placement": {},

@@ -45,7 +45,7 @@ def test_placement_answers_after_loading_the_shipped_models(cli_store):
     url = cli_store.url
     loaded = kgadapt("knowledge", "load", "knowledge/models", "--store", url)
     assert loaded.returncode == 0, loaded.stderr
-    assert "loaded 14 model files" in loaded.stdout and "PerceptionGraph" in loaded.stdout
+    assert "loaded 15 model files" in loaded.stdout and "PerceptionGraph" in loaded.stdout
     empty = kgadapt("knowledge", "query", "placement", "--param", "feature=MarkerDetection", "--store", url)
     assert empty.returncode == 0 and "(no rows: no platform is online yet" in empty.stdout  # no live figures yet
     R.update_platform(cli_store, name="onboard", time=1.0, memory_free_mb=200.0, online=True)

@@ -7,7 +7,7 @@ import time
 import pytest
 
 from kgadapt.onboard.calibration import model_configs
-from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer
+from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer, Place
 from kgadapt.onboard.markers import MarkerDetector
 from kgadapt.onboard.site import SiteMarkers, load_site
 from kgadapt.shared.errors import ConfigError, MessageError, ModelError
@@ -41,6 +41,24 @@ def test_a_marker_that_jumps_or_changes_size_starts_over():
     for t in (1.0, 2.0):
         c.update([7], [SQUARE], t)
     assert c.update([7], [moved(SQUARE, scale=2.0)], 3.0) == []
+
+
+def test_with_places_a_marker_that_moves_across_the_image_but_stays_put_on_the_ground_is_steady():
+    # A second apart, a vehicle accelerating towards the marker leans and moves: the marker jumps
+    # 200 px in the image, doubles in size, but lies where it lay (kgadapt.onboard.confirmation.Place).
+    c = MarkerConfirmer()
+    here = Place((2.5, 2.0, 0.0), 0.5, 10.0)
+    frames = [SQUARE, moved(SQUARE, 200, -40), moved(SQUARE, -150, 90, scale=2.0)]
+    assert [c.update([7], [f], t + 1.0, places=[Place((2.5 + 0.05 * t, 2.0, 0.0), 0.5, 10.0 - t)])
+            for t, f in enumerate(frames)] == [[], [], [0]]
+    # ... and one that lies elsewhere each time is never steady, wherever it is in the image.
+    c = MarkerConfirmer()
+    assert [c.update([7], [SQUARE], t + 1.0, places=[Place((2.5 + 0.6 * t, 2.0, 0.0), 0.5, 10.0)])
+            for t in range(4)] == [[], [], [], []]
+    # Where no place is known the image rule still holds.
+    c = MarkerConfirmer()
+    assert [c.update([7], [f], t + 1.0, places=[here if t == 0 else None]) for t, f in enumerate(frames)] \
+        == [[], [], []]
 
 
 def test_one_missed_frame_is_forgiven_two_are_not():
@@ -145,19 +163,20 @@ def test_the_shipped_configurations_do_report_phantoms_on_these_scenes(phantom_d
     assert all(n >= 3 for n in raw.values()) and sum(raw.values()) >= 20, raw
 
 
-@pytest.mark.parametrize("with_site", [False, True])
+@pytest.mark.parametrize("with_site, with_pose", [(False, False), (True, False), (False, True), (True, True)],
+                         ids=["no-site", "site", "no-site-pose", "site-pose"])
 def test_phantoms_from_textures_other_dictionaries_and_charuco_boards_send_no_landing_target(
-        phantom_detections, with_site):
+        phantom_detections, with_site, with_pose):
     from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
     from kgadapt.onboard.mavlink import LinkSettings
     from kgadapt.shared import keys, messages
     from kgadapt.shared.session import ZenohSettings, open_session
     from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
     from tests.conftest import free_port
-    from tests.flight.conftest import FAST_STREAMS, free_udp_port
+    from tests.flight.conftest import ALL_FAST, FAST_STREAMS, free_udp_port
     from tests.support import wait_for
 
-    robot = f"phantom{int(with_site)}"
+    robot = f"phantom{int(with_site)}{int(with_pose)}"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     a = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
     b = open_session(ZenohSettings(mode="peer", connect=(endpoint,)))
@@ -165,7 +184,9 @@ def test_phantoms_from_textures_other_dictionaries_and_charuco_boards_send_no_la
     site = load_site(REPO / "knowledge" / "models" / "sites" / "demo.site") if with_site else None
     bridge = FlightBridge(BridgeSettings(
         robot=robot, intrinsics=CameraIntrinsics(fx=500, fy=500, cx=320, cy=240),
-        link=LinkSettings(url=f"udpin:127.0.0.1:{port}", stream_rates=FAST_STREAMS),
+        # with_pose: the vehicle's attitude and position are heard, so markers are confirmed by their place
+        # in the local frame (what a moving vehicle needs) instead of their place in the image
+        link=LinkSettings(url=f"udpin:127.0.0.1:{port}", stream_rates=ALL_FAST if with_pose else FAST_STREAMS),
         confirmation=ConfirmationSettings(site=site)))
     fc = FakeFlightController(FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=10),
                               VehicleState(armed=True, mode="LOITER", landed_state="IN_AIR"))
@@ -174,6 +195,9 @@ def test_phantoms_from_textures_other_dictionaries_and_charuco_boards_send_no_la
         bridge.setup(a)
         fc.setup()
         bridge.link.wait_for_heartbeat(5)
+        if with_pose:
+            wait_for(lambda: bridge.state.position_ned is not None and bridge.state.attitude is not None, 10,
+                     "the vehicle's pose")
         publisher = b.declare_publisher(keys.detector_markers(robot, "det1"))
 
         def warm_up():  # samples put before the route between the peers exists are lost: wait for it
@@ -215,6 +239,7 @@ def test_phantoms_from_textures_other_dictionaries_and_charuco_boards_send_no_la
             time.sleep(0.01)
         targets = fc.wait_for("LANDING_TARGET", 1, timeout=3)
         assert targets[0].fields["target_num"] in {3, 7, 12, 21, 33, 42}
+        assert (bridge.counters["placed"] > 0) is with_pose  # judged by their place in the local frame
     finally:
         if publisher is not None:
             publisher.undeclare()

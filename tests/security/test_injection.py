@@ -143,7 +143,7 @@ def known_graph(store):
 REAL = {"feature": "MarkerDetection", "platform": "remote", "config": "marker_detection_day", "name": "detector_day",
         "threshold_mb": 1000.0, "limit": 20, "limit_pct": 80.0, "condition": "all", "band": "day", "penalty": 1.0,
         "max_ms": 1000.0, "from": "detector_day", "to": "detector_dark", "host": "onboard",
-        "standby": "standby", "run_id": "r1", "camera": "camera"}
+        "standby": "standby", "run_id": "r1", "camera": "camera", "site": "demo-hall"}
 
 
 def string_params() -> list[tuple[str, str]]:
