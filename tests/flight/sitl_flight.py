@@ -54,6 +54,12 @@ PARAMS = {  # sim_vehicle.py would load Tools/autotest/default_params/copter.par
     "FRAME_CLASS": 1, "FRAME_TYPE": 1,
     "PLND_ENABLED": 1, "PLND_TYPE": 1, "PLND_EST_TYPE": 1, "PLND_YAW_ALIGN": 0, "PLND_LAG": 0.05,
     "PLND_XY_DIST_MAX": 2.5, "LAND_SPEED": 50,
+    # What the pre-arm checks want of a vehicle that was set up: accelerometers calibrated (offsets and scales off
+    # their defaults), compass offsets cancelling SITL's simulated magnetometer offset, a battery monitor.
+    **{f"INS_ACC{n}{kind}_{axis}": value for n in ("", "2") for kind, value in (("OFFS", 0.001), ("SCAL", 1.001))
+       for axis in "XYZ"},
+    **{f"COMPASS_OFS{n}_{axis}": value for n in ("", "2", "3") for axis, value in zip("XYZ", (5, 13, -18))},
+    "BATT_MONITOR": 4,
 }
 RANGEFINDER = {"RNGFND1_TYPE": 100, "RNGFND1_ORIENT": 25, "RNGFND1_MIN": 0.2, "RNGFND1_MAX": 40}
 CUSTOM = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
@@ -77,7 +83,7 @@ class Relay:
         self.bridge_side.bind(("127.0.0.1", 0))
         self.sitl_address: tuple[str, int] | None = None
         self.targets: list[tuple[float, object]] = []  # (monotonic, LANDING_TARGET) bridge -> ArduPilot
-        self.to_bridge_log: list[tuple[float, str]] = []  # (monotonic, message type) ArduPilot -> bridge
+        self.to_bridge_log: list[tuple[float, str, int]] = []  # (monotonic, type, SITL's port) ArduPilot -> bridge
         self.lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="relay", daemon=True)
@@ -104,7 +110,7 @@ class Relay:
                     self.sitl_address = address
                     self.bridge_side.sendto(data, self.to_bridge)
                     with self.lock:
-                        self.to_bridge_log.extend((now, m.get_type()) for m in _parse(from_sitl, data))
+                        self.to_bridge_log.extend((now, m.get_type(), address[1]) for m in _parse(from_sitl, data))
                 elif self.sitl_address is not None:
                     self.sitl_side.sendto(data, self.sitl_address)
                     with self.lock:
@@ -131,8 +137,9 @@ class Truth:
         if msg is None or self.origin is None:
             return None
         lat0, lon0, alt0 = self.origin
-        north = math.radians(msg.lat / 1e7 - lat0) * EARTH_RADIUS_M
-        east = math.radians(msg.lon / 1e7 - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
+        # lat_int/lon_int: the float lat/lon fields carry degE7 in 24 bits, about 0.3 m steps
+        north = math.radians(msg.lat_int / 1e7 - lat0) * EARTH_RADIUS_M
+        east = math.radians(msg.lon_int / 1e7 - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
         return north, east, -(msg.alt - alt0)
 
     def pose(self):
@@ -313,7 +320,8 @@ def reboot_on_the_ground(gcs: GroundStation, sitl: subprocess.Popen, relay: Rela
     is told apart from one the bridge failed to ask for again.
     """
     gcs.wait(lambda: gcs.boot_ms > 5000, 60)
-    gcs.wait(lambda: {"ATTITUDE", "HEARTBEAT"} <= {t for _, t in relay.to_bridge_log}, 30)
+    gcs.wait(lambda: {"ATTITUDE", "HEARTBEAT"} <= {t for _, t, _ in relay.to_bridge_log}, 30)
+    old_port = relay.sitl_address[1] if relay.sitl_address else None  # the restarted SITL sends from a new port
     sent = time.monotonic()
     gcs.command(mav.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1, what="reboot", timeout=10)
     time.sleep(0.5)  # SITL re-executes itself right after its ack
@@ -321,14 +329,14 @@ def reboot_on_the_ground(gcs: GroundStation, sitl: subprocess.Popen, relay: Rela
     ids = {name: getattr(mav, f"MAVLINK_MSG_ID_{name}") for name in bridge_streams}
     for name, message_id in ids.items():  # ask at once for all, without waiting on each ack
         gcs.mav.command_long_send(1, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0, message_id, 2e5, 0, 0, 0, 0, 0)
-    gcs.wait(lambda: set(bridge_streams) <= {k for t, k in relay.to_bridge_log if t > sent + 1.0}, 90)
-    with relay.lock:  # the new ArduPilot's first heartbeat: the first after a silence
-        beats = [t for t, kind in relay.to_bridge_log if kind == "HEARTBEAT" and t >= sent - 2.0]
-    first_heartbeat = next(b for a, b in zip(beats, beats[1:]) if b - a > 1.5)
+    gcs.wait(lambda: set(bridge_streams) <= {k for _, k, port in relay.to_bridge_log if port != old_port}, 90)
+    with relay.lock:
+        first_heartbeat = min(t for t, k, port in relay.to_bridge_log if k == "HEARTBEAT" and port != old_port)
+        last_old = max(t for t, k, port in relay.to_bridge_log if k == "HEARTBEAT" and port == old_port)
     with relay.lock:
         at_bridge: dict[str, float] = {}
-        for t, kind in relay.to_bridge_log:
-            if t >= first_heartbeat and kind in ids and kind not in at_bridge:
+        for t, kind, port in relay.to_bridge_log:
+            if port != old_port and kind in ids and kind not in at_bridge:
                 at_bridge[kind] = t
     at_gcs = gcs.first_heard_after(first_heartbeat, set(ids))
     streams = {}
@@ -340,7 +348,8 @@ def reboot_on_the_ground(gcs: GroundStation, sitl: subprocess.Popen, relay: Rela
             "ardupilot_first_s": None if by_fc is None else round(by_fc - first_heartbeat, 2),
             "after_ardupilot_s": None if back is None or by_fc is None else round(back - by_fc, 2),
         }
-    return {"silence_s": round(first_heartbeat - sent, 2), "streams": streams}
+    return {"command_to_heartbeat_s": round(first_heartbeat - sent, 2), "silence_s": round(first_heartbeat - last_old, 2),
+            "streams": streams}
 
 
 def fly(args: argparse.Namespace) -> dict:
@@ -354,7 +363,7 @@ def fly(args: argparse.Namespace) -> dict:
     relay = sitl = session = None
     gcs = GroundStation()
     stop = threading.Event()
-    publisher = None
+    publisher: threading.Thread | None = None
     result: dict = {"rate_hz": args.rate, "rangefinder": args.rangefinder, "bridge_args": args.bridge_arg}
     try:
         load = Child([*KGADAPT, "knowledge", "load", "knowledge/models"], "load", workdir, env=env)
@@ -385,7 +394,7 @@ def fly(args: argparse.Namespace) -> dict:
         gcs.wait(lambda: gcs.truth.last is not None, 10)
         time.sleep(1.0)  # at rest: its altitude is the ground's
         rest = gcs.truth.last
-        gcs.truth.origin = (rest.lat / 1e7, rest.lon / 1e7, rest.alt)
+        gcs.truth.origin = (rest.lat_int / 1e7, rest.lon_int / 1e7, rest.alt)
         for what, command, params in (("GUIDED", mav.MAV_CMD_DO_SET_MODE, (CUSTOM, GUIDED)),
                                       ("arming", mav.MAV_CMD_COMPONENT_ARM_DISARM, (1,)),
                                       ("take-off", mav.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, args.alt))):
@@ -397,9 +406,13 @@ def fly(args: argparse.Namespace) -> dict:
         size = site_marker(args.marker_id)
         scene = MarkerScene(camera, north=north + args.north, east=east + args.east, size_m=size,
                             marker_id=args.marker_id)
-        publisher = threading.Thread(target=run_detections, args=(session, ROBOT, scene, gcs.truth.pose),
-                                     kwargs=dict(rate_hz=args.rate, stop=stop, noise_px=args.noise_px),
-                                     name="detections", daemon=True)
+        published: dict = {}
+
+        def publish() -> None:
+            published.update(run_detections(session, ROBOT, scene, gcs.truth.pose, rate_hz=args.rate, stop=stop,
+                                            noise_px=args.noise_px))
+
+        publisher = threading.Thread(target=publish, name="detections", daemon=True)
         publisher.start()
         land_at = time.monotonic()
         gcs.command(mav.MAV_CMD_DO_SET_MODE, CUSTOM, LAND, what="LAND", timeout=10)
@@ -410,9 +423,14 @@ def fly(args: argparse.Namespace) -> dict:
         result.update(
             landed=bool(landed), seconds=round(touchdown - land_at, 1),
             error_m=round(math.hypot(final[0] - scene.north, final[1] - scene.east), 3),
+            offset_ne_m=[round(final[0] - scene.north, 3), round(final[1] - scene.east, 3)],
             marker={"id": args.marker_id, "size_m": size, "north": round(args.north, 2), "east": round(args.east, 2)},
             **_targets(relay, gcs, land_at, touchdown),
         )
+        stop.set()
+        publisher.join(timeout=5)
+        result["detections"] = published  # sent, and frames with the marker out of the camera's view
+        result["bridge"] = bridge.stderr().strip().splitlines()[-1]  # its last counters line
         return result
     finally:
         stop.set()
