@@ -7,7 +7,7 @@ graph), SITL with precision landing over MAVLink (PLND_ENABLED=1, PLND_TYPE=1)
 and, where asked, its downward rangefinder; a ground station takes off to 10 m
 and switches to LAND while detections of a site marker 2.5 m north and 2 m
 east, projected from SITL's true pose, go out over Zenoh. How to build the
-binary here: docs/flight.md, "ArduCopter SITL". Each test prints its figures
+binary: docs/flight.md, "Measured on ArduCopter SITL here". Each test prints its figures
 as one JSON line (``pytest -s``).
 """
 
@@ -26,8 +26,11 @@ from tests.conftest import REPO
 
 SITL = os.environ.get("KGADAPT_SITL")
 
-pytestmark = pytest.mark.skipif(
-    not SITL, reason="needs an ArduCopter SITL binary: set KGADAPT_SITL=/path/to/arducopter (docs/flight.md)")
+pytestmark = [
+    pytest.mark.skipif(not SITL, reason="needs an ArduCopter SITL binary: set KGADAPT_SITL=/path/to/arducopter "
+                                        "(docs/flight.md)"),
+    pytest.mark.timeout(900),  # a flight takes 1.5 min, one with a reboot 3-4 (origin again after 40 s)
+]
 
 # The bridge as the README's robot runs it: the camera component's name, everything else from the graph.
 DEFAULT_START = ("--camera", "camera")
