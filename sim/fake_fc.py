@@ -732,8 +732,9 @@ class FakeFlightController:
         landing = v.mode == "LAND" or (v.mode == "RTL" and math.hypot(v.north, v.east) < 0.5)
         if v.mode == "RTL" and not landing and alt > 0:
             d = math.hypot(v.north, v.east)
-            step = min(d, self.settings.rtl_speed_ms * dt)
-            return replace(v, north=v.north - v.north / d * step, east=v.east - v.east / d * step)
+            speed = min(self.settings.rtl_speed_ms, 2.0 * d)  # home, slowing on the way in (no overshoot)
+            north, east, roll, pitch = self._move(v, (-v.north / d * speed, -v.east / d * speed), dt)
+            return replace(v, north=north, east=east, roll=roll, pitch=pitch)
         if not landing or alt <= 0 or v.landed_state == "ON_GROUND":
             return v
         descend = True
