@@ -31,7 +31,7 @@ def test_empty_answers_explain_themselves_and_mistakes_are_errors_naming_the_sto
     misspelt = kgadapt("knowledge", "query", "placement", "-p", "config=marker_detection_darkk", "--store", store)
     assert misspelt.returncode == 1 and misspelt.stdout == ""
     assert "no detector configuration 'marker_detection_darkk'" in misspelt.stderr
-    assert "known: marker_detection_dark, marker_detection_day" in misspelt.stderr
+    assert "known: marker_detection_blur, marker_detection_dark, marker_detection_day" in misspelt.stderr
     platform = kgadapt("knowledge", "query", "cpu_overload", "-p", "platform=onbord", "-p", "limit_pct=80",
                        "--store", store)
     assert platform.returncode == 1 and "no platform 'onbord'" in platform.stderr
