@@ -217,7 +217,14 @@ class TargetBuilder:
             size = side_px * norm(body) / cam.fx  # its side as the image shows it at that distance
         rel = body_to_ned(attitude, body)
         ned = (float(position[0]) + rel[0], float(position[1]) + rel[1], float(position[2]) + rel[2])
-        return Place(ned, float(size), norm(body))
+        if tvec is None:  # the distance from a height: no measurement model, the confirmer's fixed rule
+            return Place(ned, float(size), norm(body))
+        # How it was measured, for the confirmer's tolerance (kgadapt.onboard.confirmation).
+        side_px = sum(math.dist(corners[i], corners[(i + 1) % 4]) for i in range(4)) / 4.0
+        velocity, rates = state.velocity_ned, state.rates
+        return Place(ned, float(size), norm(body), los=tuple(c / norm(rel) for c in rel), side_px=side_px,
+                     focal_px=(cam.fx + cam.fy) / 2.0, speed_mps=norm(velocity) if velocity else 0.0,
+                     rate_rad_s=norm(rates) if rates else 0.0)
 
     def build(self, corners: Sequence[Sequence[float]], *, marker_id: int, frame_time: float,
               profile: AutopilotProfile, state: FlightState,

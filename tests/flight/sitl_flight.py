@@ -462,6 +462,11 @@ def _targets(relay: Relay, gcs: GroundStation, land_at: float, touchdown: float)
             return None
         return round(max([b - a for a, b in zip(times, times[1:])] + [touchdown - times[-1]]), 2)
 
+    def gaps_over(since: float | None, limit: float = 1.0) -> list:
+        """Where the gaps over ``limit`` lie: [from, to] in s after LAND (to: touchdown for the last)."""
+        times = [t for t, _ in targets if since is not None and t >= since] + [touchdown]
+        return [[round(a - land_at, 2), round(b - land_at, 2)] for a, b in zip(times, times[1:]) if b - a > limit]
+
     first = targets[0][0] if targets else None
     positioned = sum(1 for _, m in targets if m.position_valid)
     with_distance = sum(1 for _, m in targets if m.distance > 0)
@@ -472,6 +477,7 @@ def _targets(relay: Relay, gcs: GroundStation, land_at: float, touchdown: float)
         "max_gap_after_acquired_s": max_gap(found[0] if found else None),
         "max_gap_after_first_target_s": max_gap(first),
         "statustext": texts,
+        "gaps_over_1s": gaps_over(found[0] if found else None),
     }
 
 
