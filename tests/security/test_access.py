@@ -130,9 +130,12 @@ def session_as(network):
 
 
 def graph_snapshot(knowledge: KnowledgeClient) -> tuple[Any, ...]:
-    """Everything but the live figures of platforms (the onboard agent keeps updating those)."""
-    nodes = knowledge.cypher("MATCH (n) WHERE NOT n:Platform RETURN labels(n) AS l, properties(n) AS p")
-    platforms = knowledge.cypher("MATCH (p:Platform) RETURN p.name AS name ORDER BY name")
+    """Everything but the live figures of platforms (the onboard agent keeps updating those) and of the
+    fleet roster (the service's roll calls move its robots' last_seen): of both, the names."""
+    nodes = knowledge.cypher("MATCH (n) WHERE NOT n:Platform AND NOT n:FleetRobot "
+                             "RETURN labels(n) AS l, properties(n) AS p")
+    platforms = knowledge.cypher("MATCH (p) WHERE p:Platform OR p:FleetRobot "
+                                 "RETURN labels(p) AS l, p.name AS name ORDER BY name")
     relations = knowledge.cypher("MATCH (a)-[r]->(b) RETURN a.name AS a, type(r) AS t, properties(r) AS p, "
                                  "b.name AS b")
     key = lambda row: repr(sorted(row.items()))  # noqa: E731
