@@ -209,7 +209,11 @@ class EmbeddedServer:
                     f"FalkorDB exited with status {process.returncode} while starting (log {log_path}):\n"
                     f"{_tail(log_path, written_before)}"
                 )
-            if os.path.exists(sock) and _answers_ping(sock):
+            # No command before the server logs that it is ready: while it replays a MULTI/EXEC of
+            # graph writes from the AOF, FalkorDB yields to the event loop, and any command that
+            # arrives then (even a PING) fails redis' assertion '!server.in_exec' and aborts the
+            # server (seen at load 20 on a restart after a model load).
+            if _logged_ready(log_path, written_before) and _answers_ping(sock):
                 break
             time.sleep(0.005)
         else:
@@ -267,6 +271,19 @@ def _is_our_server(pid: int, sock: str) -> bool:
     except (OSError, IndexError):
         return False
     return state != "Z" and b"redis-server" in cmdline and sock.encode() in cmdline
+
+
+_READY = b"Ready to accept connections"
+
+
+def _logged_ready(path: Path, offset: int) -> bool:
+    """True once this start's part of the log (from ``offset``) says the data is loaded and clients are served."""
+    try:
+        with open(path, "rb") as log_file:
+            log_file.seek(offset)
+            return _READY in log_file.read()
+    except OSError:
+        return False
 
 
 def _tail(path: Path, offset: int = 0, lines: int = 8) -> str:

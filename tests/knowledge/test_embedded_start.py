@@ -44,3 +44,43 @@ def test_a_crash_while_starting_shows_the_head_of_the_bug_report(tmp_path):
     shown = embedded._tail(log, offset)
     assert "crashed by signal: 11" in shown and "STACK TRACE" in shown and "old line" not in shown
     assert "--check-system" not in shown
+
+
+def test_a_restart_sends_no_command_while_the_server_replays_its_aof(tmp_path):
+    """FalkorDB yields to the event loop while it replays a MULTI/EXEC of graph writes, and a command
+    arriving then aborts the server ('!server.in_exec'). The starter waits for the log's ready line,
+    so its first connection is the one PING after loading."""
+    import re
+
+    import redis
+
+    data = tmp_path / "store"
+    server = EmbeddedServer(data)
+    address = server.ensure()
+    client = redis.Redis(unix_socket_path=address.unix_socket)
+    client.execute_command("GRAPH.QUERY", "g", "CREATE INDEX FOR (n:N) ON (n.i)")
+    for batch in range(40):  # a model load's shape: many writes in MULTI/EXEC, in the AOF
+        pipe = client.pipeline(transaction=True)
+        for i in range(250):
+            pipe.execute_command("GRAPH.QUERY", "g", "CREATE (:N {i: $i})".replace("$i", str(batch * 250 + i)))
+        pipe.execute()
+    client.close()
+    server.stop()
+    log = data / "server.log"
+    before = log.stat().st_size
+
+    restarted = EmbeddedServer(data, start_timeout=60)
+    address = restarted.ensure()
+    try:
+        client = redis.Redis(unix_socket_path=address.unix_socket)
+        connections = int(client.info("stats")["total_connections_received"])
+        count = client.execute_command("GRAPH.RO_QUERY", "g", "MATCH (n:N) RETURN count(n)")[1][0][0]
+        client.close()
+    finally:
+        restarted.stop()
+    replay = re.search(rb"DB loaded from incr file [^:]+: ([0-9.]+) seconds", log.read_bytes()[before:])
+    assert replay is not None, "the restart replayed no AOF"
+    # The old starter pinged every 5 ms from the moment the socket existed: tens of connections here.
+    assert float(replay.group(1)) > 0.02, "the AOF replays too fast to tell"
+    assert connections == 2, f"{connections} connections by the time the data was loaded (starter's PING + this one)"
+    assert count == 10_000
