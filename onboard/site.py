@@ -6,7 +6,8 @@ dictionary::
 
     {"site": "hall-1", "dictionary": "DICT_4X4_50",
      "markers": [{"id": 33, "size_m": 0.20},
-                 {"id": 42, "size_m": 0.10, "name": "pad B", "position": [2.0, 1.5, 0.0]},
+                 {"id": 45, "size_m": 0.26, "name": "pad, approach", "position": [0.0, -0.19, 0.0]},
+                 {"id": 16, "size_m": 0.02, "name": "pad, touchdown", "position": [0.0, 0.0, 0.0]},
                  {"id": 5, "size_m": 0.30, "dictionary": "DICT_6X6_250"}]}
 
 ``site`` defaults to the file's name, ``dictionary`` (the site's, and each

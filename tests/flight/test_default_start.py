@@ -103,11 +103,11 @@ def test_the_default_start_sends_positions_from_the_graphs_site_without_a_rangef
 
 
 def test_the_default_start_sends_the_landing_point_of_the_graphs_pad(robot):
-    # The demo site's pad: marker 45 (0.26 m) 0.16 m west of the landing point, marker 16 (0.02 m) on it. From 6 m
+    # The demo site's pad: marker 45 (0.26 m) 0.19 m west of the landing point, 0.02 m markers around it. From 6 m
     # only 45 is detected; the targets point at the landing point, its offset from the graph's site taken away.
     fc, flight, agent = robot(with_site=True)
     site = flight.bridge.settings.markers
-    assert site.positions == {45: (0.0, -0.16, 0.0), 16: (0.0, 0.0, 0.0)}
+    assert site.positions[45] == (0.0, -0.19, 0.0) and site.positions[16] == (0.0, 0.0, 0.0)
     k = KnowledgeClient(agent, ROBOT, own=True).query("camera_intrinsics", {"camera": "camera"})[0]
     camera = CameraModel(fx=k["fx"], fy=k["fy"], cx=k["cx"], cy=k["cy"], width=640, height=480)
     scene = PadScene.of_site(camera, site, north=0.8, east=-0.5)
@@ -120,7 +120,7 @@ def test_the_default_start_sends_the_landing_point_of_the_graphs_pad(robot):
         stop.set()
     v = fc.vehicle
     landing = ned_to_body((v.roll, v.pitch, v.yaw), (0.8, -0.5, v.alt))
-    marker = ned_to_body((v.roll, v.pitch, v.yaw), (0.8, -0.66, v.alt))
+    marker = ned_to_body((v.roll, v.pitch, v.yaw), (0.8, -0.69, v.alt))
     fresh = [t.fields for t in targets if t.fields["target_num"] == 45]
     assert fresh and all(f["position_valid"] == 1 for f in fresh)
     for f in fresh:
