@@ -37,6 +37,14 @@ frames lies nowhere in particular. The spread allowed is wide only along
 the line of sight (a 16 px marker at 10 m: about 1.5 m along it, 0.25 m
 across it).
 
+**A landing pad.** The markers of the site's pad (those with a ``position``,
+:meth:`SiteMarkers.place_of`) are followed as one: their places are the pad's
+landing point (the caller takes each marker's offset away), and in a frame
+that shows several of them the largest in the image stands for the pad. A
+descent that loses the big marker below half a metre and finds the small one
+keeps its streak, where a streak per id would start again (3 s at 1 detection
+a second).
+
 The site's markers come from the knowledge graph or a site file (:mod:`kgadapt.onboard.site`).
 """
 
@@ -138,8 +146,9 @@ class MarkerConfirmer:
             return None
         self._last_frame = frame_time
         site = self.settings.site
-        seen: dict[int, tuple[int, tuple[float, float], float]] = {}
-        placed: dict[int, Place | None] = {}
+        # Tracks are kept per landing point: the markers of one pad (SiteMarkers.place_of) are one track, so a
+        # descent that loses the big marker and finds the small one keeps its streak (their places agree).
+        groups: dict[int, list[tuple[int, int, tuple[float, float], float]]] = {}
         for index, mid, (centre, side) in parsed:
             if site is not None and mid not in site.sizes_m:
                 self.refused_off_site += 1
@@ -147,12 +156,17 @@ class MarkerConfirmer:
             if clean is not None and index < len(clean) and clean[index] is False:
                 self.refused_unclean += 1
                 continue  # not counted as seen: its streak, if any, takes a miss
-            if mid in seen:  # the same id twice in one frame: neither is trusted
-                seen[mid] = (-1, centre, side)
-                placed[mid] = None
+            groups.setdefault(site.place_of(mid) if site is not None else mid, []).append((index, mid, centre, side))
+        seen: dict[int, tuple[int, tuple[float, float], float]] = {}
+        placed: dict[int, Place | None] = {}
+        for key, group in groups.items():
+            ids_in = [mid for _, mid, _, _ in group]
+            index, _, centre, side = max(group, key=lambda g: g[3])  # the pad's largest marker in the image
+            if len(set(ids_in)) < len(ids_in):  # the same id twice in one frame: none of the place is trusted
+                seen[key], placed[key] = (-1, centre, side), None
                 continue
-            seen[mid] = (index, centre, side)
-            placed[mid] = places[index] if places is not None and index < len(places) else None
+            seen[key] = (index, centre, side)
+            placed[key] = places[index] if places is not None and index < len(places) else None
         confirmed = []
         for mid, (index, centre, side) in seen.items():
             track = self._tracks.get(mid)

@@ -119,15 +119,22 @@ def landing_target(
     )
 
 
-def choose_marker(detections: dict, target_id: int | None) -> int | None:
-    """Index of the marker to land on: ``target_id`` if seen, else the largest in the image; None if none."""
+def choose_marker(detections: dict, target_id: int | None, site: SiteMarkers | None = None) -> int | None:
+    """Index of the marker to land on: ``target_id`` (or, when it is a marker of the site's pad, the largest of
+    the pad's markers) if seen, else the largest in the image; None if none."""
     ids, corners = detections["ids"], detections["corners"]
     if len(ids) != len(corners):
         raise MessageError(f"detections has {len(ids)} ids but {len(corners)} corner sets")
+    wanted: list[int] = list(range(len(ids)))
     if target_id is not None:
-        return next((i for i, marker in enumerate(ids) if marker_id_of(marker) == target_id), None)
+        if site is None or site.place_of(target_id) == target_id:
+            return next((i for i, marker in enumerate(ids) if marker_id_of(marker) == target_id), None)
+        pad = site.place_of(target_id)
+        wanted = [i for i, marker in enumerate(ids) if (mid := marker_id_of(marker)) is not None
+                  and mid in site.sizes_m and site.place_of(mid) == pad]
     best, best_area = None, -1.0
-    for i, c in enumerate(corners):
+    for i in wanted:
+        c = corners[i]
         points = marker_points(c)
         area = abs(sum(points[j][0] * points[j - 1][1] - points[j - 1][0] * points[j][1] for j in range(4))) / 2
         if area > best_area:
@@ -371,7 +378,7 @@ class FlightBridge:
                 self.counters["unconfirmed"] += 1
                 return
             detections = confirmed
-            index = choose_marker(detections, self.settings.target_id)
+            index = choose_marker(detections, self.settings.target_id, self.settings.confirmation.site)
             if index is None:
                 self.counters["no_target"] += 1
                 return

@@ -17,6 +17,9 @@ the same file the confirmer reads), both JSON, checked on load::
    ``position_valid=1`` in MAV_FRAME_BODY_FRD with ``distance`` its norm; for
    **PX4** rotated by the attitude heard nearest the frame's time and added to
    the vehicle's local position: ``position_valid=1`` in MAV_FRAME_LOCAL_NED;
+   A marker of the site's landing pad (one with a ``position``) stands for the
+   pad's landing point: its offset (NED) turned into the body frame by the
+   attitude and added, so every marker of the pad leads to the same spot;
 2. no size, or no pose -> angles, with ``distance`` from the downward
    rangefinder along the line of sight when one is heard (ArduPilot then places
    the target even without its own rangefinder);
@@ -216,6 +219,9 @@ class TargetBuilder:
             side_px = sum(math.dist(corners[i], corners[(i + 1) % 4]) for i in range(4)) / 4.0
             size = side_px * norm(body) / cam.fx  # its side as the image shows it at that distance
         rel = body_to_ned(attitude, body)
+        to = self.markers.to_landing_point(marker_id) if self.markers is not None else None
+        if to is not None:  # a pad's marker: the place is the pad's landing point
+            rel = (rel[0] + to[0], rel[1] + to[1], rel[2] + to[2])
         ned = (float(position[0]) + rel[0], float(position[1]) + rel[1], float(position[2]) + rel[2])
         if tvec is None:  # the distance from a height: no measurement model, the confirmer's fixed rule
             return Place(ned, float(size), norm(body))
@@ -245,7 +251,8 @@ class TargetBuilder:
         tvec = marker_pose(corners, size, cam) if size else None
         common = dict(time=float(frame_time), size_x=size_x, size_y=size_y, target_num=marker_id if 0 <= marker_id <= 255 else 0)
         if tvec is not None:
-            body = camera_to_body(tvec, yaw_deg=cam.yaw_deg, offset=cam.offset_m)
+            body = self._landing_point(camera_to_body(tvec, yaw_deg=cam.yaw_deg, offset=cam.offset_m), marker_id,
+                                       attitude)
             angle_x, angle_y = _body_angles(body)
             held = HeldTarget.of(body, attitude, position, marker_id, frame_time)
             self.counters["position"] += 1
@@ -262,12 +269,26 @@ class TargetBuilder:
             down = body_to_ned(attitude, unit)[2] if attitude else unit[2]
             if down > 0.05:
                 distance = height / down
-                body = tuple(c * distance for c in unit)
+                body = self._landing_point(tuple(c * distance for c in unit), marker_id, attitude)
+                angle_x, angle_y = _body_angles(body)
+                distance = norm(body)
                 self.counters["rangefinder"] += 1
                 return (LandingTarget(angle_x=angle_x, angle_y=angle_y, distance=distance, **common),
                         HeldTarget.of(body, attitude, position, marker_id, frame_time))
         self.counters["angles"] += 1
         return LandingTarget(angle_x=angle_x, angle_y=angle_y, **common), None
+
+    def _landing_point(self, body: Sequence[float], marker_id: int,
+                       attitude: Sequence[float] | None) -> tuple[float, float, float]:
+        """A pad marker's place in body FRD moved to the pad's landing point (the site's offset, NED, turned by
+        the attitude); the marker itself when it is its own landing point or the attitude is unknown."""
+        to = self.markers.to_landing_point(marker_id) if self.markers is not None else None
+        if to is None or attitude is None:
+            if to is not None:
+                self.counters["pad_offset_unapplied"] = self.counters.get("pad_offset_unapplied", 0) + 1
+            return (float(body[0]), float(body[1]), float(body[2]))
+        shift = ned_to_body(attitude, to)
+        return (float(body[0]) + shift[0], float(body[1]) + shift[1], float(body[2]) + shift[2])
 
 
 @dataclass(frozen=True)

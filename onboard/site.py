@@ -6,13 +6,19 @@ dictionary::
 
     {"site": "hall-1", "dictionary": "DICT_4X4_50",
      "markers": [{"id": 33, "size_m": 0.20},
-                 {"id": 42, "size_m": 0.10, "name": "pad B", "position": [2.0, 1.5, 0.0]},
+                 {"id": 45, "size_m": 0.26, "name": "pad, approach", "position": [0.0, -0.19, 0.0]},
+                 {"id": 16, "size_m": 0.02, "name": "pad, touchdown", "position": [0.0, 0.0, 0.0]},
                  {"id": 5, "size_m": 0.30, "dictionary": "DICT_6X6_250"}]}
 
 ``site`` defaults to the file's name, ``dictionary`` (the site's, and each
 marker's unless it names its own) to ``DICT_4X4_50``. ``position`` is where
-the marker lies at the site, metres (north, east, down from the site's
-origin); optional and informative. The dictionary must be one OpenCV knows
+the marker lies from the site's **landing point**, metres (north, east, down:
+lay the pad out squared to north). A marker with a position is part of the
+landing pad: seeing it guides the vehicle to the landing point, its offset
+taken away, so every marker of the pad leads to the same spot (a big marker
+for the approach, a small one beside the landing point that stays in the
+camera's view down to touchdown). A marker without a position is itself a
+landing point. The dictionary must be one OpenCV knows
 (or a custom dictionary file, as :func:`kgadapt.onboard.markers.aruco_dictionary`
 takes it; a relative path is read from the site file's folder), ids unique
 and within the dictionary, sizes positive. Anything else is a
@@ -74,6 +80,18 @@ class SiteMarkers:
 
     def dictionary_of(self, marker_id: int) -> str:
         return self.dictionaries.get(marker_id, self.dictionary)
+
+    def to_landing_point(self, marker_id: int) -> tuple[float, float, float] | None:
+        """From the marker to the site's landing point (NED, m); None when the marker is its own landing point."""
+        position = self.positions.get(marker_id)
+        if position is None or not any(position):
+            return None
+        return (-position[0], -position[1], -position[2])
+
+    def place_of(self, marker_id: int) -> int:
+        """The landing point a marker leads to, as a key: -1 for the pad's (every marker with a position),
+        else the marker's own id. Sightings of one place are one track for the confirmation."""
+        return -1 if marker_id in self.positions else marker_id
 
 
 def check_dictionaries_here(names: list[str]) -> dict[str, DictionaryVerdict]:

@@ -8,6 +8,9 @@ mounting and its pinhole intrinsics, and returns them in ArUco's corner order
 from a callable: the fake flight controller's truth in tests, the autopilot's
 own LOCAL_POSITION_NED and ATTITUDE against SITL.
 
+:class:`PadScene` is a site's landing pad as built: each of its markers where the
+site declares it, each detected while wholly in view and large enough.
+
 :func:`run_detections` publishes such detections over Zenoh at a given rate,
 as the detector would, for the flight bridge to follow.
 """
@@ -34,6 +37,8 @@ class MarkerScene:
     east: float
     size_m: float
     marker_id: int = 7
+    down: float = 0.0  # the ground's height in the local frame (NED down, m)
+    min_side_px: float = 0.0  # smaller in the image than this: not detected (0: any size)
 
     def corners(self, pose: Pose) -> list[list[float]] | None:
         """The marker's corners in pixels (top-left, top-right, bottom-right, bottom-left), None if not in view."""
@@ -44,7 +49,7 @@ class MarkerScene:
         cam = self.camera
         points = []
         for n, e in world:
-            rel = (n - position[0], e - position[1], 0.0 - position[2])
+            rel = (n - position[0], e - position[1], self.down - position[2])
             x, y, z = body_to_camera(ned_to_body(attitude, rel), yaw_deg=cam.yaw_deg, offset=cam.offset_m)
             if z <= 0.05:
                 return None
@@ -52,12 +57,49 @@ class MarkerScene:
             if cam.width and not (0 <= u < cam.width and 0 <= v < cam.height):
                 return None
             points.append([u, v])
+        if self.min_side_px and sum(math.dist(points[i], points[i - 1]) for i in range(4)) / 4 < self.min_side_px:
+            return None
         return points
 
+    def detect(self, pose: Pose) -> list[tuple[int, list[list[float]]]]:
+        """(id, corners) of every marker of the scene in view: here one."""
+        corners = self.corners(pose)
+        return [] if corners is None else [(self.marker_id, corners)]
 
-def run_detections(session, robot: str, scene: MarkerScene, pose: Callable[[], Pose | None], *, rate_hz: float,
-                   stop: threading.Event, instance: str = "scene", noise_px: float = 0.0, seed: int = 12) -> dict:
-    """Publish ``detections`` of ``scene`` at ``rate_hz`` until ``stop``; returns counts (sent, out of view)."""
+
+@dataclass(frozen=True)
+class PadScene:
+    """A site's landing pad as built: every marker of it on the ground, each where the site declares it.
+
+    ``north, east`` is the pad's landing point in the local frame; each marker lies at its declared
+    ``position`` (north, east, down) from there (:class:`kgadapt.onboard.site.SiteMarkers`). A marker is
+    detected when all its corners are in the camera's view and its side is at least ``min_side_px``
+    (OpenCV's default ArUco detector, on a rendered 4x4 marker shrunk to size, found it every time from
+    12 px and not reliably below).
+    """
+
+    markers: tuple[MarkerScene, ...]
+    north: float
+    east: float
+
+    @classmethod
+    def of_site(cls, camera: CameraModel, site, *, north: float, east: float, down: float = 0.0,
+                min_side_px: float = 12.0) -> "PadScene":
+        pad = [mid for mid in sorted(site.positions)]
+        if not pad:
+            raise ValueError(f"site {site.site!r} has no landing pad (no marker with a position)")
+        return cls(tuple(MarkerScene(camera, north=north + site.positions[mid][0], east=east + site.positions[mid][1],
+                                     size_m=site.sizes_m[mid], marker_id=mid, down=down + site.positions[mid][2],
+                                     min_side_px=min_side_px) for mid in pad), north, east)
+
+    def detect(self, pose: Pose) -> list[tuple[int, list[list[float]]]]:
+        return [found for marker in self.markers for found in marker.detect(pose)]
+
+
+def run_detections(session, robot: str, scene: "MarkerScene | PadScene", pose: Callable[[], Pose | None], *, rate_hz: float,
+                   stop: threading.Event, instance: str = "scene", noise_px: float = 0.0, seed: int = 12,
+                   record: list | None = None) -> dict:
+    """Publish ``detections`` of ``scene`` at ``rate_hz`` until ``stop``; returns counts (sent, out of view, per marker)."""
     from kgadapt.shared import keys, messages
 
     publisher = session.declare_publisher(keys.detector_markers(robot, instance))
@@ -70,19 +112,24 @@ def run_detections(session, robot: str, scene: MarkerScene, pose: Callable[[], P
         while not stop.is_set():
             current = pose()
             frame_time = time.time()
-            corners = scene.corners(current) if current is not None else None
-            if corners is None:
+            found = scene.detect(current) if current is not None else []
+            if record is not None:  # (monotonic, ids in view) of every frame, for a harness to place gaps
+                record.append((time.monotonic(), [mid for mid, _ in found]))
+            if not found:
                 counts["out_of_view"] += 1
             else:
                 seq += 1
                 if noise_px > 0:
-                    corners = [[u + rng.gauss(0, noise_px), v + rng.gauss(0, noise_px)] for u, v in corners]
+                    found = [(mid, [[u + rng.gauss(0, noise_px), v + rng.gauss(0, noise_px)] for u, v in corners])
+                             for mid, corners in found]
                 publisher.put(messages.encode("detections", {
                     "instance": instance, "config": "scene", "host": "scene", "seq": seq,
-                    "frame_time": frame_time, "time": time.time(), "ids": [[scene.marker_id]],
-                    "corners": [[corners]], "processing_ms": 0.0,
+                    "frame_time": frame_time, "time": time.time(), "ids": [[mid] for mid, _ in found],
+                    "corners": [[corners] for _, corners in found], "processing_ms": 0.0,
                 }))
                 counts["sent"] += 1
+                for mid, _ in found:
+                    counts[f"marker_{mid}"] = counts.get(f"marker_{mid}", 0) + 1
             next_at += period
             stop.wait(max(0.0, next_at - time.monotonic()))
     finally:

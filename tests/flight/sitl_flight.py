@@ -18,11 +18,14 @@ machine. What it starts there, each a real process:
   something connects there): mode, arming, take-off, LAND, reboot, and
   SIM_STATE, the simulated vehicle's true attitude and position.
 
-Detections of one marker of the site (on the ground, ``--north``/``--east`` m
-from where LAND starts) are projected from that true pose through the graph's
-intrinsics (:class:`kgadapt.sim.landing_scene.MarkerScene`, with corner noise)
-and published over Zenoh as the detector publishes them. The landing error is
-the true horizontal distance from the marker when ArduCopter disarms.
+Detections of the site's landing pad (its landing point on the ground,
+``--north``/``--east`` m from where LAND starts; each marker of the pad where
+the site model declares it) are projected from that true pose through the
+graph's intrinsics (:class:`kgadapt.sim.landing_scene.PadScene`, with corner
+noise; a marker counts when wholly in view and at least 12 px) and published
+over Zenoh as the detector publishes them. The ground is SITL's home altitude,
+0.1 m below the copter's resting reference point. The landing error is the
+true horizontal distance from the pad's landing point when ArduCopter disarms.
 """
 
 from __future__ import annotations
@@ -282,14 +285,11 @@ class GroundStation:
         return first
 
 
-def site_marker(marker_id: int) -> float:
-    """The printed size of ``marker_id`` as the site model in knowledge/models says it."""
+def site_model():
+    """The site model in knowledge/models (the one the graph holds)."""
     from kgadapt.onboard.site import load_site
 
-    size = load_site(SITE_FILE).size_of(marker_id)
-    if size is None:
-        raise SystemExit(f"{SITE_FILE} has no marker {marker_id}")
-    return size
+    return load_site(SITE_FILE)
 
 
 def intrinsics_from_graph(session):
@@ -354,7 +354,7 @@ def reboot_on_the_ground(gcs: GroundStation, sitl: subprocess.Popen, relay: Rela
 
 def fly(args: argparse.Namespace) -> dict:
     from kgadapt.shared import session as zsession
-    from kgadapt.sim.landing_scene import MarkerScene, run_detections
+    from kgadapt.sim.landing_scene import MarkerScene, PadScene, run_detections
 
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -394,7 +394,11 @@ def fly(args: argparse.Namespace) -> dict:
         gcs.wait(lambda: gcs.truth.last is not None, 10)
         time.sleep(1.0)  # at rest: its altitude is the ground's
         rest = gcs.truth.last
-        gcs.truth.origin = (rest.lat_int / 1e7, rest.lon_int / 1e7, rest.alt)
+        # The ground is SITL's home altitude; its copter rests with its reference point (where the camera is)
+        # frame_height = 0.1 m above it (SIM_Multicopter.cpp, SIM_Aircraft.cpp hagl()), so markers lie 0.1 m
+        # below where it rests, not at its height.
+        gcs.truth.origin = (rest.lat_int / 1e7, rest.lon_int / 1e7, HOME[2])
+        result["rest_height_m"] = round(rest.alt - HOME[2], 3)
         for what, command, params in (("GUIDED", mav.MAV_CMD_DO_SET_MODE, (CUSTOM, GUIDED)),
                                       ("arming", mav.MAV_CMD_COMPONENT_ARM_DISARM, (1,)),
                                       ("take-off", mav.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, args.alt))):
@@ -403,14 +407,25 @@ def fly(args: argparse.Namespace) -> dict:
             raise RuntimeError(f"no climb to {args.alt} m")
         time.sleep(2.0)  # let it settle at altitude
         north, east, _ = gcs.truth.ned()
-        size = site_marker(args.marker_id)
-        scene = MarkerScene(camera, north=north + args.north, east=east + args.east, size_m=size,
-                            marker_id=args.marker_id)
+        site = site_model()
+        if args.marker_id is None:  # the site's landing pad as built: every marker of it where the site says
+            scene = PadScene.of_site(camera, site, north=north + args.north, east=east + args.east,
+                                     min_side_px=args.min_side_px)
+            marker = {"pad": {mid: {"size_m": site.sizes_m[mid], "position": site.positions[mid]}
+                              for mid in sorted(site.positions)}}
+        else:
+            size = site.size_of(args.marker_id)
+            if size is None:
+                raise SystemExit(f"{SITE_FILE} has no marker {args.marker_id}")
+            scene = MarkerScene(camera, north=north + args.north, east=east + args.east, size_m=size,
+                                marker_id=args.marker_id, min_side_px=args.min_side_px)
+            marker = {"id": args.marker_id, "size_m": size}
         published: dict = {}
+        frames: list = []
 
         def publish() -> None:
             published.update(run_detections(session, ROBOT, scene, gcs.truth.pose, rate_hz=args.rate, stop=stop,
-                                            noise_px=args.noise_px))
+                                            noise_px=args.noise_px, record=frames))
 
         publisher = threading.Thread(target=publish, name="detections", daemon=True)
         publisher.start()
@@ -424,9 +439,14 @@ def fly(args: argparse.Namespace) -> dict:
             landed=bool(landed), seconds=round(touchdown - land_at, 1),
             error_m=round(math.hypot(final[0] - scene.north, final[1] - scene.east), 3),
             offset_ne_m=[round(final[0] - scene.north, 3), round(final[1] - scene.east, 3)],
-            marker={"id": args.marker_id, "size_m": size, "north": round(args.north, 2), "east": round(args.east, 2)},
+            marker={**marker, "north": round(args.north, 2), "east": round(args.east, 2)},
             **_targets(relay, gcs, land_at, touchdown),
         )
+        # The last seconds, to place any gap: each frame's markers in view, and each target's time (s after LAND).
+        end = result["disarmed_s"] + land_at
+        result["last_frames"] = [[round(t - land_at, 2), ids] for t, ids in frames if t >= end - 5]
+        with relay.lock:
+            result["last_targets_s"] = [round(t - land_at, 2) for t, _ in relay.targets if end - 5 <= t <= touchdown]
         stop.set()
         publisher.join(timeout=5)
         result["detections"] = published  # sent, and frames with the marker out of the camera's view
@@ -451,10 +471,16 @@ def fly(args: argparse.Namespace) -> dict:
 
 def _targets(relay: Relay, gcs: GroundStation, land_at: float, touchdown: float) -> dict:
     """What the LANDING_TARGETs that reached ArduPilot were, and ArduPilot's own word on them."""
+    # ArduPilot's disarm: its own "Disarming motors" text, else the first heartbeat that says disarmed (sent
+    # once a second, so up to 1 s after the disarm). LANDING_TARGETs after it land nothing.
+    said = [t for t, text in gcs.texts if t >= land_at and text.startswith("Disarming motors")]
+    heartbeat = touchdown
+    touchdown = min([heartbeat, *said])
     with relay.lock:
         targets = [(t, m) for t, m in relay.targets if land_at - 5 <= t <= touchdown]
     texts = [(round(t - land_at, 2), text) for t, text in gcs.texts if t >= land_at - 5]
     found = [t for t, text in gcs.texts if t >= land_at and "Target Found" in text]
+    hit = [t for t, text in gcs.texts if t >= land_at and "Hit ground" in text]
 
     def max_gap(since: float | None) -> float | None:
         times = [t for t, _ in targets if since is not None and t >= since]
@@ -478,6 +504,8 @@ def _targets(relay: Relay, gcs: GroundStation, land_at: float, touchdown: float)
         "max_gap_after_first_target_s": max_gap(first),
         "statustext": texts,
         "gaps_over_1s": gaps_over(found[0] if found else None),
+        "disarmed_s": round(touchdown - land_at, 2), "disarm_heartbeat_s": round(heartbeat - land_at, 2),
+        "hit_ground_s": round(hit[0] - land_at, 2) if hit else None,
     }
 
 
@@ -494,7 +522,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=15.0, help="detections a second")
     parser.add_argument("--rangefinder", action="store_true", help="SITL's downward rangefinder")
     parser.add_argument("--reboot-first", action="store_true", help="reboot ArduPilot on the ground first")
-    parser.add_argument("--marker-id", type=int, default=33, help="a marker of the site model")
+    parser.add_argument("--marker-id", type=int, default=None,
+                        help="one marker of the site model alone (default: the site's landing pad, every marker)")
+    parser.add_argument("--min-side-px", type=float, default=12.0, help="smaller markers are not detected")
     parser.add_argument("--north", type=float, default=2.5)
     parser.add_argument("--east", type=float, default=2.0)
     parser.add_argument("--alt", type=float, default=10.0)

@@ -25,7 +25,7 @@ from kgadapt.onboard.site import ANGLES_ONLY
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
-from kgadapt.sim.landing_scene import MarkerScene, fake_pose, run_detections
+from kgadapt.sim.landing_scene import MarkerScene, PadScene, fake_pose, run_detections
 from tests.conftest import REPO, free_port
 from tests.flight.conftest import free_udp_port, wait_until
 
@@ -100,6 +100,32 @@ def test_the_default_start_sends_positions_from_the_graphs_site_without_a_rangef
         assert (f["x"], f["y"], f["z"]) == pytest.approx(truth, abs=0.05)  # from the 0.18 m size in the graph
         assert f["distance"] == pytest.approx(sum(c * c for c in truth) ** 0.5, rel=0.02)
     assert flight.bridge.angles_only is False
+
+
+def test_the_default_start_sends_the_landing_point_of_the_graphs_pad(robot):
+    # The demo site's pad: marker 45 (0.26 m) 0.19 m west of the landing point, 0.02 m markers around it. From 6 m
+    # only 45 is detected; the targets point at the landing point, its offset from the graph's site taken away.
+    fc, flight, agent = robot(with_site=True)
+    site = flight.bridge.settings.markers
+    assert site.positions[45] == (0.0, -0.19, 0.0) and site.positions[16] == (0.0, 0.0, 0.0)
+    k = KnowledgeClient(agent, ROBOT, own=True).query("camera_intrinsics", {"camera": "camera"})[0]
+    camera = CameraModel(fx=k["fx"], fy=k["fy"], cx=k["cx"], cy=k["cy"], width=640, height=480)
+    scene = PadScene.of_site(camera, site, north=0.8, east=-0.5)
+    stop = threading.Event()
+    try:
+        threading.Thread(target=run_detections, args=(agent, ROBOT, scene, fake_pose(fc)),
+                         kwargs=dict(rate_hz=10.0, stop=stop), daemon=True).start()
+        targets = fc.wait_for("LANDING_TARGET", 5, timeout=15)
+    finally:
+        stop.set()
+    v = fc.vehicle
+    landing = ned_to_body((v.roll, v.pitch, v.yaw), (0.8, -0.5, v.alt))
+    marker = ned_to_body((v.roll, v.pitch, v.yaw), (0.8, -0.69, v.alt))
+    fresh = [t.fields for t in targets if t.fields["target_num"] == 45]
+    assert fresh and all(f["position_valid"] == 1 for f in fresh)
+    for f in fresh:
+        assert (f["x"], f["y"], f["z"]) == pytest.approx(landing, abs=0.05)
+        assert sum((a - b) ** 2 for a, b in zip((f["x"], f["y"], f["z"]), marker)) ** 0.5 > 0.1  # not the marker
 
 
 def test_without_sizes_or_a_rangefinder_the_agent_warns_once_and_status_lists_it(robot, caplog):

@@ -32,7 +32,9 @@ def test_the_shipped_site_is_loaded_and_the_named_query_gives_its_markers(resp_s
     rows = run_named(resp_store, "site_markers", {})
     site = site_from_rows(rows)
     assert site is not None and site.site == "demo-hall" and site.dictionary == "DICT_4X4_50"
-    assert site.sizes_m == {3: 0.24, 7: 0.18, 12: 0.2, 21: 0.16, 33: 0.26, 42: 0.13}
+    assert site.sizes_m == {3: 0.24, 7: 0.18, 12: 0.2, 21: 0.16, 33: 0.26, 42: 0.13, 45: 0.26,
+                            **{mid: 0.02 for mid in (16, 17, 18, 19, 20, 22, 23, 24, 25)}}
+    assert site.positions[45] == (0.0, -0.19, 0.0) and site.positions[22] == (0.03, 0.03, 0.0)  # the landing pad
     assert site.names[3] == "pad 3"
     assert run_named(resp_store, "site_markers", {"site": "demo-hall"}) == rows
     assert run_named(resp_store, "site_markers", {"site": "no-such-site"}) == []

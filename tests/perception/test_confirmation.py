@@ -118,7 +118,8 @@ def test_keep_cuts_ids_corners_and_poses_to_the_confirmed_markers():
 
 def test_the_shipped_site_file_loads_and_bad_ones_are_named(tmp_path):
     site = load_site(REPO / "knowledge" / "models" / "sites" / "demo.site")
-    assert site.ids == {3, 7, 12, 21, 33, 42} and site.sizes_m[33] == 0.26
+    assert site.ids == {3, 7, 12, 21, 33, 42, 45, 16, 17, 18, 19, 20, 22, 23, 24, 25} and site.sizes_m[33] == 0.26
+    assert site.positions[45] == (0.0, -0.19, 0.0) and site.positions[16] == (0.0, 0.0, 0.0)  # the landing pad
     for text, words in [("[1]", "non-empty 'markers'"), ('{"markers": [{"id": -1, "size_m": 1}]}', "'id'"),
                         ('{"markers": [{"id": 1}]}', "size_m"), ("{", "not valid JSON"),
                         ('{"markers": [{"id": 1, "size_m": 1}, {"id": 1, "size_m": 1}]}', "twice")]:
