@@ -123,12 +123,14 @@ def test_the_wheel_installs_nothing_but_kgadapt_at_the_top(installed):
 
 @pytest.mark.slow
 def test_the_installed_wheel_finds_its_data_and_writes_results_where_it_runs(installed):
-    done = _run(installed, "python", "-c", "from kgadapt.shared import resources as r; print(r.models()); "
-                                           "print(r.scenarios()); print(r.photographs()); print(r.results_dir().resolve())")
+    done = _run(installed, "python", "-c", "from kgadapt.shared import resources as r; from kgadapt.sim import photos; "
+                                           "print(r.models()); print(r.scenarios()); print(photos.PHOTO_DIR); "
+                                           "print(r.results_dir().resolve())")
     assert done.returncode == 0, done.stderr
     models, scenarios, photographs, results = (Path(line) for line in done.stdout.split())
     assert models.is_relative_to(installed[0]) and (models / "deployments" / "detector_dusk.deploy").is_file()
     assert scenarios.is_relative_to(installed[0]) and (scenarios / "demo.json").is_file()
+    assert scenarios.parent.name == "perception"  # the synthetic camera's profiles are perception's, not the simulator's
     assert photographs.is_relative_to(installed[0]) and (photographs / "contrib_img_00.jpg").is_file()
     assert results == installed[1] / "bench-results"  # not site-packages: the wheel has no bench/results
 
