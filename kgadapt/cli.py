@@ -102,7 +102,11 @@ def _long_running(args: argparse.Namespace) -> bool:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    try:
+        parser = build_parser()
+    except KgadaptError as exc:  # e.g. an installation without its command registry
+        print(f"kgadapt: error: {exc}", file=sys.stderr)
+        return 1
     args = parser.parse_args(argv)
     if args.log_level is None:
         args.log_level = "INFO" if _long_running(args) else "WARNING"

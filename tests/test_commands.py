@@ -92,6 +92,14 @@ def test_an_entry_that_adds_no_such_command_or_joins_no_command_is_refused(monke
         cli.build_parser()
 
 
+def test_an_installation_without_the_registry_says_so_in_one_line(monkeypatch, capsys):
+    monkeypatch.setattr(metadata, "entry_points", lambda **_: [])
+    assert cli.main(["status"]) == 1
+    assert capsys.readouterr().err.strip() == (
+        "kgadapt: error: no kgadapt commands are registered (entry points 'kgadapt.commands'): "
+        "install kgadapt (pip install -e . in a checkout) to run it")
+
+
 def test_building_the_parser_loads_neither_opencv_nor_a_store_driver_nor_mavlink():
     heavy = ("cv2", "falkordb", "redis", "neo4j", "pymavlink", "matplotlib")
     code = ("import sys; from kgadapt.cli import build_parser; build_parser(); "
