@@ -149,3 +149,15 @@ def test_a_part_runs_as_a_module_of_the_installed_wheel(installed):
         done = _run(installed, "python", "-m", module, "--help")
         assert done.returncode == 0, (module, done.stderr)
         assert "usage:" in done.stdout, module
+
+
+@pytest.mark.slow
+def test_the_installed_wheel_runs_its_runtime_with_the_simulator_and_the_benchmarks_gone(installed):
+    # As a robot's installation without sim/ and bench/ would: every runtime module, the synthetic camera
+    # with the wheel's own profiles, the launcher's preloads, and the commands from the wheel's registry.
+    from tests.test_layers import ABOVE, RUNTIME_CHECK, runtime_modules
+
+    done = _run(installed, "python", "-c", f"ABOVE = {ABOVE!r}\nRUNTIME = {runtime_modules()!r}\n" + RUNTIME_CHECK)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-4000:]
+    assert done.stdout.strip().endswith("modules; []"), done.stdout
+    assert "needs kgadapt.sim.cli, which is not installed" in done.stderr
