@@ -30,4 +30,4 @@ clean:
 
 # Offline install archives for x86_64 and aarch64 (docs/deploy.md); needs a package index once.
 dist: $(STAMP)
-	$(BIN)/python -m kgadapt.deploy.archive --out dist
+	$(BIN)/python scripts/archive.py --out dist

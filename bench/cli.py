@@ -27,6 +27,7 @@ BENCHES = (
     "kgadapt.bench.starvation_bench",
     "kgadapt.bench.fleet_bench",
     "kgadapt.bench.soak_bench",
+    "kgadapt.bench.report",
 )
 
 

@@ -262,7 +262,7 @@ def supervisor_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, 
     if rig.real_detector:
         programs.append(("kgadapt.onboard.detector (OpenCV + Zenoh + config query)", detector, args.detector_reps,
                          rig.supervisor))
-    programs += [("echo detector, forked by the launcher", echo, args.reps, rig.supervisor_launcher)]
+    # The launcher preloads the runtime detector only (deploy/launcher.py RUNNABLE), not the echo stand-in.
     if rig.real_detector:
         programs.append(("kgadapt.onboard.detector, forked by the launcher", detector, args.detector_reps,
                          rig.supervisor_launcher))

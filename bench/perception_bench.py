@@ -241,9 +241,9 @@ def measure_transport(*, seconds: float, fps: float, robot: str = "benchperc") -
     """Camera publisher here, detector in a child process; latencies from the detections' timestamps."""
     from kgadapt.bench import stats
     from kgadapt.onboard.camera import CameraPart, CameraSettings, SyntheticSource
+    from kgadapt.onboard.perception.scene import IlluminationProfile
     from kgadapt.shared import keys, messages
     from kgadapt.shared.session import ZenohSettings, open_session
-    from kgadapt.sim.scenario import IlluminationProfile
 
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     session = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))

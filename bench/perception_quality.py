@@ -78,8 +78,8 @@ def oracle_gap(ask: Callable[[str, dict[str, Any]], list[dict[str, Any]]], bands
 
 def phantom_scenes(total: int, *, run: int = 20):
     """``total`` frames without DICT_4X4_50 markers, in runs of ``run`` consecutive frames of one scene."""
+    from kgadapt.onboard.perception.scene import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
     from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
-    from kgadapt.sim.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
 
     photos = [load_photo(name) for name in PHOTO_DICTIONARIES]
     variants = [(None, CameraModel()), (30.0, CameraModel()), (6.0, CameraModel()), (100.0, CameraModel(blur_px=7))]
@@ -142,8 +142,8 @@ def phantoms(*, frames: int, site_ids: Sequence[int], progress: Progress = None)
 
 def photo_agreement(*, levels: Sequence[float] = (6.0, 15.0, 30.0), frames: int = 8) -> dict[str, Any]:
     """Every configuration with the photos' dictionary: rate on darkened photos and on the synthetic scene."""
+    from kgadapt.onboard.perception.scene import IlluminationProfile, SceneSettings, SyntheticScene
     from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames, photo_truth, shifted
-    from kgadapt.sim.scenario import IlluminationProfile, SceneSettings, SyntheticScene
 
     names = [n for n, d in PHOTO_DICTIONARIES.items() if d == "DICT_6X6_250"]
     photos = {n: load_photo(n) for n in names}
@@ -180,7 +180,7 @@ def photo_agreement(*, levels: Sequence[float] = (6.0, 15.0, 30.0), frames: int 
 
 def targets(*, frames: int = 20) -> dict[str, Any]:
     """The issue's two rate targets, for every configuration."""
-    from kgadapt.sim.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
+    from kgadapt.onboard.perception.scene import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
 
     out: dict[str, Any] = {}
     cases = {
@@ -238,8 +238,8 @@ def blur_agreement(configs: Sequence[DetectorConfig] | None = None, *, blurs: Se
     used before (six 60-125 px markers, no lens blur).
     """
     from kgadapt.onboard.calibration import condition_profile
+    from kgadapt.onboard.perception.scene import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
     from kgadapt.sim.photos import load_photo, photo_frames, photo_truth, shifted
-    from kgadapt.sim.scenario import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
 
     configs = list(configs) if configs is not None else [*shipped_configs(), blur_candidate()]
     photos = {n: load_photo(n) for n in BLUR_PHOTOS}
@@ -299,7 +299,7 @@ def recoded_photo(photo: np.ndarray, truth: Sequence[dict[str, Any]], dictionary
     import cv2
 
     from kgadapt.onboard.markers import aruco_dictionary
-    from kgadapt.sim.scenario import srgb_decode, srgb_encode
+    from kgadapt.onboard.perception.scene import srgb_decode, srgb_encode
 
     found = aruco_dictionary(dictionary)
     size = int(found.bytesList.shape[0])
@@ -341,8 +341,8 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
     window over the top 15 % (markers under it count neither way).
     """
     from kgadapt.onboard.calibration import band_levels, rank
+    from kgadapt.onboard.perception.scene import CameraModel, LightLayout
     from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames, photo_truth, shifted
-    from kgadapt.sim.scenario import CameraModel, LightLayout
 
     configs = [replace(c, dictionary=dictionary) for c in shipped_configs()]
     results = calibrate(configs, bands, calibration)

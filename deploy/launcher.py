@@ -57,8 +57,9 @@ from kgadapt.shared.errors import DeploymentError
 
 log = logging.getLogger(__name__)
 
-# Modules a launcher may run with ``-m``; PRELOAD is what it imports first (the heavy parts).
-RUNNABLE = ("kgadapt.onboard.detector", "kgadapt.sim.echo_detector")
+# Modules a launcher may run with ``-m``; PRELOAD is what it imports first (the heavy parts). Runtime
+# detectors only: the tests' echo detector (kgadapt.sim) is started the plain way, as any program.
+RUNNABLE = ("kgadapt.onboard.detector",)
 PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.markers", "kgadapt.knowledge.client", "kgadapt.shared.session",
            "kgadapt.shared.agent", *RUNNABLE)
 _MAX_MESSAGE = 1 << 20

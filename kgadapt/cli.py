@@ -1,51 +1,68 @@
 """The ``kgadapt`` command: one entry point, subcommands registered by each part.
 
-Each part owns a module with ``register(subparsers)`` that adds its
-subcommand and sets ``func`` (called with the parsed args; returns an exit
-status or None). The table below is static: every module in it is part of
-kgadapt, so one that cannot be imported is a broken installation and the
-command says so, instead of quietly lacking a subcommand. Modules are
-imported only to register; heavy imports (cv2, the store drivers) belong
-inside the functions, which run only for the chosen subcommand. Any
-:class:`KgadaptError` ends the command with exit status 1 and one line on
-stderr naming the problem.
+The registry is the package's entry-point group ``kgadapt.commands`` (pyproject.toml), read with
+:mod:`importlib.metadata`: each entry names a command (``flight``, or ``flight fake-fc`` for a
+subcommand that another part adds to ``flight``) and the function that adds it, called with the
+parent's subparsers. A function that adds a command others extend returns its own subparsers.
+The root imports no part itself, so the runtime never pulls in ``kgadapt.sim`` or
+``kgadapt.bench`` (tests/test_layers.py); a part whose module is not installed (a runtime-only
+installation without the simulator or the benchmarks) keeps its command, and running it is an
+error naming the module, never a silently missing subcommand. Modules are imported only to
+register; heavy imports (cv2, the store drivers) belong inside the functions, which run only for
+the chosen subcommand. Any :class:`KgadaptError` ends the command with exit status 1 and one
+line on stderr naming the problem.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import sys
-from typing import Sequence
+from importlib import metadata
+from typing import Any, Callable, Sequence, cast
 
-from kgadapt.shared.errors import KgadaptError
+from kgadapt.shared.errors import ConfigError, KgadaptError
 
-# The modules that register subcommands, in the order of `kgadapt --help`.
-PARTS = (
-    "kgadapt.knowledge.cli",          # kgadapt knowledge load|query|queries|cypher|export (+ serve, via a hook)
-    "kgadapt.knowledge.service_cli",  # kgadapt ask
-    "kgadapt.fleet_view",     # kgadapt fleet
-    "kgadapt.onboard.cli",            # kgadapt onboard
-    "kgadapt.onboard.perception_cli", # kgadapt perception calibrate|camera|detector ...
-    "kgadapt.onboard.flight_cli",     # kgadapt flight ... (MAVLink bridge, fake flight controller)
-    "kgadapt.remote.cli",             # kgadapt remote
-    "kgadapt.deploy.cli",             # kgadapt deploy start|stop|list|migrate
-    "kgadapt.onboard.adaptation_cli", # kgadapt why
-    "kgadapt.bench.cli",              # kgadapt bench table1|zenoh|deployer|perception|adaptation|reliability
-    "kgadapt.demo",           # kgadapt demo
-    "kgadapt.certs",          # kgadapt certs (TLS certificate authority and certificates)
-    "kgadapt.status",         # kgadapt status (one screen for the person running the robot)
-)
+GROUP = "kgadapt.commands"
+
+
+def commands() -> list[metadata.EntryPoint]:
+    """The registry: every command's entry point, parents before their subcommands, then by name."""
+    found = sorted(metadata.entry_points(group=GROUP), key=lambda ep: (len(ep.name.split()), ep.name))
+    if not found:
+        raise ConfigError(f"no kgadapt commands are registered (entry points {GROUP!r}): "
+                          "install kgadapt (pip install -e . in a checkout) to run it")
+    return found
 
 
 def _version() -> str:
-    from importlib import metadata
-
     try:
         return metadata.version("kgadapt")
     except metadata.PackageNotFoundError:  # run from a checkout without installing
         return "(not installed)"
+
+
+def _register(entry: metadata.EntryPoint) -> Callable[[Any], Any] | None:
+    """The entry's function, or None when its module is not installed (any other import error propagates)."""
+    try:
+        return cast(Callable[[Any], Any], entry.load())
+    except ModuleNotFoundError as exc:
+        if exc.name and (entry.module == exc.name or entry.module.startswith(exc.name + ".")):
+            return None
+        raise
+
+
+def _not_installed(parent: Any, name: str, entry: metadata.EntryPoint) -> None:
+    """A command whose part is missing: listed, and an error naming the module when run."""
+    message = f"command {entry.name!r} needs {entry.module}, which is not installed"
+
+    def fail(args: argparse.Namespace) -> int:
+        raise ConfigError(message)
+
+    # No option prefix: every word after the command is taken, so the one line said is the missing module.
+    stub = parent.add_parser(name, help=f"(not installed: {entry.module})", add_help=False, prefix_chars="\0")
+    stub.add_argument("rest", nargs=argparse.REMAINDER)
+    stub.set_defaults(func=fail)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -59,8 +76,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"kgadapt {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for name in PARTS:
-        importlib.import_module(name).register(sub)
+    parents: dict[tuple[str, ...], Any] = {(): sub}
+    for entry in commands():
+        path = tuple(entry.name.split())
+        parent = parents.get(path[:-1])
+        if parent is None:
+            raise ConfigError(f"command {entry.name!r} ({entry.value}): no command {' '.join(path[:-1])!r} takes "
+                              "subcommands from other parts")
+        register = _register(entry)
+        if register is None:
+            _not_installed(parent, path[-1], entry)
+            continue
+        added = register(parent)
+        if path[-1] not in parent.choices:
+            raise ConfigError(f"{entry.value} is registered as command {entry.name!r} but adds no such command")
+        if added is not None:
+            parents[path] = added
     return parser
 
 
@@ -71,7 +102,11 @@ def _long_running(args: argparse.Namespace) -> bool:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    try:
+        parser = build_parser()
+    except KgadaptError as exc:  # e.g. an installation without its command registry
+        print(f"kgadapt: error: {exc}", file=sys.stderr)
+        return 1
     args = parser.parse_args(argv)
     if args.log_level is None:
         args.log_level = "INFO" if _long_running(args) else "WARNING"

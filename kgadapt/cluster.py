@@ -409,7 +409,7 @@ def models_without_in_place(folder: Path) -> Path:
 
 
 def write_profile(path: Path, points: list[list[float]], *, loop: bool = False) -> str:
-    """Write a synthetic-camera illumination profile (see sim/scenarios/README.md); returns its path."""
+    """Write a synthetic-camera illumination profile (see onboard/perception/scenarios/README.md); returns its path."""
     import json
 
     path.parent.mkdir(parents=True, exist_ok=True)

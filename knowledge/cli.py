@@ -2,8 +2,8 @@
 
 Every subcommand takes ``--store URL`` (default ``$KGADAPT_STORE``, else the
 embedded store in the user's data directory); ``--json`` where the output is
-data. ``kgadapt knowledge serve`` is added by ``kgadapt.knowledge.service_cli`` (it
-needs Zenoh, and lives with the service's other commands).
+data. ``kgadapt knowledge serve`` is added by ``kgadapt.knowledge.service_cli`` through the
+command registry (it needs Zenoh, and lives with the service's other commands).
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ def _store_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", metavar="URL", default=None, help=_STORE_HELP)
 
 
-def register(subparsers: Any) -> None:
-    """Add ``kgadapt knowledge`` and its subcommands."""
+def register(subparsers: Any) -> Any:
+    """Add ``kgadapt knowledge`` and its subcommands; returns them, for ``serve`` to join."""
     parser = subparsers.add_parser(
         "knowledge", help="load domain models, query the knowledge graph, export it",
         description="The robot's software knowledge: domain models in a graph, queried with Cypher.")
@@ -77,10 +77,7 @@ def register(subparsers: Any) -> None:
     export.add_argument("--output", "-o", metavar="FILE", help="write here instead of standard output")
     _store_arg(export)
     export.set_defaults(func=_export)
-
-    from kgadapt.knowledge.service_cli import register_knowledge
-
-    register_knowledge(sub)
+    return sub  # kgadapt.knowledge.service_cli adds serve (the command registry, kgadapt/cli.py)
 
 
 def _time_limit_arg(parser: argparse.ArgumentParser) -> None:

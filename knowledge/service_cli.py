@@ -50,7 +50,7 @@ def register(subparsers: Any) -> None:
 
 
 def register_knowledge(knowledge_subparsers: Any) -> None:
-    """Add ``kgadapt knowledge serve`` (called by knowledge/cli.py)."""
+    """Add ``kgadapt knowledge serve`` (registered under ``knowledge`` in pyproject.toml's command registry)."""
     from kgadapt.shared.session import add_arguments as add_zenoh_arguments
 
     serve = knowledge_subparsers.add_parser(

@@ -3,7 +3,7 @@
 Every configuration the knowledge store has for a feature (named queries
 ``detector_configs`` and ``detector_config``) runs over the same synthetic
 frames of the realistic camera (sRGB, Poisson-Gaussian noise, 8 bits; see
-:mod:`kgadapt.sim.scenario`): for each band, ``levels_per_band`` fixed levels at
+:mod:`kgadapt.onboard.perception.scene`): for each band, ``levels_per_band`` fixed levels at
 the midpoints of equal slices of the band, and for each level every condition
 of :data:`CONDITIONS` (clean, a 7 px motion blur, uneven light with blind
 stripes, a saturated window, small markers), ``frames_per_level`` frames each,
@@ -74,7 +74,7 @@ PENALTY = 1.0  # score lost per false marker per frame
 
 def condition_profile(condition: str, level: float) -> Any:
     """The constant-light profile of ``condition`` at ``level``."""
-    from kgadapt.sim.scenario import CameraModel, IlluminationProfile, LightLayout, SceneOptions
+    from kgadapt.onboard.perception.scene import CameraModel, IlluminationProfile, LightLayout, SceneOptions
 
     spec = CONDITIONS.get(condition)
     if spec is None:
@@ -163,7 +163,7 @@ def render_test_frames(bands: Sequence[Band], settings: CalibrationSettings, *, 
     """
     import cv2
 
-    from kgadapt.sim.scenario import SceneSettings, SyntheticScene, markers_for
+    from kgadapt.onboard.perception.scene import SceneSettings, SyntheticScene, markers_for
 
     size = int(aruco_dictionary(dictionary).bytesList.shape[0])
     use_site = site is not None and site.dictionary == dictionary

@@ -80,7 +80,7 @@ class SyntheticSource:
         seed: int = 0,
         clock: Callable[[], float] = time.time,
     ) -> None:
-        from kgadapt.sim.scenario import DEMO_PROFILE, IlluminationProfile, SceneSettings
+        from kgadapt.onboard.perception.scene import DEMO_PROFILE, IlluminationProfile, SceneSettings
 
         if speed <= 0:
             raise ConfigError(f"synthetic source speed must be positive, not {speed}")
@@ -98,7 +98,7 @@ class SyntheticSource:
         self._rng: np.random.Generator | None = None
 
     def open(self) -> None:
-        from kgadapt.sim.scenario import SyntheticScene, load_profile
+        from kgadapt.onboard.perception.scene import SyntheticScene, load_profile
 
         if self._profile_path is not None:
             self.profile = load_profile(self._profile_path)

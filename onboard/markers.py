@@ -342,7 +342,7 @@ def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, t
           ignore: Sequence[int] = ()) -> Score:
     """Match detections to truth: same id and mean corner distance within ``tolerance_px``.
 
-    ``truth`` items are :class:`kgadapt.sim.scenario.Truth` or wire maps ``{"id", "corners"}``.
+    ``truth`` items are :class:`kgadapt.onboard.perception.scene.Truth` or wire maps ``{"id", "corners"}``.
     A detection that matches nothing (wrong id, wrong place, or a second hit) is false;
     ids in ``ignore`` (markers partly hidden, e.g. by a saturated window) count neither way.
     """

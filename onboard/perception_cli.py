@@ -236,8 +236,8 @@ def _register_profile(sub: argparse._SubParsersAction) -> None:
 
 
 def _profile(args: argparse.Namespace) -> int:
+    from kgadapt.onboard.perception.scene import load_profile
     from kgadapt.shared.errors import ConfigError
-    from kgadapt.sim.scenario import load_profile
 
     if not args.step > 0:
         raise ConfigError(f"--step {args.step}: must be positive")

@@ -27,6 +27,10 @@ def register(subparsers: Any) -> None:
     add_part_arguments(parser)
     parser.set_defaults(func=run)
 
+
+def register_squeeze(subparsers: Any) -> None:
+    from kgadapt.shared.agent import add_agent_arguments
+
     squeeze = subparsers.add_parser(
         "squeeze",
         help="reserve memory on a host (tests, demo)",

@@ -1,12 +1,13 @@
 """Data files shipped inside the kgadapt package, found through :mod:`importlib.resources`.
 
 The domain models (``knowledge/models``), the synthetic-camera scenarios
-(``sim/scenarios``), the photographs of markers (``sim/photographs``) and the
+(``onboard/perception/scenarios``) and the
 deployment files (``deploy/systemd``, ``deploy/zenoh``, ...) are package data
 (pyproject.toml), so an installed wheel finds them where it installed them and
 a source checkout finds them in its folders; nothing read depends on the current
 directory or on a checkout. Where results are written by default is here too
-(:func:`results_dir`).
+(:func:`results_dir`). The runtime parts never reach into ``kgadapt.sim`` or
+``kgadapt.bench`` (the layering test, tests/test_layers.py): the simulator finds its own data.
 """
 
 from __future__ import annotations
@@ -44,12 +45,7 @@ def models() -> Path:
 
 def scenarios() -> Path:
     """The shipped synthetic-camera scenarios (illumination profiles)."""
-    return shipped("kgadapt.sim", "scenarios")
-
-
-def photographs() -> Path:
-    """The shipped photographs of ArUco markers (sources in its SOURCES.txt)."""
-    return shipped("kgadapt.sim", "photographs")
+    return shipped("kgadapt.onboard.perception", "scenarios")
 
 
 def results_dir() -> Path:
@@ -59,10 +55,8 @@ def results_dir() -> Path:
     wheel has no such folder (and must not write into site-packages), so it is ``bench-results``
     in the current directory.
     """
-    try:
-        checkout = resources.files("kgadapt.bench").joinpath("results")
-    except ModuleNotFoundError:
-        checkout = None
-    if isinstance(checkout, Path) and checkout.is_dir():
+    # By path, not through the kgadapt.bench package: the runtime does not import the benchmarks.
+    checkout = Path(__file__).parents[1] / "bench" / "results"
+    if checkout.is_dir():
         return checkout.resolve()  # bench/results, not the kgadapt/bench link to it
     return Path("bench-results")

@@ -5,7 +5,7 @@ evenly lit desk photos. :func:`photo_frames` turns one into the frames a
 fixed-exposure camera would take of the same scene in less light: the photo's
 sRGB values are decoded to linear light, scaled so the encoded frame's mean is
 the asked level, given shot and read noise and re-encoded
-(:func:`kgadapt.sim.scenario.camera_expose`), with a small random shift per frame as
+(:func:`kgadapt.onboard.perception.scene.camera_expose`), with a small random shift per frame as
 a hovering camera would see it. :func:`photo_truth` finds the markers of the
 photo's own dictionary at full brightness with default parameters: the
 reference the darkened frames are scored against.
@@ -18,11 +18,11 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from kgadapt.onboard.perception.scene import CameraModel, LightLayout, camera_expose, srgb_decode
 from kgadapt.shared.errors import ConfigError
-from kgadapt.shared.resources import photographs
-from kgadapt.sim.scenario import CameraModel, LightLayout, camera_expose, srgb_decode
+from kgadapt.shared.resources import shipped
 
-PHOTO_DIR = photographs()
+PHOTO_DIR = shipped("kgadapt.sim", "photographs")
 
 # Which dictionary each photo's markers are from (SOURCES.txt); the custom one is left out.
 PHOTO_DICTIONARIES = {

@@ -123,12 +123,14 @@ def test_the_wheel_installs_nothing_but_kgadapt_at_the_top(installed):
 
 @pytest.mark.slow
 def test_the_installed_wheel_finds_its_data_and_writes_results_where_it_runs(installed):
-    done = _run(installed, "python", "-c", "from kgadapt.shared import resources as r; print(r.models()); "
-                                           "print(r.scenarios()); print(r.photographs()); print(r.results_dir().resolve())")
+    done = _run(installed, "python", "-c", "from kgadapt.shared import resources as r; from kgadapt.sim import photos; "
+                                           "print(r.models()); print(r.scenarios()); print(photos.PHOTO_DIR); "
+                                           "print(r.results_dir().resolve())")
     assert done.returncode == 0, done.stderr
     models, scenarios, photographs, results = (Path(line) for line in done.stdout.split())
     assert models.is_relative_to(installed[0]) and (models / "deployments" / "detector_dusk.deploy").is_file()
     assert scenarios.is_relative_to(installed[0]) and (scenarios / "demo.json").is_file()
+    assert scenarios.parent.name == "perception"  # the synthetic camera's profiles are perception's, not the simulator's
     assert photographs.is_relative_to(installed[0]) and (photographs / "contrib_img_00.jpg").is_file()
     assert results == installed[1] / "bench-results"  # not site-packages: the wheel has no bench/results
 
@@ -147,3 +149,15 @@ def test_a_part_runs_as_a_module_of_the_installed_wheel(installed):
         done = _run(installed, "python", "-m", module, "--help")
         assert done.returncode == 0, (module, done.stderr)
         assert "usage:" in done.stdout, module
+
+
+@pytest.mark.slow
+def test_the_installed_wheel_runs_its_runtime_with_the_simulator_and_the_benchmarks_gone(installed):
+    # As a robot's installation without sim/ and bench/ would: every runtime module, the synthetic camera
+    # with the wheel's own profiles, the launcher's preloads, and the commands from the wheel's registry.
+    from tests.test_layers import ABOVE, RUNTIME_CHECK, runtime_modules
+
+    done = _run(installed, "python", "-c", f"ABOVE = {ABOVE!r}\nRUNTIME = {runtime_modules()!r}\n" + RUNTIME_CHECK)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-4000:]
+    assert done.stdout.strip().endswith("modules; []"), done.stdout
+    assert "needs kgadapt.sim.cli, which is not installed" in done.stderr

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from kgadapt.deploy.archive import ArchiveSettings, build, build_wheel, fill_wheelhouse, version
+from scripts.archive import ArchiveSettings, build, build_wheel, fill_wheelhouse, version
 from tests.conftest import free_port
 from tests.support import Child, wait_for
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import pytest
 
-from kgadapt.onboard.landing_check import LandingCheckSettings, run_landing_check
 from kgadapt.shared.session import ZenohSettings, open_session
+from kgadapt.sim.landing_check import LandingCheckSettings, run_landing_check
 
 FAST = dict(land_speed_ms=1.5, xy_speed_ms=3.0)
 # At 1 detection a second a marker is confirmed (kgadapt.onboard.confirmation: 3 steady sightings) 2 s after it

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from kgadapt.onboard.camera import CameraPart, CameraSettings, CapturedFrame, OpenCVSource, SyntheticSource, make_source
+from kgadapt.onboard.perception.scene import IlluminationProfile
 from kgadapt.shared import keys
 from kgadapt.shared.errors import ConfigError, ModelError
-from kgadapt.sim.scenario import IlluminationProfile
 from tests.perception.conftest import Collector
 
 
@@ -135,8 +135,8 @@ def test_a_missing_profile_is_named_when_the_source_opens(tmp_path):
 
 
 def test_a_window_lifts_the_published_mean_but_not_the_level_bands_are_read_from(endpoint_session, robot):
+    from kgadapt.onboard.perception.scene import LightLayout
     from kgadapt.shared import messages
-    from kgadapt.sim.scenario import LightLayout
 
     _, session = endpoint_session
     light = Collector(session, keys.camera_illumination(robot, "cam0"), "illumination")

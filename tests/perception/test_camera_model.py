@@ -7,8 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from kgadapt.shared.errors import ModelError
-from kgadapt.sim.scenario import (
+from kgadapt.onboard.perception.scene import (
     CameraModel,
     IlluminationProfile,
     LightLayout,
@@ -20,6 +19,7 @@ from kgadapt.sim.scenario import (
     srgb_decode,
     srgb_encode,
 )
+from kgadapt.shared.errors import ModelError
 
 
 def test_srgb_round_trips_and_lifts_the_shadows():

@@ -28,7 +28,7 @@ def test_a_bad_profile_file_is_reported_with_file_and_line(kgadapt_cmd, tmp_path
 
 
 def test_the_profile_command_samples_the_demo_profile(kgadapt_cmd):
-    done = run(kgadapt_cmd, "perception", "profile", "sim/scenarios/demo.json", "--step", "10", "--json")
+    done = run(kgadapt_cmd, "perception", "profile", "onboard/perception/scenarios/demo.json", "--step", "10", "--json")
     assert done.returncode == 0
     data = json.loads(done.stdout)
     assert data["duration_s"] == 60 and [s["t"] for s in data["samples"]] == [0, 10, 20, 30, 40, 50, 60]

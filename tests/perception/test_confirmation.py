@@ -10,10 +10,10 @@ import pytest
 from kgadapt.onboard.calibration import model_configs
 from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer, Place
 from kgadapt.onboard.markers import MarkerDetector
+from kgadapt.onboard.perception.scene import IlluminationProfile, SceneSettings, SyntheticScene
 from kgadapt.onboard.site import SiteMarkers, load_site
 from kgadapt.shared.errors import ConfigError, MessageError, ModelError
 from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
-from kgadapt.sim.scenario import IlluminationProfile, SceneSettings, SyntheticScene
 from tests.conftest import REPO
 
 SQUARE = [[100.0, 100.0], [140.0, 100.0], [140.0, 140.0], [100.0, 140.0]]

@@ -14,8 +14,8 @@ import zenoh
 
 from kgadapt.onboard.camera import CameraPart, CameraSettings, SyntheticSource
 from kgadapt.onboard.markers import score
+from kgadapt.onboard.perception.scene import IlluminationProfile, SyntheticScene
 from kgadapt.shared import keys, messages
-from kgadapt.sim.scenario import IlluminationProfile, SyntheticScene
 from tests.perception.conftest import DAY_JSON, Collector, wait_for
 
 HAVE_SERVICE = (Path(__file__).resolve().parents[2] / "knowledge" / "service.py").exists()

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from kgadapt.onboard.illumination import LightSettings, LightSource, band_for_level, estimate_light, luminance
+from kgadapt.onboard.perception.scene import IlluminationProfile, LightLayout, SceneSettings, SyntheticScene
 from kgadapt.shared.errors import ConfigError
-from kgadapt.sim.scenario import IlluminationProfile, LightLayout, SceneSettings, SyntheticScene
 
 ROWS = [
     {"config": "marker_detection_dark", "band": "dark", "min_level": 0, "max_level": 12},

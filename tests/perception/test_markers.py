@@ -19,8 +19,8 @@ from kgadapt.onboard.calibration import (
 )
 from kgadapt.onboard.illumination import Band
 from kgadapt.onboard.markers import MarkerDetector, parse_config, score
+from kgadapt.onboard.perception.scene import IlluminationProfile, SyntheticScene
 from kgadapt.shared.errors import ConfigError
-from kgadapt.sim.scenario import IlluminationProfile, SyntheticScene
 
 
 def jpeg_round_trip(image: np.ndarray, quality: int = 80) -> np.ndarray:

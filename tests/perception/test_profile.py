@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kgadapt.onboard.perception.scene import (
+    DEMO_PROFILE,
+    IlluminationProfile,
+    load_profile,
+    parse_profile_csv,
+    parse_profile_json,
+)
 from kgadapt.shared.errors import ModelError
-from kgadapt.sim.scenario import DEMO_PROFILE, IlluminationProfile, load_profile, parse_profile_csv, parse_profile_json
 
 
 def test_a_bare_json_list_is_interpolated_linearly_between_points():
@@ -96,7 +102,7 @@ def test_a_missing_profile_file_is_named(tmp_path):
 
 
 def test_a_constant_profile_renders_frames_whose_mean_is_the_level():
-    from kgadapt.sim.scenario import SyntheticScene
+    from kgadapt.onboard.perception.scene import SyntheticScene
 
     scene = SyntheticScene()
     for level in (5.0, 30.0, 150.0):

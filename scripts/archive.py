@@ -1,7 +1,7 @@
 """Offline install archives: kgadapt's wheel, a wheelhouse of every dependency, an install script.
 
-``make dist`` (``python -m kgadapt.deploy.archive``) writes one archive per machine
-architecture, ``dist/kgadapt-VERSION-linux-ARCH.tar.gz``, holding::
+``make dist`` (``python scripts/archive.py``: a build script run in a checkout, not part of
+the installed package) writes one archive per machine architecture, ``dist/kgadapt-VERSION-linux-ARCH.tar.gz``, holding::
 
     kgadapt-VERSION-linux-ARCH/
         install.sh        creates the virtualenv with pip --no-index, the user, directories, units
@@ -146,7 +146,7 @@ Then follow docs/deploy.md, "Running on a quadcopter and a remote host".
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m kgadapt.deploy.archive", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python scripts/archive.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--arch", action="append", choices=ARCHES, help="architecture (repeatable; default: all)")
     parser.add_argument("--python", action="append", choices=PYTHONS, help="Python version (repeatable; default: all)")
     parser.add_argument("--out", type=Path, default=DIST, help="output directory (default %(default)s)")

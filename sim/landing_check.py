@@ -5,7 +5,7 @@ marker the vehicle touched down. The autopilot is the fake flight controller
 (in this process; its truth gives the camera's pose) or a real one at
 ``url`` (ArduCopter SITL; then the camera's pose is the autopilot's own
 ATTITUDE and LOCAL_POSITION_NED, and the vehicle is armed and taken off in
-GUIDED first). ``kgadapt flight land-check`` runs it from the command line.
+GUIDED first). ``kgadapt flight land-check`` (kgadapt.sim.cli) runs it from the command line.
 """
 
 from __future__ import annotations
