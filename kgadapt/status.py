@@ -141,7 +141,7 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
         deployers = DeployerClient(session, robot, timeout=timeout)
         processes: list[dict[str, Any]] = []
         try:
-            processes = deployers.list("*")
+            processes = deployers.processes("*")
         except KgadaptError as exc:
             problems.append(f"deployers of robot {robot}: {exc}")
 

@@ -453,7 +453,7 @@ class AdaptationManager:
         if running_only and self.current is None:
             return []
         try:
-            processes = self._deployers.list(host)
+            processes = self._deployers.processes(host)
         except KgadaptError:
             return []
         stopped = []
@@ -926,7 +926,7 @@ class AdaptationManager:
     def _adopt_running(self) -> None:
         """After a restart: adopt one live detector of ours, stop any twin."""
         try:
-            processes = self._deployers.list("*")
+            processes = self._deployers.processes("*")
         except KgadaptError as exc:
             log.info("adaptation: no deployer answered at start (%s); nothing to adopt", exc)
             return
