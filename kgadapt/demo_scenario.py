@@ -17,6 +17,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 from kgadapt.cluster import ClusterSettings, LocalCluster, WatchedRobot
 from kgadapt.timeline import Decision, ReflexSeen
@@ -145,7 +146,7 @@ def _bands(cluster: LocalCluster) -> list[tuple[str, float, float]]:
                   key=lambda b: b[1])
 
 
-def _classifier(bands: list[tuple[str, float, float]]):
+def _classifier(bands: list[tuple[str, float, float]]) -> Callable[[float], str | None]:
     """Frame level -> the band it lies in (by the graph's band edges; the scenario's level has no flicker)."""
     def classify(level: float) -> str | None:
         return next((name for name, low, high in bands if low <= level < high), bands[-1][0] if level >= bands[-1][2]
@@ -153,7 +154,7 @@ def _classifier(bands: list[tuple[str, float, float]]):
     return classify
 
 
-def _printer():
+def _printer() -> Callable[[str], None]:
     def say(line: str) -> None:
         print(line, flush=True)
         sys.stdout.flush()
