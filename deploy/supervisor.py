@@ -452,17 +452,17 @@ class Supervisor:
             if inst is not None and inst.state in FINAL_STATES:
                 del self._instances[old]
 
-    def _emit(self, inst: _Instance, event: ProcessEventKind, **fields: object) -> None:
+    def _emit(self, inst: _Instance, event: ProcessEventKind, **fields: Any) -> None:  # ProcessEvent's own fields
         run = inst.run
         ev = ProcessEvent(
             event=event,
             instance=inst.spec.instance,
             time=time.time(),
             run_id=run.run_id if run else "",
-            pid=fields.pop("pid", run.pid if run else None),  # type: ignore[arg-type]
+            pid=fields.pop("pid", run.pid if run else None),
             deployment=inst.spec.deployment,
             config=inst.spec.config,
-            **fields,  # type: ignore[arg-type]
+            **fields,
         )
         log.debug("event %s", ev)
         for listener in list(self._listeners):
