@@ -454,7 +454,7 @@ def _first_connect_in_file(path: str | None) -> str | None:
 
     try:
         endpoints = json.loads(zenoh.Config.from_file(path).get_json("connect/endpoints"))
-    except Exception as exc:
+    except Exception as exc:  # zenoh's and JSON's errors: translated here
         raise ConfigError(f"Zenoh config {path}: cannot read connect/endpoints: {exc}") from exc
     if isinstance(endpoints, dict):  # per-mode form {router: [...], peer: [...]}
         endpoints = endpoints.get("peer") or next(iter(endpoints.values()), [])

@@ -135,7 +135,7 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
             for reply in session.liveliness().get(keys.host_alive(robot), timeout=timeout):
                 if reply.ok is not None:
                     alive[keys.last_chunk(str(reply.ok.key_expr), 2)] = time.time()
-        except Exception as exc:  # zenoh.ZError
+        except Exception as exc:  # noqa: BLE001 - zenoh.ZError and the like: a problem reported, the rest still gathered
             problems.append(f"cannot ask which hosts are alive: {exc}")
 
         deployers = DeployerClient(session, robot, timeout=timeout)

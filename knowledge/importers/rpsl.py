@@ -292,7 +292,7 @@ def _check_detectors(blocks: list[_Block], path: str) -> None:
             if isinstance(value, (int, float)) and not low <= value <= high:
                 raise b.origin.error(f"{b.name}: parameter {key} = {value} is outside [{low}, {high}]")
     asked = [(str(b.name), b.props["config_json"]) for b in detectors]
-    for b, verdict in zip(detectors, detector_check.verdicts(asked, path)):
+    for b, verdict in zip(detectors, detector_check.verdicts(asked, path), strict=True):
         if verdict is not None:
             at = verdict["at"] if verdict["at"] == "dictionary" else f"parameter:{verdict['key']}"
             raise b.origins.get(at, b.origin).error(verdict["message"])
