@@ -8,7 +8,7 @@ knowledge graph (docs/CONTRACTS.md)::
                     {"op": "stretch", "low_pct": 2, "high_pct": 98}, {"op": "blur", "ksize": 3}],
      "parameters": {"adaptiveThreshWinSizeMax": 53, "adaptiveThreshConstant": 3}}
 
-:func:`parse_config` checks it (its schema: :class:`kgadapt.shared.preprocessing.DetectorSettings`)
+:func:`parse_config` checks it (its schema: :class:`kgadapt.shared.preprocessing.ConfigJson`)
 and says what is wrong (an unknown op, a
 parameter ``cv2.aruco.DetectorParameters`` does not have, a value of the
 wrong type); :class:`MarkerDetector` runs it on grey frames. :func:`score`

@@ -268,7 +268,7 @@ def _config_json(b: _Block) -> None:
         return
     if "dictionary" in b.props:
         # Written through the detector's schema: what the importer writes is what parse_config reads.
-        b.props["config_json"] = preprocessing.DetectorSettings(
+        b.props["config_json"] = preprocessing.ConfigJson(
             dictionary=b.props["dictionary"], parameters=b.parameters,
             preprocess=[preprocessing.make_step(step["op"], {k: v for k, v in step.items() if k != "op"})
                         for step in b.preprocess],
