@@ -190,7 +190,7 @@ class AdaptationManager:
             raise KgadaptError(f"the knowledge graph has no detector configuration with a band for {s.feature}")
         self._analyzer_or_none = Analyzer(tracker=BandTracker(bands=bands, hysteresis=s.hysteresis, dwell_s=s.dwell_s))
         self._planner_or_none = Planner(ask=self._knowledge.query, feature=s.feature, preference=s.preference,
-                                onboard_host=s.onboard_host, in_place=s.in_place, live=s.live)
+                                        onboard_host=s.onboard_host, in_place=s.in_place, live=s.live)
         stack = contextlib.ExitStack()
         self._events_pub = declared(stack, session.declare_publisher(keys.adaptation_events(s.robot)))
         declared(stack, session.declare_subscriber(keys.camera_illumination(s.robot, s.camera), self._on("illumination")))
