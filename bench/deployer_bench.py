@@ -179,10 +179,10 @@ class _Rig:
         stack.callback(self.supervisor.shutdown)
         self.supervisor_setpriv = None
         if shutil.which("setpriv"):
-            self.supervisor_setpriv = Supervisor(SupervisorSettings(launcher="setpriv"))
+            self.supervisor_setpriv = Supervisor(SupervisorSettings(death_signal_via="setpriv"))
             self.supervisor_setpriv.setup()
             stack.callback(self.supervisor_setpriv.shutdown)
-        self.supervisor_launcher = Supervisor(SupervisorSettings(use_launcher=True))
+        self.supervisor_launcher = Supervisor(SupervisorSettings(launcher=True))
         self.supervisor_launcher.setup()
         stack.callback(self.supervisor_launcher.shutdown)
         for supervisor in (self.supervisor_launcher, self.deployers["onboard"].supervisor):

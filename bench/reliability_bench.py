@@ -369,7 +369,7 @@ class _Probe:
             return KnowledgeClient(self.session, self.robot, timeout=timeout).cypher(
                 request["cypher"], request.get("params") or {})
         if op == "list":
-            return DeployerClient(self.session, self.robot, timeout=float(request.get("timeout", 2.0))).list(
+            return DeployerClient(self.session, self.robot, timeout=float(request.get("timeout", 2.0))).processes(
                 request.get("host", "*"))
         if op == "active":
             since = time.time() - float(request.get("window", 1.0))

@@ -9,11 +9,16 @@ from __future__ import annotations
 
 import argparse
 import json
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.keys import DEFAULT_ROBOT
 from kgadapt.shared.states import LIVE_STATES
+
+if TYPE_CHECKING:  # imported where used: the command line starts without zenoh
+    import zenoh
+
+    from kgadapt.deploy.client import DeployerClient
 
 
 def register(subparsers: Any) -> None:
@@ -102,7 +107,7 @@ class _Client:
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
 
-    def __enter__(self):
+    def __enter__(self) -> tuple[zenoh.Session, DeployerClient]:
         from kgadapt.deploy.client import DeployerClient
         from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
@@ -139,7 +144,7 @@ def run_status(args: argparse.Namespace) -> int:
 
 def run_list(args: argparse.Namespace) -> int:
     with _Client(args) as (_, client):
-        processes = client.list(args.host)
+        processes = client.processes(args.host)
     if not client.answered:  # silence is not "no processes": say whom we asked, and fail
         from kgadapt.shared.errors import RequestTimeout
         from kgadapt.shared.session import DEFAULT_ENDPOINT, settings_from_args

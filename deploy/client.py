@@ -58,7 +58,7 @@ class DeployerClient:
     def status(self, host: str, instance: str) -> dict[str, Any]:
         return self._one(host, "status", {"instance": instance}, self.timeout)
 
-    def list(self, host: str = "*") -> list[dict[str, Any]]:
+    def processes(self, host: str = "*") -> list[dict[str, Any]]:
         """Processes on ``host`` (``*``: every deployer that answers), each with its ``host``."""
         processes: list[dict[str, Any]] = []
         details = self._ask(host, "list", {}, self.timeout)
@@ -87,7 +87,7 @@ class DeployerClient:
 
     def find(self, instance: str) -> dict[str, Any]:
         """The snapshot of ``instance`` on whichever host runs it (a live one first)."""
-        found = [p for p in self.list("*") if p.get("instance") == instance]
+        found = [p for p in self.processes("*") if p.get("instance") == instance]
         if not found:
             raise DeploymentError(f"no deployer knows instance {instance!r}")
         found.sort(key=lambda p: p.get("state") not in KEPT_STATES)

@@ -44,17 +44,10 @@ import zenoh
 
 from kgadapt.deploy.options import add_arguments  # noqa: F401  (re-exported for agents)
 from kgadapt.deploy.profile import ProfileRecorder, ProfileSettings
-from kgadapt.deploy.supervisor import (
-    ProcessEvent,
-    ProcessInfo,
-    ProcessSpec,
-    RestartPolicy,
-    StopPolicy,
-    Supervisor,
-    SupervisorSettings,
-)
+from kgadapt.deploy.supervisor import ProcessEvent, ProcessInfo, ProcessSpec, RestartPolicy, Supervisor, SupervisorSettings
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.agent import DEFAULT_ROBOT
+from kgadapt.shared.children import StopPolicy
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RemoteError, TransportError
 from kgadapt.shared.readiness import START_IDLE_ENV
 from kgadapt.shared.session import DEFAULT_ENDPOINT
@@ -128,7 +121,7 @@ class Deployer:
         # list (instance -> (config, declared MiB)), so that raced starts cannot pass together.
         self._admission = threading.Lock()
         self._admitted: dict[str, tuple[str, float]] = {}
-        self.supervisor = Supervisor(SupervisorSettings(use_launcher=settings.launcher, python=settings.python))
+        self.supervisor = Supervisor(SupervisorSettings(launcher=settings.launcher, python=settings.python))
         self.recorder: ProfileRecorder | None = None
         self._session: Any = None
         self._publisher: Any = None
@@ -225,8 +218,9 @@ class Deployer:
         for i, arg in enumerate(_as_list(row.get("arguments"), deployment, "arguments")):
             argv.append(fill_placeholders(str(arg), values, f"deployment {deployment} argument {i}"))
         env: list[tuple[str, str]] = []
-        if s.child_zenoh_config or s.zenoh_config:
-            env.append(("KGADAPT_ZENOH_CONFIG", s.child_zenoh_config or s.zenoh_config))
+        zenoh_config = s.child_zenoh_config or s.zenoh_config
+        if zenoh_config:
+            env.append(("KGADAPT_ZENOH_CONFIG", zenoh_config))
         if s.zenoh_mode:
             env.append(("KGADAPT_ZENOH_MODE", s.zenoh_mode))
         if idle:
@@ -277,7 +271,7 @@ class Deployer:
             if instance in self._admitted:
                 raise DeploymentError(f"instance {instance} is already being started on host {host}")
             held: dict[str, tuple[str, bool]] = {  # instance -> (config, still starting)
-                info.instance: (info.config, False) for info in self.supervisor.list(include_finished=False)}
+                info.instance: (info.config, False) for info in self.supervisor.processes(include_finished=False)}
             for name, (other, _) in self._admitted.items():
                 held[name] = (other, True)
             demands = self._declared_demands({config, *(c for c, _ in held.values())})
@@ -322,8 +316,8 @@ class Deployer:
     def status(self, instance: str) -> ProcessInfo:
         return self.supervisor.status(keys.check_name(instance, "instance"))
 
-    def list(self) -> list[ProcessInfo]:
-        return self.supervisor.list()
+    def processes(self) -> list[ProcessInfo]:
+        return self.supervisor.processes()
 
     # -- Zenoh --------------------------------------------------------------------
 
@@ -357,7 +351,7 @@ class Deployer:
         host = self.settings.host
         if verb == "list":
             launcher = self.supervisor.launcher
-            return {"host": host, "processes": [_info_dict(i, host) for i in self.list()],
+            return {"host": host, "processes": [_info_dict(i, host) for i in self.processes()],
                     "launcher": {"pid": launcher.pid, "ready": launcher.ready} if launcher is not None else None}
         if verb in ("stop", "status"):
             instance = request.get("instance")
@@ -395,7 +389,7 @@ class Deployer:
                 return
             try:
                 self._publisher.put(messages.encode("deploy_event", body))
-            except Exception as exc:  # never let a transport hiccup stop supervision
+            except Exception as exc:  # noqa: BLE001 - never let a transport hiccup stop supervision
                 log.warning("cannot publish deployer event %s: %s", event.event, exc)
 
 
@@ -460,7 +454,7 @@ def _first_connect_in_file(path: str | None) -> str | None:
 
     try:
         endpoints = json.loads(zenoh.Config.from_file(path).get_json("connect/endpoints"))
-    except Exception as exc:
+    except Exception as exc:  # zenoh's and JSON's errors: translated here
         raise ConfigError(f"Zenoh config {path}: cannot read connect/endpoints: {exc}") from exc
     if isinstance(endpoints, dict):  # per-mode form {router: [...], peer: [...]}
         endpoints = endpoints.get("peer") or next(iter(endpoints.values()), [])

@@ -40,8 +40,8 @@ The launcher exits when the agent closes its end of the socket (or dies).
 from __future__ import annotations
 
 import argparse
-import ctypes
 import importlib
+import io
 import json
 import logging
 import os
@@ -53,6 +53,7 @@ import threading
 import time
 from typing import Any, Callable, Sequence
 
+from kgadapt.shared import parent_death
 from kgadapt.shared.errors import DeploymentError
 
 log = logging.getLogger(__name__)
@@ -66,30 +67,14 @@ _MAX_MESSAGE = 1 << 20
 # The launcher's argv carries this much room: a forked detector writes its own command line there,
 # so ps, psutil and the tools that find detectors by their command line see it as a plain-started one.
 TITLE_ROOM = 2048
-_PR_SET_PDEATHSIG = 1
-PR_SET_CHILD_SUBREAPER = 36
-
-
-def _libc_prctl() -> Callable[..., int] | None:
-    try:
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):  # pragma: no cover - not Linux
-        return None
-    prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
-    prctl.restype = ctypes.c_int
-    return prctl
-
-
-_prctl = _libc_prctl()
 
 
 def become_subreaper() -> None:
     """Make this process adopt its orphaned descendants (a forked detector). DeploymentError if it cannot."""
-    if _prctl is None:
-        raise DeploymentError("the launcher needs Linux prctl(PR_SET_CHILD_SUBREAPER)")
-    if _prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
-        errno = ctypes.get_errno()
-        raise DeploymentError(f"prctl(PR_SET_CHILD_SUBREAPER) failed: {os.strerror(errno)}")
+    try:
+        parent_death.become_subreaper()
+    except OSError as exc:
+        raise DeploymentError(f"the launcher needs Linux prctl(PR_SET_CHILD_SUBREAPER): {exc}") from exc
 
 
 def runnable_module(argv: Sequence[str], python: str, modules: Sequence[str]) -> str | None:
@@ -196,8 +181,7 @@ def _detector_child(middle: int, parent: int, death_signal: int, fds: list[int],
                 os._exit(1)
             time.sleep(0.0002)
         # After the re-parenting: set before, the intermediate's exit would already have fired it.
-        if _prctl is not None:
-            _prctl(_PR_SET_PDEATHSIG, death_signal, 0, 0, 0)
+        parent_death.set_death_signal(death_signal)
         if os.getppid() != parent:  # the agent died, or is not our subreaper: nobody would supervise us
             os.kill(os.getpid(), death_signal)
             os._exit(1)
@@ -221,7 +205,8 @@ def _detector_child(middle: int, parent: int, death_signal: int, fds: list[int],
             os.chdir(cwd)
         set_title(argv)
         logging.root.handlers.clear()  # the detector configures its own logging
-        sys.stdout.reconfigure(line_buffering=True)
+        if isinstance(sys.stdout, io.TextIOWrapper):  # as it is after the dup2 above; a test may have replaced it
+            sys.stdout.reconfigure(line_buffering=True)
         code = _run_module(module, argv)
     except BaseException:  # noqa: BLE001 - whatever happens, this process must end here
         import traceback

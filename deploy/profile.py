@@ -95,8 +95,8 @@ class ProfileRecorder:
         self._pending_cv = threading.Condition(threading.Lock())  # writer queue
         self._tracked: dict[str, _Tracked] = {}
         self._finished: collections.OrderedDict[str, ResourceSummary] = collections.OrderedDict()
-        self._pending: collections.deque[list] = collections.deque()  # [verb, params, run_id]
-        self._pending_sample: dict[str, list] = {}
+        self._pending: collections.deque[list[Any]] = collections.deque()  # [verb, params, run_id]
+        self._pending_sample: dict[str, list[Any]] = {}
         self._busy = False
         self._closing = False
         self._threads: list[threading.Thread] = []
@@ -226,7 +226,7 @@ class ProfileRecorder:
 
     # -- writing ------------------------------------------------------------------
 
-    def _enqueue(self, verb: str, params: dict, run_id: str) -> None:
+    def _enqueue(self, verb: str, params: dict[str, Any], run_id: str) -> None:
         with self._pending_cv:
             if self._closing and not self._threads:
                 return

@@ -19,7 +19,7 @@ What happens is reported to listeners as :class:`ProcessEvent` values
 Listeners run on the supervisor's threads: they must be quick and must not
 call back into the supervisor.
 
-With ``use_launcher`` the supervisor also runs the host's launcher
+With ``launcher`` the supervisor also runs the host's launcher
 (deploy/launcher.py): a process that has imported the detector's code and
 forks a detector on request, much faster than a new interpreter starts. The
 supervisor then adopts those detectors as a child subreaper, so it waits for,
@@ -50,30 +50,22 @@ import threading
 import time
 from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field, replace
-from typing import Callable
+from typing import Any, Callable, Literal
 
 from kgadapt.deploy.launcher import ForkedProcess, LauncherClient, become_subreaper
+from kgadapt.shared import parent_death
 from kgadapt.shared.children import StopPolicy, escalate
-from kgadapt.shared.errors import DeploymentError, NotReady, ReadinessTimeout
+from kgadapt.shared.errors import ConfigError, DeploymentError, NotReady, ReadinessTimeout
 from kgadapt.shared.keys import check_name
 from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, ReadyWatch
 from kgadapt.shared.states import FINAL_STATES, LIVE_STATES, SERVING_STATES, ProcessEventKind, ProcessState
 
 log = logging.getLogger(__name__)
 
-_PR_SET_PDEATHSIG = 1
-try:  # resolved here, not in the child: after fork only async-signal-safe work is wise
-    _prctl = ctypes.CDLL(None, use_errno=True).prctl
-    _prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
-    _prctl.restype = ctypes.c_int
-except (OSError, AttributeError):  # not Linux: no parent-death signal, killpg on shutdown still works
-    _prctl = None
-
-
 try:  # libc's signal(): Python's refuses in a child forked from a non-main thread
-    _libc_signal = ctypes.CDLL(None, use_errno=True).signal
-    _libc_signal.argtypes = [ctypes.c_int, ctypes.c_void_p]
-    _libc_signal.restype = ctypes.c_void_p
+    _libc_signal: Callable[[int, None], object] | None = ctypes.CDLL(None, use_errno=True).signal
+    _libc_signal.argtypes = [ctypes.c_int, ctypes.c_void_p]  # type: ignore[union-attr]  # the CDLL function just set
+    _libc_signal.restype = ctypes.c_void_p  # type: ignore[union-attr]  # as above
 except (OSError, AttributeError):  # pragma: no cover - not Linux
     _libc_signal = None
 
@@ -87,8 +79,7 @@ def _child_setup(parent_pid: int, death_signal: int) -> Callable[[], None]:
         if _libc_signal is not None:
             _libc_signal(signal.SIGINT, None)  # None = SIG_DFL (0)
             _libc_signal(signal.SIGTERM, None)
-        if _prctl is not None:
-            _prctl(_PR_SET_PDEATHSIG, death_signal, 0, 0, 0)
+        parent_death.set_death_signal(death_signal)
         # The agent may have died between fork and prctl; then nobody would signal us.
         if os.getppid() != parent_pid:
             os.kill(os.getpid(), death_signal)
@@ -177,7 +168,7 @@ class ProcessInfo:
     def live(self) -> bool:
         return self.state in LIVE_STATES
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
         data["argv"] = list(self.argv)
         data["output"] = list(self.output)
@@ -199,14 +190,17 @@ class SupervisorSettings:
     # Python fork() the whole agent; "setpriv" execs util-linux's
     # ``setpriv --pdeathsig`` first, which lets Python use vfork. Measured here
     # (bench/deployer_bench.py): a few ms saved per start in a large agent.
-    launcher: str = "preexec"
+    death_signal_via: Literal["preexec", "setpriv"] = "preexec"
     # Fork programs the host's launcher preloads (deploy/launcher.py) instead of starting a new interpreter.
-    use_launcher: bool = False
+    launcher: bool = False
     python: str = sys.executable  # the interpreter the launcher runs in; only "<python> -m ..." is forked
 
     def __post_init__(self) -> None:
-        if self.launcher not in ("preexec", "setpriv"):
-            raise DeploymentError(f"launcher {self.launcher!r}: use 'preexec' or 'setpriv'")
+        if self.death_signal_via not in ("preexec", "setpriv"):
+            raise DeploymentError(f"death_signal_via {self.death_signal_via!r}: use 'preexec' or 'setpriv'")
+        if not isinstance(self.launcher, bool):
+            raise DeploymentError(f"launcher {self.launcher!r}: True or False (death_signal_via says how the "
+                                  "parent-death signal is set)")
 
 
 class _Run:
@@ -225,6 +219,11 @@ class _Run:
         self.watch = ReadyWatch(run_id)  # its readiness line, and the last lines it printed
         self.done = threading.Event()
         self.not_ready_in_time = False
+
+
+_Spawned = tuple["subprocess.Popen[bytes] | ForkedProcess", str]  # the process and its run id
+# What the spawner thread is asked: a start, "launcher" (start the launcher again) or None (end).
+_SpawnItem = tuple["ProcessSpec", "Future[_Spawned]"] | Literal["launcher"] | None
 
 
 class _Instance:
@@ -248,7 +247,7 @@ class Supervisor:
         self._instances: dict[str, _Instance] = {}
         self._finished: collections.deque[str] = collections.deque()
         self._listeners: list[Callable[[ProcessEvent], None]] = []
-        self._spawn_queue: queue.Queue = queue.Queue()
+        self._spawn_queue: queue.Queue[_SpawnItem] = queue.Queue()
         self._spawner: threading.Thread | None = None
         self._closing = False
         self.launcher: LauncherClient | None = None
@@ -259,12 +258,12 @@ class Supervisor:
         """Start the spawner thread. No child runs before this."""
         if self._spawner is not None:
             return
-        if self.settings.launcher == "setpriv" and not shutil.which("setpriv"):
-            raise DeploymentError("launcher 'setpriv' needs util-linux's setpriv on PATH")
+        if self.settings.death_signal_via == "setpriv" and not shutil.which("setpriv"):
+            raise DeploymentError("death_signal_via 'setpriv' needs util-linux's setpriv on PATH")
         self._closing = False
         self._spawner = threading.Thread(target=self._spawn_loop, name="supervisor-spawner", daemon=True)
         self._spawner.start()
-        if self.settings.use_launcher:
+        if self.settings.launcher:
             try:
                 become_subreaper()  # a forked detector is re-parented to us, so we can wait for it
             except DeploymentError as exc:
@@ -407,7 +406,7 @@ class Supervisor:
         with self._lock:
             return self._info(self._get(instance))
 
-    def list(self, *, include_finished: bool = True) -> list[ProcessInfo]:
+    def processes(self, *, include_finished: bool = True) -> list[ProcessInfo]:
         """Snapshots of all instances (live first, then recently finished)."""
         with self._lock:
             infos = [self._info(i) for i in self._instances.values()]
@@ -453,17 +452,17 @@ class Supervisor:
             if inst is not None and inst.state in FINAL_STATES:
                 del self._instances[old]
 
-    def _emit(self, inst: _Instance, event: ProcessEventKind, **fields: object) -> None:
+    def _emit(self, inst: _Instance, event: ProcessEventKind, **fields: Any) -> None:  # ProcessEvent's own fields
         run = inst.run
         ev = ProcessEvent(
             event=event,
             instance=inst.spec.instance,
             time=time.time(),
             run_id=run.run_id if run else "",
-            pid=fields.pop("pid", run.pid if run else None),  # type: ignore[arg-type]
+            pid=fields.pop("pid", run.pid if run else None),
             deployment=inst.spec.deployment,
             config=inst.spec.config,
-            **fields,  # type: ignore[arg-type]
+            **fields,
         )
         log.debug("event %s", ev)
         for listener in list(self._listeners):
@@ -474,7 +473,7 @@ class Supervisor:
 
     def _launch(self, inst: _Instance, *, restart: bool = False) -> None:
         """Spawn one run of ``inst`` (on the spawner thread), report it, start its threads."""
-        future: Future = Future()
+        future: Future[_Spawned] = Future()
         self._spawn_queue.put((inst.spec, future))
         try:
             proc, run_id = future.result(timeout=self.settings.spawn_timeout)
@@ -507,7 +506,7 @@ class Supervisor:
             item = self._spawn_queue.get()
             if item is None:
                 return
-            if item == "launcher":
+            if isinstance(item, str):  # "launcher"
                 if self.launcher is not None and not self._closing:
                     self.launcher.launch()
                 continue
@@ -522,8 +521,9 @@ class Supervisor:
                 if forked is not None:
                     future.set_result((forked, f"{spec.instance}-{secrets.token_hex(4)}"))
                     continue
-                argv, preexec = list(spec.argv), _child_setup(parent, self.settings.death_signal)
-                if self.settings.launcher == "setpriv":
+                argv = list(spec.argv)
+                preexec: Callable[[], None] | None = _child_setup(parent, self.settings.death_signal)
+                if self.settings.death_signal_via == "setpriv":
                     name = signal.Signals(self.settings.death_signal).name.removeprefix("SIG")
                     argv, preexec = [shutil.which("setpriv") or "setpriv", f"--pdeathsig={name}", "--", *argv], None
                 proc = subprocess.Popen(
@@ -572,7 +572,7 @@ class Supervisor:
         try:
             check_name(config, "configuration")
             check_name(deployment, "deployment")
-        except Exception:
+        except ConfigError:
             return
         argv = list(inst.spec.argv)
         for i, word in enumerate(argv[:-1]):
@@ -663,7 +663,7 @@ class Supervisor:
                 self._changed.notify_all()
                 return
             else:
-                if run.ended_at - run.started_at >= spec.restart.stable_after:
+                if (run.ended_at or time.time()) - run.started_at >= spec.restart.stable_after:
                     inst.restarts = 0
                 if inst.restarts >= spec.restart.max_restarts or self._closing:
                     inst.state = ProcessState.FAILED

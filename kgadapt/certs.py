@@ -37,11 +37,15 @@ import re
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 from kgadapt.shared import keys
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.keys import DEFAULT_ROBOT
+
+if TYPE_CHECKING:  # cryptography is imported where used: most commands never need it
+    from cryptography import x509
+    from cryptography.hazmat.primitives.asymmetric.types import PrivateKeyTypes, PublicKeyTypes
 
 # A detector has its own identity, not its host's: the router lets it publish detections, serve its
 # reconfiguration and read its configuration, nothing else (deploy/zenoh/router.json5).
@@ -365,26 +369,26 @@ def _key_usage(*, ca: bool) -> Any:
         key_agreement=False, key_cert_sign=ca, crl_sign=ca, encipher_only=False, decipher_only=False)
 
 
-def _key_pem(key: Any) -> bytes:
+def _key_pem(key: PrivateKeyTypes) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
     return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                              serialization.NoEncryption())
 
 
-def _cert_pem(certificate: Any) -> bytes:
+def _cert_pem(certificate: x509.Certificate) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
     return certificate.public_bytes(serialization.Encoding.PEM)
 
 
-def _public_bytes(public_key: Any) -> bytes:
+def _public_bytes(public_key: PublicKeyTypes) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
     return public_key.public_bytes(serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo)
 
 
-def _fingerprint(certificate: Any) -> str:
+def _fingerprint(certificate: x509.Certificate) -> str:
     from cryptography.hazmat.primitives import hashes
 
     return certificate.fingerprint(hashes.SHA256()).hex(":")

@@ -27,12 +27,17 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Callable, Sequence, TypeVar
 
 from kgadapt.shared.children import ChildProcess, StopPolicy
 from kgadapt.shared.errors import DeploymentError, KgadaptError, TransportError
 from kgadapt.shared.keys import DEFAULT_ROBOT
 from kgadapt.shared.resources import models
+
+if TYPE_CHECKING:
+    import zenoh
+
+_T = TypeVar("_T")
 
 
 def _free_port(kind: int) -> int:
@@ -147,7 +152,7 @@ class LocalCluster:
         s = self.settings
         self.port = free_tcp_port()
         self.fc_port = free_udp_port()
-        connect = ("--connect", self.endpoint)
+        connect: tuple[str, ...] = ("--connect", self.endpoint)
         if s.agent_mode:
             connect += ("--mode", s.agent_mode)
         try:
@@ -429,7 +434,7 @@ class WatchedRobot:
 
         self.cluster = LocalCluster(settings)
         self.recorder = Recorder(robot=settings.robot)
-        self.session = None
+        self.session: zenoh.Session | None = None
         self.prepared: list[str] = []  # what loading (and calibrating) printed
         self.timings: dict[str, float] = {}  # seconds: prepare, start
         self.exit_codes: dict[str, int | None] = {}  # of every process, after leaving
@@ -461,7 +466,7 @@ class WatchedRobot:
         finally:
             self.exit_codes = self.cluster.stop()
 
-    def wait(self, predicate, timeout: float, interval: float = 0.02):
+    def wait(self, predicate: Callable[[], _T], timeout: float, interval: float = 0.02) -> _T | None:
         """The predicate's first truthy value within ``timeout`` seconds, else None."""
         deadline = time.time() + timeout
         while time.time() < deadline:

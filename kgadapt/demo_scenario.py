@@ -17,6 +17,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 from kgadapt.cluster import ClusterSettings, LocalCluster, WatchedRobot
 from kgadapt.timeline import Decision, ReflexSeen
@@ -139,13 +140,13 @@ def _bands(cluster: LocalCluster) -> list[tuple[str, float, float]]:
     try:
         with open_store(cluster.store_url) as store:
             rows = run_named(store, "detector_configs", {})
-    except Exception:  # the plot is still useful without band lines
+    except Exception:  # noqa: BLE001 - any store failure: the plot is still useful without band lines
         return []
     return sorted({(r["band"], float(r["min_level"]), float(r["max_level"])) for r in rows if r.get("band")},
                   key=lambda b: b[1])
 
 
-def _classifier(bands: list[tuple[str, float, float]]):
+def _classifier(bands: list[tuple[str, float, float]]) -> Callable[[float], str | None]:
     """Frame level -> the band it lies in (by the graph's band edges; the scenario's level has no flicker)."""
     def classify(level: float) -> str | None:
         return next((name for name, low, high in bands if low <= level < high), bands[-1][0] if level >= bands[-1][2]
@@ -153,7 +154,7 @@ def _classifier(bands: list[tuple[str, float, float]]):
     return classify
 
 
-def _printer():
+def _printer() -> Callable[[str], None]:
     def say(line: str) -> None:
         print(line, flush=True)
         sys.stdout.flush()

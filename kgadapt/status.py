@@ -28,7 +28,7 @@ import json
 import sys
 import threading
 import time
-from typing import Any
+from typing import Any, Callable
 
 from kgadapt.shared.keys import DEFAULT_ROBOT
 from kgadapt.shared.states import KEPT_STATES, ProcessState
@@ -73,7 +73,7 @@ class _Listener:
             session.declare_subscriber(keys.flight_state(robot), self._on("flight_state")),
         ]
 
-    def _on(self, kind: str):
+    def _on(self, kind: str) -> Callable[[Any], None]:
         from kgadapt.shared import messages
         from kgadapt.shared.errors import MessageError
 
@@ -135,13 +135,13 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
             for reply in session.liveliness().get(keys.host_alive(robot), timeout=timeout):
                 if reply.ok is not None:
                     alive[keys.last_chunk(str(reply.ok.key_expr), 2)] = time.time()
-        except Exception as exc:  # zenoh.ZError
+        except Exception as exc:  # noqa: BLE001 - zenoh.ZError and the like: a problem reported, the rest still gathered
             problems.append(f"cannot ask which hosts are alive: {exc}")
 
         deployers = DeployerClient(session, robot, timeout=timeout)
         processes: list[dict[str, Any]] = []
         try:
-            processes = deployers.list("*")
+            processes = deployers.processes("*")
         except KgadaptError as exc:
             problems.append(f"deployers of robot {robot}: {exc}")
 
@@ -162,7 +162,8 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
             stats = client.service_stats()
         except KgadaptError:
             pass  # a service without own/stats: nothing to count
-    refused = {"count": int(stats.get("unknown_host_refused") or 0), "hosts": list(stats.get("unknown_hosts") or [])}
+    refused: dict[str, Any] = {"count": int(stats.get("unknown_host_refused") or 0),
+                               "hosts": list(stats.get("unknown_hosts") or [])}
     out["refused_hosts"] = refused
     if refused["count"]:
         problems.append(f"the knowledge service refused {refused['count']} message(s) naming hosts no model names: "
@@ -207,16 +208,16 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     # Light and band.
     band = None
     if light is not None:
-        level = light.get("smoothed", light.get("mean"))
+        level = float(light.get("smoothed", light["mean"]))  # both required by the message
         if configs:
             from kgadapt.onboard.illumination import band_for_level
             from kgadapt.shared.errors import ConfigError
 
             try:
-                band = band_for_level(float(level), configs)
+                band = band_for_level(level, configs)
             except ConfigError:
                 band = None
-        out["light"] = {"camera": light["camera"], "level": round(float(level), 1), "band": band,
+        out["light"] = {"camera": light["camera"], "level": round(level, 1), "band": band,
                         "time": light["time"]}
     else:
         out["light"] = None

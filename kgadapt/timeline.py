@@ -289,7 +289,8 @@ class Recorder:
         with self._lock:
             frames = sorted(self.frames.items())
             found = sorted(self.found)
-            decisions = sorted((d for d in self.decisions if d.trigger_time is not None), key=lambda d: d.trigger_time)
+            decisions = sorted(((d.trigger_time, d) for d in self.decisions if d.trigger_time is not None),
+                               key=lambda timed: timed[0])
         steps: list[LightStep] = []
         previous: str | None = None
         for seq, (t, level, _) in frames:
@@ -310,11 +311,12 @@ class Recorder:
                     step.seen_seq, step.blind_ms = seq, (published - step.frame_time) * 1000.0
                     break
             until = steps[i + 1].frame_time if i + 1 < len(steps) else float("inf")
-            after = next((d for d in decisions if step.frame_time <= d.trigger_time < until
+            after = next(((t, d) for t, d in decisions if step.frame_time <= t < until
                           and d.kind not in (TriggerKind.STARTUP, TriggerKind.HOST_BACK)), None)
             if after is not None:
-                step.band_ms = (after.trigger_time - step.frame_time) * 1000.0
-                step.change = after.change or after.outcome.split(":")[0]
+                trigger_time, decision = after
+                step.band_ms = (trigger_time - step.frame_time) * 1000.0
+                step.change = decision.change or decision.outcome.split(":")[0]
         return steps
 
     def pipeline_ms(self) -> list[float]:

@@ -16,7 +16,6 @@ server behind.
 
 from __future__ import annotations
 
-import ctypes
 import fcntl
 import hashlib
 import json
@@ -33,20 +32,17 @@ import redis
 from redis.backoff import NoBackoff
 from redis.retry import Retry
 
+from kgadapt.shared import parent_death
 from kgadapt.shared.children import StopPolicy, stop_process
 from kgadapt.shared.errors import DeploymentError, StoreUnavailable
 
 log = logging.getLogger(__name__)
 
-_PR_SET_PDEATHSIG = 1
 _UNIX_PATH_MAX = 100  # sun_path is 108 bytes; keep a margin
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:
-        pass
+    parent_death.set_death_signal(signal.SIGTERM)
 
 
 @dataclass(frozen=True, kw_only=True)

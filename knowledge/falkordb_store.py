@@ -115,7 +115,7 @@ class FalkorDBStore(GraphStore):
         if result is None:
             return []
         columns = [name for _, name in result.header] if result.header else []
-        return [{c: _plain(v) for c, v in zip(columns, row)} for row in result.result_set]
+        return [{c: _plain(v) for c, v in zip(columns, row, strict=True)} for row in result.result_set]
 
     def _run(self, query: str, read_only: bool, timeout_ms: int | None) -> Any:
         if self._graph is None:
@@ -217,7 +217,7 @@ class FalkorDBStore(GraphStore):
             raise StoreUnavailable(f"lost FalkorDB at {self.settings.url}: {exc}") from exc
         except redis.RedisError as exc:
             raise QueryError(f"store rejected the batch: {exc}") from exc
-        for (cypher, _), reply in zip(statements, replies):
+        for (cypher, _), reply in zip(statements, replies, strict=True):
             if isinstance(reply, Exception):
                 raise QueryError(f"store rejected a statement of the batch ({cypher[:60]}...): {reply}")
 

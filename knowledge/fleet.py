@@ -473,7 +473,7 @@ class FleetRoster:
                 self.remember(self.settings.robot, how=Heard.SELF, zid=self._zid, routers=self._routers)
                 heard = self.roll_call()
                 log.debug("fleet roll call of %s: %d robots answered", self.settings.robot, len(heard))
-            except Exception as exc:  # a store away or the session closing: the next roll call tries again
+            except Exception as exc:  # noqa: BLE001 - a store away or the session closing: the next roll call tries again
                 log.warning("fleet roll call of %s: %s", self.settings.robot, exc)
 
 
@@ -482,5 +482,5 @@ def _zenoh_ids(session: Any) -> tuple[str | None, list[str]]:
     try:
         info = session.info
         return str(info.zid()), sorted(str(z) for z in info.routers_zid())[:_MAX_ROUTERS]
-    except Exception:  # zenoh.ZError: the session is closing
+    except Exception:  # noqa: BLE001 - zenoh.ZError: the session is closing
         return None, []

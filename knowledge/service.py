@@ -479,7 +479,7 @@ class KnowledgeService:
                     until = 0.0
             try:
                 self._apply_events(batch)
-            except Exception:
+            except Exception:  # the worker must outlive one bad batch
                 log.exception("status worker: unexpected failure")
             if stop:
                 return

@@ -67,10 +67,10 @@ class ServiceLock:
             self._renewer.join(timeout=5)
             self._renewer = None
             try:
-                redis = self.store.redis  # type: ignore[attr-defined]
+                redis = self.store.redis  # type: ignore[attr-defined]  # a lease only on FalkorDB: its redis client
                 if redis.get(self.key) == self.holder.encode():
                     redis.delete(self.key)
-            except Exception as exc:  # the store may be gone; the lease then runs out by itself
+            except Exception as exc:  # noqa: BLE001 - the store may be gone; the lease then runs out by itself
                 log.debug("service lease not released: %s", exc)
         if self._file is not None:
             try:
@@ -102,7 +102,7 @@ class ServiceLock:
     # -- falkordb server: a lease ---------------------------------------------
 
     def _acquire_lease(self) -> None:
-        redis = self.store.redis  # type: ignore[attr-defined]
+        redis = self.store.redis  # type: ignore[attr-defined]  # a lease only on FalkorDB: its redis client
         ttl_ms = int(self.lease_s * 1000)
         deadline = time.monotonic() + self.lease_s + 0.5
         while True:
@@ -119,7 +119,7 @@ class ServiceLock:
         self._renewer.start()
 
     def _renew(self) -> None:
-        redis = self.store.redis  # type: ignore[attr-defined]
+        redis = self.store.redis  # type: ignore[attr-defined]  # a lease only on FalkorDB: its redis client
         ttl_ms = int(self.lease_s * 1000)
         while not self._stop.wait(self.lease_s / 3):
             try:
@@ -127,5 +127,5 @@ class ServiceLock:
                     redis.pexpire(self.key, ttl_ms)
                 elif not redis.set(self.key, self.holder, nx=True, px=ttl_ms):
                     log.error("the knowledge service lease on %s is held by another service", self.store.url)
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - any redis error: renewed again a third of a lease later
                 log.warning("cannot renew the knowledge service lease: %s", exc)

@@ -81,7 +81,8 @@ class BandTracker:
             return None
         if level is None or not math.isfinite(level):
             return around[0]
-        return min(around, key=lambda b: abs(level - (b.max_level if b.max_level <= self.current.min_level
+        current = self.current
+        return min(around, key=lambda b: abs(level - (b.max_level if b.max_level <= current.min_level
                                                         else b.min_level)))
 
     def jump(self, name: str, now: float, hold_s: float) -> Band | None:
@@ -527,7 +528,7 @@ class Planner:
         for host in list(fits):
             free = (live_free or {}).get(host)
             running_here = running is not None and running.host == host
-            credit = running.held_mb if running_here else 0.0
+            credit = running.held_mb if running is not None and running_here else 0.0
             if free is not None and not room_for(demand, free_mb=free, held_mb=credit):
                 del fits[host]  # the graph has not caught up with a squeeze we already saw
             elif free is None and live_free is not None and not running_here:

@@ -79,11 +79,11 @@ import logging
 import queue
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from kgadapt.deploy.client import DeployerClient
 from kgadapt.deploy.deployer import new_instance_name
-from kgadapt.deploy.migration import FirstOutput, migrate, reconfigure
+from kgadapt.deploy.migration import FirstOutput, MigrationReport, migrate, reconfigure
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.onboard import adaptation_policy as policy
 from kgadapt.onboard.adaptation import Analyzer, BandTracker, Placement, Plan, Planner, PlanningError, Trigger, bands_from_rows
@@ -100,6 +100,15 @@ from kgadapt.shared.states import Change, TriggerKind
 __all__ = ["AdaptationManager", "AdaptationSettings", "Outcome"]
 
 log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
+
+
+def _set_up(part: _T | None) -> _T:
+    """A part setup() makes; DeploymentError when used before it."""
+    if part is None:
+        raise DeploymentError("the adaptation manager is not set up; call setup() first")
+    return part
 
 
 class AdaptationManager:
@@ -128,11 +137,12 @@ class AdaptationManager:
         self._session: Any = None
         self._declarations = contextlib.ExitStack()  # subscribers and the events publisher
         self._events_pub: Any = None
-        self._knowledge: KnowledgeClient | None = None
-        self._deployers: DeployerClient | None = None
-        self._probe: DeployerClient | None = None  # short timeout: a lost host is liveliness' business
-        self._analyzer: Analyzer | None = None
-        self._planner: Planner | None = None
+        # Made by setup(); read through the properties below, which refuse before it.
+        self._knowledge_or_none: KnowledgeClient | None = None
+        self._deployers_or_none: DeployerClient | None = None
+        self._probe_or_none: DeployerClient | None = None  # short timeout: a lost host is liveliness' business
+        self._analyzer_or_none: Analyzer | None = None
+        self._planner_or_none: Planner | None = None
         self._configs: dict[str, dict[str, Any]] = {}
         self._state = LoopState()  # the schedule and the last change's facts (adaptation_policy)
         self._decisions = 0
@@ -144,23 +154,43 @@ class AdaptationManager:
         self._reflexes_seen: tuple[str | None, int] = (None, 0)  # (instance, its reflex count) last acted on
         self._live = LiveRates(settings=settings.live)  # the running detector's live rate per band
 
+    @property
+    def _knowledge(self) -> KnowledgeClient:
+        return _set_up(self._knowledge_or_none)
+
+    @property
+    def _deployers(self) -> DeployerClient:
+        return _set_up(self._deployers_or_none)
+
+    @property
+    def _probe(self) -> DeployerClient:
+        return _set_up(self._probe_or_none)
+
+    @property
+    def _analyzer(self) -> Analyzer:
+        return _set_up(self._analyzer_or_none)
+
+    @property
+    def _planner(self) -> Planner:
+        return _set_up(self._planner_or_none)
+
     # -- lifecycle -------------------------------------------------------
 
     def setup(self, session: Any) -> None:
         s = self.settings
         self._stop.clear()
         self._session = session
-        self._knowledge = KnowledgeClient(session, s.robot, own=True, host=s.onboard_host)  # writes as its host's
-        self._deployers = DeployerClient(session, s.robot)
-        self._probe = DeployerClient(session, s.robot, timeout=min(0.5, s.reconcile_s))
+        self._knowledge_or_none = KnowledgeClient(session, s.robot, own=True, host=s.onboard_host)  # writes as its host's
+        self._deployers_or_none = DeployerClient(session, s.robot)
+        self._probe_or_none = DeployerClient(session, s.robot, timeout=min(0.5, s.reconcile_s))
         rows = self._wait_for_knowledge()
         self._configs = {str(r["config"]): r for r in rows}
         bands = bands_from_rows(rows)
         if not bands:
             raise KgadaptError(f"the knowledge graph has no detector configuration with a band for {s.feature}")
-        self._analyzer = Analyzer(tracker=BandTracker(bands=bands, hysteresis=s.hysteresis, dwell_s=s.dwell_s))
-        self._planner = Planner(ask=self._knowledge.query, feature=s.feature, preference=s.preference,
-                                onboard_host=s.onboard_host, in_place=s.in_place, live=s.live)
+        self._analyzer_or_none = Analyzer(tracker=BandTracker(bands=bands, hysteresis=s.hysteresis, dwell_s=s.dwell_s))
+        self._planner_or_none = Planner(ask=self._knowledge.query, feature=s.feature, preference=s.preference,
+                                        onboard_host=s.onboard_host, in_place=s.in_place, live=s.live)
         stack = contextlib.ExitStack()
         self._events_pub = declared(stack, session.declare_publisher(keys.adaptation_events(s.robot)))
         declared(stack, session.declare_subscriber(keys.camera_illumination(s.robot, s.camera), self._on("illumination")))
@@ -184,12 +214,12 @@ class AdaptationManager:
             self._worker = None
         current, self.current = self.current, None
         standby, self.standby = self.standby, None
-        if standby is not None and standby.instance and self._deployers is not None:
+        if standby is not None and standby.instance and self._deployers_or_none is not None:
             try:
                 self._deployers.stop(standby.host, standby.instance)
             except KgadaptError as exc:
                 log.warning("could not stop the standby %s on %s: %s", standby.instance, standby.host, exc)
-        if current is not None and current.instance and self._deployers is not None:
+        if current is not None and current.instance and self._deployers_or_none is not None:
             # We started it; a clean shutdown stops it wherever it runs.
             try:
                 self._deployers.stop(current.host, current.instance)
@@ -407,7 +437,8 @@ class AdaptationManager:
     def _check_running(self) -> Trigger | None:
         """A ``detector_gone`` trigger when the deployer says our detector no longer runs."""
         current = self.current
-        if current is None or not policy.probe_due(self._state, current, self._analyzer.hosts, mono=time.monotonic()):
+        if (current is None or current.instance is None
+                or not policy.probe_due(self._state, current, self._analyzer.hosts, mono=time.monotonic())):
             return None
         try:
             state = str(self._probe.status(current.host, current.instance).get("state"))
@@ -453,7 +484,7 @@ class AdaptationManager:
         if running_only and self.current is None:
             return []
         try:
-            processes = self._deployers.list(host)
+            processes = self._deployers.processes(host)
         except KgadaptError:
             return []
         stopped = []
@@ -721,6 +752,8 @@ class AdaptationManager:
         except SourceNotStopped as exc:
             # The new detector runs and detects: it is ours now. The old one is a twin, stopped
             # as soon as its deployer answers (or by host_back's reconcile).
+            if not isinstance(exc.report, MigrationReport):
+                raise  # never: migrate() raises it with its report
             report = exc.report
             left_running = str(exc)
             self._leftovers.append((old.host, old.instance))
@@ -788,7 +821,7 @@ class AdaptationManager:
 
     def _end_standby_quietly(self, standby: Placement) -> None:
         try:
-            if self._deployers is not None and standby.instance:
+            if self._deployers_or_none is not None and standby.instance:
                 self._deployers.stop(standby.host, standby.instance)
         except KgadaptError as exc:
             assert standby.instance is not None
@@ -796,7 +829,7 @@ class AdaptationManager:
             log.info("adaptation: could not stop the unanswering standby %s: %s", standby.instance, exc)
 
     def _end_crashed_standby(self, standby: Placement | None) -> None:
-        if standby is None or not standby.instance or self._deployers is None:
+        if standby is None or not standby.instance or self._deployers_or_none is None:
             return
         try:
             self._deployers.stop(standby.host, standby.instance)
@@ -926,7 +959,7 @@ class AdaptationManager:
     def _adopt_running(self) -> None:
         """After a restart: adopt one live detector of ours, stop any twin."""
         try:
-            processes = self._deployers.list("*")
+            processes = self._deployers.processes("*")
         except KgadaptError as exc:
             log.info("adaptation: no deployer answered at start (%s); nothing to adopt", exc)
             return
@@ -966,7 +999,7 @@ class AdaptationManager:
             self.history.append(outcome)
         try:
             self._events_pub.put(messages.encode("adaptation_event", event))
-        except Exception as exc:  # publishing is best effort; the graph has the record
+        except Exception as exc:  # noqa: BLE001 - publishing is best effort; the graph has the record
             log.debug("adaptation event not published: %s", exc)
         log.info("decision %s: %s -> %s@%s (%s, %s ms)", name, outcome.trigger.describe(), params["config"],
                  params["host"], outcome.outcome, params["duration_ms"])

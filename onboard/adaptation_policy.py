@@ -487,7 +487,7 @@ def decision_record(outcome: Outcome, *, robot: str, wall: float, seq: int,
         "outcome": outcome.outcome if not plan else f"{outcome.outcome}: {plan.reason}",
     }
     change = outcome.detail.get("change")
-    event = {
+    event: dict[str, Any] = {
         "time": wall, "trigger": trigger.describe(), "outcome": outcome.outcome[:256],
         "decision": {
             "config": params["config"], "host": params["host"], "latency_ms": params["duration_ms"],

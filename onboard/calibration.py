@@ -175,7 +175,7 @@ def render_test_frames(bands: Sequence[Band], settings: CalibrationSettings, *, 
     scenes: dict[Any, Any] = {}
     for band in bands:
         for condition in settings.conditions:
-            frames = []
+            frames: list[Frame] = []
             for level in band_levels(band, settings.levels_per_band, max_level=settings.max_level):
                 profile = condition_profile(condition, level)
                 scene = scenes.get(profile.scene)
@@ -187,8 +187,11 @@ def render_test_frames(bands: Sequence[Band], settings: CalibrationSettings, *, 
                 for i in range(settings.frames_per_level):
                     frame = scene.render(i * 0.7, profile, rng)  # the sway moves the markers between frames
                     ok, jpeg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, settings.jpeg_quality])
-                    frames.append((level, cv2.imdecode(jpeg, cv2.IMREAD_GRAYSCALE), frame.truth,
-                                   frame.extras.get("hidden", [])))
+                    gray = cv2.imdecode(jpeg, cv2.IMREAD_GRAYSCALE) if ok else None
+                    if gray is None:
+                        raise ConfigError(f"cannot JPEG-encode a {settings.width}x{settings.height} frame at quality "
+                                          f"{settings.jpeg_quality}")
+                    frames.append((level, gray, frame.truth, frame.extras.get("hidden", [])))
             out[(band.name, condition)] = frames
     return out
 
@@ -200,7 +203,7 @@ def judge(detectors: Sequence[MarkerDetector], frames: Sequence[Frame], *, toler
     In turn, so a burst of load from elsewhere on the machine hits all
     configurations alike instead of one of them.
     """
-    out = [(Score(), [], {}) for _ in detectors]
+    out: list[tuple[Score, list[float], dict[float, tuple[Score, list[float]]]]] = [(Score(), [], {}) for _ in detectors]
     for level, gray, truth, hidden in frames:
         for i, detector in enumerate(detectors):
             found = detector.detect(gray)

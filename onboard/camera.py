@@ -102,6 +102,7 @@ class SyntheticSource:
 
         if self._profile_path is not None:
             self.profile = load_profile(self._profile_path)
+        assert self.profile is not None  # given to __init__, or loaded just above
         self._scene = SyntheticScene(self._scene_settings.with_options(self.profile.scene))
         self._rng = np.random.default_rng(self._seed)
         self._t0 = None
@@ -283,7 +284,7 @@ class CameraPart:
         # Zenoh callback: decode and keep a reference only (no I/O, no waiting).
         try:
             m = messages.decode(sample.payload.to_bytes(), "detections")
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - a foreign or malformed message: only the light estimate goes without it
             log.debug("camera: detections not used for the light estimate: %s", exc)
             return
         self.note_markers(m["corners"], float(m["frame_time"]))
@@ -310,7 +311,7 @@ class CameraPart:
             )
             if s.follow_detections:
                 self._markers_sub = session.declare_subscriber(keys.detector_markers(s.robot), self._on_detections)
-        except Exception as exc:
+        except Exception as exc:  # whatever zenoh raises: translated here
             self.shutdown()
             raise TransportError(f"camera {s.camera}: cannot declare publishers: {exc}") from exc
         self._stop.clear()
@@ -335,7 +336,7 @@ class CameraPart:
         self._frame_pub = self._light_pub = self._markers_sub = None
         try:
             self.source.close()
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - closing: whatever the source's library raises, the camera still stops
             log.debug("camera source close: %s", exc)
 
     # -- threads -------------------------------------------------------------
@@ -438,5 +439,5 @@ class CameraPart:
         for listener in self._listeners:
             try:
                 listener(reading)
-            except Exception:
+            except Exception:  # a listener's bug must not stop the camera
                 log.exception("camera %s: illumination listener failed", s.camera)

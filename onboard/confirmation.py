@@ -136,7 +136,7 @@ class MarkerConfirmer:
         """
         # Check everything before changing any state: a malformed message changes nothing.
         parsed = []
-        for index, (raw_id, c) in enumerate(zip(ids, corners)):
+        for index, (raw_id, c) in enumerate(zip(ids, corners, strict=True)):
             mid = raw_id[0] if isinstance(raw_id, list) and len(raw_id) == 1 else raw_id
             geometry = _geometry(c)
             if not isinstance(mid, int) or isinstance(mid, bool) or geometry is None:
@@ -172,7 +172,7 @@ class MarkerConfirmer:
             track = self._tracks.get(mid)
             place = placed[mid]
             steady = track is not None and index >= 0 and self._steady(track, centre, side, place)
-            streak = track.streak + 1 if steady else (1 if index >= 0 else 0)
+            streak = track.streak + 1 if steady and track is not None else (1 if index >= 0 else 0)
             self._tracks[mid] = _Track(centre, side, streak, frame_time, place=place)  # seen: missed starts over
             if index >= 0 and streak >= self.settings.frames:
                 confirmed.append(index)
@@ -189,13 +189,14 @@ class MarkerConfirmer:
         s = self.settings
         if place is not None and track.place is not None:  # in the local frame: the vehicle's motion taken out
             size = max(place.size_m, track.place.size_m)
-            move = [a - b for a, b in zip(place.ned, track.place.ned)]
+            move = [a - b for a, b in zip(place.ned, track.place.ned, strict=True)]
             if math.hypot(*move) <= s.max_shift * size:
                 return True
             spreads = [self._spread(p) for p in (place, track.place)]
             if spreads[0] is None or spreads[1] is None:
                 return math.hypot(*move) <= s.max_shift * size + s.range_share * max(place.range_m, track.place.range_m)
-            return _mahalanobis2(move, [[a + b for a, b in zip(r0, r1)] for r0, r1 in zip(*spreads)]) <= s.n_sigma ** 2
+            summed = [[a + b for a, b in zip(r0, r1, strict=True)] for r0, r1 in zip(*spreads, strict=True)]
+            return _mahalanobis2(move, summed) <= s.n_sigma ** 2
         return (math.dist(centre, track.centre) <= s.max_shift * max(side, track.side)
                 and max(side, track.side) <= s.max_scale * min(side, track.side))
 

@@ -216,7 +216,7 @@ class ReflexNotifier:
                 return
             try:
                 self._publisher.put(payload)
-            except Exception as exc:  # put again within a second
+            except Exception as exc:  # noqa: BLE001 - put again within a second
                 log.warning("detector %s: reflex not published: %s", self._instance, exc)
 
     def close(self) -> None:
@@ -317,7 +317,7 @@ class Detector:
             self._worker.start()
             self._subscriber = session.declare_subscriber(keys.camera_frame(s.robot, s.camera), self._on_frame)
             self._token = session.liveliness().declare_token(keys.detector_alive(s.robot, s.instance))
-        except Exception as exc:
+        except Exception as exc:  # whatever zenoh raises: translated here
             self.shutdown()
             raise TransportError(f"detector {s.instance}: cannot declare on Zenoh: {exc}") from exc
 
@@ -494,7 +494,7 @@ class ActivitySwitch:
         try:
             self._queryable = session.declare_queryable(keys.detector_activity(s.robot, s.host, s.instance),
                                                         self._on_query)
-        except Exception as exc:
+        except Exception as exc:  # whatever zenoh raises: translated here
             raise TransportError(f"detector {s.instance}: cannot declare its activity queryable: {exc}") from exc
 
     def _on_query(self, query: Any) -> None:
@@ -505,7 +505,7 @@ class ActivitySwitch:
         except MessageError as exc:
             try:
                 query.reply_err(f"detector {d.settings.instance}: {exc}")
-            except Exception as err:
+            except Exception as err:  # noqa: BLE001 - the asker may be gone; nothing to tell it
                 log.debug("reply_err: %s", err)
             return
         if active:
@@ -516,14 +516,14 @@ class ActivitySwitch:
         try:
             query.reply(str(query.key_expr), messages.encode(
                 "activity_reply", {"instance": d.settings.instance, "active": active, "processed": d.processed}))
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - the asker may be gone; the detector goes on
             log.warning("detector %s: cannot reply to an activity request: %s", d.settings.instance, exc)
 
     def shutdown(self) -> None:
         if self._queryable is not None:
             try:
                 self._queryable.undeclare()
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - shutting down: nothing left to undeclare
                 log.debug("undeclare activity queryable: %s", exc)
             self._queryable = None
 
@@ -736,7 +736,7 @@ def run(args: argparse.Namespace) -> int:
             if session is not None:
                 try:
                     session.close()
-                except Exception as exc:
+                except Exception as exc:  # noqa: BLE001 - exiting: the session may be closed already
                     log.debug("session close: %s", exc)
 
 

@@ -27,14 +27,17 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
-from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer
+from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer, Place
 from kgadapt.onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, TargetHold
 from kgadapt.onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
 from kgadapt.onboard.site import ANGLES_ONLY, SiteMarkers
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
+
+if TYPE_CHECKING:
+    import zenoh
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +122,7 @@ def landing_target(
     )
 
 
-def choose_marker(detections: dict, target_id: int | None, site: SiteMarkers | None = None) -> int | None:
+def choose_marker(detections: dict[str, Any], target_id: int | None, site: SiteMarkers | None = None) -> int | None:
     """Index of the marker to land on: ``target_id`` (or, when it is a marker of the site's pad, the largest of
     the pad's markers) if seen, else the largest in the image; None if none."""
     ids, corners = detections["ids"], detections["corners"]
@@ -153,7 +156,7 @@ def _is_number(value: object) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _pose_of(detections: dict, index: int) -> list[float] | None:
+def _pose_of(detections: dict[str, Any], index: int) -> list[float] | None:
     """The optional pose of marker ``index``: ``poses[index]`` as [x, y, z] or {"tvec": [x, y, z]}."""
     poses = detections.get("poses")
     if not isinstance(poses, list) or index >= len(poses) or poses[index] is None:
@@ -220,17 +223,17 @@ class FlightBridge:
         self.link = FlightLink(settings.link)
         self.link.on_state(self._on_link_state)
         self.confirmer = MarkerConfirmer(settings.confirmation)
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[tuple[object, bytes | FlightState | None]] = queue.SimpleQueue()
         self._queued = 0  # detections waiting; SimpleQueue has no bound of its own
         self._queued_lock = threading.Lock()
-        self._publisher = None
-        self._subscriber = None
+        self._publisher: zenoh.Publisher | None = None
+        self._subscriber: zenoh.Subscriber[None] | None = None
         self._worker: threading.Thread | None = None
         self._notifier: threading.Thread | None = None
         self._latest_for_callback: FlightState | None = None
         self._callback_ready = threading.Condition()
         self._stopping = False
-        self._last_published: tuple | None = None
+        self._last_published: tuple[object, ...] | None = None
         self._last_frame_time = -math.inf
         self._last_target_mono = time.monotonic()
         self._tokens = 2.0
@@ -246,7 +249,7 @@ class FlightBridge:
 
     # -- lifecycle
 
-    def setup(self, session) -> None:
+    def setup(self, session: zenoh.Session) -> None:
         """Open the MAVLink link, declare the publisher and subscriber, start the worker."""
         self._stopping = False
         self.link.setup()
@@ -255,7 +258,7 @@ class FlightBridge:
             self._subscriber = session.declare_subscriber(
                 keys.detector_markers(self.settings.robot, self.settings.detector), self._on_sample
             )
-        except Exception as exc:
+        except Exception as exc:  # whatever zenoh raises: translated here
             self.link.shutdown()
             raise TransportError(f"flight bridge cannot declare on Zenoh: {exc}") from exc
         self._worker = threading.Thread(target=self._work, name="flight-bridge", daemon=True)
@@ -303,7 +306,7 @@ class FlightBridge:
 
     # -- inputs (called on Zenoh's and the link's threads: only enqueue)
 
-    def _on_sample(self, sample) -> None:
+    def _on_sample(self, sample: zenoh.Sample) -> None:
         if self._chosen is not None and keys.last_chunk(str(sample.key_expr), 2) != self._chosen():
             self.counters["not_chosen"] += 1
             return
@@ -333,11 +336,12 @@ class FlightBridge:
             if kind is _STOP:
                 return
             try:
-                if kind == "detections":
+                if kind == "detections" and isinstance(value, bytes):
                     with self._queued_lock:
                         self._queued -= 1
                     self._handle_detections(value)
-                elif kind == "state" and (value.event or value.discrete() != self._last_published):
+                elif (kind == "state" and isinstance(value, FlightState)
+                      and (value.event or value.discrete() != self._last_published)):
                     self._publish(value)
                     next_publish = time.monotonic() + period
             except Exception:  # the bridge must outlive any one bad input
@@ -448,7 +452,7 @@ class FlightBridge:
                 log.warning("%s (no size for marker %d in the site's markers, no rangefinder distance heard)",
                             ANGLES_ONLY, target.target_num)
 
-    def _confirmed(self, detections: dict) -> dict | None:
+    def _confirmed(self, detections: dict[str, Any]) -> dict[str, Any] | None:
         """Only confirmed markers (``kgadapt.onboard.confirmation``); None for a frame already seen.
 
         Stale and future frames pass unchanged: the checks below count and refuse them.
@@ -459,7 +463,7 @@ class FlightBridge:
             return detections
         return self.confirmer.keep(detections, frame_time, self._places(detections))
 
-    def _places(self, detections: dict) -> list | None:
+    def _places(self, detections: dict[str, Any]) -> list[Place | None] | None:
         """Where each candidate lies in the local frame (None where unknown), so that the confirmation
         allows for the vehicle's motion between frames (kgadapt.onboard.confirmation)."""
         ids, corners = detections["ids"], detections["corners"]
@@ -468,7 +472,7 @@ class FlightBridge:
         site = self.settings.confirmation.site
         state = self.link.state
         places = []
-        for raw_id, c in zip(ids, corners):
+        for raw_id, c in zip(ids, corners, strict=True):
             mid = marker_id_of(raw_id)
             try:
                 place = (None if mid is None or (site is not None and mid not in site.sizes_m)
@@ -491,7 +495,7 @@ class FlightBridge:
             body["angles_only"] = True
         try:
             publisher.put(messages.encode("flight_state", body))
-        except Exception as exc:  # zenoh errors: log and try again next period
+        except Exception as exc:  # noqa: BLE001 - zenoh errors: log and try again next period
             log.warning("flight bridge: flight_state not published: %s", exc)
             return
         self._last_published = state.discrete()
@@ -510,8 +514,9 @@ class FlightBridge:
                     return
                 state, self._latest_for_callback = self._latest_for_callback, None
             try:
-                self._on_state(state)  # type: ignore[misc]
-            except Exception:
+                if state is not None and self._on_state is not None:  # both are, once woken to run
+                    self._on_state(state)
+            except Exception:  # a callback's bug must not stop the notifier
                 log.exception("flight bridge: on_state callback failed")
 
 
@@ -549,7 +554,7 @@ class FlightControlWriter:
         self.min_period_s = min_period_s
         self.written = 0
         self.failed = 0
-        self._last: tuple | None = None
+        self._last: tuple[object, ...] | None = None
         self._last_at = -math.inf
         self._last_error = ""
 

@@ -16,11 +16,17 @@ import signal
 import sys
 import threading
 import time
+from typing import TYPE_CHECKING, Any, Callable
+
+if TYPE_CHECKING:
+    from kgadapt.onboard.mavlink import FlightState, LinkSettings
 
 # Only light imports here: pymavlink and zenoh are imported inside the commands.
 
 
-def register(subparsers: argparse._SubParsersAction) -> argparse._SubParsersAction:
+def register(
+    subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
+) -> argparse._SubParsersAction[argparse.ArgumentParser]:
     parser = subparsers.add_parser(
         "flight", help="MAVLink flight controller link: fake autopilot, state monitor, bridge",
         description="MAVLink 2 link to the flight controller (common dialect).",
@@ -99,7 +105,7 @@ def _add_link_arguments(parser: argparse.ArgumentParser) -> None:
                         help="link lost after S seconds without heartbeat (default 3)")
 
 
-def _link_settings(args: argparse.Namespace):
+def _link_settings(args: argparse.Namespace) -> LinkSettings:
     from kgadapt.onboard.mavlink import LinkSettings
 
     return LinkSettings(url=args.url, system_id=args.system_id, component_id=args.component_id,
@@ -119,7 +125,7 @@ def stop_event() -> threading.Event:
     return stop
 
 
-def run_until(stop: threading.Event, duration: float, every: float, tick) -> None:
+def run_until(stop: threading.Event, duration: float, every: float, tick: Callable[[], object]) -> None:
     deadline = time.monotonic() + duration if duration > 0 else None
     try:
         while not stop.is_set():
@@ -143,10 +149,10 @@ def _monitor(args: argparse.Namespace) -> int:
     link = FlightLink(_link_settings(args))
     stop = stop_event()
     changed = threading.Event()
-    events: queue.SimpleQueue = queue.SimpleQueue()  # snapshots made for link events: each one is printed
-    shown: dict = {"discrete": None}
+    events: queue.SimpleQueue[FlightState] = queue.SimpleQueue()  # snapshots made for link events: each one is printed
+    shown: dict[str, Any] = {"discrete": None}
 
-    def on_state(state) -> None:
+    def on_state(state: FlightState) -> None:
         if state.event:
             events.put(state)
         if state.discrete() != shown["discrete"]:
@@ -157,7 +163,7 @@ def _monitor(args: argparse.Namespace) -> int:
     try:
         link.wait_for_heartbeat(args.wait)
 
-        def show(state) -> None:
+        def show(state: FlightState) -> None:
             shown["discrete"] = state.discrete()
             if args.json:
                 print(json.dumps(state.as_message()), flush=True)
@@ -243,11 +249,11 @@ def _bridge(args: argparse.Namespace) -> int:
     return 0
 
 
-def _num(value, fmt: str = "{:.2f}") -> str:
+def _num(value: float | None, fmt: str = "{:.2f}") -> str:
     return "-" if value is None else fmt.format(value)
 
 
-def _motion(state) -> str:
+def _motion(state: FlightState) -> str:
     """Altitude, attitude, position and rangefinder in one short line ('-' = unknown)."""
     import math
 
@@ -257,7 +263,7 @@ def _motion(state) -> str:
             + (f" missing={','.join(state.missing)}" if state.missing else ""))
 
 
-def status_lines(state, timeouts: dict[str, float], now: float) -> list[str]:
+def status_lines(state: FlightState, timeouts: dict[str, float], now: float) -> list[str]:
     """``kgadapt flight status``: one line a group of fields, with its age and timeout."""
     import math
 

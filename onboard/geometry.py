@@ -8,9 +8,15 @@ local NED frame, ``ned_to_body`` back.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Iterable, Sequence
 
 Vector = tuple[float, float, float]
+
+
+def vector(values: Iterable[float]) -> Vector:
+    """Three numbers as a Vector; ValueError for any other count."""
+    x, y, z = values
+    return (x, y, z)
 
 
 def rotation(attitude: Sequence[float]) -> tuple[Vector, Vector, Vector]:
@@ -28,12 +34,12 @@ def rotation(attitude: Sequence[float]) -> tuple[Vector, Vector, Vector]:
 
 def body_to_ned(attitude: Sequence[float], v: Sequence[float]) -> Vector:
     r = rotation(attitude)
-    return tuple(sum(r[i][j] * float(v[j]) for j in range(3)) for i in range(3))  # type: ignore[return-value]
+    return vector(sum(r[i][j] * float(v[j]) for j in range(3)) for i in range(3))
 
 
 def ned_to_body(attitude: Sequence[float], v: Sequence[float]) -> Vector:
     r = rotation(attitude)
-    return tuple(sum(r[j][i] * float(v[j]) for j in range(3)) for i in range(3))  # type: ignore[return-value]
+    return vector(sum(r[j][i] * float(v[j]) for j in range(3)) for i in range(3))
 
 
 def norm(v: Sequence[float]) -> float:

@@ -47,7 +47,7 @@ from typing import Any, Callable, Sequence
 from pymavlink.dialects.v20 import common as mavlink2
 
 from kgadapt.onboard.confirmation import Place
-from kgadapt.onboard.geometry import body_to_ned, camera_to_body, ned_to_body, norm
+from kgadapt.onboard.geometry import Vector, body_to_ned, camera_to_body, ned_to_body, norm, vector
 from kgadapt.onboard.mavlink import FlightState, LandingTarget
 from kgadapt.onboard.site import SiteMarkers, load_site
 from kgadapt.shared.errors import ConfigError
@@ -61,7 +61,7 @@ def _number(where: str, name: str, value: Any, *, positive: bool = False) -> flo
     return float(value)
 
 
-def _read_json(path: str | Path, what: str) -> dict:
+def _read_json(path: str | Path, what: str) -> dict[str, Any]:
     try:
         data = json.loads(Path(path).read_text())
     except OSError as exc:
@@ -88,7 +88,7 @@ class CameraModel:
     offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # camera position in body FRD
 
     @classmethod
-    def from_dict(cls, data: dict, where: str = "camera") -> "CameraModel":
+    def from_dict(cls, data: dict[str, Any], where: str = "camera") -> "CameraModel":
         known = {"fx", "fy", "cx", "cy", "width", "height", "distortion", "mount", "name"}
         unknown = set(data) - known
         if unknown:
@@ -116,9 +116,9 @@ class CameraModel:
         return cls(**values, width=width, height=height,
                    distortion=tuple(_number(where, "distortion", d) for d in distortion),
                    yaw_deg=_number(where, "mount.yaw_deg", mount.get("yaw_deg", 0.0)),
-                   offset_m=tuple(_number(where, "mount.offset_m", o) for o in offset))  # type: ignore[arg-type]
+                   offset_m=vector(_number(where, "mount.offset_m", o) for o in offset))
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width,
                 "height": self.height, "distortion": list(self.distortion),
                 "mount": {"yaw_deg": self.yaw_deg, "offset_m": list(self.offset_m)}}
@@ -150,8 +150,8 @@ def marker_pose(corners: Sequence[Sequence[float]], size_m: float, camera: Camer
         return None
     if not ok:
         return None
-    t = tuple(float(v) for v in tvec.reshape(3))
-    return t if t[2] > 0 and all(math.isfinite(v) for v in t) else None  # type: ignore[return-value]
+    t = vector(float(v) for v in tvec.reshape(3))
+    return t if t[2] > 0 and all(math.isfinite(v) for v in t) else None
 
 
 class AutopilotProfile(enum.Enum):
@@ -171,7 +171,7 @@ class AutopilotProfile(enum.Enum):
             raise ConfigError(f"autopilot profile {name!r}: use ardupilot, px4 or auto") from None
 
 
-PoseAt = Callable[[float], "tuple[tuple, tuple | None] | None"]
+PoseAt = Callable[[float], "tuple[Vector, Vector | None] | None"]  # (attitude, position NED) at a time
 
 
 def _body_angles(v_body: Sequence[float]) -> tuple[float, float]:
@@ -198,9 +198,11 @@ class TargetBuilder:
         rangefinder, or the height above the local origin: flat ground assumed).
         """
         pose = pose_at(frame_time) if pose_at is not None else None
-        if pose is None or pose[1] is None:
+        if pose is None:
             return None
         attitude, position = pose
+        if position is None:
+            return None
         cam = self.camera
         size = self.markers.size_of(marker_id) if self.markers is not None else None
         tvec = marker_pose(corners, size, cam) if size else None
@@ -215,7 +217,7 @@ class TargetBuilder:
             height = state.rangefinder_m or (-float(position[2]) if -float(position[2]) > 0.3 else None)
             if not height or down <= 0.05:
                 return None
-            body = tuple(c * height / down for c in unit)
+            body = vector(c * height / down for c in unit)
             side_px = sum(math.dist(corners[i], corners[(i + 1) % 4]) for i in range(4)) / 4.0
             size = side_px * norm(body) / cam.fx  # its side as the image shows it at that distance
         rel = body_to_ned(attitude, body)
@@ -228,7 +230,7 @@ class TargetBuilder:
         # How it was measured, for the confirmer's tolerance (kgadapt.onboard.confirmation).
         side_px = sum(math.dist(corners[i], corners[(i + 1) % 4]) for i in range(4)) / 4.0
         velocity, rates = state.velocity_ned, state.rates
-        return Place(ned, float(size), norm(body), los=tuple(c / norm(rel) for c in rel), side_px=side_px,
+        return Place(ned, float(size), norm(body), los=vector(c / norm(rel) for c in rel), side_px=side_px,
                      focal_px=(cam.fx + cam.fy) / 2.0, speed_mps=norm(velocity) if velocity else 0.0,
                      rate_rad_s=norm(rates) if rates else 0.0)
 
@@ -249,7 +251,8 @@ class TargetBuilder:
         position = pose[1] if pose and pose[1] is not None else state.position_ned
         size = self.markers.size_of(marker_id) if self.markers is not None else None
         tvec = marker_pose(corners, size, cam) if size else None
-        common = dict(time=float(frame_time), size_x=size_x, size_y=size_y, target_num=marker_id if 0 <= marker_id <= 255 else 0)
+        common: dict[str, Any] = dict(time=float(frame_time), size_x=size_x, size_y=size_y,
+                                      target_num=marker_id if 0 <= marker_id <= 255 else 0)
         if tvec is not None:
             body = self._landing_point(camera_to_body(tvec, yaw_deg=cam.yaw_deg, offset=cam.offset_m), marker_id,
                                        attitude)
@@ -269,7 +272,7 @@ class TargetBuilder:
             down = body_to_ned(attitude, unit)[2] if attitude else unit[2]
             if down > 0.05:
                 distance = height / down
-                body = self._landing_point(tuple(c * distance for c in unit), marker_id, attitude)
+                body = self._landing_point(vector(c * distance for c in unit), marker_id, attitude)
                 angle_x, angle_y = _body_angles(body)
                 distance = norm(body)
                 self.counters["rangefinder"] += 1
@@ -304,11 +307,11 @@ class HeldTarget:
     @classmethod
     def of(cls, body: Sequence[float], attitude: Sequence[float] | None, position: Sequence[float] | None,
            marker_id: int, seen: float) -> "HeldTarget":
-        ned = None
+        ned: Vector | None = None
         if attitude is not None and position is not None:
             rel = body_to_ned(attitude, body)
-            ned = tuple(float(position[i]) + rel[i] for i in range(3))
-        return cls(tuple(float(c) for c in body), ned, marker_id, float(seen))  # type: ignore[arg-type]
+            ned = vector(float(position[i]) + rel[i] for i in range(3))
+        return cls(vector(float(c) for c in body), ned, marker_id, float(seen))
 
     def predict(self, now: float, state: FlightState, profile: AutopilotProfile) -> LandingTarget | None:
         """The target as it should look from the vehicle's current attitude and position."""

@@ -8,7 +8,7 @@ knowledge graph (docs/CONTRACTS.md)::
                     {"op": "stretch", "low_pct": 2, "high_pct": 98}, {"op": "blur", "ksize": 3}],
      "parameters": {"adaptiveThreshWinSizeMax": 53, "adaptiveThreshConstant": 3}}
 
-:func:`parse_config` checks it (its schema: :class:`kgadapt.shared.preprocessing.DetectorSettings`)
+:func:`parse_config` checks it (its schema: :class:`kgadapt.shared.preprocessing.ConfigJson`)
 and says what is wrong (an unknown op, a
 parameter ``cv2.aruco.DetectorParameters`` does not have, a value of the
 wrong type); :class:`MarkerDetector` runs it on grey frames. :func:`score`
@@ -215,9 +215,9 @@ def cells_are_clean(gray: np.ndarray, corners: Any, *, cells: int = 6, max_mixed
     import cv2
 
     pts = np.asarray(corners, np.float32).reshape(4, 2)
-    square = np.float32([[0, 0], [cells, 0], [cells, cells], [0, cells]])
+    square = np.array([[0, 0], [cells, 0], [cells, cells], [0, cells]], np.float32)
     matrix = cv2.getPerspectiveTransform(square, pts)
-    sub = np.float32([0.3, 0.5, 0.7])
+    sub = np.array([0.3, 0.5, 0.7], np.float32)
     cx, cy, sx, sy = np.meshgrid(np.arange(cells, dtype=np.float32), np.arange(cells, dtype=np.float32), sub, sub,
                                  indexing="ij")
     grid = np.stack([(cx + sx).ravel(), (cy + sy).ravel()], 1)
@@ -258,7 +258,8 @@ class MarkerDetector:
             return lambda img: cv2.LUT(img, lut)
         if op == "clahe":
             clahe = cv2.createCLAHE(clipLimit=args["clip_limit"], tileGridSize=(args["tile"], args["tile"]))
-            return clahe.apply
+            apply: Callable[[np.ndarray], np.ndarray] = clahe.apply
+            return apply
         if op == "stretch":
             low_pct, high_pct = args["low_pct"], args["high_pct"]
 
@@ -271,7 +272,8 @@ class MarkerDetector:
                 if high <= low:
                     return img
                 scale = 255.0 / (high - low)
-                return cv2.convertScaleAbs(img, alpha=scale, beta=-low * scale)
+                stretched: np.ndarray = cv2.convertScaleAbs(img, alpha=scale, beta=-low * scale)
+                return stretched
 
             return stretch
         if op == "blur":
@@ -351,7 +353,7 @@ def score(ids: Sequence[int], corners: Sequence[Any], truth: Sequence[Any], *, t
         tid, tc = (item["id"], item["corners"]) if isinstance(item, Mapping) else (item.id, item.corners)
         wanted[int(tid)] = np.asarray(tc, np.float32).reshape(4, 2)
     result = Score(frames=1, truth=len(wanted))
-    for mid, mc in zip(ids, corners):
+    for mid, mc in zip(ids, corners, strict=True):
         expected = wanted.get(int(mid))
         if expected is None:
             if int(mid) not in ignore:

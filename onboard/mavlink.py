@@ -37,11 +37,15 @@ import termios
 import threading
 import time
 from dataclasses import dataclass, replace
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Protocol
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from kgadapt.onboard.geometry import Vector, vector
 from kgadapt.shared.errors import FlightLinkError
+
+if TYPE_CHECKING:  # imported where used: mavlink_commands is the link's helper
+    from kgadapt.onboard.mavlink_commands import CommandOutcome
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +107,20 @@ class Endpoint:
 # ``datagram`` says whether one read is one or more whole MAVLink packets (UDP) or a byte stream.
 
 
+class Transport(Protocol):
+    """What the link reads from and writes to: UDP, TCP or a serial port."""
+
+    datagram: bool
+
+    def open(self, timeout: float) -> None: ...
+    def read(self, timeout: float) -> tuple[bytes, object] | None: ...
+    def accept_source(self, source: object) -> None: ...
+    @property
+    def can_send(self) -> bool: ...
+    def write(self, data: bytes) -> None: ...
+    def close(self) -> None: ...
+
+
 class _UdpTransport:
     datagram = True
 
@@ -110,7 +128,7 @@ class _UdpTransport:
         self._endpoint = endpoint
         self._sock: socket.socket | None = None
         # udpout: fixed; udpin: the last source a valid message came from (see accept_source).
-        self._peer: tuple | None = None
+        self._peer: tuple[Any, ...] | None = None  # a socket address
 
     def open(self, timeout: float) -> None:
         ep = self._endpoint
@@ -130,9 +148,10 @@ class _UdpTransport:
         self._sock = sock
 
     @property
-    def local_address(self) -> tuple:
+    def local_address(self) -> tuple[Any, ...]:
         assert self._sock is not None
-        return self._sock.getsockname()
+        address: tuple[Any, ...] = self._sock.getsockname()
+        return address
 
     def read(self, timeout: float) -> tuple[bytes, object] | None:
         sock = self._sock
@@ -149,8 +168,8 @@ class _UdpTransport:
         return data, source
 
     def accept_source(self, source: object) -> None:
-        if self._endpoint.kind == "udpin":
-            self._peer = source  # type: ignore[assignment]
+        if self._endpoint.kind == "udpin" and isinstance(source, tuple):  # recvfrom's address
+            self._peer = source
 
     @property
     def can_send(self) -> bool:
@@ -337,10 +356,11 @@ class _SerialTransport:
             os.close(fd)
 
 
-def open_transport(endpoint: Endpoint, timeout: float):
+def open_transport(endpoint: Endpoint, timeout: float) -> Transport:
     """Open the transport for ``endpoint`` (bounded by ``timeout``); raise FlightLinkError."""
-    transport = {"udpin": _UdpTransport, "udpout": _UdpTransport, "tcp": _TcpTransport,
-                 "serial": _SerialTransport}[endpoint.kind](endpoint)
+    kinds: dict[str, Callable[[Endpoint], Transport]] = {
+        "udpin": _UdpTransport, "udpout": _UdpTransport, "tcp": _TcpTransport, "serial": _SerialTransport}
+    transport = kinds[endpoint.kind](endpoint)
     transport.open(timeout)
     return transport
 
@@ -348,7 +368,7 @@ def open_transport(endpoint: Endpoint, timeout: float):
 class _Writer:
     """The file-like object pymavlink's MAVLink.send writes packed bytes to."""
 
-    def __init__(self, transport) -> None:
+    def __init__(self, transport: Transport) -> None:
         self.transport = transport
 
     def write(self, data: bytes) -> None:
@@ -374,11 +394,11 @@ class PacketParser:
         parser.robust_parsing = True  # bad bytes become BAD_DATA messages instead of exceptions
         return parser
 
-    def feed(self, data: bytes) -> list:
+    def feed(self, data: bytes) -> list[mavlink2.MAVLink_message]:
         parser = self._new() if self._datagram else self._stream
         try:
             messages = parser.parse_buffer(data) or []
-        except Exception as exc:  # pymavlink raises MAVError, struct.error, IndexError on odd input
+        except Exception as exc:  # noqa: BLE001 - pymavlink raises MAVError, struct.error, IndexError on odd input
             self.bad += 1
             log.debug("dropped undecodable MAVLink bytes (%d): %s", len(data), exc)
             if not self._datagram:
@@ -394,12 +414,12 @@ class PacketParser:
         return good
 
 
-def new_mavlink(transport, *, system_id: int, component_id: int) -> mavlink2.MAVLink:
+def new_mavlink(transport: Transport, *, system_id: int, component_id: int) -> mavlink2.MAVLink:
     """A MAVLink 2 encoder writing to ``transport`` as (system_id, component_id)."""
     return mavlink2.MAVLink(_Writer(transport), srcSystem=system_id, srcComponent=component_id)
 
 
-def is_mavlink2(message) -> bool:
+def is_mavlink2(message: mavlink2.MAVLink_message) -> bool:
     """Whether a received message came as a MAVLink 2 packet."""
     buf = message.get_msgbuf()
     return bool(buf) and buf[0] == mavlink2.PROTOCOL_MARKER_V2
@@ -499,14 +519,14 @@ class FlightState:
     last_heartbeat: float | None = None  # epoch seconds
     event: str | None = None  # the link event this snapshot was made for, if any
 
-    def discrete(self) -> tuple:
+    def discrete(self) -> tuple[object, ...]:
         """The fields whose change is news at once (the rest is published periodically)."""
         return (self.link, self.armed, self.mode, self.landed_state, self.reboots)
 
     def last_heard(self, stream: str) -> float | None:
         return dict(self.heard).get(stream)
 
-    def as_message(self) -> dict:
+    def as_message(self) -> dict[str, Any]:
         """The body of a ``flight_state`` wire message."""
         body = {
             "time": self.time, "link": self.link, "armed": self.armed, "mode": self.mode,
@@ -624,7 +644,7 @@ class FlightLink:
                                       f"(streams: {', '.join(n for n in STREAM_FIELDS if n != 'HEARTBEAT')})")
             self._streams[name] = (msg_id, hz, settings.stream_timeout(name, hz))
         self._streams_wanted = threading.Event()  # set when the link comes up: ask for our streams
-        self._transport = None
+        self._transport: Transport | None = None
         self._mav: mavlink2.MAVLink | None = None
         self._send_lock = threading.Lock()
         self._state_lock = threading.Lock()
@@ -641,8 +661,8 @@ class FlightLink:
         self._heard = threading.Condition(self._state_lock)
         # What the vehicle's pose was when: ATTITUDE (epoch, attitude) and LOCAL_POSITION_NED (epoch, position, velocity)
         # apart, each stamped when it arrived, so pose_at() never gives a position as of an attitude's time.
-        self._attitudes: collections.deque = collections.deque(maxlen=256)
-        self._positions: collections.deque = collections.deque(maxlen=128)
+        self._attitudes: collections.deque[tuple[float, Vector]] = collections.deque(maxlen=256)
+        self._positions: collections.deque[tuple[float, Vector, Vector]] = collections.deque(maxlen=128)
         self.counters = {"received": 0, "bad": 0, "sent": 0, "send_errors": 0, "links_lost": 0,
                          "reboots": 0, "stream_requests": 0, "streams_stopped": 0}
         self.commands = CommandSender(settings.commands or CommandSettings(), encoder=lambda: self._mav,
@@ -658,9 +678,9 @@ class FlightLink:
         if self._transport is not None:
             return
         self._stop.clear()
-        self._transport = open_transport(self.endpoint, self.settings.open_timeout_s)
-        self._parser = PacketParser(datagram=self._transport.datagram)
-        self._mav = new_mavlink(self._transport, system_id=self.settings.system_id,
+        self._transport = transport = open_transport(self.endpoint, self.settings.open_timeout_s)
+        self._parser = PacketParser(datagram=transport.datagram)
+        self._mav = new_mavlink(transport, system_id=self.settings.system_id,
                                 component_id=self.settings.component_id)
         self.commands.setup()
         self._threads = [
@@ -703,7 +723,7 @@ class FlightLink:
                      if name != "HEARTBEAT" and now - heard > self.stream_timeout(name)]
         if not stale:
             return state
-        cleared = {f: None for name in stale for f in STREAM_FIELDS[name]}
+        cleared: dict[str, Any] = {f: None for name in stale for f in STREAM_FIELDS[name]}
         if "SYS_STATUS" in stale and "BATTERY_STATUS" not in dict(state.heard):
             cleared.update({f: None for f in STREAM_FIELDS["BATTERY_STATUS"]})
         return replace(state, heard=tuple((k, t) for k, t in state.heard if k not in stale), **cleared)
@@ -718,7 +738,7 @@ class FlightLink:
             return self.settings.heartbeat_timeout_s
         return self._streams[name][2] if name in self._streams else self.settings.stream_timeout_min_s
 
-    def pose_at(self, when: float, *, within_s: float = 0.25) -> tuple[tuple, tuple | None] | None:
+    def pose_at(self, when: float, *, within_s: float = 0.25) -> tuple[Vector, Vector | None] | None:
         """(attitude, position_ned or None) at epoch ``when``; None without an attitude heard within ``within_s``.
 
         The attitude is interpolated between the two samples around ``when`` (20 Hz: a vehicle turning
@@ -737,12 +757,12 @@ class FlightLink:
         if before and after and after[0][0] - before[-1][0] <= within_s:
             (t0, a0), (t1, a1) = before[-1], after[0]
             share = (when - t0) / (t1 - t0)
-            attitude = tuple(x0 + share * math.remainder(x1 - x0, math.tau) for x0, x1 in zip(a0, a1))
+            attitude = vector(x0 + share * math.remainder(x1 - x0, math.tau) for x0, x1 in zip(a0, a1, strict=True))
         place = min(positions, key=lambda p: abs(p[0] - when), default=None)
         if place is None or abs(place[0] - when) > within_s:
             return attitude, None
         t, position, velocity = place
-        return attitude, tuple(p + v * (when - t) for p, v in zip(position, velocity))
+        return attitude, vector(p + v * (when - t) for p, v in zip(position, velocity, strict=True))
 
     def wait_for_heartbeat(self, timeout: float) -> FlightState:
         """Block until the link is up; raise FlightLinkError naming the URL after ``timeout`` s."""
@@ -764,7 +784,7 @@ class FlightLink:
                 return
             try:
                 chunk = transport.read(_READ_TIMEOUT_S)
-            except Exception as exc:  # a failing port must not kill the thread silently
+            except Exception as exc:  # noqa: BLE001 - a failing port must not kill the thread silently
                 log.error("flight link %s read failed: %s", self.endpoint.url, exc)
                 self._stop.wait(0.5)
                 continue
@@ -781,7 +801,7 @@ class FlightLink:
                 except Exception:  # one odd message must never stop the reader
                     log.exception("flight link %s: cannot use %s", self.endpoint.url, message.get_type())
 
-    def _handle(self, message) -> bool:
+    def _handle(self, message: mavlink2.MAVLink_message) -> bool:
         """Fold one message into the state; True if it came from the autopilot we follow."""
         kind = message.get_type()
         src = (message.get_srcSystem(), message.get_srcComponent())
@@ -805,7 +825,7 @@ class FlightLink:
             if last is not None and boot_ms + _BOOT_BACKWARDS_MS < last:
                 self._rebooted(f"time since boot went back from {last} to {boot_ms} ms")
             self._update(boot_ms=boot_ms)
-        changes: dict | None = None
+        changes: dict[str, Any] | None = None
         if kind == "SYS_STATUS":
             changes = {"onboard_load": message.load / 10.0}
             if not self._have_battery_status:
@@ -848,7 +868,7 @@ class FlightLink:
             self._heard_stream(kind, now, changes)
         return True
 
-    def _handle_heartbeat(self, message, src: tuple[int, int], now: float) -> bool:
+    def _handle_heartbeat(self, message: mavlink2.MAVLink_message, src: tuple[int, int], now: float) -> bool:
         if message.autopilot == mavlink2.MAV_AUTOPILOT_INVALID:
             return False  # a GCS, companion or gimbal: not a flight controller
         if self.settings.target_system is not None and src[0] != self.settings.target_system:
@@ -886,7 +906,7 @@ class FlightLink:
                     "flight link %s: %s (autopilot %d/%d)", self.endpoint.url, event, *src)
         return True
 
-    def _heard_stream(self, kind: str, now: float, changes: dict) -> None:
+    def _heard_stream(self, kind: str, now: float, changes: dict[str, Any]) -> None:
         self._heard_mono[kind] = now
         self._retry_s.pop(kind, None)
         changes["heard"] = self._heard_tuple()
@@ -908,12 +928,12 @@ class FlightLink:
         with self._state_lock:
             self._attitudes.clear()
             self._positions.clear()
-        cleared = {f: None for stream, fields in STREAM_FIELDS.items() if stream != "HEARTBEAT" for f in fields}
+        cleared: dict[str, Any] = {f: None for stream, fields in STREAM_FIELDS.items() if stream != "HEARTBEAT" for f in fields}
         self._update(event=AUTOPILOT_REBOOTED, reboots=self.state.reboots + 1, boot_ms=None,
                      heard=self._heard_tuple(), **cleared)
         self._streams_wanted.set()
 
-    def _update(self, *, event: str | None = None, quiet_keys: tuple[str, ...] = (), **changes: object) -> None:
+    def _update(self, *, event: str | None = None, quiet_keys: tuple[str, ...] = (), **changes: Any) -> None:
         with self._state_lock:
             old = self._state
             if not event and all(getattr(old, k) == v for k, v in changes.items() if k not in quiet_keys):
@@ -928,7 +948,7 @@ class FlightLink:
         for listener in list(self._listeners):
             try:
                 listener(new)
-            except Exception:
+            except Exception:  # a listener's bug must not stop the reader
                 log.exception("flight state listener failed")
 
     def _tick_loop(self) -> None:
@@ -942,7 +962,7 @@ class FlightLink:
                 log.warning("flight link %s: link_lost (no heartbeat for %.1f s)", self.endpoint.url, now - last)
                 # Nothing heard is current any more: every stream's fields become unknown with the link.
                 self._heard_mono.clear()
-                cleared = {f: None for fields in STREAM_FIELDS.values() for f in fields}
+                cleared: dict[str, Any] = {f: None for fields in STREAM_FIELDS.values() for f in fields}
                 self._update(event=LINK_LOST, link=False, heard=(), **cleared)
             if now >= next_heartbeat:
                 next_heartbeat = now + period
@@ -955,7 +975,7 @@ class FlightLink:
 
     def _check_streams(self, now: float) -> None:
         """Expire the fields of every stream not heard within its timeout; ask again for what does not come."""
-        expired: dict[str, object] = {}
+        expired: dict[str, Any] = {}
         missing = set(self.state.missing)
         again = []
         for name, (_, _, timeout) in self._streams.items():
@@ -989,11 +1009,11 @@ class FlightLink:
     # -- sending
 
     def _send_heartbeat(self) -> None:
-        transport = self._transport
-        if transport is None or not transport.can_send:
+        transport, mav = self._transport, self._mav
+        if transport is None or mav is None or not transport.can_send:
             return  # udpin: nobody to talk to until the flight controller speaks
         try:
-            self._send(self._mav.heartbeat_encode(  # type: ignore[union-attr]
+            self._send(mav.heartbeat_encode(
                 mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0,
                 mavlink2.MAV_STATE_ACTIVE,
             ))
@@ -1011,7 +1031,7 @@ class FlightLink:
             self.commands.submit(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, (msg_id, 1e6 / hz), fc,
                                  label=f"{name} at {hz:g} Hz")
 
-    def command(self, command: int, *params: float, label: str = "", timeout: float | None = 15.0):
+    def command(self, command: int, *params: float, label: str = "", timeout: float | None = 15.0) -> CommandOutcome:
         """Send one COMMAND_LONG to the autopilot and wait for its outcome (a CommandOutcome)."""
         fc = self._fc
         if fc is None:
@@ -1031,7 +1051,7 @@ class FlightLink:
         )
         self._send(message)
 
-    def _send(self, message) -> None:
+    def _send(self, message: mavlink2.MAVLink_message) -> None:
         with self._send_lock:
             if self._mav is None or self._transport is None:
                 raise FlightLinkError(f"flight link {self.endpoint.url} is closed")

@@ -106,7 +106,7 @@ class PendingCommand:
     def result(self, timeout: float | None = None) -> CommandOutcome:
         if not self._done.wait(timeout):
             raise FlightLinkError(f"command {command_name(self.command)} ({self.label}) still pending")
-        return self.outcome  # type: ignore[return-value]
+        return self.outcome  # type: ignore[return-value]  # set before _done is
 
     @property
     def done(self) -> bool:
@@ -119,18 +119,19 @@ SendFn = Callable[[object], None]
 class CommandSender:
     """Sends COMMAND_LONGs one after the other, each until acknowledged or out of attempts."""
 
-    def __init__(self, settings: CommandSettings, *, encoder: Callable[[], object | None], send: SendFn,
+    def __init__(self, settings: CommandSettings, *, encoder: Callable[[], mavlink2.MAVLink | None], send: SendFn,
                  on_refusal: Callable[[Refusal], None] | None = None,
                  on_rejected: Callable[[], None] | None = None,
                  alive: Callable[[], bool] = lambda: True) -> None:
         self.settings = settings
         self._alive = alive  # False while the link is down: no point waiting for acks then
-        self._queued: dict[tuple, PendingCommand] = {}  # the same command twice in the queue is sent once
+        # The same command twice in the queue is sent once: (command, params, target) -> the one queued.
+        self._queued: dict[tuple[int, tuple[float, ...], tuple[int, int]], PendingCommand] = {}
         self._encoder = encoder  # returns the link's MAVLink object (None while closed)
         self._send = send
         self._on_refusal = on_refusal
         self._on_rejected = on_rejected  # every rejecting acknowledgement, final or not
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[PendingCommand | None] = queue.SimpleQueue()
         self._current: PendingCommand | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -165,7 +166,7 @@ class CommandSender:
         self._queue.put(pending)
         return pending
 
-    def on_ack(self, message) -> None:
+    def on_ack(self, message: mavlink2.MAVLink_command_ack_message) -> None:
         """A COMMAND_ACK from the autopilot (called on the reader thread: only signals)."""
         with self._lock:
             current = self._current
@@ -201,7 +202,7 @@ class CommandSender:
             if mav is None:
                 return CommandOutcome.NO_ACK
             try:
-                self._send(mav.command_long_encode(  # type: ignore[attr-defined]
+                self._send(mav.command_long_encode(
                     pending.target[0], pending.target[1], pending.command, min(attempt, 255), *pending.params))
                 self.counters["sent" if attempt == 0 else "resent"] += 1
             except FlightLinkError as exc:
@@ -238,7 +239,7 @@ class CommandSender:
         if self._on_rejected is not None:
             try:
                 self._on_rejected()
-            except Exception:
+            except Exception:  # a listener's bug must not stop the command thread
                 log.exception("command rejection listener failed")
 
     def _finish(self, pending: PendingCommand, outcome: CommandOutcome) -> None:
@@ -255,6 +256,6 @@ class CommandSender:
             if self._on_refusal is not None:
                 try:
                     self._on_refusal(refusal)
-                except Exception:
+                except Exception:  # a listener's bug must not stop the command thread
                     log.exception("command refusal listener failed")
         pending._done.set()

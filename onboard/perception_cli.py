@@ -18,7 +18,7 @@ import time
 from typing import Any
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "perception",
         help="camera publisher, marker detector, calibration of detector configurations",
@@ -36,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 # -- camera --------------------------------------------------------------------
 
 
-def _register_camera(sub: argparse._SubParsersAction) -> None:
+def _register_camera(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from kgadapt.shared.agent import DEFAULT_ROBOT
     from kgadapt.shared.session import add_arguments
 
@@ -107,7 +107,7 @@ def _camera(args: argparse.Namespace) -> int:
 # -- detect --------------------------------------------------------------------
 
 
-def _register_detect(sub: argparse._SubParsersAction) -> None:
+def _register_detect(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from kgadapt.onboard.detector import add_detector_arguments
 
     p = sub.add_parser(
@@ -131,7 +131,7 @@ def _detect(args: argparse.Namespace) -> int:
 # -- calibrate -----------------------------------------------------------------
 
 
-def _register_calibrate(sub: argparse._SubParsersAction) -> None:
+def _register_calibrate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from kgadapt.onboard.calibration import FEATURE, RESULTS_DIR
 
     p = sub.add_parser(
@@ -222,7 +222,7 @@ def _calibrate_frames(args: argparse.Namespace, progress: Any) -> int:
 # -- profile -------------------------------------------------------------------
 
 
-def _register_profile(sub: argparse._SubParsersAction) -> None:
+def _register_profile(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "profile",
         help="check an illumination profile file and show its levels",

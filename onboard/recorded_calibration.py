@@ -132,7 +132,7 @@ def _consensus(seen: _Seen, members: Sequence[int]) -> dict[int, np.ndarray]:
     corners: dict[int, list[np.ndarray]] = {}
     for i in members:
         ids, found, _ms = seen.found[i]
-        for marker_id, c in zip(ids, found):
+        for marker_id, c in zip(ids, found, strict=True):
             corners.setdefault(int(marker_id), []).append(np.asarray(c, np.float32).reshape(4, 2))
     return {k: np.median(np.stack(v), axis=0) for k, v in corners.items()}
 
@@ -151,8 +151,8 @@ def label_and_score(configs: Sequence[DetectorConfig], frames: Iterator[tuple[st
     seen_frames: list[_Seen] = []
     for count, (name, gray) in enumerate(frames, 1):
         level = estimate_light(gray).level
-        band = _band_of(level, bands)
-        if band is None:
+        band_name = _band_of(level, bands)
+        if band_name is None:
             labels.frames_outside += 1
             continue
         found, clean = [], []
@@ -160,8 +160,8 @@ def label_and_score(configs: Sequence[DetectorConfig], frames: Iterator[tuple[st
             d = detector.detect(gray)
             found.append((d.ids, d.corners, d.processing_ms))
             clean.append(d.clean)
-        seen_frames.append(_Seen(name, band, level, found, clean))
-        labels.frames_per_band[band] = labels.frames_per_band.get(band, 0) + 1
+        seen_frames.append(_Seen(name, band_name, level, found, clean))
+        labels.frames_per_band[band_name] = labels.frames_per_band.get(band_name, 0) + 1
         if progress and count % 100 == 0:
             progress(f"{count} frames read")
     if not seen_frames:
@@ -174,8 +174,8 @@ def label_and_score(configs: Sequence[DetectorConfig], frames: Iterator[tuple[st
             agreed = _consensus(seen, members)
             for i in members:
                 ids, corners, _ms = seen.found[i]
-                for marker_id, c, clean in zip(ids, corners, seen.clean[i]):
-                    if not clean:
+                for marker_id, c, cells_clean in zip(ids, corners, seen.clean[i], strict=True):
+                    if not cells_clean:
                         continue
                     centre = agreed[int(marker_id)]
                     error = float(np.linalg.norm(np.asarray(c, np.float32).reshape(4, 2) - centre, axis=1).mean())

@@ -107,7 +107,7 @@ def check_dictionaries_here(names: list[str]) -> dict[str, DictionaryVerdict]:
         except (ConfigError, ModelError) as exc:
             out[name] = (str(exc), None)
             continue
-        except Exception as exc:  # cv2.error or a file the custom-dictionary reader cannot take
+        except Exception as exc:  # noqa: BLE001 - cv2.error or a file the custom-dictionary reader cannot take
             out[name] = (f"OpenCV cannot use ArUco dictionary {name!r}: {exc}", None)
             continue
         count = getattr(getattr(dictionary, "bytesList", None), "shape", (None,))[0]
@@ -236,7 +236,8 @@ def json_lines(text: str) -> tuple[dict[str, int], list[int]]:
         return text.count("\n", 0, at) + 1
 
     def skip(at: int) -> int:
-        return _SPACE.match(text, at).end()  # type: ignore[union-attr]
+        space = _SPACE.match(text, at)
+        return space.end() if space else at
 
     try:
         i = skip(0)

@@ -29,6 +29,7 @@ import tarfile
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.resources import shipped
@@ -62,7 +63,7 @@ def version() -> str:
 
     from kgadapt.bench.footprint import checkout
 
-    return tomllib.loads((checkout() / "pyproject.toml").read_text())["project"]["version"]
+    return str(tomllib.loads((checkout() / "pyproject.toml").read_text())["project"]["version"])
 
 
 def platform_flags(arch: str) -> list[str]:
@@ -108,7 +109,7 @@ def fill_wheelhouse(wheelhouse: Path, own_wheel: Path, settings: ArchiveSettings
                  what=f"resolving the offline install for Python {py} on {settings.arch}")
 
 
-def build(settings: ArchiveSettings, *, progress=print) -> Path:
+def build(settings: ArchiveSettings, *, progress: Callable[[str], object] = print) -> Path:
     """Write ``dist/kgadapt-VERSION-linux-ARCH.tar.gz`` and return its path."""
     name = f"kgadapt-{version()}-linux-{settings.arch}"
     with tempfile.TemporaryDirectory(prefix="kgadapt-dist-") as tmp:

@@ -86,7 +86,7 @@ class ConnectionWatch:
     def _connected(self, session: Any) -> bool:
         try:
             return bool(list(session.info.routers_zid()) or list(session.info.peers_zid()))
-        except Exception:  # session closing
+        except Exception:  # noqa: BLE001 - session closing
             return True
 
     def _run(self, session: Any) -> None:
@@ -191,7 +191,7 @@ class Agent:
         if self.session is not None:
             try:
                 self.session.close()
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - stopping: the session may be closed already
                 log.debug("session close failed: %s", exc)
             self.session = None
             log.info("%s agent %s stopped", self.settings.role, self.settings.host)

@@ -44,7 +44,7 @@ class StopPolicy:
         if first not in _ESCALATION:
             raise DeploymentError(f"stop signal {first!r}: use SIGINT, SIGTERM or SIGKILL")
         start = _ESCALATION.index(signal.Signals(first))
-        return list(zip(_ESCALATION[start:], waits[start:]))
+        return list(zip(_ESCALATION[start:], waits[start:], strict=True))
 
 
 # ChildProcess.stop()'s default: an agent stops its own detectors first (up to ~6 s with theirs at 3 s).

@@ -2,7 +2,7 @@
 
 One schema for the three places that read or write a detector configuration: the
 model importer (``preprocess :gamma, gamma: 0.5`` in ``.rpsl`` files, checked at
-load time, every setting written out through :class:`DetectorSettings`), the
+load time, every setting written out through :class:`ConfigJson`), the
 detector program and calibration (both through
 :func:`kgadapt.onboard.markers.parse_config`, which calls :func:`read_settings`
 and then asks OpenCV about the dictionary and parameters). A step is a Struct
@@ -64,7 +64,7 @@ def make_step(op: str, settings: Mapping[str, Any]) -> AnyStep:
 ParameterValue = Union[bool, int, float, str]
 
 
-class DetectorSettings(Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+class ConfigJson(Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """A marker detector's ``config_json``: ArUco dictionary, pre-processing steps in order, detector parameters."""
 
     dictionary: str = DEFAULT_DICTIONARY
@@ -128,7 +128,7 @@ def is_dictionary_file(name: str) -> bool:
     return name.lower().endswith(DICTIONARY_FILE_SUFFIXES)
 
 
-def read_settings(data: object, where: str, *, dictionary: str | None = None) -> DetectorSettings:
+def read_settings(data: object, where: str, *, dictionary: str | None = None) -> ConfigJson:
     """Check a decoded ``config_json``; ConfigError starting with ``where`` says what is wrong.
 
     A missing setting takes its default, a missing dictionary ``dictionary`` (the
@@ -137,7 +137,7 @@ def read_settings(data: object, where: str, *, dictionary: str | None = None) ->
     """
     if not isinstance(data, Mapping):
         raise ConfigError(f"{where}: config_json must be an object, not {type(data).__name__}")
-    unknown = sorted(set(data) - {f.name for f in msgspec.structs.fields(DetectorSettings)})
+    unknown = sorted(set(data) - {f.name for f in msgspec.structs.fields(ConfigJson)})
     if unknown:
         raise ConfigError(f"{where}: unknown key {unknown[0]!r} (use dictionary, preprocess, parameters)")
     dict_name = data.get("dictionary") or dictionary or DEFAULT_DICTIONARY
@@ -171,6 +171,6 @@ def read_settings(data: object, where: str, *, dictionary: str | None = None) ->
     try:
         # The steps are checked above with the table's words; this checks the rest's types once more.
         return msgspec.convert({"dictionary": dict_name, "preprocess": msgspec.to_builtins(preprocess),
-                                "parameters": dict(params)}, DetectorSettings)
+                                "parameters": dict(params)}, ConfigJson)
     except msgspec.ValidationError as exc:
         raise ConfigError(f"{where}: {exc}") from exc

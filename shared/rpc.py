@@ -78,7 +78,7 @@ def undeclare_quietly(entity: _Undeclarable) -> None:
     """Undeclare ``entity``; a failure (the session closed first) is only logged."""
     try:
         entity.undeclare()
-    except Exception as exc:  # zenoh.ZError and friends: nothing left to undeclare
+    except Exception as exc:  # noqa: BLE001 - zenoh.ZError and friends: nothing left to undeclare
         log.debug("undeclare %s: %s", type(entity).__name__, exc)
 
 
@@ -396,7 +396,7 @@ def _parameters(query: zenoh.Query) -> dict[str, str]:
         # zenoh's stub says __iter__ returns a list; it is an iterator of (name, value) pairs.
         pairs = cast(Iterable[tuple[str, str]], parameters)
         return {str(k): str(v) for k, v in pairs}
-    except Exception:  # a selector Zenoh cannot split: no parameters
+    except Exception:  # noqa: BLE001 - a selector Zenoh cannot split: no parameters
         return {}
 
 
@@ -407,10 +407,10 @@ def _finish(query: zenoh.Query, *, reply: Reply | None = None, error: str | None
             query.reply(reply.key, reply.payload)
         else:
             query.reply_err(error or "refused")
-    except Exception as exc:  # the asker may be gone; nothing to tell it
+    except Exception as exc:  # noqa: BLE001 - the asker may be gone; nothing to tell it
         log.debug("reply on %s failed: %s", query.key_expr, exc)
     finally:
         try:
             query.drop()
-        except Exception as exc:  # already dropped
+        except Exception as exc:  # noqa: BLE001 - already dropped
             log.debug("drop: %s", exc)

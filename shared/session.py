@@ -82,8 +82,8 @@ def settings_from_env(**overrides: object) -> ZenohSettings:
     }
     values.update({k: v for k, v in overrides.items() if v not in (None, (), [])})
     for key in ("connect", "listen"):
-        values[key] = tuple(values[key])  # type: ignore[arg-type]
-    return ZenohSettings(**values)  # type: ignore[arg-type]
+        values[key] = tuple(values[key])  # type: ignore[arg-type]  # _split and the flags give sequences of str
+    return ZenohSettings(**values)  # type: ignore[arg-type]  # the keys and kinds written just above
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -140,7 +140,7 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     for key, value in inserts.items():
         try:
             config.insert_json5(key, json.dumps(value))
-        except Exception as exc:
+        except Exception as exc:  # zenoh's errors (ZError, ValueError): translated here
             raise ConfigError(f"Zenoh config key {key!r} = {value!r}: {exc}") from exc
     return config
 
@@ -160,7 +160,7 @@ def open_session(settings: ZenohSettings) -> zenoh.Session:
     config = build_config(settings)
     try:
         session = zenoh.open(config)
-    except Exception as exc:
+    except Exception as exc:  # whatever zenoh raises: translated here
         raise TransportError(
             f"cannot open Zenoh session (mode {settings.mode}, connect {list(settings.connect)}, "
             f"listen {list(settings.listen)}): {exc}"

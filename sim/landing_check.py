@@ -10,10 +10,12 @@ GUIDED first). ``kgadapt flight land-check`` (kgadapt.sim.cli) runs it from the 
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Callable, TypeVar
 
 from pymavlink.dialects.v20 import common as mavlink2
 
@@ -23,6 +25,13 @@ from kgadapt.onboard.mavlink_commands import CommandOutcome
 from kgadapt.onboard.site import SiteMarkers
 from kgadapt.shared.errors import FlightLinkError
 from kgadapt.sim.landing_scene import MarkerScene, fake_pose, horizontal_error, link_pose, run_detections
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from kgadapt.onboard.mavlink import FlightLink
+
+_T = TypeVar("_T")
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +54,7 @@ class LandingCheckSettings:
     timeout_s: float = 60.0
     reboot_first: bool = False  # reboot the autopilot on the ground, then take off (the fake starts on the ground)
     url: str | None = None  # a real autopilot (SITL); None = the fake flight controller
-    fake: dict = field(default_factory=dict)  # FakeFCSettings overrides (e.g. a faster LAND_SPEED for tests)
+    fake: dict[str, Any] = field(default_factory=dict)  # FakeFCSettings overrides (e.g. a faster LAND_SPEED for tests)
 
 
 @dataclass(frozen=True)
@@ -61,7 +70,7 @@ class LandingResult:
     origin_back_s: float | None = None  # ... and to LOCAL_POSITION_NED (ArduPilot sends it once its EKF has an origin)
     max_gap_s: float | None = None  # longest time without a LANDING_TARGET from the target's acquisition to touchdown
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return self.__dict__.copy()
 
 
@@ -70,10 +79,11 @@ def _free_udp_port() -> int:
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        port: int = s.getsockname()[1]
+        return port
 
 
-def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "landcheck") -> LandingResult:
+def run_landing_check(session: zenoh.Session, settings: LandingCheckSettings, *, robot: str = "landcheck") -> LandingResult:
     from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
     from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 
@@ -110,6 +120,8 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
         if fc is None or s.reboot_first:
             _take_off(link, s.alt_m)
         start = link.state.position_ned
+        if start is None:
+            raise FlightLinkError(f"{url}: the local position stopped before LAND")
         scene = MarkerScene(cam, north=start[0] + s.marker_north, east=start[1] + s.marker_east,
                             size_m=s.marker_size_m)
         pose = fake_pose(fc) if fc is not None else link_pose(link)
@@ -124,6 +136,8 @@ def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "
             raise FlightLinkError(f"the autopilot did not take LAND: {outcome.value}")
         landed = _wait(lambda: link.state.landed_state == "ON_GROUND", s.timeout_s, "touchdown", fail=False)
         final = fc.vehicle.position_ned if fc is not None else link.state.position_ned
+        if final is None:
+            raise FlightLinkError(f"{url}: no local position at touchdown")
         landed_at = time.time()
         if fc is not None:  # the fake says when its estimator acquired the target, and what it received
             acquired_at = next((t for t, text in fc.text_times if text == "PrecLand: Init Complete"), None)
@@ -153,10 +167,10 @@ def _max_gap(times: list[float], start: float | None, end: float) -> float | Non
     if start is None:
         return None
     inside = [start, *(t for t in times if start < t < end), end]
-    return max(b - a for a, b in zip(inside, inside[1:]))
+    return max(b - a for a, b in itertools.pairwise(inside))
 
 
-def _reboot(link) -> tuple[float, float]:
+def _reboot(link: FlightLink) -> tuple[float, float]:
     """Reboot the autopilot (on the ground); seconds until the link saw it and every stream it sends at once
     came back, and until LOCAL_POSITION_NED came back (ArduPilot: once its EKF has an origin again)."""
     # The link sees a reboot by the autopilot's clock going back: let it run past what a restart shows first.
@@ -176,7 +190,7 @@ def _reboot(link) -> tuple[float, float]:
     return at_once, time.monotonic() - started
 
 
-def _take_off(link, alt_m: float) -> None:
+def _take_off(link: FlightLink, alt_m: float) -> None:
     """GUIDED, arm, take off to ``alt_m`` (a real autopilot: each command acknowledged)."""
     for label, command, params in (
         ("GUIDED", mavlink2.MAV_CMD_DO_SET_MODE, (CUSTOM, 4)),
@@ -191,7 +205,7 @@ def _take_off(link, alt_m: float) -> None:
     _wait(lambda: (link.state.alt_rel_m or 0) > alt_m - 0.3, 60, f"climb to {alt_m} m")
 
 
-def _wait(condition, timeout: float, what: str, *, fail: bool = True):
+def _wait(condition: Callable[[], _T], timeout: float, what: str, *, fail: bool = True) -> _T | None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         value = condition()

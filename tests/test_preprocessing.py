@@ -10,7 +10,7 @@ import pytest
 
 from kgadapt.knowledge.importers import parse_file
 from kgadapt.shared.errors import ConfigError
-from kgadapt.shared.preprocessing import OPS, STEPS, Blur, Clahe, DetectorSettings, Gamma, Setting, read_settings
+from kgadapt.shared.preprocessing import OPS, STEPS, Blur, Clahe, ConfigJson, Gamma, Setting, read_settings
 
 MODELS = Path(__file__).resolve().parent / "knowledge"
 
@@ -27,7 +27,7 @@ def test_the_op_table_is_the_step_structs_defaults_and_ranges():
 def test_read_settings_fills_defaults_and_types_the_steps():
     settings = read_settings({"preprocess": [{"op": "clahe", "tile": 4.0}, {"op": "gamma"}],
                               "parameters": {"adaptiveThreshConstant": 3}}, "c", dictionary="DICT_5X5_50")
-    assert settings == DetectorSettings(dictionary="DICT_5X5_50", preprocess=[Clahe(tile=4), Gamma()],
+    assert settings == ConfigJson(dictionary="DICT_5X5_50", preprocess=[Clahe(tile=4), Gamma()],
                                         parameters={"adaptiveThreshConstant": 3})
     assert type(settings.preprocess[0].tile) is int  # type: ignore[union-attr]
     assert settings.steps() == (("clahe", (("clip_limit", 2.0), ("tile", 4))), ("gamma", (("gamma", 1.0),)))

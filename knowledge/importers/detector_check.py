@@ -60,10 +60,10 @@ def verdicts(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
             found = _read(key)
             if found is not None:
                 _memory[key] = found[0]
-    unknown = [(key, config) for key, config in zip(keys, configs) if key not in _memory]
+    unknown = [(key, config) for key, config in zip(keys, configs, strict=True) if key not in _memory]
     if unknown:
         asked = dict(unknown)  # one question per distinct configuration
-        for key, verdict in zip(asked, _ask(list(asked.values()), path)):
+        for key, verdict in zip(asked, _ask(list(asked.values()), path), strict=True):
             _memory[key] = verdict
             _write(key, verdict)
     return [_memory[key] for key in keys]
@@ -173,6 +173,7 @@ def dictionary_verdicts(names: list[str], path: str) -> dict[str, tuple[str | No
             problem, count = answer[name]
             out[name] = (None if problem is None else str(problem), count if isinstance(count, int) else None)
             if name.startswith("DICT_"):
-                _memory[keys[name]] = [problem, count]  # type: ignore[assignment]
-                _write(keys[name], [problem, count])  # type: ignore[arg-type]
+                # The site's dictionaries share the cache with the configurations: [problem, marker count].
+                _memory[keys[name]] = [problem, count]  # type: ignore[assignment]  # see above
+                _write(keys[name], [problem, count])  # type: ignore[arg-type]  # see above
     return out

@@ -268,7 +268,7 @@ def _config_json(b: _Block) -> None:
         return
     if "dictionary" in b.props:
         # Written through the detector's schema: what the importer writes is what parse_config reads.
-        b.props["config_json"] = preprocessing.DetectorSettings(
+        b.props["config_json"] = preprocessing.ConfigJson(
             dictionary=b.props["dictionary"], parameters=b.parameters,
             preprocess=[preprocessing.make_step(step["op"], {k: v for k, v in step.items() if k != "op"})
                         for step in b.preprocess],
@@ -292,7 +292,7 @@ def _check_detectors(blocks: list[_Block], path: str) -> None:
             if isinstance(value, (int, float)) and not low <= value <= high:
                 raise b.origin.error(f"{b.name}: parameter {key} = {value} is outside [{low}, {high}]")
     asked = [(str(b.name), b.props["config_json"]) for b in detectors]
-    for b, verdict in zip(detectors, detector_check.verdicts(asked, path)):
+    for b, verdict in zip(detectors, detector_check.verdicts(asked, path), strict=True):
         if verdict is not None:
             at = verdict["at"] if verdict["at"] == "dictionary" else f"parameter:{verdict['key']}"
             raise b.origins.get(at, b.origin).error(verdict["message"])

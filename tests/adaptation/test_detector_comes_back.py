@@ -24,7 +24,7 @@ pytestmark = pytest.mark.slow
 
 
 def _live(run: Run) -> list[dict]:
-    return [p for p in DeployerClient(run.session, "quad1").list("*") if p.get("state") in KEPT_STATES]
+    return [p for p in DeployerClient(run.session, "quad1").processes("*") if p.get("state") in KEPT_STATES]
 
 
 def _back_after(run: Run, gone: str, since: float) -> float:

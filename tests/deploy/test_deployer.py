@@ -51,7 +51,7 @@ def test_a_deployment_from_the_store_starts_on_request_reports_events_and_stops(
     assert info["argv"][:3] == [sys.executable, "-m", "kgadapt.sim.echo_detector"]
     assert info["argv"][info["argv"].index("--host") + 1] == "onboard"
     assert info["argv"][info["argv"].index("--instance") + 1] == "det1"
-    assert [p["instance"] for p in client.list("*")] == ["det1"]
+    assert [p["instance"] for p in client.processes("*")] == ["det1"]
     final = client.stop("onboard", "det1")
     assert final["state"] == "stopped" and final["returncode"] is not None and not alive(info["pid"])
     events.wait_for(lambda e: e["event"] == "stopped")
@@ -65,21 +65,21 @@ def test_an_unknown_deployment_is_refused_and_nothing_runs(hosts, client_session
     client = DeployerClient(client_session, ROBOT)
     with pytest.raises(DeploymentError, match="'no_such_deployment' is not in the knowledge store"):
         client.start("onboard", "no_such_deployment", CONFIG)
-    assert client.list("*") == []
+    assert client.processes("*") == []
 
 
 def test_a_deployment_for_another_host_is_refused_and_nothing_runs(hosts, client_session):
     client = DeployerClient(client_session, ROBOT)
     with pytest.raises(DeploymentError, match="not executable on host onboard .only on remote"):
         client.start("onboard", "echo_remote_only", CONFIG)
-    assert client.list("*") == []
+    assert client.processes("*") == []
 
 
 def test_a_configuration_the_deployment_does_not_deploy_is_refused(hosts, client_session):
     client = DeployerClient(client_session, ROBOT)
     with pytest.raises(DeploymentError, match="does not deploy configuration marker_detection_dark"):
         client.start("onboard", "echo", "marker_detection_dark")
-    assert client.list("*") == []
+    assert client.processes("*") == []
 
 
 @pytest.mark.parametrize("field", ["command", "executable", "arguments", "environment"])
@@ -91,7 +91,7 @@ def test_a_start_request_carrying_a_command_line_is_refused_and_nothing_runs(hos
     body = messages.decode(reply.ok.payload.to_bytes(), "deploy_reply")
     assert body["ok"] is False
     assert repr(field) in body["detail"]["error"] and "knowledge store" in body["detail"]["error"]
-    assert DeployerClient(client_session, ROBOT).list("*") == []
+    assert DeployerClient(client_session, ROBOT).processes("*") == []
     assert not marker.exists()
 
 
@@ -100,7 +100,7 @@ def test_a_malformed_request_gets_an_error_reply_and_the_deployer_keeps_serving(
     assert reply.ok is None and "not valid msgpack" in reply.err.payload.to_string()
     reply = raw_request(client_session, "onboard", "stop", messages.encode("deploy_request", {"instance": "../x"}))
     assert "bad instance" in messages.decode(reply.ok.payload.to_bytes(), "deploy_reply")["detail"]["error"]
-    assert DeployerClient(client_session, ROBOT).list("onboard") == []
+    assert DeployerClient(client_session, ROBOT).processes("onboard") == []
 
 
 def test_a_placeholder_outside_the_contract_is_refused_naming_it(graph, hosts, client_session):

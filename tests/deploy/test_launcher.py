@@ -137,7 +137,7 @@ def test_the_launcher_runs_nothing_the_graph_does_not_deploy(hosts, client_sessi
         client.start("onboard", "no_such_deployment", DAY)
     with pytest.raises(DeploymentError, match="does not deploy"):
         client.start("onboard", "detector_day", "marker_detection_dark")
-    assert hosts["onboard"].deployer.list() == []
+    assert hosts["onboard"].deployer.processes() == []
 
 
 def test_the_launcher_forks_only_modules_it_preloaded(hosts):

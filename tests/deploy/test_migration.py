@@ -39,7 +39,7 @@ def test_the_target_produces_output_before_the_source_stops(hosts, client_sessio
     source_exit, _ = events.wait_for(lambda e: e["instance"] == "det1" and e["event"] == "exited")
     assert first_new < source_exit  # the new detector answered frames while the old one still ran
     assert not alive(source["pid"])
-    live = {p["instance"]: p["host"] for p in client.list("*") if p["state"] == "ready"}
+    live = {p["instance"]: p["host"] for p in client.processes("*") if p["state"] == "ready"}
     assert live == {"det2": "remote"}
     markers.close()
     events.close()

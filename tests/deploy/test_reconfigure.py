@@ -148,7 +148,7 @@ def test_a_detector_started_idle_publishes_nothing_until_made_active(hosts, clie
         replies = list(client_session.get(keys.deployer_verb(ROBOT, "onboard", "start"), payload=bad, timeout=10))
         refused = replies[0].err.payload.to_string() if replies and replies[0].ok is None else \
             str(msgpack.unpackb(replies[0].ok.payload.to_bytes()) if replies else "no reply")
-        assert "idle" in refused and len(client.list("onboard")) == 1, refused  # named, and nothing started
+        assert "idle" in refused and len(client.processes("onboard")) == 1, refused  # named, and nothing started
         client.stop("onboard", "standby1")
     finally:
         markers.close()

@@ -214,7 +214,7 @@ def test_killing_the_supervising_process_with_sigkill_kills_its_children(tmp_pat
         import sys, time
         sys.path.insert(0, {os.getcwd()!r})
         from kgadapt.deploy.supervisor import ProcessSpec, Supervisor, SupervisorSettings
-        sup = Supervisor(SupervisorSettings(launcher={launcher!r})); sup.setup()
+        sup = Supervisor(SupervisorSettings(death_signal_via={launcher!r})); sup.setup()
         info = sup.start(ProcessSpec(instance="det", argv=({sys.executable!r}, "-c", {DEAF!r})))
         print(info.pid, flush=True)
         time.sleep(60)
@@ -241,9 +241,11 @@ def _first_number_in_output(supervisor: Supervisor, instance: str) -> int:
     raise AssertionError("the child did not print its child's pid")
 
 
-def test_an_unknown_launcher_is_refused_naming_it():
-    with pytest.raises(DeploymentError, match="launcher 'fork'"):
-        SupervisorSettings(launcher="fork")
+def test_an_unknown_way_to_set_the_death_signal_is_refused_naming_it():
+    with pytest.raises(DeploymentError, match="death_signal_via 'fork'"):
+        SupervisorSettings(death_signal_via="fork")  # type: ignore[arg-type]  # the wrong value is the test
+    with pytest.raises(DeploymentError, match="launcher 'setpriv'"):  # the old meaning of the name
+        SupervisorSettings(launcher="setpriv")  # type: ignore[arg-type]  # the wrong value is the test
 
 
 def test_a_supervisor_in_a_process_that_ignores_sigint_still_stops_its_child_with_sigint():

@@ -128,7 +128,7 @@ def test_another_robot_may_ask_named_queries_but_cannot_start_a_process_or_write
     with pytest.raises(RequestTimeout):
         knowledge.write("process_end", {"run_id": "forged", "end_time": 1.0, "exit_status": 0})
     operator = DeployerClient(secured("quad1-operator"), ROBOT, timeout=3.0)
-    assert operator.list("onboard") == []  # nothing ran
+    assert operator.processes("onboard") == []  # nothing ran
 
 
 def test_a_certificate_the_policies_do_not_name_gets_nothing_at_all(secured):

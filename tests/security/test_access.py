@@ -241,7 +241,7 @@ def test_another_robot_cannot_start_list_or_stop_processes_nor_squeeze_a_host(se
     list_key, empty = keys.deployer_verb(ROBOT, "onboard", "list"), messages.encode("deploy_request", {})
     assert reply_payloads(other.session, list_key, empty) == []  # not even an answer
     assert len(reply_payloads(operator_session, list_key, empty)) == 1  # while the deployer answers this robot
-    assert operator.list("onboard") == []  # and nothing was started
+    assert operator.processes("onboard") == []  # and nothing was started
     squeezed = squeeze(operator_session, ROBOT, "onboard", 0.0, timeout=3.0)  # the queryable is there too
     assert squeezed["host"] == "onboard" and squeezed.get("reserved_mb", 0.0) == 0.0
 
@@ -319,7 +319,7 @@ def test_wildcard_requests_of_another_robot_reach_no_queryable(session_as):
     for selector in [f"kgadapt/{ROBOT}/**", "kgadapt/**", "**", f"kgadapt/{ROBOT}/knowledge/**",
                      f"kgadapt/{ROBOT}/knowledge/*/*", f"kgadapt/{ROBOT}/host/*/deployer/start"]:
         assert reply_payloads(other, selector, payload) == [], selector
-    assert DeployerClient(session_as(OPERATOR), ROBOT, timeout=3.0).list("onboard") == []
+    assert DeployerClient(session_as(OPERATOR), ROBOT, timeout=3.0).processes("onboard") == []
 
 
 def test_a_certificate_of_our_ca_that_no_policy_names_gets_nothing(session_as):
@@ -380,7 +380,7 @@ def test_a_remote_hosts_certificate_cannot_command_deployers(session_as):
     with pytest.raises(RequestTimeout):
         remote.start("onboard", "detector_day", "marker_detection_day", instance="from_remote", wait_ready=False)
     onboard = DeployerClient(session_as(f"{ROBOT}-onboard"), ROBOT, timeout=3.0)  # the manager's identity may
-    assert onboard.list("onboard") == []
+    assert onboard.processes("onboard") == []
 
 
 # -- what the deployer runs ---------------------------------------------------------------------------
@@ -564,4 +564,4 @@ def test_a_detectors_certificate_cannot_start_write_or_speak_for_its_host(sessio
     assert (keys.adaptation_events(ROBOT), b"forged") not in seen
     assert b"forged" not in forged_configure
     assert keys.host_alive(ROBOT, "detector_ghost") not in alive
-    assert "by_det" not in {p["instance"] for p in DeployerClient(watcher, ROBOT, timeout=3.0).list("onboard")}
+    assert "by_det" not in {p["instance"] for p in DeployerClient(watcher, ROBOT, timeout=3.0).processes("onboard")}

@@ -32,7 +32,7 @@ def test_a_wildcard_start_reaches_no_host(loopback_robot):
     stop = outsider.raw(f"kgadapt/{robot['robot']}/host/*/deployer/stop",
                         msgpack.packb({"kind": "deploy_request", "v": 1, "instance": "x"}), timeout=10)
     assert stop.kind == "err" and "exactly one host" in stop.error
-    assert DeployerClient(robot["session"](), robot["robot"]).list("*") == []  # nothing started anywhere
+    assert DeployerClient(robot["session"](), robot["robot"]).processes("*") == []  # nothing started anywhere
 
 
 def test_a_start_beyond_the_hosts_memory_budget_is_refused_with_that_reason(loopback_robot):
@@ -41,7 +41,7 @@ def test_a_start_beyond_the_hosts_memory_budget_is_refused_with_that_reason(loop
     with pytest.raises(DeploymentError, match=r"declares 324 MiB and host remote's 0 process\(es\) already declare "
                                               r"0 MiB \(none\): 324 MiB would exceed its memory budget of 300 MiB"):
         deployers.start("remote", "detector_dark", DARK)
-    assert deployers.list("remote") == []
+    assert deployers.processes("remote") == []
     # What fits still starts: the check refuses by the figures, not by the request.
     started = deployers.start("remote", "detector_day", DAY)
     assert started["state"] in ("ready", "running")
