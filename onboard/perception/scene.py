@@ -30,13 +30,11 @@ from __future__ import annotations
 import csv
 import io
 import json
-import json.decoder
-import json.scanner
 import math
 from dataclasses import dataclass, field, fields, replace
 from enum import Enum
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence, cast
 
 import numpy as np
 
@@ -217,7 +215,7 @@ def camera_expose(
     if gain is None:
         sample = lit[::4, ::4] if window is None else lit[::4, ::4][~window[::4, ::4]]
         gain = _gain_for_level(sample.ravel(), level)
-    linear = lit * gain
+    linear: np.ndarray = lit * gain
     if window is not None and window.any():
         linear[window] = window_gain
     if camera.lens_sigma > 0:
@@ -323,7 +321,7 @@ class IlluminationProfile:
         t = self._local_time(t)
         if len(pts) == 1 or t <= pts[0].t:
             return pts[0], pts[0], 0.0
-        for a, b in zip(pts, pts[1:]):
+        for a, b in zip(pts, pts[1:], strict=False):
             if t <= b.t:
                 span = b.t - a.t
                 return a, b, (t - a.t) / span if span > 0 else 1.0
@@ -479,7 +477,8 @@ def _events(raw: Any, source: str, line: int) -> tuple[ProfileEvent, ...]:
             raise ModelError(source, line, f"{where}: from, to (and marker_scale) must be numbers")
         try:
             out.append(ProfileEvent(
-                start=float(start), end=float(end), marker_scale=None if scale is None else float(scale),
+                start=float(cast(float, start)), end=float(cast(float, end)),
+                marker_scale=None if scale is None else float(scale),
                 camera=_group(CameraModel, f"{where}.camera", item["camera"], source, line) if "camera" in item else None,
                 light=_group(LightLayout, f"{where}.light", item["light"], source, line) if "light" in item else None))
         except ConfigError as exc:
@@ -527,24 +526,51 @@ def _is_number(value: Any) -> bool:
 
 
 def _json_with_positions(text: str, source: str) -> tuple[Any, dict[int, int]]:
-    """Decode JSON and remember where each list starts, to name lines in errors."""
-    positions: dict[int, int] = {}
-    keep: list[Any] = []  # keeps the lists alive so their ids stay unique
+    """Decode JSON and remember where each list starts, to name lines in errors.
 
-    def parse_array(s_and_end, scan_once, _w=json.decoder.WHITESPACE.match, _ws=json.decoder.WHITESPACE_STR):
-        result, end = json.decoder.JSONArray(s_and_end, scan_once, _w, _ws)
-        positions[id(result)] = s_and_end[1] - 1
-        keep.append(result)
-        return result, end
-
-    decoder = json.JSONDecoder()
-    decoder.parse_array = parse_array  # type: ignore[attr-defined]
-    decoder.scan_once = json.scanner.py_make_scanner(decoder)  # the pure-Python scanner honours parse_array
+    The lists of the decoded value, visited depth first in document order, are the ``[`` outside strings
+    in the text, in order. A duplicate key (whose first value JSON drops) breaks that pairing: then no
+    list has a position and errors name the key's line or line 1.
+    """
     try:
-        data = decoder.decode(text)
+        data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise ModelError(source, exc.lineno, f"not valid JSON: {exc.msg}") from exc
-    return data, positions
+    lists: list[Any] = []
+
+    def visit(value: Any) -> None:
+        if isinstance(value, list):
+            lists.append(value)
+            for item in value:
+                visit(item)
+        elif isinstance(value, dict):
+            for item in value.values():
+                visit(item)
+
+    visit(data)
+    opens = _array_openings(text)
+    if len(opens) != len(lists):
+        return data, {}
+    return data, {id(value): at for value, at in zip(lists, opens, strict=True)}
+
+
+def _array_openings(text: str) -> list[int]:
+    """Offsets of the ``[`` of a JSON text that are not inside a string."""
+    openings: list[int] = []
+    in_string = escaped = False
+    for at, char in enumerate(text):
+        if in_string:
+            if escaped:
+                escaped = False
+            elif char == "\\":
+                escaped = True
+            elif char == '"':
+                in_string = False
+        elif char == '"':
+            in_string = True
+        elif char == "[":
+            openings.append(at)
+    return openings
 
 
 # --------------------------------------------------------------------------- scene
@@ -615,8 +641,8 @@ def markers_for(dictionary_size: int, ids: Sequence[int] = (), sizes_m: Mapping[
             raise ConfigError(f"none of the site's ids {sorted(ids)[:6]} is in a dictionary of {dictionary_size} markers")
         known = [sizes_m[i] for i in chosen if sizes_m and sizes_m.get(i)]
         largest = max(known) if known else 0.0
-        out = []
-        for pose, marker_id in zip(poses, chosen):
+        out = []  # a site with fewer ids than poses fills only the first poses
+        for pose, marker_id in zip(poses, chosen, strict=False):
             factor = (sizes_m[marker_id] / largest) if largest and sizes_m and sizes_m.get(marker_id) else 1.0
             out.append(replace(pose, id=marker_id, size=min(max(pose.size * factor, 0.05), 0.6)))
         return tuple(out)
@@ -733,7 +759,8 @@ class SyntheticScene:
             inner = max(s // 6, 1)
             base[y0 + inner:y0 + s - inner, x0 + inner:x0 + s - inner] = _WHITE * 0.8
         self._add_patterns(cv2, base)
-        return np.clip(base, 0.0, 1.0).astype(np.float32)
+        frame: np.ndarray = np.clip(base, 0.0, 1.0).astype(np.float32)
+        return frame
 
     def _add_patterns(self, cv2: Any, base: np.ndarray) -> None:
         """Printed things that are not the site's markers: other dictionaries, ChArUco-like boards, texture."""
@@ -860,7 +887,8 @@ class SyntheticScene:
         window = self._window_mask(profile)
         if window is not None:
             noisy[window] = 255.0
-        return np.clip(noisy + 0.5, 0, 255).astype(np.uint8)
+        frame: np.ndarray = np.clip(noisy + 0.5, 0, 255).astype(np.uint8)
+        return frame
 
     def _light_field(self, profile: IlluminationProfile) -> np.ndarray:
         """The relative light over the frame: gradient, blind stripes, spotlight."""
@@ -914,7 +942,8 @@ def _project(pose: MarkerPose, width: int, height: int) -> np.ndarray:
     rx = np.array([[1, 0, 0], [0, math.cos(p), -math.sin(p)], [0, math.sin(p), math.cos(p)]])
     points = local @ (rx @ ry @ rz).T + np.array([0, 0, distance])
     uv = f * points[:, :2] / points[:, 2:3]
-    return (uv + np.array([pose.x * width, pose.y * height])).astype(np.float32)
+    corners: np.ndarray = (uv + np.array([pose.x * width, pose.y * height])).astype(np.float32)
+    return corners
 
 
 def frames(
