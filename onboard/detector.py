@@ -170,7 +170,9 @@ def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, 
 
     rows = KnowledgeClient(session, robot, own=True).query(
         "reflex_table", {"deployment": deployment, "host": host}, wait_s=wait_s)
-    return ReflexTable.from_rows(rows, parse=lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary))
+    # Now: fresh live figures of this robot rank above calibration, as in the planner's ranking.
+    return ReflexTable.from_rows(rows, parse=lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary),
+                                 now=time.time())
 
 
 def _clean_count(result: Any) -> int:
