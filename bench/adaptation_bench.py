@@ -71,6 +71,11 @@ def register(bench_subparsers: Any) -> None:
                    help="how a same-host configuration change is done: both side by side (default)")
     p.add_argument("--standby", action="store_true",
                    help="also run with the warm standby (in-place changes allowed, a change to the standby a switch)")
+    p.add_argument("--hedge-cycles", type=int, default=2, metavar="N",
+                   help="what hedging costs: light hovering near the band edges N times (4 levels of --hold s "
+                   "each), with the graph's frame budget, unbounded and without hedging, side by side "
+                   "(default 2; 0 skips)")
+    p.add_argument("--only-hedge", action="store_true", help="measure only what hedging costs")
     p.add_argument("--out", default=str(RESULTS), help="results file (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the records as JSON")
     p.set_defaults(func=run)
@@ -161,6 +166,78 @@ def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cp
             "reflex_frames": rec.reflex_frames(steps)}
 
 
+EDGE_LEVELS = (14.0, 9.0, 36.0, 44.0)  # each within a band margin (5) of an edge (12, 40), on either side
+
+
+def edge_profile(path: Path, cycles: int, hold: float) -> str:
+    """Day, then light hovering near the band edges (``EDGE_LEVELS``), ``hold`` seconds each, ``cycles`` times;
+    the second half of each level with a 7 px motion blur. Sharp, every configuration finds the scene's
+    markers at these levels, and a hedge runs only on a frame the running one found nothing on: the blur
+    gives it such frames, as a gust would while hovering near an edge."""
+    points, events, t = [[0.0, DAY]], [], 3.0
+    for _ in range(cycles):
+        for level in EDGE_LEVELS:
+            points += [[t, points[-1][1]], [t + 0.001, level]]
+            events.append({"from": t + hold / 2, "to": t + hold, "camera": {"blur_px": 7.0, "blur_angle": 25.0}})
+            t += hold
+    points += [[t, points[-1][1]], [t + 3600.0, points[-1][1]]]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"points": points, "events": events, "noise": 2.0, "gradient": 0.2}))
+    return str(path)
+
+
+HEDGE_BUDGETS = {"graph": None, "unbounded": 1000.0, "off": 0.0}  # the feature's frame_budget_ms per run
+
+
+def models_with_budget(folder: Path, budget_ms: float) -> Path:
+    """A copy of the shipped models whose feature's ``frame_budget_ms`` is ``budget_ms`` (0: none, the
+    detectors never hedge; 1000: every hedge fits, whatever a frame costs on this machine)."""
+    from kgadapt.shared.resources import models
+
+    shutil.copytree(models(), folder, dirs_exist_ok=True)
+    for path in (folder / "features").iterdir():
+        lines = path.read_text().splitlines(keepends=True)
+        path.write_text("".join(f"  frame_budget_ms {budget_ms:g}\n" if line.strip().startswith("frame_budget_ms")
+                                and budget_ms else line for line in lines
+                                if budget_ms or not line.strip().startswith("frame_budget_ms")))
+    return folder
+
+
+def _cpu_s(pids: list[int]) -> float:
+    """User + system CPU seconds of ``pids`` so far (those still alive)."""
+    import psutil
+
+    total = 0.0
+    for pid in pids:
+        with contextlib.suppress(psutil.Error):
+            times = psutil.Process(pid).cpu_times()
+            total += times.user + times.system
+    return total
+
+
+def measure_hedge(workdir: Path, cycles: int, hold: float, *, budget: str) -> dict[str, Any]:
+    """Light hovering near band edges, where the hedge runs: the detector's own hedging figures, and the
+    CPU the onboard agent and its detector used per processed frame, with the frame budget ``budget``
+    (a key of ``HEDGE_BUDGETS``: the graph's, unbounded, or off: compare them)."""
+    value = HEDGE_BUDGETS[budget]
+    graph = {} if value is None else {"models": models_with_budget(workdir / "models", value)}
+    profile = edge_profile(workdir / "profile.json", cycles, hold)
+    with _robot(workdir, profile, **graph) as robot:
+        rec = robot.recorder
+        robot.wait(lambda: bool(rec.detections), 60)
+        onboard = robot.cluster.children["onboard"].process.pid
+        pids = _tree(onboard)
+        cpu_before, frames_before, wall_before = _cpu_s(pids), len(rec.detections), time.time()
+        robot.wait(lambda: time.time() - wall_before > cycles * len(EDGE_LEVELS) * hold, cycles * 4 * hold + 60)
+        pids = _tree(onboard)  # the detector was forked after the agent: take it in too
+        cpu_s, frames = _cpu_s(pids) - cpu_before, len(rec.detections) - frames_before
+        wall = time.time() - wall_before
+    hedge = rec.hedging()
+    return {"hedging": hedge, "reflexes": len(rec.reflexes), "frames": frames, "seconds": round(wall, 1),
+            "onboard_cpu_ms_per_frame": round(cpu_s * 1000 / frames, 3) if frames else None,
+            "onboard_cpu_share": round(cpu_s / wall, 4) if wall else None}
+
+
 def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, standby: bool = False) -> list[float]:
     """Milliseconds from kill -9 of the remote agent to the first detection onboard."""
     times: list[float] = []
@@ -222,7 +299,16 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"kgadapt bench adaptation: --onboard-cpu: {HalfCore.unavailable_reason()}")
     records: list[dict[str, Any]] = []
     lines: list[str] = []
+    if args.only_hedge:
+        cpus, modes = [], []
     try:
+        for budget in HEDGE_BUDGETS if args.hedge_cycles else ():
+            result = measure_hedge(workdir / f"hedge-{budget}", args.hedge_cycles, args.hold, budget=budget)
+            records.append(_hedge_record(result, store=store, budget=budget))
+            lines.append(f"light near band edges, frame budget {budget}: {result['frames']} frames "
+                         f"in {result['seconds']} s, reflexes {result['reflexes']}, hedging {result['hedging']}, "
+                         f"onboard CPU {result['onboard_cpu_ms_per_frame']} ms/frame "
+                         f"({result['onboard_cpu_share']} of a core)")
         for cpu in cpus:
             onboard = "unlimited" if cpu is None else f"{cpu:g} core"
             for in_place, standby in modes:
@@ -232,7 +318,7 @@ def run(args: argparse.Namespace) -> int:
                                        standby=standby)
                 records += _records(result, store=store, how=how, onboard=onboard)
                 lines += _lines(result, how=how, onboard=onboard)
-        for cpu in cpus if args.failovers else []:
+        for cpu in cpus if args.failovers and not args.only_hedge else []:
             onboard = "unlimited" if cpu is None else f"{cpu:g} core"
             for standby in (False, True) if args.standby else (False,):
                 failovers = measure_failovers(workdir / f"failover-{'standby-' if standby else ''}"
@@ -328,6 +414,21 @@ def _records(result: dict[str, Any], *, store: str, how: str, onboard: str) -> l
                                cpu_share_of_a_core=round(hedging["hedge_ms_per_frame"] * 30 / 1000, 4),
                                reflexes=result.get("reflexes"), **hedging, **common))
     return out
+
+
+def _hedge_record(result: dict[str, Any], *, store: str, budget: str) -> dict[str, Any]:
+    hedge = result["hedging"]
+    return make_record(store=store, n=None, op=f"hedge_near_edges budget={budget}",
+                       samples_ms=[hedge.get("hedge_ms_per_frame") or 0.0],
+                       what="light hovering within a band margin of an edge: ms per processed frame the detector "
+                            "spent on the hedge (its own count), and the CPU of the onboard agent with its "
+                            "detector per frame and as a share of a core (compare the frame budgets: the "
+                            "graph's 33 ms, unbounded, off)",
+                       frame_budget=budget, frame_budget_ms=HEDGE_BUDGETS[budget], reflexes=result["reflexes"],
+                       frames=result["frames"],
+                       seconds=result["seconds"], onboard_cpu_ms_per_frame=result["onboard_cpu_ms_per_frame"],
+                       onboard_cpu_share=result["onboard_cpu_share"],
+                       **{f"detector_{k}": v for k, v in hedge.items()})
 
 
 def _lines(result: dict[str, Any], *, how: str, onboard: str) -> list[str]:

@@ -30,7 +30,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping, Sequence
 
 from kgadapt.shared.children import ChildProcess
 from kgadapt.shared.errors import KgadaptError
@@ -66,6 +66,11 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
                    help="only the real-photograph figures: blur agreement with the synthetic scene and the oracle "
                         "gap of models naming DICT_4X4_50, DICT_6X6_250, DICT_5X5_1000, DICT_ARUCO_MIP_36h12 "
                         "(into perception.photos.json beside --out)")
+    p.add_argument("--photo", action="append", default=[], metavar="DICTIONARY=FILE",
+                   help="with --photos: the oracle gap of DICTIONARY on this real photograph of its markers "
+                        "(repeatable) instead of the shipped ones or the recoded stand-in; for photographs "
+                        "whose licence keeps them out of sim/photographs (see its SOURCES.txt)")
+    p.add_argument("--skip-blur", action="store_true", help="with --photos: leave out the blur agreement")
     p.set_defaults(func=_run)
 
 
@@ -73,8 +78,13 @@ PHOTO_DICTIONARIES = ("DICT_4X4_50", "DICT_6X6_250", "DICT_5X5_1000", "DICT_ARUC
 
 
 def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / "perception.photos.json",
-               progress: Any = None) -> dict[str, Any]:
-    """Blur agreement and the oracle gap per dictionary on real photographs; write them to ``out``."""
+               progress: Any = None, photos: Mapping[str, Sequence[Path]] | None = None,
+               blur: bool = True) -> dict[str, Any]:
+    """Blur agreement and the oracle gap per dictionary on real photographs; write them to ``out``.
+
+    ``photos``: per dictionary, photograph files of its markers to measure its oracle gap on (read
+    as the shipped ones are, at 640 x 480), in place of the shipped photographs or the recoded stand-in.
+    """
     import json
 
     from kgadapt.bench import perception_quality as quality
@@ -95,13 +105,20 @@ def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / 
             bands = bands_from_rows(run_named(store, "detector_configs", {"feature": "MarkerDetection"}))
         finally:
             store.shutdown()
-    blur = quality.blur_agreement(progress=progress)
+    from kgadapt.sim.photos import load_photo
+
+    agreement = quality.blur_agreement(progress=progress) if blur else None
     settings = CalibrationSettings(frames_per_level=frames, levels_per_band=levels)
-    oracle = {d: quality.photo_oracle_gap(d, bands, calibration=settings, progress=progress) for d in PHOTO_DICTIONARIES}
+    given = {d: [(str(f), load_photo(str(f))) for f in files] for d, files in (photos or {}).items()}
+    # A given photograph may hold few markers (six on the DICT_4X4_50 one): frames x levels as calibrated
+    # (16 a band and condition, 96 marker sightings for six) so that one marker is about one point, not four.
+    oracle = {d: quality.photo_oracle_gap(d, bands, calibration=settings, progress=progress, given=given.get(d),
+                                          **({"frames": frames, "levels": levels} if d in given else {}))
+              for d in PHOTO_DICTIONARIES}
     data = {"machine": stats.machine_info(), "load_average_before": [round(v, 2) for v in load_before],
             "load_average_after": [round(v, 2) for v in os.getloadavg()],
             "calibration": {"frames_per_level": frames, "levels_per_band": levels},
-            "blur_agreement": blur, "oracle_gap": oracle,
+            "blur_agreement": agreement, "oracle_gap": oracle,
             "oracle_target_met": all(o["target_met"] for o in oracle.values())}
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -113,12 +130,21 @@ def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / 
 def _run_photos(args: argparse.Namespace) -> int:
     import json
 
-    data = run_photos(frames=args.frames, levels=args.levels, out=Path(args.out).parent / "perception.photos.json",
-                      progress=None if args.json else _say)
+    photos: dict[str, list[Path]] = {}
+    for item in args.photo:
+        dictionary, sep, file = item.partition("=")
+        if not sep or dictionary not in PHOTO_DICTIONARIES or not Path(file).is_file():
+            raise SystemExit(f"kgadapt bench perception: --photo {item!r}: give DICTIONARY=FILE, DICTIONARY one of "
+                             f"{', '.join(PHOTO_DICTIONARIES)} and FILE an existing photograph")
+        photos.setdefault(dictionary, []).append(Path(file))
+    # Figures on photographs given here (not shipped) go beside the shipped ones', not over them.
+    name = "perception.photos.given.json" if photos else "perception.photos.json"
+    data = run_photos(frames=args.frames, levels=args.levels, out=Path(args.out).parent / name,
+                      progress=None if args.json else _say, photos=photos, blur=not args.skip_blur)
     if args.json:
         print(json.dumps(data, indent=2))
         return 0
-    for r in data["blur_agreement"]["rows"]:
+    for r in (data["blur_agreement"] or {}).get("rows", []):
         print(f"blur {r['blur_px']:g} px {r['config']:24s} photos {r['photos']:6.1%} synthetic {r['synthetic']:6.1%} "
               f"({r['difference_points']:+.1f} points; before {r['synthetic_before']:6.1%})")
     for d, o in data["oracle_gap"].items():

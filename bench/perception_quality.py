@@ -331,7 +331,8 @@ def recoded_photo(photo: np.ndarray, truth: Sequence[dict[str, Any]], dictionary
 
 
 def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: CalibrationSettings = CalibrationSettings(),
-                     frames: int = 2, levels: int = 2, progress: Progress = None) -> dict[str, Any]:
+                     frames: int = 2, levels: int = 2, progress: Progress = None,
+                     given: Sequence[tuple[str, np.ndarray]] | None = None) -> dict[str, Any]:
     """Models naming ``dictionary``, calibrated; their first-ranked per band against the best on real photographs.
 
     Real frames: the photographs of ``dictionary``'s markers where there are
@@ -348,7 +349,10 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
     results = calibrate(configs, bands, calibration)
     picks = {b.name: rank(results, b.name)[0].config for b in bands}
     own = [n for n in BLUR_PHOTOS if _photo_dictionary(n) == dictionary]
-    if own:
+    if given is not None:
+        source = "photographs: " + ", ".join(n for n, _ in given)
+        photos = [(p, photo_truth(p, dictionary)) for _, p in given]
+    elif own:
         source = "photographs"
         photos = [(load_photo(n), photo_truth(load_photo(n), dictionary)) for n in own]
     else:

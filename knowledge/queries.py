@@ -249,7 +249,9 @@ ORDER BY config""",
         "band (lowest first; its edges and margin) each configuration of the feature calibrated in it "
         "(condition, default all) or suited for it, with its settings, its figures, whether the running "
         "deployment may take it in place on the host (in_place_change's rule) and the feature's "
-        "ms-per-frame budget. The detector ranks the rows as config_ranking does.",
+        "ms-per-frame budget, and this robot's live figures of it in the band (live_rate, live_frames_expected, "
+        "live_at; as live_rates gives them). The detector ranks the rows as the planner does: config_ranking's "
+        "order, with fresh live evidence weighed above calibration (kgadapt.onboard.live_rate).",
         {"feature": _FEATURE, "deployment": Param("str", help="deployment of the running detector"),
          "host": Param("str", help="platform it runs on"),
          "condition": Param("str", required=False, default="all", help="calibration condition (default all)"),
@@ -265,16 +267,18 @@ WITH f, g, b, cal, suit
 WHERE cal IS NOT NULL OR suit IS NOT NULL
 MATCH (g)-[:{S.CONTAINS}]->(m:{S.PROCESSING_COMPONENT})
 WHERE m.config_json IS NOT NULL
+OPTIONAL MATCH (g)-[lr:{S.LIVE_RATE} {{condition: $condition}}]->(b)
 OPTIONAL MATCH (g)<-[:{S.DEPLOYS}]-(d:{S.DEPLOYMENT})-[:{S.EXECUTABLE_ON}]->(:{S.PLATFORM} {{name: $host}})
 OPTIONAL MATCH (a:{S.DEPLOYMENT} {{name: $deployment}})-[:{S.EXECUTABLE_ON}]->(:{S.PLATFORM} {{name: $host}})
-WITH f, g, b, cal, suit, m, d,
+WITH f, g, b, cal, suit, lr, m, d,
      d IS NOT NULL AND a IS NOT NULL AND (d.name = a.name OR (a.reconfigurable_as IS NOT NULL
          AND a.reconfigurable_as = d.reconfigurable_as AND a.executable = d.executable)) AS here
 RETURN b.name AS band, b.min_level AS min_level, b.max_level AS max_level, b.margin AS margin,
        g.name AS config, m.dictionary AS dictionary, m.config_json AS config_json,
        cal.detection_rate AS detection_rate, cal.false_per_frame AS false_per_frame,
        coalesce(cal.ms_per_frame, m.ms_per_frame) AS ms_per_frame, suit IS NOT NULL AS suited,
-       d.name AS deployment, here AS in_place, f.frame_budget_ms AS budget_ms
+       d.name AS deployment, here AS in_place, f.frame_budget_ms AS budget_ms,
+       lr.detection_rate AS live_rate, lr.frames_expected AS live_frames_expected, lr.at AS live_at
 ORDER BY min_level, config, in_place DESC, deployment""",
     ),
     NamedQuery(

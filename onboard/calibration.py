@@ -29,12 +29,13 @@ point) of the best are equal, and then the faster one goes first.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -480,6 +481,29 @@ def write_json(data: Mapping[str, Any], path: Path | str) -> Path:
     return path
 
 
+@contextlib.contextmanager
+def calibration_store(store_url: str | None, feature: str = FEATURE, *, progress: Callable[[str], None] | None = None,
+                      ) -> Iterator[tuple[Any, list[DetectorConfig], list[Band]]]:
+    """The store at ``store_url`` set up (the shipped models loaded into an empty one), with the
+    configurations and bands of ``feature`` to calibrate; shut down when the block ends.
+
+    Refuses a store with no configuration of ``feature`` to calibrate.
+    """
+    from kgadapt.knowledge.store import open_store
+
+    store = open_store(store_url)
+    store.setup()
+    try:
+        if ensure_models(store, feature) and progress:
+            progress("the graph was empty: loaded knowledge/models")
+        configs, bands, _rows = configs_from_store(store, feature)
+        if not configs:
+            raise KgadaptError(f"the store has no detector configuration with config_json for feature {feature!r}")
+        yield store, configs, bands
+    finally:
+        store.shutdown()
+
+
 def run_calibration(
     store_url: str | None,
     *,
@@ -492,21 +516,10 @@ def run_calibration(
     site: SiteMarkers | None = None,
 ) -> dict[str, Any]:
     """Calibrate every configuration of ``feature`` in the store at ``store_url``; write the outputs."""
-    from kgadapt.knowledge.store import open_store
-
-    store = open_store(store_url)
-    store.setup()
-    try:
-        if ensure_models(store, feature) and progress:
-            progress("the graph was empty: loaded knowledge/models")
-        configs, bands, _rows = configs_from_store(store, feature)
-        if not configs:
-            raise KgadaptError(f"the store has no detector configuration with config_json for feature {feature!r}")
+    with calibration_store(store_url, feature, progress=progress) as (store, configs, bands):
         results = calibrate(configs, bands, settings, progress=progress, site=site)
         if write_store:
             record(store, results)
-    finally:
-        store.shutdown()
     data = report(results, bands, configs, settings)
     data["store"] = store.url
     data["table"] = table(results, bands).splitlines()

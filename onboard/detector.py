@@ -85,6 +85,11 @@ class LatestSlot:
         self._item: Any = None
         self._closed = False
         self.replaced = 0
+        # ``replaced`` as it stood when the last item was taken. Every item replaced between two takes
+        # is newer than the first taken and older than the second, so the difference between two takes'
+        # counts is exactly the items lost between them; ``replaced`` read later (after the work on the
+        # first) would count, against it, items lost after it.
+        self.replaced_when_taken = 0
 
     def put(self, item: Any) -> None:
         with self._cond:  # held for a pointer swap only: fine in a Zenoh callback
@@ -99,6 +104,8 @@ class LatestSlot:
             if self._item is None and not self._closed:
                 self._cond.wait(timeout)
             item, self._item = self._item, None
+            if item is not None:
+                self.replaced_when_taken = self.replaced
             return item
 
     def close(self) -> None:
@@ -163,7 +170,9 @@ def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, 
 
     rows = KnowledgeClient(session, robot, own=True).query(
         "reflex_table", {"deployment": deployment, "host": host}, wait_s=wait_s)
-    return ReflexTable.from_rows(rows, parse=lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary))
+    # Now: fresh live figures of this robot rank above calibration, as in the planner's ranking.
+    return ReflexTable.from_rows(rows, parse=lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary),
+                                 now=time.time())
 
 
 def _clean_count(result: Any) -> int:
@@ -331,7 +340,7 @@ class Detector:
             if item is None or not self.active.is_set():
                 continue  # idle: no detection work
             try:
-                self._process(*item)
+                self._process(*item, dropped=self.slot.replaced_when_taken)
             except MessageError as exc:
                 self.malformed += 1
                 log.warning("detector %s: dropped a frame: %s", self.settings.instance, exc)
@@ -339,7 +348,7 @@ class Detector:
                 self.malformed += 1
                 log.exception("detector %s: frame failed", self.settings.instance)
 
-    def _process(self, payload: bytes, received: float) -> None:
+    def _process(self, payload: bytes, received: float, *, dropped: int) -> None:
         import cv2
         import numpy as np
 
@@ -382,7 +391,7 @@ class Detector:
             "frame_time": frame["time"], "time": time.time(),
             "ids": result.ids, "corners": result.corners, "processing_ms": round(result.processing_ms, 3),
             "camera": frame["camera"], "received": received, "decode_ms": round(decode_ms, 3),
-            "dropped": self.slot.replaced, "clean": result.clean,
+            "dropped": dropped, "clean": result.clean,
         }
         if isinstance(frame.get("sent"), (int, float)):
             body["frame_sent"] = frame["sent"]

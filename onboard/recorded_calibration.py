@@ -32,10 +32,10 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from kgadapt.onboard.calibration import ALL, CalibrationResult, configs_from_store, ensure_models, record, result_of
+from kgadapt.onboard.calibration import ALL, CalibrationResult, record, result_of
 from kgadapt.onboard.illumination import Band, estimate_light
 from kgadapt.onboard.markers import DetectorConfig, MarkerDetector, Score, score
-from kgadapt.shared.errors import ConfigError, KgadaptError
+from kgadapt.shared.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -224,24 +224,14 @@ def run_frame_calibration(store_url: str | None, frames_from: Path | str, *, fea
     """Calibrate every configuration of ``feature`` in the store on a recording; record the figures by its name."""
     from dataclasses import asdict
 
-    from kgadapt.knowledge.store import open_store
-    from kgadapt.onboard.calibration import write_json
+    from kgadapt.onboard.calibration import calibration_store, write_json
 
     source = source_name(frames_from)
-    store = open_store(store_url)
-    store.setup()
-    try:
-        if ensure_models(store, feature) and progress:
-            progress("the graph was empty: loaded knowledge/models")
-        configs, bands, _rows = configs_from_store(store, feature)
-        if not configs:
-            raise KgadaptError(f"the store has no detector configuration with config_json for feature {feature!r}")
+    with calibration_store(store_url, feature, progress=progress) as (store, configs, bands):
         frames = read_frames(frames_from, max_frames=settings.max_frames, stride=settings.stride)
         results, labels = label_and_score(configs, frames, bands, settings, progress=progress)
         if write_store:
             record(store, results, source=source)
-    finally:
-        store.shutdown()
     data: dict[str, Any] = {
         "source": source, "frames_from": str(frames_from), "settings": asdict(settings), "store": store.url,
         "labels": asdict(labels), "results": [asdict(r) for r in results], "recorded": write_store,

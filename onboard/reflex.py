@@ -5,7 +5,8 @@ hysteresis and a dwell, and then asks the detector to change: seconds after a
 sudden step of the light. A running detector does not have to wait for it. When
 it is configured it reads from the graph (named query ``reflex_table``) what it
 may take in place on its host, band by band, and compiles it into a
-:class:`ReflexTable`; per frame, :class:`Reflex` weighs the evidence the frame
+:class:`ReflexTable`, ranked as the planner ranks (calibration, with this robot's
+fresh live figures weighed above it); per frame, :class:`Reflex` weighs the evidence the frame
 gives and says what to run:
 
 * light: this frame's light estimate (window-proof, :func:`~kgadapt.onboard.illumination.estimate_light`)
@@ -37,6 +38,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.onboard.illumination import Band
+from kgadapt.onboard.live_rate import LiveSettings
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.states import ReflexEvidence
 
@@ -74,14 +76,18 @@ class ReflexTable:
 
     @classmethod
     def from_rows(cls, rows: Sequence[Mapping[str, Any]], *, parse: Callable[[str, str, str | None], Any],
-                  default_margin: float = 3.0, penalty: float = 1.0, tie_rate: float = 0.005) -> "ReflexTable":
+                  default_margin: float = 3.0, penalty: float = 1.0, tie_rate: float = 0.005,
+                  now: float | None = None, live: LiveSettings | None = None) -> "ReflexTable":
         """The table of ``reflex_table`` rows; ``parse(name, config_json, dictionary)`` checks a configuration.
 
-        Ranked as the planner ranks (``config_ranking``): calibrated configurations by detection
-        rate minus ``penalty`` x false markers per frame, within ``tie_rate`` the faster first; a band
-        without calibration falls back to the configurations suited for it.
+        Ranked as the planner ranks (``config_ranking``, then :func:`~kgadapt.onboard.live_rate.weigh`):
+        calibrated configurations by detection rate minus ``penalty`` x false markers per frame, a
+        fresh live figure of this robot (as of ``now``; none without it) that disagrees with the
+        calibrated rate in its place, within ``tie_rate`` the faster first; a band without calibration
+        falls back to the configurations suited for it.
         """
         from kgadapt.onboard.calibration import rank_rows
+        from kgadapt.onboard.live_rate import weigh
 
         by_band: dict[str, list[Mapping[str, Any]]] = {}
         bands: dict[str, tuple[Band, float]] = {}
@@ -102,7 +108,17 @@ class ReflexTable:
         for name, band_rows in by_band.items():
             calibrated = [r for r in band_rows if r.get("detection_rate") is not None]
 
+            if calibrated and now is not None:
+                scored = [{**r, "score": float(r["detection_rate"]) - penalty * float(r.get("false_per_frame") or 0.0)}
+                          for r in calibrated]
+                seen = [{"config": r["config"], "detection_rate": r["live_rate"], "at": r.get("live_at"),
+                         "frames_expected": r.get("live_frames_expected")}
+                        for r in calibrated if r.get("live_rate") is not None]
+                calibrated = weigh(scored, seen, now=now, settings=live or LiveSettings(), penalty=penalty)
+
             def score(r: Mapping[str, Any]) -> float:
+                if "score" in r:
+                    return float(r["score"])
                 return float(r["detection_rate"]) - penalty * float(r.get("false_per_frame") or 0.0)
 
             def ms(r: Mapping[str, Any]) -> float:

@@ -88,13 +88,12 @@ def test_the_detector_follows_the_light_through_the_bands_without_losing_frames(
     assert explained["decision"]["inputs"]["change"] == "reflex"
     assert explained["decision"]["inputs"]["trigger"]["band"] == "dark"
     run.recorder.attribute_losses()
-    # No change costs more than a few frames. The exact figure (0 frames lost per change, 45 in-place
-    # changes) is the adaptation bench's on a quiet machine; here, under the suite's load, a fresh-clone run
-    # once saw 8 frames between dusk and dark of which the detector's slot accounted for 4 (the other 4 not
-    # explained: open in the issue-29 note), so the test bounds the gap to a third of a second at 30 frames/s.
-    assert all((d.frames_lost or 0) <= 10 for d in (dusk, dark)), (
-        [(d.frames_lost, d.frames_lost_busy) for d in (dusk, dark)])
+    # No frame is lost to a change: every frame between the last one answered with the old configuration
+    # and the first with the new one is one the detector's one-frame slot replaced while it was busy (under
+    # the suite's load it falls behind now and then, change or not; the bench counts 0 on a quiet machine).
     assert all(d.frames_lost is not None for d in (dusk, dark))
+    assert [d.frames_lost for d in (dusk, dark)] == [d.frames_lost_busy for d in (dusk, dark)], (
+        [(d.frames_lost, d.frames_lost_busy) for d in (dusk, dark)])
     # Exactly one change per band change: no extra decisions (the manager does not fight the reflexes).
     assert [d.kind for d in run.recorder.decisions] == ["startup", "reflex", "reflex"]
 

@@ -48,6 +48,51 @@ def test_the_table_ranks_calibrated_configurations_and_keeps_only_what_may_run_h
     assert [e.band.name for e in t.entries] == ["dark", "day"]
 
 
+def test_fresh_live_evidence_reorders_the_table_as_it_reorders_the_planner_s_ranking():
+    # Calibration puts dark_a first in band dark; this robot's own detector found 10 % with it over the last
+    # minute (60 frames with markers expected) while dark_b, the second, found 90 %.
+    def dark(config, rate, **live):
+        return {**row("dark", 0, 12, config, rate=rate), **live}
+
+    now = 10_000.0
+    fresh = [dark("dark_a", 0.95, live_rate=0.10, live_frames_expected=60, live_at=now - 60),
+             dark("dark_b", 0.80, live_rate=0.90, live_frames_expected=60, live_at=now - 60)]
+    assert [c.config for c in ReflexTable.from_rows(fresh, parse=parse, now=now).entry("dark").choices] == [
+        "dark_b", "dark_a"]
+    # Evidence too old, or resting on too few frames, or no clock to age it by: calibration decides.
+    stale = [{**r, "live_at": now - 600} for r in fresh]
+    few = [{**r, "live_frames_expected": 5} for r in fresh]
+    for rows, at in ((stale, now), (few, now), (fresh, None)):
+        assert [c.config for c in ReflexTable.from_rows(rows, parse=parse, now=at).entry("dark").choices] == [
+            "dark_a", "dark_b"]
+
+
+def test_the_graph_s_live_figures_reach_the_detector_s_table(tmp_path):
+    # The shipped models, calibrated so that the day configuration ranks first in band dark; the manager's
+    # live write (the same writer its service verb uses) says it finds nothing there while the dark one does.
+    import time
+
+    from kgadapt.knowledge.runtime import record_calibration, record_live_rate
+
+    now = time.time()
+    with open_store(f"embedded:{tmp_path / 'store'}") as store:
+        load_models(store, [str(models())])
+        for config, rate in (("marker_detection_day", 0.95), ("marker_detection_dark", 0.80),
+                             ("marker_detection_dusk", 0.70)):
+            record_calibration(store, config=config, band="dark", detection_rate=rate, false_per_frame=0.0,
+                               ms_per_frame=4.0, time=1.0)
+        before = run_named(store, "reflex_table", {"deployment": "detector_day", "host": "onboard"})
+        for config, rate in (("marker_detection_day", 0.0), ("marker_detection_dark", 0.92)):
+            record_live_rate(store, config=config, band="dark", detection_rate=rate, frames=90, frames_expected=60,
+                             frames_seen=int(rate * 60), since=now - 5, time=now - 1, run_id="run-1", host="onboard")
+        after = run_named(store, "reflex_table", {"deployment": "detector_day", "host": "onboard"})
+    order = [c.config for c in ReflexTable.from_rows(before, parse=parse, now=now).entry("dark").choices]
+    assert order[0] == "marker_detection_day"
+    order = [c.config for c in ReflexTable.from_rows(after, parse=parse, now=now).entry("dark").choices]
+    assert order[:2] == ["marker_detection_dark", "marker_detection_dusk"]  # day's 0 % live is below dusk's 70 %
+    assert {r["config"]: r["live_rate"] for r in after if r["band"] == "dark"}["marker_detection_dark"] == 0.92
+
+
 def test_a_bad_band_row_is_refused_naming_the_band():
     with pytest.raises(ConfigError, match="band 'dark'"):
         ReflexTable.from_rows([{**row("dark", 0, 12, "x"), "max_level": None}], parse=parse)
