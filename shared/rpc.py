@@ -230,13 +230,17 @@ class Server:
     ``prefix`` starts every error reply (e.g. ``"deployer onboard: "``).
     """
 
-    def __init__(self, name: str, *, workers: int = 1, max_pending: int = 64, prefix: str = "") -> None:
+    def __init__(self, name: str, *, workers: int = 1, max_pending: int = 64, prefix: str = "",
+                 pending: Any = None) -> None:
+        """``pending``: the queue of waiting queries, if not a FIFO of ``max_pending`` (e.g. a
+        :class:`~kgadapt.shared.fair_queue.FairQueue`): ``put_nowait`` (``queue.Full``), ``put``, ``get``,
+        ``get_nowait`` (``queue.Empty``), ``qsize``; its items have the Zenoh query as ``query``."""
         if workers < 1 or max_pending < 1:
             raise ConfigError(f"{name}: workers {workers!r} and max_pending {max_pending!r} must be at least 1")
         self.name = name
         self.workers = workers
         self.prefix = prefix
-        self._pending: queue.Queue[Any] = queue.Queue(maxsize=max_pending)
+        self._pending: queue.Queue[Any] = queue.Queue(maxsize=max_pending) if pending is None else pending
         self._threads: list[threading.Thread] = []
         self._queryables: list[zenoh.Queryable[None]] = []
         self._closing = threading.Event()
