@@ -45,19 +45,12 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, BinaryIO, Mapping
+from typing import IO, Any, Mapping
 
 import msgpack
 
 from kgadapt.knowledge.sandbox import SandboxSettings
-from kgadapt.shared.errors import (
-    ConfigError,
-    KgadaptError,
-    MessageError,
-    QueryError,
-    QueryTimeLimit,
-    StoreUnavailable,
-)
+from kgadapt.shared.errors import ConfigError, KgadaptError, MessageError, QueryError, QueryTimeLimit, StoreUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -231,13 +224,13 @@ class PublicWorker:
             return dict(body)
 
 
-def _send(out: BinaryIO, body: Mapping[str, Any]) -> None:
+def _send(out: IO[bytes], body: Mapping[str, Any]) -> None:
     data = msgpack.packb(body, use_bin_type=True)
     out.write(_HEADER.pack(len(data)) + data)
     out.flush()
 
 
-def _receive(inp: BinaryIO) -> dict[str, Any] | None:
+def _receive(inp: IO[bytes]) -> dict[str, Any] | None:
     header = inp.read(_HEADER.size)
     if len(header) < _HEADER.size:
         return None

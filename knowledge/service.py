@@ -24,10 +24,16 @@ parameter, a write sent as Cypher, a store error) is answered with
 Two doors, two paths. ``own/query/*`` (the robot's own agents, manager and
 detectors; the shipped ACL keeps other robots off it) and the write verbs
 are served by their own workers from the primary store. ``query/*`` and
-``cypher`` (anyone allowed to read, other robots included) are served by
-other workers from a :class:`~kgadapt.knowledge.sandbox.QuerySandbox`, a copy of the
-graph in a separate, lower-priority FalkorDB server (one per public worker),
-as fresh as the primary.
+``cypher`` (anyone allowed to read, other robots included) are checked by
+other workers and answered by a
+:class:`~kgadapt.knowledge.public_worker.PublicWorker` each: a child process
+at nice 19 that runs them on a :class:`~kgadapt.knowledge.sandbox.QuerySandbox`
+(a copy of the graph in a separate, lower-priority FalkorDB server, as fresh
+as the primary) and reads and encodes their answers there, so that neither
+takes the service's interpreter or a core from the robot's own requests.
+Waiting questions are kept per asker (:class:`~kgadapt.shared.fair_queue.FairQueue`,
+the asker named by its query's attachment): at most ``max_pending_per_asker``
+each, ``max_pending_public`` in all, the askers served in turn.
 Each of those questions has a hard time limit (``public_time_limit_ms``,
 or a literal paper query's own shorter one): past it the answer is
 abandoned and the sandbox server killed, so the work stops. Free Cypher must
@@ -92,7 +98,6 @@ from kgadapt.knowledge.params import check_params
 from kgadapt.knowledge.service_lock import ServiceLock
 from kgadapt.knowledge.store import GraphStore
 from kgadapt.shared import keys, messages, rpc
-from kgadapt.shared.fair_queue import FairQueue
 from kgadapt.shared.errors import (
     ConfigError,
     KgadaptError,
@@ -103,6 +108,7 @@ from kgadapt.shared.errors import (
     TransportError,
     UnknownHost,
 )
+from kgadapt.shared.fair_queue import FairQueue
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
 
 log = logging.getLogger(__name__)
@@ -228,21 +234,22 @@ class KnowledgeService:
                 from kgadapt.knowledge.public_worker import PublicWorker, PublicWorkerSettings
                 from kgadapt.knowledge.sandbox import QuerySandbox
 
-                process = self.settings.public_process
-                held = self.public_processes if process else self.sandboxes
-                stack.callback(held.clear)
+                stack.callback(self.sandboxes.clear)
+                stack.callback(self.public_processes.clear)
                 for _ in range(self.settings.public_workers):
-                    worker = (PublicWorker(self.store, PublicWorkerSettings(nice=self.settings.public_nice))
-                              if process else QuerySandbox(self.store))
-                    held.append(worker)
-                    stack.callback(worker.shutdown)
-                    if process:
-                        worker.start()
+                    if self.settings.public_process:
+                        worker = PublicWorker(self.store, PublicWorkerSettings(nice=self.settings.public_nice))
+                        self.public_processes.append(worker)
+                        stack.callback(worker.shutdown)
+                        worker.start()  # the children start side by side, then are waited for
                     else:
-                        worker.setup()
-                for worker in held:  # the children start side by side
-                    if process:
-                        worker.wait_ready()
+                        sandbox = QuerySandbox(self.store)
+                        self.sandboxes.append(sandbox)
+                        stack.callback(sandbox.shutdown)
+                        sandbox.setup()
+                        self._sandbox_pool.put(sandbox)
+                for worker in self.public_processes:
+                    worker.wait_ready()
                     self._sandbox_pool.put(worker)
             if self.settings.mark_offline_at_start:
                 self._mark_all_offline()
