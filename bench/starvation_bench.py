@@ -101,20 +101,27 @@ def _attacker_process(endpoint: str, robot: str, names: list[str], port: int, fi
 
 
 def _cpu_of(pid: int) -> dict[str, float]:
-    """CPU seconds so far of the knowledge service's process and of its children (the public workers and
-    their sandbox servers, the primary store)."""
+    """CPU seconds so far of the knowledge service's process, its public workers, their sandbox servers
+    and the rest of its children (the primary store)."""
     import psutil
 
-    service = psutil.Process(pid)
-    children = {}
-    for child in service.children(recursive=True):
+    def cpu(process: Any) -> float:
         try:
-            children[child.pid] = (" ".join(child.cmdline()[1:4]), sum(child.cpu_times()[:2]))
+            return float(sum(process.cpu_times()[:2]))
+        except psutil.Error:
+            return 0.0
+
+    service = psutil.Process(pid)
+    figures = {"service": cpu(service), "public_workers": 0.0, "sandbox_servers": 0.0, "primary_store": 0.0}
+    for child in service.children():
+        try:
+            public = "public_worker" in " ".join(child.cmdline())
+            below = child.children(recursive=True)
         except psutil.Error:
             continue
-    return {"service": sum(service.cpu_times()[:2]),
-            "public_workers": sum(t for name, t in children.values() if "public_worker" in name),
-            "others": sum(t for name, t in children.values() if "public_worker" not in name)}
+        figures["public_workers" if public else "primary_store"] += cpu(child)
+        figures["sandbox_servers" if public else "primary_store"] += sum(cpu(c) for c in below)
+    return figures
 
 
 def _probe(client: Any, seconds: float) -> tuple[list[float], int]:

@@ -262,16 +262,21 @@ def _answer(sandbox: Any, request: Mapping[str, Any]) -> dict[str, Any]:
         return {"error": "query", "text": f"{what}: {exc}"}
 
 
+def _lower_priority(nice: int) -> None:
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            current = os.getpriority(os.PRIO_PROCESS, int(tid))
+            os.setpriority(os.PRIO_PROCESS, int(tid), min(19, current + nice))
+        except OSError as exc:
+            log.debug("cannot lower the priority of public worker thread %s: %s", tid, exc)
+
+
 def main() -> int:
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # nothing but frames on the pipe
     first = _receive(inp)
     if first is None:
         return 1
-    try:
-        os.nice(int(first.get("nice", 19)))  # before any other thread: they inherit it
-    except OSError as exc:
-        log.debug("cannot lower the public worker's priority: %s", exc)
     from kgadapt.knowledge.falkordb_store import FalkorDBStore
     from kgadapt.knowledge.sandbox import QuerySandbox
     from kgadapt.knowledge.service import rows_reply  # noqa: F401 (imported now, not at the first question)
@@ -289,6 +294,9 @@ def main() -> int:
     except KgadaptError as exc:
         _send(out, {"error": "unavailable", "text": str(exc)})
         return 1
+    # Started at the service's priority (a loaded machine would otherwise hold up the service's start),
+    # lowered before the first question: every thread, since Linux schedules threads, not processes.
+    _lower_priority(int(first.get("nice", 19)))
     try:
         _send(out, {"ready": True})
         while (request := _receive(inp)) is not None:
