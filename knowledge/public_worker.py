@@ -117,11 +117,11 @@ class PublicWorker:
     def execute(self, cypher: str, params: Mapping[str, Any], *, limit_ms: int, what: str) -> bytes:
         """The encoded ``rows`` reply to a read-only question; KgadaptError naming what went wrong."""
         wait_s = limit_ms / 1000 + _SANDBOX_GRACE_S + self.settings.slack_s
-        deadline = time.monotonic() + wait_s
         with self._lock:
             if self._child is None or self._child.poll() is not None:
                 self._restart("the worker process was gone")
             assert self._child is not None
+            deadline = time.monotonic() + wait_s  # after a restart: the question's time is its own
             while self._owed:  # a question given up on earlier: its answer comes first
                 if self._read(deadline) is None:
                     raise QueryTimeLimit(f"{what}: not answered: the worker for other robots' questions is "
@@ -191,7 +191,11 @@ class PublicWorker:
     def _write(self, body: Mapping[str, Any]) -> None:
         assert self._child is not None and self._child.stdin is not None
         try:
-            _send(self._child.stdin, body)
+            data = msgpack.packb(body, use_bin_type=True)
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise MessageError(f"a question for the public worker cannot be sent: {exc}") from exc
+        try:
+            _send_packed(self._child.stdin, data)
         except (OSError, ValueError) as exc:
             raise StoreUnavailable(f"the worker for other robots' questions is gone: {exc}") from exc
 
@@ -225,7 +229,10 @@ class PublicWorker:
 
 
 def _send(out: IO[bytes], body: Mapping[str, Any]) -> None:
-    data = msgpack.packb(body, use_bin_type=True)
+    _send_packed(out, msgpack.packb(body, use_bin_type=True))
+
+
+def _send_packed(out: IO[bytes], data: bytes) -> None:
     out.write(_HEADER.pack(len(data)) + data)
     out.flush()
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import queue
+import signal
 import threading
 
 import pytest
@@ -18,7 +19,7 @@ from kgadapt.knowledge.schema import ensure_indexes
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.fair_queue import FairQueue
-from tests.zenoh.conftest import MODEL_HOSTS, wait_until_serving
+from tests.zenoh.conftest import MODEL_HOSTS, wait_for, wait_until_serving
 
 
 def _serve(resp_store, zenoh_pair, robot, **settings):
@@ -115,6 +116,20 @@ def test_other_robots_questions_are_read_and_encoded_in_a_lower_priority_process
         with pytest.raises(Exception, match="time limit"):
             outsider.cypher("MATCH (a), (b), (c), (d) RETURN count(*) AS n")
         assert outsider.cypher("RETURN 1 AS one") == [{"one": 1}]  # the worker answers again afterwards
+        # A worker process that dies is started afresh for the next question; that question is answered.
+        os.kill(worker.pid, signal.SIGKILL)
+        wait_for(lambda: _gone(worker.pid), 10, "the killed worker reaped")
+        assert outsider.cypher("RETURN 2 AS two") == [{"two": 2}]
+        assert worker.restarts == 1
+        last = worker.pid
     finally:
         svc.shutdown()
-    assert not os.path.exists(f"/proc/{worker.pid}")  # shutdown ended it
+    assert last is not None and _gone(last)  # shutdown ended it
+
+
+def _gone(pid: int) -> bool:
+    """Ended (a zombie not yet reaped by the service counts as ended)."""
+    try:
+        return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
