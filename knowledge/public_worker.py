@@ -5,7 +5,9 @@ A question from outside (``query/*``, ``cypher``) is checked there (names,
 parameters, the Cypher subset: cheap), then handed to a
 :class:`PublicWorker`: a child process (``python -m
 kgadapt.knowledge.public_worker``) at nice ``nice`` (19 by default, Linux's
-lowest weight but SCHED_IDLE) that owns a
+lowest weight but SCHED_IDLE; it starts at the service's priority, so a
+loaded machine does not hold up the service's start, and lowers every thread
+of its own before the first question) that owns a
 :class:`~kgadapt.knowledge.sandbox.QuerySandbox` (the copy of the graph, in
 a FalkorDB server of its own) and does everything that grows with the
 answer: the query, reading its rows, encoding the ``rows`` reply. The service

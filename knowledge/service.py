@@ -303,6 +303,9 @@ class KnowledgeService:
             refused = list(self._refused_hosts)
         for server in (self._own, self._public):
             counts.update({f"requests_{what}": n for what, n in server.stats().items() if n})
+        restarts = sum(worker.restarts for worker in self.public_processes)
+        if restarts:  # a public worker process found dead and started afresh
+            counts["public_worker_restarts"] = restarts
         return {**counts, "last_drop": last_drop, "unknown_hosts": refused}
 
     # -- request handling, Zenoh-free (tests call these directly) -----------

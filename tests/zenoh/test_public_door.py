@@ -120,7 +120,7 @@ def test_other_robots_questions_are_read_and_encoded_in_a_lower_priority_process
         os.kill(worker.pid, signal.SIGKILL)
         wait_for(lambda: _gone(worker.pid), 10, "the killed worker reaped")
         assert outsider.cypher("RETURN 2 AS two") == [{"two": 2}]
-        assert worker.restarts == 1
+        assert worker.restarts == 1 and svc.stats()["public_worker_restarts"] == 1
         last = worker.pid
     finally:
         svc.shutdown()
