@@ -14,13 +14,17 @@ still migrates. ``--attack literal``: the attackers ask only the paper's
 literal queries (``fig4_literal``, 1,000 rows of deployments, and
 ``fig5_literal``) without pause; results to
 ``bench/results/starvation_literal.json``, target (issue 33): own
-``placement`` p90 <= 3x its quiet p90 and <= 25 ms, 0 unanswered.
+``placement`` p90 <= 3x its quiet p90 and <= 25 ms, 0 unanswered. Each
+attacker runs in a process of its own (another robot is another machine);
+``--attackers-in-process`` runs them as threads of the bench, as the figures
+measured before issue 33's remeasure were.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import shutil
 import tempfile
@@ -49,6 +53,11 @@ def register(bench_subparsers: Any) -> None:
     p.add_argument("--attackers", type=int, default=4, help="parallel hostile askers (default 4)")
     p.add_argument("--attack", choices=("mixed", "literal"), default="mixed",
                    help="mixed hostile questions (default), or only the paper's literal queries")
+    p.add_argument("--attackers-in-process", action="store_true",
+                   help="attackers as threads of this process (as before issue 33's remeasure), not processes of "
+                        "their own: their decoding then shares the interpreter with the own probe")
+    p.add_argument("--attacker-nice", type=int, default=0,
+                   help="niceness of the attacker processes (19: their CPU counts as another machine's)")
     p.add_argument("--out", default=None, help=f"results file (default {RESULTS}, {LITERAL_RESULTS} for literal)")
     p.add_argument("--json", action="store_true", help="print the records as JSON")
     p.set_defaults(func=run)
@@ -64,6 +73,55 @@ def _attacks(port: int) -> dict[str, Callable[[Any], Any]]:
         "load_csv": lambda o: o.cypher(f"LOAD CSV FROM 'http://127.0.0.1:{port}/x' AS r RETURN r"),
         "flood": lambda o: o.query("placement", {"config": DARK}),
     }
+
+
+def _attacker_process(endpoint: str, robot: str, names: list[str], port: int, first: int, stop: Any,
+                      results: Any) -> None:
+    """One attacker in a process of its own (another robot is another machine): its counts and time-limit
+    stops go back on ``results``."""
+    from kgadapt.shared.session import ZenohSettings, open_session
+    from tests.security.outsider import Outsider
+
+    attacks = _attacks(port)
+    counts = {name: 0 for name in attacks}
+    killed = 0
+    session = open_session(ZenohSettings(mode="client", connect=(endpoint,)))
+    try:
+        outsider = Outsider(session, robot)
+        k = first
+        while not stop.is_set():
+            name = names[k % len(names)]
+            answer = attacks[name](outsider)
+            counts[name] += 1
+            killed += name in ("heavy", "literal4") and "hard time limit" in answer.error
+            k += 1
+    finally:
+        session.close()
+        results.put((counts, killed))
+
+
+def _cpu_of(pid: int) -> dict[str, float]:
+    """CPU seconds so far of the knowledge service's process, its public workers, their sandbox servers
+    and the rest of its children (the primary store)."""
+    import psutil
+
+    def cpu(process: Any) -> float:
+        try:
+            return float(sum(process.cpu_times()[:2]))
+        except psutil.Error:
+            return 0.0
+
+    service = psutil.Process(pid)
+    figures = {"service": cpu(service), "public_workers": 0.0, "sandbox_servers": 0.0, "primary_store": 0.0}
+    for child in service.children():
+        try:
+            public = "public_worker" in " ".join(child.cmdline())
+            below = child.children(recursive=True)
+        except psutil.Error:
+            continue
+        figures["public_workers" if public else "primary_store"] += cpu(child)
+        figures["sandbox_servers" if public else "primary_store"] += sum(cpu(c) for c in below)
+    return figures
 
 
 def _probe(client: Any, seconds: float) -> tuple[list[float], int]:
@@ -109,6 +167,11 @@ def run(args: argparse.Namespace) -> int:
     listener.settimeout(0.2)
     connections = []
     answers: dict[str, list[Any]] = {}
+    process_counts: dict[str, int] = {}
+    process_killed = 0
+    in_process = True
+    cpu_before: dict[str, float] = {}
+    cpu_after: dict[str, float] = {}
     try:
         with WatchedRobot(ClusterSettings(workdir=workdir / "run", profile=profile, calibrate=False, fake_fc=False,
                                           log_level="WARNING")) as robot:
@@ -119,13 +182,21 @@ def run(args: argparse.Namespace) -> int:
             attacks = _attacks(listener.getsockname()[1])
             answers = {name: [] for name in attacks}
             stop = threading.Event()
+            names = (["literal4", "literal"] if args.attack == "literal" else
+                     ["heavy", "literal", "nested", "heavy", "bypass", "literal4", "heavy", "load_csv", "flood"])
+            in_process = args.attackers_in_process
             sessions = [open_session(ZenohSettings(mode="client", connect=(robot.cluster.endpoint,)))
-                        for _ in range(args.attackers)]
+                        for _ in range(args.attackers if in_process else 0)]
+            spawn = multiprocessing.get_context("spawn")
+            process_stop, results = spawn.Event(), spawn.Queue()
+            processes = [] if in_process else [
+                spawn.Process(target=_attacker_process, daemon=True,
+                              args=(robot.cluster.endpoint, DEFAULT_ROBOT, names, listener.getsockname()[1], i * 2,
+                                    process_stop, results))
+                for i in range(args.attackers)]
 
             def attacker(i: int) -> None:
                 outsider = Outsider(sessions[i], DEFAULT_ROBOT)
-                names = (["literal4", "literal"] if args.attack == "literal" else
-                         ["heavy", "literal", "nested", "heavy", "bypass", "literal4", "heavy", "load_csv", "flood"])
                 k = i * 2
                 while not stop.is_set():
                     name = names[k % len(names)]
@@ -139,15 +210,32 @@ def run(args: argparse.Namespace) -> int:
                     except OSError:
                         continue
 
-            threads = [threading.Thread(target=attacker, args=(i,), daemon=True) for i in range(args.attackers)]
+            threads = [threading.Thread(target=attacker, args=(i,), daemon=True) for i in range(len(sessions))]
             threads.append(threading.Thread(target=accept, daemon=True))
+            for process in processes:
+                if args.attacker_nice:
+                    process.start()
+                    os.setpriority(os.PRIO_PROCESS, process.pid, args.attacker_nice)
+                else:
+                    process.start()
+            service_pid = robot.cluster.children["service"].pid
+            cpu_before = _cpu_of(service_pid)
             attack_started = time.time()
             for t in threads:
                 t.start()
             loud, loud_lost = _probe(own, args.seconds)
+            cpu_after = _cpu_of(service_pid)
             stop.set()
+            process_stop.set()
             for t in threads:
                 t.join(timeout=15)
+            for _ in processes:
+                counts_of, killed_of = results.get(timeout=30)
+                for name, n in counts_of.items():
+                    process_counts[name] = process_counts.get(name, 0) + n
+                process_killed += killed_of
+            for process in processes:
+                process.join(timeout=15)
             for s in sessions:
                 s.close()
             migrated = [d for d in robot.recorder.decisions if d.kind == TriggerKind.BAND_CHANGED and d.time >= attack_started]
@@ -155,8 +243,9 @@ def run(args: argparse.Namespace) -> int:
         listener.close()
         shutil.rmtree(workdir, ignore_errors=True)
     store = "embedded (FalkorDB, fsync always)"
-    counts = {name: len(a) for name, a in answers.items()}
-    killed = sum(1 for a in answers.get("heavy", []) + answers.get("literal4", []) if "hard time limit" in a.error)
+    counts = {name: len(a) + process_counts.get(name, 0) for name, a in answers.items()}
+    killed = process_killed + sum(1 for a in answers.get("heavy", []) + answers.get("literal4", [])
+                                  if "hard time limit" in a.error)
     literal = args.attack == "literal"
     records = [
         make_record(store=store, n=None, op="own_placement_quiet", samples_ms=quiet, unanswered=quiet_lost,
@@ -167,6 +256,9 @@ def run(args: argparse.Namespace) -> int:
                             else "p99 <= 50 ms, 0 unanswered"), attackers=args.attackers, attack_s=args.seconds,
                     attack_answers=counts, stopped_at_time_limit=killed, load_csv_connections=len(connections),
                     light_change_during_attack=[f"{d.config}@{d.host}: {d.outcome}" for d in migrated],
+                    attackers_as=("threads of the bench process" if in_process else
+                                  f"processes of their own at nice {args.attacker_nice}"),
+                    cpu_s_during_attack={k: round(cpu_after[k] - cpu_before[k], 2) for k in cpu_before},
                     load_average=os.getloadavg()[0]),
     ]
     for r in records:
@@ -179,6 +271,7 @@ def run(args: argparse.Namespace) -> int:
         rows = [[r["op"], r["reps"], r["p50_ms"], r["p90_ms"], r["p99_ms"], r["max_ms"], r["unanswered"],
                  r["load_average"]] for r in records]
         print(format_table(rows, ["own placement", "n", "p50", "p90", "p99", "max", "unanswered", "load"]))
+        print(f"CPU seconds during the attack: {records[-1]['cpu_s_during_attack']}")
         print(f"attack answers {counts}; heavy questions stopped at their limit: {killed}; "
               f"LOAD CSV connections: {len(connections)}; light change during the attack: "
               f"{[f'{d.config}@{d.host}: {d.outcome}' for d in migrated] or 'none'}")

@@ -81,11 +81,18 @@ class KnowledgeClient:
         rows = self._ask(keys.knowledge_own_stats(self.robot), b"", "service stats")
         return rows[0] if rows else {}
 
+    def _asker(self) -> bytes | None:
+        """Who asks, for the service's per-asker bound on other robots' questions: this session's id."""
+        try:
+            return str(self.session.zid()).encode()
+        except Exception:  # a session without an id (closed): the service counts it as "anonymous"
+            return None
+
     def _ask(self, key: str, payload: bytes, what: str) -> list[dict[str, Any]]:
         try:
             # Sent again while nothing answers at once: just after open(), or while the service restarts.
             body = rpc.call(self.session, key, payload, lambda data: messages.decode(data, "rows"),
-                            timeout=self.timeout, resend_for=self.timeout)
+                            timeout=self.timeout, resend_for=self.timeout, attachment=self._asker())
         except RemoteError as exc:
             raise RemoteError(f"{what} refused by the knowledge service of {self.robot}: {exc}") from exc
         except RequestTimeout as exc:

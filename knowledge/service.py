@@ -24,10 +24,16 @@ parameter, a write sent as Cypher, a store error) is answered with
 Two doors, two paths. ``own/query/*`` (the robot's own agents, manager and
 detectors; the shipped ACL keeps other robots off it) and the write verbs
 are served by their own workers from the primary store. ``query/*`` and
-``cypher`` (anyone allowed to read, other robots included) are served by
-other workers from a :class:`~kgadapt.knowledge.sandbox.QuerySandbox`, a copy of the
-graph in a separate, lower-priority FalkorDB server (one per public worker),
-as fresh as the primary.
+``cypher`` (anyone allowed to read, other robots included) are checked by
+other workers and answered by a
+:class:`~kgadapt.knowledge.public_worker.PublicWorker` each: a child process
+at nice 19 that runs them on a :class:`~kgadapt.knowledge.sandbox.QuerySandbox`
+(a copy of the graph in a separate, lower-priority FalkorDB server, as fresh
+as the primary) and reads and encodes their answers there, so that neither
+takes the service's interpreter or a core from the robot's own requests.
+Waiting questions are kept per asker (:class:`~kgadapt.shared.fair_queue.FairQueue`,
+the asker named by its query's attachment): at most ``max_pending_per_asker``
+each, ``max_pending_public`` in all, the askers served in turn.
 Each of those questions has a hard time limit (``public_time_limit_ms``,
 or a literal paper query's own shorter one): past it the answer is
 abandoned and the sandbox server killed, so the work stops. Free Cypher must
@@ -102,6 +108,7 @@ from kgadapt.shared.errors import (
     TransportError,
     UnknownHost,
 )
+from kgadapt.shared.fair_queue import FairQueue
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
 
 log = logging.getLogger(__name__)
@@ -130,6 +137,14 @@ class ServiceSettings:
     public_workers: int = 2
     public_time_limit_ms: int = 1000
     max_pending_public: int = 32
+    # Each asker (named by its query's attachment; none: "anonymous") has at most this many questions
+    # waiting, and the askers waiting take turns: one asker's flood fills only its own line.
+    max_pending_per_asker: int = 8
+    # Other robots' questions run in child processes (PublicWorker, one per public worker) at this added
+    # niceness, not in the service's: reading and encoding their answers no longer takes the interpreter
+    # or a core from the robot's own requests. False: in this process (from its own sandboxes).
+    public_process: bool = True
+    public_nice: int = 19
     # Other robots' questions wait, before they run and before their answer is encoded, while the robot's
     # own requests are being answered (at most this long each time): on 2 cores their parsing and encoding
     # otherwise takes the interpreter from the robot's own. 0: no waiting.
@@ -172,7 +187,9 @@ class KnowledgeService:
         # two pools, so a flood of the second never delays the first.
         self._own = rpc.Server("knowledge service", workers=settings.workers, max_pending=settings.max_pending_requests)
         self._public = rpc.Server("knowledge service", workers=settings.public_workers,
-                                  max_pending=settings.max_pending_public)
+                                  max_pending=settings.max_pending_public,
+                                  pending=FairQueue(maxsize=settings.max_pending_public,
+                                                    per_asker=settings.max_pending_per_asker, asker_of=asker_of))
         self.own_first = OwnFirst(max_wait_s=settings.own_first_wait_s)
         self._events: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_statuses)
         self._event_thread: threading.Thread | None = None
@@ -189,8 +206,10 @@ class KnowledgeService:
         self._store_lock = _store_lock(store)
         self._writers: Mapping[str, Callable[..., Any]] = dict(runtime.WRITERS) if settings.writes else {}
         self._lock = ServiceLock(store) if settings.lock else None
-        # kgadapt.knowledge.sandbox.QuerySandbox, one per public worker: a kill costs only its own question
+        # kgadapt.knowledge.sandbox.QuerySandbox (public_process=False) or PublicWorker, one per public
+        # worker thread: a kill costs only its own question
         self.sandboxes: list[Any] = []
+        self.public_processes: list[Any] = []
         self._sandbox_pool: queue.Queue[Any] = queue.Queue()
         self.roster = (FleetRoster(store, RosterSettings(robot=settings.robot, cap=settings.roster_cap,
                                                          interval_s=settings.roster_interval_s))
@@ -212,15 +231,26 @@ class KnowledgeService:
                 stack.callback(self._lock.release)
             if self.settings.sandbox and self.store.dialect.name == "falkordb" and self.store.capabilities.timeouts:
                 # A FalkorDB over RESP (the Bolt listener has no DUMP/RESTORE to copy from).
+                from kgadapt.knowledge.public_worker import PublicWorker, PublicWorkerSettings
                 from kgadapt.knowledge.sandbox import QuerySandbox
 
                 stack.callback(self.sandboxes.clear)
+                stack.callback(self.public_processes.clear)
                 for _ in range(self.settings.public_workers):
-                    sandbox = QuerySandbox(self.store)
-                    self.sandboxes.append(sandbox)
-                    stack.callback(sandbox.shutdown)
-                    sandbox.setup()
-                    self._sandbox_pool.put(sandbox)
+                    if self.settings.public_process:
+                        worker = PublicWorker(self.store, PublicWorkerSettings(nice=self.settings.public_nice))
+                        self.public_processes.append(worker)
+                        stack.callback(worker.shutdown)
+                        worker.start()  # the children start side by side, then are waited for
+                    else:
+                        sandbox = QuerySandbox(self.store)
+                        self.sandboxes.append(sandbox)
+                        stack.callback(sandbox.shutdown)
+                        sandbox.setup()
+                        self._sandbox_pool.put(sandbox)
+                for worker in self.public_processes:
+                    worker.wait_ready()
+                    self._sandbox_pool.put(worker)
             if self.settings.mark_offline_at_start:
                 self._mark_all_offline()
             stack.enter_context(self._own)
@@ -273,6 +303,9 @@ class KnowledgeService:
             refused = list(self._refused_hosts)
         for server in (self._own, self._public):
             counts.update({f"requests_{what}": n for what, n in server.stats().items() if n})
+        restarts = sum(worker.restarts for worker in self.public_processes)
+        if restarts:  # a public worker process found dead and started afresh
+            counts["public_worker_restarts"] = restarts
         return {**counts, "last_drop": last_drop, "unknown_hosts": refused}
 
     # -- request handling, Zenoh-free (tests call these directly) -----------
@@ -308,12 +341,14 @@ class KnowledgeService:
                 # Rows are parsed here, under the GIL the robot's own requests need too:
                 # fig4_literal's 21,344 rows cost them tens of ms. Same bound as free Cypher.
                 text = f"{text.rstrip()}\nLIMIT {CypherLimits().max_rows}"
+            if self.public_processes:
+                return self._run_in_public_process(text, values, limit_ms, f"query {name!r}")
             rows = self._run_untrusted(text, values, limit_ms, f"query {name!r}")
             self.own_first.wait_turn()  # encoding a large answer holds the interpreter too
         else:
             with self._store_lock:
                 rows = queries.run_named(self.store, name, params, timeout_ms=self.settings.query_timeout_ms)
-        return _rows_reply(rows, (time.perf_counter() - start) * 1000, f"query {name!r}")
+        return rows_reply(rows, (time.perf_counter() - start) * 1000, f"query {name!r}")
 
     def _heard_roll_call(self, values: Mapping[str, Any]) -> None:
         """Another robot's roll call announced it: remember it (a bad name is refused, naming it)."""
@@ -334,10 +369,24 @@ class KnowledgeService:
         request = messages.decode_as(payload, messages.CypherRequest)
         text = check_cypher(request.cypher)  # before anything reaches a store
         params = check_params(request.params or {}, what="cypher", error=MessageError)
+        if self.public_processes:
+            return self._run_in_public_process(text, params, self.settings.public_time_limit_ms, "cypher")
         start = time.perf_counter()
         rows = self._run_untrusted(text, params, self.settings.public_time_limit_ms, "cypher")
         self.own_first.wait_turn()
-        return _rows_reply(rows, (time.perf_counter() - start) * 1000, "cypher")
+        return rows_reply(rows, (time.perf_counter() - start) * 1000, "cypher")
+
+    def _run_in_public_process(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str) -> bytes:
+        """The encoded reply, from a lower-priority child process (read, encoded there)."""
+        self.own_first.wait_turn()
+        worker = self._sandbox_pool.get()  # as many as public workers: never waits
+        try:
+            return bytes(worker.execute(text, params, limit_ms=limit_ms, what=what))
+        except QueryTimeLimit:
+            self._count("time_limits_hit")
+            raise
+        finally:
+            self._sandbox_pool.put(worker)
 
     def _run_untrusted(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str) -> list[dict[str, Any]]:
         """In the sandbox when there is one (killed past the limit), else on the store with its timeout."""
@@ -388,7 +437,7 @@ class KnowledgeService:
         except UnknownHost as exc:
             self._refuse_host(exc.host, f"write {verb!r}")
             raise
-        return _rows_reply([], (time.perf_counter() - start) * 1000, f"write verb {verb!r}")
+        return rows_reply([], (time.perf_counter() - start) * 1000, f"write verb {verb!r}")
 
     # -- Zenoh: requests through rpc.Server, events queued ---------------------------
 
@@ -414,7 +463,7 @@ class KnowledgeService:
             body = self.answer_cypher(payload)
             reply_key = keys.knowledge_cypher(robot)
         elif kind == "stats":
-            body = _rows_reply([self.stats()], 0.0, "service stats")
+            body = rows_reply([self.stats()], 0.0, "service stats")
             reply_key = keys.knowledge_own_stats(robot)
         else:
             verb = keys.last_chunk(key)
@@ -678,7 +727,8 @@ def check_owner(store: GraphStore, verb: str, params: Mapping[str, Any], *, host
 # -- helpers ----------------------------------------------------------------
 
 
-def _rows_reply(rows: list[dict[str, Any]], elapsed_ms: float, what: str) -> bytes:
+def rows_reply(rows: list[dict[str, Any]], elapsed_ms: float, what: str) -> bytes:
+    """The encoded ``rows`` reply; MessageError naming ``what`` if a value cannot be sent."""
     try:
         return messages.encode("rows", {"rows": rows, "elapsed_ms": round(elapsed_ms, 4)})
     except MessageError as exc:
@@ -705,6 +755,21 @@ def _store_lock(store: GraphStore) -> Any:
     """Every backend is safe to call from several threads (FalkorDB's client has a connection
     pool; the Bolt backend serializes its one session itself), so no lock of ours is needed."""
     return contextlib.nullcontext()
+
+
+def asker_of(item: Any) -> str:
+    """Who asked a queued question: its attachment (at most 64 bytes), else "anonymous".
+
+    Zenoh tells a queryable nothing of the asker (the router knows its certificate, the queryable
+    does not), so an asker is what it says it is: the per-asker bound keeps one asker's flood from
+    another's share, and the whole queue's bound holds against one that names itself anew each time."""
+    try:
+        attachment = item.query.attachment
+    except AttributeError:
+        return ""
+    if attachment is None:
+        return "anonymous"
+    return "asker:" + attachment.to_bytes()[:64].decode("utf-8", "replace")
 
 
 class OwnFirst:

@@ -136,15 +136,19 @@ class Pending:
         self.finished = time.monotonic() <= self.deadline
 
 
-def ask(session: zenoh.Session, key: str, payload: bytes, *, timeout: float, every_reply: bool = False) -> Pending:
+def ask(session: zenoh.Session, key: str, payload: bytes, *, timeout: float, every_reply: bool = False,
+        attachment: bytes | None = None) -> Pending:
     """Send one query on ``key`` and return at once; read its replies from the :class:`Pending`.
 
     ``every_reply``: no consolidation (each queryable's reply, as soon as it
-    comes, even two on one key); else Zenoh's default.
+    comes, even two on one key); else Zenoh's default. ``attachment``: sent
+    with the query (the knowledge service names the asker by it).
     """
     if not timeout > 0:
         raise TransportError(f"query on {key}: timeout {timeout!r} s must be more than 0")
     options: dict[str, Any] = {"consolidation": zenoh.ConsolidationMode.NONE} if every_reply else {}
+    if attachment is not None:
+        options["attachment"] = attachment
     deadline = time.monotonic() + timeout  # before Zenoh's timer starts
     try:
         # Zenoh's timeout a little after ours: what it sends when it expires comes after our deadline.
@@ -155,14 +159,14 @@ def ask(session: zenoh.Session, key: str, payload: bytes, *, timeout: float, eve
 
 
 def _exchange(session: zenoh.Session, key: str, payload: bytes, *, timeout: float, resend_for: float,
-              first_only: bool) -> list[Reply | RemoteError]:
+              first_only: bool, attachment: bytes | None = None) -> list[Reply | RemoteError]:
     """The replies to one request: the first (``first_only``) or all; NoResponder or RequestTimeout else."""
     if not timeout > 0:
         raise TransportError(f"query on {key}: timeout {timeout!r} s must be more than 0")
     start = time.monotonic()
     deadline = start + timeout
     while True:
-        pending = ask(session, key, payload, timeout=max(0.001, deadline - time.monotonic()))
+        pending = ask(session, key, payload, timeout=max(0.001, deadline - time.monotonic()), attachment=attachment)
         got: list[Reply | RemoteError] = []
         for reply in pending.replies():
             got.append(reply)
@@ -185,14 +189,14 @@ def _decoded(reply: Reply | RemoteError, decode: Callable[[bytes], T]) -> T:
 
 
 def call(session: zenoh.Session, key: str, payload: bytes, decode: Callable[[bytes], T], *, timeout: float,
-         resend_for: float = 0.0) -> T:
+         resend_for: float = 0.0, attachment: bytes | None = None) -> T:
     """The first reply to ``payload`` on ``key``, decoded.
 
     RemoteError (its text is the far side's), NoResponder, RequestTimeout,
     TransportError; whatever ``decode`` raises passes through.
     """
-    return _decoded(_exchange(session, key, payload, timeout=timeout, resend_for=resend_for, first_only=True)[0],
-                    decode)
+    return _decoded(_exchange(session, key, payload, timeout=timeout, resend_for=resend_for, first_only=True,
+                              attachment=attachment)[0], decode)
 
 
 def gather(session: zenoh.Session, key: str, payload: bytes, decode: Callable[[bytes], T], *, timeout: float,
@@ -230,13 +234,17 @@ class Server:
     ``prefix`` starts every error reply (e.g. ``"deployer onboard: "``).
     """
 
-    def __init__(self, name: str, *, workers: int = 1, max_pending: int = 64, prefix: str = "") -> None:
+    def __init__(self, name: str, *, workers: int = 1, max_pending: int = 64, prefix: str = "",
+                 pending: Any = None) -> None:
+        """``pending``: the queue of waiting queries, if not a FIFO of ``max_pending`` (e.g. a
+        :class:`~kgadapt.shared.fair_queue.FairQueue`): ``put_nowait`` (``queue.Full``), ``put``, ``get``,
+        ``get_nowait`` (``queue.Empty``), ``qsize``; its items have the Zenoh query as ``query``."""
         if workers < 1 or max_pending < 1:
             raise ConfigError(f"{name}: workers {workers!r} and max_pending {max_pending!r} must be at least 1")
         self.name = name
         self.workers = workers
         self.prefix = prefix
-        self._pending: queue.Queue[Any] = queue.Queue(maxsize=max_pending)
+        self._pending: queue.Queue[Any] = queue.Queue(maxsize=max_pending) if pending is None else pending
         self._threads: list[threading.Thread] = []
         self._queryables: list[zenoh.Queryable[None]] = []
         self._closing = threading.Event()

@@ -5,12 +5,18 @@ under ``/etc/kgadapt/tls/``; :func:`shipped_config` points them at a test
 directory instead (a text substitution, so the file names must be exactly the
 ones ``kgadapt certs`` writes) and changes only what a test on loopback needs:
 endpoints and, for sessions that must fail fast, the connect timeout.
+
+:class:`Network` is the robot as deployed (the service on the shipped router
+configuration, the onboard agent, its detectors with their own certificate);
+the ``network`` fixture starts one per test module and ``session_as(cn)``
+opens a session with ``cn``'s certificate.
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import shlex
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -20,7 +26,9 @@ from typing import Any
 import pytest
 import zenoh
 
-from tests.conftest import REPO
+from kgadapt.shared.readiness import READY_TOKEN
+from kgadapt.shared.session import ZenohSettings, open_session
+from tests.conftest import REPO, free_port
 from tests.support import Child as _Child  # noqa: F401
 from tests.support import wait_for  # noqa: F401 (the tests import wait_for from here)
 
@@ -54,8 +62,6 @@ def shipped_config(name: str, tls_dir: Path, out_dir: Path, **changes: Any) -> P
     path = out_dir / f"{n}-{Path(name).stem}.json"
     path.write_text(str(config))
     return path
-
-
 
 
 
@@ -135,3 +141,93 @@ def loopback_robot(tmp_path):
         s.close()
     for child in reversed(started):
         child.stop()
+
+
+# Shell metacharacters in a deployment's arguments and environment (in the model file, quoted for
+# shlex): the deployer runs the words as they are, without a shell, so none of these may run.
+SHELL_WORDS = ["$(touch {m})", "`touch {m}`", "; touch {m}", "&& touch {m}", "| touch {m}", "> {m}"]
+PROBE_CODE = ("import json, os, sys, time; print(json.dumps([sys.argv[1:], os.environ.get(\"PROBE\")]), flush=True); "
+              f"print(\"{READY_TOKEN}\", flush=True); time.sleep(60)")
+
+
+def write_probe_model(directory: Path, marker: Path) -> None:
+    words = " ".join(shlex.quote(w.format(m=marker)) for w in SHELL_WORDS)
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "shell_probe.deploy").write_text(
+        "name: shell_probe\n"
+        "deploys: marker_detection_day\n"
+        "executable: {python}\n"
+        f"arguments: -c {shlex.quote(PROBE_CODE)} {words}\n"
+        f"environment: PROBE={shlex.quote(f'$(touch {marker})')}\n"
+        "executable_on: onboard\n"
+    )
+
+
+class Network:
+    """The robot's service and onboard agent behind TLS; ``config(cn)`` is a client configuration as ``cn``."""
+
+    def __init__(self, pki: Any, work: Path) -> None:
+        self.pki = pki
+        self.work = work
+        self.port = free_port()
+        self.marker = work / "pwned"
+        self.children: list[Child] = []
+
+    def start(self) -> None:
+        models = self.work / "models"
+        write_probe_model(models, self.marker)
+        store = f"embedded:{self.work / 'store'}"
+        kgadapt("knowledge", "load", str(REPO / "knowledge" / "models"), str(models), "--store", store, timeout=120)
+        router = shipped_config("router.json5", self.pki.tls, self.work, **{
+            "listen/endpoints": [f"tls/127.0.0.1:{self.port}"], **FAST_OPEN})
+        service = Child("service", ["knowledge", "serve", "--store", store, "--robot", ROBOT,
+                                    "--zenoh-config", str(router)], self.work)
+        self.children.append(service)
+        service.wait_ready()
+        onboard = self.config(f"{ROBOT}-onboard")
+        # The detectors the deployer starts get their own identity, as the shipped units give them.
+        self.detector_config = shipped_config("onboard-detector.json5", self.pki.tls, self.work, **{
+            "connect/endpoints": [f"tls/localhost:{self.port}"], **FAST_OPEN})
+        agent = Child("onboard", ["onboard", "--robot", ROBOT, "--host", "onboard", "--memory-budget", "700M",
+                                  "--zenoh-config", str(onboard), "--mode", "client", "--ready-timeout", "10",
+                                  "--detector-zenoh-config", str(self.detector_config)],
+                      self.work)
+        self.children.append(agent)
+        agent.wait_ready()
+
+    def config(self, cn: str, *, foreign: bool = False, **changes: Any) -> Path:
+        cert, key = self.pki.pair(cn, foreign=foreign)
+        return shipped_config("onboard.json5", self.pki.tls, self.work, **{
+            "connect/endpoints": [f"tls/localhost:{self.port}"],
+            "transport/link/tls/connect_certificate": str(cert), "transport/link/tls/connect_private_key": str(key),
+            **FAST_OPEN, **changes})
+
+    def stop(self) -> None:
+        for child in reversed(self.children):
+            child.stop()
+
+
+@pytest.fixture(scope="module")
+def network(pki, tmp_path_factory, request):
+    """The robot as deployed (:class:`Network`), one per test module."""
+    net = Network(pki, tmp_path_factory.mktemp(request.module.__name__.rsplit(".", 1)[-1]))
+    try:
+        net.start()
+        yield net
+    finally:
+        net.stop()
+
+
+@pytest.fixture
+def session_as(network):
+    """``session_as(cn, **config changes)``: a client session with ``cn``'s certificate, closed after the test."""
+    opened = []
+
+    def open_as(cn: str, *, foreign: bool = False, **changes: Any):
+        session = open_session(ZenohSettings(config_file=str(network.config(cn, foreign=foreign, **changes))))
+        opened.append(session)
+        return session
+
+    yield open_as
+    for session in opened:
+        session.close()

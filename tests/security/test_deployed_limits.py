@@ -1,6 +1,6 @@
 """Limits that hold for those the router lets in, on the deployed configuration.
 
-The robot as shipped (``test_access.Network``): ``kgadapt knowledge serve`` on
+The robot as shipped (``conftest.Network``): ``kgadapt knowledge serve`` on
 the shipped router configuration over the shipped models, the onboard agent
 with a 700 MiB budget on the shipped onboard configuration, its detectors with
 their own certificate, every certificate made by ``kgadapt certs``.
@@ -28,37 +28,12 @@ from kgadapt.deploy.client import DeployerClient
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import DeploymentError, RemoteError, RequestTimeout
-from kgadapt.shared.session import ZenohSettings, open_session
 from kgadapt.shared.states import LIVE_STATES
-from tests.security.conftest import ROBOT, wait_for
-from tests.security.test_access import OPERATOR, Network, concurrently, write_params
+from tests.security.conftest import OTHER_ROBOT, ROBOT, wait_for
+from tests.security.test_access import OPERATOR, concurrently, write_params
 
 DARK = "marker_detection_dark"
 BUDGET_MB = 700.0  # the onboard agent's --memory-budget in Network
-
-
-@pytest.fixture(scope="module")
-def network(pki, tmp_path_factory):
-    net = Network(pki, tmp_path_factory.mktemp("deployed"))
-    try:
-        net.start()
-        yield net
-    finally:
-        net.stop()
-
-
-@pytest.fixture
-def session_as(network):
-    opened = []
-
-    def open_as(cn: str, **changes: Any):
-        session = open_session(ZenohSettings(config_file=str(network.config(cn, **changes))))
-        opened.append(session)
-        return session
-
-    yield open_as
-    for session in opened:
-        session.close()
 
 
 def deployer_request(session: Any, key: str, body: dict[str, Any]) -> tuple[str, Any]:
@@ -230,3 +205,46 @@ def test_a_detectors_certificate_cannot_put_a_status_or_a_flight_state_as_their_
         wait_for(lambda: remote_row().get("cores") == 77, 5, "the operator's status with cpu_cores")
     finally:
         subscriber.undeclare()
+
+
+# -- calibration figures: the operator's (and the service's) to write, nobody else's ------------------------
+
+
+def test_only_the_operator_writes_calibration_figures_on_the_shipped_configuration(session_as):
+    """Calibration ranks the detector configurations, so a forged figure would misplace the detector. The
+    calibration command writes into the store on the knowledge host; over Zenoh only the operator's
+    certificate (and the service's own) may write them, on the robot-wide key: every host's, every
+    detector's and another robot's certificate is dropped by the router there and refused by the service on
+    its host's own key, whatever the source it names."""
+    operator = KnowledgeClient(session_as(OPERATOR), ROBOT, timeout=3.0)
+    figures = {**write_params("calibration"), "detection_rate": 0.01, "source": "forged"}
+    count = "MATCH ()-[c:CALIBRATED {source: $source}]->() RETURN count(c) AS n"
+    attempts: dict[str, Any] = {}
+    for cn, host in [(f"{ROBOT}-onboard", "onboard"), (f"{ROBOT}-remote", "remote"),
+                     (f"{ROBOT}-onboard-detector", "onboard"), (f"{ROBOT}-remote-detector", "remote"),
+                     (f"{OTHER_ROBOT}-onboard", "onboard")]:
+        session = session_as(cn)
+        for source in ("forged", "synthetic"):
+            params = {**figures, "source": source}
+            attempts[f"{cn} robot-wide {source}"] = (lambda s=session, p=params: KnowledgeClient(
+                s, ROBOT, timeout=1.0).write("calibration", p))
+            attempts[f"{cn} on {host}'s key {source}"] = (lambda s=session, h=host, p=params: KnowledgeClient(
+                s, ROBOT, timeout=1.0, host=h).write("calibration", p))
+    synthetic_before = operator.cypher(
+        "MATCH (g)-[c:CALIBRATED {source: 'synthetic'}]->(b) RETURN g.name AS g, b.name AS b, "
+        "c.detection_rate AS rate ORDER BY g, b")
+    outcomes = concurrently(attempts)  # a dropped request waits its timeout: all at once
+    for what, outcome in outcomes.items():
+        if "key" in what and ("-onboard on onboard" in what or "-remote on remote" in what) \
+                and "detector" not in what and OTHER_ROBOT not in what:
+            # The host's own key reaches the service, which refuses calibration there, naming why.
+            assert isinstance(outcome, RemoteError) and "no host's to write" in str(outcome), (what, outcome)
+        else:
+            assert isinstance(outcome, RequestTimeout), (what, outcome)  # dropped at the router
+    assert operator.cypher(count, {"source": "forged"}) == [{"n": 0}]
+    assert operator.cypher(
+        "MATCH (g)-[c:CALIBRATED {source: 'synthetic'}]->(b) RETURN g.name AS g, b.name AS b, "
+        "c.detection_rate AS rate ORDER BY g, b") == synthetic_before
+    # The operator's own write is taken: the refusals above are the identities', not a broken verb.
+    assert operator.write("calibration", {**figures, "source": "by-operator"}) == []
+    assert operator.cypher(count, {"source": "by-operator"}) == [{"n": 1}]
