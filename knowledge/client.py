@@ -85,7 +85,7 @@ class KnowledgeClient:
         """Who asks, for the service's per-asker bound on other robots' questions: this session's id."""
         try:
             return str(self.session.zid()).encode()
-        except Exception:  # a session without an id (closed): the service counts it as "anonymous"
+        except Exception:  # noqa: BLE001 - a session without an id (closed): the service counts it as "anonymous"
             return None
 
     def _ask(self, key: str, payload: bytes, what: str) -> list[dict[str, Any]]:

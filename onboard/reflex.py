@@ -114,7 +114,7 @@ class ReflexTable:
                 seen = [{"config": r["config"], "detection_rate": r["live_rate"], "at": r.get("live_at"),
                          "frames_expected": r.get("live_frames_expected")}
                         for r in calibrated if r.get("live_rate") is not None]
-                calibrated = weigh(scored, seen, now=now, settings=live or LiveSettings(), penalty=penalty)
+                calibrated = list(weigh(scored, seen, now=now, settings=live or LiveSettings(), penalty=penalty))
 
             def score(r: Mapping[str, Any]) -> float:
                 if "score" in r:
