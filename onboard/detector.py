@@ -269,14 +269,28 @@ class Detector:
     def core(self) -> Any:
         return self._active[1]
 
-    def swap(self, config: Any) -> int:
-        """Take ``config`` from the next frame on; returns its generation (see ``first_frame``)."""
+    def swap(self, config: Any, core: Any = None) -> int:
+        """Take ``config`` from the next frame on (with ``core``, its detector built beforehand, when
+        given); returns its generation (see ``first_frame``)."""
         from kgadapt.onboard.markers import MarkerDetector
 
-        core = MarkerDetector(config)  # built here, off the frame path
+        if core is None:
+            core = MarkerDetector(config)  # built here, off the frame path
         generation = self._active[2] + 1
         self._active = (config, core, generation)
         return generation
+
+    def prepared(self, name: str) -> tuple[Any, str] | None:
+        """The detector built beforehand for configuration ``name`` and its deployment, when the reflex
+        table from the graph lets the running deployment take it in place on this host; else None."""
+        armed = self._reflexes
+        if armed is None:
+            return None
+        choice = armed[0].table.choices().get(name)
+        core = armed[1].get(name)
+        if choice is None or core is None:
+            return None
+        return core, choice.deployment
 
     def arm(self, table: Any) -> None:
         """Hold the reflex ``table`` (kgadapt.onboard.reflex.ReflexTable): its detectors are built here,
@@ -616,20 +630,29 @@ class Reconfigurer:
         keys.check_name(name, "configuration name")
         previous = d.config.name
         started = time.perf_counter()
-        config, row = fetch_config_row(self._session, s.robot, name, wait_s=1.0)
-        target = row.get("deployment")
-        if not target:
-            raise DeploymentError(f"configuration {name!r} has no deployment in the knowledge graph")
-        running = d.deployment
-        if target != running:
-            rows = KnowledgeClient(self._session, s.robot, own=True).query(
-                "in_place_change", {"from": running, "to": target, "host": s.host})
-            if not rows:
-                raise DeploymentError(f"the knowledge graph does not let deployment {running} take "
-                                      f"{target} ({name}) in place on host {s.host}: start a new detector")
+        # The reflex table (the graph's in-place rule, fetched at the start and after each change) already
+        # holds a built detector for every configuration this one may take here: then the swap asks the
+        # graph nothing and builds nothing, so it lands on the next frame. Otherwise ask and build.
+        ready = d.prepared(name)
+        core = None
+        if ready is not None:
+            core, target = ready
+            config = core.config
+        else:
+            config, row = fetch_config_row(self._session, s.robot, name, wait_s=1.0)
+            target = row.get("deployment")
+            if not target:
+                raise DeploymentError(f"configuration {name!r} has no deployment in the knowledge graph")
+            running = d.deployment
+            if target != running:
+                rows = KnowledgeClient(self._session, s.robot, own=True).query(
+                    "in_place_change", {"from": running, "to": target, "host": s.host})
+                if not rows:
+                    raise DeploymentError(f"the knowledge graph does not let deployment {running} take "
+                                          f"{target} ({name}) in place on host {s.host}: start a new detector")
         check_ms = (time.perf_counter() - started) * 1e3
         built = time.perf_counter()
-        generation = d.swap(config)
+        generation = d.swap(config, core)
         build_ms = (time.perf_counter() - built) * 1e3
         d.deployment = str(target)
         print(f"{CONFIGURED_TOKEN} {name} {target}", flush=True)  # the deployer's record follows
@@ -639,7 +662,7 @@ class Reconfigurer:
         arm(d, self._session)  # what it may take in place from the new deployment
         body: dict[str, Any] = {"instance": s.instance, "config": name, "previous": previous,
                                 "deployment": str(target), "check_ms": round(check_ms, 3),
-                                "build_ms": round(build_ms, 3)}
+                                "build_ms": round(build_ms, 3), "prepared": ready is not None}
         if first is not None:
             body["first_seq"] = first
             body["first_frame_ms"] = round((time.perf_counter() - swapped) * 1e3, 3)

@@ -44,6 +44,9 @@ def test_the_detector_takes_another_configuration_between_two_frames(hosts, clie
         assert (report.previous, report.config, report.deployment) == (
             "marker_detection_day", "marker_detection_dark", "detector_dark")
         assert report.first_seq is not None
+        # The reflex table from the graph lets detector_day take the dark one here: its detector was built
+        # at the start, so the swap asked the graph nothing and built nothing (issue 32, item 3).
+        assert report.prepared and report.build_ms < 1.0
         # Frames before first_seq were made with the old configuration, first_seq and after with the new.
         _, first_new = markers.wait_for(lambda d: d["instance"] == "det1" and d["seq"] == report.first_seq)
         assert first_new["config"] == "marker_detection_dark"
