@@ -31,15 +31,19 @@ profiles are written through the knowledge service by :class:`ProfileRecorder`.
 from __future__ import annotations
 
 import argparse
+import base64
 import contextlib
+import hashlib
 import logging
 import re
 import secrets
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
+import msgspec
 import zenoh
 
 from kgadapt.deploy.options import add_arguments  # noqa: F401  (re-exported for agents)
@@ -56,7 +60,7 @@ from kgadapt.deploy.supervisor import (
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.agent import DEFAULT_ROBOT
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RemoteError, TransportError
-from kgadapt.shared.readiness import START_IDLE_ENV
+from kgadapt.shared.readiness import RESOLVED_CONFIG_ENV, START_IDLE_ENV
 from kgadapt.shared.session import DEFAULT_ENDPOINT
 
 log = logging.getLogger(__name__)
@@ -231,6 +235,9 @@ class Deployer:
             env.append(("KGADAPT_ZENOH_MODE", s.zenoh_mode))
         if idle:
             env.append((START_IDLE_ENV, "1"))
+        resolved = self._resolved_config(config)
+        if resolved is not None:
+            env.append((RESOLVED_CONFIG_ENV, resolved))
         for item in _as_list(row.get("environment"), deployment, "environment"):
             name, sep, value = str(item).partition("=")
             if not sep or not _ENV_NAME.match(name):
@@ -243,6 +250,30 @@ class Deployer:
             instance=instance, argv=tuple(argv), env=tuple(env), deployment=deployment, config=config,
             ready_timeout=timeout, restart=s.restart, stop=s.stop,
         )
+
+    def _resolved_config(self, config: str) -> str | None:
+        """``config`` as the graph gives it now (``detector_config``), for the started detector to take
+        instead of asking again: a ``resolved_config`` message, base64. None when the graph has no
+        such row (a program that is not a detector) or does not answer: the child then asks itself."""
+        try:
+            rows = self._knowledge.query("detector_config", {"config": config})
+        except (RemoteError, TransportError) as exc:
+            log.info("host %s: %s not resolved for its start (%s); the process asks itself", self.settings.host,
+                     config, exc)
+            return None
+        if not rows or not isinstance(rows[0].get("config_json"), str):
+            return None
+        row = rows[0]
+        try:
+            body = messages.encode(messages.ResolvedConfig(
+                config=config, config_json=row["config_json"], dictionary=row.get("dictionary"),
+                deployment=row.get("deployment"), memory_demand_mb=row.get("memory_demand_mb"),
+                resolved_at=time.time(), digest=hashlib.sha256(msgspec.json.encode(row, order="sorted")).hexdigest()[:32]))
+        except (MessageError, TypeError) as exc:
+            log.info("host %s: %s not carried to its start (%s); the process asks itself", self.settings.host,
+                     config, exc)
+            return None
+        return base64.b64encode(body).decode("ascii")
 
     def start(self, deployment: str, config: str, *, instance: str | None = None,
               wait_ready: bool = True, ready_timeout: float | None = None, idle: bool = False) -> ProcessInfo:

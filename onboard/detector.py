@@ -65,7 +65,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
-from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, START_IDLE_ENV, announce_ready
+from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, RESOLVED_CONFIG_ENV, START_IDLE_ENV, announce_ready
 
 log = logging.getLogger("kgadapt.onboard.detector")
 
@@ -153,6 +153,29 @@ def fetch_config_row(session: Any, robot: str, name: str, *, wait_s: float = 10.
     if row.get("config_json") is None:
         raise ConfigError(f"detector configuration {name!r} has no config_json in the knowledge store")
     return parse_config(name, row["config_json"], dictionary=row.get("dictionary")), row
+
+
+def carried_config(name: str, environ: Mapping[str, str] = os.environ) -> tuple[Any, dict[str, Any]] | None:
+    """Configuration ``name`` as the deployer resolved it from the graph for this start
+    ($KGADAPT_RESOLVED_CONFIG, a ``resolved_config`` message), checked as a fetched one is; None when
+    none was carried, or it names another configuration, or it does not check (then the graph is asked)."""
+    import base64
+    import binascii
+
+    from kgadapt.onboard.markers import parse_config
+
+    text = environ.get(RESOLVED_CONFIG_ENV)
+    if not text:
+        return None
+    try:
+        resolved = messages.decode_as(base64.b64decode(text, validate=True), messages.ResolvedConfig)
+        if resolved.config != name:
+            return None
+        config = parse_config(name, resolved.config_json, dictionary=resolved.dictionary)
+    except (binascii.Error, ValueError, KgadaptError) as exc:
+        log.warning("the configuration carried by the start request is not usable (%s); asking the graph", exc)
+        return None
+    return config, {"config": name, "deployment": resolved.deployment, "digest": resolved.digest}
 
 
 def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, wait_s: float = 2.0) -> Any:
@@ -729,7 +752,10 @@ def run(args: argparse.Namespace) -> int:
             session = open_session(zenoh_settings)
             row: dict[str, Any] = {}
             if args.config is not None:
-                config, row = fetch_config_row(session, args.robot, args.config, wait_s=args.config_wait)
+                # Carried by the start request (resolved by the deployer): no second question to the graph.
+                carried = carried_config(args.config)
+                config, row = carried if carried is not None else fetch_config_row(
+                    session, args.robot, args.config, wait_s=args.config_wait)
             detector = Detector(settings, config, deployment=str(row["deployment"]) if row.get("deployment") else None)
             arm(detector, session)
             detector.setup(session)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import time
 from pathlib import Path
 
 import psutil
@@ -192,3 +193,30 @@ def test_a_forked_detector_runs_with_the_environment_of_the_request_not_the_laun
     assert forked.wait() != 0  # its session was built from the request's config file, which is missing
     output = forked.stdout.read() if forked.stdout is not None else b""
     assert READY_TOKEN.encode() not in (output if isinstance(output, bytes) else output.encode())
+
+
+def test_a_started_detector_takes_the_configuration_its_deployer_resolved_and_asks_for_none(
+        hosts, client_session, knowledge):
+    """Issue 32 item 2: the start carries the configuration the deployer resolved from the graph."""
+    launcher_of(hosts)
+    asked: list[tuple[str, float]] = []
+    answer_named = knowledge.answer_named
+
+    def counting(name, *args, **kwargs):  # the real service's answer, with when it was asked
+        asked.append((name, time.time()))
+        return answer_named(name, *args, **kwargs)
+
+    knowledge.answer_named = counting
+    events = Collector(client_session, keys.deployer_events(ROBOT, "onboard"), "deploy_event")
+    try:
+        client = DeployerClient(client_session, ROBOT)
+        info = client.start("onboard", "detector_day", DAY, instance="carried")
+        assert info["via"] == "launcher" and info["state"] in ("ready", "running")
+        _, started = events.wait_for(lambda e: e["instance"] == "carried" and e["event"] == "started")
+        # The deployer asked the graph before the process existed; the process itself asked nothing.
+        assert [n for n, _ in asked if n == "detector_config"], asked
+        assert [n for n, at in asked if n == "detector_config" and at >= started["time"]] == []
+        client.stop("onboard", "carried")
+    finally:
+        knowledge.answer_named = answer_named
+        events.close()
