@@ -191,7 +191,6 @@ class ReconfigurationReport:
     check_ms: float  # the detector asking the graph (configuration, in_place_change)
     build_ms: float  # building the new configuration's detector
     reply_ms: float  # request sent -> reply (includes waiting for the first frame with it)
-    prepared: bool = False  # swapped in a detector built beforehand (the reflex table's): no query, no build
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -222,5 +221,4 @@ def reconfigure(session: Any, robot: str, host: str, instance: str, config: str,
     return ReconfigurationReport(instance=instance, host=host, config=str(body["config"]),
                                  previous=str(body["previous"]), deployment=str(body["deployment"]),
                                  first_seq=body.get("first_seq"), check_ms=float(body["check_ms"]),
-                                 build_ms=float(body["build_ms"]), reply_ms=reply_ms,
-                                 prepared=bool(body.get("prepared")))
+                                 build_ms=float(body["build_ms"]), reply_ms=reply_ms)

@@ -685,7 +685,7 @@ class Reconfigurer:
         arm(d, self._session)  # what it may take in place from the new deployment
         body: dict[str, Any] = {"instance": s.instance, "config": name, "previous": previous,
                                 "deployment": str(target), "check_ms": round(check_ms, 3),
-                                "build_ms": round(build_ms, 3), "prepared": ready is not None}
+                                "build_ms": round(build_ms, 3)}
         if first is not None:
             body["first_seq"] = first
             body["first_frame_ms"] = round((time.perf_counter() - swapped) * 1e3, 3)

@@ -268,7 +268,6 @@ class ConfigureReply(Message, tag="configure_reply", frozen=True, kw_only=True):
     check_ms: Number
     build_ms: Number
     first_frame_ms: Number | None = None
-    prepared: bool | None = None  # true: the detector built beforehand from the reflex table was swapped in
 
 
 class ActivityRequest(Message, tag="activity_request", frozen=True, kw_only=True):
