@@ -723,19 +723,33 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, *, session: Any = None) -> int:
+    """``session``: one already open (a launcher's pool member opened it while it waited; closed at the end)."""
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    return run(args)
+    return run(args, session=session)
 
 
-def run(args: argparse.Namespace) -> int:
+def _zenoh_settings(args: argparse.Namespace) -> Any:
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, settings_from_args
+
+    return settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
+
+
+def pool_session(argv: Sequence[str]) -> Any:
+    """The Zenoh session a detector started with ``argv`` would open: what a launcher's pool member opens
+    while it waits for a start (deploy/launcher.py); the start's own flags name the same settings."""
+    from kgadapt.shared.session import open_session
+
+    return open_session(_zenoh_settings(build_parser().parse_args(argv)))
+
+
+def run(args: argparse.Namespace, *, session: Any = None) -> int:
     """Run the detector until SIGINT or SIGTERM; return the exit status."""
     from kgadapt.shared.agent import StopSignals
-    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.shared.session import open_session
 
-    session = None
     detector: Detector | None = None
     reconfigurer: Reconfigurer | None = None
     switch: ActivitySwitch | None = None
@@ -748,8 +762,8 @@ def run(args: argparse.Namespace) -> int:
                 from kgadapt.onboard.markers import parse_config
 
                 config = parse_config(INLINE_CONFIG, args.config_json)
-            zenoh_settings = settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
-            session = open_session(zenoh_settings)
+            if session is None:
+                session = open_session(_zenoh_settings(args))
             row: dict[str, Any] = {}
             if args.config is not None:
                 # Carried by the start request (resolved by the deployer): no second question to the graph.
