@@ -189,6 +189,25 @@ def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, 
     return ReflexTable.from_rows(rows, parse=lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary))
 
 
+def build_cores(table: Any) -> dict[str, Any]:
+    """A detector for every configuration of the reflex ``table``, by name."""
+    from kgadapt.onboard.markers import MarkerDetector
+
+    return {name: MarkerDetector(choice.settings) for name, choice in table.choices().items()}
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """What a launcher's pool member prepared while it waited for a start (deploy/launcher.py): its
+    Zenoh session, and the reflex table of the deployment it expects with its detectors built."""
+
+    session: Any
+    deployment: str | None = None
+    host: str | None = None
+    table: Any = None
+    cores: dict[str, Any] | None = None
+
+
 def _clean_count(result: Any) -> int:
     clean = result.clean or [True] * len(result.ids)
     return sum(c is not False for c in clean[:len(result.ids)])
@@ -315,13 +334,13 @@ class Detector:
             return None
         return core, choice.deployment
 
-    def arm(self, table: Any) -> None:
-        """Hold the reflex ``table`` (kgadapt.onboard.reflex.ReflexTable): its detectors are built here,
-        off the frame path, so a reflex costs the frame nothing."""
-        from kgadapt.onboard.markers import MarkerDetector
+    def arm(self, table: Any, cores: dict[str, Any] | None = None) -> None:
+        """Hold the reflex ``table`` (kgadapt.onboard.reflex.ReflexTable): its detectors are built here
+        (or given, built beforehand: ``cores``), off the frame path, so a reflex costs the frame nothing."""
         from kgadapt.onboard.reflex import Reflex
 
-        cores = {name: MarkerDetector(choice.settings) for name, choice in table.choices().items()}
+        if cores is None:
+            cores = build_cores(table)
         config, _core, generation = self._active
         reflex = Reflex(table=table, running=config.name)
         previous = self._reflexes
@@ -737,12 +756,25 @@ def _zenoh_settings(args: argparse.Namespace) -> Any:
     return settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
 
 
-def pool_session(argv: Sequence[str]) -> Any:
-    """The Zenoh session a detector started with ``argv`` would open: what a launcher's pool member opens
-    while it waits for a start (deploy/launcher.py); the start's own flags name the same settings."""
+def pool_session(argv: Sequence[str]) -> WarmStart:
+    """What a launcher's pool member prepares while it waits for a start like ``argv`` (deploy/launcher.py):
+    the Zenoh session such a detector would open (a start's own flags name the same settings), and, for
+    the deployment its start request carried, the reflex table with every candidate configuration's
+    detector built. A start of another deployment asks the graph for its own table."""
     from kgadapt.shared.session import open_session
 
-    return open_session(_zenoh_settings(build_parser().parse_args(argv)))
+    args = build_parser().parse_args(argv)
+    session = open_session(_zenoh_settings(args))
+    carried = carried_config(args.config) if args.config else None
+    deployment = carried[1].get("deployment") if carried else None
+    if not deployment:
+        return WarmStart(session)
+    try:
+        table = fetch_reflex_table(session, args.robot, deployment=str(deployment), host=args.host)
+    except KgadaptError as exc:
+        log.info("pool member: no reflex table for %s yet (%s)", deployment, exc)
+        return WarmStart(session)
+    return WarmStart(session, str(deployment), args.host, table, build_cores(table))
 
 
 def run(args: argparse.Namespace, *, session: Any = None) -> int:
@@ -750,6 +782,9 @@ def run(args: argparse.Namespace, *, session: Any = None) -> int:
     from kgadapt.shared.agent import StopSignals
     from kgadapt.shared.session import open_session
 
+    warm = session if isinstance(session, WarmStart) else None
+    if warm is not None:
+        session = warm.session
     detector: Detector | None = None
     reconfigurer: Reconfigurer | None = None
     switch: ActivitySwitch | None = None
@@ -771,7 +806,11 @@ def run(args: argparse.Namespace, *, session: Any = None) -> int:
                 config, row = carried if carried is not None else fetch_config_row(
                     session, args.robot, args.config, wait_s=args.config_wait)
             detector = Detector(settings, config, deployment=str(row["deployment"]) if row.get("deployment") else None)
-            arm(detector, session)
+            if warm is not None and warm.table is not None and (warm.deployment, warm.host) == (
+                    detector.deployment, settings.host):
+                detector.arm(warm.table, warm.cores)  # fetched and built while the pool member waited
+            else:
+                arm(detector, session)
             detector.setup(session)
             switch = ActivitySwitch(detector)
             switch.setup(session)
