@@ -23,7 +23,12 @@ the running detector between two frames (:func:`kgadapt.deploy.migration.reconfi
 otherwise, or when that is refused, it is make-before-break: start the new
 detector, wait for its first detections, and only then stop the old one
 (:func:`kgadapt.deploy.migration.migrate`). The decision records which and why. When the host running the detector is
-lost, a new detector starts at once on a host that can hold it. During final
+lost, a new detector starts at once on a host that can hold it. That move is planned ahead: in the
+loop's quiet moments the manager plans the loss of the running detector's host (the placement with
+that host counted lost, and whether the standby takes it) and plans it again when what it rests on
+changes (band, running detector, standby, hosts lost, configurations left out) or after
+``ready_move_s``; at the loss it is carried out with no question to the graph (the decision's inputs
+say ``planned_ahead_ms``). During final
 descent (flight state ``LANDING``, or landed state unknown in LAND/RTL:
 :func:`kgadapt.onboard.flight_phase.in_final_descent`) planned changes are deferred; losing the
 running host is still acted on.
