@@ -76,6 +76,9 @@ def register(bench_subparsers: Any) -> None:
                    "each), with the graph's frame budget, unbounded and without hedging, side by side "
                    "(default 2; 0 skips)")
     p.add_argument("--only-hedge", action="store_true", help="measure only what hedging costs")
+    p.add_argument("--pool", type=int, default=0, metavar="N",
+                   help="the agents' --pool N: idle detectors their launchers keep for each kind of start made "
+                        "(default 0: none)")
     p.add_argument("--out", default=str(RESULTS), help="results file (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the records as JSON")
     p.set_defaults(func=run)
@@ -132,7 +135,7 @@ def _tree(pid: int) -> list[int]:
 
 
 def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cpu: float | None,
-                  standby: bool = False) -> dict[str, Any]:
+                  standby: bool = False, **robot: Any) -> dict[str, Any]:
     """One run through ``cycles`` light cycles: the light steps with their blind time, and the decisions."""
     from kgadapt.bench.footprint import HalfCore
 
@@ -141,7 +144,7 @@ def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cp
     from kgadapt.cluster import models_without_in_place
 
     graph = {} if in_place else {"models": models_without_in_place(workdir / "models")}
-    with _robot(workdir, profile, in_place=in_place, standby=standby, **graph) as robot:
+    with _robot(workdir, profile, in_place=in_place, standby=standby, **graph, **robot) as robot:
         if limit is not None:
             limit.__enter__()
         try:
@@ -238,14 +241,16 @@ def measure_hedge(workdir: Path, cycles: int, hold: float, *, budget: str) -> di
             "onboard_cpu_share": round(cpu_s / wall, 4) if wall else None}
 
 
-def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, standby: bool = False) -> list[float]:
+def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, standby: bool = False,
+                      **settings: Any) -> list[float]:
     """Milliseconds from kill -9 of the remote agent to the first detection onboard."""
     times: list[float] = []
     from kgadapt.bench.footprint import HalfCore
     from kgadapt.cluster import write_profile
 
     profile = write_profile(workdir / "profile.json", [[0, 120], [3600, 120]])
-    with _robot(workdir, profile, prefer="remote-first", standby=standby) as robot, contextlib.ExitStack() as stack:
+    with _robot(workdir, profile, prefer="remote-first", standby=standby, **settings) as robot, \
+            contextlib.ExitStack() as stack:
         if cpu:
             limit = stack.enter_context(HalfCore(cpu))
             for pid in _tree(robot.cluster.children["onboard"].process.pid):
@@ -301,6 +306,8 @@ def run(args: argparse.Namespace) -> int:
     lines: list[str] = []
     if args.only_hedge:
         cpus, modes = [], []
+    pool = ("--pool", str(args.pool)) if args.pool else ()
+    extra: dict[str, Any] = {"extra_onboard_args": pool, "extra_remote_args": pool} if pool else {}
     try:
         for budget in HEDGE_BUDGETS if args.hedge_cycles else ():
             result = measure_hedge(workdir / f"hedge-{budget}", args.hedge_cycles, args.hold, budget=budget)
@@ -315,17 +322,18 @@ def run(args: argparse.Namespace) -> int:
                 how = "standby" if standby else "in place" if in_place else "new process"
                 name = f"{'standby' if standby else 'inplace' if in_place else 'newproc'}-{onboard.replace(' ', '')}"
                 result = measure_steps(workdir / name, args.cycles, args.hold, in_place=in_place, cpu=cpu,
-                                       standby=standby)
+                                       standby=standby, **extra)
                 records += _records(result, store=store, how=how, onboard=onboard)
                 lines += _lines(result, how=how, onboard=onboard)
         for cpu in cpus if args.failovers and not args.only_hedge else []:
             onboard = "unlimited" if cpu is None else f"{cpu:g} core"
             for standby in (False, True) if args.standby else (False,):
                 failovers = measure_failovers(workdir / f"failover-{'standby-' if standby else ''}"
-                                              f"{onboard.replace(' ', '')}", args.failovers, cpu=cpu, standby=standby)
+                                              f"{onboard.replace(' ', '')}", args.failovers, cpu=cpu, standby=standby,
+                                              **extra)
                 if failovers:
                     records.append(make_record(store=store, n=None, op="failover_after_kill9", samples_ms=failovers,
-                                               target_ms=150, onboard=onboard,
+                                               target_ms=150, onboard=onboard, pool=args.pool,
                                                **({"changes": "standby"} if standby else {})))
     finally:
         shutil.rmtree(workdir, ignore_errors=True)

@@ -335,7 +335,50 @@ def deployer_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, An
         records.append(make_record(op="stop_request", samples_ms=stop, **common))
         print(f"  deployer: {deployment}, {how}: start p50 {summarize(start).p50_ms:.1f} ms, stop p50 "
               f"{summarize(stop).p50_ms:.1f} ms", flush=True)
+    if rig.real_detector and _has_pool(rig):
+        records += pooled_latencies(rig, args, client)
     return records
+
+
+def _has_pool(rig: _Rig) -> bool:
+    return hasattr(rig.deployers["onboard"], "warm")  # main before issue 32 item 2 has no pool
+
+
+def pooled_latencies(rig: _Rig, args: argparse.Namespace, client: Any) -> list[dict[str, Any]]:
+    """Start request -> ready when the launcher's pool has an idle detector (session open) for it.
+
+    Between two starts the pool is left to fill again (an idle member opens its session on its
+    own time): the figure is a start that finds one waiting, as the pool is meant to make every start."""
+    import dataclasses
+
+    deployer = rig.deployers["onboard"]
+    launcher = deployer.supervisor.launcher
+    deployer.settings = dataclasses.replace(deployer.settings, pool=1)
+    deployer.warm("detector_day", "marker_detection_day")
+    start, stop, via = [], [], []
+    for i in range(args.detector_reps + 1):
+        deadline = time.monotonic() + 30.0
+        while sum(launcher.idle.values()) < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(1.0)  # the new member opens its Zenoh session (not observable from here)
+        p0 = time.perf_counter()
+        info = client.start("onboard", "detector_day", "marker_detection_day", instance=f"pbench{i}")
+        start_ms = (time.perf_counter() - p0) * 1000.0
+        p1 = time.perf_counter()
+        client.stop("onboard", f"pbench{i}")
+        stop_ms = (time.perf_counter() - p1) * 1000.0
+        if i:
+            start.append(start_ms)
+            stop.append(stop_ms)
+            via.append(info.get("via"))
+    deployer.settings = dataclasses.replace(deployer.settings, pool=0)
+    common = {"store": "deployer over Zenoh", "n": None,
+              "program": "detector_day (marker_detection_day), launcher's pool",
+              "pooled": sum(v == "pool" for v in via), "trials": len(via)}
+    print(f"  deployer: detector_day, pool: start p50 {summarize(start).p50_ms:.1f} ms "
+          f"({common['pooled']}/{len(via)} from the pool)", flush=True)
+    return [make_record(op="start_request_to_ready", samples_ms=start, **common),
+            make_record(op="stop_request", samples_ms=stop, **common)]
 
 
 # -- 3. planned migration ---------------------------------------------------------------------

@@ -31,15 +31,19 @@ profiles are written through the knowledge service by :class:`ProfileRecorder`.
 from __future__ import annotations
 
 import argparse
+import base64
 import contextlib
+import hashlib
 import logging
 import re
 import secrets
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
+import msgspec
 import zenoh
 
 from kgadapt.deploy.options import add_arguments  # noqa: F401  (re-exported for agents)
@@ -49,7 +53,7 @@ from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.agent import DEFAULT_ROBOT
 from kgadapt.shared.children import StopPolicy
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RemoteError, TransportError
-from kgadapt.shared.readiness import START_IDLE_ENV
+from kgadapt.shared.readiness import RESOLVED_CONFIG_ENV, START_IDLE_ENV
 from kgadapt.shared.session import DEFAULT_ENDPOINT
 
 log = logging.getLogger(__name__)
@@ -90,6 +94,9 @@ class DeployerSettings:
     workers: int = 4
     # Fork detectors from the host's launcher (deploy/launcher.py); a plain start when it is absent.
     launcher: bool = True
+    # Idle detectors the launcher keeps per kind of start (deploy/launcher.py's pool), within the memory
+    # budget; each counts as its configuration's declared memory. 0: no pool.
+    pool: int = 0
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
@@ -121,6 +128,8 @@ class Deployer:
         # list (instance -> (config, declared MiB)), so that raced starts cannot pass together.
         self._admission = threading.Lock()
         self._admitted: dict[str, tuple[str, float]] = {}
+        # Kinds of start the launcher keeps idle members for: (deployment, config) -> a spec of such a start.
+        self._warm: dict[tuple[str, str], ProcessSpec] = {}
         self.supervisor = Supervisor(SupervisorSettings(launcher=settings.launcher, python=settings.python))
         self.recorder: ProfileRecorder | None = None
         self._session: Any = None
@@ -225,6 +234,9 @@ class Deployer:
             env.append(("KGADAPT_ZENOH_MODE", s.zenoh_mode))
         if idle:
             env.append((START_IDLE_ENV, "1"))
+        resolved = self._resolved_config(config)
+        if resolved is not None:
+            env.append((RESOLVED_CONFIG_ENV, resolved))
         for item in _as_list(row.get("environment"), deployment, "environment"):
             name, sep, value = str(item).partition("=")
             if not sep or not _ENV_NAME.match(name):
@@ -238,22 +250,81 @@ class Deployer:
             ready_timeout=timeout, restart=s.restart, stop=s.stop,
         )
 
+    def _resolved_config(self, config: str) -> str | None:
+        """``config`` as the graph gives it now (``detector_config``), for the started detector to take
+        instead of asking again: a ``resolved_config`` message, base64. None when the graph has no
+        such row (a program that is not a detector) or does not answer: the child then asks itself."""
+        try:
+            rows = self._knowledge.query("detector_config", {"config": config})
+        except (RemoteError, TransportError) as exc:
+            log.info("host %s: %s not resolved for its start (%s); the process asks itself", self.settings.host,
+                     config, exc)
+            return None
+        if not rows or not isinstance(rows[0].get("config_json"), str):
+            return None
+        row = rows[0]
+        try:
+            body = messages.encode(messages.ResolvedConfig(
+                config=config, config_json=row["config_json"], dictionary=row.get("dictionary"),
+                deployment=row.get("deployment"), memory_demand_mb=row.get("memory_demand_mb"),
+                resolved_at=time.time(), digest=hashlib.sha256(msgspec.json.encode(row, order="sorted")).hexdigest()[:32]))
+        except (MessageError, TypeError) as exc:
+            log.info("host %s: %s not carried to its start (%s); the process asks itself", self.settings.host,
+                     config, exc)
+            return None
+        return base64.b64encode(body).decode("ascii")
+
     def start(self, deployment: str, config: str, *, instance: str | None = None,
               wait_ready: bool = True, ready_timeout: float | None = None, idle: bool = False) -> ProcessInfo:
         """Check with the knowledge store and the host's memory, then start; see :meth:`Supervisor.start`.
 
         ``idle``: the process is told to start idle (``$KGADAPT_START_IDLE``), as a warm standby does."""
         spec = self.resolve(deployment, config, instance, ready_timeout=ready_timeout, idle=idle)
-        self._admit(spec.instance, config)
+        self._admit(spec.instance, config, spec)
         try:
             log.info("host %s: starting %s (%s, %s): %s", self.settings.host, spec.instance, deployment, config,
                      " ".join(spec.argv))
-            return self.supervisor.start(spec, wait_ready=wait_ready)
+            info = self.supervisor.start(spec, wait_ready=wait_ready)
         finally:
             with self._admission:  # from now on the supervisor's list holds it (or it failed)
                 self._admitted.pop(spec.instance, None)
+        if self.settings.pool > 0 and info.via in ("launcher", "pool"):
+            self._keep_warm(deployment, config, spec)  # the next start like it takes an idle member
+        return info
 
-    def _admit(self, instance: str, config: str) -> None:
+    def warm(self, deployment: str, config: str) -> int:
+        """Have the launcher keep idle members for starts of ``deployment`` with ``config`` (as many as
+        ``pool`` and the memory budget allow); the number asked for."""
+        spec = self.resolve(deployment, config, "pooled")
+        return self._keep_warm(deployment, config, spec)
+
+    def _keep_warm(self, deployment: str, config: str, spec: ProcessSpec) -> int:
+        with self._admission:
+            self._warm[(deployment, config)] = spec
+            size = self._pool_size(config, spec)
+        self.supervisor.keep_pool(spec, size)
+        return size
+
+    def _pooled(self) -> list[tuple[str, int]]:
+        """(config, idle members) of every kind of start kept warm."""
+        return [(config, self.supervisor.idle_for(spec)) for (_, config), spec in self._warm.items()]
+
+    def _pool_size(self, config: str, spec: ProcessSpec) -> int:
+        """Idle members for ``spec``'s kind of start: ``pool``, fewer when the budget has no room for
+        them beside what the graph declares for the processes of this host (caller holds _admission)."""
+        size = self.settings.pool
+        if self._budget is None or size <= 0:
+            return size
+        held = [info.config for info in self.supervisor.processes(include_finished=False)]
+        held += [c for c, _ in self._admitted.values()]
+        others = [(c, self.supervisor.idle_for(other)) for (_, c), other in self._warm.items() if other is not spec]
+        demands = self._declared_demands({config, *held, *(c for c, _ in others)})
+        used = sum(demands[c] for c in held) + sum(demands[c] * n for c, n in others)
+        room = float(self._budget()) - used
+        each = demands[config]
+        return max(0, min(size, int(room // each))) if each > 0 else size
+
+    def _admit(self, instance: str, config: str, spec: ProcessSpec | None = None) -> None:
         """Admit a start of ``config`` as ``instance`` or raise DeploymentError naming the figures.
 
         Two checks, under one lock with the starts already admitted:
@@ -274,17 +345,24 @@ class Deployer:
                 info.instance: (info.config, False) for info in self.supervisor.processes(include_finished=False)}
             for name, (other, _) in self._admitted.items():
                 held[name] = (other, True)
-            demands = self._declared_demands({config, *(c for c, _ in held.values())})
+            # Idle pool members count as their configuration's declared memory; the one this start
+            # takes (if any) is this start's.
+            pooled = self._pooled()
+            if spec is not None and self.supervisor.idle_for(spec) > 0:
+                pooled = [(c, n - 1) if c == config and n > 0 else (c, n) for c, n in pooled]
+            demands = self._declared_demands({config, *(c for c, _ in held.values()), *(c for c, _ in pooled)})
             demand = demands[config]
             if self._budget is not None:
                 budget = float(self._budget())
-                declared = sum(demands[c] for c, _ in held.values())
+                pool_mb = sum(demands[c] * n for c, n in pooled)
+                declared = sum(demands[c] for c, _ in held.values()) + pool_mb
                 if declared + demand > budget:
                     each = ", ".join(f"{name} {c} {demands[c]:.0f} MiB" for name, (c, _) in sorted(held.items()))
+                    idle = f"; idle pool members {pool_mb:.0f} MiB" if pool_mb else ""
                     raise DeploymentError(
                         f"start of {config} refused: it declares {demand:.0f} MiB and host {host}'s "
-                        f"{len(held)} process(es) already declare {declared:.0f} MiB ({each or 'none'}): "
-                        f"{declared + demand:.0f} MiB would exceed its memory budget of {budget:.0f} MiB"
+                        f"{len(held)} process(es) already declare {declared - pool_mb:.0f} MiB ({each or 'none'}"
+                        f"{idle}): {declared + demand:.0f} MiB would exceed its memory budget of {budget:.0f} MiB"
                     )
             if self._free_memory is not None:
                 free = float(self._free_memory())
@@ -444,6 +522,7 @@ def settings_from_args(args: argparse.Namespace, *, robot: str, host: str) -> De
         stop=StopPolicy(sigint_timeout=stop, sigterm_timeout=stop),
         sample_interval=getattr(args, "profile_interval", 1.0),
         launcher=not getattr(args, "no_launcher", False),
+        pool=max(0, int(getattr(args, "pool", 0) or 0)),
     )
 
 

@@ -27,12 +27,27 @@ readiness line), take the environment and working directory of the request
 and run the module as ``__main__``. The agent waits for it, signals its group
 and restarts it like any other child.
 
+Warm pool: the agent may also ask the launcher to keep idle members for a
+start it expects (``{"pool": N, ...}`` with the argv and environment of such a
+start). A member is forked the same way but stops before the module's work:
+it takes the environment, opens its Zenoh session (the module's
+``pool_session(args)``) and waits on a socket of its own. A fork request whose
+argv and environment match a member's, but for the ``--instance`` and
+``--config`` values and the per-start variables (:data:`PER_START_ENV`;
+:func:`pool_key`), is handed to an idle member instead of a new fork: it
+takes the descriptors, environment and argv, is re-parented to the agent as a
+forked detector is, and runs the module's ``main(args, session=...)`` with the
+session it already has. A member's intermediate process stays until then (so
+a member is the launcher's grandchild while idle: it dies with the launcher).
+
 Protocol (JSON, one message per datagram)::
 
     launcher -> agent   {"ready": true, "pid": P, "python": EXE, "runnable": [modules]}   once, after the imports
     agent -> launcher   {"argv": [...], "env": {...}, "cwd": str|null, "parent": AGENT_PID, "death_signal": N}
                         + two descriptors: stdin, stdout (stderr goes to stdout)
-    launcher -> agent   {"pid": DETECTOR_PID} or {"error": "..."}
+    launcher -> agent   {"pid": DETECTOR_PID, "pooled": bool, "idle": IDLE_LEFT} or {"error": "..."}
+    agent -> launcher   {"pool": N, "argv": [...], "env": {...}, "cwd": ..., "parent": ..., "death_signal": N}
+    launcher -> agent   {"idle": IDLE_MEMBERS_FOR_THAT_START} or {"error": "..."}
 
 The launcher exits when the agent closes its end of the socket (or dies).
 """
@@ -64,6 +79,10 @@ RUNNABLE = ("kgadapt.onboard.detector",)
 PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.markers", "kgadapt.knowledge.client", "kgadapt.shared.session",
            "kgadapt.shared.agent", *RUNNABLE)
 _MAX_MESSAGE = 1 << 20
+# What differs between two starts a pool member can take: these flags' values and these variables.
+PER_START_ARGS = ("--instance", "--config")
+PER_START_ENV = ("KGADAPT_START_IDLE", "KGADAPT_RESOLVED_CONFIG")
+MAX_POOL = 8  # idle members per kind of start, whatever the agent asks
 # The launcher's argv carries this much room: a forked detector writes its own command line there,
 # so ps, psutil and the tools that find detectors by their command line see it as a plain-started one.
 TITLE_ROOM = 2048
@@ -86,7 +105,29 @@ def runnable_module(argv: Sequence[str], python: str, modules: Sequence[str]) ->
     return argv[2]
 
 
+def pool_key(argv: Sequence[str], env: dict[str, str]) -> str:
+    """What a pool member must share with a start to take it: the argv without the per-start flags'
+    values and the environment without the per-start variables."""
+    kept: list[str] = []
+    skip = False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg in PER_START_ARGS:
+            skip = True
+        else:
+            kept.append(arg)
+    return json.dumps([kept, sorted((k, v) for k, v in env.items() if k not in PER_START_ENV)])
+
+
 # -- the launcher process ---------------------------------------------------------------
+
+
+class _Member:
+    """An idle pool member as the launcher holds it."""
+
+    def __init__(self, pid: int, middle: int, sock: socket.socket) -> None:
+        self.pid, self.middle, self.sock = pid, middle, sock
 
 
 def _threads() -> int:
@@ -100,6 +141,7 @@ def serve(sock: socket.socket, *, runnable: Sequence[str] = RUNNABLE) -> int:
     """Answer fork requests on ``sock`` until the agent closes it; the launcher's main loop."""
     hello = {"ready": True, "pid": os.getpid(), "python": sys.executable, "runnable": list(runnable)}
     sock.send(json.dumps(hello).encode())
+    pool: dict[str, list[_Member]] = {}
     while True:
         try:
             data, fds, _flags, _addr = socket.recv_fds(sock, _MAX_MESSAGE, 4)
@@ -113,7 +155,8 @@ def serve(sock: socket.socket, *, runnable: Sequence[str] = RUNNABLE) -> int:
                 os.close(fd)
             return 0  # the agent closed its end or died
         try:
-            reply = _fork_request(data, fds, runnable, sock)
+            _reap_members(pool)
+            reply = _fork_request(data, fds, runnable, sock, pool)
         except DeploymentError as exc:
             reply = {"error": str(exc)}
         finally:
@@ -125,7 +168,24 @@ def serve(sock: socket.socket, *, runnable: Sequence[str] = RUNNABLE) -> int:
             return 0
 
 
-def _fork_request(data: bytes, fds: list[int], runnable: Sequence[str], sock: socket.socket) -> dict[str, Any]:
+def _reap_members(pool: dict[str, list[_Member]]) -> None:
+    """Forget members that died idle (their intermediate process ends with them) and reap those."""
+    for key, members in list(pool.items()):
+        for m in list(members):
+            try:
+                done, _ = os.waitpid(m.middle, os.WNOHANG)
+            except ChildProcessError:
+                done = m.middle
+            if done:
+                members.remove(m)
+                m.sock.close()
+        if not members:
+            del pool[key]
+
+
+def _fork_request(data: bytes, fds: list[int], runnable: Sequence[str], sock: socket.socket,
+                  pool: dict[str, list[_Member]] | None = None) -> dict[str, Any]:
+    pool = {} if pool is None else pool
     try:
         request = json.loads(data)
         argv = [str(a) for a in request["argv"]]
@@ -133,13 +193,167 @@ def _fork_request(data: bytes, fds: list[int], runnable: Sequence[str], sock: so
         cwd = request.get("cwd")
         parent = int(request["parent"])
         death_signal = int(request["death_signal"])
+        size = None if request.get("pool") is None else max(0, min(int(request["pool"]), MAX_POOL))
     except (ValueError, KeyError, TypeError) as exc:
         raise DeploymentError(f"malformed fork request: {exc}") from exc
-    if len(fds) != 2:
-        raise DeploymentError(f"a fork request carries stdin and stdout, not {len(fds)} descriptors")
     module = runnable_module(argv, sys.executable, runnable)
     if module is None:
         raise DeploymentError(f"the launcher runs only {sys.executable} -m one of {', '.join(runnable)}; not {argv[:3]}")
+    key = pool_key(argv, env)
+    if size is not None:
+        if not hasattr(importlib.import_module(module), "pool_session"):
+            raise DeploymentError(f"{module} cannot wait in a pool (it has no pool_session)")
+        members = pool.setdefault(key, [])
+        while len(members) < size:
+            members.append(_fork_member(module, argv, env, cwd, sock))
+        return {"idle": len(members)}
+    if len(fds) != 2:
+        raise DeploymentError(f"a fork request carries stdin and stdout, not {len(fds)} descriptors")
+    members = pool.get(key) or []
+    while members:
+        member = members.pop(0)
+        if _hand_over(member, data, fds):
+            return {"pid": member.pid, "pooled": True, "idle": len(members)}
+    return {**_fork_detector(module, argv, env, cwd, parent, death_signal, fds, sock), "pooled": False, "idle": 0}
+
+
+def _hand_over(member: _Member, data: bytes, fds: list[int]) -> bool:
+    """Give ``member`` the start request and its descriptors; True once it is the agent's (its
+    intermediate process has ended, so it was re-parented)."""
+    try:
+        socket.send_fds(member.sock, [data], fds)
+        member.sock.settimeout(5.0)
+        said = member.sock.recv(64)
+    except OSError:
+        said = b""
+    finally:
+        member.sock.close()
+    try:
+        os.waitpid(member.middle, 0)  # it exits when the member says so (or died with it)
+    except ChildProcessError:
+        pass
+    return said == b"taken"
+
+
+def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | None, sock: socket.socket) -> _Member:
+    """Fork an idle pool member for starts like ``argv``; it opens its session on its own time."""
+    if _threads() != 1:
+        raise DeploymentError(f"the launcher has {_threads()} threads; it forks only single-threaded")
+    sys.stdout.flush()
+    sys.stderr.flush()
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    r, w = os.pipe()
+    middle = os.fork()
+    if middle == 0:  # the intermediate process: fork the member, say its pid, wait until it is taken
+        code = 1
+        try:
+            parent_death.set_death_signal(signal.SIGKILL)  # dies with the launcher, and so its member
+            me = os.getpid()
+            os.close(r)
+            ours.close()
+            sock.close()
+            release_r, release_w = os.pipe()
+            pid = os.fork()
+            if pid == 0:
+                os.close(release_r)
+                _pool_member(me, module, argv, env, cwd, theirs, release_w)
+            os.close(release_w)
+            theirs.close()
+            os.write(w, str(pid).encode())
+            os.read(release_r, 1)  # the member was taken (it wrote) or died (end of file)
+            code = 0
+        finally:
+            os._exit(code)
+    os.close(w)
+    theirs.close()
+    try:
+        text = os.read(r, 32)
+    finally:
+        os.close(r)
+    if not text:
+        ours.close()
+        os.waitpid(middle, 0)
+        raise DeploymentError("the launcher could not fork a pool member")
+    return _Member(int(text), middle, ours)
+
+
+def _pool_member(middle: int, module: str, argv: list[str], env: dict[str, str], cwd: str | None,
+                 member_sock: socket.socket, release: int) -> None:
+    """In a pool member: open the session, wait for a start, become it. Never returns."""
+    code = 1
+    try:
+        for name in os.listdir("/proc/self/fd"):  # the launcher's sockets, other members' ones
+            fd = int(name)
+            if fd > 2 and fd not in (member_sock.fileno(), release):
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        parent_death.set_death_signal(signal.SIGKILL)  # idle, it dies with its intermediate process
+        if os.getppid() != middle:
+            os._exit(1)
+        os.setsid()
+        devnull = os.open(os.devnull, os.O_RDWR)
+        os.dup2(devnull, 0)
+        os.close(devnull)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.environ.clear()
+        os.environ.update(env)
+        if cwd:
+            os.chdir(cwd)
+        set_title([*argv[:3], "(pooled)"])
+        logging.root.handlers.clear()
+        runner = importlib.import_module(module)
+        session = runner.pool_session(argv[3:])
+        data, fds, _flags, _addr = socket.recv_fds(member_sock, _MAX_MESSAGE, 4)
+        if not data or len(fds) != 2:
+            os._exit(0)  # the launcher closed the pool
+        request = json.loads(data)
+        argv = [str(a) for a in request["argv"]]
+        parent, death_signal = int(request["parent"]), int(request["death_signal"])
+        parent_death.set_death_signal(0)  # not when the intermediate process ends now
+        os.write(release, b"x")
+        os.close(release)
+        deadline = time.monotonic() + 5.0
+        while os.getppid() == middle:
+            if time.monotonic() > deadline:
+                os._exit(1)
+            time.sleep(0.0002)
+        parent_death.set_death_signal(death_signal)
+        if os.getppid() != parent:
+            os.kill(os.getpid(), death_signal)
+            os._exit(1)
+        member_sock.send(b"taken")
+        member_sock.close()
+        stdin, stdout = fds
+        os.dup2(stdin, 0)
+        os.dup2(stdout, 1)
+        os.dup2(stdout, 2)
+        os.close(stdin)
+        os.close(stdout)
+        os.environ.clear()
+        os.environ.update({str(k): str(v) for k, v in dict(request["env"]).items()})
+        if request.get("cwd"):
+            os.chdir(request["cwd"])
+        set_title(argv)
+        if isinstance(sys.stdout, io.TextIOWrapper):
+            sys.stdout.reconfigure(line_buffering=True)
+        code = _run_module(module, argv, session=session)
+    except BaseException:  # noqa: BLE001 - whatever happens, this process must end here
+        import traceback
+
+        traceback.print_exc()
+    finally:
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+        finally:
+            os._exit(code)
+
+
+def _fork_detector(module: str, argv: list[str], env: dict[str, str], cwd: str | None, parent: int,
+                   death_signal: int, fds: list[int], sock: socket.socket) -> dict[str, Any]:
     if _threads() != 1:  # a fork copies one thread: locks held by others would stay locked in the child
         raise DeploymentError(f"the launcher has {_threads()} threads; it forks only single-threaded")
     sys.stdout.flush()
@@ -243,15 +457,16 @@ def set_title(argv: Sequence[str]) -> bool:
         return False
 
 
-def _run_module(module: str, argv: list[str]) -> int:
-    """Run ``module``'s ``main(args)`` as ``python -m module args`` would.
+def _run_module(module: str, argv: list[str], *, session: Any = None) -> int:
+    """Run ``module``'s ``main(args)`` as ``python -m module args`` would (a pool member's with its session).
 
     Its preloaded copy is used as it is: running it again as ``__main__`` (runpy) would execute a
     second copy beside the imported one, which Python warns about in the detector's output.
     """
     sys.argv = [argv[0], *argv[3:]]
     try:
-        code = importlib.import_module(module).main(sys.argv[1:])
+        runner = importlib.import_module(module)
+        code = runner.main(sys.argv[1:]) if session is None else runner.main(sys.argv[1:], session=session)
     except SystemExit as exc:
         if exc.code is None:
             return 0
@@ -295,9 +510,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 class ForkedProcess:
     """A detector forked by the launcher, as the supervisor sees it (the parts of ``subprocess.Popen`` it uses)."""
 
-    def __init__(self, pid: int, stdout: Any) -> None:
+    def __init__(self, pid: int, stdout: Any, *, pooled: bool = False) -> None:
         self.pid = pid
         self.stdout = stdout
+        self.pooled = pooled  # an idle pool member took the start
         self.returncode: int | None = None
 
     def wait(self) -> int:
@@ -339,6 +555,7 @@ class LauncherClient:
         self._ready = False
         self._closing = False
         self.starts = 0  # launcher processes started so far
+        self.idle: dict[str, int] = {}  # idle pool members by pool_key, as the launcher last said
 
     @property
     def pid(self) -> int | None:
@@ -379,6 +596,7 @@ class LauncherClient:
         with self._lock:
             self._proc, self._sock, self._ready = proc, ours, False
             self.starts += 1
+            self.idle = {}  # a new launcher has no pool
         threading.Thread(target=self._await_hello, args=(proc, ours), name="launcher-hello", daemon=True).start()
         threading.Thread(target=self._watch, args=(proc,), name="launcher-wait", daemon=True).start()
 
@@ -448,6 +666,9 @@ class LauncherClient:
                 os.close(stdin)
                 os.close(w)
         pid = reply.get("pid") if isinstance(reply, dict) else None
+        if isinstance(pid, int):
+            with self._lock:
+                self.idle[pool_key(argv, env)] = int(reply.get("idle") or 0)
         if not isinstance(pid, int):
             os.close(r)
             log.warning("launcher (pid %s) did not fork %s: %s", proc.pid, argv[2] if len(argv) > 2 else argv,
@@ -455,7 +676,36 @@ class LauncherClient:
             if dead:
                 self._kill(proc)
             return None
-        return ForkedProcess(pid, os.fdopen(r, "rb"))
+        return ForkedProcess(pid, os.fdopen(r, "rb"), pooled=bool(reply.get("pooled")))
+
+    def fill(self, argv: Sequence[str], env: dict[str, str], cwd: str | None, size: int) -> int | None:
+        """Have ``size`` idle members wait for starts like ``argv`` (fewer: the extra ones are not
+        ended, the next starts use them); the number idle now, None when the launcher cannot."""
+        with self._lock:
+            if not self._ready or self._sock is None:
+                return None
+            if runnable_module(argv, self.python, self._runnable) is None:
+                return None
+            request = {"pool": int(size), "argv": list(argv), "env": env, "cwd": cwd, "parent": os.getpid(),
+                       "death_signal": int(self.death_signal)}
+            try:
+                self._sock.settimeout(self.reply_timeout)
+                self._sock.send(json.dumps(request).encode())
+                reply = json.loads(self._sock.recv(_MAX_MESSAGE) or b"{}")
+            except (OSError, ValueError) as exc:
+                log.warning("launcher: no answer to a pool request: %s", exc)
+                return None
+            idle = reply.get("idle") if isinstance(reply, dict) else None
+            if not isinstance(idle, int):
+                log.info("launcher: pool refused: %s", reply.get("error") if isinstance(reply, dict) else reply)
+                return None
+            self.idle[pool_key(argv, env)] = idle
+            return idle
+
+    def idle_for(self, argv: Sequence[str], env: dict[str, str]) -> int:
+        """Idle members that could take a start of ``argv`` with ``env``."""
+        with self._lock:
+            return self.idle.get(pool_key(argv, env), 0) if self._ready else 0
 
     def shutdown(self) -> None:
         """Close the socket (the launcher exits on it) and wait for the launcher; forked detectors are not touched."""

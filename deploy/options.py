@@ -27,3 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--no-launcher", action="store_true",
                        help="start every detector as a new interpreter instead of forking it from the host's "
                             "launcher (a process with the detector's code already imported)")
+    group.add_argument("--pool", type=int, default=0, metavar="N",
+                       help="idle detectors the launcher keeps, with their Zenoh session open, for each kind of "
+                            "start this host has made (a start then takes one); within the memory budget, each "
+                            "counted at its configuration's declared memory (default 0: none)")

@@ -209,7 +209,7 @@ class _Run:
     def __init__(self, proc: subprocess.Popen[bytes] | ForkedProcess, run_id: str) -> None:
         self.proc = proc
         self.run_id = run_id
-        self.via = "launcher" if isinstance(proc, ForkedProcess) else "exec"
+        self.via = ("pool" if proc.pooled else "launcher") if isinstance(proc, ForkedProcess) else "exec"
         self.pid = proc.pid
         self.started_at = time.time()
         self.ready_at: float | None = None
@@ -223,7 +223,9 @@ class _Run:
 
 _Spawned = tuple["subprocess.Popen[bytes] | ForkedProcess", str]  # the process and its run id
 # What the spawner thread is asked: a start, "launcher" (start the launcher again) or None (end).
-_SpawnItem = tuple["ProcessSpec", "Future[_Spawned]"] | Literal["launcher"] | None
+# A start, a launcher to start, idle members to keep (``("pool", spec, size)``), or the end.
+_SpawnItem = (tuple["ProcessSpec", "Future[_Spawned]"] | tuple[Literal["pool"], "ProcessSpec", int]
+              | Literal["launcher"] | None)
 
 
 class _Instance:
@@ -510,13 +512,16 @@ class Supervisor:
                 if self.launcher is not None and not self._closing:
                     self.launcher.launch()
                 continue
+            if len(item) == 3:  # ("pool", spec, size)
+                _, spec, size = item
+                if self.launcher is not None and not self._closing:
+                    self.launcher.fill(spec.argv, self.child_env(spec), spec.cwd, size)
+                continue
             spec, future = item
             if not future.set_running_or_notify_cancel():
                 continue
             try:
-                env = dict(os.environ)
-                env["PYTHONUNBUFFERED"] = "1"  # a Python child's readiness line must not sit in a pipe buffer
-                env.update(dict(spec.env))
+                env = self.child_env(spec)
                 forked = self.launcher.fork(spec.argv, env, spec.cwd) if self.launcher is not None else None
                 if forked is not None:
                     future.set_result((forked, f"{spec.instance}-{secrets.token_hex(4)}"))
@@ -540,6 +545,23 @@ class Supervisor:
                 future.set_exception(exc if isinstance(exc, OSError) else OSError(str(exc)))
                 continue
             future.set_result((proc, f"{spec.instance}-{secrets.token_hex(4)}"))
+
+    @staticmethod
+    def child_env(spec: ProcessSpec) -> dict[str, str]:
+        """The environment a child of ``spec`` gets."""
+        env = dict(os.environ)
+        env["PYTHONUNBUFFERED"] = "1"  # a Python child's readiness line must not sit in a pipe buffer
+        env.update(dict(spec.env))
+        return env
+
+    def keep_pool(self, spec: ProcessSpec, size: int) -> None:
+        """Have the launcher keep ``size`` idle members for starts like ``spec`` (on the spawner thread)."""
+        if self.launcher is not None and not self._closing:
+            self._spawn_queue.put(("pool", spec, int(size)))
+
+    def idle_for(self, spec: ProcessSpec) -> int:
+        """The launcher's idle members that could take ``spec``."""
+        return self.launcher.idle_for(spec.argv, self.child_env(spec)) if self.launcher is not None else 0
 
     def _read_output(self, inst: _Instance, run: _Run) -> None:
         child_log = logging.getLogger(f"{__name__}.{inst.spec.instance}")

@@ -23,7 +23,12 @@ the running detector between two frames (:func:`kgadapt.deploy.migration.reconfi
 otherwise, or when that is refused, it is make-before-break: start the new
 detector, wait for its first detections, and only then stop the old one
 (:func:`kgadapt.deploy.migration.migrate`). The decision records which and why. When the host running the detector is
-lost, a new detector starts at once on a host that can hold it. During final
+lost, a new detector starts at once on a host that can hold it. That move is planned ahead: in the
+loop's quiet moments the manager plans the loss of the running detector's host (the placement with
+that host counted lost, and whether the standby takes it) and plans it again when what it rests on
+changes (band, running detector, standby, hosts lost, configurations left out) or after
+``ready_move_s``; at the loss it is carried out with no question to the graph (the decision's inputs
+say ``planned_ahead_ms``). During final
 descent (flight state ``LANDING``, or landed state unknown in LAND/RTL:
 :func:`kgadapt.onboard.flight_phase.in_final_descent`) planned changes are deferred; losing the
 running host is still acted on.
@@ -153,6 +158,7 @@ class AdaptationManager:
         self._refusal_logged: dict[str, float] = {}
         self._reflexes_seen: tuple[str | None, int] = (None, 0)  # (instance, its reflex count) last acted on
         self._live = LiveRates(settings=settings.live)  # the running detector's live rate per band
+        self._ready_move: policy.ReadyMove | None = None  # the move for the running host's loss, planned ahead
 
     @property
     def _knowledge(self) -> KnowledgeClient:
@@ -282,8 +288,10 @@ class AdaptationManager:
                     self._stop_leftovers()
                 if trigger is not None:
                     self._act(trigger)
-                elif self.settings.standby:
-                    self._keep_standby()
+                else:
+                    if self.settings.standby:
+                        self._keep_standby()
+                    self._prepare_move()
             except Exception:  # the loop must survive any single bad observation or failed action
                 log.exception("adaptation: handling %s failed", kind)
 
@@ -600,24 +608,37 @@ class AdaptationManager:
             return
         running_lost = policy.running_lost(self.current, trigger, lost)
         started = time.perf_counter()
-        try:
-            here = self.current.host if self.current is not None else None
-            wall = time.time()
-            live = policy.live_free(a.hosts, here=here, roomiest=lambda h: self._trust.roomiest(h, wall),
-                                    confirmed=lambda h: self._trust.confirmed_free(h, wall))
-            # Configurations whose detections collapsed in this band stay out until the band changes.
-            exclude = tuple(sorted(a.collapsed))
-            plan = self._planner.plan(band=band.name, running=None if running_lost else self.current, exclude=exclude,
-                                      lost_hosts=lost, live_free=live)
-        except (PlanningError, KgadaptError) as exc:
-            self._record(Outcome(trigger=trigger, outcome=f"no plan: {exc}"))
-            if running_lost:
-                self._retry_later(trigger)
-            return
+        # Configurations whose detections collapsed in this band stay out until the band changes.
+        exclude = tuple(sorted(a.collapsed))
+        # The running host lost: the move planned ahead for it, if what it rests on still holds.
+        ready = policy.ready_move(
+            self._ready_move, trigger, running=self.current, mono=time.monotonic(),
+            max_age_s=self.settings.ready_move_s,
+            basis=policy.move_basis(band=band.name, running=self.current, standby=self.standby,
+                                    lost=[h for h in lost if h != trigger.detail.get("host")], exclude=exclude))
+        self._ready_move = None  # used or not, what it rests on is changing now
+        if ready is not None:
+            plan, how = ready.plan, ready.how
+            plan = dataclasses.replace(plan, inputs={**plan.inputs, "planned_ahead_ms": round(
+                (time.monotonic() - ready.at) * 1000.0)})
+        else:
+            try:
+                here = self.current.host if self.current is not None else None
+                wall = time.time()
+                live = policy.live_free(a.hosts, here=here, roomiest=lambda h: self._trust.roomiest(h, wall),
+                                        confirmed=lambda h: self._trust.confirmed_free(h, wall))
+                plan = self._planner.plan(band=band.name, running=None if running_lost else self.current,
+                                          exclude=exclude, lost_hosts=lost, live_free=live)
+            except (PlanningError, KgadaptError) as exc:
+                self._record(Outcome(trigger=trigger, outcome=f"no plan: {exc}"))
+                if running_lost:
+                    self._retry_later(trigger)
+                return
         result: Outcome | None
         try:
-            how = policy.execution(plan, trigger, running=self.current, standby=self.standby, lost=lost,
-                                   change=self._planner.change)
+            if ready is None:
+                how = policy.execution(plan, trigger, running=self.current, standby=self.standby, lost=lost,
+                                       change=self._planner.change)
             if how.how == Execution.NOTHING:
                 return
             if how.how == Execution.KEEP:
@@ -652,6 +673,38 @@ class AdaptationManager:
             a.reset_rate()
         elif running_lost:
             self._retry_later(trigger)
+
+    def _prepare_move(self) -> None:
+        """Plan ahead the move for the loss of the running detector's host (see ``ready_move_s``): at the
+        loss, the switch (or start) follows without a question to the graph."""
+        a, current, s = self._analyzer, self.current, self.settings
+        if (s.ready_move_s <= 0 or current is None or not current.instance or a.tracker.current is None
+                or current.host == s.onboard_host):  # losing our own host, we are gone with it
+            return
+        band = a.tracker.current.name
+        lost = policy.lost_hosts(a.hosts)
+        if current.host in lost:
+            return
+        exclude = tuple(sorted(a.collapsed))
+        basis = policy.move_basis(band=band, running=current, standby=self.standby, lost=lost, exclude=exclude)
+        mono = time.monotonic()
+        if not policy.needs_move(self._ready_move, host=current.host, basis=basis, mono=mono, every_s=s.ready_move_s):
+            return
+        wall = time.time()
+        gone = (*lost, current.host)
+        try:
+            live = policy.live_free(a.hosts, here=None, roomiest=lambda h: self._trust.roomiest(h, wall),
+                                    confirmed=lambda h: self._trust.confirmed_free(h, wall))
+            live.pop(current.host, None)
+            plan = self._planner.plan(band=band, running=None, exclude=exclude, lost_hosts=gone, live_free=live)
+            loss = Trigger(TriggerKind.HOST_LOST, wall, {"host": current.host})
+            how = policy.execution(plan, loss, running=current, standby=self.standby, lost=gone,
+                                   change=self._planner.change)
+        except (PlanningError, KgadaptError) as exc:
+            log.debug("adaptation: no move ready for the loss of %s: %s", current.host, exc)
+            self._ready_move = None
+            return
+        self._ready_move = policy.ReadyMove(host=current.host, basis=basis, plan=plan, how=how, at=mono)
 
     def _record_reflex(self, trigger: Trigger, band: str) -> bool:
         """Record what the detector did on its own; True when nothing is left to plan (the plan for the

@@ -66,6 +66,9 @@ class AdaptationSettings:
     status_window_s: float = 1.5  # a host's free memory counts when its statuses of this window (>= 2) agree
     standby: bool = False  # keep the neighbouring band's configuration started but idle where a host has room
     standby_check_s: float = 1.0  # how often the standby is checked against the graph
+    # The next move for the loss of the running detector's host is planned ahead and planned again when
+    # what it rests on changes, or after this long (the graph's memory figures move); 0: plan at the loss.
+    ready_move_s: float = 2.0
     startup_poll_s: float = 0.2  # nothing runs yet: how often the first placement is reconsidered without news
     reflex_hold_s: float = 2.0  # after a detector's reflex, how long the smoothed light is given to agree
     history_size: int = 1000  # decisions kept in memory (``AdaptationManager.history``); the graph has them all
@@ -394,6 +397,47 @@ def execution(plan: Plan, trigger: Trigger, *, running: Placement | None, standb
     how = plan.inputs.get("change", Change.MIGRATE)  # the planner's choice, from the graph
     why = str(plan.inputs.get("change_why", ""))
     return Execute(Execution.RECONFIGURE if how == Change.RECONFIGURE else Execution.MIGRATE, why)
+
+
+@dataclass(frozen=True)
+class ReadyMove:
+    """The move planned ahead for the loss of ``host`` (the running detector's): the plan and how to
+    carry it out, as they would be decided at the loss, from what the graph and the statuses said then."""
+
+    host: str
+    basis: tuple[Any, ...]  # what it rests on (move_basis): a move whose basis changed is planned again
+    plan: Plan
+    how: Execute
+    at: float  # monotonic time it was planned
+
+
+def move_basis(*, band: str | None, running: Placement | None, standby: Placement | None,
+               lost: Sequence[str], exclude: Sequence[str]) -> tuple[Any, ...]:
+    """What a move planned ahead rests on: the band, the running detector, the standby, the hosts lost
+    before (not the one the move is for) and the configurations left out."""
+    def who(p: Placement | None) -> tuple[Any, ...] | None:
+        return None if p is None else (p.instance, p.config, p.host)
+
+    return (band, who(running), who(standby), tuple(sorted(lost)), tuple(sorted(exclude)))
+
+
+def ready_move(move: ReadyMove | None, trigger: Trigger, *, running: Placement | None, basis: tuple[Any, ...],
+               mono: float, max_age_s: float) -> ReadyMove | None:
+    """The move planned ahead, when ``trigger`` is the loss it was planned for and nothing it rests on
+    changed meanwhile; else None (the loss is planned now). ``basis``: the move basis now, with the lost
+    host left out of the lost hosts."""
+    if move is None or running is None or trigger.kind != TriggerKind.HOST_LOST:
+        return None
+    if trigger.detail.get("host") != move.host or running.host != move.host:
+        return None
+    if move.basis != basis or mono - move.at > max_age_s:
+        return None
+    return move
+
+
+def needs_move(move: ReadyMove | None, *, host: str, basis: tuple[Any, ...], mono: float, every_s: float) -> bool:
+    """Whether the move for the loss of ``host`` must be planned (again)."""
+    return move is None or move.host != host or move.basis != basis or mono - move.at >= every_s
 
 
 def failed(outcome: str) -> bool:

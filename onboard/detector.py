@@ -65,7 +65,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
-from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, START_IDLE_ENV, announce_ready
+from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, RESOLVED_CONFIG_ENV, START_IDLE_ENV, announce_ready
 
 log = logging.getLogger("kgadapt.onboard.detector")
 
@@ -162,6 +162,29 @@ def fetch_config_row(session: Any, robot: str, name: str, *, wait_s: float = 10.
     return parse_config(name, row["config_json"], dictionary=row.get("dictionary")), row
 
 
+def carried_config(name: str, environ: Mapping[str, str] = os.environ) -> tuple[Any, dict[str, Any]] | None:
+    """Configuration ``name`` as the deployer resolved it from the graph for this start
+    ($KGADAPT_RESOLVED_CONFIG, a ``resolved_config`` message), checked as a fetched one is; None when
+    none was carried, or it names another configuration, or it does not check (then the graph is asked)."""
+    import base64
+    import binascii
+
+    from kgadapt.onboard.markers import parse_config
+
+    text = environ.get(RESOLVED_CONFIG_ENV)
+    if not text:
+        return None
+    try:
+        resolved = messages.decode_as(base64.b64decode(text, validate=True), messages.ResolvedConfig)
+        if resolved.config != name:
+            return None
+        config = parse_config(name, resolved.config_json, dictionary=resolved.dictionary)
+    except (binascii.Error, ValueError, KgadaptError) as exc:
+        log.warning("the configuration carried by the start request is not usable (%s); asking the graph", exc)
+        return None
+    return config, {"config": name, "deployment": resolved.deployment, "digest": resolved.digest}
+
+
 def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, wait_s: float = 2.0) -> Any:
     """The ``reflex_table`` of a detector of ``deployment`` on ``host``, compiled (kgadapt.onboard.reflex)."""
     from kgadapt.knowledge.client import KnowledgeClient
@@ -173,6 +196,25 @@ def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, 
     # Now: fresh live figures of this robot rank above calibration, as in the planner's ranking.
     return ReflexTable.from_rows(rows, parse=lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary),
                                  now=time.time())
+
+
+def build_cores(table: Any) -> dict[str, Any]:
+    """A detector for every configuration of the reflex ``table``, by name."""
+    from kgadapt.onboard.markers import MarkerDetector
+
+    return {name: MarkerDetector(choice.settings) for name, choice in table.choices().items()}
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """What a launcher's pool member prepared while it waited for a start (deploy/launcher.py): its
+    Zenoh session, and the reflex table of the deployment it expects with its detectors built."""
+
+    session: Any
+    deployment: str | None = None
+    host: str | None = None
+    table: Any = None
+    cores: dict[str, Any] | None = None
 
 
 def _clean_count(result: Any) -> int:
@@ -278,22 +320,36 @@ class Detector:
     def core(self) -> Any:
         return self._active[1]
 
-    def swap(self, config: Any) -> int:
-        """Take ``config`` from the next frame on; returns its generation (see ``first_frame``)."""
+    def swap(self, config: Any, core: Any = None) -> int:
+        """Take ``config`` from the next frame on (with ``core``, its detector built beforehand, when
+        given); returns its generation (see ``first_frame``)."""
         from kgadapt.onboard.markers import MarkerDetector
 
-        core = MarkerDetector(config)  # built here, off the frame path
+        if core is None:
+            core = MarkerDetector(config)  # built here, off the frame path
         generation = self._active[2] + 1
         self._active = (config, core, generation)
         return generation
 
-    def arm(self, table: Any) -> None:
-        """Hold the reflex ``table`` (kgadapt.onboard.reflex.ReflexTable): its detectors are built here,
-        off the frame path, so a reflex costs the frame nothing."""
-        from kgadapt.onboard.markers import MarkerDetector
+    def prepared(self, name: str) -> tuple[Any, str] | None:
+        """The detector built beforehand for configuration ``name`` and its deployment, when the reflex
+        table from the graph lets the running deployment take it in place on this host; else None."""
+        armed = self._reflexes
+        if armed is None:
+            return None
+        choice = armed[0].table.choices().get(name)
+        core = armed[1].get(name)
+        if choice is None or core is None:
+            return None
+        return core, choice.deployment
+
+    def arm(self, table: Any, cores: dict[str, Any] | None = None) -> None:
+        """Hold the reflex ``table`` (kgadapt.onboard.reflex.ReflexTable): its detectors are built here
+        (or given, built beforehand: ``cores``), off the frame path, so a reflex costs the frame nothing."""
         from kgadapt.onboard.reflex import Reflex
 
-        cores = {name: MarkerDetector(choice.settings) for name, choice in table.choices().items()}
+        if cores is None:
+            cores = build_cores(table)
         config, _core, generation = self._active
         reflex = Reflex(table=table, running=config.name)
         previous = self._reflexes
@@ -625,20 +681,29 @@ class Reconfigurer:
         keys.check_name(name, "configuration name")
         previous = d.config.name
         started = time.perf_counter()
-        config, row = fetch_config_row(self._session, s.robot, name, wait_s=1.0)
-        target = row.get("deployment")
-        if not target:
-            raise DeploymentError(f"configuration {name!r} has no deployment in the knowledge graph")
-        running = d.deployment
-        if target != running:
-            rows = KnowledgeClient(self._session, s.robot, own=True).query(
-                "in_place_change", {"from": running, "to": target, "host": s.host})
-            if not rows:
-                raise DeploymentError(f"the knowledge graph does not let deployment {running} take "
-                                      f"{target} ({name}) in place on host {s.host}: start a new detector")
+        # The reflex table (the graph's in-place rule, fetched at the start and after each change) already
+        # holds a built detector for every configuration this one may take here: then the swap asks the
+        # graph nothing and builds nothing, so it lands on the next frame. Otherwise ask and build.
+        ready = d.prepared(name)
+        core = None
+        if ready is not None:
+            core, target = ready
+            config = core.config
+        else:
+            config, row = fetch_config_row(self._session, s.robot, name, wait_s=1.0)
+            target = str(row.get("deployment") or "")
+            if not target:
+                raise DeploymentError(f"configuration {name!r} has no deployment in the knowledge graph")
+            running = d.deployment
+            if target != running:
+                rows = KnowledgeClient(self._session, s.robot, own=True).query(
+                    "in_place_change", {"from": running, "to": target, "host": s.host})
+                if not rows:
+                    raise DeploymentError(f"the knowledge graph does not let deployment {running} take "
+                                          f"{target} ({name}) in place on host {s.host}: start a new detector")
         check_ms = (time.perf_counter() - started) * 1e3
         built = time.perf_counter()
-        generation = d.swap(config)
+        generation = d.swap(config, core)
         build_ms = (time.perf_counter() - built) * 1e3
         d.deployment = str(target)
         print(f"{CONFIGURED_TOKEN} {name} {target}", flush=True)  # the deployer's record follows
@@ -686,19 +751,49 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, *, session: Any = None) -> int:
+    """``session``: one already open (a launcher's pool member opened it while it waited; closed at the end)."""
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    return run(args)
+    return run(args, session=session)
 
 
-def run(args: argparse.Namespace) -> int:
+def _zenoh_settings(args: argparse.Namespace) -> Any:
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, settings_from_args
+
+    return settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
+
+
+def pool_session(argv: Sequence[str]) -> WarmStart:
+    """What a launcher's pool member prepares while it waits for a start like ``argv`` (deploy/launcher.py):
+    the Zenoh session such a detector would open (a start's own flags name the same settings), and, for
+    the deployment its start request carried, the reflex table with every candidate configuration's
+    detector built. A start of another deployment asks the graph for its own table."""
+    from kgadapt.shared.session import open_session
+
+    args = build_parser().parse_args(argv)
+    session = open_session(_zenoh_settings(args))
+    carried = carried_config(args.config) if args.config else None
+    deployment = carried[1].get("deployment") if carried else None
+    if not deployment:
+        return WarmStart(session)
+    try:
+        table = fetch_reflex_table(session, args.robot, deployment=str(deployment), host=args.host)
+    except KgadaptError as exc:
+        log.info("pool member: no reflex table for %s yet (%s)", deployment, exc)
+        return WarmStart(session)
+    return WarmStart(session, str(deployment), args.host, table, build_cores(table))
+
+
+def run(args: argparse.Namespace, *, session: Any = None) -> int:
     """Run the detector until SIGINT or SIGTERM; return the exit status."""
     from kgadapt.shared.agent import StopSignals
-    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.shared.session import open_session
 
-    session = None
+    warm = session if isinstance(session, WarmStart) else None
+    if warm is not None:
+        session = warm.session
     detector: Detector | None = None
     reconfigurer: Reconfigurer | None = None
     switch: ActivitySwitch | None = None
@@ -711,13 +806,20 @@ def run(args: argparse.Namespace) -> int:
                 from kgadapt.onboard.markers import parse_config
 
                 config = parse_config(INLINE_CONFIG, args.config_json)
-            zenoh_settings = settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
-            session = open_session(zenoh_settings)
+            if session is None:
+                session = open_session(_zenoh_settings(args))
             row: dict[str, Any] = {}
             if args.config is not None:
-                config, row = fetch_config_row(session, args.robot, args.config, wait_s=args.config_wait)
+                # Carried by the start request (resolved by the deployer): no second question to the graph.
+                carried = carried_config(args.config)
+                config, row = carried if carried is not None else fetch_config_row(
+                    session, args.robot, args.config, wait_s=args.config_wait)
             detector = Detector(settings, config, deployment=str(row["deployment"]) if row.get("deployment") else None)
-            arm(detector, session)
+            if warm is not None and warm.table is not None and (warm.deployment, warm.host) == (
+                    detector.deployment, settings.host):
+                detector.arm(warm.table, warm.cores)  # fetched and built while the pool member waited
+            else:
+                arm(detector, session)
             detector.setup(session)
             switch = ActivitySwitch(detector)
             switch.setup(session)

@@ -195,6 +195,22 @@ class DeployRequest(Message, tag="deploy_request", frozen=True, kw_only=True):
     idle: bool | None = None  # absent: false; true starts a detector idle (a warm standby)
 
 
+class ResolvedConfig(Message, tag="resolved_config", frozen=True, kw_only=True):
+    """The configuration a deployer resolved from the graph (named query ``detector_config``) for a start,
+    handed to the started detector so that it does not ask for it again. The graph stays the source: a
+    detector takes it only for the configuration it was started with, and asks the graph for any other."""
+
+    config: Name
+    config_json: Annotated[str, Meta(max_length=65536)]
+    dictionary: Str128 | None = None
+    deployment: Name | None = None
+    memory_demand_mb: Number | None = None
+    # Which answer of the graph it is: the deployer's clock when it asked, and a digest of the row
+    # (the store keeps no version number; a changed row has another digest).
+    resolved_at: Number
+    digest: Str128
+
+
 class Launcher(Struct, frozen=True, kw_only=True, omit_defaults=True):
     """A deployer's launcher (the forking helper its detectors start from)."""
 
@@ -344,7 +360,7 @@ class AdaptationEvent(Message, tag="adaptation_event", frozen=True, kw_only=True
 # The tagged union of every kind: msgspec picks the Struct by ``kind``.
 AnyMessage = Union[
     HostStatus, SqueezeRequest, Frame, Illumination, Detections, Reflex, QueryRequest, CypherRequest, Rows, WriteRequest,
-    DeployRequest, ConfigureRequest, ConfigureReply, ActivityRequest, ActivityReply, DeployReply, DeployEvent,
+    DeployRequest, ResolvedConfig, ConfigureRequest, ConfigureReply, ActivityRequest, ActivityReply, DeployReply, DeployEvent,
     FlightState, AdaptationEvent,
 ]
 KINDS: dict[str, type[Message]] = {str(t.__struct_config__.tag): t for t in typing.get_args(AnyMessage)}

@@ -37,6 +37,9 @@ CONFIGURED_TOKEN = "KGADAPT_CONFIGURED"
 # Set to "1" in a started process's environment: start idle (a detector's warm standby does no detection
 # work and publishes nothing until it is activated). Its deployer sets it for a start request with idle.
 START_IDLE_ENV = "KGADAPT_START_IDLE"
+# A started detector's configuration as its deployer resolved it from the graph (a ``resolved_config``
+# message, base64): the detector takes it instead of asking the knowledge service again.
+RESOLVED_CONFIG_ENV = "KGADAPT_RESOLVED_CONFIG"
 
 Payload = dict[str, Any]
 

@@ -258,6 +258,28 @@ def test_the_standby_serves_a_plan_for_its_configuration_and_a_failover_it_can_t
         == P.Execution.START
 
 
+def test_the_move_for_a_host_loss_is_planned_ahead_and_used_only_while_what_it_rests_on_holds():
+    """Issue 32 item 1: the failover's plan is ready before the loss."""
+    basis = P.move_basis(band="dusk", running=RUNNING, standby=STANDBY, lost=(), exclude=())
+    assert P.needs_move(None, host="onboard", basis=basis, mono=0.0, every_s=2.0)
+    how = P.execution(plan("dusk", "remote"), trigger(TriggerKind.HOST_LOST, host="onboard"), running=RUNNING,
+                      standby=STANDBY, lost=("onboard",), change=no_change)
+    assert how.how == P.Execution.STANDBY  # the standby's configuration: a switch, nothing started
+    move = P.ReadyMove(host="onboard", basis=basis, plan=plan("dusk", "remote"), how=how, at=100.0)
+    assert not P.needs_move(move, host="onboard", basis=basis, mono=101.0, every_s=2.0)
+    assert P.needs_move(move, host="onboard", basis=basis, mono=102.0, every_s=2.0)  # the figures moved on
+    lost = trigger(TriggerKind.HOST_LOST, host="onboard")
+    use = dict(running=RUNNING, basis=basis, mono=101.0, max_age_s=2.0)
+    assert P.ready_move(move, lost, **use) is move
+    # Not for another host's loss, another trigger, or once what it rests on changed.
+    assert P.ready_move(move, trigger(TriggerKind.HOST_LOST, host="remote"), **use) is None
+    assert P.ready_move(move, trigger(TriggerKind.BAND_CHANGED), **use) is None
+    other = P.move_basis(band="dusk", running=RUNNING, standby=None, lost=(), exclude=())
+    assert other != basis and P.needs_move(move, host="onboard", basis=other, mono=101.0, every_s=2.0)
+    assert P.ready_move(move, lost, **{**use, "basis": other}) is None
+    assert P.ready_move(move, lost, **{**use, "mono": 103.0}) is None
+
+
 def test_what_the_warm_standby_needs():
     hosts = {"remote": HostView(name="remote", online=True)}
     kw = dict(running=RUNNING, landing=False, paused=False, retrying=False, band="dusk", hosts=hosts)

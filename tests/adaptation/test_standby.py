@@ -55,6 +55,17 @@ def open_profile(run: Run, config: str) -> dict | None:
     return rows[0] if rows else None
 
 
+def decision_inputs(run: Run, kind: str) -> dict:
+    """The inputs the graph holds for the last decision of ``kind``."""
+    import json
+
+    with open_store(run.cluster.store_url) as store:
+        rows = store.execute("MATCH (d:AdaptationDecision) WHERE d.trigger STARTS WITH $kind "
+                             "RETURN d.inputs_json AS inputs ORDER BY d.time DESC LIMIT 1", {"kind": kind},
+                             read_only=True)
+    return json.loads(rows[0]["inputs"]) if rows else {}
+
+
 def test_the_standby_is_counted_takes_over_a_lost_host_is_switched_to_and_goes_first_in_a_squeeze(tmp_path):
     points = [[0, 16], [STEP_S, 16], [STEP_S + 1, 5], [STEP_S + 60, 5]]
     with Run(tmp_path, points, prefer="remote-first", standby=True) as run:
@@ -70,6 +81,7 @@ def test_the_standby_is_counted_takes_over_a_lost_host_is_switched_to_and_goes_f
 
         run.cluster.kill("remote", signal.SIGKILL)
         lost = run.wait_for(run.decision("host_lost"), 30, "the lost host")
+        lost_inputs = decision_inputs(run, "host_lost")
         run.wait_for(lambda: (DUSK, "onboard") in run.running(lost.time), 30, "dusk detections onboard")
         after_failover = detectors(run, "onboard")  # only the onboard deployer: the remote one is dead
 
@@ -96,8 +108,10 @@ def test_the_standby_is_counted_takes_over_a_lost_host_is_switched_to_and_goes_f
     # Its memory counts in the graph like any process's, though it publishes nothing.
     assert (profile["host"], profile["rss"] > 5) == ("onboard", True), profile
     assert len(standby) == 1 and idle_running == {(DUSK, "remote")}, (standby, idle_running)
-    # Failover: the standby, reconfigured in place to dusk, is the detector; no process started.
+    # Failover: the standby, reconfigured in place to dusk, is the detector; no process started. The
+    # move was planned before the loss (issue 32 item 1): no question to the graph stood before the switch.
     assert (lost.change, lost.config, lost.host) == ("standby", DUSK, "onboard"), lost
+    assert "planned_ahead_ms" in lost_inputs, lost_inputs
     assert lost.outcome.startswith("switched to the standby"), lost
     # The same process, now on dusk; the only other one is the next standby (dark), which may be up already.
     assert lost.instance in standby and after_failover[lost.instance][:2] == standby[lost.instance][:2], after_failover

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import time
 from pathlib import Path
 
 import psutil
@@ -21,7 +22,7 @@ from kgadapt.knowledge.loader import load_models
 from kgadapt.shared import keys
 from kgadapt.shared.errors import DeploymentError
 from kgadapt.shared.readiness import READY_TOKEN
-from tests.deploy.conftest import ROBOT, Collector, FrameSource, wait_for_deployers
+from tests.deploy.conftest import ROBOT, Collector, DeployerHost, FrameSource, wait_for_deployers
 from tests.deploy.test_deployer import alive, wait_until
 from tests.deploy.test_real_detector import marker_jpeg
 from tests.support import Child
@@ -194,3 +195,78 @@ def test_a_forked_detector_runs_with_the_environment_of_the_request_not_the_laun
     assert forked.wait() != 0  # its session was built from the request's config file, which is missing
     output = forked.stdout.read() if forked.stdout is not None else b""
     assert READY_TOKEN.encode() not in (output if isinstance(output, bytes) else output.encode())
+
+
+def test_a_started_detector_takes_the_configuration_its_deployer_resolved_and_asks_for_none(
+        hosts, client_session, knowledge):
+    """Issue 32 item 2: the start carries the configuration the deployer resolved from the graph."""
+    launcher_of(hosts)
+    asked: list[tuple[str, float]] = []
+    answer_named = knowledge.answer_named
+
+    def counting(name, *args, **kwargs):  # the real service's answer, with when it was asked
+        asked.append((name, time.time()))
+        return answer_named(name, *args, **kwargs)
+
+    knowledge.answer_named = counting
+    events = Collector(client_session, keys.deployer_events(ROBOT, "onboard"), "deploy_event")
+    try:
+        client = DeployerClient(client_session, ROBOT)
+        info = client.start("onboard", "detector_day", DAY, instance="carried")
+        assert info["via"] == "launcher" and info["state"] in ("ready", "running")
+        _, started = events.wait_for(lambda e: e["instance"] == "carried" and e["event"] == "started")
+        # The deployer asked the graph before the process existed; the process itself asked nothing.
+        assert [n for n, _ in asked if n == "detector_config"], asked
+        assert [n for n, at in asked if n == "detector_config" and at >= started["time"]] == []
+        client.stop("onboard", "carried")
+    finally:
+        knowledge.answer_named = answer_named
+        events.close()
+
+
+def test_a_pooled_start_hands_the_configuration_to_an_idle_detector_and_asks_the_graph_nothing(
+        knowledge, endpoint, test_session):
+    """Issue 32 item 2: the launcher keeps an idle detector (session open); a start takes it."""
+    host = DeployerHost(endpoint, "onboard", launcher=True, pool=1)
+    asked: list[tuple[str, float]] = []
+    answer_named = knowledge.answer_named
+    frames = FrameSource(test_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
+    markers = Collector(test_session, keys.detector_markers(ROBOT, "*"), "detections")
+    events = Collector(test_session, keys.deployer_events(ROBOT, "onboard"), "deploy_event")
+    try:
+        wait_for_deployers(test_session, ["onboard"])
+        launcher = host.deployer.supervisor.launcher
+        assert launcher is not None and launcher.wait_ready(60.0)
+        assert host.deployer.warm("detector_day", DAY) == 1
+        wait_until(lambda: sum(launcher.idle.values()) == 1, what="an idle pool member")
+        members = [p.pid for p in psutil.Process(launcher.pid).children(recursive=True)]
+        assert members, "no pool member under the launcher"
+
+        def counting(name, *args, **kwargs):  # the real service's answer, with when it was asked
+            asked.append((name, time.time()))
+            return answer_named(name, *args, **kwargs)
+
+        knowledge.answer_named = counting
+        client = DeployerClient(test_session, ROBOT)
+        info = client.start("onboard", "detector_day", DAY, instance="pooled1")
+        assert info["via"] == "pool" and info["state"] in ("ready", "running")
+        assert info["pid"] in members  # the idle member took it: no new process
+        assert psutil.Process(info["pid"]).ppid() == os.getpid()  # now the agent's child, as a forked one
+        _, started = events.wait_for(lambda e: e["instance"] == "pooled1" and e["event"] == "started")
+        # Neither its configuration nor its reflex table (the candidates, built while it waited) was asked for.
+        assert [n for n, at in asked if at >= started["time"]] == []
+        _, first = markers.wait_for(lambda d: d["instance"] == "pooled1" and d["ids"])
+        assert first["config"] == DAY and first["host"] == "onboard"
+        # The pool is filled again for the next start.
+        wait_until(lambda: sum(launcher.idle.values()) == 1, what="the pool filled again")
+        stopped = client.stop("onboard", "pooled1")
+        assert stopped["state"] == "stopped" and stopped["returncode"] == 0
+        idle = [p.pid for p in psutil.Process(launcher.pid).children(recursive=True)]
+    finally:
+        knowledge.answer_named = answer_named
+        events.close()
+        markers.close()
+        frames.close()
+        host.close()
+    # Idle members end with their launcher.
+    wait_until(lambda: not any(alive(pid) for pid in idle), what="the idle pool members to end with the launcher")

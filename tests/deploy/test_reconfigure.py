@@ -30,7 +30,7 @@ def graph(resp_store):
     return resp_store
 
 
-def test_the_detector_takes_another_configuration_between_two_frames(hosts, client_session, graph):
+def test_the_detector_takes_another_configuration_between_two_frames(hosts, client_session, graph, knowledge):
     frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
     markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
     events = Collector(client_session, keys.deployer_events(ROBOT, "*"), "deploy_event")
@@ -39,11 +39,28 @@ def test_the_detector_takes_another_configuration_between_two_frames(hosts, clie
         started = client.start("onboard", "detector_day", "marker_detection_day", instance="det1")
         markers.wait_for(lambda d: d["instance"] == "det1" and d["ids"])
 
-        report = reconfigure(client_session, ROBOT, "onboard", "det1", "marker_detection_dark")
+        asked: list[str] = []
+        answer_named = knowledge.answer_named
+
+        def counting(name, *args, **kwargs):  # the real service's answer, noting what was asked
+            asked.append(name)
+            return answer_named(name, *args, **kwargs)
+
+        knowledge.answer_named = counting
+        try:
+            report = reconfigure(client_session, ROBOT, "onboard", "det1", "marker_detection_dark")
+            swap_asked = list(asked)
+        finally:
+            knowledge.answer_named = answer_named
 
         assert (report.previous, report.config, report.deployment) == (
             "marker_detection_day", "marker_detection_dark", "detector_dark")
         assert report.first_seq is not None
+        # The reflex table from the graph lets detector_day take the dark one here: its detector was built
+        # at the start, so the swap asked the graph nothing and built nothing (issue 32, item 3).
+        # (Only the reflex table is fetched again, after the swap, for what the new deployment may take.)
+        assert set(swap_asked) <= {"reflex_table"}, swap_asked
+        assert report.build_ms < 1.0
         # Frames before first_seq were made with the old configuration, first_seq and after with the new.
         _, first_new = markers.wait_for(lambda d: d["instance"] == "det1" and d["seq"] == report.first_seq)
         assert first_new["config"] == "marker_detection_dark"
