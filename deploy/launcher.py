@@ -75,8 +75,8 @@ log = logging.getLogger(__name__)
 
 # Modules a launcher may run with ``-m``; PRELOAD is what it imports first (the heavy parts). Runtime
 # detectors only: the tests' echo detector (kgadapt.sim) is started the plain way, as any program.
-RUNNABLE = ("kgadapt.onboard.detector",)
-PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.markers", "kgadapt.knowledge.client", "kgadapt.shared.session",
+RUNNABLE = ("kgadapt.onboard.perception.detector",)
+PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.perception.markers", "kgadapt.knowledge.client", "kgadapt.shared.session",
            "kgadapt.shared.agent", *RUNNABLE)
 _MAX_MESSAGE = 1 << 20
 # What differs between two starts a pool member can take: these flags' values and these variables.

@@ -232,7 +232,7 @@ ORDER BY score DESC, ms_per_frame ASC, config""",
         "per configuration of the feature its live detection rate (markers found per marker expected), the "
         "frames of its window (frames, with markers expected, with markers seen), the window's start and "
         "last update (since, at) and the process measured (run_id, host). The planner weighs fresh "
-        "figures with enough frames above calibration (kgadapt.onboard.live_rate).",
+        "figures with enough frames above calibration (kgadapt.onboard.adaptation.live_rate).",
         {"feature": _FEATURE, "band": Param("str", help="illumination band, e.g. dark"),
          "condition": Param("str", required=False, default="all", help="condition (default all)")},
         f"""
@@ -251,7 +251,7 @@ ORDER BY config""",
         "deployment may take it in place on the host (in_place_change's rule) and the feature's "
         "ms-per-frame budget, and this robot's live figures of it in the band (live_rate, live_frames_expected, "
         "live_at; as live_rates gives them). The detector ranks the rows as the planner does: config_ranking's "
-        "order, with fresh live evidence weighed above calibration (kgadapt.onboard.live_rate).",
+        "order, with fresh live evidence weighed above calibration (kgadapt.onboard.adaptation.live_rate).",
         {"feature": _FEATURE, "deployment": Param("str", help="deployment of the running detector"),
          "host": Param("str", help="platform it runs on"),
          "condition": Param("str", required=False, default="all", help="calibration condition (default all)"),

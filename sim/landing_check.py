@@ -19,17 +19,17 @@ from typing import TYPE_CHECKING, Any, Callable, TypeVar
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.landing_targets import CameraModel
-from kgadapt.onboard.mavlink import LinkSettings
-from kgadapt.onboard.mavlink_commands import CommandOutcome
-from kgadapt.onboard.site import SiteMarkers
+from kgadapt.onboard.flight.landing_targets import CameraModel
+from kgadapt.onboard.flight.mavlink import LinkSettings
+from kgadapt.onboard.flight.mavlink_commands import CommandOutcome
+from kgadapt.onboard.flight.site import SiteMarkers
 from kgadapt.shared.errors import FlightLinkError
 from kgadapt.sim.landing_scene import MarkerScene, fake_pose, horizontal_error, link_pose, run_detections
 
 if TYPE_CHECKING:
     import zenoh
 
-    from kgadapt.onboard.mavlink import FlightLink
+    from kgadapt.onboard.flight.mavlink import FlightLink
 
 _T = TypeVar("_T")
 
@@ -84,7 +84,7 @@ def _free_udp_port() -> int:
 
 
 def run_landing_check(session: zenoh.Session, settings: LandingCheckSettings, *, robot: str = "landcheck") -> LandingResult:
-    from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
+    from kgadapt.onboard.flight.flight import BridgeSettings, CameraIntrinsics, FlightBridge
     from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 
     s = settings

@@ -24,8 +24,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from kgadapt.onboard.geometry import body_to_camera, ned_to_body
-from kgadapt.onboard.landing_targets import CameraModel
+from kgadapt.onboard.flight.geometry import body_to_camera, ned_to_body
+from kgadapt.onboard.flight.landing_targets import CameraModel
 
 Pose = tuple[tuple[float, float, float], tuple[float, float, float]]  # attitude (rad), position NED (m)
 
@@ -72,7 +72,7 @@ class PadScene:
     """A site's landing pad as built: every marker of it on the ground, each where the site declares it.
 
     ``north, east`` is the pad's landing point in the local frame; each marker lies at its declared
-    ``position`` (north, east, down) from there (:class:`kgadapt.onboard.site.SiteMarkers`). A marker is
+    ``position`` (north, east, down) from there (:class:`kgadapt.onboard.flight.site.SiteMarkers`). A marker is
     detected when all its corners are in the camera's view and its side is at least ``min_side_px``
     (OpenCV's default ArUco detector, on a rendered 4x4 marker shrunk to size, found it every time from
     12 px and not reliably below).

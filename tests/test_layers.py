@@ -1,6 +1,6 @@
 """The layering: the runtime a drone installs never imports the simulator's stand-ins or the benchmarks.
 
-Runtime is kgadapt.shared, .knowledge, .onboard, .remote, .deploy and the modules of the package root;
+Runtime is kgadapt.shared, .knowledge, .onboard, .remote, .deploy, .operator and the modules of the package root;
 kgadapt.sim (fake flight controller, echo detector, photographs, landing check) and kgadapt.bench sit
 above it. import-linter checks every import statement, those inside functions too (pyproject.toml's
 [tool.importlinter]); the last test runs the runtime with the simulator and the benchmarks made
@@ -72,7 +72,7 @@ for name in PRELOAD:
     importlib.import_module(name)
 
 # The synthetic camera and the synthetic scene calibration renders, with the shipped demo profile.
-from kgadapt.onboard.camera import SyntheticSource
+from kgadapt.onboard.perception.camera import SyntheticSource
 from kgadapt.shared.resources import results_dir
 source = SyntheticSource()
 source.open()

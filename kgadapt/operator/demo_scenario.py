@@ -19,8 +19,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from kgadapt.cluster import ClusterSettings, LocalCluster, WatchedRobot
-from kgadapt.timeline import Decision, ReflexSeen
+from kgadapt.operator.cluster import ClusterSettings, LocalCluster, WatchedRobot
+from kgadapt.operator.timeline import Decision, ReflexSeen
 
 # (scenario second, action, argument): the demo profile is dark from 26 s to 36 s.
 SCRIPT = (

@@ -7,7 +7,7 @@
   description: ArUco marker detector for dusk
   deploys: marker_detection_dusk
   executable: {python}
-  arguments: -m kgadapt.onboard.detector --robot {robot} --host {host} --instance {instance} --config {config} --connect {connect}
+  arguments: -m kgadapt.onboard.perception.detector --robot {robot} --host {host} --instance {instance} --config {config} --connect {connect}
   environment: OPENCV_LOG_LEVEL=ERROR
   executable_on: onboard, remote
   reconfigurable_as: marker-detector
@@ -17,7 +17,7 @@ like a shell would (quotes respected, nothing expanded). ``environment`` may
 repeat. ``reconfigurable_as`` names a program family: a running process of one
 deployment may be reconfigured in place into another deployment of the same
 family on the same host (no restart). Every other key is refused.
-"""
+"""  # noqa: E501  (the example's arguments line is one line of a .deploy file)
 
 from __future__ import annotations
 

@@ -7,7 +7,7 @@ built from one would steer the quadcopter towards nothing. :class:`MarkerConfirm
 passes a marker id on only once it has been seen in ``frames`` consecutive
 frames at a consistent place (centre within ``max_shift`` of its side, side
 within ``max_scale`` of the last), with its cells reading clean when the
-detector says (``clean``, :func:`kgadapt.onboard.markers.cells_are_clean`: a
+detector says (``clean``, :func:`kgadapt.onboard.perception.markers.cells_are_clean`: a
 6x6 marker or a ChArUco square that decodes as a 4x4 code does not), and,
 when the site's marker set is known, only ids of that set. Detections themselves still carry every candidate.
 
@@ -45,7 +45,7 @@ descent that loses the big marker below half a metre and finds the small one
 keeps its streak, where a streak per id would start again (3 s at 1 detection
 a second).
 
-The site's markers come from the knowledge graph or a site file (:mod:`kgadapt.onboard.site`).
+The site's markers come from the knowledge graph or a site file (:mod:`kgadapt.onboard.flight.site`).
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping, NamedTuple, Sequence
 
-from kgadapt.onboard.site import SiteMarkers, load_site  # noqa: F401  (load_site: where callers find it with the confirmer)
+from kgadapt.onboard.flight.site import SiteMarkers, load_site  # noqa: F401  (load_site: where callers find it with the confirmer)
 from kgadapt.shared.errors import ConfigError, MessageError
 
 

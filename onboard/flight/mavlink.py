@@ -41,11 +41,11 @@ from typing import TYPE_CHECKING, Any, Callable, Protocol
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.geometry import Vector, vector
+from kgadapt.onboard.flight.geometry import Vector, vector
 from kgadapt.shared.errors import FlightLinkError
 
 if TYPE_CHECKING:  # imported where used: mavlink_commands is the link's helper
-    from kgadapt.onboard.mavlink_commands import CommandOutcome
+    from kgadapt.onboard.flight.mavlink_commands import CommandOutcome
 
 log = logging.getLogger(__name__)
 
@@ -630,7 +630,7 @@ class FlightLink:
     """
 
     def __init__(self, settings: LinkSettings) -> None:
-        from kgadapt.onboard.mavlink_commands import CommandSender, CommandSettings
+        from kgadapt.onboard.flight.mavlink_commands import CommandSender, CommandSettings
 
         self.settings = settings
         self.endpoint = Endpoint.parse(settings.url)

@@ -9,7 +9,7 @@ may take in place on its host, band by band, and compiles it into a
 fresh live figures weighed above it); per frame, :class:`Reflex` weighs the evidence the frame
 gives and says what to run:
 
-* light: this frame's light estimate (window-proof, :func:`~kgadapt.onboard.illumination.estimate_light`)
+* light: this frame's light estimate (window-proof, :func:`~kgadapt.onboard.perception.illumination.estimate_light`)
   is past an edge of the current band by more than the band's margin: take the
   new band's best configuration (``Swap``, evidence ``light``); where no
   configuration of that band may run here in place, say so (``Swap`` with no
@@ -37,8 +37,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
-from kgadapt.onboard.illumination import Band
-from kgadapt.onboard.live_rate import LiveSettings
+from kgadapt.onboard.adaptation.live_rate import LiveSettings
+from kgadapt.onboard.perception.illumination import Band
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.states import ReflexEvidence
 
@@ -50,7 +50,7 @@ class Choice:
     config: str
     deployment: str
     ms_per_frame: float | None
-    settings: Any  # the parsed configuration (kgadapt.onboard.markers.DetectorConfig)
+    settings: Any  # the parsed configuration (kgadapt.onboard.perception.markers.DetectorConfig)
 
 
 @dataclass(frozen=True)
@@ -80,14 +80,14 @@ class ReflexTable:
                   now: float | None = None, live: LiveSettings | None = None) -> "ReflexTable":
         """The table of ``reflex_table`` rows; ``parse(name, config_json, dictionary)`` checks a configuration.
 
-        Ranked as the planner ranks (``config_ranking``, then :func:`~kgadapt.onboard.live_rate.weigh`):
+        Ranked as the planner ranks (``config_ranking``, then :func:`~kgadapt.onboard.adaptation.live_rate.weigh`):
         calibrated configurations by detection rate minus ``penalty`` x false markers per frame, a
         fresh live figure of this robot (as of ``now``; none without it) that disagrees with the
         calibrated rate in its place, within ``tie_rate`` the faster first; a band without calibration
         falls back to the configurations suited for it.
         """
-        from kgadapt.onboard.calibration import rank_rows
-        from kgadapt.onboard.live_rate import weigh
+        from kgadapt.onboard.adaptation.live_rate import weigh
+        from kgadapt.onboard.perception.calibration import rank_rows
 
         by_band: dict[str, list[Mapping[str, Any]]] = {}
         bands: dict[str, tuple[Band, float]] = {}

@@ -287,14 +287,14 @@ class GroundStation:
 
 def site_model():
     """The site model in knowledge/models (the one the graph holds)."""
-    from kgadapt.onboard.site import load_site
+    from kgadapt.onboard.flight.site import load_site
 
     return load_site(SITE_FILE)
 
 
 def intrinsics_from_graph(session):
     from kgadapt.knowledge.client import KnowledgeClient
-    from kgadapt.onboard.landing_targets import CameraModel
+    from kgadapt.onboard.flight.landing_targets import CameraModel
 
     rows = KnowledgeClient(session, ROBOT).query("camera_intrinsics", {"camera": CAMERA}, wait_s=15.0)
     width, height = CAMERA_SIZE

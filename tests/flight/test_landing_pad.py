@@ -13,12 +13,12 @@ import math
 
 import pytest
 
-from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer, Place
-from kgadapt.onboard.flight import choose_marker
-from kgadapt.onboard.geometry import ned_to_body
-from kgadapt.onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder
-from kgadapt.onboard.mavlink import FlightState
-from kgadapt.onboard.site import load_site, site_from_dict
+from kgadapt.onboard.flight.confirmation import ConfirmationSettings, MarkerConfirmer, Place
+from kgadapt.onboard.flight.flight import choose_marker
+from kgadapt.onboard.flight.geometry import ned_to_body
+from kgadapt.onboard.flight.landing_targets import AutopilotProfile, CameraModel, TargetBuilder
+from kgadapt.onboard.flight.mavlink import FlightState
+from kgadapt.onboard.flight.site import load_site, site_from_dict
 from kgadapt.sim.landing_scene import PadScene
 from tests.conftest import REPO
 

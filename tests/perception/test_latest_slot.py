@@ -1,7 +1,7 @@
 """The detector's one-frame slot counts every frame it drops against the gap the frame fell in.
 
 A detection's ``dropped`` figure is what the recorder and the adaptation bench use to say which frames
-between two processed ones the detector replaced while busy (kgadapt.timeline.attribute_losses). The
+between two processed ones the detector replaced while busy (kgadapt.operator.timeline.attribute_losses). The
 count must be the one at the moment a frame is taken: frames replaced while that frame is being worked
 on are newer than it, so they belong to the gap after it, not before.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import threading
 
-from kgadapt.onboard.detector import LatestSlot
+from kgadapt.onboard.perception.detector import LatestSlot
 
 
 def test_the_difference_of_two_takes_counts_is_exactly_the_frames_lost_between_them():
