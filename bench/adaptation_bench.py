@@ -1,6 +1,6 @@
 """``kgadapt bench adaptation``: how fast and how cleanly the robot adapts, whole system, real processes.
 
-Two runs of the robot on this machine (kgadapt/cluster.py):
+Two runs of the robot on this machine (kgadapt/operator/cluster.py):
 
 1. light stepping day -> dark -> day -> window-lit dark -> day ... (steps of
    1 ms, each level held a few seconds): every band change is a change of
@@ -106,7 +106,7 @@ def step_profile(path: Path, cycles: int, hold: float) -> str:
 
 
 def _robot(workdir: Path, profile: str, **settings: Any) -> Any:
-    from kgadapt.cluster import ClusterSettings, WatchedRobot
+    from kgadapt.operator.cluster import ClusterSettings, WatchedRobot
 
     return WatchedRobot(ClusterSettings(workdir=workdir, profile=profile, calibrate=False, fake_fc=False,
                                         log_level=settings.pop("log_level", "WARNING"), **settings))
@@ -133,7 +133,7 @@ def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cp
 
     profile = step_profile(workdir / "profile.json", cycles, hold)
     limit = HalfCore(cpu) if cpu else None
-    from kgadapt.cluster import models_without_in_place
+    from kgadapt.operator.cluster import models_without_in_place
 
     graph = {} if in_place else {"models": models_without_in_place(workdir / "models")}
     with _robot(workdir, profile, in_place=in_place, standby=standby, **graph) as robot:
@@ -165,7 +165,7 @@ def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, st
     """Milliseconds from kill -9 of the remote agent to the first detection onboard."""
     times: list[float] = []
     from kgadapt.bench.footprint import HalfCore
-    from kgadapt.cluster import write_profile
+    from kgadapt.operator.cluster import write_profile
 
     profile = write_profile(workdir / "profile.json", [[0, 120], [3600, 120]])
     with _robot(workdir, profile, prefer="remote-first", standby=standby) as robot, contextlib.ExitStack() as stack:

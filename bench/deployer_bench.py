@@ -6,7 +6,7 @@ Three measurements, all on this machine with real processes:
    - a trivial C program, compiled here with ``cc`` (prints the readiness line, waits for a signal),
    - a bare Python child, ``python -c``,
    - the echo detector (Python + a Zenoh session + a subscription),
-   - the real marker detector ``kgadapt.onboard.detector`` (OpenCV, Zenoh, its configuration asked of
+   - the real marker detector ``kgadapt.onboard.perception.detector`` (OpenCV, Zenoh, its configuration asked of
      the knowledge service),
    side by side with the paper's figures (1.6 ms start, 0.07 ms stop). *spawn* is fork+exec
    until ``Popen`` returns; *ready* is until the readiness line is read; *stop* is SIGINT until
@@ -256,15 +256,15 @@ def supervisor_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, 
         ]
     echo = (py, "-m", "kgadapt.sim.echo_detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
             "--config", "echo_config", "--connect", rig.endpoint)
-    detector = (py, "-m", "kgadapt.onboard.detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
+    detector = (py, "-m", "kgadapt.onboard.perception.detector", "--robot", ROBOT, "--host", "onboard", "--instance", "bench",
                 "--config", "marker_detection_day", "--connect", rig.endpoint)
     programs += [("echo detector (Python + Zenoh)", echo, args.reps, rig.supervisor)]
     if rig.real_detector:
-        programs.append(("kgadapt.onboard.detector (OpenCV + Zenoh + config query)", detector, args.detector_reps,
+        programs.append(("kgadapt.onboard.perception.detector (OpenCV + Zenoh + config query)", detector, args.detector_reps,
                          rig.supervisor))
     # The launcher preloads the runtime detector only (deploy/launcher.py RUNNABLE), not the echo stand-in.
     if rig.real_detector:
-        programs.append(("kgadapt.onboard.detector, forked by the launcher", detector, args.detector_reps,
+        programs.append(("kgadapt.onboard.perception.detector, forked by the launcher", detector, args.detector_reps,
                          rig.supervisor_launcher))
     records = []
     for label, argv, reps, supervisor in programs:

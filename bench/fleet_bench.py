@@ -214,7 +214,7 @@ print("decoded", count[0], flush=True)
 
 
 def _free_port() -> int:
-    from kgadapt.cluster import free_tcp_port
+    from kgadapt.operator.cluster import free_tcp_port
 
     return free_tcp_port()
 

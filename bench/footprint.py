@@ -212,7 +212,7 @@ def _usage(pid: int, seconds: float) -> tuple[float, float]:
 
 def render_ms_per_frame(frames: int = 60) -> float:
     """What one frame of the synthetic scene costs to render (the agent's share that a real camera does not have)."""
-    from kgadapt.onboard.camera import make_source
+    from kgadapt.onboard.perception.camera import make_source
 
     source = make_source("synthetic", width=640, height=480, fps=30.0)
     source.open()
@@ -247,7 +247,7 @@ def measure_onboard(*, seconds: float = 15.0, half_core: bool = False, progress=
     """The onboard agent (camera at 30 fps) and one detector per configuration, each measured over ``seconds``."""
     import psutil
 
-    from kgadapt.cluster import ClusterSettings, LocalCluster
+    from kgadapt.operator.cluster import ClusterSettings, LocalCluster
     from kgadapt.shared import keys
     from kgadapt.shared.session import ZenohSettings, open_session
 
@@ -275,7 +275,7 @@ def measure_onboard(*, seconds: float = 15.0, half_core: bool = False, progress=
                     sub = session.declare_subscriber(keys.detector_markers(DEFAULT_ROBOT), lambda _: counted.append(1))
                     try:
                         detector = cluster.spawn(config, inside([
-                            sys.executable, "-m", "kgadapt.onboard.detector", "--instance", f"fp-{config}", "--host",
+                            sys.executable, "-m", "kgadapt.onboard.perception.detector", "--instance", f"fp-{config}", "--host",
                             "onboard", "--connect", endpoint, "--config-json", _config_json(config)])).pid
                         progress(f"{config} beside the agent, {label}, {seconds:.0f} s ...")
                         counted.clear()
@@ -306,7 +306,7 @@ def _cpu(pid: int) -> float:
 
 
 def _free_port() -> int:
-    from kgadapt.cluster import free_tcp_port
+    from kgadapt.operator.cluster import free_tcp_port
 
     return free_tcp_port()
 

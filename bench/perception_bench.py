@@ -81,8 +81,8 @@ def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / 
     from kgadapt.bench import stats
     from kgadapt.knowledge.queries import run_named
     from kgadapt.knowledge.store import open_store
-    from kgadapt.onboard.calibration import CalibrationSettings
-    from kgadapt.onboard.illumination import bands_from_rows
+    from kgadapt.onboard.perception.calibration import CalibrationSettings
+    from kgadapt.onboard.perception.illumination import bands_from_rows
 
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="kgadapt-photos-") as tmp:
@@ -176,8 +176,8 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
     from kgadapt.bench import stats
     from kgadapt.knowledge.queries import run_named
     from kgadapt.knowledge.store import open_store
-    from kgadapt.onboard.calibration import CalibrationSettings, run_calibration
-    from kgadapt.onboard.illumination import bands_from_rows
+    from kgadapt.onboard.perception.calibration import CalibrationSettings, run_calibration
+    from kgadapt.onboard.perception.illumination import bands_from_rows
 
     settings = CalibrationSettings(frames_per_level=frames, levels_per_band=levels)
     folder = Path(out).parent  # the calibration's and the quality's files go beside the records
@@ -194,7 +194,7 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
             oracle = quality.oracle_gap(ask, bands, frames=eval_frames, levels=levels)
     if progress:
         progress(f"phantoms: {phantom_frames} frames without the site's markers ...")
-    from kgadapt.onboard.site import load_site
+    from kgadapt.onboard.flight.site import load_site
 
     site = load_site(models() / "sites" / "demo.site")
     phantoms = quality.phantoms(frames=phantom_frames, site_ids=sorted(site.ids), progress=progress)
@@ -240,7 +240,7 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
 def measure_transport(*, seconds: float, fps: float, robot: str = "benchperc") -> dict[str, Any]:
     """Camera publisher here, detector in a child process; latencies from the detections' timestamps."""
     from kgadapt.bench import stats
-    from kgadapt.onboard.camera import CameraPart, CameraSettings, SyntheticSource
+    from kgadapt.onboard.perception.camera import CameraPart, CameraSettings, SyntheticSource
     from kgadapt.onboard.perception.scene import IlluminationProfile
     from kgadapt.shared import keys, messages
     from kgadapt.shared.session import ZenohSettings, open_session
@@ -251,7 +251,7 @@ def measure_transport(*, seconds: float, fps: float, robot: str = "benchperc") -
     sub = session.declare_subscriber(keys.detector_markers(robot, "bench"), lambda s: got.put(s.payload.to_bytes()))
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     child = ChildProcess(
-        [sys.executable, "-m", "kgadapt.onboard.detector", "--robot", robot, "--host", "bench", "--instance", "bench",
+        [sys.executable, "-m", "kgadapt.onboard.perception.detector", "--robot", robot, "--host", "bench", "--instance", "bench",
          "--config-json", DAY_JSON, "--connect", endpoint], name="transport bench detector", cwd=REPO, env=env)
     camera = CameraPart(CameraSettings(robot=robot, fps=fps), SyntheticSource(IlluminationProfile.constant(120)))
     try:
@@ -297,6 +297,6 @@ def _drain(q: queue.Queue[bytes], until: float) -> list[bytes]:
 
 
 def _free_port() -> int:
-    from kgadapt.cluster import free_tcp_port
+    from kgadapt.operator.cluster import free_tcp_port
 
     return free_tcp_port()

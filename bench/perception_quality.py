@@ -11,7 +11,7 @@ Used by ``kgadapt bench perception``:
 * :func:`phantoms` - frames of scenes without the site's markers (real
   photographs at their own light, darkened and blurred; synthetic textures,
   other dictionaries and ChArUco-like boards), through every configuration and
-  the confirmation of :mod:`kgadapt.onboard.confirmation`: raw false markers and
+  the confirmation of :mod:`kgadapt.onboard.flight.confirmation`: raw false markers and
   landing targets that would have been sent.
 * :func:`photo_agreement` - every configuration (read with the photos'
   dictionary) on the real photographs darkened by the camera model and on the
@@ -27,9 +27,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from kgadapt.onboard.calibration import ALL, CONDITIONS, CalibrationSettings, calibrate, model_configs, rank_rows
-from kgadapt.onboard.illumination import Band
-from kgadapt.onboard.markers import DetectorConfig, MarkerDetector, Score, score
+from kgadapt.onboard.perception.calibration import ALL, CONDITIONS, CalibrationSettings, calibrate, model_configs, rank_rows
+from kgadapt.onboard.perception.illumination import Band
+from kgadapt.onboard.perception.markers import DetectorConfig, MarkerDetector, Score, score
 
 Progress = Callable[[str], None] | None
 
@@ -104,8 +104,8 @@ def phantom_scenes(total: int, *, run: int = 20):
 
 def phantoms(*, frames: int, site_ids: Sequence[int], progress: Progress = None) -> dict[str, Any]:
     """Every configuration over ``frames`` frames without the site's markers: raw phantoms and landing targets."""
-    from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer
-    from kgadapt.onboard.site import SiteMarkers
+    from kgadapt.onboard.flight.confirmation import ConfirmationSettings, MarkerConfirmer
+    from kgadapt.onboard.flight.site import SiteMarkers
 
     configs = shipped_configs()
     detectors = [MarkerDetector(c) for c in configs]
@@ -237,7 +237,7 @@ def blur_agreement(configs: Sequence[DetectorConfig] | None = None, *, blurs: Se
     with the same blur length; and, for comparison, the scene the calibration
     used before (six 60-125 px markers, no lens blur).
     """
-    from kgadapt.onboard.calibration import condition_profile
+    from kgadapt.onboard.perception.calibration import condition_profile
     from kgadapt.onboard.perception.scene import CameraModel, IlluminationProfile, SceneSettings, SyntheticScene
     from kgadapt.sim.photos import load_photo, photo_frames, photo_truth, shifted
 
@@ -298,7 +298,7 @@ def recoded_photo(photo: np.ndarray, truth: Sequence[dict[str, Any]], dictionary
     """
     import cv2
 
-    from kgadapt.onboard.markers import aruco_dictionary
+    from kgadapt.onboard.perception.markers import aruco_dictionary
     from kgadapt.onboard.perception.scene import srgb_decode, srgb_encode
 
     found = aruco_dictionary(dictionary)
@@ -340,7 +340,7 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
     by the camera model, clean, with a 7 px motion blur, and with a saturated
     window over the top 15 % (markers under it count neither way).
     """
-    from kgadapt.onboard.calibration import band_levels, rank
+    from kgadapt.onboard.perception.calibration import band_levels, rank
     from kgadapt.onboard.perception.scene import CameraModel, LightLayout
     from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames, photo_truth, shifted
 

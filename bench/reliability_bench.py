@@ -66,7 +66,7 @@ from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, TriggerKind
 
 RESULTS = results_dir() / "reliability.json"
 ROBOT = DEFAULT_ROBOT
-DETECTOR_MODULE = "kgadapt.onboard.detector"
+DETECTOR_MODULE = "kgadapt.onboard.perception.detector"
 # Measured here (Zenoh 1.10): a TCP link that dies with unsent data is closed with SO_LINGER 10 s,
 # which blocks one of the RX runtime's 2 threads; two dead links (a host's agent and its detector)
 # block both and the router stops routing until the cable is back. More RX threads keep it going.
@@ -514,7 +514,7 @@ class RobotOnHosts:
     """
 
     def __init__(self, settings: RobotSettings) -> None:
-        from kgadapt.cluster import ClusterSettings, HostNetwork, LocalCluster, NetworkSettings
+        from kgadapt.operator.cluster import ClusterSettings, HostNetwork, LocalCluster, NetworkSettings
 
         self.settings = settings
         self.network = HostNetwork(NetworkSettings(subnet=settings.subnet))
@@ -951,7 +951,7 @@ def register(bench_subparsers: Any) -> None:
 
 def run_bench(args: argparse.Namespace) -> int:
     from kgadapt.bench.stats import machine_info
-    from kgadapt.cluster import HostNetwork
+    from kgadapt.operator.cluster import HostNetwork
 
     for name in ("store_trials", "store_self_trials", "failover_trials", "partition_trials", "restart_trials",
                  "compound_trials", "detector_trials", "fuzz"):

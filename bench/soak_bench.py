@@ -497,7 +497,7 @@ def register(bench_subparsers: Any) -> None:
 
 
 def run_bench(args: argparse.Namespace) -> int:
-    from kgadapt.cluster import HostNetwork
+    from kgadapt.operator.cluster import HostNetwork
 
     reason = HostNetwork.unavailable_reason()
     if reason:

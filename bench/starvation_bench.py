@@ -1,6 +1,6 @@
 """``kgadapt bench starvation``: the robot's own knowledge path while other robots ask hostile questions.
 
-The whole robot in real processes (kgadapt/cluster.py). The robot's own
+The whole robot in real processes (kgadapt/operator/cluster.py). The robot's own
 software asks ``placement`` on its own door (``knowledge/own/query``) every
 50 ms, first for a quiet baseline, then while four outsiders (tests/security/
 outsider.py, written from CONTRACTS.md) ask in parallel, without pause: heavy
@@ -94,7 +94,7 @@ def _p90(samples: list[float]) -> float:
 def run(args: argparse.Namespace) -> int:
     import socket
 
-    from kgadapt.cluster import ClusterSettings, WatchedRobot, write_profile
+    from kgadapt.operator.cluster import ClusterSettings, WatchedRobot, write_profile
     from kgadapt.knowledge.client import KnowledgeClient
     from kgadapt.shared.session import ZenohSettings, open_session
     from tests.security.outsider import Outsider

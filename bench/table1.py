@@ -199,7 +199,7 @@ def model_rows(first: int, count: int, rng: random.Random) -> list[dict[str, Any
                 "deployment": deployment_name(i),
                 "kind": "systemd",
                 "executable": "{python}",
-                "arguments": ["-m", "kgadapt.onboard.detector", "--config", config_name(i)],
+                "arguments": ["-m", "kgadapt.onboard.perception.detector", "--config", config_name(i)],
             }
         )
     return rows

@@ -337,6 +337,6 @@ def _cpu_seconds(proc: Any) -> float:
 
 
 def _free_port() -> int:
-    from kgadapt.cluster import free_tcp_port
+    from kgadapt.operator.cluster import free_tcp_port
 
     return free_tcp_port()

@@ -59,8 +59,8 @@ log = logging.getLogger(__name__)
 
 # Modules a launcher may run with ``-m``; PRELOAD is what it imports first (the heavy parts). Runtime
 # detectors only: the tests' echo detector (kgadapt.sim) is started the plain way, as any program.
-RUNNABLE = ("kgadapt.onboard.detector",)
-PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.markers", "kgadapt.knowledge.client", "kgadapt.shared.session",
+RUNNABLE = ("kgadapt.onboard.perception.detector",)
+PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.perception.markers", "kgadapt.knowledge.client", "kgadapt.shared.session",
            "kgadapt.shared.agent", *RUNNABLE)
 _MAX_MESSAGE = 1 << 20
 # The launcher's argv carries this much room: a forked detector writes its own command line there,

@@ -232,7 +232,7 @@ ORDER BY score DESC, ms_per_frame ASC, config""",
         "per configuration of the feature its live detection rate (markers found per marker expected), the "
         "frames of its window (frames, with markers expected, with markers seen), the window's start and "
         "last update (since, at) and the process measured (run_id, host). The planner weighs fresh "
-        "figures with enough frames above calibration (kgadapt.onboard.live_rate).",
+        "figures with enough frames above calibration (kgadapt.onboard.adaptation.live_rate).",
         {"feature": _FEATURE, "band": Param("str", help="illumination band, e.g. dark"),
          "condition": Param("str", required=False, default="all", help="condition (default all)")},
         f"""

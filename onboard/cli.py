@@ -97,8 +97,8 @@ class FlightPart:
                  host: str = "onboard") -> None:
         self.robot, self.url, self.camera_model = robot, url, camera_model
         self.host = host  # its flight state is written as this host's (knowledge/write/<host>/flight_state)
-        self.camera, self.profile = camera, profile  # a checked camera file (kgadapt.onboard.landing_targets)
-        # A checked site file (kgadapt.onboard.site.SiteMarkers), else the graph's site (site_name: which one)
+        self.camera, self.profile = camera, profile  # a checked camera file (kgadapt.onboard.flight.landing_targets)
+        # A checked site file (kgadapt.onboard.flight.site.SiteMarkers), else the graph's site (site_name: which one)
         self.site, self.site_name = site, site_name
         self.manager = manager  # the adaptation manager beside it: only its chosen detector steers
         self.bridge: Any = None
@@ -110,16 +110,16 @@ class FlightPart:
 
     def setup(self, session: Any) -> None:
         from kgadapt.knowledge.client import KnowledgeClient
-        from kgadapt.onboard.confirmation import ConfirmationSettings
-        from kgadapt.onboard.flight import (
+        from kgadapt.onboard.flight.confirmation import ConfirmationSettings
+        from kgadapt.onboard.flight.flight import (
             BridgeSettings,
             CameraIntrinsics,
             FlightBridge,
             FlightControlWriter,
             intrinsics_from_graph,
         )
-        from kgadapt.onboard.mavlink import LinkSettings
-        from kgadapt.onboard.site import site_from_graph
+        from kgadapt.onboard.flight.mavlink import LinkSettings
+        from kgadapt.onboard.flight.site import site_from_graph
 
         client = KnowledgeClient(session, self.robot, own=True, host=self.host)
         c = self.camera
@@ -159,7 +159,7 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
                  budget=monitor.budget_mb),
     ]
     if args.camera_source:
-        from kgadapt.onboard.camera import CameraPart, CameraSettings, make_source
+        from kgadapt.onboard.perception.camera import CameraPart, CameraSettings, make_source
 
         settings = CameraSettings(robot=args.robot, camera=args.camera, fps=args.fps, jpeg_quality=args.jpeg_quality)
         source = make_source(args.camera_source, width=settings.width, height=settings.height, fps=args.fps,
@@ -167,8 +167,8 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
         parts.append(CameraPart(settings, source))
     flight = None
     if args.fc:
-        from kgadapt.onboard.landing_targets import load_camera
-        from kgadapt.onboard.site import load_site
+        from kgadapt.onboard.flight.landing_targets import load_camera
+        from kgadapt.onboard.flight.site import load_site
 
         flight = FlightPart(  # the files are checked here, before anything starts
             robot=args.robot, url=args.fc, camera_model=args.camera_model,
@@ -177,7 +177,7 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
             site_name=getattr(args, "site_name", None), profile=getattr(args, "fc_profile", "auto"), host=args.host)
         parts.append(flight)
     if args.adapt:
-        from kgadapt.onboard.adaptation_manager import AdaptationManager, AdaptationSettings
+        from kgadapt.onboard.adaptation.adaptation_manager import AdaptationManager, AdaptationSettings
 
         # In one process, the manager and the bridge trust each other directly: the bridge follows
         # the manager's chosen detector, the manager the bridge's landed state (not Zenoh messages).

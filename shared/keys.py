@@ -84,7 +84,7 @@ def detector_markers(robot: str, instance: str = "*") -> str:
 
 
 def detector_reflex(robot: str, instance: str = "*") -> str:
-    """Where a detector says it switched configuration on its own (kgadapt.onboard.reflex)."""
+    """Where a detector says it switched configuration on its own (kgadapt.onboard.perception.reflex)."""
     return f"{robot_root(robot)}/detector/{_name_or_star(instance, 'instance')}/reflex"
 
 

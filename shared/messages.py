@@ -106,7 +106,7 @@ class Illumination(Message, tag="illumination", frozen=True, kw_only=True):
     p50: Number
     p95: Number
     smoothed: Number
-    # from kgadapt.onboard.illumination.estimate_light: the robust level the band is read from
+    # from kgadapt.onboard.perception.illumination.estimate_light: the robust level the band is read from
     # (smoothed is its EMA), and what it used
     level: Number | None = None
     frame_level: Number | None = None
@@ -128,18 +128,18 @@ class Detections(Message, tag="detections", frozen=True, kw_only=True):
     ids: Items
     corners: Items
     processing_ms: Number
-    # from kgadapt.onboard.detector: when the frame arrived, JPEG decode time, stale frames dropped so
+    # from kgadapt.onboard.perception.detector: when the frame arrived, JPEG decode time, stale frames dropped so
     # far, and the camera's publication time of the frame (transport = received - frame_sent)
     camera: Name | None = None
     received: Number | None = None
     decode_ms: Number | None = None
     dropped: int | None = None
     frame_sent: Number | None = None
-    clean: Items | None = None  # per marker, whether its cells read clean (kgadapt.onboard.markers.cells_are_clean)
+    clean: Items | None = None  # per marker, whether its cells read clean (kgadapt.onboard.perception.markers.cells_are_clean)
 
 
 class Reflex(Message, tag="reflex", frozen=True, kw_only=True):
-    """A running detector switched configuration on its own, between two frames (kgadapt.onboard.reflex),
+    """A running detector switched configuration on its own, between two frames (kgadapt.onboard.perception.reflex),
     or (``config`` nil) found the light in a band nothing it may take in place is for."""
 
     instance: Name
@@ -238,7 +238,7 @@ class DeployReply(Message, tag="deploy_reply", frozen=True, kw_only=True):
 
 
 class ConfigureRequest(Message, tag="configure_request", frozen=True, kw_only=True):
-    """In-place reconfiguration of a running detector (kgadapt.onboard.detector)."""
+    """In-place reconfiguration of a running detector (kgadapt.onboard.perception.detector)."""
 
     config: Name
 

@@ -4,7 +4,7 @@ One schema for the three places that read or write a detector configuration: the
 model importer (``preprocess :gamma, gamma: 0.5`` in ``.rpsl`` files, checked at
 load time, every setting written out through :class:`DetectorSettings`), the
 detector program and calibration (both through
-:func:`kgadapt.onboard.markers.parse_config`, which calls :func:`read_settings`
+:func:`kgadapt.onboard.perception.markers.parse_config`, which calls :func:`read_settings`
 and then asks OpenCV about the dictionary and parameters). A step is a Struct
 tagged on ``op``; its fields' defaults and ranges are the table :data:`OPS`.
 docs/CONTRACTS.md describes the ``config_json`` they share.

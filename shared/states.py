@@ -88,7 +88,7 @@ class Change(StrEnum):
 
 
 class ReflexEvidence(StrEnum):
-    """What made a detector switch on its own (``evidence`` of a ``reflex`` message; kgadapt.onboard.reflex)."""
+    """What made a detector switch on its own (``evidence`` of a ``reflex`` message; kgadapt.onboard.perception.reflex)."""
 
     LIGHT = "light"  # this frame's light is past the band's edge by more than its margin
     COLLAPSE = "collapse"  # no marker for a few frames right after markers were seen

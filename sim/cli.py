@@ -14,7 +14,7 @@ import argparse
 import json
 import time
 
-from kgadapt.onboard.flight_cli import run_until, stop_event
+from kgadapt.onboard.flight.flight_cli import run_until, stop_event
 
 
 def register_fake_fc(flight_subparsers: argparse._SubParsersAction) -> None:

@@ -79,8 +79,8 @@ from dataclasses import dataclass, field, replace
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.geometry import body_to_ned
-from kgadapt.onboard.mavlink import (
+from kgadapt.onboard.flight.geometry import body_to_ned
+from kgadapt.onboard.flight.mavlink import (
     COPTER_MODE_NUMBERS,
     COPTER_MODES,
     LANDED_STATE_NUMBERS,

@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.landing_targets import CameraModel
-from kgadapt.onboard.mavlink import LinkSettings
-from kgadapt.onboard.mavlink_commands import CommandOutcome
-from kgadapt.onboard.site import SiteMarkers
+from kgadapt.onboard.flight.landing_targets import CameraModel
+from kgadapt.onboard.flight.mavlink import LinkSettings
+from kgadapt.onboard.flight.mavlink_commands import CommandOutcome
+from kgadapt.onboard.flight.site import SiteMarkers
 from kgadapt.shared.errors import FlightLinkError
 from kgadapt.sim.landing_scene import MarkerScene, fake_pose, horizontal_error, link_pose, run_detections
 
@@ -74,7 +74,7 @@ def _free_udp_port() -> int:
 
 
 def run_landing_check(session, settings: LandingCheckSettings, *, robot: str = "landcheck") -> LandingResult:
-    from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
+    from kgadapt.onboard.flight.flight import BridgeSettings, CameraIntrinsics, FlightBridge
     from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 
     s = settings

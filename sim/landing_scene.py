@@ -21,8 +21,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from kgadapt.onboard.geometry import body_to_camera, ned_to_body
-from kgadapt.onboard.landing_targets import CameraModel
+from kgadapt.onboard.flight.geometry import body_to_camera, ned_to_body
+from kgadapt.onboard.flight.landing_targets import CameraModel
 
 Pose = tuple[tuple[float, float, float], tuple[float, float, float]]  # attitude (rad), position NED (m)
 

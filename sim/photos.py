@@ -88,7 +88,7 @@ def photo_truth(photo: np.ndarray, dictionary: str) -> list[dict[str, Any]]:
     """The markers of ``dictionary`` in the photo at full brightness (default parameters)."""
     import cv2
 
-    from kgadapt.onboard.markers import aruco_dictionary as lookup
+    from kgadapt.onboard.perception.markers import aruco_dictionary as lookup
 
     detector = cv2.aruco.ArucoDetector(lookup(dictionary), cv2.aruco.DetectorParameters())
     corners, ids, _ = detector.detectMarkers(photo)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from kgadapt.cluster import free_tcp_port
+from kgadapt.operator.cluster import free_tcp_port
 from kgadapt.knowledge.embedded import EmbeddedServer
 from kgadapt.knowledge.falkordb_store import FalkorDBStore
 from kgadapt.knowledge.store import GraphStore, StoreSettings, open_store

@@ -72,7 +72,7 @@ for name in PRELOAD:
     importlib.import_module(name)
 
 # The synthetic camera and the synthetic scene calibration renders, with the shipped demo profile.
-from kgadapt.onboard.camera import SyntheticSource
+from kgadapt.onboard.perception.camera import SyntheticSource
 from kgadapt.shared.resources import results_dir
 source = SyntheticSource()
 source.open()

@@ -418,14 +418,14 @@ def write_profile(path: Path, points: list[list[float]], *, loop: bool = False) 
 
 
 class WatchedRobot:
-    """A :class:`LocalCluster` with a :class:`kgadapt.timeline.Recorder` watching it over Zenoh.
+    """A :class:`LocalCluster` with a :class:`kgadapt.operator.timeline.Recorder` watching it over Zenoh.
 
     ``with WatchedRobot(settings) as robot:`` loads (and calibrates) the store,
     starts the processes, and attaches the recorder; leaving stops everything.
     """
 
     def __init__(self, settings: ClusterSettings) -> None:
-        from kgadapt.timeline import Recorder
+        from kgadapt.operator.timeline import Recorder
 
         self.cluster = LocalCluster(settings)
         self.recorder = Recorder(robot=settings.robot)

@@ -94,7 +94,7 @@ def _facts(store: Any) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     if args.queries:
         return run_queries(args)
-    from kgadapt.demo_scenario import run_scenario
+    from kgadapt.operator.demo_scenario import run_scenario
 
     return run_scenario(args)
 

@@ -18,8 +18,8 @@ import sys
 import time
 from pathlib import Path
 
-from kgadapt.cluster import ClusterSettings, LocalCluster, WatchedRobot
-from kgadapt.timeline import Decision, ReflexSeen
+from kgadapt.operator.cluster import ClusterSettings, LocalCluster, WatchedRobot
+from kgadapt.operator.timeline import Decision, ReflexSeen
 
 # (scenario second, action, argument): the demo profile is dark from 26 s to 36 s.
 SCRIPT = (

@@ -10,7 +10,7 @@ What it shows, and where each figure comes from (nothing is computed twice):
   ``detector_configs``), the detection rate over the listening window against
   the configuration's calibrated rate in that band;
 - the flight phase (the bridge's ``flight_state``, the same message
-  ``kgadapt flight status`` prints, judged by kgadapt.onboard.flight_phase);
+  ``kgadapt flight status`` prints, judged by kgadapt.onboard.flight.flight_phase);
 - the last decisions with their reasons (``decisions``);
 - hosts the knowledge service refused because no model names them (its
   ``own/stats``: counted, never added to the graph);
@@ -209,7 +209,7 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     if light is not None:
         level = light.get("smoothed", light.get("mean"))
         if configs:
-            from kgadapt.onboard.illumination import band_for_level
+            from kgadapt.onboard.perception.illumination import band_for_level
             from kgadapt.shared.errors import ConfigError
 
             try:
@@ -248,7 +248,7 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     if out["flight"] and out["flight"].get("link") is False:
         problems.append("flight controller link lost")
     if out["flight"] and out["flight"].get("angles_only"):
-        from kgadapt.onboard.site import ANGLES_ONLY
+        from kgadapt.onboard.flight.site import ANGLES_ONLY
 
         problems.append(ANGLES_ONLY)
 
@@ -260,7 +260,7 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
 
 
 def _flight(message: dict[str, Any] | None, graph_rows: list[dict[str, Any]]) -> dict[str, Any] | None:
-    from kgadapt.onboard.flight_phase import in_final_descent
+    from kgadapt.onboard.flight.flight_phase import in_final_descent
 
     if message is not None:
         state, source = dict(message), "flight_state"

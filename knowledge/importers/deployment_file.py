@@ -7,7 +7,7 @@
   description: ArUco marker detector for dusk
   deploys: marker_detection_dusk
   executable: {python}
-  arguments: -m kgadapt.onboard.detector --robot {robot} --host {host} --instance {instance} --config {config} --connect {connect}
+  arguments: -m kgadapt.onboard.perception.detector --robot {robot} --host {host} --instance {instance} --config {config} --connect {connect}
   environment: OPENCV_LOG_LEVEL=ERROR
   executable_on: onboard, remote
   reconfigurable_as: marker-detector

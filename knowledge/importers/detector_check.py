@@ -3,7 +3,7 @@
 The model loader runs where no camera is (the knowledge service, ``kgadapt
 knowledge load``) and must not import OpenCV; yet a configuration OpenCV
 would refuse should fail at load time with its file and line. So the
-configurations go to :mod:`kgadapt.onboard.config_check` in a child process, which
+configurations go to :mod:`kgadapt.onboard.perception.config_check` in a child process, which
 answers what the detector program would say at start.
 
 A child costs an interpreter and an OpenCV import (~0.3 s idle, seconds on a
@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 Verdict = dict[str, Any] | None
 # What the verdict depends on besides the configuration: the checking program and what it imports.
 _CHECK_MODULES = (
-    "kgadapt.onboard.config_check", "kgadapt.onboard.markers", "kgadapt.shared.preprocessing",
+    "kgadapt.onboard.perception.config_check", "kgadapt.onboard.perception.markers", "kgadapt.shared.preprocessing",
 )
 _memory: dict[str, Verdict] = {}
 
@@ -115,7 +115,7 @@ def _write(key: str, verdict: Verdict) -> None:
 def _ask(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
     request = json.dumps([{"name": name, "config_json": config} for name, config in configs])
     try:
-        done = subprocess.run([sys.executable, "-m", "kgadapt.onboard.config_check"], input=request, capture_output=True,
+        done = subprocess.run([sys.executable, "-m", "kgadapt.onboard.perception.config_check"], input=request, capture_output=True,
                               text=True, timeout=120)
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise ModelError(path, None, f"cannot check the detector configurations with OpenCV: {exc}") from exc
@@ -126,14 +126,14 @@ def _ask(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
     if not isinstance(answer, list) or len(answer) != len(configs):
         last = (done.stderr.strip().splitlines() or ["no output"])[-1]
         raise ModelError(path, None, f"cannot check the detector configurations with OpenCV "
-                                     f"(kgadapt.onboard.config_check exited {done.returncode}: {last})")
+                                     f"(kgadapt.onboard.perception.config_check exited {done.returncode}: {last})")
     return answer
 
 
 def dictionary_verdicts(names: list[str], path: str) -> dict[str, tuple[str | None, int | None]]:
     """OpenCV's verdict on ArUco dictionary names (a site's): name -> (problem or None, ids it holds or None).
 
-    Asked of ``python -m kgadapt.onboard.site`` (which calls kgadapt.onboard.markers.aruco_dictionary);
+    Asked of ``python -m kgadapt.onboard.flight.site`` (which calls kgadapt.onboard.perception.markers.aruco_dictionary);
     verdicts on predefined names are kept like the detector verdicts, custom dictionary files never
     (their content may change under the same name).
     """
@@ -142,7 +142,7 @@ def dictionary_verdicts(names: list[str], path: str) -> dict[str, tuple[str | No
     opencv = importlib.util.find_spec("cv2")
     if opencv is None or not opencv.origin:
         return {name: (None, None) for name in names}  # no OpenCV on this host: nothing to ask (as for detectors)
-    site_module = importlib.util.find_spec("kgadapt.onboard.site")
+    site_module = importlib.util.find_spec("kgadapt.onboard.flight.site")
     digest = hashlib.sha256(Path(site_module.origin).read_bytes()).hexdigest() if site_module and site_module.origin else ""
     identity = [*_identity(opencv.origin), digest]
     keys = {name: hashlib.sha256(json.dumps([identity, "dictionary", name]).encode()).hexdigest() for name in names}
@@ -160,7 +160,7 @@ def dictionary_verdicts(names: list[str], path: str) -> dict[str, tuple[str | No
     unknown = [name for name in names if name not in out]
     if unknown:
         try:
-            done = subprocess.run([sys.executable, "-m", "kgadapt.onboard.site"], input=json.dumps(unknown),
+            done = subprocess.run([sys.executable, "-m", "kgadapt.onboard.flight.site"], input=json.dumps(unknown),
                                   capture_output=True, text=True, timeout=120)
             answer = json.loads(done.stdout) if done.returncode == 0 else None
         except (OSError, subprocess.TimeoutExpired, ValueError) as exc:
@@ -168,7 +168,7 @@ def dictionary_verdicts(names: list[str], path: str) -> dict[str, tuple[str | No
         if not isinstance(answer, dict) or set(answer) != set(unknown):
             last = (done.stderr.strip().splitlines() or ["no output"])[-1]
             raise ModelError(path, None, f"cannot check the site's dictionaries with OpenCV "
-                                         f"(kgadapt.onboard.site exited {done.returncode}: {last})")
+                                         f"(kgadapt.onboard.flight.site exited {done.returncode}: {last})")
         for name in unknown:
             problem, count = answer[name]
             out[name] = (None if problem is None else str(problem), count if isinstance(count, int) else None)

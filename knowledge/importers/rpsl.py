@@ -67,7 +67,7 @@ BLOCKS = {
 COMPONENT_KINDS = (S.SENSOR_COMPONENT, S.PROCESSING_COMPONENT, S.FLIGHT_CONTROL, S.CAMERA)
 
 # Pre-processing steps the detector program implements, with their settings' ranges: one table
-# shared with onboard/markers.py.
+# shared with onboard/perception/markers.py.
 PREPROCESS_OPS = preprocessing.OPS
 RESERVED = {"name", "model_file", "config_json", "width", "height", "fx", "fy", "cx", "cy", "fps",
             "memory_demand_mb", "cpu_load", "ms_per_frame", "dictionary", "description"}

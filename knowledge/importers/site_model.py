@@ -1,6 +1,6 @@
 """Site models (``*.site``): the markers laid out where the robot lands, as Site and Marker nodes.
 
-The format is the one the onboard side reads (:mod:`kgadapt.onboard.site`:
+The format is the one the onboard side reads (:mod:`kgadapt.onboard.flight.site`:
 markers with id, printed size, dictionary, optional name and position), and
 the same checks apply, each naming the file and line: JSON, unique ids,
 positive sizes, dictionaries OpenCV knows (asked in a child process,
@@ -15,7 +15,7 @@ from typing import Any
 from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.importers import detector_check
 from kgadapt.knowledge.importers.model import EdgeSpec, NodeSpec, Origin, ParsedModel, Ref
-from kgadapt.onboard.site import json_lines, parse_site
+from kgadapt.onboard.flight.site import json_lines, parse_site
 
 
 def parse(text: str, path: str) -> ParsedModel:

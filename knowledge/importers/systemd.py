@@ -8,7 +8,7 @@ into an ``[X-Kgadapt]`` section, which systemd ignores::
     Description=ArUco marker detector, daylight configuration
 
     [Service]
-    ExecStart={python} -m kgadapt.onboard.detector --robot {robot} --host {host} --instance {instance} \\
+    ExecStart={python} -m kgadapt.onboard.perception.detector --robot {robot} --host {host} --instance {instance} \\
               --config {config} --connect {connect}
     Environment=OPENCV_LOG_LEVEL=ERROR
     Restart=on-failure

@@ -1,7 +1,7 @@
 """Run-time adaptation (MAPE-K): analyse what the monitors saw, plan with the knowledge graph.
 
 This module is the decision logic only; it does no I/O of its own. The
-adaptation manager (``onboard/adaptation_manager.py``) feeds it observations
+adaptation manager (``onboard/adaptation/adaptation_manager.py``) feeds it observations
 from Zenoh, hands it a ``KnowledgeAsk`` (named queries over Zenoh or on a
 store), and executes its plans through the deployers.
 
@@ -30,8 +30,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
-from kgadapt.onboard.illumination import Band, bands_from_rows
-from kgadapt.onboard.live_rate import LIVE, LiveSettings, decided_by, weigh
+from kgadapt.onboard.perception.illumination import Band, bands_from_rows
+from kgadapt.onboard.adaptation.live_rate import LIVE, LiveSettings, decided_by, weigh
 from kgadapt.shared.states import URGENT_TRIGGERS, Change, TriggerKind
 
 __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",
@@ -333,7 +333,7 @@ class Planner:
     ``SUITED_FOR`` the band. Calibration of ``source`` (synthetic, or a recording's
     ``frames:NAME``) gives way to this robot's own live figures (named query
     ``live_rates``) where they are fresh and rest on enough frames
-    (:func:`kgadapt.onboard.live_rate.weigh`; ``clock`` says what now is).
+    (:func:`kgadapt.onboard.adaptation.live_rate.weigh`; ``clock`` says what now is).
     """
 
     ask: KnowledgeAsk
@@ -357,7 +357,7 @@ class Planner:
 
     def ranking(self, band: str, condition: str = "all") -> list[dict[str, Any]]:
         """Every calibrated configuration of the feature for ``band``, best first."""
-        from kgadapt.onboard.calibration import rank_rows
+        from kgadapt.onboard.perception.calibration import rank_rows
 
         rows = self.ask("config_ranking", {"feature": self.feature, "band": band, "condition": condition,
                                            "penalty": self.penalty, "max_ms": self.max_ms, "source": self.source})

@@ -1,15 +1,15 @@
 """The adaptation manager: the paper's Fig. 6 loop as a part of the onboard agent.
 
 Monitor (Zenoh subscribers: illumination, host status, host liveliness, flight
-state, the running detector's detections) -> analyse (:mod:`kgadapt.onboard.adaptation`)
+state, the running detector's detections) -> analyse (:mod:`kgadapt.onboard.adaptation.adaptation`)
 -> plan (named queries through the knowledge service) -> execute (the hosts'
 deployers) -> knowledge (every decision written into the graph).
 
 This module only observes and executes: every decision (what an observation
 means, what a trigger leads to, how a plan is carried out, when a check is due)
-is a pure function of :mod:`kgadapt.onboard.adaptation` (analyse, plan) or
-:mod:`kgadapt.onboard.adaptation_policy` (the loop's rules and its schedule, one
-:class:`~kgadapt.onboard.adaptation_policy.LoopState`), tested without processes.
+is a pure function of :mod:`kgadapt.onboard.adaptation.adaptation` (analyse, plan) or
+:mod:`kgadapt.onboard.adaptation.adaptation_policy` (the loop's rules and its schedule, one
+:class:`~kgadapt.onboard.adaptation.adaptation_policy.LoopState`), tested without processes.
 
 Callbacks only queue observations; one worker thread analyses and acts, so a
 migration never runs inside a Zenoh callback and decisions happen one at a time.
@@ -25,17 +25,17 @@ detector, wait for its first detections, and only then stop the old one
 (:func:`kgadapt.deploy.migration.migrate`). The decision records which and why. When the host running the detector is
 lost, a new detector starts at once on a host that can hold it. During final
 descent (flight state ``LANDING``, or landed state unknown in LAND/RTL:
-:func:`kgadapt.onboard.flight_phase.in_final_descent`) planned changes are deferred; losing the
+:func:`kgadapt.onboard.flight.flight_phase.in_final_descent`) planned changes are deferred; losing the
 running host is still acted on.
 
 Warm standby (``standby=True``, ``kgadapt onboard --standby``; off by default):
 when the ``placement`` query says a host has room for the configuration of the
 band the light most likely goes to next as well (the band it left at the last
 change, else the neighbour whose edge it is nearest:
-:meth:`kgadapt.onboard.adaptation.BandTracker.neighbour`), the
+:meth:`kgadapt.onboard.adaptation.adaptation.BandTracker.neighbour`), the
 manager starts that configuration there through the deployer (supervised and
 profiled like any detector, its memory in the graph) and makes it idle
-(:func:`kgadapt.onboard.detector.set_active`). A change whose target configuration is the
+(:func:`kgadapt.onboard.perception.detector.set_active`). A change whose target configuration is the
 standby's is then a switch: activate the standby, make it the running detector,
 idle the old one (it becomes the standby). Losing the host that runs the
 detector activates a standby on another host (reconfigured in place to the
@@ -44,7 +44,7 @@ the first thing stopped when memory gets short: a ``memory_short`` trigger
 stops it and nothing else; a new one starts only after the next band change.
 
 Reflexes: the running detector may switch configuration in place on its own
-evidence (:mod:`kgadapt.onboard.reflex`) and says so on its ``reflex`` key (its
+evidence (:mod:`kgadapt.onboard.perception.reflex`) and says so on its ``reflex`` key (its
 last reflex again about once a second, should the message be lost; each count
 is acted on once).
 The manager takes the detector's configuration as what runs (it does not fight
@@ -60,7 +60,7 @@ detection rate in the band the manager holds, while markers are expected (seen
 within a second, or the pad in view in final descent); the changed windows are
 written every few seconds (write verb ``live_rate``: one ``LIVE_RATE`` relation
 per configuration, band and condition, updated), and the planner ranks by them
-where they are fresh (:mod:`kgadapt.onboard.live_rate`).
+where they are fresh (:mod:`kgadapt.onboard.adaptation.live_rate`).
 
 Reconciliation: what the manager believes runs is checked against what the
 deployers report, on their events for our instance and every
@@ -85,12 +85,12 @@ from kgadapt.deploy.client import DeployerClient
 from kgadapt.deploy.deployer import new_instance_name
 from kgadapt.deploy.migration import FirstOutput, migrate, reconfigure
 from kgadapt.knowledge.client import KnowledgeClient
-from kgadapt.onboard import adaptation_policy as policy
-from kgadapt.onboard.adaptation import Analyzer, BandTracker, Placement, Plan, Planner, PlanningError, Trigger, bands_from_rows
-from kgadapt.onboard.adaptation_policy import Action, AdaptationSettings, Execution, LoopState, Outcome, StandbyStep
-from kgadapt.onboard.detector import set_active
-from kgadapt.onboard.flight_phase import in_final_descent
-from kgadapt.onboard.live_rate import LiveRates
+from kgadapt.onboard.adaptation import adaptation_policy as policy
+from kgadapt.onboard.adaptation.adaptation import Analyzer, BandTracker, Placement, Plan, Planner, PlanningError, Trigger, bands_from_rows
+from kgadapt.onboard.adaptation.adaptation_policy import Action, AdaptationSettings, Execution, LoopState, Outcome, StandbyStep
+from kgadapt.onboard.perception.detector import set_active
+from kgadapt.onboard.flight.flight_phase import in_final_descent
+from kgadapt.onboard.adaptation.live_rate import LiveRates
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status
@@ -329,7 +329,7 @@ class AdaptationManager:
         return None
 
     def _write_live(self, now: float) -> None:
-        """The live windows changed since the last write, every ``live.write_every_s`` (onboard/live_rate.py)."""
+        """The live windows changed since the last write, every ``live.write_every_s`` (onboard/adaptation/live_rate.py)."""
         for params in self._live.due(now):
             try:
                 self._knowledge.write("live_rate", params)

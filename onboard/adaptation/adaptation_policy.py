@@ -1,6 +1,6 @@
 """The adaptation manager's decisions, as pure functions over plain values.
 
-The manager (``onboard/adaptation_manager.py``) observes (Zenoh), asks (the
+The manager (``onboard/adaptation/adaptation_manager.py``) observes (Zenoh), asks (the
 knowledge service, the deployers) and executes. What it decides lives here:
 when a check is due, whose held memory to measure before calling a host
 short, what a trigger leads to (stop the standby, defer, plan), how a plan is
@@ -10,7 +10,7 @@ record says. Nothing here does I/O or reads a clock: times are arguments
 (``wall``: ``time.time()``, the clock of received statuses and triggers;
 ``mono``: ``time.monotonic()``, the clock of the manager's own schedule), and
 where a rule needs the graph it takes a function that answers (as the
-:class:`~kgadapt.onboard.adaptation.Planner` does).
+:class:`~kgadapt.onboard.adaptation.adaptation.Planner` does).
 
 The manager's timers and the facts of the running detector's last change are
 one :class:`LoopState`; each function that changes it returns a new one.
@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
-from kgadapt.onboard.adaptation import FEATURE, Analyzer, HostView, Placement, Plan, Trigger, memory_short
-from kgadapt.onboard.live_rate import LiveSettings
+from kgadapt.onboard.adaptation.adaptation import FEATURE, Analyzer, HostView, Placement, Plan, Trigger, memory_short
+from kgadapt.onboard.adaptation.live_rate import LiveSettings
 from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, ProcessEventKind, TriggerKind
 
 UNMEASURED_MB = 5.0  # a detector's profile below this has only its exec-time sample
@@ -44,7 +44,7 @@ NEWER_CHANGES = frozenset({Change.REFLEX})
 
 @dataclass(frozen=True, kw_only=True)
 class AdaptationSettings:
-    """How the manager decides. ``preference``: see :mod:`kgadapt.onboard.adaptation`."""
+    """How the manager decides. ``preference``: see :mod:`kgadapt.onboard.adaptation.adaptation`."""
 
     robot: str
     camera: str = "cam0"

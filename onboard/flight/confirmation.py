@@ -7,7 +7,7 @@ built from one would steer the quadcopter towards nothing. :class:`MarkerConfirm
 passes a marker id on only once it has been seen in ``frames`` consecutive
 frames at a consistent place (centre within ``max_shift`` of its side, side
 within ``max_scale`` of the last), with its cells reading clean when the
-detector says (``clean``, :func:`kgadapt.onboard.markers.cells_are_clean`: a
+detector says (``clean``, :func:`kgadapt.onboard.perception.markers.cells_are_clean`: a
 6x6 marker or a ChArUco square that decodes as a 4x4 code does not), and,
 when the site's marker set is known, only ids of that set. Detections themselves still carry every candidate.
 
@@ -37,7 +37,7 @@ frames lies nowhere in particular. The spread allowed is wide only along
 the line of sight (a 16 px marker at 10 m: about 1.5 m along it, 0.25 m
 across it).
 
-The site's markers come from the knowledge graph or a site file (:mod:`kgadapt.onboard.site`).
+The site's markers come from the knowledge graph or a site file (:mod:`kgadapt.onboard.flight.site`).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping, NamedTuple, Sequence
 
-from kgadapt.onboard.site import SiteMarkers, load_site  # noqa: F401  (load_site: where callers find it with the confirmer)
+from kgadapt.onboard.flight.site import SiteMarkers, load_site  # noqa: F401  (load_site: where callers find it with the confirmer)
 from kgadapt.shared.errors import ConfigError, MessageError
 
 

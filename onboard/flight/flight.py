@@ -4,7 +4,7 @@
 detections of the running marker detector (``kgadapt/<robot>/detector/*/markers``),
 turns the chosen marker of each detection into a LANDING_TARGET with the
 camera's intrinsics (:func:`landing_target`), and publishes the flight
-controller's state (:class:`kgadapt.onboard.mavlink.FlightState`) as ``flight_state``
+controller's state (:class:`kgadapt.onboard.flight.mavlink.FlightState`) as ``flight_state``
 on ``kgadapt/<robot>/flight/state`` every ``state_period_s`` and at once when
 the link, arming, mode or landed state changes.
 
@@ -29,10 +29,10 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
-from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer
-from kgadapt.onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, TargetHold
-from kgadapt.onboard.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
-from kgadapt.onboard.site import ANGLES_ONLY, SiteMarkers
+from kgadapt.onboard.flight.confirmation import ConfirmationSettings, MarkerConfirmer
+from kgadapt.onboard.flight.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, TargetHold
+from kgadapt.onboard.flight.mavlink import FlightLink, FlightState, LandingTarget, LinkSettings
+from kgadapt.onboard.flight.site import ANGLES_ONLY, SiteMarkers
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, FlightLinkError, KgadaptError, MessageError, TransportError
 
@@ -178,7 +178,7 @@ class BridgeSettings:
     profile: str = "auto"  # ardupilot | px4 | auto (from the autopilot's heartbeat)
     hold_s: float = 1.5  # re-send the last target, predicted, this long after its frame ...
     resend_hz: float = 10.0  # ... at this rate: ArduPilot's estimator wants a measurement every 0.5 s
-    confirmation: ConfirmationSettings = ConfirmationSettings()  # no phantom landing targets (kgadapt.onboard.confirmation)
+    confirmation: ConfirmationSettings = ConfirmationSettings()  # no phantom landing targets (kgadapt.onboard.flight.confirmation)
 
 
 StateCallback = Callable[[FlightState], None]
@@ -442,7 +442,7 @@ class FlightBridge:
                             ANGLES_ONLY, target.target_num)
 
     def _confirmed(self, detections: dict) -> dict | None:
-        """Only confirmed markers (``kgadapt.onboard.confirmation``); None for a frame already seen.
+        """Only confirmed markers (``kgadapt.onboard.flight.confirmation``); None for a frame already seen.
 
         Stale and future frames pass unchanged: the checks below count and refuse them.
         """
@@ -454,7 +454,7 @@ class FlightBridge:
 
     def _places(self, detections: dict) -> list | None:
         """Where each candidate lies in the local frame (None where unknown), so that the confirmation
-        allows for the vehicle's motion between frames (kgadapt.onboard.confirmation)."""
+        allows for the vehicle's motion between frames (kgadapt.onboard.flight.confirmation)."""
         ids, corners = detections["ids"], detections["corners"]
         if not ids or len(ids) != len(corners) or self.link.pose_at(float(detections["frame_time"])) is None:
             return None

@@ -69,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse._SubParsersActi
         bridge.add_argument(f"--{name}", type=float, help=f"camera intrinsic {name}, pixels (instead of --camera)")
     bridge.add_argument("--camera-file", help="camera file (JSON: intrinsics, distortion, mounting), checked on load")
     bridge.add_argument("--site", metavar="FILE",
-                        help="site file (*.site: marker ids, sizes, dictionary; onboard/site.py) instead of the "
+                        help="site file (*.site: marker ids, sizes, dictionary; onboard/flight/site.py) instead of the "
                              "graph's site (read when the bridge uses the graph: --camera, --write-graph or "
                              "--site-name): only its ids become targets, and they go with positions")
     bridge.add_argument("--site-name", metavar="NAME",
@@ -100,7 +100,7 @@ def _add_link_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _link_settings(args: argparse.Namespace):
-    from kgadapt.onboard.mavlink import LinkSettings
+    from kgadapt.onboard.flight.mavlink import LinkSettings
 
     return LinkSettings(url=args.url, system_id=args.system_id, component_id=args.component_id,
                         target_system=args.target_system, heartbeat_timeout_s=args.heartbeat_timeout)
@@ -134,7 +134,7 @@ def run_until(stop: threading.Event, duration: float, every: float, tick) -> Non
 def _monitor(args: argparse.Namespace) -> int:
     import queue
 
-    from kgadapt.onboard.mavlink import FlightLink
+    from kgadapt.onboard.flight.mavlink import FlightLink
 
     if args.every <= 0:
         from kgadapt.shared.errors import ConfigError
@@ -196,10 +196,10 @@ def _monitor(args: argparse.Namespace) -> int:
 
 def _bridge(args: argparse.Namespace) -> int:
     from kgadapt.onboard.cli import log_site
-    from kgadapt.onboard.confirmation import ConfirmationSettings
-    from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter, intrinsics_from_graph
-    from kgadapt.onboard.landing_targets import load_camera
-    from kgadapt.onboard.site import load_site, site_from_graph
+    from kgadapt.onboard.flight.confirmation import ConfirmationSettings
+    from kgadapt.onboard.flight.flight import BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter, intrinsics_from_graph
+    from kgadapt.onboard.flight.landing_targets import load_camera
+    from kgadapt.onboard.flight.site import load_site, site_from_graph
     from kgadapt.shared import session as zsession
     from kgadapt.shared.errors import ConfigError
     from kgadapt.shared.readiness import announce_ready
@@ -261,7 +261,7 @@ def status_lines(state, timeouts: dict[str, float], now: float) -> list[str]:
     """``kgadapt flight status``: one line a group of fields, with its age and timeout."""
     import math
 
-    from kgadapt.onboard.mavlink import STREAM_FIELDS
+    from kgadapt.onboard.flight.mavlink import STREAM_FIELDS
 
     heard = dict(state.heard)
     lines = [f"link       {'up' if state.link else 'LOST'}  autopilot {state.autopilot or '-'} "
@@ -299,7 +299,7 @@ def status_lines(state, timeouts: dict[str, float], now: float) -> list[str]:
 
 
 def _status(args: argparse.Namespace) -> int:
-    from kgadapt.onboard.mavlink import STREAM_FIELDS, FlightLink
+    from kgadapt.onboard.flight.mavlink import STREAM_FIELDS, FlightLink
 
     link = FlightLink(_link_settings(args))
     link.setup()

@@ -1,7 +1,7 @@
 """Landing targets the autopilot accepts: the marker's position from its size, in each autopilot's frame.
 
 Inputs: a **camera file** (intrinsics and how the camera is mounted) and the
-**site file** (the markers of a site with their printed sizes, :mod:`kgadapt.onboard.site`,
+**site file** (the markers of a site with their printed sizes, :mod:`kgadapt.onboard.flight.site`,
 the same file the confirmer reads), both JSON, checked on load::
 
     camera.json   {"fx": 615.0, "fy": 615.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480,
@@ -43,10 +43,10 @@ from typing import Any, Callable, Sequence
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.confirmation import Place
-from kgadapt.onboard.geometry import body_to_ned, camera_to_body, ned_to_body, norm
-from kgadapt.onboard.mavlink import FlightState, LandingTarget
-from kgadapt.onboard.site import SiteMarkers, load_site
+from kgadapt.onboard.flight.confirmation import Place
+from kgadapt.onboard.flight.geometry import body_to_ned, camera_to_body, ned_to_body, norm
+from kgadapt.onboard.flight.mavlink import FlightState, LandingTarget
+from kgadapt.onboard.flight.site import SiteMarkers, load_site
 from kgadapt.shared.errors import ConfigError
 
 
@@ -126,7 +126,7 @@ def load_camera(path: str | Path) -> CameraModel:
     return CameraModel.from_dict(_read_json(path, "camera file"), where=f"camera file {path}")
 
 
-# One site file format for the confirmer and the landing targets (onboard/site.py); the old name stays
+# One site file format for the confirmer and the landing targets (onboard/flight/site.py); the old name stays
 # for callers that load a site for its marker sizes.
 load_site_markers = load_site
 
@@ -219,7 +219,7 @@ class TargetBuilder:
         ned = (float(position[0]) + rel[0], float(position[1]) + rel[1], float(position[2]) + rel[2])
         if tvec is None:  # the distance from a height: no measurement model, the confirmer's fixed rule
             return Place(ned, float(size), norm(body))
-        # How it was measured, for the confirmer's tolerance (kgadapt.onboard.confirmation).
+        # How it was measured, for the confirmer's tolerance (kgadapt.onboard.flight.confirmation).
         side_px = sum(math.dist(corners[i], corners[(i + 1) % 4]) for i in range(4)) / 4.0
         velocity, rates = state.velocity_ned, state.rates
         return Place(ned, float(size), norm(body), los=tuple(c / norm(rel) for c in rel), side_px=side_px,

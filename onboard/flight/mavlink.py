@@ -610,7 +610,7 @@ class FlightLink:
     """
 
     def __init__(self, settings: LinkSettings) -> None:
-        from kgadapt.onboard.mavlink_commands import CommandSender, CommandSettings
+        from kgadapt.onboard.flight.mavlink_commands import CommandSender, CommandSettings
 
         self.settings = settings
         self.endpoint = Endpoint.parse(settings.url)

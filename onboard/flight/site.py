@@ -13,7 +13,7 @@ dictionary::
 marker's unless it names its own) to ``DICT_4X4_50``. ``position`` is where
 the marker lies at the site, metres (north, east, down from the site's
 origin); optional and informative. The dictionary must be one OpenCV knows
-(or a custom dictionary file, as :func:`kgadapt.onboard.markers.aruco_dictionary`
+(or a custom dictionary file, as :func:`kgadapt.onboard.perception.markers.aruco_dictionary`
 takes it; a relative path is read from the site file's folder), ids unique
 and within the dictionary, sizes positive. Anything else is a
 :class:`ModelError` naming the file and the line.
@@ -23,8 +23,8 @@ and within the dictionary, sizes positive. Anything else is a
 bridge take the site from the graph (:func:`site_from_graph`, named query
 ``site_markers``) unless a file overrides it (``--site FILE``, :func:`load_site`).
 The ids keep phantom markers from becoming landing targets
-(:mod:`kgadapt.onboard.confirmation`); the sizes let a landing target carry the
-marker's position (:mod:`kgadapt.onboard.landing_targets`).
+(:mod:`kgadapt.onboard.flight.confirmation`); the sizes let a landing target carry the
+marker's position (:mod:`kgadapt.onboard.flight.landing_targets`).
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def check_dictionaries_here(names: list[str]) -> dict[str, DictionaryVerdict]:
     import importlib
 
     # Imported by name: the knowledge side type-checks this module without following it into OpenCV.
-    aruco_dictionary = importlib.import_module("kgadapt.onboard.markers").aruco_dictionary
+    aruco_dictionary = importlib.import_module("kgadapt.onboard.perception.markers").aruco_dictionary
     out: dict[str, DictionaryVerdict] = {}
     for name in names:
         try:
@@ -295,7 +295,7 @@ def site_from_graph(client: Any, site: str | None = None, *, wait_s: float = 0.0
 
 
 def main() -> int:
-    """``python -m kgadapt.onboard.site``: OpenCV's verdict on dictionary names, for the model loader.
+    """``python -m kgadapt.onboard.flight.site``: OpenCV's verdict on dictionary names, for the model loader.
 
     stdin: a JSON list of names; stdout: a JSON object name -> [problem or null, ids or null].
     The loader asks in a process of its own: loading models must not load OpenCV.

@@ -31,7 +31,7 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from kgadapt.onboard.illumination import LightEstimate, LightSettings, Luminance, Smoother, estimate_light, luminance
+from kgadapt.onboard.perception.illumination import LightEstimate, LightSettings, Luminance, Smoother, estimate_light, luminance
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, KgadaptError, TransportError
 

@@ -1,11 +1,11 @@
-"""``python -m kgadapt.onboard.config_check``: OpenCV's verdict on detector configurations, for the model loader.
+"""``python -m kgadapt.onboard.perception.config_check``: OpenCV's verdict on detector configurations, for the model loader.
 
 Loading models must not load OpenCV (the knowledge service and ``kgadapt
 knowledge load`` run where no camera is), yet a configuration OpenCV would
 refuse should fail at load time with its file and line, not when a detector
 starts. So the loader (``knowledge/importers/rpsl.py``) asks this program, in a
 process of its own, what the detector program would say at start
-(:func:`kgadapt.onboard.markers.parse_config`, then one detection of a real marker).
+(:func:`kgadapt.onboard.perception.markers.parse_config`, then one detection of a real marker).
 
 Input on stdin: a JSON list of ``{"name": ..., "config_json": ...}``. Output
 on stdout: a JSON list, one entry per configuration: ``null`` when OpenCV takes
@@ -25,7 +25,7 @@ def verdict(name: str, config_json: str) -> dict[str, Any] | None:
     import cv2
     import numpy as np
 
-    from kgadapt.onboard.markers import MarkerDetector, aruco_dictionary, parse_config
+    from kgadapt.onboard.perception.markers import MarkerDetector, aruco_dictionary, parse_config
     from kgadapt.shared.errors import ConfigError
     from kgadapt.shared.preprocessing import is_dictionary_file
 

@@ -1,9 +1,9 @@
-"""The marker-detector program: ``python -m kgadapt.onboard.detector`` (what the deployer runs).
+"""The marker-detector program: ``python -m kgadapt.onboard.perception.detector`` (what the deployer runs).
 
 ::
 
-    python -m kgadapt.onboard.detector --robot R --host H --instance I --config NAME --connect ENDPOINT [--camera cam0]
-    python -m kgadapt.onboard.detector ... --config-json '{"preprocess": [...], "parameters": {...}}'   # no store
+    python -m kgadapt.onboard.perception.detector --robot R --host H --instance I --config NAME --connect ENDPOINT [--camera cam0]
+    python -m kgadapt.onboard.perception.detector ... --config-json '{"preprocess": [...], "parameters": {...}}'   # no store
 
 It asks the knowledge service for its configuration (named query
 ``detector_config``), builds the pre-processing and ``cv2.aruco.ArucoDetector``
@@ -21,7 +21,7 @@ processed with it. It then prints ``<CONFIGURED_TOKEN> <config> <deployment>``
 so its deployer's record (and a restart) follow. Anything refused leaves the
 running configuration untouched.
 
-Reflexes (kgadapt.onboard.reflex): a detector configured from the graph also
+Reflexes (kgadapt.onboard.perception.reflex): a detector configured from the graph also
 fetches, at its start and after each in-place change, the named query
 ``reflex_table`` (what it may take in place on this host, band by band, with
 the bands' edges and margins and the feature's ms-per-frame budget), builds a
@@ -67,7 +67,7 @@ from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
 from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, START_IDLE_ENV, announce_ready
 
-log = logging.getLogger("kgadapt.onboard.detector")
+log = logging.getLogger("kgadapt.onboard.perception.detector")
 
 EXIT_UNKNOWN_CONFIG = 2
 INLINE_CONFIG = "inline"
@@ -136,7 +136,7 @@ def fetch_config_row(session: Any, robot: str, name: str, *, wait_s: float = 10.
     configuration, RequestTimeout when no service answered in time.
     """
     from kgadapt.knowledge.client import KnowledgeClient
-    from kgadapt.onboard.markers import parse_config
+    from kgadapt.onboard.perception.markers import parse_config
 
     keys.check_name(name, "configuration name")
     client = KnowledgeClient(session, robot, own=True)
@@ -156,10 +156,10 @@ def fetch_config_row(session: Any, robot: str, name: str, *, wait_s: float = 10.
 
 
 def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, wait_s: float = 2.0) -> Any:
-    """The ``reflex_table`` of a detector of ``deployment`` on ``host``, compiled (kgadapt.onboard.reflex)."""
+    """The ``reflex_table`` of a detector of ``deployment`` on ``host``, compiled (kgadapt.onboard.perception.reflex)."""
     from kgadapt.knowledge.client import KnowledgeClient
-    from kgadapt.onboard.markers import parse_config
-    from kgadapt.onboard.reflex import ReflexTable
+    from kgadapt.onboard.perception.markers import parse_config
+    from kgadapt.onboard.perception.reflex import ReflexTable
 
     rows = KnowledgeClient(session, robot, own=True).query(
         "reflex_table", {"deployment": deployment, "host": host}, wait_s=wait_s)
@@ -229,7 +229,7 @@ class Detector:
     """Subscribes to frames, detects markers on a worker thread, publishes detections."""
 
     def __init__(self, settings: DetectorSettings, config: Any, *, deployment: str | None = None) -> None:
-        from kgadapt.onboard.markers import MarkerDetector
+        from kgadapt.onboard.perception.markers import MarkerDetector
 
         self.settings = settings
         self.deployment = deployment  # of the configuration it runs, when it came from the graph
@@ -271,7 +271,7 @@ class Detector:
 
     def swap(self, config: Any) -> int:
         """Take ``config`` from the next frame on; returns its generation (see ``first_frame``)."""
-        from kgadapt.onboard.markers import MarkerDetector
+        from kgadapt.onboard.perception.markers import MarkerDetector
 
         core = MarkerDetector(config)  # built here, off the frame path
         generation = self._active[2] + 1
@@ -279,10 +279,10 @@ class Detector:
         return generation
 
     def arm(self, table: Any) -> None:
-        """Hold the reflex ``table`` (kgadapt.onboard.reflex.ReflexTable): its detectors are built here,
+        """Hold the reflex ``table`` (kgadapt.onboard.perception.reflex.ReflexTable): its detectors are built here,
         off the frame path, so a reflex costs the frame nothing."""
-        from kgadapt.onboard.markers import MarkerDetector
-        from kgadapt.onboard.reflex import Reflex
+        from kgadapt.onboard.perception.markers import MarkerDetector
+        from kgadapt.onboard.perception.reflex import Reflex
 
         cores = {name: MarkerDetector(choice.settings) for name, choice in table.choices().items()}
         config, _core, generation = self._active
@@ -408,8 +408,8 @@ class Detector:
 
     def _light(self, gray: Any, frame_time: float) -> float | None:
         """This frame's light, weighted around the markers found within the last second (a window or a
-        lamp in view does not fool it; kgadapt.onboard.illumination.estimate_light)."""
-        from kgadapt.onboard.illumination import estimate_light
+        lamp in view does not fool it; kgadapt.onboard.perception.illumination.estimate_light)."""
+        from kgadapt.onboard.perception.illumination import estimate_light
 
         at, corners = self._seen_markers
         try:
@@ -650,7 +650,7 @@ class Reconfigurer:
 
 
 def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
-    """The detector's flags (shared by ``python -m kgadapt.onboard.detector`` and ``kgadapt perception detect``)."""
+    """The detector's flags (shared by ``python -m kgadapt.onboard.perception.detector`` and ``kgadapt perception detect``)."""
     from kgadapt.shared.agent import DEFAULT_ROBOT
     from kgadapt.shared.session import add_arguments
 
@@ -668,7 +668,7 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m kgadapt.onboard.detector",
+        prog="python -m kgadapt.onboard.perception.detector",
         description=f"ArUco marker detector: frames in over Zenoh, detections out. Prints {READY_TOKEN} when ready. "
                     "Exit status 2: the knowledge store does not know the configuration.",
     )
@@ -699,7 +699,7 @@ def run(args: argparse.Namespace) -> int:
             settings = DetectorSettings(robot=args.robot, host=args.host, instance=args.instance, camera=args.camera,
                                         idle=os.environ.get(START_IDLE_ENV) == "1")
             if args.config_json is not None:
-                from kgadapt.onboard.markers import parse_config
+                from kgadapt.onboard.perception.markers import parse_config
 
                 config = parse_config(INLINE_CONFIG, args.config_json)
             zenoh_settings = settings_from_args(args).with_defaults(mode="peer", connect=[DEFAULT_ENDPOINT])
@@ -721,10 +721,10 @@ def run(args: argparse.Namespace) -> int:
             log.info("detector %s: signal %s, stopping after %d frames", args.instance, stop.received, detector.processed)
             return 0
         except UnknownConfiguration as exc:
-            print(f"kgadapt.onboard.detector: error: {exc}", file=sys.stderr, flush=True)
+            print(f"kgadapt.onboard.perception.detector: error: {exc}", file=sys.stderr, flush=True)
             return EXIT_UNKNOWN_CONFIG
         except KgadaptError as exc:
-            print(f"kgadapt.onboard.detector: error: {exc}", file=sys.stderr, flush=True)
+            print(f"kgadapt.onboard.perception.detector: error: {exc}", file=sys.stderr, flush=True)
             return 1
         finally:
             if reconfigurer is not None:

@@ -63,7 +63,7 @@ def _register_camera(sub: argparse._SubParsersAction) -> None:
 
 
 def _camera(args: argparse.Namespace) -> int:
-    from kgadapt.onboard.camera import CameraPart, CameraSettings, make_source
+    from kgadapt.onboard.perception.camera import CameraPart, CameraSettings, make_source
     from kgadapt.shared.agent import StopSignals
     from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
 
@@ -108,11 +108,11 @@ def _camera(args: argparse.Namespace) -> int:
 
 
 def _register_detect(sub: argparse._SubParsersAction) -> None:
-    from kgadapt.onboard.detector import add_detector_arguments
+    from kgadapt.onboard.perception.detector import add_detector_arguments
 
     p = sub.add_parser(
         "detect",
-        help="run the marker detector (same as python -m kgadapt.onboard.detector)",
+        help="run the marker detector (same as python -m kgadapt.onboard.perception.detector)",
         description="The marker-detector program: gets its configuration from the knowledge store "
                     "(--config) or inline (--config-json), detects markers in the camera's frames and "
                     "publishes detections. Prints its readiness line when ready; exit status 2 when the store "
@@ -123,7 +123,7 @@ def _register_detect(sub: argparse._SubParsersAction) -> None:
 
 
 def _detect(args: argparse.Namespace) -> int:
-    from kgadapt.onboard.detector import run
+    from kgadapt.onboard.perception.detector import run
 
     return run(args)
 
@@ -132,7 +132,7 @@ def _detect(args: argparse.Namespace) -> int:
 
 
 def _register_calibrate(sub: argparse._SubParsersAction) -> None:
-    from kgadapt.onboard.calibration import FEATURE, RESULTS_DIR
+    from kgadapt.onboard.perception.calibration import FEATURE, RESULTS_DIR
 
     p = sub.add_parser(
         "calibrate",
@@ -166,7 +166,7 @@ def _register_calibrate(sub: argparse._SubParsersAction) -> None:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from kgadapt.onboard.calibration import CONDITIONS, RESULTS_DIR, CalibrationSettings, run_calibration
+    from kgadapt.onboard.perception.calibration import CONDITIONS, RESULTS_DIR, CalibrationSettings, run_calibration
 
     progress = None if args.json else (lambda line: print(line, file=sys.stderr, flush=True))
     if args.frames_from:
@@ -176,7 +176,7 @@ def _calibrate(args: argparse.Namespace) -> int:
                                    jpeg_quality=args.quality, conditions=conditions)
     site = None
     if args.site:
-        from kgadapt.onboard.site import load_site
+        from kgadapt.onboard.flight.site import load_site
 
         site = load_site(args.site)
     out = RESULTS_DIR / "calibration.json" if args.out is None else args.out
@@ -196,8 +196,8 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 
 def _calibrate_frames(args: argparse.Namespace, progress: Any) -> int:
-    from kgadapt.onboard.calibration import RESULTS_DIR
-    from kgadapt.onboard.recorded_calibration import AgreementSettings, run_frame_calibration
+    from kgadapt.onboard.perception.calibration import RESULTS_DIR
+    from kgadapt.onboard.perception.recorded_calibration import AgreementSettings, run_frame_calibration
 
     out = RESULTS_DIR / "calibration_frames.json" if args.out is None else args.out
     data = run_frame_calibration(args.store, args.frames_from, feature=args.feature,

@@ -6,7 +6,7 @@ dictionary it names) runs on every frame; a marker (dictionary, id) counts as
 real when at least ``min_configs`` configurations found it somewhere in the
 recording, or, for a dictionary only one configuration reads, when that one
 found it in at least ``min_frames`` frames; only detections whose cells read
-clean (:func:`kgadapt.onboard.markers.cells_are_clean`) vote, so a code two
+clean (:func:`kgadapt.onboard.perception.markers.cells_are_clean`) vote, so a code two
 configurations both decode inside another dictionary's marker is not agreed on. In each frame the truth is then the
 real markers that any configuration found there, at the median of the corners
 they found; a configuration scores a hit when it found such a marker within
@@ -16,7 +16,7 @@ are relative to what the configurations see together, which is what the ranking
 needs (which configuration to prefer), not an absolute figure.
 
 Each frame's band comes from its light estimate
-(:func:`kgadapt.onboard.illumination.estimate_light`, which a window cannot
+(:func:`kgadapt.onboard.perception.illumination.estimate_light`, which a window cannot
 fool). The figures, per configuration and band (condition ``all``), go into the
 graph beside the synthetic ones, as CALIBRATED relations whose ``source`` names
 the recording (``frames:NAME``).
@@ -32,9 +32,9 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from kgadapt.onboard.calibration import ALL, CalibrationResult, configs_from_store, ensure_models, record, result_of
-from kgadapt.onboard.illumination import Band, estimate_light
-from kgadapt.onboard.markers import DetectorConfig, MarkerDetector, Score, score
+from kgadapt.onboard.perception.calibration import ALL, CalibrationResult, configs_from_store, ensure_models, record, result_of
+from kgadapt.onboard.perception.illumination import Band, estimate_light
+from kgadapt.onboard.perception.markers import DetectorConfig, MarkerDetector, Score, score
 from kgadapt.shared.errors import ConfigError, KgadaptError
 
 log = logging.getLogger(__name__)
@@ -225,7 +225,7 @@ def run_frame_calibration(store_url: str | None, frames_from: Path | str, *, fea
     from dataclasses import asdict
 
     from kgadapt.knowledge.store import open_store
-    from kgadapt.onboard.calibration import write_json
+    from kgadapt.onboard.perception.calibration import write_json
 
     source = source_name(frames_from)
     store = open_store(store_url)

@@ -8,7 +8,7 @@ may take in place on its host, band by band, and compiles it into a
 :class:`ReflexTable`; per frame, :class:`Reflex` weighs the evidence the frame
 gives and says what to run:
 
-* light: this frame's light estimate (window-proof, :func:`~kgadapt.onboard.illumination.estimate_light`)
+* light: this frame's light estimate (window-proof, :func:`~kgadapt.onboard.perception.illumination.estimate_light`)
   is past an edge of the current band by more than the band's margin: take the
   new band's best configuration (``Swap``, evidence ``light``); where no
   configuration of that band may run here in place, say so (``Swap`` with no
@@ -36,7 +36,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
-from kgadapt.onboard.illumination import Band
+from kgadapt.onboard.perception.illumination import Band
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.states import ReflexEvidence
 
@@ -48,7 +48,7 @@ class Choice:
     config: str
     deployment: str
     ms_per_frame: float | None
-    settings: Any  # the parsed configuration (kgadapt.onboard.markers.DetectorConfig)
+    settings: Any  # the parsed configuration (kgadapt.onboard.perception.markers.DetectorConfig)
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class ReflexTable:
         rate minus ``penalty`` x false markers per frame, within ``tie_rate`` the faster first; a band
         without calibration falls back to the configurations suited for it.
         """
-        from kgadapt.onboard.calibration import rank_rows
+        from kgadapt.onboard.perception.calibration import rank_rows
 
         by_band: dict[str, list[Mapping[str, Any]]] = {}
         bands: dict[str, tuple[Band, float]] = {}

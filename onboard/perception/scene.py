@@ -40,7 +40,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from kgadapt.onboard.markers import aruco_dictionary
+from kgadapt.onboard.perception.markers import aruco_dictionary
 from kgadapt.shared.errors import ConfigError, ModelError
 from kgadapt.shared.resources import scenarios
 

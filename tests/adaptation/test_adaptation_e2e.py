@@ -1,6 +1,6 @@
 """The adaptation loop end to end: real service, agents, camera, detectors and fake flight controller.
 
-Each test runs the whole robot on loopback (kgadapt/cluster.py) under an
+Each test runs the whole robot on loopback (kgadapt/operator/cluster.py) under an
 illumination profile of its own, watches the Zenoh network with the demo's
 recorder, and asserts what the adaptation manager did.
 """
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from kgadapt.cluster import ClusterSettings, WatchedRobot, write_profile
+from kgadapt.operator.cluster import ClusterSettings, WatchedRobot, write_profile
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.shared.hostmonitor import squeeze
 
@@ -102,7 +102,7 @@ def test_the_detector_follows_the_light_through_the_bands_without_losing_frames(
 def test_without_in_place_changes_the_reflex_asks_and_the_manager_starts_a_process_at_once(tmp_path):
     # The graph lets no detector deployment change in place: the detector's reflex can only say the band
     # changed, and the manager starts the band's configuration as a new process without the band's wait.
-    from kgadapt.cluster import models_without_in_place
+    from kgadapt.operator.cluster import models_without_in_place
 
     points = [[0, 120], [5, 120], [5.001, 5], [30, 5]]
     with Run(tmp_path, points, models=models_without_in_place(tmp_path / "models")) as run:
@@ -179,7 +179,7 @@ def test_no_planned_change_happens_during_final_descent(tmp_path):
     # The fake flight controller starts its final descent (LANDING) 1 s in, for 30 s; the light goes dark
     # at 6 s. With no in-place change in the graph, the detector's reflex can only tell: the change of
     # configuration (a new process) is recorded and deferred, not acted on.
-    from kgadapt.cluster import models_without_in_place
+    from kgadapt.operator.cluster import models_without_in_place
 
     with Run(tmp_path, [[0, 120], [6, 120], [7, 5], [40, 5]], land_after_s=1.0, descent_s=30.0,
              models=models_without_in_place(tmp_path / "models")) as run:

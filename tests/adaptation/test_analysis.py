@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from kgadapt.onboard.adaptation import Analyzer, Band, BandTracker, CollapseWatch, Placement, bands_from_rows
+from kgadapt.onboard.adaptation.adaptation import Analyzer, Band, BandTracker, CollapseWatch, Placement, bands_from_rows
 
 BANDS = [Band("dark", 0, 25), Band("dusk", 25, 80), Band("day", 80, 256)]
 

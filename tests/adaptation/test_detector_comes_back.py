@@ -1,6 +1,6 @@
 """The detector always comes back: whatever stops it, the manager notices and the planner's choice runs again.
 
-The whole robot in real processes (kgadapt/cluster.py). The detector is
+The whole robot in real processes (kgadapt/operator/cluster.py). The detector is
 stopped by an operator, migrated away by an operator, and kill -9'd until its
 deployer gives up on it; after each, a detector of the planner's choice
 answers again and exactly one runs.

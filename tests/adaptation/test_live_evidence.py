@@ -1,7 +1,7 @@
 """Live evidence changes the ranking: real FalkorDB, the real knowledge service over Zenoh, ``kgadapt why`` as a process.
 
 Synthetic calibration ranks the day configuration (A) over the dark one (B) in
-band dark. The adaptation manager's live windows (onboard/live_rate.py), fed the
+band dark. The adaptation manager's live windows (onboard/adaptation/live_rate.py), fed the
 frames of a day -> dark step (A finds nothing while the markers seen a moment
 before are expected, then B finds them), are written through the manager's own
 write path (``write/onboard/live_rate``); the planner then picks B, and ``why``
@@ -21,9 +21,9 @@ from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.runtime import record_calibration, update_platform
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
-from kgadapt.onboard import adaptation_policy as policy
-from kgadapt.onboard.adaptation import Placement, Planner, Trigger
-from kgadapt.onboard.live_rate import LiveRates, LiveSettings
+from kgadapt.onboard.adaptation import adaptation_policy as policy
+from kgadapt.onboard.adaptation.adaptation import Placement, Planner, Trigger
+from kgadapt.onboard.adaptation.live_rate import LiveRates, LiveSettings
 from kgadapt.shared.errors import RemoteError
 from kgadapt.shared.keys import DEFAULT_ROBOT
 from kgadapt.shared.session import ZenohSettings, open_session

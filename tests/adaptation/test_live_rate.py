@@ -1,11 +1,11 @@
-"""Live evidence (onboard/live_rate.py): how frames count and how the ranking weighs them, on plain values."""
+"""Live evidence (onboard/adaptation/live_rate.py): how frames count and how the ranking weighs them, on plain values."""
 
 from __future__ import annotations
 
 import pytest
 
-from kgadapt.onboard.calibration import rank_rows
-from kgadapt.onboard.live_rate import LiveRates, LiveSettings, decided_by, fresh, weigh
+from kgadapt.onboard.perception.calibration import rank_rows
+from kgadapt.onboard.adaptation.live_rate import LiveRates, LiveSettings, decided_by, fresh, weigh
 
 SETTINGS = LiveSettings(max_age_s=60.0, min_expected=30, window=100, write_every_s=2.0, expect_s=1.0,
                         agree=0.15)

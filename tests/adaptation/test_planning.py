@@ -9,7 +9,7 @@ import pytest
 from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.queries import run_named
 from kgadapt.knowledge.runtime import record_calibration, update_platform
-from kgadapt.onboard.adaptation import Placement, Planner, PlanningError
+from kgadapt.onboard.adaptation.adaptation import Placement, Planner, PlanningError
 from tests.conftest import REPO
 
 
@@ -135,7 +135,7 @@ def test_a_host_without_a_confirmed_figure_is_no_target_whatever_the_graph_says(
 
 
 def test_why_shows_the_ranking_the_plan_used(graph):
-    from kgadapt.onboard.adaptation_cli import render
+    from kgadapt.onboard.adaptation.adaptation_cli import render
 
     calibrate(graph, "dark", dark=(0.8, 0.0, 20), dusk=(0.5, 0.0, 8), day=(0.02, 0.0, 2))
     plan = planner(graph).plan(band="dark", running=None, exclude=("marker_detection_dark",))

@@ -1,4 +1,4 @@
-"""The adaptation loop's rules (onboard/adaptation_policy.py), on plain values: no store, no Zenoh, no process."""
+"""The adaptation loop's rules (onboard/adaptation/adaptation_policy.py), on plain values: no store, no Zenoh, no process."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from kgadapt.onboard import adaptation_policy as P
-from kgadapt.onboard.adaptation import Analyzer, Band, BandTracker, HostView, Placement, Plan, Trigger
+from kgadapt.onboard.adaptation import adaptation_policy as P
+from kgadapt.onboard.adaptation.adaptation import Analyzer, Band, BandTracker, HostView, Placement, Plan, Trigger
 from kgadapt.shared.states import Change, TriggerKind
 
 BANDS = [Band("dark", 0, 25), Band("dusk", 25, 80), Band("day", 80, 256)]

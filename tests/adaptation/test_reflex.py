@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from kgadapt.cluster import ClusterSettings, WatchedRobot, write_profile
+from kgadapt.operator.cluster import ClusterSettings, WatchedRobot, write_profile
 from kgadapt.shared import keys, messages
 
 pytestmark = pytest.mark.slow

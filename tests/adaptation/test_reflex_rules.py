@@ -1,4 +1,4 @@
-"""The detector's reflex rules (kgadapt.onboard.reflex) over plain values: the table the graph gives,
+"""The detector's reflex rules (kgadapt.onboard.perception.reflex) over plain values: the table the graph gives,
 and what each frame's evidence leads to. The whole path with processes is tests/adaptation/test_reflex.py."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import pytest
 from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.queries import run_named
 from kgadapt.knowledge.store import open_store
-from kgadapt.onboard.markers import parse_config
-from kgadapt.onboard.reflex import Reflex, ReflexSettings, ReflexTable
+from kgadapt.onboard.perception.markers import parse_config
+from kgadapt.onboard.perception.reflex import Reflex, ReflexSettings, ReflexTable
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.resources import models
 from kgadapt.shared.states import ReflexEvidence
@@ -155,7 +155,7 @@ def test_the_shipped_models_give_every_band_an_in_place_configuration_onboard(tm
 
 
 def test_the_manager_follows_a_reflex_and_the_smoothed_light_may_undo_it_only_after_the_hold():
-    from kgadapt.onboard.adaptation import Analyzer, Band, BandTracker
+    from kgadapt.onboard.adaptation.adaptation import Analyzer, Band, BandTracker
     from kgadapt.shared.states import TriggerKind
 
     bands = [Band("dark", 0, 12), Band("dusk", 12, 40), Band("day", 40, 255)]
@@ -174,8 +174,8 @@ def test_the_manager_follows_a_reflex_and_the_smoothed_light_may_undo_it_only_af
 
 def test_a_reflex_decision_leaves_out_what_receivers_of_the_first_contract_do_not_know():
     # tests/contract's outsider checks trigger_kind and change against the values it was written for.
-    from kgadapt.onboard.adaptation import Placement, Plan, Trigger
-    from kgadapt.onboard.adaptation_policy import Outcome, decision_record
+    from kgadapt.onboard.adaptation.adaptation import Placement, Plan, Trigger
+    from kgadapt.onboard.adaptation.adaptation_policy import Outcome, decision_record
     from kgadapt.shared import messages
     from kgadapt.shared.states import Change, TriggerKind
 

@@ -20,7 +20,7 @@ import pytest
 from kgadapt.deploy.client import DeployerClient
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.store import open_store
-from kgadapt.onboard.adaptation_cli import explain, render
+from kgadapt.onboard.adaptation.adaptation_cli import explain, render
 from kgadapt.shared.hostmonitor import squeeze
 from kgadapt.shared.states import KEPT_STATES
 from tests.adaptation.test_adaptation_e2e import Run

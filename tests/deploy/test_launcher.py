@@ -145,7 +145,7 @@ def test_the_launcher_forks_only_modules_it_preloaded(hosts):
     python = hosts["onboard"].deployer.settings.python
     assert launcher.fork([python, "-c", f"print({READY_TOKEN!r})"], dict(os.environ), None) is None
     assert launcher.fork([python, "-m", "http.server"], dict(os.environ), None) is None
-    assert launcher.fork(["/bin/sh", "-m", "kgadapt.onboard.detector"], dict(os.environ), None) is None
+    assert launcher.fork(["/bin/sh", "-m", "kgadapt.onboard.perception.detector"], dict(os.environ), None) is None
     # The tests' stand-in is no runtime detector: the launcher does not preload it, so it is not forked.
     assert launcher.fork([python, "-m", "kgadapt.sim.echo_detector"], dict(os.environ), None) is None
     assert launcher.ready  # a refusal is not a failure of the launcher
@@ -187,7 +187,7 @@ def test_a_forked_detector_runs_with_the_environment_of_the_request_not_the_laun
     launcher = launcher_of(hosts)
     python = hosts["onboard"].deployer.settings.python
     missing = tmp_path / "no-such-zenoh.json5"
-    argv = [python, "-m", "kgadapt.onboard.detector", "--robot", ROBOT, "--host", "onboard", "--instance", "env_probe",
+    argv = [python, "-m", "kgadapt.onboard.perception.detector", "--robot", ROBOT, "--host", "onboard", "--instance", "env_probe",
             "--config", "marker_detection_day"]
     forked = launcher.fork(argv, {**os.environ, "KGADAPT_ZENOH_CONFIG": str(missing)}, None)
     assert forked is not None, "the launcher refused a preloaded module"

@@ -1,4 +1,4 @@
-"""The deployer with the shipped models and the real marker detector (kgadapt.onboard.detector).
+"""The deployer with the shipped models and the real marker detector (kgadapt.onboard.perception.detector).
 
 Slower than the echo-detector tests (OpenCV loads in each detector), so one
 test covers the whole path: start from the models' deployment, detections on
@@ -48,7 +48,7 @@ def test_the_shipped_day_detector_starts_detects_and_migrates_without_a_gap_in_o
     try:
         client = DeployerClient(client_session, ROBOT)
         info = client.start("onboard", "detector_day", "marker_detection_day", instance="day1")
-        assert info["argv"][1:3] == ["-m", "kgadapt.onboard.detector"]
+        assert info["argv"][1:3] == ["-m", "kgadapt.onboard.perception.detector"]
         _, first = markers.wait_for(lambda d: d["instance"] == "day1" and d["ids"])
         assert first["ids"] == [7] and first["config"] == "marker_detection_day" and first["host"] == "onboard"
 

@@ -1,4 +1,4 @@
-"""In-place reconfiguration of the real detector (kgadapt.onboard.detector) under a real deployer.
+"""In-place reconfiguration of the real detector (kgadapt.onboard.perception.detector) under a real deployer.
 
 One detector process, real Zenoh, the shipped models in a real FalkorDB: it
 takes the dark configuration between two frames without a restart (same pid),
@@ -81,7 +81,7 @@ def test_the_detector_takes_another_configuration_between_two_frames(hosts, clie
 
 
 def test_an_idle_detector_publishes_nothing_until_made_active(hosts, client_session, graph):
-    from kgadapt.onboard.detector import set_active
+    from kgadapt.onboard.perception.detector import set_active
 
     frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
     markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
@@ -112,7 +112,7 @@ def test_an_activity_switch_asked_before_the_detector_is_up_reaches_it_once_it_i
     # queryable's declaration may reach the manager's session later than that. set_active asks
     # again until its timeout rather than failing on the first empty answer (which left a failover
     # with no standby and a new process under load).
-    from kgadapt.onboard.detector import set_active
+    from kgadapt.onboard.perception.detector import set_active
 
     replies: list = []
     asking = threading.Thread(target=lambda: replies.append(
@@ -130,7 +130,7 @@ def test_an_activity_switch_asked_before_the_detector_is_up_reaches_it_once_it_i
 def test_a_detector_started_idle_publishes_nothing_until_made_active(hosts, client_session, graph):
     # A warm standby: started with idle (KGADAPT_START_IDLE in its environment), it does no detection
     # work from its first frame on, instead of detecting until the manager's request to idle reaches it.
-    from kgadapt.onboard.detector import set_active
+    from kgadapt.onboard.perception.detector import set_active
 
     frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
     markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")

@@ -1,7 +1,7 @@
 """Fixtures of the fault tests: hosts as network namespaces, the robot across them, a second robot watching.
 
 The robot runs as real processes in three namespaces joined by a bridge
-(kgadapt/cluster.py ``HostNetwork``): the knowledge service (the Zenoh router)
+(kgadapt/operator/cluster.py ``HostNetwork``): the knowledge service (the Zenoh router)
 and the onboard agent in ``onboard``, the remote agent in ``remote``, and
 the observer (bench/reliability_bench.py's probe, another robot on the
 network) in ``robot2``. Names carry a per-run suffix; everything started is
@@ -19,7 +19,7 @@ from typing import Callable, Iterator
 import pytest
 
 from kgadapt.bench.reliability_bench import RobotOnHosts, RobotSettings
-from kgadapt.cluster import HostNetwork
+from kgadapt.operator.cluster import HostNetwork
 
 _reason: list[str | None] = []
 

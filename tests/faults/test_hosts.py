@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from kgadapt.cluster import HostNetwork, NetworkSettings
+from kgadapt.operator.cluster import HostNetwork, NetworkSettings
 from tests.faults.conftest import our_namespaces
 
 pytestmark = pytest.mark.netns

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from kgadapt.bench.fleet_bench import seed_robot
-from kgadapt.cluster import HostNetwork, NetworkSettings
+from kgadapt.operator.cluster import HostNetwork, NetworkSettings
 from kgadapt.knowledge.store import open_store
 from tests.conftest import REPO
 from tests.support import Child
@@ -56,7 +56,7 @@ while True:
         break
     time.sleep(0.5)
 out["roster_quad2"] = roster
-from kgadapt.fleet_view import FleetView, FleetViewSettings, as_json
+from kgadapt.operator.fleet_view import FleetView, FleetViewSettings, as_json
 with FleetView(operator, FleetViewSettings(timeout=3.0)) as view:  # its subscriptions are denied: it asks
     out["view"] = as_json(view.snapshot())
 def refused(call):

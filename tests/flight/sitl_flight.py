@@ -284,7 +284,7 @@ class GroundStation:
 
 def site_marker(marker_id: int) -> float:
     """The printed size of ``marker_id`` as the site model in knowledge/models says it."""
-    from kgadapt.onboard.site import load_site
+    from kgadapt.onboard.flight.site import load_site
 
     size = load_site(SITE_FILE).size_of(marker_id)
     if size is None:
@@ -294,7 +294,7 @@ def site_marker(marker_id: int) -> float:
 
 def intrinsics_from_graph(session):
     from kgadapt.knowledge.client import KnowledgeClient
-    from kgadapt.onboard.landing_targets import CameraModel
+    from kgadapt.onboard.flight.landing_targets import CameraModel
 
     rows = KnowledgeClient(session, ROBOT).query("camera_intrinsics", {"camera": CAMERA}, wait_s=15.0)
     width, height = CAMERA_SIZE

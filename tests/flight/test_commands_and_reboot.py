@@ -7,8 +7,8 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.mavlink import AUTOPILOT_REBOOTED, FlightLink, LinkSettings
-from kgadapt.onboard.mavlink_commands import CommandOutcome, CommandSettings
+from kgadapt.onboard.flight.mavlink import AUTOPILOT_REBOOTED, FlightLink, LinkSettings
+from kgadapt.onboard.flight.mavlink_commands import CommandOutcome, CommandSettings
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from tests.flight.conftest import ALL_FAST, ARDUCOPTER_DEFAULTS, free_udp_port, wait_until
 

@@ -13,15 +13,15 @@ import threading
 
 import pytest
 
-from kgadapt import status
+from kgadapt.operator import status
 from kgadapt.cli import build_parser
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
 from kgadapt.onboard.cli import FlightPart, build_parts
-from kgadapt.onboard.geometry import ned_to_body
-from kgadapt.onboard.landing_targets import CameraModel
-from kgadapt.onboard.site import ANGLES_ONLY
+from kgadapt.onboard.flight.geometry import ned_to_body
+from kgadapt.onboard.flight.landing_targets import CameraModel
+from kgadapt.onboard.flight.site import ANGLES_ONLY
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
@@ -126,7 +126,7 @@ def test_without_sizes_or_a_rangefinder_the_agent_warns_once_and_status_lists_it
 def test_the_bridge_command_takes_the_graphs_site_as_the_sitl_runs_start_it(tmp_path):
     """``kgadapt knowledge load`` + ``kgadapt knowledge serve`` + ``kgadapt flight bridge --camera camera``, as
     child processes, no site file: positions from the graph's marker size, without a rangefinder."""
-    from kgadapt.cluster import ClusterSettings, LocalCluster, free_tcp_port
+    from kgadapt.operator.cluster import ClusterSettings, LocalCluster, free_tcp_port
 
     cluster = LocalCluster(ClusterSettings(workdir=tmp_path, robot=ROBOT, calibrate=False))
     cluster.prepare_store()

@@ -11,8 +11,8 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.mavlink import LandingTarget
-from kgadapt.onboard.mavlink_commands import CommandOutcome
+from kgadapt.onboard.flight.mavlink import LandingTarget
+from kgadapt.onboard.flight.mavlink_commands import CommandOutcome
 from kgadapt.sim.fake_fc import VehicleState
 from tests.flight.conftest import wait_until
 
@@ -180,8 +180,8 @@ def test_a_single_outlier_is_rejected_and_three_in_a_row_are_taken(ardu):
 # -- AC_PosControl::accel_to_lean_angles: LAND's correction towards the target tilts the vehicle
 
 def test_lands_correction_leans_the_vehicle_and_moves_the_marker_across_the_image_between_slow_frames(ardu):
-    from kgadapt.onboard.geometry import ned_to_body
-    from kgadapt.onboard.landing_targets import CameraModel
+    from kgadapt.onboard.flight.geometry import ned_to_body
+    from kgadapt.onboard.flight.landing_targets import CameraModel
     from kgadapt.sim.landing_scene import MarkerScene
 
     link, fc = ardu(vehicle=HOVER, fc=dict(land_speed_ms=0.5))

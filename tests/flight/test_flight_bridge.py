@@ -7,8 +7,8 @@ import time
 
 import pytest
 
-from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
-from kgadapt.onboard.mavlink import LINK_LOST, LINK_RESTORED, LinkSettings
+from kgadapt.onboard.flight.flight import BridgeSettings, CameraIntrinsics, FlightBridge
+from kgadapt.onboard.flight.mavlink import LINK_LOST, LINK_RESTORED, LinkSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState

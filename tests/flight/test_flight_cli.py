@@ -134,7 +134,7 @@ def test_status_prints_every_field_with_its_age_and_the_missing_streams(kgadapt_
 
 
 def test_the_bridge_command_with_camera_and_marker_files_sends_positions_and_holds_them(kgadapt_cmd, tmp_path):
-    from kgadapt.onboard.landing_targets import CameraModel
+    from kgadapt.onboard.flight.landing_targets import CameraModel
     from kgadapt.sim.landing_scene import MarkerScene
 
     camera = CameraModel(fx=615.0, fy=615.0, cx=320.0, cy=240.0, width=640, height=480, yaw_deg=90.0)
@@ -156,14 +156,14 @@ def test_the_bridge_command_with_camera_and_marker_files_sends_positions_and_hol
         # the bridge's link asks for ATTITUDE and LOCAL_POSITION_NED: the held target needs them
         wait_until(lambda: fc.stream_rate("LOCAL_POSITION_NED") and fc.stream_rate("ATTITUDE"), 10, "streams asked")
         corners = scene.corners(((0.0, 0.0, 0.3), vehicle.position_ned))
-        for seq in (1, 2, 3):  # a marker counts once seen in 3 steady frames (kgadapt.onboard.confirmation)
+        for seq in (1, 2, 3):  # a marker counts once seen in 3 steady frames (kgadapt.onboard.flight.confirmation)
             now = time.time()
             publisher.put(messages.encode("detections", {
                 "instance": "det9", "config": "c", "host": "onboard", "seq": seq, "frame_time": now, "time": now,
                 "ids": [[7]], "corners": [[corners]], "processing_ms": 3.0}))
             time.sleep(0.05)  # three camera frames apart
         got = fc.wait_for("LANDING_TARGET", 5, timeout=10)  # the confirmed detection, then the held target re-sent
-        from kgadapt.onboard.geometry import ned_to_body
+        from kgadapt.onboard.flight.geometry import ned_to_body
 
         truth = ned_to_body((0.0, 0.0, 0.3), (1.0, 0.5, 8.0))
         for target in got[:5]:

@@ -13,8 +13,8 @@ from kgadapt.knowledge import runtime
 from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
-from kgadapt.onboard.flight import FlightControlWriter, flight_control_params, intrinsics_from_graph
-from kgadapt.onboard.mavlink import FlightState
+from kgadapt.onboard.flight.flight import FlightControlWriter, flight_control_params, intrinsics_from_graph
+from kgadapt.onboard.flight.mavlink import FlightState
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import free_port

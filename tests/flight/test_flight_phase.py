@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from kgadapt.onboard.flight_phase import in_final_descent
-from kgadapt.onboard.mavlink import FlightState
+from kgadapt.onboard.flight.flight_phase import in_final_descent
+from kgadapt.onboard.flight.mavlink import FlightState
 from kgadapt.shared import messages
 
 

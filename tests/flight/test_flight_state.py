@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from kgadapt.onboard.mavlink import STREAM_FIELDS
+from kgadapt.onboard.flight.mavlink import STREAM_FIELDS
 from kgadapt.sim.fake_fc import VehicleState
 from tests.flight.conftest import wait_until
 

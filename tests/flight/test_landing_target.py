@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from kgadapt.onboard.flight import CameraIntrinsics, choose_marker, landing_target, marker_points
+from kgadapt.onboard.flight.flight import CameraIntrinsics, choose_marker, landing_target, marker_points
 from kgadapt.shared.errors import FlightLinkError, MessageError
 
 K = CameraIntrinsics(fx=600.0, fy=500.0, cx=320.0, cy=240.0)

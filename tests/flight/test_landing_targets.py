@@ -8,10 +8,10 @@ import math
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.geometry import body_to_camera, body_to_ned, camera_to_body, ned_to_body
-from kgadapt.onboard.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, load_camera, load_site_markers
-from kgadapt.onboard.mavlink import FlightState
-from kgadapt.onboard.site import SiteMarkers
+from kgadapt.onboard.flight.geometry import body_to_camera, body_to_ned, camera_to_body, ned_to_body
+from kgadapt.onboard.flight.landing_targets import AutopilotProfile, CameraModel, TargetBuilder, load_camera, load_site_markers
+from kgadapt.onboard.flight.mavlink import FlightState
+from kgadapt.onboard.flight.site import SiteMarkers
 from kgadapt.shared.errors import ConfigError, ModelError
 from kgadapt.sim.landing_scene import MarkerScene
 
@@ -134,7 +134,7 @@ def test_a_site_marker_file_is_checked_on_load(tmp_path):
     ]:
         path = tmp_path / "bad.json"
         path.write_text(json.dumps(bad))
-        with pytest.raises(ModelError, match=says):  # the one site file format (onboard/site.py)
+        with pytest.raises(ModelError, match=says):  # the one site file format (onboard/flight/site.py)
             load_site_markers(path)
 
 

@@ -12,7 +12,7 @@ import time
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.onboard.mavlink import FlightLink, LinkSettings
+from kgadapt.onboard.flight.mavlink import FlightLink, LinkSettings
 from tests.flight.conftest import free_udp_port
 from tests.support import wait_for
 

@@ -13,7 +13,7 @@ from kgadapt.shared.session import ZenohSettings, open_session
 from kgadapt.sim.landing_check import LandingCheckSettings, run_landing_check
 
 FAST = dict(land_speed_ms=1.5, xy_speed_ms=3.0)
-# At 1 detection a second a marker is confirmed (kgadapt.onboard.confirmation: 3 steady sightings) 2 s after it
+# At 1 detection a second a marker is confirmed (kgadapt.onboard.flight.confirmation: 3 steady sightings) 2 s after it
 # is first seen; ArduCopter's own LAND_SPEED (0.5 m/s below 10 m) leaves the time a real landing has.
 REAL_SPEED = dict(land_speed_ms=0.5, xy_speed_ms=2.0)
 

@@ -8,10 +8,10 @@ import logging
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt import status
-from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
-from kgadapt.onboard.mavlink import LinkSettings
-from kgadapt.onboard.mavlink_commands import CommandOutcome, CommandSettings
+from kgadapt.operator import status
+from kgadapt.onboard.flight.flight import BridgeSettings, CameraIntrinsics, FlightBridge
+from kgadapt.onboard.flight.mavlink import LinkSettings
+from kgadapt.onboard.flight.mavlink_commands import CommandOutcome, CommandSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController
@@ -22,7 +22,7 @@ FAST_RETRIES = CommandSettings(first_wait_s=0.1, backoff=2.0, attempts=4)
 
 
 def test_each_stream_request_rejected_once_then_accepted_is_logged_counted_and_shown(caplog):
-    caplog.set_level(logging.INFO, logger="kgadapt.onboard.mavlink_commands")
+    caplog.set_level(logging.INFO, logger="kgadapt.onboard.flight.mavlink_commands")
     robot = "refusals"
     port = free_udp_port()
     session = open_session(ZenohSettings(mode="peer", listen=(), connect=()))
@@ -56,7 +56,7 @@ def test_each_stream_request_rejected_once_then_accepted_is_logged_counted_and_s
 
 
 def test_a_command_rejected_until_its_retries_are_spent_is_a_warning_and_a_refusal(ardu, caplog):
-    caplog.set_level(logging.INFO, logger="kgadapt.onboard.mavlink_commands")
+    caplog.set_level(logging.INFO, logger="kgadapt.onboard.flight.mavlink_commands")
     link, fc = ardu(fc=dict(temporarily_reject=((mavlink2.MAV_CMD_DO_SET_MODE, 255),)),
                     link=dict(commands=FAST_RETRIES))
     before = link.state.rejected

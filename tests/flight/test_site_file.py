@@ -1,4 +1,4 @@
-"""One site file for the confirmer and the landing targets (onboard/site.py)."""
+"""One site file for the confirmer and the landing targets (onboard/flight/site.py)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from kgadapt.cli import build_parser
-from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer
-from kgadapt.onboard.landing_targets import CameraModel, TargetBuilder, load_site_markers
-from kgadapt.onboard.site import load_site
+from kgadapt.onboard.flight.confirmation import ConfirmationSettings, MarkerConfirmer
+from kgadapt.onboard.flight.landing_targets import CameraModel, TargetBuilder, load_site_markers
+from kgadapt.onboard.flight.site import load_site
 from kgadapt.shared.errors import ModelError
 
 DEMO = Path(__file__).resolve().parents[2] / "knowledge" / "models" / "sites" / "demo.site"

@@ -88,7 +88,7 @@ def test_a_systemd_unit_names_the_deployment_after_its_file_and_splits_execstart
     node = _nodes(model)[(S.DEPLOYMENT, "d_a")]
     assert node.extra_labels == (S.SYSTEMD_SERVICE_FILE,)
     assert node.props["executable"] == "{python}"
-    assert node.props["arguments"] == ["-m", "kgadapt.onboard.detector", "--config", "{config}", "--host", "{host}"]
+    assert node.props["arguments"] == ["-m", "kgadapt.onboard.perception.detector", "--config", "{config}", "--host", "{host}"]
     assert node.props["environment"] == ["A=1", "B=two words"]
     assert _edges(model) == {(S.DEPLOYS, "d_a", "g_a"), (S.EXECUTABLE_ON, "d_a", "alpha"),
                              (S.EXECUTABLE_ON, "d_a", "beta")}
@@ -104,7 +104,7 @@ def test_a_plain_deployment_file_becomes_a_deployment_file_node():
     model = deployment_file.parse((KNOWN / "d_c.deploy").read_text(), "/x/whatever.deploy")
     node = _nodes(model)[(S.DEPLOYMENT, "d_c")]  # the name: key wins over the file name
     assert node.extra_labels == (S.DEPLOYMENT_FILE,)
-    assert (node.props["executable"], node.props["arguments"]) == ("/usr/bin/env", ["{python}", "-m", "kgadapt.onboard.detector"])
+    assert (node.props["executable"], node.props["arguments"]) == ("/usr/bin/env", ["{python}", "-m", "kgadapt.onboard.perception.detector"])
     assert _edges(model) == {(S.DEPLOYS, "d_c", "g_c"), (S.EXECUTABLE_ON, "d_c", "alpha")}
 
 
@@ -139,7 +139,7 @@ def test_the_shipped_models_check_clean_and_hold_what_the_adaptation_needs():
     assert len(resolutions) >= 2
     for (label, name), node in nodes.items():
         if label == S.DEPLOYMENT and name != "flight_control":
-            assert node.props["arguments"][:2] == ["-m", "kgadapt.onboard.detector"]
+            assert node.props["arguments"][:2] == ["-m", "kgadapt.onboard.perception.detector"]
 
 
 # --- malformed models: (file name, text, line, what the message says) -----------------------

@@ -57,8 +57,8 @@ def _deploy(executable: str, arguments: str) -> str:
 
 
 def test_a_deployment_of_a_module_python_can_find_loads():
-    model = deployment_file.parse(_deploy("{python}", "-m kgadapt.onboard.detector --config {config}"), "x.deploy")
-    assert model.nodes[0].props["arguments"][:2] == ["-m", "kgadapt.onboard.detector"]
+    model = deployment_file.parse(_deploy("{python}", "-m kgadapt.onboard.perception.detector --config {config}"), "x.deploy")
+    assert model.nodes[0].props["arguments"][:2] == ["-m", "kgadapt.onboard.perception.detector"]
 
 
 @pytest.mark.parametrize("executable, arguments, line, why", [
@@ -100,7 +100,7 @@ def test_loading_the_models_judges_detectors_with_opencv_in_a_child_and_never_im
 
 
 def test_one_preprocessing_table_for_the_importer_and_the_detector():
-    from kgadapt.onboard import markers
+    from kgadapt.onboard.perception import markers
     from kgadapt.shared import preprocessing
 
     assert rpsl.PREPROCESS_OPS is preprocessing.OPS and markers._OPS is preprocessing.OPS

@@ -146,7 +146,7 @@ def test_detector_config_gives_the_settings_the_detector_program_needs(known_sto
 def test_deployment_describes_one_deployment(known_store):
     assert _run(known_store, "deployment", name="d_a") == [{
         "name": "d_a", "kind": "SystemdServiceFile", "executable": "{python}",
-        "arguments": ["-m", "kgadapt.onboard.detector", "--config", "{config}", "--host", "{host}"],
+        "arguments": ["-m", "kgadapt.onboard.perception.detector", "--config", "{config}", "--host", "{host}"],
         "environment": ["A=1", "B=two words"], "platforms": ["alpha", "beta"], "deploys": ["g_a"]}]
     assert _run(known_store, "deployment", name="d_fc")[0]["deploys"] == ["fc"]
     assert _run(known_store, "deployment", name="nope") == []

@@ -11,7 +11,7 @@ import pytest
 
 from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.queries import run_named
-from kgadapt.onboard.site import site_from_rows
+from kgadapt.onboard.flight.site import site_from_rows
 from kgadapt.shared.errors import ModelError
 from tests.conftest import REPO
 

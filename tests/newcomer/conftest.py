@@ -31,7 +31,7 @@ _reason: list[str | None] = []
 
 def _unavailable() -> str | None:
     if not _reason:
-        from kgadapt.cluster import HostNetwork
+        from kgadapt.operator.cluster import HostNetwork
 
         _reason.append(HostNetwork.unavailable_reason())
     return _reason[0]

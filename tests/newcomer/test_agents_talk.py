@@ -11,7 +11,7 @@ import signal
 import subprocess
 import sys
 
-from kgadapt.cluster import free_tcp_port
+from kgadapt.operator.cluster import free_tcp_port
 from tests.support import Child
 
 

@@ -69,10 +69,10 @@ class Collector:
 
 
 class DetectorProcess(Child):
-    """``python -m kgadapt.onboard.detector`` as a child of ours (tests.support.Child)."""
+    """``python -m kgadapt.onboard.perception.detector`` as a child of ours (tests.support.Child)."""
 
     def __init__(self, args: list[str], log_dir: Path, name: str) -> None:
-        super().__init__([sys.executable, "-m", "kgadapt.onboard.detector", *args], name, log_dir)
+        super().__init__([sys.executable, "-m", "kgadapt.onboard.perception.detector", *args], name, log_dir)
 
     def wait_ready(self, timeout: float = 20.0) -> Payload:
         return super().wait_ready(timeout)

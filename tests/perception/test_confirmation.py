@@ -1,4 +1,4 @@
-"""No phantom landing targets: marker confirmation (onboard/confirmation.py) and the flight bridge (issue 11)."""
+"""No phantom landing targets: marker confirmation (onboard/flight/confirmation.py) and the flight bridge (issue 11)."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import time
 
 import pytest
 
-from kgadapt.onboard.calibration import model_configs
-from kgadapt.onboard.confirmation import ConfirmationSettings, MarkerConfirmer, Place
-from kgadapt.onboard.markers import MarkerDetector
+from kgadapt.onboard.perception.calibration import model_configs
+from kgadapt.onboard.flight.confirmation import ConfirmationSettings, MarkerConfirmer, Place
+from kgadapt.onboard.perception.markers import MarkerDetector
 from kgadapt.onboard.perception.scene import IlluminationProfile, SceneSettings, SyntheticScene
-from kgadapt.onboard.site import SiteMarkers, load_site
+from kgadapt.onboard.flight.site import SiteMarkers, load_site
 from kgadapt.shared.errors import ConfigError, MessageError, ModelError
 from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
 from tests.conftest import REPO
@@ -46,7 +46,7 @@ def test_a_marker_that_jumps_or_changes_size_starts_over():
 
 def test_with_places_a_marker_that_moves_across_the_image_but_stays_put_on_the_ground_is_steady():
     # A second apart, a vehicle accelerating towards the marker leans and moves: the marker jumps
-    # 200 px in the image, doubles in size, but lies where it lay (kgadapt.onboard.confirmation.Place).
+    # 200 px in the image, doubles in size, but lies where it lay (kgadapt.onboard.flight.confirmation.Place).
     c = MarkerConfirmer()
     here = Place((2.5, 2.0, 0.0), 0.5, 10.0)
     frames = [SQUARE, moved(SQUARE, 200, -40), moved(SQUARE, -150, 90, scale=2.0)]
@@ -168,8 +168,8 @@ def test_the_shipped_configurations_do_report_phantoms_on_these_scenes(phantom_d
                          ids=["no-site", "site", "no-site-pose", "site-pose"])
 def test_phantoms_from_textures_other_dictionaries_and_charuco_boards_send_no_landing_target(
         phantom_detections, with_site, with_pose):
-    from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge
-    from kgadapt.onboard.mavlink import LinkSettings
+    from kgadapt.onboard.flight.flight import BridgeSettings, CameraIntrinsics, FlightBridge
+    from kgadapt.onboard.flight.mavlink import LinkSettings
     from kgadapt.shared import keys, messages
     from kgadapt.shared.session import ZenohSettings, open_session
     from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
@@ -261,7 +261,7 @@ def _noisy_places(seed: int, n: int, *, with_model: bool):
     placed from their pose as the flight bridge places them (a vehicle at rest at the origin)."""
     import random
 
-    from kgadapt.onboard.landing_targets import CameraModel, marker_pose
+    from kgadapt.onboard.flight.landing_targets import CameraModel, marker_pose
 
     cam = CameraModel(fx=615.0, fy=615.0, cx=320.0, cy=240.0, width=640, height=480)
     rng, h, (x, y, z) = random.Random(seed), 0.13, (2.0, 2.5, 10.0)

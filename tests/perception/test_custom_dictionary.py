@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from kgadapt.knowledge.importers import rpsl
-from kgadapt.onboard.calibration import model_configs
-from kgadapt.onboard.markers import MarkerDetector, aruco_dictionary, parse_config
+from kgadapt.onboard.perception.calibration import model_configs
+from kgadapt.onboard.perception.markers import MarkerDetector, aruco_dictionary, parse_config
 from kgadapt.shared.errors import ConfigError, ModelError
 from kgadapt.sim.photos import PHOTO_DIR, load_photo
 

@@ -12,8 +12,8 @@ import psutil
 import pytest
 import zenoh
 
-from kgadapt.onboard.camera import CameraPart, CameraSettings, SyntheticSource
-from kgadapt.onboard.markers import score
+from kgadapt.onboard.perception.camera import CameraPart, CameraSettings, SyntheticSource
+from kgadapt.onboard.perception.markers import score
 from kgadapt.onboard.perception.scene import IlluminationProfile, SyntheticScene
 from kgadapt.shared import keys, messages
 from tests.perception.conftest import DAY_JSON, Collector, wait_for

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from kgadapt.onboard.illumination import Smoother, band_for_level, bands_from_rows, luminance
+from kgadapt.onboard.perception.illumination import Smoother, band_for_level, bands_from_rows, luminance
 from kgadapt.shared.errors import ConfigError
 
 # Rows as the named query detector_configs gives them (bands of the shipped models).

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kgadapt.onboard.illumination import LightSettings, LightSource, band_for_level, estimate_light, luminance
+from kgadapt.onboard.perception.illumination import LightSettings, LightSource, band_for_level, estimate_light, luminance
 from kgadapt.onboard.perception.scene import IlluminationProfile, LightLayout, SceneSettings, SyntheticScene
 from kgadapt.shared.errors import ConfigError
 

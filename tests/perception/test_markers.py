@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from kgadapt.onboard.calibration import (
+from kgadapt.onboard.perception.calibration import (
     CONDITIONS,
     CalibrationSettings,
     band_levels,
@@ -17,8 +17,8 @@ from kgadapt.onboard.calibration import (
     rank,
     record,
 )
-from kgadapt.onboard.illumination import Band
-from kgadapt.onboard.markers import MarkerDetector, parse_config, score
+from kgadapt.onboard.perception.illumination import Band
+from kgadapt.onboard.perception.markers import MarkerDetector, parse_config, score
 from kgadapt.onboard.perception.scene import IlluminationProfile, SyntheticScene
 from kgadapt.shared.errors import ConfigError
 
@@ -155,7 +155,7 @@ def test_calibration_figures_land_in_the_graph(calibrated):
 
 
 def test_the_best_configuration_of_a_band_is_the_most_accurate_then_the_fastest():
-    from kgadapt.onboard.calibration import CalibrationResult
+    from kgadapt.onboard.perception.calibration import CalibrationResult
 
     def result(config, rate, ms, false=0.0):
         return CalibrationResult(config=config, band="b", detection_rate=rate, false_per_frame=false,

@@ -26,7 +26,7 @@ import pytest
 from kgadapt.deploy.client import DeployerClient
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.runtime import WRITERS
-from kgadapt.onboard.detector import set_active
+from kgadapt.onboard.perception.detector import set_active
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import RemoteError, RequestTimeout, TransportError
 from kgadapt.shared.hostmonitor import squeeze

@@ -13,8 +13,8 @@ import time
 import msgpack
 import pytest
 
-from kgadapt.onboard.flight import BridgeSettings, FlightBridge
-from kgadapt.onboard.mavlink import LinkSettings
+from kgadapt.onboard.flight.flight import BridgeSettings, FlightBridge
+from kgadapt.onboard.flight.mavlink import LinkSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
@@ -120,7 +120,7 @@ def test_a_forged_final_descent_does_not_hold_back_a_band_change(tmp_path):
     # The fake autopilot reports IN_AIR throughout; a forger says LANDING ten times a second. The graph
     # allows no in-place change, so the step into the dark is a planned change (a new process), which the
     # detector's reflex asks for at once.
-    from kgadapt.cluster import models_without_in_place
+    from kgadapt.operator.cluster import models_without_in_place
 
     with Run(tmp_path, [[0, 120], [5, 120], [5.001, 5], [40, 5]],
              models=models_without_in_place(tmp_path / "models")) as run:
@@ -148,7 +148,7 @@ def test_forged_detections_and_a_forged_descent_heard_on_zenoh(tmp_path):
     the rate it watches does not collapse. Then it says LANDING twenty times a second while the light
     flaps between dusk and day every 3 s: each kind of change is deferred, and recorded, once. (The graph
     allows no in-place change here, so each flap is a planned change the detector's reflex asks for.)"""
-    from kgadapt.cluster import models_without_in_place
+    from kgadapt.operator.cluster import models_without_in_place
     from kgadapt.knowledge.client import KnowledgeClient
 
     light = [[0, 120], [7, 120], [8, 16], [15, 16], [16, 120], [18, 120], [19, 16], [21, 16], [22, 120],

@@ -30,8 +30,8 @@ import zenoh
 from hypothesis import given
 from hypothesis import strategies as st
 
-from kgadapt.onboard.flight import BridgeSettings, CameraIntrinsics, FlightBridge, choose_marker, landing_target
-from kgadapt.onboard.mavlink import LinkSettings
+from kgadapt.onboard.flight.flight import BridgeSettings, CameraIntrinsics, FlightBridge, choose_marker, landing_target
+from kgadapt.onboard.flight.mavlink import LinkSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
@@ -65,10 +65,10 @@ def count_lines(path: Path, pattern: str) -> int:
 
 @pytest.fixture
 def detector(tmp_path):
-    """A real ``python -m kgadapt.onboard.detector`` (inline configuration), connected to a listening peer session."""
+    """A real ``python -m kgadapt.onboard.perception.detector`` (inline configuration), connected to a listening peer session."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = open_session(ZenohSettings(mode="peer", listen=(endpoint,)))
-    child = Child([sys.executable, "-m", "kgadapt.onboard.detector", "--robot", "fuzzbot", "--host", "onboard",
+    child = Child([sys.executable, "-m", "kgadapt.onboard.perception.detector", "--robot", "fuzzbot", "--host", "onboard",
                    "--instance", "fz", "--connect", endpoint, "--config-json", DAY_JSON], "detector", tmp_path)
     try:
         child.wait_ready(30.0)  # raises with its stderr when it is not
@@ -130,7 +130,7 @@ def test_a_detector_process_fed_garbage_frames_drops_each_and_keeps_answering_go
 K = CameraIntrinsics(fx=600.0, fy=500.0, cx=320.0, cy=240.0)
 SQUARE = [[380.0, 280.0], [420.0, 280.0], [420.0, 320.0], [380.0, 320.0]]
 OUTCOMES = ("malformed", "no_target", "stale", "duplicate", "rate_limited", "targets_sent", "send_failed",
-            "unconfirmed")  # unconfirmed: candidates not (yet) steady, onboard/confirmation.py
+            "unconfirmed")  # unconfirmed: candidates not (yet) steady, onboard/flight/confirmation.py
 
 
 def good_detections(seq: int, **changes) -> dict:
@@ -238,9 +238,9 @@ def test_a_detection_stamped_in_the_future_does_not_silence_the_landing_targets(
 
 
 def test_an_onboard_agent_with_adapt_fed_garbage_on_every_subscription_still_adapts(tmp_path):
-    from kgadapt.cluster import ClusterSettings, LocalCluster
+    from kgadapt.operator.cluster import ClusterSettings, LocalCluster
     from kgadapt.shared.hostmonitor import squeeze
-    from kgadapt.timeline import Recorder
+    from kgadapt.operator.timeline import Recorder
 
     profile = tmp_path / "dark.json"
     profile.write_text(json.dumps({"points": [[0, 5], [600, 5]], "noise": 2.0, "gradient": 0.2, "loop": False}))

@@ -226,7 +226,7 @@ def test_only_the_models_add_hosts_a_ghost_is_refused_counted_and_logged_once(ze
     stats = client.service_stats()  # knowledge/own/stats: what `kgadapt status` counts
     assert stats["unknown_host_refused"] == 9 and stats["unknown_hosts"] == ["ghost"]
     assert len([r for r in caplog.records if "refused host 'ghost'" in r.getMessage()]) == 1  # logged once
-    from kgadapt.status import gather
+    from kgadapt.operator.status import gather
 
     shown = gather(session, robot, listen_s=0.0, timeout=2.0)  # what `kgadapt status` shows
     assert shown["refused_hosts"] == {"count": 9, "hosts": ["ghost"]}
