@@ -1,6 +1,6 @@
 """The layering: the runtime a drone installs never imports the simulator's stand-ins or the benchmarks.
 
-Runtime is kgadapt.shared, .knowledge, .onboard, .remote, .deploy and the modules of the package root;
+Runtime is kgadapt.shared, .knowledge, .onboard, .remote, .deploy, .operator and the modules of the package root;
 kgadapt.sim (fake flight controller, echo detector, photographs, landing check) and kgadapt.bench sit
 above it. import-linter checks every import statement, those inside functions too (pyproject.toml's
 [tool.importlinter]); the last test runs the runtime with the simulator and the benchmarks made
