@@ -94,8 +94,8 @@ def _p90(samples: list[float]) -> float:
 def run(args: argparse.Namespace) -> int:
     import socket
 
-    from kgadapt.operator.cluster import ClusterSettings, WatchedRobot, write_profile
     from kgadapt.knowledge.client import KnowledgeClient
+    from kgadapt.operator.cluster import ClusterSettings, WatchedRobot, write_profile
     from kgadapt.shared.session import ZenohSettings, open_session
     from tests.security.outsider import Outsider
 

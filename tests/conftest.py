@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from kgadapt.operator.cluster import free_tcp_port
 from kgadapt.knowledge.embedded import EmbeddedServer
 from kgadapt.knowledge.falkordb_store import FalkorDBStore
 from kgadapt.knowledge.store import GraphStore, StoreSettings, open_store
+from kgadapt.operator.cluster import free_tcp_port
 
 REPO = Path(__file__).resolve().parent.parent
 _graph_numbers = itertools.count()

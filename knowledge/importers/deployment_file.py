@@ -17,7 +17,7 @@ like a shell would (quotes respected, nothing expanded). ``environment`` may
 repeat. ``reconfigurable_as`` names a program family: a running process of one
 deployment may be reconfigured in place into another deployment of the same
 family on the same host (no restart). Every other key is refused.
-"""
+"""  # noqa: E501  (the example's arguments line is one line of a .deploy file)
 
 from __future__ import annotations
 

@@ -115,8 +115,8 @@ def _write(key: str, verdict: Verdict) -> None:
 def _ask(configs: list[tuple[str, str]], path: str) -> list[Verdict]:
     request = json.dumps([{"name": name, "config_json": config} for name, config in configs])
     try:
-        done = subprocess.run([sys.executable, "-m", "kgadapt.onboard.perception.config_check"], input=request, capture_output=True,
-                              text=True, timeout=120)
+        done = subprocess.run([sys.executable, "-m", "kgadapt.onboard.perception.config_check"], input=request,
+                              capture_output=True, text=True, timeout=120)
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise ModelError(path, None, f"cannot check the detector configurations with OpenCV: {exc}") from exc
     try:

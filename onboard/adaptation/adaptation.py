@@ -30,8 +30,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
-from kgadapt.onboard.perception.illumination import Band, bands_from_rows
 from kgadapt.onboard.adaptation.live_rate import LIVE, LiveSettings, decided_by, weigh
+from kgadapt.onboard.perception.illumination import Band, bands_from_rows
 from kgadapt.shared.states import URGENT_TRIGGERS, Change, TriggerKind
 
 __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",

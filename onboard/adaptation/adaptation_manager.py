@@ -86,11 +86,20 @@ from kgadapt.deploy.deployer import new_instance_name
 from kgadapt.deploy.migration import FirstOutput, migrate, reconfigure
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.onboard.adaptation import adaptation_policy as policy
-from kgadapt.onboard.adaptation.adaptation import Analyzer, BandTracker, Placement, Plan, Planner, PlanningError, Trigger, bands_from_rows
+from kgadapt.onboard.adaptation.adaptation import (
+    Analyzer,
+    BandTracker,
+    Placement,
+    Plan,
+    Planner,
+    PlanningError,
+    Trigger,
+    bands_from_rows,
+)
 from kgadapt.onboard.adaptation.adaptation_policy import Action, AdaptationSettings, Execution, LoopState, Outcome, StandbyStep
-from kgadapt.onboard.perception.detector import set_active
-from kgadapt.onboard.flight.flight_phase import in_final_descent
 from kgadapt.onboard.adaptation.live_rate import LiveRates
+from kgadapt.onboard.flight.flight_phase import in_final_descent
+from kgadapt.onboard.perception.detector import set_active
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import DeploymentError, KgadaptError, MessageError, SourceNotStopped
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings, check_status

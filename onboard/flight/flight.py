@@ -178,7 +178,8 @@ class BridgeSettings:
     profile: str = "auto"  # ardupilot | px4 | auto (from the autopilot's heartbeat)
     hold_s: float = 1.5  # re-send the last target, predicted, this long after its frame ...
     resend_hz: float = 10.0  # ... at this rate: ArduPilot's estimator wants a measurement every 0.5 s
-    confirmation: ConfirmationSettings = ConfirmationSettings()  # no phantom landing targets (kgadapt.onboard.flight.confirmation)
+    # no phantom landing targets (kgadapt.onboard.flight.confirmation)
+    confirmation: ConfirmationSettings = ConfirmationSettings()
 
 
 StateCallback = Callable[[FlightState], None]

@@ -197,7 +197,13 @@ def _monitor(args: argparse.Namespace) -> int:
 def _bridge(args: argparse.Namespace) -> int:
     from kgadapt.onboard.cli import log_site
     from kgadapt.onboard.flight.confirmation import ConfirmationSettings
-    from kgadapt.onboard.flight.flight import BridgeSettings, CameraIntrinsics, FlightBridge, FlightControlWriter, intrinsics_from_graph
+    from kgadapt.onboard.flight.flight import (
+        BridgeSettings,
+        CameraIntrinsics,
+        FlightBridge,
+        FlightControlWriter,
+        intrinsics_from_graph,
+    )
     from kgadapt.onboard.flight.landing_targets import load_camera
     from kgadapt.onboard.flight.site import load_site, site_from_graph
     from kgadapt.shared import session as zsession

@@ -38,9 +38,9 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from kgadapt.onboard.flight.site import DEFAULT_DICTIONARY, SiteMarkers
 from kgadapt.onboard.perception.illumination import Band, bands_from_rows
 from kgadapt.onboard.perception.markers import DetectorConfig, MarkerDetector, Score, aruco_dictionary, parse_config, score
-from kgadapt.onboard.flight.site import DEFAULT_DICTIONARY, SiteMarkers
 from kgadapt.shared.errors import ConfigError, KgadaptError
 from kgadapt.shared.preprocessing import is_dictionary_file
 from kgadapt.shared.resources import models, results_dir

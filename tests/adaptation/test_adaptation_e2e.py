@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from kgadapt.operator.cluster import ClusterSettings, WatchedRobot, write_profile
 from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.operator.cluster import ClusterSettings, WatchedRobot, write_profile
 from kgadapt.shared.hostmonitor import squeeze
 
 pytestmark = pytest.mark.slow

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from kgadapt.onboard.perception.calibration import rank_rows
 from kgadapt.onboard.adaptation.live_rate import LiveRates, LiveSettings, decided_by, fresh, weigh
+from kgadapt.onboard.perception.calibration import rank_rows
 
 SETTINGS = LiveSettings(max_age_s=60.0, min_expected=30, window=100, write_every_s=2.0, expect_s=1.0,
                         agree=0.15)

@@ -10,10 +10,10 @@ import time
 import pytest
 
 from kgadapt.bench.fleet_bench import seed_robot
-from kgadapt.operator.fleet_view import FleetView, FleetViewSettings, render
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.fleet import FleetClient, FleetSettings, RobotState
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+from kgadapt.operator.fleet_view import FleetView, FleetViewSettings, render
 from kgadapt.shared import keys, messages
 from kgadapt.shared.errors import ConfigError
 from tests.conftest import REPO

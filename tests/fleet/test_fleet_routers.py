@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 
 from kgadapt.bench.fleet_bench import seed_robot
-from kgadapt.operator.cluster import HostNetwork, NetworkSettings
 from kgadapt.knowledge.store import open_store
+from kgadapt.operator.cluster import HostNetwork, NetworkSettings
 from tests.conftest import REPO
 from tests.support import Child
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from kgadapt.operator import cluster
 from kgadapt.onboard.flight.mavlink import FlightLink, LinkSettings
+from kgadapt.operator import cluster
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
 from tests.support import wait_for as wait_until  # noqa: F401 (the tests import it from here)
 

@@ -13,7 +13,6 @@ import threading
 
 import pytest
 
-from kgadapt.operator import status
 from kgadapt.cli import build_parser
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.loader import load_models
@@ -22,6 +21,7 @@ from kgadapt.onboard.cli import FlightPart, build_parts
 from kgadapt.onboard.flight.geometry import ned_to_body
 from kgadapt.onboard.flight.landing_targets import CameraModel
 from kgadapt.onboard.flight.site import ANGLES_ONLY
+from kgadapt.operator import status
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState

@@ -260,7 +260,8 @@ def test_importing_the_flight_modules_leaves_the_mavlink_environment_and_globals
     code = (
         "import json, os, sys\n"
         "before = dict(os.environ)\n"
-        "import kgadapt.onboard.flight.mavlink, kgadapt.sim.fake_fc, kgadapt.onboard.flight.flight, kgadapt.onboard.flight.flight_cli\n"
+        "import kgadapt.onboard.flight.mavlink, kgadapt.sim.fake_fc, kgadapt.onboard.flight.flight\n"
+        "import kgadapt.onboard.flight.flight_cli\n"
         "from kgadapt.onboard.flight.mavlink import new_mavlink\n"
         "from pymavlink.dialects.v20 import common\n"
         "m = common.MAVLink(None, 1, 191)\n"

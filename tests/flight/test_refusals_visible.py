@@ -8,10 +8,10 @@ import logging
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from kgadapt.operator import status
 from kgadapt.onboard.flight.flight import BridgeSettings, CameraIntrinsics, FlightBridge
 from kgadapt.onboard.flight.mavlink import LinkSettings
 from kgadapt.onboard.flight.mavlink_commands import CommandOutcome, CommandSettings
+from kgadapt.operator import status
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController

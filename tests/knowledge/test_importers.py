@@ -104,7 +104,8 @@ def test_a_plain_deployment_file_becomes_a_deployment_file_node():
     model = deployment_file.parse((KNOWN / "d_c.deploy").read_text(), "/x/whatever.deploy")
     node = _nodes(model)[(S.DEPLOYMENT, "d_c")]  # the name: key wins over the file name
     assert node.extra_labels == (S.DEPLOYMENT_FILE,)
-    assert (node.props["executable"], node.props["arguments"]) == ("/usr/bin/env", ["{python}", "-m", "kgadapt.onboard.perception.detector"])
+    assert (node.props["executable"], node.props["arguments"]) == \
+        ("/usr/bin/env", ["{python}", "-m", "kgadapt.onboard.perception.detector"])
     assert _edges(model) == {(S.DEPLOYS, "d_c", "g_c"), (S.EXECUTABLE_ON, "d_c", "alpha")}
 
 

@@ -24,7 +24,8 @@ def test_same_family_on_a_host_both_run_on_may_change_in_place_and_nothing_else(
     extra.mkdir()
     # The same program, but its model does not say it can be reconfigured: a new process every time.
     (extra / "detector_plain.deploy").write_text(
-        "deploys: marker_detection_dusk\nexecutable: {python}\narguments: -m kgadapt.onboard.perception.detector --config {config}\n"
+        "deploys: marker_detection_dusk\nexecutable: {python}\n"
+        "arguments: -m kgadapt.onboard.perception.detector --config {config}\n"
         "executable_on: onboard\n")
     load_models(resp_store, [MODELS, extra])
 

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from kgadapt.bench.perception_quality import shipped_configs
+from kgadapt.onboard.flight.site import SiteMarkers
 from kgadapt.onboard.perception.calibration import CalibrationSettings, best_per_band, calibrate, render_test_frames
 from kgadapt.onboard.perception.illumination import Band
 from kgadapt.onboard.perception.recorded_calibration import label_and_score, read_frames
-from kgadapt.onboard.flight.site import SiteMarkers
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.resources import models
 from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames, photo_truth

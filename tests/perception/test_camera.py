@@ -8,7 +8,14 @@ import cv2
 import numpy as np
 import pytest
 
-from kgadapt.onboard.perception.camera import CameraPart, CameraSettings, CapturedFrame, OpenCVSource, SyntheticSource, make_source
+from kgadapt.onboard.perception.camera import (
+    CameraPart,
+    CameraSettings,
+    CapturedFrame,
+    OpenCVSource,
+    SyntheticSource,
+    make_source,
+)
 from kgadapt.onboard.perception.scene import IlluminationProfile
 from kgadapt.shared import keys
 from kgadapt.shared.errors import ConfigError, ModelError

@@ -7,11 +7,11 @@ import time
 
 import pytest
 
-from kgadapt.onboard.perception.calibration import model_configs
 from kgadapt.onboard.flight.confirmation import ConfirmationSettings, MarkerConfirmer, Place
+from kgadapt.onboard.flight.site import SiteMarkers, load_site
+from kgadapt.onboard.perception.calibration import model_configs
 from kgadapt.onboard.perception.markers import MarkerDetector
 from kgadapt.onboard.perception.scene import IlluminationProfile, SceneSettings, SyntheticScene
-from kgadapt.onboard.flight.site import SiteMarkers, load_site
 from kgadapt.shared.errors import ConfigError, MessageError, ModelError
 from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
 from tests.conftest import REPO

@@ -148,8 +148,8 @@ def test_forged_detections_and_a_forged_descent_heard_on_zenoh(tmp_path):
     the rate it watches does not collapse. Then it says LANDING twenty times a second while the light
     flaps between dusk and day every 3 s: each kind of change is deferred, and recorded, once. (The graph
     allows no in-place change here, so each flap is a planned change the detector's reflex asks for.)"""
-    from kgadapt.operator.cluster import models_without_in_place
     from kgadapt.knowledge.client import KnowledgeClient
+    from kgadapt.operator.cluster import models_without_in_place
 
     light = [[0, 120], [7, 120], [8, 16], [15, 16], [16, 120], [18, 120], [19, 16], [21, 16], [22, 120],
              [24, 120], [25, 16], [60, 16]]

@@ -239,8 +239,8 @@ def test_a_detection_stamped_in_the_future_does_not_silence_the_landing_targets(
 
 def test_an_onboard_agent_with_adapt_fed_garbage_on_every_subscription_still_adapts(tmp_path):
     from kgadapt.operator.cluster import ClusterSettings, LocalCluster
-    from kgadapt.shared.hostmonitor import squeeze
     from kgadapt.operator.timeline import Recorder
+    from kgadapt.shared.hostmonitor import squeeze
 
     profile = tmp_path / "dark.json"
     profile.write_text(json.dumps({"points": [[0, 5], [600, 5]], "noise": 2.0, "gradient": 0.2, "loop": False}))
