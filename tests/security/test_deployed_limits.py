@@ -72,7 +72,7 @@ def deployer_request(session: Any, key: str, body: dict[str, Any]) -> tuple[str,
 
 
 def live_instances(deployers: DeployerClient) -> dict[str, str]:
-    return {p["instance"]: p["config"] for p in deployers.list("onboard") if p["state"] in LIVE_STATES}
+    return {p.instance: p.config for p in deployers.list("onboard") if p.state in LIVE_STATES}
 
 
 # -- item: the memory budget ---------------------------------------------------------------------------
