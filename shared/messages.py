@@ -58,14 +58,20 @@ Triple = Annotated[list[Any], Meta(max_length=3)]
 Items = Annotated[list[Any], Meta(max_length=1024)]  # one entry per marker
 
 
-class Message(Struct, frozen=True, kw_only=True, tag_field="kind"):
+def _version(number: int) -> Any:
+    """A kind's version ``v``: a default from a factory, which ``omit_defaults`` never leaves out."""
+    return msgspec.field(default_factory=lambda: number)
+
+
+class Message(Struct, frozen=True, kw_only=True, tag_field="kind", omit_defaults=True):
     """What every kind has: its schema version ``v`` (the tag ``kind`` is the Struct's).
 
-    Every field is sent, an unset optional one as nil (which a receiver reads as absent): ``v`` must be.
+    An unset optional field is left out, as the first senders' maps left it out (a receiver reads an
+    absent field and a nil one alike); ``kind`` and ``v`` are always sent.
     """
 
     MAX_SIZE: ClassVar[int] = MAX_SMALL
-    v: int = 1
+    v: int = _version(1)
 
 
 class HostStatus(Message, tag="host_status", frozen=True, kw_only=True):
@@ -141,9 +147,8 @@ class Detections(Message, tag="detections", frozen=True, kw_only=True):
     frame_sent: Number | None = None
     clean: Items | None = None  # per marker, whether its cells read clean (kgadapt.onboard.markers.cells_are_clean)
     # Per marker, a pose its detector measured itself ([x, y, z] m or {"tvec": [x, y, z]}; docs/flight.md), which
-    # the flight bridge sends as the target's position. Never sent unless set (UNSET, not nil): the detectors
-    # of this project measure none.
-    poses: Items | msgspec.UnsetType = msgspec.UNSET
+    # the flight bridge sends as the target's position (the detectors of this project measure none).
+    poses: Items | None = None
 
 
 class Reflex(Message, tag="reflex", frozen=True, kw_only=True):
@@ -386,7 +391,7 @@ def kind_of(cls: type[Message]) -> str:
 @functools.cache
 def version_of(cls: type[Message]) -> int:
     # v is the first field of every kind; looked up once, on first use (resolving the annotations costs).
-    return int(msgspec.structs.fields(cls)[0].default)
+    return int(msgspec.structs.fields(cls)[0].default_factory())
 
 
 def encode(message: Message | str, body: Mapping[str, Any] | None = None) -> bytes:
