@@ -172,13 +172,13 @@ def test_raced_starts_pass_only_while_the_declared_memory_fits_the_budget(graph,
 
         with ThreadPoolExecutor(3) as pool:
             outcomes = list(pool.map(start, range(3)))
-        started = [o for o in outcomes if isinstance(o, dict)]
+        started = [o for o in outcomes if isinstance(o, messages.DeployDetail)]
         refused = [str(o) for o in outcomes if isinstance(o, DeploymentError)]
         assert len(started) == 2 and len(refused) == 1, outcomes  # 2 x 300 fit 700; a third would not
         assert ("it declares 300 MiB and host onboard's 2 process(es) already declare 600 MiB" in refused[0]
                 and "900 MiB would exceed its memory budget of 700 MiB" in refused[0]), refused
         # A stop gives the declared memory back.
-        client.stop("onboard", started[0]["instance"])
+        client.stop("onboard", str(started[0].instance))
         again = client.start("onboard", "echo", CONFIG, instance="heavy3")
         assert again.state == "ready"
     finally:

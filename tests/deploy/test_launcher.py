@@ -157,14 +157,14 @@ def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launche
         assert "agent ready" in agent.output[0]  # the line for people comes first
         wait_for_deployers(test_session, ["onboard"])
         client = DeployerClient(test_session, ROBOT)
-        launcher = wait_until(lambda: (found := client.launcher("onboard")) and found["ready"] and found,
+        launcher = wait_until(lambda: (found := client.launcher("onboard")) and found.ready and found,
                               timeout=60.0, what="the agent's launcher ready")
         info = client.start("onboard", "detector_day", DAY)
         assert info.via == "launcher" and psutil.Process(info.pid).ppid() == agent.pid
         os.kill(agent.pid, signal.SIGKILL)
         agent.process.wait()
         wait_until(lambda: not alive(info.pid), timeout=5.0, what="forked detector gone after kill -9 of its agent")
-        wait_until(lambda: not alive(launcher["pid"]), timeout=5.0, what="launcher gone after kill -9 of its agent")
+        wait_until(lambda: not alive(launcher.pid), timeout=5.0, what="launcher gone after kill -9 of its agent")
     finally:
         agent.stop()
 

@@ -122,7 +122,7 @@ def test_an_activity_switch_asked_before_the_detector_is_up_reaches_it_once_it_i
     client.start("onboard", "detector_day", "marker_detection_day", instance="early1")
     try:
         asking.join(35)
-        assert replies and (replies[0]["instance"], replies[0]["active"]) == ("early1", False), replies
+        assert replies and (replies[0].instance, replies[0].active) == ("early1", False), replies
     finally:
         client.stop("onboard", "early1")
 
