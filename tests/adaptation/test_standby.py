@@ -36,7 +36,7 @@ def detectors(run: Run, host: str = "*") -> dict[str, tuple[str, int, str]]:
 
     A loaded machine can keep a deployer from answering for seconds: a generous bound, not a tight one.
     """
-    return {p["instance"]: (p["host"], p["pid"], p["config"])
+    return {p.instance: (p.host, p.pid, p.config)
             for p in DeployerClient(run.session, "quad1", timeout=20.0).list(host) if p.state in KEPT_STATES}
 
 
