@@ -369,8 +369,10 @@ class _Probe:
             return KnowledgeClient(self.session, self.robot, timeout=timeout).cypher(
                 request["cypher"], request.get("params") or {})
         if op == "list":
-            return DeployerClient(self.session, self.robot, timeout=float(request.get("timeout", 2.0))).processes(
-                request.get("host", "*"))
+            import msgspec
+
+            return msgspec.to_builtins(DeployerClient(self.session, self.robot, timeout=float(
+                request.get("timeout", 2.0))).processes(request.get("host", "*")))
         if op == "active":
             since = time.time() - float(request.get("window", 1.0))
             with self._lock:
@@ -387,9 +389,11 @@ class _Probe:
             return KnowledgeClient(self.session, self.robot, timeout=float(request.get("timeout", 3.0))).write(
                 request["verb"], request.get("params") or {})
         if op == "squeeze":
+            import msgspec
+
             from kgadapt.shared.hostmonitor import squeeze
 
-            return squeeze(self.session, self.robot, request["host"], float(request["reserve_mb"]))
+            return msgspec.to_builtins(squeeze(self.session, self.robot, request["host"], float(request["reserve_mb"])))
         if op == "forge":  # host statuses on this robot's own keys, as a process holding its certificate could
             from kgadapt.shared import keys, messages
 
@@ -850,20 +854,20 @@ def fuzz(session: Any, robot: str, *, examples: int = 20, hosts: Sequence[str] =
                           st.lists(st.integers(), max_size=3), st.booleans(), st.none())
 
     def wire(kind: str) -> dict[str, Any]:
-        return {"kind": kind, "v": messages.schemas()[kind].version, **good[kind]}
+        return {"kind": kind, "v": messages.version_of(messages.KINDS[kind]), **good[kind]}
 
     def packed(body: Any) -> bytes:
         return msgpack.packb(body, use_bin_type=True)
 
     def malformed(kind: str, *, deployer: bool) -> Any:
         data = packed(wire(kind))
-        fields = sorted(messages.schemas()[kind].fields)
-        limit = messages.schemas()[kind].max_size
+        fields = sorted(set(messages.KINDS[kind].__struct_fields__) - {"v"})
+        limit = messages.KINDS[kind].MAX_SIZE
         strategies = [
             st.binary(min_size=1, max_size=300),
             st.integers(1, len(data) - 1).map(lambda n: data[:n]),
             st.tuples(st.sampled_from(fields), any_value).map(lambda kv: packed({**wire(kind), kv[0]: kv[1]})),
-            st.sampled_from(sorted(set(messages.schemas()) - {kind})).map(lambda o: packed({**wire(kind), "kind": o})),
+            st.sampled_from(sorted(set(messages.KINDS) - {kind})).map(lambda o: packed({**wire(kind), "kind": o})),
             st.integers(2, 99).map(lambda v: packed({**wire(kind), "v": v})),
             st.just(packed([wire(kind)])),
             st.integers(limit + 1, limit + 2048).map(lambda n: packed({**wire(kind), "padding": "x" * n})),

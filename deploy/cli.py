@@ -11,6 +11,9 @@ import argparse
 import json
 from typing import TYPE_CHECKING, Any
 
+import msgspec
+
+from kgadapt.shared import messages
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.keys import DEFAULT_ROBOT
 from kgadapt.shared.states import LIVE_STATES
@@ -129,7 +132,7 @@ def run_start(args: argparse.Namespace) -> int:
 
 def run_stop(args: argparse.Namespace) -> int:
     with _Client(args) as (_, client):
-        host = args.host or client.find(args.instance)["host"]
+        host = args.host or str(client.find(args.instance).host)
         info = client.stop(host, args.instance)
     _print_info(info, args)
     return 0
@@ -154,15 +157,15 @@ def run_list(args: argparse.Namespace) -> int:
         raise RequestTimeout(f"{where} of robot {args.robot} answered within {args.timeout:g} s via {via} "
                              f"(is `kgadapt onboard` or `kgadapt remote --robot {args.robot}` running there?)")
     if args.live:
-        processes = [p for p in processes if p.get("state") in LIVE_STATES]
-    processes.sort(key=lambda p: (str(p.get("host")), str(p.get("instance"))))
+        processes = [p for p in processes if p.state in LIVE_STATES]
+    processes.sort(key=lambda p: (str(p.host), str(p.instance)))
     if args.json:
-        print(json.dumps(processes, indent=2))
+        print(json.dumps(msgspec.to_builtins(processes), indent=2))
         return 0
     from kgadapt.knowledge.store import rows_as_table
 
     columns = ("host", "instance", "state", "pid", "deployment", "config", "restarts", "returncode")
-    print(rows_as_table([{c: p.get(c) for c in columns} for p in processes]))
+    print(rows_as_table([{c: getattr(p, c) for c in columns} for p in processes]))
     return 0
 
 
@@ -199,18 +202,18 @@ def run_serve(args: argparse.Namespace) -> int:
     return run_agent(agent)
 
 
-def _print_info(info: dict[str, Any], args: argparse.Namespace, *, output: bool = False) -> None:
+def _print_info(info: messages.ProcessDetail, args: argparse.Namespace, *, output: bool = False) -> None:
     if args.json:
-        print(json.dumps(info, indent=2))
+        print(json.dumps(msgspec.to_builtins(info), indent=2))
         return
-    line = (f"{info.get('instance')} on {info.get('host')}: {info.get('state')}, pid {info.get('pid')}, "
-            f"{info.get('deployment')} / {info.get('config')}")
-    if info.get("returncode") is not None:
-        line += f", exit status {info['returncode']}"
-    if info.get("detail"):
-        line += f" ({info['detail']})"
+    line = (f"{info.instance} on {info.host}: {info.state}, pid {info.pid}, "
+            f"{info.deployment} / {info.config}")
+    if info.returncode is not None:
+        line += f", exit status {info.returncode}"
+    if info.detail:
+        line += f" ({info.detail})"
     print(line)
-    if output and info.get("output"):
+    if output and info.output:
         print("last output:")
-        for text in info["output"]:
+        for text in info.output:
             print(f"  {text}")

@@ -36,35 +36,33 @@ class DeployerClient:
         self.answered: list[str] = []  # hosts whose deployers answered the last list()
 
     def start(self, host: str, deployment: str, config: str, *, instance: str | None = None,
-              wait_ready: bool = True, ready_timeout: float | None = None, idle: bool = False) -> dict[str, Any]:
+              wait_ready: bool = True, ready_timeout: float | None = None,
+              idle: bool = False) -> messages.DeployDetail:
         """Ask ``host`` to start ``deployment`` with ``config`` (``idle``: as a warm standby); returns the
         process snapshot."""
-        body: dict[str, Any] = {"deployment": deployment, "config": config, "wait_ready": wait_ready}
-        if instance:
-            body["instance"] = instance
-        if idle:
-            body["idle"] = True
-        if ready_timeout is not None:
-            body["ready_timeout"] = float(ready_timeout)
+        body = messages.DeployRequest(deployment=deployment, config=config, wait_ready=wait_ready,
+                                      instance=instance or None, idle=True if idle else None,
+                                      ready_timeout=None if ready_timeout is None else float(ready_timeout))
         wait = self.start_timeout if wait_ready else self.timeout
         if ready_timeout is not None and wait_ready:
             wait = max(wait, ready_timeout + self.timeout)
         return self._one(host, "start", body, wait)
 
-    def stop(self, host: str, instance: str) -> dict[str, Any]:
+    def stop(self, host: str, instance: str) -> messages.DeployDetail:
         """Ask ``host`` to stop ``instance``; returns the final snapshot (with ``returncode``)."""
-        return self._one(host, "stop", {"instance": instance}, self.timeout + 15.0)  # escalation may take a while
+        # escalation may take a while
+        return self._one(host, "stop", messages.DeployRequest(instance=instance), self.timeout + 15.0)
 
-    def status(self, host: str, instance: str) -> dict[str, Any]:
-        return self._one(host, "status", {"instance": instance}, self.timeout)
+    def status(self, host: str, instance: str) -> messages.DeployDetail:
+        return self._one(host, "status", messages.DeployRequest(instance=instance), self.timeout)
 
-    def processes(self, host: str = "*") -> list[dict[str, Any]]:
+    def processes(self, host: str = "*") -> list[messages.ProcessDetail]:
         """Processes on ``host`` (``*``: every deployer that answers), each with its ``host``."""
-        processes: list[dict[str, Any]] = []
-        details = self._ask(host, "list", {}, self.timeout)
-        self.answered = sorted(str(d.get("host")) for d in details)
+        processes: list[messages.ProcessDetail] = []
+        details = self._ask(host, "list", messages.DeployRequest(), self.timeout)
+        self.answered = sorted(str(d.host) for d in details)
         for detail in details:
-            processes.extend(detail.get("processes") or [])
+            processes.extend(detail.processes or [])
         return processes
 
     def wait_for(self, hosts: list[str], timeout: float = 10.0) -> None:
@@ -74,28 +72,28 @@ class DeployerClient:
         """
         for host in hosts:
             keys.check_name(host, "host name")
-            if not self._ask(host, "list", {}, timeout, resend_for=timeout):
+            if not self._ask(host, "list", messages.DeployRequest(), timeout, resend_for=timeout):
                 raise RequestTimeout(f"no deployer on host {host} answered within {timeout:g} s "
                                      f"(is the {host} agent running and reachable?)")
 
-    def launcher(self, host: str) -> dict[str, Any] | None:
-        """``{pid, ready}`` of ``host``'s launcher, None when its deployer runs none."""
-        details = self._ask(host, "list", {}, self.timeout)
+    def launcher(self, host: str) -> messages.Launcher | None:
+        """``pid`` and ``ready`` of ``host``'s launcher, None when its deployer runs none."""
+        details = self._ask(host, "list", messages.DeployRequest(), self.timeout)
         if not details:
             raise DeploymentError(f"no deployer of host {host} answered")
-        return details[0].get("launcher")
+        return details[0].launcher
 
-    def find(self, instance: str) -> dict[str, Any]:
+    def find(self, instance: str) -> messages.ProcessDetail:
         """The snapshot of ``instance`` on whichever host runs it (a live one first)."""
-        found = [p for p in self.processes("*") if p.get("instance") == instance]
+        found = [p for p in self.processes("*") if p.instance == instance]
         if not found:
             raise DeploymentError(f"no deployer knows instance {instance!r}")
-        found.sort(key=lambda p: p.get("state") not in KEPT_STATES)
+        found.sort(key=lambda p: p.state not in KEPT_STATES)
         return found[0]
 
     # -- internals ----------------------------------------------------------------
 
-    def _one(self, host: str, verb: str, body: dict[str, Any], timeout: float) -> dict[str, Any]:
+    def _one(self, host: str, verb: str, body: messages.DeployRequest, timeout: float) -> messages.DeployDetail:
         keys.check_name(host, "host name")
         # Nobody answering at once means no matching queryable is known (yet): a session
         # opened a moment ago may not have the deployers' declarations. Nobody got the
@@ -107,13 +105,13 @@ class DeployerClient:
             )
         return details[0]
 
-    def _ask(self, host: str, verb: str, body: dict[str, Any], timeout: float, *,
-             resend_for: float = 0.0) -> list[dict[str, Any]]:
+    def _ask(self, host: str, verb: str, body: messages.DeployRequest, timeout: float, *,
+             resend_for: float = 0.0) -> list[messages.DeployDetail]:
         """The ``detail`` of every deployer's reply (none: no deployer serves the key)."""
         key = keys.deployer_verb(self.robot, host, verb)
-        payload = messages.encode("deploy_request", body)
+        payload = messages.encode(body)
         try:
-            replies = rpc.gather(self.session, key, payload, lambda data: messages.decode(data, "deploy_reply"),
+            replies = rpc.gather(self.session, key, payload, lambda data: messages.decode_as(data, messages.DeployReply),
                                  timeout=timeout, resend_for=resend_for)
         except NoResponder:
             return []
@@ -123,11 +121,12 @@ class DeployerClient:
             raise RemoteError(f"deployer {verb} on host {host}: {exc}") from exc
         except MessageError as exc:
             raise RemoteError(f"deployer {verb} on {key}: bad reply: {exc}") from exc
-        details: list[dict[str, Any]] = []
+        details: list[messages.DeployDetail] = []
         for message in replies:
-            detail = message.get("detail") or {}
-            if not message["ok"]:
-                error = _ERRORS.get(str(detail.get("error_type")), DeploymentError)
-                raise error(f"{detail.get('host', host)}: {detail.get('error', 'refused')}")
+            detail = message.detail or messages.DeployDetail()
+            if not message.ok:
+                # The refusal's class by its name in kgadapt.shared.errors (the wire carries it as error_type).
+                error = _ERRORS.get(str(detail.error_type), DeploymentError)
+                raise error(f"{detail.host or host}: {detail.error or 'refused'}")
             details.append(detail)
         return details

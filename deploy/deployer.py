@@ -10,8 +10,8 @@ parts. It answers four queryables (``kgadapt.shared.keys.deployer_verb``)::
     kgadapt/<robot>/host/<host>/deployer/list     deploy_request {}
 
 and replies ``deploy_reply {ok, detail}``: ``detail`` is the process snapshot
-(``ProcessInfo.to_dict()`` plus ``host``), for ``list`` ``{host, processes, launcher}``
-(``launcher``: ``{pid, ready}`` of the host's launcher, or null without one);
+(``ProcessInfo`` as ``ProcessDetail``, with ``host``), for ``list`` ``{host, processes, launcher}``
+(``launcher``: ``{pid, ready}`` of the host's launcher, absent without one);
 a refusal or failure is ``ok: false`` with ``detail {error, error_type}``. A
 request that is not a valid ``deploy_request`` gets ``query.reply_err``.
 Events (``started``, ``ready``, ``exited``, ``restarted``, ``stopped``,
@@ -41,7 +41,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, TypeVar
 
 import msgspec
 import zenoh
@@ -405,22 +405,23 @@ class Deployer:
             # past the message itself is a deploy_reply with ok false.
             if request.payload is None:
                 raise MessageError(f"{verb} request has no payload; send a deploy_request message")
-            body = messages.decode(request.payload, "deploy_request")
+            body, unknown = messages.decode_with_unknown(request.payload, messages.DeployRequest)
             if verb in ("start", "stop") and request.key != key:
                 # host/*/deployer/start would reach every host: a change names exactly one.
                 raise MessageError(f"a {verb} request must name exactly one host; {request.key} does not")
             try:
-                reply = {"ok": True, "detail": self._handle(verb, body)}
+                reply = messages.DeployReply(ok=True, detail=self._handle(verb, body, unknown))
             except KgadaptError as exc:
                 log.info("host %s: %s refused: %s", self.settings.host, verb, exc)
-                reply = {"ok": False, "detail": {"error": str(exc), "error_type": type(exc).__name__,
-                                                  "host": self.settings.host}}
-            return rpc.Reply(key=key, payload=messages.encode("deploy_reply", reply))
+                reply = messages.DeployReply(ok=False, detail=messages.DeployDetail(
+                    error=str(exc), error_type=type(exc).__name__, host=self.settings.host))
+            return rpc.Reply(key=key, payload=messages.encode(reply))
 
         return answer
 
-    def _handle(self, verb: str, request: Mapping[str, Any]) -> dict[str, Any]:
-        extra = sorted(set(request) - {"kind", "v"} - _ALLOWED[verb])
+    def _handle(self, verb: str, request: messages.DeployRequest, unknown: tuple[str, ...] = ()) -> messages.DeployDetail:
+        given = {name for name in request.__struct_fields__ if name != "v" and getattr(request, name) is not None}
+        extra = sorted((given | set(unknown)) - _ALLOWED[verb])
         if extra:
             raise DeploymentError(
                 f"{verb} request field(s) {', '.join(map(repr, extra))} not accepted: a request names a "
@@ -429,44 +430,37 @@ class Deployer:
         host = self.settings.host
         if verb == "list":
             launcher = self.supervisor.launcher
-            return {"host": host, "processes": [_info_dict(i, host) for i in self.processes()],
-                    "launcher": {"pid": launcher.pid, "ready": launcher.ready} if launcher is not None else None}
+            return messages.DeployDetail(
+                host=host, processes=[_detail(i, host, messages.ProcessDetail) for i in self.processes()],
+                launcher=messages.Launcher(pid=launcher.pid, ready=launcher.ready) if launcher is not None else None)
         if verb in ("stop", "status"):
-            instance = request.get("instance")
+            instance = request.instance
             if not instance:
                 raise DeploymentError(f"{verb} request needs an instance")
             info = self.stop(instance) if verb == "stop" else self.status(instance)
-            return _info_dict(info, host)
-        for name in ("deployment", "config"):
-            if not request.get(name):
-                raise DeploymentError(f"start request needs a {name}")
-        wait_ready = request.get("wait_ready", True)
-        if not isinstance(wait_ready, bool):
-            raise DeploymentError("start request field 'wait_ready' must be true or false")
-        ready_timeout = request.get("ready_timeout")
-        if ready_timeout is not None and (isinstance(ready_timeout, bool) or not isinstance(ready_timeout, (int, float))):
-            raise DeploymentError("start request field 'ready_timeout' must be a number of seconds")
-        idle = request.get("idle")
-        idle = False if idle is None else idle  # absent and nil alike
-        if not isinstance(idle, bool):
-            raise DeploymentError("start request field 'idle' must be true or false")
+            return _detail(info, host, messages.DeployDetail)
+        if not request.deployment:
+            raise DeploymentError("start request needs a deployment")
+        if not request.config:
+            raise DeploymentError("start request needs a config")
         info = self.start(
-            request["deployment"], request["config"], instance=request.get("instance") or None,
-            wait_ready=wait_ready, ready_timeout=ready_timeout, idle=idle,
+            request.deployment, request.config, instance=request.instance or None,
+            wait_ready=True if request.wait_ready is None else request.wait_ready,  # absent and nil alike
+            ready_timeout=request.ready_timeout, idle=bool(request.idle),
         )
-        return _info_dict(info, host)
+        return _detail(info, host, messages.DeployDetail)
 
     def _publish_event(self, event: ProcessEvent) -> None:
-        body = {
-            "event": event.event, "host": self.settings.host, "instance": event.instance, "time": event.time,
-            "pid": event.pid, "returncode": event.returncode, "detail": (event.detail or "")[-4000:] or None,
-            "run_id": event.run_id, "deployment": event.deployment, "config": event.config,
-        }
+        body = messages.DeployEvent(
+            event=event.event, host=self.settings.host, instance=event.instance, time=event.time,
+            pid=event.pid, returncode=event.returncode, detail=(event.detail or "")[-4000:] or None,
+            run_id=event.run_id, deployment=event.deployment, config=event.config,
+        )
         with self._publish_lock:
             if self._publisher is None:
                 return
             try:
-                self._publisher.put(messages.encode("deploy_event", body))
+                self._publisher.put(messages.encode(body))
             except Exception as exc:  # noqa: BLE001 - never let a transport hiccup stop supervision
                 log.warning("cannot publish deployer event %s: %s", event.event, exc)
 
@@ -498,10 +492,15 @@ def _as_list(value: Any, deployment: str, what: str) -> list[Any]:
     return list(value)
 
 
-def _info_dict(info: ProcessInfo, host: str) -> dict[str, Any]:
-    data = info.to_dict()
-    data["host"] = host
-    return data
+D = TypeVar("D", bound=messages.ProcessDetail)
+
+
+def _detail(info: ProcessInfo, host: str, cls: type[D]) -> D:
+    """``info`` as the wire's process detail, with its ``host``."""
+    return cls(instance=info.instance, host=host, deployment=info.deployment, config=info.config, state=info.state,
+               pid=info.pid, run_id=info.run_id, restarts=info.restarts, started_at=info.started_at,
+               ready_at=info.ready_at, ended_at=info.ended_at, returncode=info.returncode, argv=list(info.argv),
+               detail=info.detail, output=list(info.output), via=info.via)
 
 
 # -- agent wiring -------------------------------------------------------------------

@@ -77,11 +77,11 @@ class FirstOutput:
         if self.event.is_set():
             return
         try:
-            body = messages.decode(sample.payload.to_bytes(), "detections")
+            body = messages.decode_as(sample.payload.to_bytes(), messages.Detections)
         except MessageError as exc:
             log.info("migration: dropped a malformed detections message: %s", exc)
             return
-        if self.config is not None and body["config"] != self.config:
+        if self.config is not None and body.config != self.config:
             return
         self.at = time.perf_counter()
         self.wall = time.time()
@@ -111,12 +111,12 @@ def migrate(
     client = client or DeployerClient(session, robot)
     keys.check_name(target_host, "host name")
     source = client.status(source_host, instance) if source_host else client.find(instance)
-    source_host = str(source.get("host") or source_host)
-    if source.get("state") not in SERVING_STATES:
-        raise DeploymentError(f"instance {instance} on {source_host} is {source.get('state')}, not running; nothing to migrate")
-    deployment = deployment or str(source["deployment"])
-    config = config or str(source["config"])
-    if source_host == target_host and (deployment, config) == (source["deployment"], source["config"]):
+    source_host = str(source.host or source_host)
+    if source.state not in SERVING_STATES:
+        raise DeploymentError(f"instance {instance} on {source_host} is {source.state}, not running; nothing to migrate")
+    deployment = deployment or str(source.deployment)
+    config = config or str(source.config)
+    if source_host == target_host and (deployment, config) == (source.deployment, source.config):
         raise DeploymentError(f"instance {instance} already runs on {target_host} with {deployment} / {config}")
     new_instance = keys.check_name(new_instance, "instance") if new_instance else new_instance_name(config, target_host)
 
@@ -152,7 +152,7 @@ def migrate(
             instance=instance, new_instance=new_instance, deployment=deployment, config=config,
             source_host=source_host, target_host=target_host, target_ready_ms=round(ready_ms, 3),
             first_output_ms=round(output_ms, 3), source_stopped_ms=None, source_returncode=None,
-            new_pid=started.get("pid"), new_run_id=started.get("run_id"),
+            new_pid=started.pid, new_run_id=started.run_id,
         )
         raise SourceNotStopped(
             f"migration of {instance}: {new_instance} runs on {target_host}, but stopping {instance} on "
@@ -165,8 +165,8 @@ def migrate(
         instance=instance, new_instance=new_instance, deployment=deployment, config=config,
         source_host=source_host, target_host=target_host, target_ready_ms=round(ready_ms, 3),
         first_output_ms=round(output_ms, 3), source_stopped_ms=round(stopped_ms, 3),
-        source_returncode=stopped.get("returncode"), new_pid=started.get("pid"),
-        new_run_id=started.get("run_id"),
+        source_returncode=stopped.returncode, new_pid=started.pid,
+        new_run_id=started.run_id,
     )
 
 
@@ -205,10 +205,10 @@ def reconfigure(session: Any, robot: str, host: str, instance: str, config: str,
     stays and :class:`DeploymentError` says why (the caller may then migrate).
     """
     key = keys.detector_configure(robot, host, instance)
-    payload = messages.encode("configure_request", {"config": config})
+    payload = messages.encode(messages.ConfigureRequest(config=config))
     sent = time.perf_counter()
     try:
-        body = rpc.call(session, key, payload, lambda data: messages.decode(data, "configure_reply"), timeout=timeout)
+        body = rpc.call(session, key, payload, lambda data: messages.decode_as(data, messages.ConfigureReply), timeout=timeout)
     except NoResponder as exc:
         raise RequestTimeout(f"detector {instance} on host {host} has no configure queryable (not reconfigurable)") from exc
     except RequestTimeout as exc:  # the detector took it, or not: its deployer's record says which
@@ -218,7 +218,7 @@ def reconfigure(session: Any, robot: str, host: str, instance: str, config: str,
     except MessageError as exc:
         raise DeploymentError(f"reconfigure {instance} on {host}: bad reply: {exc}") from exc
     reply_ms = (time.perf_counter() - sent) * 1e3
-    return ReconfigurationReport(instance=instance, host=host, config=str(body["config"]),
-                                 previous=str(body["previous"]), deployment=str(body["deployment"]),
-                                 first_seq=body.get("first_seq"), check_ms=float(body["check_ms"]),
-                                 build_ms=float(body["build_ms"]), reply_ms=reply_ms)
+    return ReconfigurationReport(instance=instance, host=host, config=body.config,
+                                 previous=body.previous, deployment=body.deployment,
+                                 first_seq=body.first_seq, check_ms=float(body.check_ms),
+                                 build_ms=float(body.build_ms), reply_ms=reply_ms)

@@ -49,7 +49,7 @@ import sys
 import threading
 import time
 from concurrent.futures import Future
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Literal
 
 from kgadapt.deploy.launcher import ForkedProcess, LauncherClient, become_subreaper
@@ -167,12 +167,6 @@ class ProcessInfo:
     @property
     def live(self) -> bool:
         return self.state in LIVE_STATES
-
-    def to_dict(self) -> dict[str, Any]:
-        data = asdict(self)
-        data["argv"] = list(self.argv)
-        data["output"] = list(self.output)
-        return data
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -50,7 +50,7 @@ class KnowledgeClient:
         ``wait_s``: ask again for that long while no service answers or it refuses (it may be
         starting, or its store reloading after a restart), as a part's first read at start should.
         """
-        payload = messages.encode("query_request", {"params": dict(params or {})})
+        payload = messages.encode(messages.QueryRequest(params=dict(params or {})))
         key_of = keys.knowledge_own_query if self.own else keys.knowledge_query
         key = key_of(self.robot, keys.check_name(name, "query name"))
         deadline = time.monotonic() + wait_s
@@ -65,12 +65,12 @@ class KnowledgeClient:
 
     def cypher(self, text: str, params: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
         """Rows of a read-only Cypher statement (a write is refused by the service)."""
-        payload = messages.encode("cypher_request", {"cypher": text, "params": dict(params or {})})
+        payload = messages.encode(messages.CypherRequest(cypher=text, params=dict(params or {})))
         return self._ask(keys.knowledge_cypher(self.robot), payload, "cypher")
 
     def write(self, verb: str, params: Mapping[str, Any]) -> list[dict[str, Any]]:
         """Apply run-time write ``verb`` (see kgadapt.knowledge.runtime.WRITERS)."""
-        payload = messages.encode("write_request", {"params": dict(params)})
+        payload = messages.encode(messages.WriteRequest(params=dict(params)))
         verb = keys.check_name(verb, "write verb")
         key = (keys.knowledge_write(self.robot, verb) if self.host is None
                else keys.knowledge_host_write(self.robot, self.host, verb))
@@ -91,7 +91,7 @@ class KnowledgeClient:
     def _ask(self, key: str, payload: bytes, what: str) -> list[dict[str, Any]]:
         try:
             # Sent again while nothing answers at once: just after open(), or while the service restarts.
-            body = rpc.call(self.session, key, payload, lambda data: messages.decode(data, "rows"),
+            body = rpc.call(self.session, key, payload, lambda data: messages.decode_as(data, messages.Rows),
                             timeout=self.timeout, resend_for=self.timeout, attachment=self._asker())
         except RemoteError as exc:
             raise RemoteError(f"{what} refused by the knowledge service of {self.robot}: {exc}") from exc
@@ -100,5 +100,5 @@ class KnowledgeClient:
                 f"{what}: no answer from the knowledge service of robot {self.robot!r} on {key} "
                 f"within {self.timeout:.1f} s (is `kgadapt knowledge serve` running and reachable?)"
             ) from exc
-        self.last_elapsed_ms = body.get("elapsed_ms")
-        return body["rows"]
+        self.last_elapsed_ms = body.elapsed_ms
+        return body.rows

@@ -169,7 +169,7 @@ class FleetClient:
         checked = []
         for name, params in questions:
             checked.append((keys.check_name(name, "query name"), dict(params or {}),
-                            messages.encode("query_request", {"params": dict(params or {})})))
+                            messages.encode(messages.QueryRequest(params=dict(params or {})))))
         start = time.perf_counter()
         deadline = time.monotonic() + timeout
         try:
@@ -179,7 +179,7 @@ class FleetClient:
             roster = None
             if self.settings.roster is not None:
                 roster = rpc.ask(self.session, keys.knowledge_query(self.settings.roster, ROSTER_QUERY),
-                                 messages.encode("query_request", {"params": {}}), timeout=timeout)
+                                 messages.encode(messages.QueryRequest(params={})), timeout=timeout)
             pending = [(name, params, payload, self._send(name, payload, timeout)) for name, params, payload in checked]
             answers = [self._collect(name, params, replies, start) for name, params, _, replies in pending]
             # No reply at all, at once: no queryable was known yet (a session just opened, in peer
@@ -224,16 +224,16 @@ class FleetClient:
                 malformed.append(f"reply on {key}: not a knowledge/query/{name} key")
                 continue
             try:
-                body = messages.decode(reply.payload, "rows")
+                body = messages.decode_as(reply.payload, messages.Rows)
             except MessageError as exc:
                 malformed.append(f"{robot}: {exc}")
                 continue
-            rows = tuple(r for r in body["rows"] if isinstance(r, dict))
+            rows = tuple(r for r in body.rows if isinstance(r, dict))
             if robot in robots:  # two services claim one robot: keep both sets of rows, say so
                 malformed.append(f"{robot}: answered more than once")
                 rows = robots[robot].rows + rows
             robots[robot] = RobotAnswer(robot=robot, state=RobotState.ANSWERED, rows=rows,
-                                        store_ms=body.get("elapsed_ms"), arrived_ms=arrived)
+                                        store_ms=body.elapsed_ms, arrived_ms=arrived)
         wall = (time.perf_counter() - start) * 1000
         return FleetAnswer(query=name, params=params, robots=tuple(robots[r] for r in sorted(robots)),
                            refusals=tuple(refusals), malformed=tuple(malformed), wall_ms=wall)
@@ -246,7 +246,7 @@ class FleetClient:
             if isinstance(reply, RemoteError):
                 continue
             try:
-                rows = messages.decode(reply.payload, "rows")["rows"]
+                rows = messages.decode_as(reply.payload, messages.Rows).rows
             except MessageError:
                 continue
             robots.extend(r["robot"] for r in rows if isinstance(r, dict) and _is_name(str(r.get("robot"))))
@@ -426,7 +426,7 @@ class FleetRoster:
         """Ask every robot's roster, announcing this robot; remember those that answer. Their names."""
         announce = {"announce": self.settings.robot, **({"zid": self._zid} if self._zid else {}),
                     **({"routers": ",".join(self._routers)} if self._routers else {})}
-        payload = messages.encode("query_request", {"params": announce})
+        payload = messages.encode(messages.QueryRequest(params=announce))
         pending = rpc.ask(self._session, f"{keys.PREFIX}/*/knowledge/query/{ROSTER_QUERY}", payload,
                           timeout=self.settings.timeout_s, every_reply=True)
         heard = []
@@ -437,7 +437,7 @@ class FleetRoster:
             if robot is None or robot == self.settings.robot:
                 continue
             try:
-                rows = messages.decode(reply.payload, "rows")["rows"]
+                rows = messages.decode_as(reply.payload, messages.Rows).rows
             except MessageError:
                 continue
             own = next((r for r in rows if isinstance(r, dict) and r.get("robot") == robot), {})

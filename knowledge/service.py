@@ -534,7 +534,7 @@ class KnowledgeService:
                 return
 
     def _apply_events(self, batch: list[tuple[Any, ...]]) -> None:
-        statuses: dict[str, tuple[dict[str, Any], float]] = {}
+        statuses: dict[str, tuple[messages.HostStatus, float]] = {}
         # What each host's open profiles hold, read for the whole batch in one store call.
         used = self._held_by_processes(sorted({_host_or_none(key) or "" for kind, key, *_ in batch
                                                if kind == "status"} - {""}))
@@ -546,7 +546,7 @@ class KnowledgeService:
                     host = _host_of(key)
                     body = self._trust.admit(host, self._check_status(key, value), received=received,
                                              used_mb=used.get(host, 0.0))
-                    statuses[body["host"]] = (body, received)
+                    statuses[body.host] = (body, received)
                 else:
                     host = _host_of(key)
                     # Every change, in order: a loss and a return in one batch still end the lost life's profiles.
@@ -559,11 +559,11 @@ class KnowledgeService:
         if statuses:
             self._apply_statuses(statuses)
 
-    def _apply_statuses(self, statuses: Mapping[str, tuple[dict[str, Any], float]]) -> None:
+    def _apply_statuses(self, statuses: Mapping[str, tuple[messages.HostStatus, float]]) -> None:
         """The newest status of each host, all written in one store call."""
-        figures = [{"name": host, "time": received, "memory_total_mb": float(body["memory_total_mb"]),
-                    "memory_free_mb": float(body["memory_free_mb"]), "cpu_load": float(body["cpu_load"]),
-                    "cpu_cores": body.get("cpu_cores")}
+        figures = [{"name": host, "time": received, "memory_total_mb": float(body.memory_total_mb),
+                    "memory_free_mb": float(body.memory_free_mb), "cpu_load": float(body.cpu_load),
+                    "cpu_cores": body.cpu_cores}
                    for host, (body, received) in statuses.items()]
         try:
             with self._store_lock:
@@ -648,8 +648,8 @@ class KnowledgeService:
             log.warning("refused host %r (%s): no Platform of the models names it, and only the models add hosts; "
                         "further refusals of it are counted, not logged", host, what)
 
-    def _check_status(self, key: str, payload: bytes) -> dict[str, Any]:
-        return check_status(_host_of(key), messages.decode(payload, "host_status"))
+    def _check_status(self, key: str, payload: bytes) -> messages.HostStatus:
+        return check_status(_host_of(key), messages.decode_as(payload, messages.HostStatus))
 
     def _held_by_processes(self, hosts: list[str]) -> dict[str, float]:
         if not hosts:
@@ -730,7 +730,7 @@ def check_owner(store: GraphStore, verb: str, params: Mapping[str, Any], *, host
 def rows_reply(rows: list[dict[str, Any]], elapsed_ms: float, what: str) -> bytes:
     """The encoded ``rows`` reply; MessageError naming ``what`` if a value cannot be sent."""
     try:
-        return messages.encode("rows", {"rows": rows, "elapsed_ms": round(elapsed_ms, 4)})
+        return messages.encode(messages.Rows(rows=rows, elapsed_ms=round(elapsed_ms, 4)))
     except MessageError as exc:
         raise MessageError(f"{what}: the answer cannot be sent: {exc}") from exc
     except (TypeError, ValueError, OverflowError) as exc:  # msgpack cannot pack a store value

@@ -10,8 +10,9 @@ in the demo.
 from __future__ import annotations
 
 import argparse
-import json
 from typing import Any
+
+import msgspec
 
 
 def register(subparsers: Any) -> None:
@@ -83,8 +84,9 @@ def run_squeeze(args: argparse.Namespace) -> int:
     finally:
         session.close()
     if args.json:
-        print(json.dumps(status))
+        print(msgspec.json.encode(status).decode())
     else:
-        print(f"{status['host']}: reserved {status.get('reserved_mb', reserve):.0f} MiB, "
-              f"free {status['memory_free_mb']:.0f} of {status['memory_total_mb']:.0f} MiB")
+        reserved = status.reserved_mb if status.reserved_mb is not None else reserve
+        print(f"{status.host}: reserved {reserved:.0f} MiB, "
+              f"free {status.memory_free_mb:.0f} of {status.memory_total_mb:.0f} MiB")
     return 0

@@ -38,6 +38,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+import msgspec
 import psutil
 
 from kgadapt.shared import keys, messages, rpc
@@ -61,21 +62,22 @@ def parse_size_mb(text: str, *, allow_zero: bool = False) -> float:
     return value
 
 
-def check_status(host: str, body: dict[str, Any]) -> dict[str, Any]:
+def check_status(host: str, body: messages.HostStatus) -> messages.HostStatus:
     """``body`` (a decoded ``host_status`` received on host ``host``'s key) if it is plausible, else MessageError.
 
     One rule for everyone who acts on statuses (the knowledge service, the
     adaptation manager): the body names the host of its key, no figure is
     negative, free memory is within the total, a host has at least one core.
     """
-    if body["host"] != host:
-        raise MessageError(f"host_status on the key of host {host!r} names host {body['host']!r}")
-    for name in ("memory_total_mb", "memory_free_mb", "cpu_load"):
-        if body[name] < 0:
-            raise MessageError(f"host_status field {name!r} is negative ({body[name]})")
-    if body["memory_free_mb"] > body["memory_total_mb"]:
-        raise MessageError(f"host_status of {host}: {body['memory_free_mb']} MiB free of {body['memory_total_mb']} MiB total")
-    cores = body.get("cpu_cores")
+    if body.host != host:
+        raise MessageError(f"host_status on the key of host {host!r} names host {body.host!r}")
+    for name, value in (("memory_total_mb", body.memory_total_mb), ("memory_free_mb", body.memory_free_mb),
+                        ("cpu_load", body.cpu_load)):
+        if value < 0:
+            raise MessageError(f"host_status field {name!r} is negative ({value})")
+    if body.memory_free_mb > body.memory_total_mb:
+        raise MessageError(f"host_status of {host}: {body.memory_free_mb} MiB free of {body.memory_total_mb} MiB total")
+    cores = body.cpu_cores
     if cores is not None and cores < 1:
         raise MessageError(f"host_status field 'cpu_cores' must be at least 1, got {cores}")
     return body
@@ -153,7 +155,8 @@ class StatusTrust:
             if not alive:
                 record.recent.clear()
 
-    def admit(self, host: str, body: dict[str, Any], *, received: float, used_mb: float = 0.0) -> dict[str, Any]:
+    def admit(self, host: str, body: messages.HostStatus, *, received: float,
+              used_mb: float = 0.0) -> messages.HostStatus:
         """``body`` if it is believable, else MessageError saying why (counted in ``refused``).
 
         ``used_mb``: what the host's running processes are recorded to hold (their profiles' RSS).
@@ -164,11 +167,11 @@ class StatusTrust:
             record = self._hosts.setdefault(host, _HostTrust())
             if s.require_alive and not record.alive:
                 raise MessageError(f"host_status of {host}: the host has no liveliness token")
-            stamp = float(body["time"])
+            stamp = float(body.time)
             if record.newest is not None and stamp < record.newest - s.stale_s:
                 raise MessageError(f"host_status of {host}: measured {record.newest - stamp:.1f} s before its "
                                    f"newest status (stale or replayed)")
-            total, free = float(body["memory_total_mb"]), float(body["memory_free_mb"])
+            total, free = float(body.memory_total_mb), float(body.memory_free_mb)
             if record.total_mb is not None and total > record.total_mb * (1 + s.total_slack):
                 raise MessageError(f"host_status of {host}: total {total:.0f} MiB above the host's "
                                    f"{record.total_mb:.0f} MiB")
@@ -187,11 +190,11 @@ class StatusTrust:
         record.recent = [(t, f) for t, f in record.recent if t > received - keep] + [(received, free)]
         return body
 
-    def _check_sender(self, host: str, record: _HostTrust, body: dict[str, Any], received: float) -> None:
+    def _check_sender(self, host: str, record: _HostTrust, body: messages.HostStatus, received: float) -> None:
         """Raise MessageError unless this status's sender is the host's current one (or takes over)."""
         s = self.settings
-        origin = body.get("origin") or ""
-        seq = body.get("seq")
+        origin = body.origin or ""
+        seq = body.seq
         if not isinstance(origin, str) or (seq is not None and (not isinstance(seq, int) or isinstance(seq, bool))):
             raise MessageError(f"host_status of {host}: origin must be a string and seq an integer")
         if record.source is None or (record.candidate == origin and received - record.candidate_since >= s.new_source_s
@@ -304,7 +307,7 @@ class HostMonitor:
         self._publisher: Any = None
         self._stack = contextlib.ExitStack()
         self._me: psutil.Process | None = None  # looked up on first use: __init__ does no I/O
-        self._last: dict[str, Any] | None = None
+        self._last: messages.HostStatus | None = None
         self.published = 0
         # Who sends (random per monitor life) and in which order: consumers tell a second sender on this
         # host's key (a forger, a replay) from this monitor by them (StatusTrust).
@@ -344,8 +347,8 @@ class HostMonitor:
         total: float = psutil.virtual_memory().total
         return total / MIB
 
-    def sample(self) -> dict[str, Any]:
-        """One ``host_status`` body measured now."""
+    def sample(self) -> messages.HostStatus:
+        """One ``host_status`` measured now (its sender's ``origin`` and ``seq`` are set when it is published)."""
         s = self.settings
         cores = psutil.cpu_count() or 1
         cpu_load = psutil.cpu_percent(interval=None) * cores
@@ -357,19 +360,11 @@ class HostMonitor:
             vm = psutil.virtual_memory()
             total = vm.total / MIB
             free = vm.available / MIB - self._reserved_mb
-        body: dict[str, Any] = {
-            "host": s.host,
-            "time": time.time(),
-            "memory_total_mb": round(total, 1),
-            "memory_free_mb": round(max(0.0, free), 1),
-            "cpu_load": round(cpu_load, 1),
-            "cpu_cores": cores,
-            "ours_mb": round(ours, 1),
-            "reserved_mb": round(self._reserved_mb, 1),
-        }
-        if s.memory_budget_mb is not None:
-            body["budget_mb"] = s.memory_budget_mb
-        return body
+        return messages.HostStatus(
+            host=s.host, time=time.time(), memory_total_mb=round(total, 1), memory_free_mb=round(max(0.0, free), 1),
+            cpu_load=round(cpu_load, 1), cpu_cores=cores, ours_mb=round(ours, 1),
+            reserved_mb=round(self._reserved_mb, 1), budget_mb=s.memory_budget_mb,
+        )
 
     # -- part life cycle ----------------------------------------------------
 
@@ -416,19 +411,21 @@ class HostMonitor:
             except Exception:  # the monitor must outlive one bad sample
                 log.exception("host monitor: sample or publish failed")
 
-    def _moved(self, body: dict[str, Any]) -> bool:
+    def _moved(self, body: messages.HostStatus) -> bool:
         last = self._last
         if last is None:
             return True
         return bool(
-            abs(body["memory_free_mb"] - last["memory_free_mb"]) >= self.settings.memory_change_mb
-            or abs(body["cpu_load"] - last["cpu_load"]) >= self.settings.cpu_change
+            abs(body.memory_free_mb - last.memory_free_mb) >= self.settings.memory_change_mb
+            or abs(body.cpu_load - last.cpu_load) >= self.settings.cpu_change
         )
 
-    def _publish(self, body: dict[str, Any]) -> None:
-        self._publisher.put(messages.encode("host_status", {**body, "origin": self.origin, "seq": self.published}))
-        self._last = body
+    def _publish(self, body: messages.HostStatus) -> messages.HostStatus:
+        sent = msgspec.structs.replace(body, origin=self.origin, seq=self.published)
+        self._publisher.put(messages.encode(sent))
+        self._last = sent
         self.published += 1
+        return sent
 
     def _answer_squeeze(self, request: rpc.Request) -> rpc.Reply:
         # On the squeeze server's worker; a MessageError is answered with reply_err naming the field.
@@ -439,20 +436,19 @@ class HostMonitor:
             raise MessageError(f"squeeze_request field 'reserve_mb' must not be negative, got {reserve}")
         with self._lock:
             self._reserved_mb = reserve
-            status = self.sample()
-            self._publish(status)
+            status = self._publish(self.sample())
             self._next_due = time.monotonic() + 1.0 / self.settings.rate_hz
-        log.info("squeeze: reserving %.0f MiB on %s, free now %.0f MiB", reserve, status["host"], status["memory_free_mb"])
+        log.info("squeeze: reserving %.0f MiB on %s, free now %.0f MiB", reserve, status.host, status.memory_free_mb)
         return rpc.Reply(key=squeeze_key(self.settings.robot, self.settings.host),
-                         payload=messages.encode("host_status", status))
+                         payload=messages.encode(status))
 
 
-def squeeze(session: Any, robot: str, host: str, reserve_mb: float, *, timeout: float = 2.0) -> dict[str, Any]:
+def squeeze(session: Any, robot: str, host: str, reserve_mb: float, *, timeout: float = 2.0) -> messages.HostStatus:
     """Ask ``host``'s monitor to reserve ``reserve_mb`` MiB; return the status it then published."""
     key = squeeze_key(robot, host)
-    payload = messages.encode("squeeze_request", {"reserve_mb": float(reserve_mb)})
+    payload = messages.encode(messages.SqueezeRequest(reserve_mb=float(reserve_mb)))
     try:
-        return rpc.call(session, key, payload, lambda data: messages.decode(data, "host_status"), timeout=timeout)
+        return rpc.call(session, key, payload, lambda data: messages.decode_as(data, messages.HostStatus), timeout=timeout)
     except RemoteError as exc:
         raise RemoteError(f"squeeze on {key}: {exc}") from exc
     except NoResponder as exc:

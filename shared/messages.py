@@ -10,10 +10,15 @@ wrong kind, unknown version, missing or ill-typed field with its path, a number 
 is not finite, oversized) so that a queryable can answer with an error reply and a
 subscriber can log a drop and go on.
 
+Runtime code sends Structs (``encode(HostStatus(...))``) and receives them
+(:func:`decode_as`, :func:`decode_any`): no wire message is a map inside the project
+(tests/test_typed_messages.py scans for it). ``encode(kind, body)`` and ``decode`` (the
+map as sent) are for tests and tools that write or read the wire as an outsider does.
+
 Fields not in a Struct are kept, not refused: a newer sender may add optional
-fields without breaking older receivers (``decode`` returns them in its map; the
-Struct of :func:`decode_as` ignores them). A new *required* field or a changed
-meaning needs a new version.
+fields without breaking older receivers (the Struct of :func:`decode_as` ignores
+them; :func:`decode_with_unknown` names them for a receiver that refuses them). A
+new *required* field or a changed meaning needs a new version.
 
 docs/CONTRACTS.md, section "Message kinds", is generated from these types
 (``python -m kgadapt.shared.messages docs/CONTRACTS.md``); tests/test_messages.py
@@ -27,7 +32,6 @@ import re
 import sys
 import typing
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, TypeVar, Union
 
@@ -54,14 +58,20 @@ Triple = Annotated[list[Any], Meta(max_length=3)]
 Items = Annotated[list[Any], Meta(max_length=1024)]  # one entry per marker
 
 
-class Message(Struct, frozen=True, kw_only=True, tag_field="kind"):
+def _version(number: int) -> Any:
+    """A kind's version ``v``: a default from a factory, which ``omit_defaults`` never leaves out."""
+    return msgspec.field(default_factory=lambda: number)
+
+
+class Message(Struct, frozen=True, kw_only=True, tag_field="kind", omit_defaults=True):
     """What every kind has: its schema version ``v`` (the tag ``kind`` is the Struct's).
 
-    Every field is sent, an unset optional one as nil (which a receiver reads as absent): ``v`` must be.
+    An unset optional field is left out, as the first senders' maps left it out (a receiver reads an
+    absent field and a nil one alike); ``kind`` and ``v`` are always sent.
     """
 
     MAX_SIZE: ClassVar[int] = MAX_SMALL
-    v: int = 1
+    v: int = _version(1)
 
 
 class HostStatus(Message, tag="host_status", frozen=True, kw_only=True):
@@ -136,6 +146,9 @@ class Detections(Message, tag="detections", frozen=True, kw_only=True):
     dropped: int | None = None
     frame_sent: Number | None = None
     clean: Items | None = None  # per marker, whether its cells read clean (kgadapt.onboard.perception.markers.cells_are_clean)
+    # Per marker, a pose its detector measured itself ([x, y, z] m or {"tvec": [x, y, z]}; docs/flight.md), which
+    # the flight bridge sends as the target's position (the detectors of this project measure none).
+    poses: Items | None = None
 
 
 class Reflex(Message, tag="reflex", frozen=True, kw_only=True):
@@ -394,13 +407,14 @@ def kind_of(cls: type[Message]) -> str:
 @functools.cache
 def version_of(cls: type[Message]) -> int:
     # v is the first field of every kind; looked up once, on first use (resolving the annotations costs).
-    return int(msgspec.structs.fields(cls)[0].default)
+    return int(msgspec.structs.fields(cls)[0].default_factory())
 
 
 def encode(message: Message | str, body: Mapping[str, Any] | None = None) -> bytes:
     """Pack a message: a Struct, or ``body`` as a ``kind`` message; checked as a receiver checks it.
 
-    A ``body`` map may carry fields the Struct does not know: they are sent.
+    A ``body`` map may carry fields the Struct does not know: they are sent. The map form is for tests and
+    tools that write the wire as an outsider does; runtime code builds the Struct.
     """
     what: Message | dict[str, Any]
     if isinstance(message, Message):
@@ -429,7 +443,10 @@ def encode(message: Message | str, body: Mapping[str, Any] | None = None) -> byt
 
 
 def decode(payload: bytes | bytearray | memoryview, kind: str) -> dict[str, Any]:
-    """Unpack and check a ``kind`` message; its map as sent (unknown fields kept). MessageError says what is wrong."""
+    """Unpack and check a ``kind`` message; its map as sent (unknown fields kept). MessageError says what is wrong.
+
+    For tests and tools that look at the wire as an outsider does; runtime code receives a Struct.
+    """
     return _load(payload, _kind(kind))[0]
 
 
@@ -438,6 +455,14 @@ def decode_as(payload: bytes | bytearray | memoryview, cls: type[M]) -> M:
     message = _load(payload, cls)[1]
     assert isinstance(message, cls)
     return message
+
+
+def decode_with_unknown(payload: bytes | bytearray | memoryview, cls: type[M]) -> tuple[M, tuple[str, ...]]:
+    """:func:`decode_as`, and the names of the fields ``cls`` does not know (sorted), for a receiver that
+    refuses them (the deployer: a request names what to run, never how)."""
+    raw, message = _load(payload, cls)
+    assert isinstance(message, cls)
+    return message, tuple(sorted(set(raw) - {"kind"} - set(cls.__struct_fields__)))
 
 
 def decode_any(payload: bytes | bytearray | memoryview) -> Message:
@@ -507,79 +532,49 @@ def _explain(kind: str, exc: msgspec.ValidationError) -> str:
     return f"{kind} field {field!r}: {what}"
 
 
-# -- a description of the kinds, for the fuzzers and the contract's table ------------------------------------
+# -- the contract's table, read from the Structs ----------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Field:
-    """One field of a kind: the Python types a receiver takes, whether it must be there, its length limit."""
-
-    types: tuple[type, ...]
-    required: bool
-    max_len: int | None
-    text: str  # the type in words, as docs/CONTRACTS.md shows it
-
-
-@dataclass(frozen=True)
-class Schema:
-    kind: str
-    version: int
-    fields: Mapping[str, Field]
-    max_size: int
-
-
-def _describe(t: Any) -> Field:
-    """Types, limit and words of one msgspec type (``required`` is filled in by the caller)."""
+def _words(t: Any) -> str:
+    """One msgspec type in the words of docs/CONTRACTS.md."""
     from msgspec import inspect as mi
 
     if isinstance(t, mi.UnionType):
-        parts = [_describe(p) for p in t.types if not isinstance(p, mi.NoneType)]
-        return Field(tuple(x for p in parts for x in p.types), False, parts[0].max_len if len(parts) == 1 else None,
-                     " or ".join(p.text for p in parts))
+        return " or ".join(_words(p) for p in t.types if not isinstance(p, mi.NoneType))
+    limit = f" ≤ {t.max_length}" if getattr(t, "max_length", None) else ""
     if isinstance(t, mi.FloatType):
-        return Field((int, float), True, None, "number")
+        return "number"
     if isinstance(t, mi.IntType):
-        return Field((int,), True, None, "int")
+        return "int"
     if isinstance(t, mi.BoolType):
-        return Field((bool,), True, None, "bool")
+        return "bool"
     if isinstance(t, mi.StrType):
-        return Field((str,), True, t.max_length, "str" + (f" ≤ {t.max_length}" if t.max_length else ""))
+        return "str" + limit
     if isinstance(t, mi.BytesType):
-        return Field((bytes,), True, t.max_length, "bytes" + (f" ≤ {t.max_length}" if t.max_length else ""))
-    if isinstance(t, mi.EnumType):
-        return Field((str,), True, None, f"`{t.cls.__name__}`")
+        return "bytes" + limit
+    if isinstance(t, (mi.EnumType, mi.StructType)):
+        return f"`{t.cls.__name__}`"
     if isinstance(t, mi.ListType):
-        item = "" if isinstance(t.item_type, mi.AnyType) else f" of {_describe(t.item_type).text}"
-        return Field((list,), True, t.max_length, "list" + item + (f" ≤ {t.max_length}" if t.max_length else ""))
+        item = "" if isinstance(t.item_type, mi.AnyType) else f" of {_words(t.item_type)}"
+        return "list" + item + limit
     if isinstance(t, mi.DictType):
-        return Field((dict,), True, t.max_length, "map" + (f" ≤ {t.max_length}" if t.max_length else ""))
-    if isinstance(t, mi.StructType):
-        return Field((dict,), True, None, f"`{t.cls.__name__}`")
+        return "map" + limit
     if isinstance(t, mi.LiteralType):
-        return Field(tuple({type(v) for v in t.values}), True, None, " or ".join(map(repr, t.values)))
-    return Field((object,), True, None, "any")
+        return " or ".join(map(repr, t.values))
+    return "any"
 
 
-def fields_of(cls: type[Struct]) -> dict[str, Field]:
-    """Every field of a Struct but the version ``v``, in order."""
+def _cells(cls: type[Struct]) -> str:
+    """The "fields | optional fields" cells of a Struct (a kind's version ``v`` left out)."""
     from msgspec import inspect as mi
 
     info = mi.type_info(cls)
     assert isinstance(info, mi.StructType)
-    out = {}
-    for f in info.fields:
-        if f.name == "v" and issubclass(cls, Message):
-            continue
-        d = _describe(f.type)
-        out[f.name] = Field(d.types, f.required, d.max_len, d.text)
-    return out
+    fields = [f for f in info.fields if not (f.name == "v" and issubclass(cls, Message))]
+    required = [f"`{f.name}` ({_words(f.type)})" for f in fields if f.required]
+    optional = [f"`{f.name}` ({_words(f.type)})" for f in fields if not f.required]
+    return ", ".join(required) + (" | " if required else "— | ") + (", ".join(optional) or "—")
 
-
-@functools.cache
-def schemas() -> dict[str, Schema]:
-    """Every kind's fields as the docs and the fuzz tests see them; inspected on first use (at import
-    it cost every process ~30 ms)."""
-    return {kind: Schema(kind, version_of(cls), fields_of(cls), cls.MAX_SIZE) for kind, cls in KINDS.items()}
 
 NESTED: tuple[type[Struct], ...] = (DeployDetail, ProcessDetail, Launcher, Decision)
 ENUMS = (ProcessState, ProcessEventKind, TriggerKind, Change)
@@ -589,19 +584,13 @@ END = "<!-- end of message kinds -->"
 
 
 def contract_table() -> str:
-    """The "Message kinds" tables of docs/CONTRACTS.md, from the types above."""
-
-    def cells(fields: Mapping[str, Field]) -> str:
-        required = [f"`{n}` ({f.text})" for n, f in fields.items() if f.required]
-        optional = [f"`{n}` ({f.text})" for n, f in fields.items() if not f.required]
-        return ", ".join(required) + (" | " if required else "— | ") + (", ".join(optional) or "—")
-
+    """The "Message kinds" tables of docs/CONTRACTS.md, from the Structs above."""
     lines = [BEGIN, "", "| kind | v | max bytes | fields | optional fields |", "|---|---|---|---|---|"]
-    for kind, schema in schemas().items():
-        lines.append(f"| `{kind}` | {schema.version} | {schema.max_size} | {cells(schema.fields)} |")
+    for kind, cls in KINDS.items():
+        lines.append(f"| `{kind}` | {version_of(cls)} | {cls.MAX_SIZE} | {_cells(cls)} |")
     lines += ["", "Nested maps:", "", "| map | fields | optional fields |", "|---|---|---|"]
-    for cls in NESTED:
-        lines.append(f"| `{cls.__name__}` | {cells(fields_of(cls))} |")
+    for nested in NESTED:
+        lines.append(f"| `{nested.__name__}` | {_cells(nested)} |")
     lines += ["", END]
     return "\n".join(lines)
 

@@ -2,7 +2,7 @@
 
 Asking::
 
-    rows = call(session, key, messages.encode("query_request", body), decode_rows, timeout=2.0)
+    rows = call(session, key, messages.encode(QueryRequest(params=params)), decode_rows, timeout=2.0)
     details = gather(session, key, payload, decode, timeout=5.0)   # every queryable that matches
     pending = ask(session, key, payload, timeout=2.0, every_reply=True)   # replies as they come
     for reply in pending.replies(): ...

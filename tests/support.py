@@ -70,3 +70,12 @@ class Child(ChildProcess):
         """SIGKILL to the child itself (not its group), as ``kill -9 PID``."""
         self.process.kill()
         self.process.wait()
+
+
+def detections(ids: list[Any], corners: list[Any], **fields: Any) -> Any:
+    """A ``detections`` message with ``ids`` and ``corners`` (the other required fields filled in)."""
+    from kgadapt.shared import messages
+
+    base: dict[str, Any] = {"instance": "d1", "config": "c", "host": "onboard", "seq": 1, "frame_time": 1.0,
+                            "time": 1.0, "processing_ms": 1.0}
+    return messages.Detections(ids=ids, corners=corners, **{**base, **fields})

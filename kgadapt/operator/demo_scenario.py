@@ -77,7 +77,7 @@ def run_scenario(args: argparse.Namespace) -> int:
                 text = (f"squeeze {host}: {reserve:.0f} MiB reserved" if reserve
                         else f"release {host}: squeeze lifted")
                 recorder.mark(text)
-                say(f"{elapsed:6.1f} s  {text}, {status['memory_free_mb']:.0f} MiB free now")
+                say(f"{elapsed:6.1f} s  {text}, {status.memory_free_mb:.0f} MiB free now")
             if elapsed >= next_status:
                 now = recorder.latest()
                 free = ", ".join(f"{h} {v:.0f}" for h, v in sorted(now["free"].items()))

@@ -28,7 +28,7 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from kgadapt.shared import keys, rpc
+from kgadapt.shared import keys, messages, rpc
 
 CLEAR = "\x1b[H\x1b[2J"
 
@@ -76,7 +76,7 @@ class FleetView:
         self.changed = threading.Event()  # set by a liveliness change or an adaptation event
         self._lock = threading.Lock()
         self._alive: dict[str, set[str]] = {}  # robot -> hosts with a live token
-        self._events: dict[str, dict[str, Any]] = {}  # robot -> newest adaptation event
+        self._events: dict[str, messages.AdaptationEvent] = {}  # robot -> newest adaptation event
         self._stack = contextlib.ExitStack()
 
     def setup(self) -> None:
@@ -109,17 +109,16 @@ class FleetView:
         self.changed.set()
 
     def _on_event(self, sample: Any) -> None:
-        from kgadapt.shared import messages
         from kgadapt.shared.errors import MessageError
 
         robot = str(sample.key_expr).split("/")[1]
         try:
-            event = messages.decode(sample.payload.to_bytes(), "adaptation_event")
+            event = messages.decode_as(sample.payload.to_bytes(), messages.AdaptationEvent)
         except MessageError:
             return  # not ours to judge; the robot's own tools log it
         with self._lock:
             previous = self._events.get(robot)
-            if previous is None or event["time"] >= previous["time"]:
+            if previous is None or event.time >= previous.time:
                 self._events[robot] = event
         self.changed.set()
 
@@ -149,10 +148,10 @@ class FleetView:
             d_choice = _choice(last.get("config"), last.get("host"))
             d_outcome = last.get("outcome")
             event = events.get(robot)
-            if event is not None and (d_time is None or event["time"] > d_time):
-                detail = event.get("decision") or {}
-                d_time, d_trigger = event["time"], event["trigger"]
-                d_choice, d_outcome = _choice(detail.get("config"), detail.get("host")), event.get("outcome")
+            if event is not None and (d_time is None or event.time > d_time):
+                detail = event.decision or messages.Decision()
+                d_time, d_trigger = event.time, event.trigger
+                d_choice, d_outcome = _choice(detail.config, detail.host), event.outcome
             config = place.get("config")
             out.append(RobotStatus(
                 robot=robot, answering=answering, hosts_online=tuple(sorted(online)), config=config,

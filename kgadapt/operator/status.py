@@ -30,6 +30,9 @@ import threading
 import time
 from typing import Any, Callable
 
+import msgspec
+
+from kgadapt.shared import messages
 from kgadapt.shared.keys import DEFAULT_ROBOT
 from kgadapt.shared.states import KEPT_STATES, ProcessState
 from kgadapt.shared.timefmt import ago, duration, stamp
@@ -62,38 +65,37 @@ class _Listener:
         from kgadapt.shared import keys
 
         self.lock = threading.Lock()
-        self.host_status: dict[str, dict[str, Any]] = {}
-        self.light: dict[str, Any] | None = None
+        self.host_status: dict[str, messages.HostStatus] = {}
+        self.light: messages.Illumination | None = None
         self.detections: dict[str, dict[str, Any]] = {}  # instance -> counts
-        self.flight: dict[str, Any] | None = None
+        self.flight: messages.FlightState | None = None
         self.subscribers = [
-            session.declare_subscriber(keys.host_status(robot), self._on("host_status")),
-            session.declare_subscriber(keys.camera_illumination(robot), self._on("illumination")),
-            session.declare_subscriber(keys.detector_markers(robot), self._on("detections")),
-            session.declare_subscriber(keys.flight_state(robot), self._on("flight_state")),
+            session.declare_subscriber(keys.host_status(robot), self._on(messages.HostStatus)),
+            session.declare_subscriber(keys.camera_illumination(robot), self._on(messages.Illumination)),
+            session.declare_subscriber(keys.detector_markers(robot), self._on(messages.Detections)),
+            session.declare_subscriber(keys.flight_state(robot), self._on(messages.FlightState)),
         ]
 
-    def _on(self, kind: str) -> Callable[[Any], None]:
-        from kgadapt.shared import messages
+    def _on(self, kind: type[messages.Message]) -> Callable[[Any], None]:
         from kgadapt.shared.errors import MessageError
 
         def callback(sample: Any) -> None:
             try:
-                body = messages.decode(sample.payload.to_bytes(), kind)
+                body = messages.decode_as(sample.payload.to_bytes(), kind)
             except MessageError:
                 return  # a malformed message is the sender's problem; status shows what is well-formed
             with self.lock:
-                if kind == "host_status":
-                    self.host_status[body["host"]] = body
-                elif kind == "illumination":
+                if isinstance(body, messages.HostStatus):
+                    self.host_status[body.host] = body
+                elif isinstance(body, messages.Illumination):
                     self.light = body
-                elif kind == "flight_state":
+                elif isinstance(body, messages.FlightState):
                     self.flight = body
-                else:
-                    seen = self.detections.setdefault(body["instance"], {"frames": 0, "with_markers": 0,
-                                                                         "config": body["config"], "host": body["host"]})
+                elif isinstance(body, messages.Detections):
+                    seen = self.detections.setdefault(body.instance, {"frames": 0, "with_markers": 0,
+                                                                      "config": body.config, "host": body.host})
                     seen["frames"] += 1
-                    seen["with_markers"] += 1 if body["ids"] else 0
+                    seen["with_markers"] += 1 if body.ids else 0
         return callback
 
     def close(self) -> None:
@@ -139,7 +141,7 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
             problems.append(f"cannot ask which hosts are alive: {exc}")
 
         deployers = DeployerClient(session, robot, timeout=timeout)
-        processes: list[dict[str, Any]] = []
+        processes: list[messages.ProcessDetail] = []
         try:
             processes = deployers.processes("*")
         except KgadaptError as exc:
@@ -173,13 +175,13 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     platforms = {row["platform"]: row for row in graph.get("platforms", [])}
     hosts = []
     for name in sorted(set(platforms) | set(alive) | set(host_status)):
-        row, st = platforms.get(name, {}), host_status.get(name, {})
+        row, st = platforms.get(name, {}), host_status.get(name)
         up = name in alive
         hosts.append({"host": name, "up": up, "online_since": row.get("online_since") if up else None,
                       "last_seen": row.get("last_seen"),
-                      "memory_free_mb": st.get("memory_free_mb", row.get("memory_free_mb")),
-                      "memory_total_mb": st.get("memory_total_mb", row.get("memory_total_mb")),
-                      "cpu_load": st.get("cpu_load"), "in_graph": name in platforms})
+                      "memory_free_mb": st.memory_free_mb if st else row.get("memory_free_mb"),
+                      "memory_total_mb": st.memory_total_mb if st else row.get("memory_total_mb"),
+                      "cpu_load": st.cpu_load if st else None, "in_graph": name in platforms})
         if not up and name in platforms:
             problems.append(f"host {name} is offline (last seen {ago(row.get('last_seen'))})"
                             if row.get("last_seen") else f"host {name} has never come online")
@@ -187,15 +189,16 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
             problems.append(f"host {name} is up but no Platform of that name is in the graph")
     out["hosts"] = hosts
 
-    out["processes"] = [{k: p.get(k) for k in ("host", "instance", "config", "deployment", "state", "pid",
-                                               "started_at", "ready_at", "ended_at", "restarts", "returncode",
-                                               "detail")} for p in processes]
+    out["processes"] = [{"host": p.host, "instance": p.instance, "config": p.config, "deployment": p.deployment,
+                         "state": p.state, "pid": p.pid, "started_at": p.started_at, "ready_at": p.ready_at,
+                         "ended_at": p.ended_at, "restarts": p.restarts, "returncode": p.returncode,
+                         "detail": p.detail} for p in processes]
     for p in processes:
-        state = p.get("state")
-        if state == ProcessState.FAILED or (state == ProcessState.EXITED and p.get("returncode") not in (0, None)):
-            problems.append(f"instance {p.get('instance')} on {p.get('host')} {p.get('state')} "
-                            f"(exit status {p.get('returncode')}): {p.get('detail') or 'see kgadapt deploy status'}")
-    live = [p for p in processes if p.get("state") in KEPT_STATES]
+        state = p.state
+        if state == ProcessState.FAILED or (state == ProcessState.EXITED and p.returncode not in (0, None)):
+            problems.append(f"instance {p.instance} on {p.host} {p.state} "
+                            f"(exit status {p.returncode}): {p.detail or 'see kgadapt deploy status'}")
+    live = [p for p in processes if p.state in KEPT_STATES]
 
     configs = graph.get("configs", [])
     if graph and not platforms and not configs:
@@ -208,7 +211,7 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     # Light and band.
     band = None
     if light is not None:
-        level = float(light.get("smoothed", light["mean"]))  # both required by the message
+        level = light.smoothed
         if configs:
             from kgadapt.onboard.perception.illumination import band_for_level
             from kgadapt.shared.errors import ConfigError
@@ -217,8 +220,8 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
                 band = band_for_level(level, configs)
             except ConfigError:
                 band = None
-        out["light"] = {"camera": light["camera"], "level": round(level, 1), "band": band,
-                        "time": light["time"]}
+        out["light"] = {"camera": light.camera, "level": round(float(level), 1), "band": band,
+                        "time": light.time}
     else:
         out["light"] = None
 
@@ -236,9 +239,9 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     out["detection"] = detectors
     heard = {d["instance"] for d in detectors}
     for p in live:
-        if p.get("state") == ProcessState.READY and p.get("instance") not in heard and light is not None \
-                and p.get("config") in {r.get("config") for r in configs}:
-            problems.append(f"detector {p.get('instance')} is ready but sent no detections in {listen_s:g} s "
+        if p.state == ProcessState.READY and p.instance not in heard and light is not None \
+                and p.config in {r.get("config") for r in configs}:
+            problems.append(f"detector {p.instance} is ready but sent no detections in {listen_s:g} s "
                             "(on a host with only a loopback interface Zenoh peers cannot reach each other: "
                             "run the agents with --mode client)")
     if light is not None and not live and processes is not None:
@@ -260,11 +263,13 @@ def gather(session: Any, robot: str, *, endpoint: str = "?", listen_s: float = 1
     return out
 
 
-def _flight(message: dict[str, Any] | None, graph_rows: list[dict[str, Any]]) -> dict[str, Any] | None:
+def _flight(message: messages.FlightState | None, graph_rows: list[dict[str, Any]]) -> dict[str, Any] | None:
     from kgadapt.onboard.flight.flight_phase import in_final_descent
 
     if message is not None:
-        state, source = dict(message), "flight_state"
+        # Its known fields, as the graph's row names them (a nil one is unknown, as an absent one).
+        state = {k: v for k, v in msgspec.structs.asdict(message).items() if v is not None}
+        source = "flight_state"
     elif graph_rows:
         state, source = dict(graph_rows[0]), "graph"
         state["time"] = state.pop("last_seen", None)

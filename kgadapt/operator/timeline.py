@@ -14,11 +14,13 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import MessageError
 from kgadapt.shared.states import Change, TriggerKind
+
+M = TypeVar("M", bound=messages.Message)
 
 
 @dataclass
@@ -118,46 +120,46 @@ class Recorder:
 
     # -- callbacks: decode and append, nothing else ------------------------
 
-    def _decode(self, sample: Any, kind: str) -> dict[str, Any] | None:
+    def _decode(self, sample: Any, kind: type[M]) -> M | None:
         try:
-            return messages.decode(sample.payload.to_bytes(), kind)
+            return messages.decode_as(sample.payload.to_bytes(), kind)
         except MessageError:
             return None
 
     def _on_light(self, sample: Any) -> None:
-        m = self._decode(sample, "illumination")
+        m = self._decode(sample, messages.Illumination)
         if m:
             with self._lock:
-                self.light.append((time.time(), float(m["smoothed"]), int(m["seq"])))
+                self.light.append((time.time(), float(m.smoothed), int(m.seq)))
 
     def _on_status(self, sample: Any) -> None:
-        m = self._decode(sample, "host_status")
+        m = self._decode(sample, messages.HostStatus)
         if m:
             with self._lock:
-                self.memory.setdefault(str(m["host"]), []).append((time.time(), float(m["memory_free_mb"])))
+                self.memory.setdefault(str(m.host), []).append((time.time(), float(m.memory_free_mb)))
 
     def _on_detections(self, sample: Any) -> None:
-        m = self._decode(sample, "detections")
+        m = self._decode(sample, messages.Detections)
         if m:
             with self._lock:
-                self.detections.append((time.time(), str(m["instance"]), str(m["config"]), str(m["host"]),
-                                        int(m["seq"]), len(m["ids"])))
-                self._detected_seqs.add(int(m["seq"]))
-                self._dropped[(str(m["instance"]), int(m["seq"]))] = int(m.get("dropped") or 0)
-                self.detect_ms.append(float(m["processing_ms"]))
-                if m["ids"]:
-                    self.found.append((int(m["seq"]), float(m["time"]), frozenset(int(i) for i in m["ids"])))
+                self.detections.append((time.time(), str(m.instance), str(m.config), str(m.host),
+                                        int(m.seq), len(m.ids)))
+                self._detected_seqs.add(int(m.seq))
+                self._dropped[(str(m.instance), int(m.seq))] = int(m.dropped or 0)
+                self.detect_ms.append(float(m.processing_ms))
+                if m.ids:
+                    self.found.append((int(m.seq), float(m.time), frozenset(int(i) for i in m.ids)))
 
     def _on_reflex(self, sample: Any) -> None:
-        m = self._decode(sample, "reflex")
+        m = self._decode(sample, messages.Reflex)
         if not m:
             return
-        seen = ReflexSeen(time=float(m["time"]), instance=str(m["instance"]), previous=str(m["previous"]),
-                          config=m.get("config"), band=str(m["band"]), evidence=str(m["evidence"]),
-                          level=m.get("level"), seq=int(m["seq"]), frame_time=float(m["frame_time"]))
+        seen = ReflexSeen(time=float(m.time), instance=str(m.instance), previous=str(m.previous),
+                          config=m.config, band=str(m.band), evidence=str(m.evidence),
+                          level=m.level, seq=int(m.seq), frame_time=float(m.frame_time))
         with self._lock:
-            if m.get("frames") is not None:
-                self.hedges[seen.instance] = (int(m["frames"]), int(m.get("hedged") or 0), float(m.get("hedge_ms") or 0))
+            if m.frames is not None:
+                self.hedges[seen.instance] = (int(m.frames), int(m.hedged or 0), float(m.hedge_ms or 0))
             new = not any(r.instance == seen.instance and r.seq == seen.seq for r in self.reflexes[-8:])
             if new:
                 self.reflexes.append(seen)
@@ -181,26 +183,27 @@ class Recorder:
                 "detect_ms_per_frame": round(sum(detect) / len(detect), 3) if detect else None}
 
     def _on_frame(self, sample: Any) -> None:
-        m = self._decode(sample, "frame")
+        m = self._decode(sample, messages.Frame)
         if m:
-            ids = frozenset(int(t["id"]) for t in m.get("truth") or [] if isinstance(t, dict) and "id" in t)
-            level = m.get("level")
+            ids = frozenset(int(t["id"]) for t in m.truth or [] if isinstance(t, dict) and "id" in t)
+            level = m.level
             with self._lock:
-                self.frames[int(m["seq"])] = (float(m["time"]), None if level is None else float(level), ids)
+                self.frames[int(m.seq)] = (float(m.time), None if level is None else float(level), ids)
 
     def _on_event(self, sample: Any) -> None:
-        m = self._decode(sample, "adaptation_event")
+        m = self._decode(sample, messages.AdaptationEvent)
         if not m:
             return
-        d = m.get("decision") or {}
-        trigger, outcome = str(m["trigger"]), str(m.get("outcome") or "")
+        d = m.decision
+        trigger, outcome = str(m.trigger), str(m.outcome or "")
         # A kind newer than the event's contract is left out of trigger_kind: the trigger's text names it.
-        kind = str(d.get("trigger_kind") or (trigger.split("(", 1)[0] if d else ""))
-        change = d.get("change") or (Change.REFLEX if outcome.startswith("reconfigured by reflex") else None)
-        decision = Decision(time=float(m["time"]), trigger=trigger, kind=kind,
-                            config=d.get("config"), host=d.get("host"), outcome=outcome,
-                            latency_ms=d.get("latency_ms"), instance=d.get("instance"),
-                            previous_instance=d.get("previous_instance"), trigger_time=d.get("trigger_time"),
+        kind = str(d.trigger_kind if d and d.trigger_kind else (trigger.split("(", 1)[0] if d else ""))
+        change = (d.change if d else None) or (Change.REFLEX if outcome.startswith("reconfigured by reflex") else None)
+        d = d or messages.Decision()
+        decision = Decision(time=float(m.time), trigger=trigger, kind=kind,
+                            config=d.config, host=d.host, outcome=outcome,
+                            latency_ms=d.latency_ms, instance=d.instance,
+                            previous_instance=d.previous_instance, trigger_time=d.trigger_time,
                             change=change)
         with self._lock:
             self.decisions.append(decision)

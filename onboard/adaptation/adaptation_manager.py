@@ -327,47 +327,47 @@ class AdaptationManager:
         key, payload, received = data
         try:
             if kind == "illumination":
-                m = messages.decode(payload, "illumination")
-                trigger = a.on_illumination(float(m["smoothed"]), now)
+                light = messages.decode_as(payload, messages.Illumination)
+                trigger = a.on_illumination(float(light.smoothed), now)
                 return trigger
             if kind == "host_status":
                 return self._on_host_status(keys.last_chunk(key, 2), payload, received, now)
             if kind == "flight_state":
-                m = messages.decode(payload, "flight_state")  # malformed ones are dropped and logged either way
+                flight = messages.decode_as(payload, messages.FlightState)  # malformed ones: dropped and logged
                 if self._landed_state is not None:
                     return None  # the bridge beside us is the one source
-                self._set_landing(in_final_descent(m))  # landed state unknown in LAND/RTL counts as descent
+                self._set_landing(in_final_descent(flight))  # landed state unknown in LAND/RTL counts as descent
                 return None
             if kind == "deploy_event":
-                m = messages.decode(payload, "deploy_event")
-                if policy.ended(self.standby, instance=m["instance"], event=m["event"]):
-                    log.info("adaptation: the standby %s %s", m["instance"], m["event"])
-                    if policy.crashed_standby(self.standby, instance=m["instance"], event=m["event"]):
+                event = messages.decode_as(payload, messages.DeployEvent)
+                if policy.ended(self.standby, instance=event.instance, event=event.event):
+                    log.info("adaptation: the standby %s %s", event.instance, event.event)
+                    if policy.crashed_standby(self.standby, instance=event.instance, event=event.event):
                         self._end_crashed_standby(self.standby)
                     self.standby = None
-                if policy.ended(self.current, instance=m["instance"], event=m["event"]):
+                if policy.ended(self.current, instance=event.instance, event=event.event):
                     self._state = dataclasses.replace(self._state, next_check=0.0)  # ask its deployer now
                 return None
             if kind == "reflex":
-                m = messages.decode(payload, "reflex")
-                if not policy.own_detection(self.current, body_instance=m["instance"],
+                reflex = messages.decode_as(payload, messages.Reflex)
+                if not policy.own_detection(self.current, body_instance=reflex.instance,
                                             key_instance=keys.last_chunk(key, 2)):
                     return None
-                return self._on_reflex(m, now)
+                return self._on_reflex(reflex, now)
             if kind == "detections":
-                m = messages.decode(payload, "detections")
+                detections = messages.decode_as(payload, messages.Detections)
                 running = self.current
-                if running is None or not policy.own_detection(running, body_instance=m["instance"],
+                if running is None or not policy.own_detection(running, body_instance=detections.instance,
                                                                key_instance=keys.last_chunk(key, 2)):
                     return None
                 band = a.tracker.current.name if a.tracker.current else None
-                found = policy.clean_markers(m["ids"], m.get("clean"))
+                found = policy.clean_markers(detections.ids, detections.clean)
                 expected = policy.expected_rate(self._state, self._configs, running.config, band)
                 trigger = a.on_detection(found, now, expected, running.config)
                 if band is not None:
                     # The frame's own configuration: a reflex may have changed it before its message arrives.
                     pad = self.landing or (self._landed_state is not None and self._landed_state() == "LANDING")
-                    self._live.add(config=str(m["config"]), band=band, found=found, now=now, pad_in_view=pad,
+                    self._live.add(config=str(detections.config), band=band, found=found, now=now, pad_in_view=pad,
                                    run_id=running.run_id, host=running.host)
                     self._write_live(now)
                 return trigger
@@ -388,36 +388,36 @@ class AdaptationManager:
         seen_instance, count = self._reflexes_seen
         return count if seen_instance == instance else 0
 
-    def _on_reflex(self, m: dict[str, Any], now: float) -> Trigger | None:
+    def _on_reflex(self, m: messages.Reflex, now: float) -> Trigger | None:
         """The running detector switched on its own: follow it (see the module's docstring)."""
         running = self.current
         assert running is not None  # own_detection: it is our running detector's
-        count = int(m.get("count") or 0)
+        count = int(m.count)
         if count <= self._reflex_count(running.instance):
             return None  # already followed (its message and its detections both tell)
         self._reflexes_seen = (running.instance, count)
-        config = m.get("config")
-        detail = {**policy.reflex_trigger_detail(m), "answered_ms": round((float(m["time"]) - float(m["frame_time"]))
+        config = m.config
+        detail = {**policy.reflex_trigger_detail(m), "answered_ms": round((float(m.time) - float(m.frame_time))
                                                                          * 1000.0, 1)}
         if config is not None and config != running.config:
             row = self._configs.get(str(config), {})
-            deployment = m.get("deployment") or row.get("deployment") or running.deployment
+            deployment = m.deployment or row.get("deployment") or running.deployment
             self.current = dataclasses.replace(running, config=str(config), deployment=str(deployment),
                                                demand_mb=float(row.get("memory_demand_mb") or running.demand_mb))
-            band = m.get("band")
+            band = m.band
             self._state = policy.after_reflex(
                 self._state, config=str(config), band=band,
                 rate=policy.expected_rate(LoopState(), self._configs, str(config), band), wall=now,
                 settle_s=self.settings.settle_s)
-        band = m.get("band") or (self._analyzer.tracker.current.name if self._analyzer.tracker.current else None)
-        return self._analyzer.on_reflex(str(band), now, detail, hold_s=self.settings.reflex_hold_s)
+        now_band = m.band or (self._analyzer.tracker.current.name if self._analyzer.tracker.current else None)
+        return self._analyzer.on_reflex(str(now_band), now, detail, hold_s=self.settings.reflex_hold_s)
 
     def _on_host_status(self, host: str, payload: bytes, received: float, now: float) -> Trigger | None:
         # Refused: what the knowledge service refuses, a host without a liveliness token,
         # a stale status, free memory its running detector's profile shows as used.
         a = self._analyzer
         held = self.current.held_mb if self.current is not None and self.current.host == host else 0.0
-        m = check_status(host, messages.decode(payload, "host_status"))  # malformed: dropped by the caller
+        m = check_status(host, messages.decode_as(payload, messages.HostStatus))  # malformed: dropped by the caller
         try:
             m = self._trust.admit(host, m, received=received, used_mb=held)
         except MessageError as exc:
@@ -440,7 +440,7 @@ class AdaptationManager:
             self._refresh_held(now, force=True)  # before calling it unfit, make sure "held" is a measurement
         elif short is not None and short is self.standby:
             self._refresh_standby_held()
-        trigger = policy.host_status_trigger(a, host, free_mb=free, cpu_load=float(m["cpu_load"]), wall=now,
+        trigger = policy.host_status_trigger(a, host, free_mb=free, cpu_load=float(m.cpu_load), wall=now,
                                              running=self.current, standby=self.standby, state=self._state,
                                              received=received)
         view.memory_free_mb = self._trust.confirmed_free(host, received)
@@ -458,7 +458,7 @@ class AdaptationManager:
                 or not policy.probe_due(self._state, current, self._analyzer.hosts, mono=time.monotonic())):
             return None
         try:
-            state = str(self._probe.status(current.host, current.instance).get("state"))
+            state = str(self._probe.status(current.host, current.instance).state)
         except DeploymentError as exc:  # the deployer does not know it (any more)
             state = f"unknown to its deployer ({exc})"
         except KgadaptError as exc:  # no answer: the host's liveliness decides
@@ -507,10 +507,10 @@ class AdaptationManager:
         stopped = []
         for p in policy.twins(processes, self._configs, running=self.current, standby=self.standby):
             try:
-                self._deployers.stop(str(p["host"]) if host == "*" else host, str(p["instance"]))
-                stopped.append(str(p["instance"]))
+                self._deployers.stop(str(p.host) if host == "*" else host, str(p.instance))
+                stopped.append(str(p.instance))
             except KgadaptError as exc:
-                log.warning("adaptation: could not stop twin %s on %s: %s", p.get("instance"), p.get("host"), exc)
+                log.warning("adaptation: could not stop twin %s on %s: %s", p.instance, p.host, exc)
         return stopped
 
     def reconcile(self, host: str) -> list[str]:
@@ -771,10 +771,10 @@ class AdaptationManager:
             snapshot = self._deployers.start(t.host, t.deployment, t.config, instance=instance, wait_ready=True,
                                              ready_timeout=self.settings.ready_timeout)
             got = first.event.wait(self.settings.output_timeout)
-        self._set_current(plan, instance, snapshot.get("run_id"))
+        self._set_current(plan, instance, snapshot.run_id)
         latency = (first.wall - trigger.time) * 1000.0 if got and first.wall else None
         return Outcome(trigger=trigger, plan=plan, outcome="started" if got else "started, no detections yet",
-                       latency_ms=latency, detail={"instance": instance, "pid": snapshot.get("pid")})
+                       latency_ms=latency, detail={"instance": instance, "pid": snapshot.pid})
 
     def _reconfigure(self, plan: Plan, trigger: Trigger) -> Outcome:
         t, old = plan.target, self.current
@@ -790,7 +790,7 @@ class AdaptationManager:
             except KgadaptError:
                 # Unanswered is not refused: if its deployer's record names the new configuration,
                 # the detector took it (a migration now would find nothing to change).
-                if self._deployers.status(old.host, old.instance).get("config") != t.config:
+                if self._deployers.status(old.host, old.instance).config != t.config:
                     raise
             got = first.event.wait(self.settings.output_timeout)
         self._set_current(plan, old.instance, old.run_id)
@@ -1003,11 +1003,11 @@ class AdaptationManager:
             self._record(Outcome(trigger=trigger, plan=plan, outcome=f"failed: not made idle: {exc}",
                                  detail={"change": Change.STANDBY_START}))
             return
-        self.standby = dataclasses.replace(t, instance=instance, run_id=snapshot.get("run_id"))
+        self.standby = dataclasses.replace(t, instance=instance, run_id=snapshot.run_id)
         self._record(Outcome(trigger=trigger, plan=plan, outcome="standby started (idle)",
-                             detail={"change": Change.STANDBY_START, "instance": instance, "pid": snapshot.get("pid"),
+                             detail={"change": Change.STANDBY_START, "instance": instance, "pid": snapshot.pid,
                                      "standby": {"config": t.config, "host": t.host, "instance": instance,
-                                                 "run_id": snapshot.get("run_id")}}))
+                                                 "run_id": snapshot.run_id}}))
 
     # -- execute: the running detector -----------------------------------------
 
@@ -1028,22 +1028,23 @@ class AdaptationManager:
         keep, twins = policy.adoption(processes, self._configs, onboard_host=self.settings.onboard_host)
         if keep is None:
             return
-        row = self._configs[keep["config"]]
-        self.current = Placement(config=keep["config"], deployment=keep["deployment"], host=keep["host"],
-                                 instance=keep["instance"], demand_mb=float(row.get("memory_demand_mb") or 0),
-                                 run_id=keep.get("run_id"))
-        log.info("adaptation: adopted %s on %s", keep["instance"], keep["host"])
+        assert keep.config is not None and keep.instance is not None  # ours(): a live one of our configurations
+        row = self._configs[keep.config]
+        self.current = Placement(config=keep.config, deployment=str(keep.deployment), host=str(keep.host),
+                                 instance=keep.instance, demand_mb=float(row.get("memory_demand_mb") or 0),
+                                 run_id=keep.run_id)
+        log.info("adaptation: adopted %s on %s", keep.instance, keep.host)
         if self.settings.standby:  # it may have been our standby, idle
             try:
-                set_active(self._session, self.settings.robot, keep["host"], keep["instance"], True)
+                set_active(self._session, self.settings.robot, str(keep.host), keep.instance, True)
             except KgadaptError as exc:
-                log.warning("adaptation: could not make the adopted %s active: %s", keep["instance"], exc)
+                log.warning("adaptation: could not make the adopted %s active: %s", keep.instance, exc)
         for twin in twins:
             try:
-                self._deployers.stop(twin["host"], twin["instance"])
-                log.info("adaptation: stopped twin %s on %s", twin["instance"], twin["host"])
+                self._deployers.stop(str(twin.host), str(twin.instance))
+                log.info("adaptation: stopped twin %s on %s", twin.instance, twin.host)
             except KgadaptError as exc:
-                log.warning("adaptation: could not stop twin %s: %s", twin["instance"], exc)
+                log.warning("adaptation: could not stop twin %s: %s", twin.instance, exc)
 
     # -- knowledge -------------------------------------------------------
 
@@ -1060,7 +1061,7 @@ class AdaptationManager:
         with self._lock:
             self.history.append(outcome)
         try:
-            self._events_pub.put(messages.encode("adaptation_event", event))
+            self._events_pub.put(messages.encode(event))
         except Exception as exc:  # noqa: BLE001 - publishing is best effort; the graph has the record
             log.debug("adaptation event not published: %s", exc)
         log.info("decision %s: %s -> %s@%s (%s, %s ms)", name, outcome.trigger.describe(), params["config"],

@@ -26,6 +26,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from kgadapt.onboard.adaptation.adaptation import FEATURE, Analyzer, HostView, Placement, Plan, Trigger, memory_short
 from kgadapt.onboard.adaptation.live_rate import LiveSettings
+from kgadapt.shared import messages
 from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, ProcessEventKind, TriggerKind
 
 UNMEASURED_MB = 5.0  # a detector's profile below this has only its exec-time sample
@@ -114,10 +115,11 @@ def after_reflex(state: LoopState, *, config: str, band: str | None, rate: float
                                expected=(config, band, rate))
 
 
-def reflex_trigger_detail(m: Mapping[str, Any]) -> dict[str, Any]:
+def reflex_trigger_detail(m: messages.Reflex) -> dict[str, Any]:
     """A ``reflex`` trigger's detail from the detector's message: its inputs, as ``why`` shows them."""
-    keep = ("evidence", "previous", "config", "band", "from_band", "level", "elsewhere")
-    return {k: m[k] for k in keep if m.get(k) is not None}
+    detail = {"evidence": str(m.evidence), "previous": m.previous, "config": m.config, "band": m.band,
+              "from_band": m.from_band, "level": m.level, "elsewhere": m.elsewhere}
+    return {k: v for k, v in detail.items() if v is not None}
 
 
 def held_refresh(state: LoopState, *, wall: float, every_s: float, force: bool = False) -> LoopState | None:
@@ -475,26 +477,26 @@ def standby_step(*, running: Placement | None, standby: Placement | None, landin
 # -- twins ---------------------------------------------------------------------------
 
 
-def ours(process: Mapping[str, Any], configs: Mapping[str, Any]) -> bool:
+def ours(process: messages.ProcessDetail, configs: Mapping[str, Any]) -> bool:
     """A live detector process of one of our configurations."""
-    return process.get("state") in KEPT_STATES and process.get("config") in configs
+    return process.state in KEPT_STATES and process.config in configs
 
 
-def adoption(processes: Iterable[Mapping[str, Any]], configs: Mapping[str, Any], *,
-             onboard_host: str) -> tuple[Mapping[str, Any] | None, list[Mapping[str, Any]]]:
+def adoption(processes: Iterable[messages.ProcessDetail], configs: Mapping[str, Any], *,
+             onboard_host: str) -> tuple[messages.ProcessDetail | None, list[messages.ProcessDetail]]:
     """After a restart: the live detector of ours to adopt (onboard first), and the twins to stop."""
     live = sorted((p for p in processes if ours(p, configs)),
-                  key=lambda p: (p.get("host") != onboard_host, p.get("instance")))
+                  key=lambda p: (p.host != onboard_host, p.instance or ""))
     if not live:
         return None, []
     return live[0], live[1:]
 
 
-def twins(processes: Iterable[Mapping[str, Any]], configs: Mapping[str, Any], *, running: Placement | None,
-          standby: Placement | None) -> list[Mapping[str, Any]]:
+def twins(processes: Iterable[messages.ProcessDetail], configs: Mapping[str, Any], *, running: Placement | None,
+          standby: Placement | None) -> list[messages.ProcessDetail]:
     """Live detectors of ours that are neither the running one nor the standby."""
     keep = {p.instance for p in (running, standby) if p is not None}
-    return [p for p in processes if ours(p, configs) and p.get("instance") not in keep]
+    return [p for p in processes if ours(p, configs) and p.instance not in keep]
 
 
 # -- knowledge: what a decision record says ------------------------------------------
@@ -513,8 +515,8 @@ class Outcome:
 
 
 def decision_record(outcome: Outcome, *, robot: str, wall: float, seq: int,
-                    instance: str | None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The ``decision`` write's parameters and the ``adaptation_event`` body for one outcome.
+                    instance: str | None) -> tuple[dict[str, Any], messages.AdaptationEvent]:
+    """The ``decision`` write's parameters and the ``adaptation_event`` message for one outcome.
 
     ``seq`` numbers the manager's decisions; ``instance``: the running detector's after it.
     """
@@ -522,7 +524,7 @@ def decision_record(outcome: Outcome, *, robot: str, wall: float, seq: int,
     name = f"{robot}-decision-{int(wall * 1000)}-{seq}"
     target = plan.target if plan else None
     inputs = {"trigger": dict(trigger.detail), **(dict(plan.inputs) if plan else {}), **outcome.detail}
-    params = {
+    params: dict[str, Any] = {
         "name": name, "time": wall, "trigger": trigger.describe(),
         "inputs_json": json.dumps(inputs, default=str),
         "query": ",".join(plan.queries) if plan else None,
@@ -531,18 +533,15 @@ def decision_record(outcome: Outcome, *, robot: str, wall: float, seq: int,
         "outcome": outcome.outcome if not plan else f"{outcome.outcome}: {plan.reason}",
     }
     change = outcome.detail.get("change")
-    event: dict[str, Any] = {
-        "time": wall, "trigger": trigger.describe(), "outcome": outcome.outcome[:256],
-        "decision": {
-            "config": params["config"], "host": params["host"], "latency_ms": params["duration_ms"],
+    event = messages.AdaptationEvent(
+        time=wall, trigger=trigger.describe(), outcome=outcome.outcome[:256],
+        decision=messages.Decision(
+            config=params["config"], host=params["host"], latency_ms=params["duration_ms"],
             # Values receivers of the first contract do not know are left out (the trigger's text names it).
-            "trigger_kind": trigger.kind if trigger.kind not in NEWER_TRIGGERS else None,
-            "frames_lost": outcome.frames_lost, "name": name,
-            "instance": instance, "previous_instance": outcome.detail.get("previous_instance"),
-            "trigger_time": trigger.time, "change": change if change not in NEWER_CHANGES else None,
-        },
-    }
-    for key in ("trigger_kind", "change"):
-        if event["decision"][key] is None:
-            del event["decision"][key]
+            trigger_kind=trigger.kind if trigger.kind not in NEWER_TRIGGERS else None,
+            frames_lost=outcome.frames_lost, name=name,
+            instance=instance, previous_instance=outcome.detail.get("previous_instance"),
+            trigger_time=trigger.time, change=change if change not in NEWER_CHANGES else None,
+        ),
+    )
     return params, event

@@ -52,9 +52,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Mapping, NamedTuple, Sequence
+from typing import Any, NamedTuple, Sequence
+
+import msgspec
 
 from kgadapt.onboard.flight.site import SiteMarkers, load_site  # noqa: F401  (load_site: where callers find it with the confirmer)
+from kgadapt.shared import messages
 from kgadapt.shared.errors import ConfigError, MessageError
 
 
@@ -214,26 +217,23 @@ class MarkerConfirmer:
         return [[(along ** 2 - across ** 2) * los[i] * los[j] + (across ** 2 + pose ** 2) * (i == j)
                  for j in range(3)] for i in range(3)]
 
-    def keep(self, detections: Mapping[str, Any], frame_time: float,
-             places: Sequence[Place | None] | None = None) -> dict[str, Any] | None:
+    def keep(self, detections: messages.Detections, frame_time: float,
+             places: Sequence[Place | None] | None = None) -> messages.Detections | None:
         """A ``detections`` message cut down to its confirmed markers (None: not a newer frame).
 
         ``poses``, when present, is cut the same way.
         """
-        ids, corners = detections["ids"], detections["corners"]
+        ids, corners = detections.ids, detections.corners
         if len(ids) != len(corners):
             raise MessageError(f"detections has {len(ids)} ids but {len(corners)} corner sets")
-        clean = detections.get("clean")
-        indices = self.update(ids, corners, frame_time, clean if isinstance(clean, list) else None, places)
+        indices = self.update(ids, corners, frame_time, detections.clean, places)
         if indices is None:
             return None
-        out = dict(detections)
-        out["ids"] = [ids[i] for i in indices]
-        out["corners"] = [corners[i] for i in indices]
-        poses = detections.get("poses")
+        poses = detections.poses
         if isinstance(poses, list) and len(poses) == len(ids):
-            out["poses"] = [poses[i] for i in indices]
-        return out
+            poses = [poses[i] for i in indices]
+        return msgspec.structs.replace(detections, ids=[ids[i] for i in indices],
+                                       corners=[corners[i] for i in indices], poses=poses)
 
 
 def _mahalanobis2(v: Sequence[float], cov: Sequence[Sequence[float]]) -> float:

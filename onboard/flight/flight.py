@@ -122,10 +122,10 @@ def landing_target(
     )
 
 
-def choose_marker(detections: dict[str, Any], target_id: int | None, site: SiteMarkers | None = None) -> int | None:
+def choose_marker(detections: messages.Detections, target_id: int | None, site: SiteMarkers | None = None) -> int | None:
     """Index of the marker to land on: ``target_id`` (or, when it is a marker of the site's pad, the largest of
     the pad's markers) if seen, else the largest in the image; None if none."""
-    ids, corners = detections["ids"], detections["corners"]
+    ids, corners = detections.ids, detections.corners
     if len(ids) != len(corners):
         raise MessageError(f"detections has {len(ids)} ids but {len(corners)} corner sets")
     wanted: list[int] = list(range(len(ids)))
@@ -156,9 +156,9 @@ def _is_number(value: object) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _pose_of(detections: dict[str, Any], index: int) -> list[float] | None:
+def _pose_of(detections: messages.Detections, index: int) -> list[float] | None:
     """The optional pose of marker ``index``: ``poses[index]`` as [x, y, z] or {"tvec": [x, y, z]}."""
-    poses = detections.get("poses")
+    poses = detections.poses
     if not isinstance(poses, list) or index >= len(poses) or poses[index] is None:
         return None
     pose = poses[index]
@@ -238,7 +238,7 @@ class FlightBridge:
         self._last_frame_time = -math.inf
         self._last_target_mono = time.monotonic()
         self._tokens = 2.0
-        self._last_send_error = ""
+        self._last_send_error: tuple[Any, ...] = ()  # the last failure's type and arguments: logged once
         self.sent_times: collections.deque[float] = collections.deque(maxlen=4096)  # epoch of each LANDING_TARGET
         self.angles_only: bool | None = None  # the last target sent carried angles only (None: none sent yet)
         self._angles_only_warned = False
@@ -371,15 +371,15 @@ class FlightBridge:
     def _handle_detections(self, payload: bytes) -> None:
         self.counters["detections"] += 1
         try:
-            detections = messages.decode(payload, "detections")
-            if self._chosen is not None and detections.get("instance") != self._chosen():
+            detections = messages.decode_as(payload, messages.Detections)
+            if self._chosen is not None and detections.instance != self._chosen():
                 self.counters["not_chosen"] += 1
                 return
             confirmed = self._confirmed(detections)
             if confirmed is None:  # a frame the confirmation has seen (a second detector in a migration)
                 self.counters["duplicate"] += 1
                 return
-            if detections["ids"] and not confirmed["ids"]:
+            if detections.ids and not confirmed.ids:
                 self.counters["unconfirmed"] += 1
                 return
             detections = confirmed
@@ -387,17 +387,17 @@ class FlightBridge:
             if index is None:
                 self.counters["no_target"] += 1
                 return
-            marker_id = marker_id_of(detections["ids"][index]) or 0
+            marker_id = marker_id_of(detections.ids[index]) or 0
             pose = _pose_of(detections, index)
             if pose is not None:  # the detector measured the pose itself
                 target, held = landing_target(
-                    detections["corners"][index], self._intrinsics, frame_time=detections["frame_time"],
+                    detections.corners[index], self._intrinsics, frame_time=detections.frame_time,
                     marker_id=marker_id, pose=pose,
                 ), None
             else:
                 target, held = self._targets.build(
-                    marker_points(detections["corners"][index]), marker_id=marker_id,
-                    frame_time=float(detections["frame_time"]), profile=self.profile, state=self.link.state,
+                    marker_points(detections.corners[index]), marker_id=marker_id,
+                    frame_time=float(detections.frame_time), profile=self.profile, state=self.link.state,
                     pose_at=self.link.pose_at,
                 )
         except (MessageError, FlightLinkError) as exc:
@@ -431,11 +431,11 @@ class FlightBridge:
             self.link.send_landing_target(target)
         except FlightLinkError as exc:
             self.counters["send_failed"] += 1
-            if str(exc) != self._last_send_error:
-                self._last_send_error = str(exc)
+            if (type(exc), *exc.args) != self._last_send_error:
+                self._last_send_error = (type(exc), *exc.args)
                 log.warning("flight bridge: LANDING_TARGET not sent: %s", exc)
             return
-        self._last_send_error = ""
+        self._last_send_error = ()
         self._last_frame_time = target.time
         self._tokens -= 1.0
         self.counters["targets_sent"] += 1
@@ -453,22 +453,22 @@ class FlightBridge:
                 log.warning("%s (no size for marker %d in the site's markers, no rangefinder distance heard)",
                             ANGLES_ONLY, target.target_num)
 
-    def _confirmed(self, detections: dict[str, Any]) -> dict[str, Any] | None:
+    def _confirmed(self, detections: messages.Detections) -> messages.Detections | None:
         """Only confirmed markers (``kgadapt.onboard.flight.confirmation``); None for a frame already seen.
 
         Stale and future frames pass unchanged: the checks below count and refuse them.
         """
-        frame_time = detections["frame_time"]
+        frame_time = detections.frame_time
         age = time.time() - frame_time
         if age > self.settings.max_detection_age_s or age < -self.settings.max_clock_skew_s:
             return detections
         return self.confirmer.keep(detections, frame_time, self._places(detections))
 
-    def _places(self, detections: dict[str, Any]) -> list[Place | None] | None:
+    def _places(self, detections: messages.Detections) -> list[Place | None] | None:
         """Where each candidate lies in the local frame (None where unknown), so that the confirmation
         allows for the vehicle's motion between frames (kgadapt.onboard.flight.confirmation)."""
-        ids, corners = detections["ids"], detections["corners"]
-        if not ids or len(ids) != len(corners) or self.link.pose_at(float(detections["frame_time"])) is None:
+        ids, corners = detections.ids, detections.corners
+        if not ids or len(ids) != len(corners) or self.link.pose_at(float(detections.frame_time)) is None:
             return None
         site = self.settings.confirmation.site
         state = self.link.state
@@ -478,7 +478,7 @@ class FlightBridge:
             try:
                 place = (None if mid is None or (site is not None and mid not in site.sizes_m)
                          else self._targets.locate(marker_points(c), marker_id=mid,
-                                                   frame_time=float(detections["frame_time"]), state=state,
+                                                   frame_time=float(detections.frame_time), state=state,
                                                    pose_at=self.link.pose_at))
             except MessageError:
                 place = None  # the confirmer names the malformed marker
@@ -491,11 +491,10 @@ class FlightBridge:
         publisher = self._publisher
         if publisher is None:
             return
-        body = state.as_message()
-        if self.angles_only:  # absent while the targets carry a range (as every optional field: absent = no news)
-            body["angles_only"] = True
+        # angles_only absent while the targets carry a range (as every optional field: absent = no news)
+        body = state.as_message(angles_only=True if self.angles_only else None)
         try:
-            publisher.put(messages.encode("flight_state", body))
+            publisher.put(messages.encode(body))
         except Exception as exc:  # noqa: BLE001 - zenoh errors: log and try again next period
             log.warning("flight bridge: flight_state not published: %s", exc)
             return
@@ -557,7 +556,7 @@ class FlightControlWriter:
         self.failed = 0
         self._last: tuple[object, ...] | None = None
         self._last_at = -math.inf
-        self._last_error = ""
+        self._last_error: tuple[Any, ...] = ()  # the last failure's type and arguments: logged once
 
     def __call__(self, state: FlightState) -> None:
         now = time.monotonic()
@@ -567,9 +566,9 @@ class FlightControlWriter:
             self.client.write(self.verb, flight_control_params(state, self.component))
         except KgadaptError as exc:
             self.failed += 1
-            if str(exc) != self._last_error:
-                self._last_error = str(exc)
+            if (type(exc), *exc.args) != self._last_error:
+                self._last_error = (type(exc), *exc.args)
                 log.warning("flight state not written to the graph: %s", exc)
             return
-        self._last, self._last_at, self._last_error = state.discrete(), now, ""
+        self._last, self._last_at, self._last_error = state.discrete(), now, ()
         self.written += 1

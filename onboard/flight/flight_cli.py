@@ -24,6 +24,13 @@ if TYPE_CHECKING:
 # Only light imports here: pymavlink and zenoh are imported inside the commands.
 
 
+def _shown(state: FlightState) -> dict[str, Any]:
+    """A flight state's figures for JSON output: its ``flight_state`` message's known fields."""
+    import msgspec
+
+    return {k: v for k, v in msgspec.structs.asdict(state.as_message()).items() if v is not None and k != "v"}
+
+
 def register(
     subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
 ) -> argparse._SubParsersAction[argparse.ArgumentParser]:
@@ -166,7 +173,7 @@ def _monitor(args: argparse.Namespace) -> int:
         def show(state: FlightState) -> None:
             shown["discrete"] = state.discrete()
             if args.json:
-                print(json.dumps(state.as_message()), flush=True)
+                print(json.dumps(_shown(state)), flush=True)
                 return
             battery = "-" if state.battery_pct is None else f"{state.battery_pct:.0f}%"
             volts = "-" if state.battery_v is None else f"{state.battery_v:.2f} V"
@@ -324,7 +331,7 @@ def _status(args: argparse.Namespace) -> int:
         state = link.state
         timeouts = {name: link.stream_timeout(name) for name in STREAM_FIELDS}
         if args.json:
-            print(json.dumps({**state.as_message(), "timeouts": timeouts}), flush=True)
+            print(json.dumps({**_shown(state), "timeouts": timeouts}), flush=True)
         else:
             print("\n".join(status_lines(state, timeouts, time.time())), flush=True)
     finally:

@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Any, Callable, Protocol
 from pymavlink.dialects.v20 import common as mavlink2
 
 from kgadapt.onboard.flight.geometry import Vector, vector
+from kgadapt.shared import messages
 from kgadapt.shared.errors import FlightLinkError
 
 if TYPE_CHECKING:  # imported where used: mavlink_commands is the link's helper
@@ -526,25 +527,24 @@ class FlightState:
     def last_heard(self, stream: str) -> float | None:
         return dict(self.heard).get(stream)
 
-    def as_message(self) -> dict[str, Any]:
-        """The body of a ``flight_state`` wire message."""
-        body = {
-            "time": self.time, "link": self.link, "armed": self.armed, "mode": self.mode,
-            "landed_state": self.landed_state, "battery_pct": self.battery_pct, "battery_v": self.battery_v,
-            "onboard_load": self.onboard_load, "alt_rel_m": self.alt_rel_m, "alt_amsl_m": self.alt_amsl_m,
-            "lat_deg": self.lat_deg, "lon_deg": self.lon_deg,
-            "attitude": list(self.attitude) if self.attitude else None,
-            "rates": list(self.rates) if self.rates else None,
-            "position_ned": list(self.position_ned) if self.position_ned else None,
-            "velocity_ned": list(self.velocity_ned) if self.velocity_ned else None,
-            "rangefinder_m": self.rangefinder_m, "home": list(self.home) if self.home else None,
-            "heard": dict(self.heard) or None, "boot_ms": self.boot_ms, "reboots": self.reboots,
-            "missing": list(self.missing) or None, "refused": list(self.refused) or None,
-            "rejected": self.rejected or None,
-            "system_id": self.system_id, "autopilot": self.autopilot,
-            "last_heartbeat": self.last_heartbeat, "event": self.event,
-        }
-        return {k: v for k, v in body.items() if v is not None}
+    def as_message(self, *, angles_only: bool | None = None) -> messages.FlightState:
+        """This state as a ``flight_state`` wire message (``angles_only``: the bridge's, absent = no news)."""
+        return messages.FlightState(
+            time=self.time, link=self.link, armed=self.armed, mode=self.mode,
+            landed_state=self.landed_state, battery_pct=self.battery_pct, battery_v=self.battery_v,
+            onboard_load=self.onboard_load, alt_rel_m=self.alt_rel_m, alt_amsl_m=self.alt_amsl_m,
+            lat_deg=self.lat_deg, lon_deg=self.lon_deg,
+            attitude=list(self.attitude) if self.attitude else None,
+            rates=list(self.rates) if self.rates else None,
+            position_ned=list(self.position_ned) if self.position_ned else None,
+            velocity_ned=list(self.velocity_ned) if self.velocity_ned else None,
+            rangefinder_m=self.rangefinder_m, home=list(self.home) if self.home else None,
+            heard=dict(self.heard) or None, boot_ms=self.boot_ms, reboots=self.reboots,
+            missing=list(self.missing) or None, refused=list(self.refused) or None,
+            rejected=self.rejected or None, angles_only=angles_only,
+            system_id=self.system_id, autopilot=self.autopilot,
+            last_heartbeat=self.last_heartbeat, event=self.event,
+        )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -283,11 +283,11 @@ class CameraPart:
     def _on_detections(self, sample: Any) -> None:
         # Zenoh callback: decode and keep a reference only (no I/O, no waiting).
         try:
-            m = messages.decode(sample.payload.to_bytes(), "detections")
+            m = messages.decode_as(sample.payload.to_bytes(), messages.Detections)
         except Exception as exc:  # noqa: BLE001 - a foreign or malformed message: only the light estimate goes without it
             log.debug("camera: detections not used for the light estimate: %s", exc)
             return
-        self.note_markers(m["corners"], float(m["frame_time"]))
+        self.note_markers(m.corners, float(m.frame_time))
 
     def _recent_markers(self, now: float) -> list[Any]:
         at, corners = self._markers
@@ -419,22 +419,16 @@ class CameraPart:
         if len(self.stats.encode_ms) >= 512:
             del self.stats.encode_ms[:256]
         self.stats.encode_ms.append(encode_ms)
-        body: dict[str, Any] = {
-            "camera": s.camera, "seq": seq, "time": frame.time,
-            "width": s.width, "height": s.height, "jpeg": jpeg.tobytes(),
-        }
-        if truth is not None and s.publish_truth:
-            body["truth"] = truth
-        if frame.level is not None:
-            body["level"] = frame.level
-        body["sent"] = time.time()  # lets a receiver tell transport time from capture and encoding time
-        self._frame_pub.put(messages.encode("frame", body))
-        self._light_pub.put(messages.encode("illumination", {
-            "camera": s.camera, "seq": seq, "time": frame.time,
-            "mean": round(figures.mean, 3), "p5": figures.p5, "p50": figures.p50, "p95": figures.p95,
-            "smoothed": round(smoothed, 3),
-            **{k: v for k, v in light.as_wire().items() if v is not None},
-        }))
+        self._frame_pub.put(messages.encode(messages.Frame(
+            camera=s.camera, seq=seq, time=frame.time, width=s.width, height=s.height, jpeg=jpeg.tobytes(),
+            truth=truth if s.publish_truth else None, level=frame.level,
+            sent=time.time(),  # lets a receiver tell transport time from capture and encoding time
+        )))
+        self._light_pub.put(messages.encode(messages.Illumination(
+            camera=s.camera, seq=seq, time=frame.time,
+            mean=round(figures.mean, 3), p5=figures.p5, p50=figures.p50, p95=figures.p95,
+            smoothed=round(smoothed, 3), **light.as_wire(),
+        )))
         self.stats.published += 1
         for listener in self._listeners:
             try:

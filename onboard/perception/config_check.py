@@ -55,7 +55,7 @@ def verdict(name: str, config_json: str) -> dict[str, Any] | None:
     except ConfigError as exc:
         return {"at": "detector", "key": None, "message": str(exc)}
     except cv2.error as exc:
-        why = next((line for line in str(exc).splitlines() if "error:" in line), str(exc)).split("error:", 1)[-1].strip()
+        why = f"({exc.code}) {exc.err}"  # OpenCV's own reason and code, without its file and line
         return {"at": "detector", "key": None, "message": f"{name}: OpenCV refuses these detector parameters: {why}"}
     return None
 

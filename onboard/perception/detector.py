@@ -63,8 +63,18 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
+import msgspec
+
 from kgadapt.shared import keys, messages, rpc
-from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RequestTimeout, TransportError
+from kgadapt.shared.errors import (
+    ConfigError,
+    DeploymentError,
+    KgadaptError,
+    MessageError,
+    RemoteError,
+    RequestTimeout,
+    TransportError,
+)
 from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, RESOLVED_CONFIG_ENV, START_IDLE_ENV, announce_ready
 
 log = logging.getLogger("kgadapt.onboard.perception.detector")
@@ -295,7 +305,7 @@ class Detector:
         self._hedge_ms: dict[str, float] = {}  # measured ms per frame of each configuration run as a hedge
         self.hedged = 0  # frames on which a hedge ran
         self.hedge_ms_total = 0.0
-        self._last_reflex: dict[str, Any] | None = None  # the last reflex message's body, put again now and then
+        self._last_reflex: messages.Reflex | None = None  # the last reflex message, put again now and then
         self._seen_markers: tuple[float, list[Any]] = (0.0, [])  # (time, corners) of the last markers found
         self._reflex_pub: Any = None
         self._first_frame: dict[int, int] = {}  # generation -> seq of the first frame it processed
@@ -408,11 +418,11 @@ class Detector:
         import cv2
         import numpy as np
 
-        frame = messages.decode(payload, "frame")
+        frame = messages.decode_as(payload, messages.Frame)
         start = time.perf_counter()
-        gray = cv2.imdecode(np.frombuffer(frame["jpeg"], np.uint8), cv2.IMREAD_GRAYSCALE)
+        gray = cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
         if gray is None:
-            raise MessageError(f"frame {frame['seq']} of camera {frame['camera']}: JPEG does not decode")
+            raise MessageError(f"frame {frame.seq} of camera {frame.camera}: JPEG does not decode")
         decode_ms = (time.perf_counter() - start) * 1e3
         config, core, generation = self._active
         armed = self._reflexes
@@ -424,7 +434,7 @@ class Detector:
                 if generation not in self._own_generations:
                     reflex.taken(config.name)  # the manager changed it: follow, do not fight
                 self._reflex_generation = generation
-            level = self._light(gray, float(frame["time"]))
+            level = self._light(gray, float(frame.time))
             swap = reflex.on_light(level)
             if swap is not None:
                 config, core, generation = self._reflex_swap(swap, cores, frame, config)
@@ -442,34 +452,34 @@ class Detector:
             if swap is not None:
                 self._reflex_swap(swap, cores, frame, config)
         s = self.settings
-        body = {
-            "instance": s.instance, "config": config.name, "host": s.host, "seq": frame["seq"],
-            "frame_time": frame["time"], "time": time.time(),
-            "ids": result.ids, "corners": result.corners, "processing_ms": round(result.processing_ms, 3),
-            "camera": frame["camera"], "received": received, "decode_ms": round(decode_ms, 3),
-            "dropped": dropped, "clean": result.clean,
-        }
-        if isinstance(frame.get("sent"), (int, float)):
-            body["frame_sent"] = frame["sent"]
+        detections = messages.Detections(
+            instance=s.instance, config=config.name, host=s.host, seq=frame.seq,
+            frame_time=frame.time, time=time.time(),
+            ids=result.ids, corners=result.corners, processing_ms=round(result.processing_ms, 3),
+            camera=frame.camera, received=received, decode_ms=round(decode_ms, 3),
+            dropped=dropped, clean=result.clean, frame_sent=frame.sent,
+        )
         if hedge is not None:
             self.hedged += 1
             self.hedge_ms_total += hedge[2]
         if result.ids:
-            self._seen_markers = (float(frame["time"]), result.corners)
-        self._publisher.put(messages.encode("detections", body))
+            self._seen_markers = (float(frame.time), result.corners)
+        self._publisher.put(messages.encode(detections))
         self.processed += 1
         if generation not in self._first_frame:
             with self._generation_seen:
-                self._first_frame[generation] = int(frame["seq"])
+                self._first_frame[generation] = int(frame.seq)
                 self._generation_seen.notify_all()
 
-    def _hedging(self) -> dict[str, Any]:
-        return {"frames": self.processed, "hedged": self.hedged, "hedge_ms": round(self.hedge_ms_total, 3)}
+    def _hedging(self, reflex: messages.Reflex, *, again: bool | None = None) -> messages.Reflex:
+        """``reflex`` with the hedging figures so far."""
+        return msgspec.structs.replace(reflex, again=again, frames=self.processed, hedged=self.hedged,
+                                       hedge_ms=round(self.hedge_ms_total, 3))
 
     def _reflex_again(self) -> bytes | None:
         """The last reflex again, with the hedging figures so far (None before the first reflex)."""
         last = self._last_reflex
-        return None if last is None else messages.encode("reflex", {**last, "again": True, **self._hedging()})
+        return None if last is None else messages.encode(self._hedging(last, again=True))
 
     def _light(self, gray: Any, frame_time: float) -> float | None:
         """This frame's light, weighted around the markers found within the last second (a window or a
@@ -500,7 +510,7 @@ class Detector:
         self._hedge_ms[name] = ms if name not in self._hedge_ms else 0.8 * self._hedge_ms[name] + 0.2 * ms
         return name, result, ms
 
-    def _reflex_swap(self, swap: Any, cores: dict[str, Any], frame: Mapping[str, Any],
+    def _reflex_swap(self, swap: Any, cores: dict[str, Any], frame: messages.Frame,
                      config: Any) -> tuple[Any, Any, int]:
         """Carry a reflex out between two frames, tell the manager and the deployer; the new active triple."""
         active = self._active
@@ -515,15 +525,15 @@ class Detector:
                 self.deployment = swap.deployment
                 print(f"{CONFIGURED_TOKEN} {swap.config} {swap.deployment}", flush=True)  # the deployer's record
         s = self.settings
-        body = {"instance": s.instance, "host": s.host, "config": swap.config, "previous": swap.previous,
-                "deployment": swap.deployment, "elsewhere": swap.elsewhere, "band": swap.band,
-                "from_band": swap.from_band, "evidence": swap.evidence,
-                "level": None if swap.level is None else round(swap.level, 2), "seq": int(frame["seq"]),
-                "frame_time": float(frame["time"]), "time": time.time(), "count": self.reflexes}
-        body = {k: v for k, v in body.items() if v is not None}
+        body = messages.Reflex(
+            instance=s.instance, host=s.host, config=swap.config, previous=swap.previous,
+            deployment=swap.deployment, elsewhere=swap.elsewhere, band=swap.band,
+            from_band=swap.from_band, evidence=swap.evidence,
+            level=None if swap.level is None else round(swap.level, 2), seq=int(frame.seq),
+            frame_time=float(frame.time), time=time.time(), count=self.reflexes)
         self._last_reflex = body
-        self._reflex_pub.put(messages.encode("reflex", {**body, **self._hedging()}))
-        log.info("detector %s: reflex (%s, light %s): %s -> %s", s.instance, swap.evidence, body["level"],
+        self._reflex_pub.put(messages.encode(self._hedging(body)))
+        log.info("detector %s: reflex (%s, light %s): %s -> %s", s.instance, swap.evidence, body.level,
                  swap.previous, swap.config or f"nothing here for band {swap.band}")
         return active
 
@@ -547,85 +557,61 @@ class Detector:
 
 
 class ActivitySwitch:
-    """Answers idle/active requests for one detector. Setting a flag and replying does not block,
-    so the queryable's callback answers directly."""
+    """Answers idle/active requests for one detector, from a :class:`kgadapt.shared.rpc.Server` worker
+    (nothing is answered inside a Zenoh callback)."""
 
     def __init__(self, detector: Detector) -> None:
         self.detector = detector
-        self._queryable: Any = None
+        instance = detector.settings.instance
+        self._server = rpc.Server(f"detector {instance} activity", workers=1, max_pending=8,
+                                  prefix=f"detector {instance}: ")
 
     def setup(self, session: Any) -> None:
         s = self.detector.settings
+        self._server.setup()
         try:
-            self._queryable = session.declare_queryable(keys.detector_activity(s.robot, s.host, s.instance),
-                                                        self._on_query)
-        except Exception as exc:  # whatever zenoh raises: translated here
-            raise TransportError(f"detector {s.instance}: cannot declare its activity queryable: {exc}") from exc
+            self._server.serve(session, keys.detector_activity(s.robot, s.host, s.instance), self._answer,
+                               what="activity")
+        except BaseException:
+            self._server.shutdown()
+            raise
 
-    def _on_query(self, query: Any) -> None:
+    def _answer(self, request: rpc.Request) -> rpc.Reply:
+        # A MessageError (not an activity_request) is answered with reply_err by the server.
         d = self.detector
-        try:
-            active = messages.decode_as(query.payload.to_bytes() if query.payload is not None else b"",
-                                        messages.ActivityRequest).active
-        except MessageError as exc:
-            try:
-                query.reply_err(f"detector {d.settings.instance}: {exc}")
-            except Exception as err:  # noqa: BLE001 - the asker may be gone; nothing to tell it
-                log.debug("reply_err: %s", err)
-            return
+        active = messages.decode_as(request.payload or b"", messages.ActivityRequest).active
         if active:
             d.active.set()
         else:
             d.active.clear()
         log.info("detector %s: %s", d.settings.instance, "active" if active else "idle")
-        try:
-            query.reply(str(query.key_expr), messages.encode(
-                "activity_reply", {"instance": d.settings.instance, "active": active, "processed": d.processed}))
-        except Exception as exc:  # noqa: BLE001 - the asker may be gone; the detector goes on
-            log.warning("detector %s: cannot reply to an activity request: %s", d.settings.instance, exc)
+        return rpc.Reply(key=request.key, payload=messages.encode(
+            messages.ActivityReply(instance=d.settings.instance, active=active, processed=d.processed)))
 
     def shutdown(self) -> None:
-        if self._queryable is not None:
-            try:
-                self._queryable.undeclare()
-            except Exception as exc:  # noqa: BLE001 - shutting down: nothing left to undeclare
-                log.debug("undeclare activity queryable: %s", exc)
-            self._queryable = None
+        self._server.shutdown()
 
 
 def set_active(session: Any, robot: str, host: str, instance: str, active: bool, *,
-               timeout: float = 2.0) -> dict[str, Any]:
+               timeout: float = 2.0) -> messages.ActivityReply:
     """Make the running detector ``instance`` on ``host`` idle or active; its reply (instance, active, processed).
 
     No reply at once means no matching queryable is known yet: a detector's
     deployer says it is ready before every session has its declaration (a
     standby idled right after its start found none under load). Nobody got the
-    request, so it is asked again until ``timeout``.
+    request, so it is sent again until ``timeout`` (``rpc.call``'s ``resend_for``):
+    RequestTimeout (NoResponder) then; a refusal is a DeploymentError.
     """
     key = keys.detector_activity(robot, host, instance)
-    payload = messages.encode("activity_request", {"active": bool(active)})
-    deadline = time.monotonic() + timeout
-    while True:
-        left = max(deadline - time.monotonic(), 0.05)
-        try:
-            replies = list(session.get(key, payload=payload, timeout=left))
-        except Exception as exc:  # zenoh.ZError
-            raise TransportError(f"{'activate' if active else 'idle'} {instance} on {host}: {exc}") from exc
-        if replies:
-            break
-        if time.monotonic() >= deadline:
-            raise RequestTimeout(f"detector {instance} on host {host} did not answer its activity switch "
-                                 f"within {timeout:g} s")
-        time.sleep(0.05)
-    reply = replies[0]
-    if reply.ok is None:
-        text = reply.err.payload.to_string()
-        if text.strip().lower() == "timeout":
-            raise RequestTimeout(f"detector {instance} on host {host} did not answer its activity switch "
-                                 f"within {timeout:g} s")
-        raise DeploymentError(f"activity of {instance} on {host}: {text}")
+    payload = messages.encode(messages.ActivityRequest(active=bool(active)))
     try:
-        return messages.decode(reply.ok.payload.to_bytes(), "activity_reply")
+        return rpc.call(session, key, payload, lambda data: messages.decode_as(data, messages.ActivityReply),
+                        timeout=timeout, resend_for=timeout)
+    except RequestTimeout as exc:
+        raise RequestTimeout(f"detector {instance} on host {host} did not answer its activity switch "
+                             f"within {timeout:g} s") from exc
+    except RemoteError as exc:
+        raise DeploymentError(f"activity of {instance} on {host}: {exc}") from exc
     except MessageError as exc:
         raise DeploymentError(f"activity of {instance} on {host}: bad reply: {exc}") from exc
 
@@ -670,9 +656,9 @@ class Reconfigurer:
     def _answer(self, request: rpc.Request) -> rpc.Reply:
         # A KgadaptError (refused: nothing changed) or a bug is answered with reply_err by the server.
         reply = self.handle(request.payload or b"")
-        return rpc.Reply(key=request.key, payload=messages.encode("configure_reply", reply))
+        return rpc.Reply(key=request.key, payload=messages.encode(reply))
 
-    def handle(self, payload: bytes) -> dict[str, Any]:
+    def handle(self, payload: bytes) -> messages.ConfigureReply:
         """Check, build, swap; the reply body. Raises KgadaptError (nothing changed) when refused."""
         from kgadapt.knowledge.client import KnowledgeClient
 
@@ -711,13 +697,10 @@ class Reconfigurer:
         swapped = time.perf_counter()
         first = d.first_frame(generation, self.first_frame_s)
         arm(d, self._session)  # what it may take in place from the new deployment
-        body: dict[str, Any] = {"instance": s.instance, "config": name, "previous": previous,
-                                "deployment": str(target), "check_ms": round(check_ms, 3),
-                                "build_ms": round(build_ms, 3)}
-        if first is not None:
-            body["first_seq"] = first
-            body["first_frame_ms"] = round((time.perf_counter() - swapped) * 1e3, 3)
-        return body
+        return messages.ConfigureReply(
+            instance=s.instance, config=name, previous=previous, deployment=str(target),
+            check_ms=round(check_ms, 3), build_ms=round(build_ms, 3), first_seq=first,
+            first_frame_ms=None if first is None else round((time.perf_counter() - swapped) * 1e3, 3))
 
     def shutdown(self) -> None:
         self._server.shutdown()

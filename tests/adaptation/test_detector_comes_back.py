@@ -17,14 +17,15 @@ import time
 import pytest
 
 from kgadapt.deploy.client import DeployerClient
+from kgadapt.shared.messages import ProcessDetail
 from kgadapt.shared.states import KEPT_STATES
 from tests.adaptation.test_adaptation_e2e import Run
 
 pytestmark = pytest.mark.slow
 
 
-def _live(run: Run) -> list[dict]:
-    return [p for p in DeployerClient(run.session, "quad1").processes("*") if p.get("state") in KEPT_STATES]
+def _live(run: Run) -> list[ProcessDetail]:
+    return [p for p in DeployerClient(run.session, "quad1").processes("*") if p.state in KEPT_STATES]
 
 
 def _back_after(run: Run, gone: str, since: float) -> float:
@@ -34,10 +35,10 @@ def _back_after(run: Run, gone: str, since: float) -> float:
     return t - since
 
 
-def _one_detector(run: Run, host: str) -> dict:
+def _one_detector(run: Run, host: str) -> ProcessDetail:
     def single():
         live = _live(run)
-        return live[0] if len(live) == 1 and live[0]["host"] == host and live[0]["state"] in ("ready", "running") else None
+        return live[0] if len(live) == 1 and live[0].host == host and live[0].state in ("ready", "running") else None
     return run.wait_for(single, 10, f"exactly one detector, on {host}")
 
 
@@ -50,32 +51,32 @@ def test_a_stopped_migrated_or_failed_detector_is_replaced_by_the_planners_choic
 
         # 1. An operator stops it.
         stopped_at = time.time()
-        deployers.stop("onboard", first["instance"])
-        figures["stop"] = _back_after(run, first["instance"], stopped_at)
+        deployers.stop("onboard", first.instance)
+        figures["stop"] = _back_after(run, first.instance, stopped_at)
         gone = run.wait_for(run.decision("detector_gone"), 5, "the stop to be noticed")
         assert gone.host == "onboard" and gone.outcome.startswith("started")
         second = _one_detector(run, "onboard")
-        assert second["instance"] != first["instance"]
+        assert second.instance != first.instance
 
         # 2. An operator migrates it away (docs/deploy.md); the planner wants it onboard: back it comes.
         moved_at = time.time()
-        result = subprocess.run([sys.executable, "-m", "kgadapt", "deploy", "migrate", second["instance"], "--to", "remote",
+        result = subprocess.run([sys.executable, "-m", "kgadapt", "deploy", "migrate", second.instance, "--to", "remote",
                                  "--connect", run.cluster.endpoint], capture_output=True, text=True, timeout=60)
         assert result.returncode == 0, result.stderr
-        third = run.wait_for(lambda: next((p for p in _live(run) if p["host"] == "onboard"
-                                           and p["instance"] != second["instance"]), None), 10, "a new onboard detector")
-        figures["migrate"] = _back_after(run, second["instance"], moved_at)
+        third = run.wait_for(lambda: next((p for p in _live(run) if p.host == "onboard"
+                                           and p.instance != second.instance), None), 10, "a new onboard detector")
+        figures["migrate"] = _back_after(run, second.instance, moved_at)
         third = _one_detector(run, "onboard")  # the migrated twin on the remote host is stopped
 
         # 3. kill -9 until its deployer gives up (state failed): not a dead end.
         killed = 0
         while True:
-            status = deployers.status("onboard", third["instance"])
-            if status["state"] not in KEPT_STATES:
+            status = deployers.status("onboard", third.instance)
+            if status.state not in KEPT_STATES:
                 break
-            if status["state"] in ("ready", "running") and status.get("pid"):
+            if status.state in ("ready", "running") and status.pid:
                 try:
-                    os.kill(int(status["pid"]), signal.SIGKILL)
+                    os.kill(int(status.pid), signal.SIGKILL)
                 except ProcessLookupError:
                     pass  # the last one killed, reaped before its deployer's status said so: ask again
                 else:
@@ -84,10 +85,10 @@ def test_a_stopped_migrated_or_failed_detector_is_replaced_by_the_planners_choic
             time.sleep(0.1)
             if killed > 10:
                 break
-        assert status["state"] == "failed" or _live(run)[0]["instance"] != third["instance"], status
-        figures["failed"] = _back_after(run, third["instance"], last_kill)
+        assert status.state == "failed" or _live(run)[0].instance != third.instance, status
+        figures["failed"] = _back_after(run, third.instance, last_kill)
         fourth = _one_detector(run, "onboard")
-        assert fourth["instance"] != third["instance"]
+        assert fourth.instance != third.instance
         run.wait_for(lambda: [d.kind for d in run.recorder.decisions].count("detector_gone") >= 3, 5,
                      "the third detector_gone decision")
     print(f"detector back after: {', '.join(f'{k} {v * 1000:.0f} ms' for k, v in figures.items())}; "

@@ -8,7 +8,8 @@ import pytest
 
 from kgadapt.onboard.adaptation import adaptation_policy as P
 from kgadapt.onboard.adaptation.adaptation import Analyzer, Band, BandTracker, HostView, Placement, Plan, Trigger
-from kgadapt.shared.states import Change, TriggerKind
+from kgadapt.shared.messages import ProcessDetail
+from kgadapt.shared.states import Change, ProcessState, TriggerKind
 
 BANDS = [Band("dark", 0, 25), Band("dusk", 25, 80), Band("day", 80, 256)]
 RUNNING = Placement(config="day", deployment="day_onboard", host="onboard", instance="i1", demand_mb=120,
@@ -296,18 +297,18 @@ def test_what_the_warm_standby_needs():
 def test_adoption_keeps_one_of_ours_onboard_first_and_the_rest_are_twins():
     configs = {"day": {}, "dusk": {}}
     processes = [
-        {"instance": "b", "host": "remote", "config": "day", "state": "running"},
-        {"instance": "c", "host": "onboard", "config": "dusk", "state": "ready"},
-        {"instance": "d", "host": "onboard", "config": "day", "state": "stopping"},  # on its way out
-        {"instance": "e", "host": "onboard", "config": "not_ours", "state": "running"},
+        ProcessDetail(instance="b", host="remote", config="day", state=ProcessState.RUNNING),
+        ProcessDetail(instance="c", host="onboard", config="dusk", state=ProcessState.READY),
+        ProcessDetail(instance="d", host="onboard", config="day", state=ProcessState.STOPPING),  # on its way out
+        ProcessDetail(instance="e", host="onboard", config="not_ours", state=ProcessState.RUNNING),
     ]
     keep, twins = P.adoption(processes, configs, onboard_host="onboard")
-    assert keep["instance"] == "c" and [t["instance"] for t in twins] == ["b"]
+    assert keep is not None and keep.instance == "c" and [t.instance for t in twins] == ["b"]
     assert P.adoption(processes[2:], configs, onboard_host="onboard") == (None, [])
     running = Placement(config="dusk", deployment="x", host="onboard", instance="c")
     standby = Placement(config="day", deployment="y", host="remote", instance="b")
     assert P.twins(processes, configs, running=running, standby=standby) == []
-    assert [t["instance"] for t in P.twins(processes, configs, running=running, standby=None)] == ["b"]
+    assert [t.instance for t in P.twins(processes, configs, running=running, standby=None)] == ["b"]
 
 
 def test_a_decision_record_carries_trigger_plan_and_outcome():
@@ -318,8 +319,9 @@ def test_a_decision_record_carries_trigger_plan_and_outcome():
     assert params["outcome"] == "migrated: because" and params["duration_ms"] == 123.5
     assert json.loads(params["inputs_json"])["trigger"] == {"to": "dusk"}
     assert params["query"] == "placement" and (params["config"], params["host"]) == ("dusk", "onboard")
-    d = event["decision"]
-    assert (d["instance"], d["previous_instance"], d["change"], d["trigger_time"]) == ("i1", "i0", "migrate", 10.0)
+    d = event.decision
+    assert d is not None
+    assert (d.instance, d.previous_instance, d.change, d.trigger_time) == ("i1", "i0", "migrate", 10.0)
     bare, _ = P.decision_record(P.Outcome(trigger=trigger(TriggerKind.HOST_BACK), outcome="kept"), robot="quad1",
                                 wall=1.0, seq=1, instance=None)
     assert bare["config"] is None and bare["outcome"] == "kept" and bare["query"] is None

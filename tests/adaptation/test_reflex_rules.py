@@ -232,6 +232,6 @@ def test_a_reflex_decision_leaves_out_what_receivers_of_the_first_contract_do_no
                       detail={"change": Change.REFLEX, "previous_instance": "d1"})
     params, event = decision_record(outcome, robot="quad1", wall=2.0, seq=1, instance="d1")
     assert params["trigger"].startswith("reflex(evidence=light") and '"change": "reflex"' in params["inputs_json"]
-    decoded = messages.decode(messages.encode("adaptation_event", event), "adaptation_event")
+    decoded = messages.decode(messages.encode(event), "adaptation_event")
     assert "trigger_kind" not in decoded["decision"] and "change" not in decoded["decision"]
     assert decoded["trigger"].startswith("reflex(") and decoded["decision"]["config"] == "marker_detection_dark"

@@ -51,10 +51,10 @@ def test_a_migration_whose_source_host_is_cut_off_leaves_one_detector(tmp_path):
             events.undeclare()
 
         def one_onboard():
-            live = [p for p in DeployerClient(run.session, "quad1").processes("*") if p.get("state") in KEPT_STATES]
-            return live if len(live) == 1 and live[0]["host"] == "onboard" else None
+            live = [p for p in DeployerClient(run.session, "quad1").processes("*") if p.state in KEPT_STATES]
+            return live if len(live) == 1 and live[0].host == "onboard" else None
 
         # The old detector is stopped once the remote deployer answers again; the new one stays
         # (the remote host is still full, so remote-first does not bring it back).
         live = run.wait_for(one_onboard, 60, "exactly one detector, onboard")
-        assert live[0]["instance"] == moved.instance  # the migration's new detector, the manager's own
+        assert live[0].instance == moved.instance  # the migration's new detector, the manager's own

@@ -36,8 +36,8 @@ def detectors(run: Run, host: str = "*") -> dict[str, tuple[str, int, str]]:
 
     A loaded machine can keep a deployer from answering for seconds: a generous bound, not a tight one.
     """
-    return {p["instance"]: (p["host"], p["pid"], p["config"])
-            for p in DeployerClient(run.session, "quad1", timeout=20.0).processes(host) if p.get("state") in KEPT_STATES}
+    return {p.instance: (p.host, p.pid, p.config)
+            for p in DeployerClient(run.session, "quad1", timeout=20.0).processes(host) if p.state in KEPT_STATES}
 
 
 def idle_standbys(run: Run) -> list:

@@ -46,14 +46,14 @@ def test_a_deployment_from_the_store_starts_on_request_reports_events_and_stops(
     events = Collector(client_session, keys.deployer_events(ROBOT, "onboard"), "deploy_event")
     client = DeployerClient(client_session, ROBOT)
     info = client.start("onboard", "echo", CONFIG, instance="det1")
-    assert info["state"] == "ready" and info["host"] == "onboard" and alive(info["pid"])
+    assert info.state == "ready" and info.host == "onboard" and alive(info.pid)
     # Placeholders were filled by the deployer from its own knowledge.
-    assert info["argv"][:3] == [sys.executable, "-m", "kgadapt.sim.echo_detector"]
-    assert info["argv"][info["argv"].index("--host") + 1] == "onboard"
-    assert info["argv"][info["argv"].index("--instance") + 1] == "det1"
-    assert [p["instance"] for p in client.processes("*")] == ["det1"]
+    assert info.argv[:3] == [sys.executable, "-m", "kgadapt.sim.echo_detector"]
+    assert info.argv[info.argv.index("--host") + 1] == "onboard"
+    assert info.argv[info.argv.index("--instance") + 1] == "det1"
+    assert [p.instance for p in client.processes("*")] == ["det1"]
     final = client.stop("onboard", "det1")
-    assert final["state"] == "stopped" and final["returncode"] is not None and not alive(info["pid"])
+    assert final.state == "stopped" and final.returncode is not None and not alive(info.pid)
     events.wait_for(lambda e: e["event"] == "stopped")
     kinds = [e["event"] for _, e in events.items]
     assert kinds == ["started", "ready", "exited", "stopped"]
@@ -112,7 +112,7 @@ def test_a_placeholder_outside_the_contract_is_refused_naming_it(graph, hosts, c
 def test_the_process_profile_reaches_the_graph_start_then_memory_then_exit(graph, hosts, client_session):
     client = DeployerClient(client_session, ROBOT)
     info = client.start("onboard", "echo", CONFIG, instance="profiled")
-    run = info["run_id"]
+    run = info.run_id
 
     def profile():
         rows = graph.execute(
@@ -122,7 +122,7 @@ def test_the_process_profile_reaches_the_graph_start_then_memory_then_exit(graph
 
     row = wait_until(profile, what="process_start in the graph")
     assert row["platform"] == "onboard" and row["deployment"] == "echo"
-    assert row["r"]["pid"] == info["pid"] and abs(row["r"]["start_time"] - info["started_at"]) < 1.0
+    assert row["r"]["pid"] == info.pid and abs(row["r"]["start_time"] - info.started_at) < 1.0
     # The first sample comes right after exec, when little is mapped; a Python with Zenoh soon has MiBs.
     row = wait_until(lambda: (p := profile()) and (p["r"].get("rss_mb_max") or 0) > 5 and p, what="memory figures")
     assert row["r"]["rss_mb_max"] < 2000 and 0 < row["r"]["rss_mb_mean"] <= row["r"]["rss_mb_max"]
@@ -130,7 +130,7 @@ def test_the_process_profile_reaches_the_graph_start_then_memory_then_exit(graph
     assert row["r"].get("end_time") is None
     client.stop("onboard", "profiled")
     row = wait_until(lambda: (p := profile()) and p["r"].get("end_time") and p, what="exit status")
-    assert row["r"]["exit_status"] == client.status("onboard", "profiled")["returncode"]
+    assert row["r"]["exit_status"] == client.status("onboard", "profiled").returncode
     assert row["r"]["end_time"] >= row["r"]["start_time"]
 
 
@@ -142,10 +142,10 @@ def test_killing_an_agent_with_sigkill_leaves_no_detector_running(knowledge, end
         assert "agent ready" in agent.output[0]  # the line for people comes first
         wait_for_deployers(test_session, ["onboard"])
         info = DeployerClient(test_session, ROBOT).start("onboard", "echo", CONFIG)
-        assert alive(info["pid"])
+        assert alive(info.pid)
         os.kill(agent.pid, signal.SIGKILL)
         agent.process.wait()
-        wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="detector gone after kill -9 of its agent")
+        wait_until(lambda: not alive(info.pid), timeout=5.0, what="detector gone after kill -9 of its agent")
     finally:
         agent.stop()
 
@@ -172,14 +172,14 @@ def test_raced_starts_pass_only_while_the_declared_memory_fits_the_budget(graph,
 
         with ThreadPoolExecutor(3) as pool:
             outcomes = list(pool.map(start, range(3)))
-        started = [o for o in outcomes if isinstance(o, dict)]
+        started = [o for o in outcomes if isinstance(o, messages.DeployDetail)]
         refused = [str(o) for o in outcomes if isinstance(o, DeploymentError)]
         assert len(started) == 2 and len(refused) == 1, outcomes  # 2 x 300 fit 700; a third would not
         assert ("it declares 300 MiB and host onboard's 2 process(es) already declare 600 MiB" in refused[0]
                 and "900 MiB would exceed its memory budget of 700 MiB" in refused[0]), refused
         # A stop gives the declared memory back.
-        client.stop("onboard", started[0]["instance"])
+        client.stop("onboard", str(started[0].instance))
         again = client.start("onboard", "echo", CONFIG, instance="heavy3")
-        assert again["state"] == "ready"
+        assert again.state == "ready"
     finally:
         host.close()

@@ -56,18 +56,18 @@ def test_a_detector_forked_by_the_launcher_is_the_agents_child_gets_ready_and_de
     try:
         client = DeployerClient(client_session, ROBOT)
         info = client.start("onboard", "detector_day", DAY, instance="forked1")
-        assert info["via"] == "launcher" and info["state"] in ("ready", "running")
-        process = psutil.Process(info["pid"])
+        assert info.via == "launcher" and info.state in ("ready", "running")
+        process = psutil.Process(info.pid)
         assert process.ppid() == os.getpid()  # adopted by the deployer, not left with the launcher
-        assert os.getpgid(info["pid"]) == info["pid"]  # its own process group, as a plain start
-        assert info["pid"] not in [c.pid for c in psutil.Process(launcher.pid).children()]
+        assert os.getpgid(info.pid) == info.pid  # its own process group, as a plain start
+        assert info.pid not in [c.pid for c in psutil.Process(launcher.pid).children()]
         _, first = markers.wait_for(lambda d: d["instance"] == "forked1" and d["ids"])
         assert first["ids"] == [7] and first["config"] == DAY and first["host"] == "onboard"
         # Run as its preloaded module's main: no second copy as __main__ (runpy warned of it in its output).
-        output = "\n".join(client.status("onboard", "forked1").get("output") or [])
+        output = "\n".join(client.status("onboard", "forked1").output or [])
         assert "RuntimeWarning" not in output, output
         stopped = client.stop("onboard", "forked1")
-        assert stopped["state"] == "stopped" and stopped["returncode"] == 0  # SIGINT stops it cleanly
+        assert stopped.state == "stopped" and stopped.returncode == 0  # SIGINT stops it cleanly
     finally:
         markers.close()
         frames.close()
@@ -79,16 +79,16 @@ def test_a_forked_detector_killed_with_sigkill_is_noticed_and_restarted(hosts, c
     try:
         client = DeployerClient(client_session, ROBOT)
         info = client.start("onboard", "detector_day", DAY, instance="crashy")
-        assert info["via"] == "launcher"
-        os.kill(info["pid"], signal.SIGKILL)
+        assert info.via == "launcher"
+        os.kill(info.pid, signal.SIGKILL)
         _, exited = events.wait_for(lambda e: e["instance"] == "crashy" and e["event"] == "exited")
-        assert exited["returncode"] == -signal.SIGKILL and exited["pid"] == info["pid"]
+        assert exited["returncode"] == -signal.SIGKILL and exited["pid"] == info.pid
         events.wait_for(lambda e: e["instance"] == "crashy" and e["event"] == "restarted")
         _, ready = events.wait_for(lambda e: e["instance"] == "crashy" and e["event"] == "ready"
-                                   and e["pid"] != info["pid"])
+                                   and e["pid"] != info.pid)
         again = client.status("onboard", "crashy")
-        assert again["pid"] == ready["pid"] and again["restarts"] == 1 and again["via"] == "launcher"
-        assert not alive(info["pid"])  # reaped by the deployer: no zombie left
+        assert again.pid == ready["pid"] and again.restarts == 1 and again.via == "launcher"
+        assert not alive(info.pid)  # reaped by the deployer: no zombie left
         client.stop("onboard", "crashy")
     finally:
         events.close()
@@ -99,17 +99,17 @@ def test_a_killed_launcher_means_a_plain_start_then_a_new_launcher(hosts, client
     first_pid, starts = launcher.pid, launcher.starts
     client = DeployerClient(client_session, ROBOT)
     kept = client.start("onboard", "detector_day", DAY, instance="kept")
-    assert kept["via"] == "launcher"
+    assert kept.via == "launcher"
     os.kill(first_pid, signal.SIGKILL)
     wait_until(lambda: launcher.pid != first_pid, what="the deployer noticed its launcher died")
     # The next start does not wait for the new launcher: the plain way, if it is not ready yet.
     plain = client.start("onboard", "detector_day", DAY, instance="plain")
-    assert plain["via"] in ("exec", "launcher")
+    assert plain.via in ("exec", "launcher")
     wait_until(lambda: launcher.starts == starts + 1 and launcher.ready, timeout=60.0, what="a new launcher")
     assert launcher.pid != first_pid
-    assert client.status("onboard", "kept")["state"] in ("ready", "running")  # the launcher's death killed no detector
+    assert client.status("onboard", "kept").state in ("ready", "running")  # the launcher's death killed no detector
     forked = client.start("onboard", "detector_day", DAY, instance="forked2")
-    assert forked["via"] == "launcher"
+    assert forked.via == "launcher"
     for name in ("kept", "plain", "forked2"):
         client.stop("onboard", name)
 
@@ -120,7 +120,7 @@ def test_a_dead_launcher_falls_back_to_a_plain_start(hosts, client_session):
     launcher.reply_timeout = 0.5
     try:
         info = DeployerClient(client_session, ROBOT).start("onboard", "detector_day", DAY, instance="fallback")
-        assert info["via"] == "exec" and info["state"] in ("ready", "running")
+        assert info.via == "exec" and info.state in ("ready", "running")
     finally:
         pid = launcher.pid
         if pid is not None:
@@ -160,14 +160,14 @@ def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launche
         assert "agent ready" in agent.output[0]  # the line for people comes first
         wait_for_deployers(test_session, ["onboard"])
         client = DeployerClient(test_session, ROBOT)
-        launcher = wait_until(lambda: (found := client.launcher("onboard")) and found["ready"] and found,
+        launcher = wait_until(lambda: (found := client.launcher("onboard")) and found.ready and found,
                               timeout=60.0, what="the agent's launcher ready")
         info = client.start("onboard", "detector_day", DAY)
-        assert info["via"] == "launcher" and psutil.Process(info["pid"]).ppid() == agent.pid
+        assert info.via == "launcher" and psutil.Process(info.pid).ppid() == agent.pid
         os.kill(agent.pid, signal.SIGKILL)
         agent.process.wait()
-        wait_until(lambda: not alive(info["pid"]), timeout=5.0, what="forked detector gone after kill -9 of its agent")
-        wait_until(lambda: not alive(launcher["pid"]), timeout=5.0, what="launcher gone after kill -9 of its agent")
+        wait_until(lambda: not alive(info.pid), timeout=5.0, what="forked detector gone after kill -9 of its agent")
+        wait_until(lambda: not alive(launcher.pid), timeout=5.0, what="launcher gone after kill -9 of its agent")
     finally:
         agent.stop()
 
@@ -176,7 +176,7 @@ def test_a_forked_detector_shows_its_own_command_line(hosts, client_session):
     launcher = launcher_of(hosts)
     info = DeployerClient(client_session, ROBOT).start("onboard", "detector_day", DAY, instance="titled")
     try:
-        assert psutil.Process(info["pid"]).cmdline() == info["argv"]  # what ps and the fault tools look for
+        assert psutil.Process(info.pid).cmdline() == info.argv  # what ps and the fault tools look for
         assert psutil.Process(launcher.pid).cmdline()[1:3] == ["-m", "kgadapt.deploy.launcher"]
     finally:
         DeployerClient(client_session, ROBOT).stop("onboard", "titled")

@@ -38,8 +38,8 @@ def test_the_target_produces_output_before_the_source_stops(hosts, client_sessio
     first_new, _ = markers.wait_for(lambda d: d["instance"] == "det2" and d["host"] == "remote")
     source_exit, _ = events.wait_for(lambda e: e["instance"] == "det1" and e["event"] == "exited")
     assert first_new < source_exit  # the new detector answered frames while the old one still ran
-    assert not alive(source["pid"])
-    live = {p["instance"]: p["host"] for p in client.processes("*") if p["state"] == "ready"}
+    assert not alive(source.pid)
+    live = {p.instance: p.host for p in client.processes("*") if p.state == "ready"}
     assert live == {"det2": "remote"}
     markers.close()
     events.close()
@@ -50,8 +50,8 @@ def test_a_target_that_never_gets_ready_leaves_the_source_running(hosts, client_
     source = client.start("onboard", "echo_hangs_on_remote", CONFIG, instance="keeper")
     with pytest.raises(ReadinessTimeout, match="keeper keeps running on onboard"):
         migrate(client_session, ROBOT, "keeper", "remote", new_instance="never", ready_timeout=0.5)
-    assert client.status("onboard", "keeper")["state"] == "ready" and alive(source["pid"])
-    assert client.status("remote", "never")["state"] == "failed"
+    assert client.status("onboard", "keeper").state == "ready" and alive(source.pid)
+    assert client.status("remote", "never").state == "failed"
     # Still at work: it answers frames sent after the failed migration.
     sent = frames.seq
     markers = Collector(client_session, keys.detector_markers(ROBOT, "keeper"), "detections")
@@ -84,7 +84,7 @@ def test_a_migration_to_a_host_the_deployment_cannot_run_on_leaves_the_source_ru
     client.start("remote", "echo_remote_only", CONFIG, instance="pinned")
     with pytest.raises(DeploymentError, match="not executable on host onboard.*pinned keeps running on remote"):
         migrate(client_session, ROBOT, "pinned", "onboard")
-    assert client.status("remote", "pinned")["state"] == "ready"
+    assert client.status("remote", "pinned").state == "ready"
 
 
 def test_the_command_line_starts_lists_migrates_and_stops(hosts, client_session, frames, endpoint):
@@ -125,5 +125,5 @@ def test_a_source_whose_host_stops_answering_is_reported_with_the_target_that_ru
     cutter.join(60)
     report = caught.value.report
     assert (report.new_instance, report.target_host, report.source_stopped_ms) == ("moved", "onboard", None)
-    assert client.status("onboard", "moved")["state"] in ("ready", "running")
+    assert client.status("onboard", "moved").state in ("ready", "running")
     events.close()

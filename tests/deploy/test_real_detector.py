@@ -48,7 +48,7 @@ def test_the_shipped_day_detector_starts_detects_and_migrates_without_a_gap_in_o
     try:
         client = DeployerClient(client_session, ROBOT)
         info = client.start("onboard", "detector_day", "marker_detection_day", instance="day1")
-        assert info["argv"][1:3] == ["-m", "kgadapt.onboard.perception.detector"]
+        assert info.argv[1:3] == ["-m", "kgadapt.onboard.perception.detector"]
         _, first = markers.wait_for(lambda d: d["instance"] == "day1" and d["ids"])
         assert first["ids"] == [7] and first["config"] == "marker_detection_day" and first["host"] == "onboard"
 

@@ -72,12 +72,12 @@ def test_the_detector_takes_another_configuration_between_two_frames(hosts, clie
         # No restart: the same process, and its deployer's record names the new configuration.
         events.wait_for(lambda e: e["instance"] == "det1" and e["event"] == "reconfigured")
         now = client.status("onboard", "det1")
-        assert now["pid"] == started["pid"] and now["state"] in ("ready", "running")
-        assert (now["config"], now["deployment"]) == ("marker_detection_dark", "detector_dark")
-        assert "marker_detection_dark" in now["argv"]  # a restart runs what runs now
+        assert now.pid == started.pid and now.state in ("ready", "running")
+        assert (now.config, now.deployment) == ("marker_detection_dark", "detector_dark")
+        assert "marker_detection_dark" in now.argv  # a restart runs what runs now
         # The graph's profile of the run follows too (kgadapt why reads it).
         ran = "MATCH (r:ProcessProfile {name: $run})-[:RAN_CONFIG]->(g) RETURN collect(g.name) AS configs"
-        wait_for(lambda: graph.execute(ran, {"run": started["run_id"]})[0]["configs"] == ["marker_detection_dark"],
+        wait_for(lambda: graph.execute(ran, {"run": started.run_id})[0]["configs"] == ["marker_detection_dark"],
                  10, "the process profile to name the new configuration")
 
         # detector_hd is not executable on the onboard host: the graph says no, nothing changes.
@@ -88,7 +88,7 @@ def test_the_detector_takes_another_configuration_between_two_frames(hosts, clie
         last = max(d["seq"] for _, d in markers.items)
         markers.wait_for(lambda d: d["instance"] == "det1" and d["seq"] > last and d["ids"]
                          and d["config"] == "marker_detection_dark")
-        assert client.status("onboard", "det1")["pid"] == started["pid"]
+        assert client.status("onboard", "det1").pid == started.pid
         client.stop("onboard", "det1")
     finally:
         events.close()
@@ -108,13 +108,13 @@ def test_an_idle_detector_publishes_nothing_until_made_active(hosts, client_sess
         markers.wait_for(lambda d: d["instance"] == "idle1" and d["ids"])
         reply = set_active(client_session, ROBOT, "onboard", "idle1", False)
         idle_at = frames.seq
-        assert (reply["instance"], reply["active"]) == ("idle1", False)
+        assert (reply.instance, reply.active) == ("idle1", False)
         wait_for(lambda: frames.seq >= idle_at + 15, 5, "half a second of frames while idle")
         # One frame may be in detection and one in the slot when the request lands; none after.
         assert not [d for _, d in list(markers.items) if d["seq"] > idle_at + 2], "an idle detector publishes nothing"
-        assert set_active(client_session, ROBOT, "onboard", "idle1", True)["active"] is True
+        assert set_active(client_session, ROBOT, "onboard", "idle1", True).active is True
         markers.wait_for(lambda d: d["instance"] == "idle1" and d["seq"] > idle_at + 15 and d["ids"])
-        assert client.status("onboard", "idle1")["pid"] == started["pid"]  # the same process throughout
+        assert client.status("onboard", "idle1").pid == started.pid  # the same process throughout
         bad = list(client_session.get(keys.detector_activity(ROBOT, "onboard", "idle1"),
                                       payload=b"not a request", timeout=2))
         assert bad and bad[0].ok is None and "idle1" in bad[0].err.payload.to_string()  # refused, named
@@ -139,7 +139,7 @@ def test_an_activity_switch_asked_before_the_detector_is_up_reaches_it_once_it_i
     client.start("onboard", "detector_day", "marker_detection_day", instance="early1")
     try:
         asking.join(35)
-        assert replies and (replies[0]["instance"], replies[0]["active"]) == ("early1", False), replies
+        assert replies and (replies[0].instance, replies[0].active) == ("early1", False), replies
     finally:
         client.stop("onboard", "early1")
 
@@ -157,9 +157,9 @@ def test_a_detector_started_idle_publishes_nothing_until_made_active(hosts, clie
         ready_at = frames.seq
         wait_for(lambda: frames.seq >= ready_at + 30, 10, "a second of frames after ready")
         assert not [d for _, d in list(markers.items) if d["instance"] == "standby1"], "a standby detects nothing"
-        assert set_active(client_session, ROBOT, "onboard", "standby1", True)["active"] is True
+        assert set_active(client_session, ROBOT, "onboard", "standby1", True).active is True
         markers.wait_for(lambda d: d["instance"] == "standby1" and d["ids"])
-        assert client.status("onboard", "standby1")["pid"] == started["pid"]
+        assert client.status("onboard", "standby1").pid == started.pid
         bad = msgpack.packb({"kind": "deploy_request", "v": 1, "deployment": "detector_day",
                              "config": "marker_detection_day", "idle": "yes"})
         replies = list(client_session.get(keys.deployer_verb(ROBOT, "onboard", "start"), payload=bad, timeout=10))

@@ -115,8 +115,8 @@ def test_this_robots_operator_starts_a_detector_that_itself_connects_over_tls(se
     operator = secured("quad1-operator")
     client = DeployerClient(operator, ROBOT, timeout=3.0)
     info = client.start("onboard", "echo", CONFIG, instance="secure1")
-    assert info["state"] == "ready"  # the echo detector opened its session with the host's certificate
-    assert client.stop("onboard", "secure1")["state"] == "stopped"
+    assert info.state == "ready"  # the echo detector opened its session with the host's certificate
+    assert client.stop("onboard", "secure1").state == "stopped"
 
 
 def test_another_robot_may_ask_named_queries_but_cannot_start_a_process_or_write(secured):

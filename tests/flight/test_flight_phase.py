@@ -29,4 +29,4 @@ def test_final_descent(state, expected):
 def test_a_flight_state_message_with_the_landed_state_unknown_in_land_is_final_descent():
     # what the bridge publishes when EXTENDED_SYS_STATE stopped during LAND
     body = FlightState(time=1.0, link=True, armed=True, mode="LAND", landed_state=None).as_message()
-    assert in_final_descent(messages.decode(messages.encode("flight_state", body), "flight_state"))
+    assert in_final_descent(messages.decode_as(messages.encode(body), messages.FlightState))

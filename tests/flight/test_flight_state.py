@@ -30,7 +30,7 @@ def test_altitude_attitude_position_rangefinder_and_home_come_from_the_autopilot
     assert all(abs(time.time() - t) < 5 for t in heard.values())
     assert state.boot_ms is not None and state.boot_ms > 0
     body = state.as_message()
-    assert body["alt_rel_m"] == state.alt_rel_m and body["attitude"] == list(state.attitude)
+    assert body.alt_rel_m == state.alt_rel_m and body.attitude == list(state.attitude)
 
 
 def test_a_stopped_stream_makes_its_fields_unknown_and_is_asked_for_again(ardu):

@@ -6,6 +6,7 @@ import pytest
 
 from kgadapt.onboard.flight.flight import CameraIntrinsics, choose_marker, landing_target, marker_points
 from kgadapt.shared.errors import FlightLinkError, MessageError
+from tests.support import detections
 
 K = CameraIntrinsics(fx=600.0, fy=500.0, cx=320.0, cy=240.0)
 # A 40 x 40 px marker centred on (400, 300): 80 px right and 60 px below the principal point.
@@ -59,13 +60,13 @@ def test_bad_corners_are_refused_with_a_message_error(corners):
 
 def test_the_largest_marker_is_chosen_unless_a_target_id_is_given():
     small = [[0, 0], [10, 0], [10, 10], [0, 10]]
-    detections = {"ids": [[3], [9]], "corners": [SQUARE, small]}  # ids as OpenCV's N x 1 array
-    assert choose_marker(detections, None) == 0
-    assert choose_marker(detections, 9) == 1
-    assert choose_marker(detections, 5) is None
-    assert choose_marker({"ids": [], "corners": []}, None) is None
+    found = detections([[3], [9]], [SQUARE, small])  # ids as OpenCV's N x 1 array
+    assert choose_marker(found, None) == 0
+    assert choose_marker(found, 9) == 1
+    assert choose_marker(found, 5) is None
+    assert choose_marker(detections([], []), None) is None
     with pytest.raises(MessageError, match="2 ids but 1 corner"):
-        choose_marker({"ids": [1, 2], "corners": [SQUARE]}, None)
+        choose_marker(detections([1, 2], [SQUARE]), None)
 
 
 @pytest.mark.parametrize("values", [dict(fx=0.0), dict(fy=-1.0), dict(cx=float("inf")), dict(cy="240")])

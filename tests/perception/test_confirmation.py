@@ -15,6 +15,7 @@ from kgadapt.onboard.perception.scene import IlluminationProfile, SceneSettings,
 from kgadapt.shared.errors import ConfigError, MessageError, ModelError
 from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames
 from tests.conftest import REPO
+from tests.support import detections
 
 SQUARE = [[100.0, 100.0], [140.0, 100.0], [140.0, 140.0], [100.0, 140.0]]
 
@@ -103,7 +104,7 @@ def test_malformed_detections_are_refused_and_change_nothing():
     with pytest.raises(MessageError, match="marker 0"):
         c.update([7], [[[1, 2], [3, 4]]], 3.0)
     with pytest.raises(MessageError, match="1 ids but 2 corner sets"):
-        c.keep({"ids": [7], "corners": [SQUARE, SQUARE]}, 3.0)
+        c.keep(detections([7], [SQUARE, SQUARE]), 3.0)
     assert c.update([7], [SQUARE], 3.0) == [0]
     with pytest.raises(ConfigError):
         ConfirmationSettings(frames=0)
@@ -111,9 +112,9 @@ def test_malformed_detections_are_refused_and_change_nothing():
 
 def test_keep_cuts_ids_corners_and_poses_to_the_confirmed_markers():
     c = MarkerConfirmer(ConfirmationSettings(frames=1))
-    out = c.keep({"ids": [4, 7], "corners": [SQUARE, moved(SQUARE, 200)], "poses": [[0, 0, 1], [1, 1, 2]],
-                  "clean": [False, True], "seq": 3}, 1.0)
-    assert out["ids"] == [7] and out["poses"] == [[1, 1, 2]] and out["seq"] == 3
+    out = c.keep(detections([4, 7], [SQUARE, moved(SQUARE, 200)], poses=[[0, 0, 1], [1, 1, 2]],
+                            clean=[False, True], seq=3), 1.0)
+    assert out is not None and out.ids == [7] and out.poses == [[1, 1, 2]] and out.seq == 3
 
 
 def test_the_shipped_site_file_loads_and_bad_ones_are_named(tmp_path):
@@ -253,8 +254,9 @@ def test_phantoms_from_textures_other_dictionaries_and_charuco_boards_send_no_la
 
 def test_a_second_detector_answering_for_a_frame_already_seen_cannot_slip_a_candidate_through():
     c = MarkerConfirmer()
-    assert c.keep({"ids": [9], "corners": [SQUARE]}, 1.0)["ids"] == []
-    assert c.keep({"ids": [9], "corners": [SQUARE]}, 1.0) is None  # the bridge counts it as a duplicate
+    first = c.keep(detections([9], [SQUARE]), 1.0)
+    assert first is not None and first.ids == []
+    assert c.keep(detections([9], [SQUARE]), 1.0) is None  # the bridge counts it as a duplicate
 
 
 def _noisy_places(seed: int, n: int, *, with_model: bool):

@@ -1,4 +1,4 @@
-"""Hypothesis strategies for malformed wire messages of any kind (shared/messages.py schemas()).
+"""Hypothesis strategies for malformed wire messages of any kind (the Structs of shared/messages.py).
 
 ``malformed(kind, good)`` draws payloads no receiver may accept: random
 bytes, a valid message cut short, one field of a wrong type, a field
@@ -8,11 +8,13 @@ missing, the wrong kind or version, not a map, non-string map keys, and
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import msgpack
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
+from msgspec import inspect as mi
 
 from kgadapt.shared import messages
 
@@ -20,6 +22,39 @@ FUZZ = settings(
     max_examples=60, deadline=None, derandomize=True, database=None,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
+
+@dataclass(frozen=True)
+class WireField:
+    """One field of a kind as a receiver takes it: the Python types msgpack gives for it, whether it must be there."""
+
+    types: tuple[type, ...]
+    required: bool
+
+
+def _types(t: Any) -> tuple[type, ...]:
+    if isinstance(t, mi.UnionType):
+        return tuple(x for part in t.types if not isinstance(part, mi.NoneType) for x in _types(part))
+    if isinstance(t, mi.FloatType):
+        return (int, float)
+    simple = {mi.IntType: int, mi.BoolType: bool, mi.StrType: str, mi.BytesType: bytes, mi.EnumType: str,
+              mi.ListType: list, mi.DictType: dict, mi.StructType: dict}
+    return next(((v,) for k, v in simple.items() if isinstance(t, k)), (object,))
+
+
+def wire_fields(kind: str) -> dict[str, WireField]:
+    """Every field of ``kind`` but its version ``v``, read from its Struct."""
+    info = mi.type_info(messages.KINDS[kind])
+    assert isinstance(info, mi.StructType)
+    return {f.name: WireField(_types(f.type), f.required) for f in info.fields if f.name != "v"}
+
+
+def version(kind: str) -> int:
+    return messages.version_of(messages.KINDS[kind])
+
+
+def max_size(kind: str) -> int:
+    return messages.KINDS[kind].MAX_SIZE
+
 
 # A value of each plain type msgpack carries; wrong_typed picks one the field does not take.
 ANY_VALUE = st.one_of(
@@ -35,7 +70,7 @@ def packed(body: Any) -> bytes:
 
 def wire(kind: str, good: Mapping[str, Any]) -> dict[str, Any]:
     """``good`` as a complete ``kind`` message (checked, so the strategies start from a valid one)."""
-    message = {"kind": kind, "v": messages.schemas()[kind].version, **good}
+    message = {"kind": kind, "v": version(kind), **good}
     messages.decode(packed(message), kind)
     return message
 
@@ -46,7 +81,7 @@ def truncated(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:
 
 
 def wrong_typed(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:
-    fields = messages.schemas()[kind].fields
+    fields = wire_fields(kind)
 
     def refused(pair: tuple[str, Any]) -> bool:
         name, value = pair
@@ -62,14 +97,14 @@ def wrong_typed(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:
 
 
 def missing_field(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:
-    required = sorted(name for name, field in messages.schemas()[kind].fields.items() if field.required)
+    required = sorted(name for name, field in wire_fields(kind).items() if field.required)
     return st.sampled_from(required).map(lambda name: packed({k: v for k, v in wire(kind, good).items() if k != name}))
 
 
 def wrong_envelope(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:
     message = wire(kind, good)
     return st.one_of(
-        st.sampled_from(sorted(set(messages.schemas()) - {kind})).map(lambda other: packed({**message, "kind": other})),
+        st.sampled_from(sorted(set(messages.KINDS) - {kind})).map(lambda other: packed({**message, "kind": other})),
         st.integers(2, 99).map(lambda v: packed({**message, "v": v})),
         st.just(packed({k: v for k, v in message.items() if k != "kind"})),
         st.just(packed([message])),
@@ -80,7 +115,7 @@ def wrong_envelope(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[byte
 
 
 def oversized(kind: str) -> st.SearchStrategy[bytes]:
-    return st.just(b"\x00" * (messages.schemas()[kind].max_size + 1))
+    return st.just(b"\x00" * (max_size(kind) + 1))
 
 
 def malformed(kind: str, good: Mapping[str, Any]) -> st.SearchStrategy[bytes]:

@@ -152,7 +152,7 @@ def test_another_robot_cannot_start_list_or_stop_processes_nor_squeeze_a_host(se
     assert len(reply_payloads(operator_session, list_key, empty)) == 1  # while the deployer answers this robot
     assert operator.processes("onboard") == []  # and nothing was started
     squeezed = squeeze(operator_session, ROBOT, "onboard", 0.0, timeout=3.0)  # the queryable is there too
-    assert squeezed["host"] == "onboard" and squeezed.get("reserved_mb", 0.0) == 0.0
+    assert squeezed.host == "onboard" and (squeezed.reserved_mb or 0.0) == 0.0
 
 
 def test_another_robot_cannot_write_knowledge_with_any_verb_this_robots_operator_may_use(session_as):
@@ -299,9 +299,9 @@ def test_commands_from_the_models_run_without_a_shell_and_their_words_arrive_ver
     operator = DeployerClient(session_as(OPERATOR), ROBOT, timeout=3.0, start_timeout=20.0)
     info = operator.start("onboard", "shell_probe", "marker_detection_day", instance="shellprobe")
     try:
-        assert info["state"] == "ready"
+        assert info.state == "ready"
         argv, probe = wait_for(lambda: next(
-            (json.loads(line) for line in operator.status("onboard", "shellprobe")["output"]
+            (json.loads(line) for line in operator.status("onboard", "shellprobe").output
              if line.startswith("[[")), None), 5, "the probe's own report of its arguments")
     finally:
         operator.stop("onboard", "shellprobe")
@@ -401,8 +401,8 @@ def test_a_detector_runs_with_its_own_identity(network, session_as):
         # Ready means it read its configuration from the knowledge service through the router.
         info = operator.start("onboard", "detector_dusk", "marker_detection_dusk", instance="own_identity")
         try:
-            assert info["state"] == "ready"
-            if info.get("via") != "launcher":  # a forked detector's /proc environ is the launcher's (test_launcher)
+            assert info.state == "ready"
+            if info.via != "launcher":  # a forked detector's /proc environ is the launcher's (test_launcher)
                 environ = Path(f"/proc/{info['pid']}/environ").read_bytes().split(b"\0")
                 assert f"KGADAPT_ZENOH_CONFIG={network.detector_config}".encode() in environ
             wait_for(lambda: keys.detector_alive(ROBOT, "own_identity") in alive, 5, "the detector's token")
@@ -411,7 +411,7 @@ def test_a_detector_runs_with_its_own_identity(network, session_as):
             assert len(reply_payloads(operator_session, configure, b"not a request")) == 1
             # Its idle/active switch (the warm standby's): the manager's identity may, the remote host's may not.
             assert set_active(session_as(f"{ROBOT}-onboard"), ROBOT, "onboard", "own_identity", False,
-                              timeout=5.0)["active"] is False
+                              timeout=5.0).active is False
             with pytest.raises(RequestTimeout):
                 set_active(session_as(f"{ROBOT}-remote"), ROBOT, "onboard", "own_identity", True, timeout=1.0)
         finally:
@@ -473,4 +473,4 @@ def test_a_detectors_certificate_cannot_start_write_or_speak_for_its_host(sessio
     assert (keys.adaptation_events(ROBOT), b"forged") not in seen
     assert b"forged" not in forged_configure
     assert keys.host_alive(ROBOT, "detector_ghost") not in alive
-    assert "by_det" not in {p["instance"] for p in DeployerClient(watcher, ROBOT, timeout=3.0).processes("onboard")}
+    assert "by_det" not in {p.instance for p in DeployerClient(watcher, ROBOT, timeout=3.0).processes("onboard")}

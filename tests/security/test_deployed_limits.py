@@ -47,7 +47,7 @@ def deployer_request(session: Any, key: str, body: dict[str, Any]) -> tuple[str,
 
 
 def live_instances(deployers: DeployerClient) -> dict[str, str]:
-    return {p["instance"]: p["config"] for p in deployers.processes("onboard") if p["state"] in LIVE_STATES}
+    return {p.instance: p.config for p in deployers.processes("onboard") if p.state in LIVE_STATES}
 
 
 # -- item: the memory budget ---------------------------------------------------------------------------
@@ -62,7 +62,7 @@ def test_three_concurrent_starts_over_the_budget_as_the_operator_pass_only_as_fa
     before = live_instances(deployers)
     outcomes = concurrently({f"dark{i}": (lambda i=i: deployers.start(
         "onboard", "detector_dark", DARK, instance=f"dark{i}", wait_ready=False)) for i in range(3)})
-    started = [name for name, outcome in outcomes.items() if isinstance(outcome, dict)]
+    started = [name for name, outcome in outcomes.items() if isinstance(outcome, messages.DeployDetail)]
     try:
         refused = [str(outcome) for outcome in outcomes.values() if isinstance(outcome, DeploymentError)]
         assert len(started) + len(refused) == 3, outcomes

@@ -44,8 +44,8 @@ def test_a_start_beyond_the_hosts_memory_budget_is_refused_with_that_reason(loop
     assert deployers.processes("remote") == []
     # What fits still starts: the check refuses by the figures, not by the request.
     started = deployers.start("remote", "detector_day", DAY)
-    assert started["state"] in ("ready", "running")
-    deployers.stop("remote", started["instance"])
+    assert started.state in ("ready", "running")
+    deployers.stop("remote", started.instance)
 
 
 def _listening(pid: int) -> set[str]:
@@ -60,11 +60,11 @@ def test_agents_and_detectors_listen_on_loopback_only(loopback_robot):
     started = deployers.start("remote", "detector_day", DAY)
     try:
         agent = _listening(robot["agent"].process.pid)
-        detector = _listening(int(started["pid"]))
+        detector = _listening(int(started.pid))
         assert agent and detector  # they do listen (peers reach each other on this machine) ...
         assert agent <= {"127.0.0.1"} and detector <= {"127.0.0.1"}, (agent, detector)  # ... but only there
     finally:
-        deployers.stop("remote", started["instance"])
+        deployers.stop("remote", started.instance)
 
 
 def test_a_second_knowledge_service_on_the_same_store_refuses_to_start_and_changes_nothing(loopback_robot, tmp_path):

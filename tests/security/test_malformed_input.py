@@ -216,9 +216,9 @@ def test_the_flight_bridge_fed_garbage_detections_drops_each_and_still_steers_th
 def _makes_a_marker(payload: bytes) -> bool:
     """A drawn message that happens to be a valid detection (four numeric corners): a target is right."""
     try:
-        body = messages.decode(payload, "detections")
+        body = messages.decode_as(payload, messages.Detections)
         index = choose_marker(body, None)
-        return index is not None and landing_target(body["corners"][index], K, frame_time=body["frame_time"]) is not None
+        return index is not None and landing_target(body.corners[index], K, frame_time=body.frame_time) is not None
     except Exception:
         return False
 

@@ -59,27 +59,27 @@ def stop_hog(child: subprocess.Popen) -> None:
 def test_under_a_budget_free_memory_is_the_budget_minus_the_agents_process_tree():
     monitor = HostMonitor(HostMonitorSettings(robot="quad1", host="remote", memory_budget_mb=4096))
     before = monitor.sample()
-    assert before["memory_total_mb"] == 4096
-    assert before["memory_free_mb"] == pytest.approx(4096 - before["ours_mb"], abs=0.2)
+    assert before.memory_total_mb == 4096
+    assert before.memory_free_mb == pytest.approx(4096 - before.ours_mb, abs=0.2)
     me = psutil.Process()
     tree = sum(p.memory_info().rss for p in [me, *me.children(recursive=True)]) / MIB  # e.g. the test's FalkorDB servers
-    assert before["ours_mb"] == pytest.approx(tree, rel=0.2)
+    assert before.ours_mb == pytest.approx(tree, rel=0.2)
     hog = start_hog(100)
     try:
         during = monitor.sample()
     finally:
         stop_hog(hog)
-    assert during["ours_mb"] - before["ours_mb"] > 90  # the child's 100 MiB count as ours
-    assert before["memory_free_mb"] - during["memory_free_mb"] > 90
+    assert during.ours_mb - before.ours_mb > 90  # the child's 100 MiB count as ours
+    assert before.memory_free_mb - during.memory_free_mb > 90
 
 
 def test_without_a_budget_free_memory_is_what_the_machine_has_available():
     monitor = HostMonitor(HostMonitorSettings(robot="quad1", host="remote"))
     sample = monitor.sample()
     vm = psutil.virtual_memory()
-    assert sample["memory_total_mb"] == pytest.approx(vm.total / MIB, abs=1)
-    assert sample["memory_free_mb"] == pytest.approx(vm.available / MIB, abs=256)
-    assert "budget_mb" not in sample
+    assert sample.memory_total_mb == pytest.approx(vm.total / MIB, abs=1)
+    assert sample.memory_free_mb == pytest.approx(vm.available / MIB, abs=256)
+    assert sample.budget_mb is None
 
 
 def subscribed(session, key: str) -> None:
@@ -100,7 +100,7 @@ def monitored(zenoh_pair, robot):
     monitor = HostMonitor(HostMonitorSettings(robot=robot, host="remote", memory_budget_mb=2048, rate_hz=0.1))
     subscribed(server, keys.host_status(robot, "remote"))
     monitor.setup(server)
-    first = messages.decode(received.get(timeout=3), "host_status")  # the first sample is always published
+    first = messages.decode_as(received.get(timeout=3), messages.HostStatus)  # the first sample is always published
     yield monitor, session, received, first
     monitor.shutdown()
     sub.undeclare()
@@ -110,15 +110,15 @@ def test_a_squeeze_reserves_memory_and_publishes_at_once(monitored, robot):
     monitor, session, received, first = monitored
     wait_for(lambda: list(session.get(f"{keys.robot_root(robot)}/host/remote/squeeze", timeout=1)), 5, "squeeze queryable")
     status = squeeze(session, robot, "remote", 500)
-    assert status["reserved_mb"] == 500
-    assert status["memory_free_mb"] == pytest.approx(2048 - status["ours_mb"] - 500, abs=0.2)
+    assert status.reserved_mb == 500
+    assert status.memory_free_mb == pytest.approx(2048 - status.ours_mb - 500, abs=0.2)
     published = published_with(received, 500)  # long before the 10 s period
-    assert published["memory_free_mb"] < first["memory_free_mb"] - 490
+    assert published.memory_free_mb < first.memory_free_mb - 490
     squeeze(session, robot, "remote", 0)
     published_with(received, 0)
 
 
-def published_with(received: queue.Queue, reserved: float) -> dict:
+def published_with(received: queue.Queue, reserved: float) -> messages.HostStatus:
     """The first status published with ``reserved`` MiB reserved, within 2 s (long before the 10 s period).
 
     The sampler also publishes whenever the machine's CPU load moves by half a core, so on a loaded
@@ -128,12 +128,12 @@ def published_with(received: queue.Queue, reserved: float) -> dict:
     seen = []
     while (left := deadline - time.monotonic()) > 0:
         try:
-            status = messages.decode(received.get(timeout=left), "host_status")
+            status = messages.decode_as(received.get(timeout=left), messages.HostStatus)
         except queue.Empty:
             break
-        if status["reserved_mb"] == reserved:
+        if status.reserved_mb == reserved:
             return status
-        seen.append(status["reserved_mb"])
+        seen.append(status.reserved_mb)
     raise AssertionError(f"no status with {reserved} MiB reserved within 2 s; published meanwhile: {seen}")
 
 
@@ -141,10 +141,10 @@ def test_a_large_memory_change_is_published_at_once(monitored):
     monitor, session, received, first = monitored
     hog = start_hog(100)
     try:
-        status = messages.decode(received.get(timeout=2), "host_status")  # the period is 10 s
+        status = messages.decode_as(received.get(timeout=2), messages.HostStatus)  # the period is 10 s
     finally:
         stop_hog(hog)
-    assert status["memory_free_mb"] < first["memory_free_mb"] - 32
+    assert status.memory_free_mb < first.memory_free_mb - 32
 
 
 def test_status_is_published_at_the_configured_rate(zenoh_pair, robot):

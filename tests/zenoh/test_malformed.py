@@ -18,6 +18,7 @@ from zenoh import CongestionControl
 
 from kgadapt.shared import keys, messages
 from kgadapt.shared.hostmonitor import HostMonitor, HostMonitorSettings, squeeze_key
+from tests.security import fuzz
 from tests.zenoh.conftest import platform_row, wait_for
 
 BLOCK = CongestionControl.BLOCK
@@ -48,12 +49,12 @@ def packed(body: dict[str, Any]) -> bytes:
 
 
 def wire(kind: str) -> dict[str, Any]:
-    return {"kind": kind, "v": messages.schemas()[kind].version, **GOOD[kind]}
+    return {"kind": kind, "v": fuzz.version(kind), **GOOD[kind]}
 
 
 def wrong_typed(kind: str) -> st.SearchStrategy[bytes]:
     """A valid ``kind`` message with one schema field replaced by a value of a type it does not take."""
-    fields = messages.schemas()[kind].fields
+    fields = fuzz.wire_fields(kind)
 
     def replace(pair: tuple[str, Any]) -> bytes:
         name, value = pair
@@ -74,7 +75,7 @@ def truncated(kind: str) -> st.SearchStrategy[bytes]:
 
 def wrong_envelope(kind: str) -> st.SearchStrategy[bytes]:
     return st.one_of(
-        st.sampled_from(sorted(set(messages.schemas()) - {kind})).map(lambda other: packed({**wire(kind), "kind": other})),
+        st.sampled_from(sorted(set(messages.KINDS) - {kind})).map(lambda other: packed({**wire(kind), "kind": other})),
         st.integers(2, 99).map(lambda v: packed({**wire(kind), "v": v})),
         st.just(packed([wire(kind)])),
         st.just(packed("just a string")),
@@ -83,7 +84,7 @@ def wrong_envelope(kind: str) -> st.SearchStrategy[bytes]:
 
 
 def oversized(kind: str) -> st.SearchStrategy[bytes]:
-    limit = messages.schemas()[kind].max_size
+    limit = fuzz.max_size(kind)
     return st.one_of(
         st.integers(limit + 1, limit + 4096).map(lambda n: b"\x00" * n),
         st.integers(limit + 1, limit + 4096).map(lambda n: packed({**wire(kind), "padding": "x" * n})),

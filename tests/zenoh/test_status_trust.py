@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 
+import msgspec
 import pytest
 
 from kgadapt.knowledge import runtime
@@ -24,9 +25,10 @@ from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings
 from tests.zenoh.conftest import platform_row, wait_for
 
 
-def status(host: str = "remote", *, free: float = 500.0, total: float = 1000.0, at: float | None = None) -> dict:
-    return {"host": host, "time": time.time() if at is None else at, "memory_total_mb": total,
-            "memory_free_mb": free, "cpu_load": 10.0, "cpu_cores": 2}
+def status(host: str = "remote", *, free: float = 500.0, total: float = 1000.0,
+           at: float | None = None) -> messages.HostStatus:
+    return messages.HostStatus(host=host, time=time.time() if at is None else at, memory_total_mb=total,
+                               memory_free_mb=free, cpu_load=10.0, cpu_cores=2)
 
 
 def test_a_status_of_a_host_without_liveliness_is_refused():
@@ -34,7 +36,7 @@ def test_a_status_of_a_host_without_liveliness_is_refused():
     with pytest.raises(MessageError, match="no liveliness token"):
         trust.admit("remote", status(), received=1.0)
     trust.alive("remote", True)
-    assert trust.admit("remote", status(), received=1.0)["memory_free_mb"] == 500.0
+    assert trust.admit("remote", status(), received=1.0).memory_free_mb == 500.0
     trust.alive("remote", False)
     with pytest.raises(MessageError, match="no liveliness token"):
         trust.admit("remote", status(), received=2.0)
@@ -85,8 +87,8 @@ def test_no_single_status_decides_room_or_shortage():
 # -- the knowledge service on real Zenoh ----------------------------------------------
 
 
-def _put(session, robot: str, body: dict) -> None:
-    session.put(keys.host_status(robot, body["host"]), messages.encode("host_status", body))
+def _put(session, robot: str, body: messages.HostStatus) -> None:
+    session.put(keys.host_status(robot, body.host), messages.encode(body))
 
 
 def _applied(client, host: str, free: float):
@@ -153,8 +155,8 @@ def test_a_hosts_profiles_close_when_its_liveliness_is_lost_and_reopen_if_its_pr
     assert runtime.held_by_processes(resp_store, host="remote") == 50.0
 
 
-def sent(origin: str, seq: int, **kw) -> dict:
-    return {**status(**kw), "origin": origin, "seq": seq}
+def sent(origin: str, seq: int, **kw) -> messages.HostStatus:
+    return msgspec.structs.replace(status(**kw), origin=origin, seq=seq)
 
 
 def test_a_second_sender_beside_the_real_monitor_makes_none_of_the_hosts_statuses_count():
