@@ -38,7 +38,7 @@ _BROAD = re.compile(r"^\s*except (Exception|BaseException)\b[^:]*:(.*)$")
 
 def _runtime_files() -> list[Path]:
     files = [p for package in RUNTIME for p in (REPO / package).rglob("*.py")]
-    return files + sorted((REPO / "kgadapt").glob("*.py"))
+    return files + sorted((REPO / "kgadapt").glob("*.py")) + sorted((REPO / "kgadapt" / "operator").rglob("*.py"))
 
 
 def test_every_broad_except_in_runtime_code_says_why():

@@ -27,7 +27,7 @@ STRUCTS = {cls.__name__: cls for cls in messages.KINDS.values()}  # the kinds of
 
 def runtime_files() -> list[Path]:
     files = [p for d in RUNTIME for p in sorted((REPO / d).rglob("*.py"))]
-    files += sorted(p for p in (REPO / "kgadapt").glob("*.py"))
+    files += sorted(p for p in (REPO / "kgadapt").glob("*.py")) + sorted((REPO / "kgadapt" / "operator").rglob("*.py"))
     return [p for p in files if p != MESSAGES]
 
 
@@ -104,8 +104,14 @@ def uses() -> dict[Path, Use]:
     return {path: scan(path) for path in runtime_files()}
 
 
+# msgpack outside the wire: the knowledge service's pipe to its own lower-priority child (knowledge/public_worker.py)
+# frames settings, questions and already-encoded answers; no message of docs/CONTRACTS.md crosses it.
+PRIVATE_PIPES = {"knowledge/public_worker.py"}
+
+
 def test_no_wire_message_is_a_map_in_runtime_code(uses):
-    problems = [p for use in uses.values() for p in use.problems]
+    problems = [p for path, use in uses.items() for p in use.problems
+                if not (path.relative_to(REPO).as_posix() in PRIVATE_PIPES and "imports msgpack" in p)]
     assert not problems, "\n".join(problems)
 
 
@@ -137,7 +143,7 @@ def test_the_scan_catches_what_would_slip_through(tmp_path, monkeypatch):
     monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: BAD if self == path else _read(self, *a, **k))
     found = scan(path).problems
     assert len(found) == 7, "\n".join(found)
-    assert scan(REPO / "onboard" / "detector.py").problems == []
+    assert scan(REPO / "onboard" / "perception" / "detector.py").problems == []
 
 
 _read = Path.read_text
