@@ -66,7 +66,7 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, NoReturn, Sequence
 
 from kgadapt.shared import parent_death
 from kgadapt.shared.errors import DeploymentError
@@ -280,15 +280,10 @@ def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | N
 def _pool_member(middle: int, module: str, argv: list[str], env: dict[str, str], cwd: str | None,
                  member_sock: socket.socket, release: int) -> None:
     """In a pool member: open the session, wait for a start, become it. Never returns."""
-    code = 1
-    try:
-        for name in os.listdir("/proc/self/fd"):  # the launcher's sockets, other members' ones
-            fd = int(name)
-            if fd > 2 and fd not in (member_sock.fileno(), release):
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+
+    def run() -> int:
+        nonlocal argv
+        _close_fds_but(member_sock.fileno(), release)  # the launcher's sockets, other members' ones
         parent_death.set_death_signal(signal.SIGKILL)  # idle, it dies with its intermediate process
         if os.getppid() != middle:
             os._exit(1)
@@ -298,11 +293,7 @@ def _pool_member(middle: int, module: str, argv: list[str], env: dict[str, str],
         os.close(devnull)
         signal.signal(signal.SIGINT, signal.default_int_handler)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        os.environ.clear()
-        os.environ.update(env)
-        if cwd:
-            os.chdir(cwd)
-        set_title([*argv[:3], "(pooled)"])
+        _enter(env, cwd, [*argv[:3], "(pooled)"])
         logging.root.handlers.clear()
         runner = importlib.import_module(module)
         session = runner.pool_session(argv[3:])
@@ -315,41 +306,17 @@ def _pool_member(middle: int, module: str, argv: list[str], env: dict[str, str],
         parent_death.set_death_signal(0)  # not when the intermediate process ends now
         os.write(release, b"x")
         os.close(release)
-        deadline = time.monotonic() + 5.0
-        while os.getppid() == middle:
-            if time.monotonic() > deadline:
-                os._exit(1)
-            time.sleep(0.0002)
-        parent_death.set_death_signal(death_signal)
-        if os.getppid() != parent:
-            os.kill(os.getpid(), death_signal)
-            os._exit(1)
+        _await_adoption(middle, parent, death_signal)
         member_sock.send(b"taken")
         member_sock.close()
-        stdin, stdout = fds
-        os.dup2(stdin, 0)
-        os.dup2(stdout, 1)
-        os.dup2(stdout, 2)
-        os.close(stdin)
-        os.close(stdout)
-        os.environ.clear()
-        os.environ.update({str(k): str(v) for k, v in dict(request["env"]).items()})
-        if request.get("cwd"):
-            os.chdir(request["cwd"])
-        set_title(argv)
-        if isinstance(sys.stdout, io.TextIOWrapper):
-            sys.stdout.reconfigure(line_buffering=True)
-        code = _run_module(module, argv, session=session)
-    except BaseException:  # noqa: BLE001 - whatever happens, this process must end here
-        import traceback
+        _take_stdio(fds)
+        os.close(fds[0])
+        os.close(fds[1])
+        _enter({str(k): str(v) for k, v in dict(request["env"]).items()}, request.get("cwd"), argv)
+        _line_buffered()
+        return _run_module(module, argv, session=session)
 
-        traceback.print_exc()
-    finally:
-        try:
-            sys.stdout.flush()
-            sys.stderr.flush()
-        finally:
-            os._exit(code)
+    _end_with(run)
 
 
 def _fork_detector(module: str, argv: list[str], env: dict[str, str], cwd: str | None, parent: int,
@@ -385,43 +352,32 @@ def _fork_detector(module: str, argv: list[str], env: dict[str, str], cwd: str |
 def _detector_child(middle: int, parent: int, death_signal: int, fds: list[int], module: str, argv: list[str],
                     env: dict[str, str], cwd: str | None, close: tuple[int, ...]) -> None:
     """In the forked detector: become the agent's supervised child, then run ``module`` as ``__main__``. Never returns."""
-    code = 1
-    try:
+
+    def run() -> int:
         for fd in close:
             os.close(fd)
-        deadline = time.monotonic() + 5.0
-        while os.getppid() == middle:  # the intermediate process exits right after the fork
-            if time.monotonic() > deadline:
-                os._exit(1)
-            time.sleep(0.0002)
-        # After the re-parenting: set before, the intermediate's exit would already have fired it.
-        parent_death.set_death_signal(death_signal)
-        if os.getppid() != parent:  # the agent died, or is not our subreaper: nobody would supervise us
-            os.kill(os.getpid(), death_signal)
-            os._exit(1)
+        _await_adoption(middle, parent, death_signal)
         os.setsid()  # own session and process group: the supervisor signals the group
-        stdin, stdout = fds
-        os.dup2(stdin, 0)
-        os.dup2(stdout, 1)
-        os.dup2(stdout, 2)
-        for name in os.listdir("/proc/self/fd"):
-            fd = int(name)
-            if fd > 2:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+        _take_stdio(fds)
+        _close_fds_but()
         signal.signal(signal.SIGINT, signal.default_int_handler)  # as a fresh interpreter has them
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        os.environ.clear()
-        os.environ.update(env)
-        if cwd:
-            os.chdir(cwd)
-        set_title(argv)
+        _enter(env, cwd, argv)
         logging.root.handlers.clear()  # the detector configures its own logging
-        if isinstance(sys.stdout, io.TextIOWrapper):  # as it is after the dup2 above; a test may have replaced it
-            sys.stdout.reconfigure(line_buffering=True)
-        code = _run_module(module, argv)
+        _line_buffered()
+        return _run_module(module, argv)
+
+    _end_with(run)
+
+
+# -- what both kinds of forked child do (a pool member, a detector forked on request) ------------------------
+
+
+def _end_with(run: Callable[[], int]) -> NoReturn:
+    """Run a forked child's body and end the process with its exit code, whatever happens."""
+    code = 1
+    try:
+        code = run()
     except BaseException:  # noqa: BLE001 - whatever happens, this process must end here
         import traceback
 
@@ -432,6 +388,54 @@ def _detector_child(middle: int, parent: int, death_signal: int, fds: list[int],
             sys.stderr.flush()
         finally:
             os._exit(code)
+
+
+def _await_adoption(middle: int, parent: int, death_signal: int) -> None:
+    """Wait until the intermediate process has exited and ``parent`` (the agent, our subreaper) is our parent."""
+    deadline = time.monotonic() + 5.0
+    while os.getppid() == middle:  # the intermediate process exits right after the fork
+        if time.monotonic() > deadline:
+            os._exit(1)
+        time.sleep(0.0002)
+    # After the re-parenting: set before, the intermediate's exit would already have fired it.
+    parent_death.set_death_signal(death_signal)
+    if os.getppid() != parent:  # the agent died, or is not our subreaper: nobody would supervise us
+        os.kill(os.getpid(), death_signal)
+        os._exit(1)
+
+
+def _close_fds_but(*keep: int) -> None:
+    """Close every descriptor above stderr except ``keep``."""
+    for name in os.listdir("/proc/self/fd"):
+        fd = int(name)
+        if fd > 2 and fd not in keep:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+def _take_stdio(fds: Sequence[int]) -> None:
+    """Make the agent's (stdin, stdout) pair this process's stdin, stdout and stderr."""
+    stdin, stdout = fds
+    os.dup2(stdin, 0)
+    os.dup2(stdout, 1)
+    os.dup2(stdout, 2)
+
+
+def _enter(env: dict[str, str], cwd: str | None, title: Sequence[str]) -> None:
+    """Take the start's environment, working directory and command line."""
+    os.environ.clear()
+    os.environ.update(env)
+    if cwd:
+        os.chdir(cwd)
+    set_title(title)
+
+
+def _line_buffered() -> None:
+    # As stdout is after the dup2 onto the agent's pipe; a test may have replaced it.
+    if isinstance(sys.stdout, io.TextIOWrapper):
+        sys.stdout.reconfigure(line_buffering=True)
 
 
 def set_title(argv: Sequence[str]) -> bool:
