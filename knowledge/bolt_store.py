@@ -28,7 +28,7 @@ from neo4j import graph as neo4j_graph
 
 from kgadapt.knowledge.dialect import FALKORDB, NEO4J, Dialect, dialect_for_agent
 from kgadapt.knowledge.params import check_params
-from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
+from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings
 from kgadapt.shared.errors import QueryError, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
@@ -173,16 +173,8 @@ class BoltStore(GraphStore):
 
     # --- queries --------------------------------------------------------------
 
-    def execute(
-        self,
-        cypher: str,
-        params: Mapping[str, Any] | None = None,
-        *,
-        read_only: bool = False,
-        timeout_ms: int | None = None,
-    ) -> list[Row]:
-        if read_only:
-            assert_read_only(cypher)
+    def _execute(self, cypher: str, params: Mapping[str, Any] | None, read_only: bool,
+                 timeout_ms: int | None) -> list[Row]:
         clean = check_params(params)
         if self._splices_params:
             _refuse_quotes(clean)

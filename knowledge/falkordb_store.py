@@ -22,7 +22,7 @@ from falkordb.path import Path as GraphPath
 from kgadapt.knowledge.dialect import FALKORDB, Dialect
 from kgadapt.knowledge.embedded import EmbeddedServer
 from kgadapt.knowledge.params import check_params, cypher_literal
-from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings, assert_read_only
+from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings
 from kgadapt.shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
@@ -101,16 +101,8 @@ class FalkorDBStore(GraphStore):
         client: redis.Redis = self._db.connection
         return client
 
-    def execute(
-        self,
-        cypher: str,
-        params: Mapping[str, Any] | None = None,
-        *,
-        read_only: bool = False,
-        timeout_ms: int | None = None,
-    ) -> list[Row]:
-        if read_only:
-            assert_read_only(cypher)
+    def _execute(self, cypher: str, params: Mapping[str, Any] | None, read_only: bool,
+                 timeout_ms: int | None) -> list[Row]:
         result = self._run(params_header(params) + cypher, read_only, timeout_ms)
         if result is None:
             return []

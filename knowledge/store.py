@@ -190,7 +190,6 @@ class GraphStore(ABC):
     def shutdown(self) -> None:
         """Disconnect, and stop the server if this object started it."""
 
-    @abstractmethod
     def execute(
         self,
         cypher: str,
@@ -206,6 +205,14 @@ class GraphStore(ABC):
         yet has no rows on every backend. A query the store stops at ``timeout_ms``
         raises :class:`StoreTimeout`.
         """
+        if read_only:
+            assert_read_only(cypher)  # the token-level check, before the backend's own read-only entry point
+        return self._execute(cypher, params, read_only, timeout_ms)
+
+    @abstractmethod
+    def _execute(self, cypher: str, params: Mapping[str, Any] | None, read_only: bool,
+                 timeout_ms: int | None) -> list[Row]:
+        """The backend's part of :meth:`execute`, after the read-only check."""
 
     @abstractmethod
     def execute_atomic(self, statements: Sequence[Statement]) -> None:
