@@ -213,6 +213,34 @@ class FalkorDBStore(GraphStore):
             if isinstance(reply, Exception):
                 raise QueryError(f"store rejected a statement of the batch ({cypher[:60]}...): {reply}")
 
+    def compact(self, *, timeout: float = 30.0) -> None:
+        """Rewrite the append-only file as a snapshot (BGREWRITEAOF) and wait for it.
+
+        A restart then loads the graph from the snapshot instead of replaying the model load's index
+        creations and MULTI/EXEC of writes through FalkorDB's query path. FalkorDB 4.16 yields to the
+        event loop in that replay, where a command arriving aborts the server ('!server.in_exec'), and a
+        restart under load was once seen to hang there for more than 10 s. A rewrite that fails or does
+        not end in time loses nothing (the append-only file stays whole): it is logged, not raised.
+        """
+        client = self.redis
+        try:
+            if not int(client.info("persistence").get("aof_enabled", 0)):
+                return  # no append-only file: nothing is replayed at a restart
+            client.bgrewriteaof()
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                state = client.info("persistence")
+                if not int(state.get("aof_rewrite_in_progress", 0)) and not int(state.get("aof_rewrite_scheduled", 0)):
+                    if state.get("aof_last_bgrewrite_status") != "ok":
+                        log.warning("FalkorDB at %s: rewriting the append-only file failed (%s); it stays as it was",
+                                    self.settings.url, state.get("aof_last_bgrewrite_status"))
+                    return
+                time.sleep(0.01)  # the rewrite runs in a forked child: nothing to wait on but INFO
+            log.warning("FalkorDB at %s: the append-only file rewrite did not end within %.0f s",
+                        self.settings.url, timeout)
+        except redis.RedisError as exc:
+            log.warning("FalkorDB at %s: cannot rewrite the append-only file: %s", self.settings.url, exc)
+
     def clear(self) -> None:
         if self._graph is None or self._db is None:
             raise StoreUnavailable("store is not set up; call setup() first")

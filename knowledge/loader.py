@@ -249,5 +249,6 @@ def load_models(store: GraphStore, paths: Sequence[Path | str]) -> LoadReport:
     statements = plan(resolved, previous_model_keys(store, resolved))
     S.ensure_indexes(store)
     store.execute_atomic(statements)
+    store.compact()
     log.info("loaded %d model files in %d statements", len(resolved.models), len(statements))
     return report(resolved, len(statements))

@@ -218,6 +218,10 @@ class GraphStore(ABC):
     def execute_atomic(self, statements: Sequence[Statement]) -> None:
         """Run statements so that either all take effect or none does."""
 
+    def compact(self) -> None:  # noqa: B027 - optional: only a backend with a durable copy to rewrite has one
+        """Make the store's durable copy a snapshot of the graph as it is now (nothing to do where the
+        backend has no such copy); called after a model load."""
+
     def ping(self) -> None:
         """Round trip to the store (``RETURN 1``)."""
         self.execute("RETURN 1 AS one", read_only=True)

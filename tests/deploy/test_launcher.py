@@ -213,7 +213,7 @@ def test_a_started_detector_takes_the_configuration_its_deployer_resolved_and_as
     try:
         client = DeployerClient(client_session, ROBOT)
         info = client.start("onboard", "detector_day", DAY, instance="carried")
-        assert info["via"] == "launcher" and info["state"] in ("ready", "running")
+        assert info.via == "launcher" and info.state in ("ready", "running")
         _, started = events.wait_for(lambda e: e["instance"] == "carried" and e["event"] == "started")
         # The deployer asked the graph before the process existed; the process itself asked nothing.
         assert [n for n, _ in asked if n == "detector_config"], asked
@@ -249,9 +249,9 @@ def test_a_pooled_start_hands_the_configuration_to_an_idle_detector_and_asks_the
         knowledge.answer_named = counting
         client = DeployerClient(test_session, ROBOT)
         info = client.start("onboard", "detector_day", DAY, instance="pooled1")
-        assert info["via"] == "pool" and info["state"] in ("ready", "running")
-        assert info["pid"] in members  # the idle member took it: no new process
-        assert psutil.Process(info["pid"]).ppid() == os.getpid()  # now the agent's child, as a forked one
+        assert info.via == "pool" and info.state in ("ready", "running")
+        assert info.pid in members  # the idle member took it: no new process
+        assert psutil.Process(info.pid).ppid() == os.getpid()  # now the agent's child, as a forked one
         _, started = events.wait_for(lambda e: e["instance"] == "pooled1" and e["event"] == "started")
         # Neither its configuration nor its reflex table (the candidates, built while it waited) was asked for.
         assert [n for n, at in asked if at >= started["time"]] == []
@@ -260,7 +260,7 @@ def test_a_pooled_start_hands_the_configuration_to_an_idle_detector_and_asks_the
         # The pool is filled again for the next start.
         wait_until(lambda: sum(launcher.idle.values()) == 1, what="the pool filled again")
         stopped = client.stop("onboard", "pooled1")
-        assert stopped["state"] == "stopped" and stopped["returncode"] == 0
+        assert stopped.state == "stopped" and stopped.returncode == 0
         idle = [p.pid for p in psutil.Process(launcher.pid).children(recursive=True)]
     finally:
         knowledge.answer_named = answer_named

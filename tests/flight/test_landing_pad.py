@@ -20,6 +20,7 @@ from kgadapt.onboard.flight.landing_targets import AutopilotProfile, CameraModel
 from kgadapt.onboard.flight.mavlink import FlightState
 from kgadapt.onboard.flight.site import load_site, site_from_dict
 from kgadapt.sim.landing_scene import PadScene
+from tests import support
 from tests.conftest import REPO
 
 CAMERA = CameraModel(fx=615.0, fy=615.0, cx=320.0, cy=240.0, width=640, height=480)
@@ -143,7 +144,7 @@ def test_a_pad_marker_seen_somewhere_else_breaks_the_streak_and_one_id_twice_is_
 def test_landing_on_a_pad_marker_takes_whichever_marker_of_the_pad_is_seen():
     small = [[300, 300], [340, 300], [340, 340], [300, 340]]
     other = [[0, 0], [300, 0], [300, 300], [0, 300]]
-    detections = {"ids": [[33], [16]], "corners": [[other], [small]]}
+    detections = support.detections([[33], [16]], [[other], [small]])
     assert choose_marker(detections, 45, PAD) == 1  # asked for the pad's big marker: its small one will do
     assert choose_marker(detections, 45, None) is None  # without the site: only marker 45 itself
     assert choose_marker(detections, 33, PAD) == 0

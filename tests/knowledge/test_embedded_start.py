@@ -84,3 +84,23 @@ def test_a_restart_sends_no_command_while_the_server_replays_its_aof(tmp_path):
     assert float(replay.group(1)) > 0.02, "the AOF replays too fast to tell"
     assert connections == 2, f"{connections} connections by the time the data was loaded (starter's PING + this one)"
     assert count == 10_000
+
+
+def test_a_model_load_leaves_a_snapshot_so_a_restart_replays_no_graph_query(tmp_path):
+    """After ``load_models`` the append-only file is rewritten as a snapshot: the restart reads the graph
+    from it and replays none of the load's index creations or MULTI/EXEC writes (the path where FalkorDB
+    yields mid-replay)."""
+    from kgadapt.knowledge.loader import load_models
+    from kgadapt.knowledge.store import open_store
+    from tests.conftest import REPO
+
+    data = tmp_path / "store"
+    with open_store(f"embedded:{data}") as store:
+        load_models(store, [REPO / "knowledge" / "models"])
+        features = store.execute("MATCH (f:Feature) RETURN count(f) AS n", read_only=True)[0]["n"]
+    increments = list((data / "appendonlydir").glob("*.incr.aof"))
+    assert increments, "no append-only file"
+    replayed = b"".join(path.read_bytes() for path in increments)
+    assert b"GRAPH.QUERY" not in replayed and b"MULTI" not in replayed
+    with open_store(f"embedded:{data}") as store:
+        assert store.execute("MATCH (f:Feature) RETURN count(f) AS n", read_only=True)[0]["n"] == features > 0
