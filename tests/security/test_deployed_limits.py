@@ -189,6 +189,14 @@ def test_a_detectors_certificate_cannot_put_a_status_or_a_flight_state_as_their_
     remote_row = lambda: next(iter(operator.cypher(  # noqa: E731
         "MATCH (p:Platform {name: 'remote'}) RETURN p.memory_free_mb AS free, p.cpu_cores AS cores")), {})
     try:
+        # The route from the operator to the onboard agent's new subscription first: a put made before the
+        # router knows the subscription reaches no one, and would be counted as lost below.
+        def operator_heard() -> bool:
+            operator_session.put(keys.flight_state(ROBOT), control_flight)
+            return control_flight in heard
+
+        wait_for(operator_heard, 5, "a route from the operator's flight state to the onboard agent")
+        heard.clear()
         for free in (2001.0, 2002.0, 2003.0):
             # Forged first, then the entitled sender's; each control waited for where it is received.
             detector.put(keys.host_status(ROBOT, "remote"), forged_status)
