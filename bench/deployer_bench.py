@@ -370,7 +370,7 @@ def pooled_latencies(rig: _Rig, args: argparse.Namespace, client: Any) -> list[d
         if i:
             start.append(start_ms)
             stop.append(stop_ms)
-            via.append(info.get("via"))
+            via.append(info.via)
     deployer.settings = dataclasses.replace(deployer.settings, pool=0)
     common = {"store": "deployer over Zenoh", "n": None,
               "program": "detector_day (marker_detection_day), launcher's pool",
