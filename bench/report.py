@@ -95,7 +95,7 @@ HEADLINES = (
              figure=lambda r: f"{_ms(r['p50_ms'])} ms p50, {r['complete']}/{r['reps']} complete",
              target="complete, ≤ 100 ms p50"),
     Headline(what="real detector start → ready, forked by the launcher", file="deployer.json",
-             match={"op": "start_to_ready", "program": "onboard.detector, forked by the launcher"},
+             match={"op": "start_to_ready", "program": "kgadapt.onboard.perception.detector, forked by the launcher"},
              figure=lambda r: f"{_ms(r['p50_ms'])} ms p50", target="≤ 30 ms"),
     Headline(what="blind time after a sudden day → dark step, in place", file="adaptation_reflex_quiet.json",
              match={"op": "blind_time day->dark", "changes": "in place"},
