@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.onboard.adaptation.live_rate import LIVE, LiveSettings, decided_by, weigh
+from kgadapt.onboard.adaptation.planning_defaults import DEFAULT_PREFERENCE, IN_PLACE, ONBOARD_FIRST, ONBOARD_HOST, PREFERENCES
 from kgadapt.onboard.perception.illumination import Band, bands_from_rows
 from kgadapt.onboard.perception.ranking import OTHER_FIGURES, PENALTY, TIE_RATE, rank_graph_rows, ties
 from kgadapt.shared.states import URGENT_TRIGGERS, Change, TriggerKind
@@ -43,7 +44,6 @@ __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Pla
 KnowledgeAsk = Callable[[str, Mapping[str, Any]], list[dict[str, Any]]]
 
 FEATURE = "MarkerDetection"
-PREFERENCES = ("onboard-first", "remote-first")
 
 
 @dataclass(kw_only=True)
@@ -344,12 +344,12 @@ class Planner:
 
     ask: KnowledgeAsk
     feature: str = FEATURE
-    preference: str = "onboard-first"
-    onboard_host: str = "onboard"
+    preference: str = DEFAULT_PREFERENCE
+    onboard_host: str = ONBOARD_HOST
     penalty: float = PENALTY
     max_ms: float = 1000.0
     tie_rate: float = TIE_RATE
-    in_place: bool = True  # False: every change is a new process (for comparison)
+    in_place: bool = IN_PLACE  # False: every change is a new process (for comparison)
     source: str = "synthetic"  # the calibration ranked by
     live: LiveSettings = field(default_factory=LiveSettings)
     clock: Callable[[], float] = time.time  # the wall clock live figures are aged by
@@ -546,7 +546,7 @@ class Planner:
 
     def _host_rank(self, host: str) -> tuple[int, str]:
         onboard = host == self.onboard_host
-        first = onboard if self.preference == "onboard-first" else not onboard
+        first = onboard if self.preference == ONBOARD_FIRST else not onboard
         return (0 if first else 1, host)
 
 
