@@ -30,7 +30,9 @@ TIE_RATE = 0.005  # scores within half a point (about one marker in 200) are equ
 # SPEED_NOISE_REL of its own figure and by more than SPEED_NOISE_MS. Calibration times them in turn on the
 # same frames, yet on this 2-core machine under load their ratio moves: the committed runs measured the
 # day configuration 10 % and 14 % faster than the dusk one in the day band, and a loaded run measured the
-# order reversed (picking dusk cost 16.7 points at day/blur). 20 % is above that spread; below 1 ms
+# order reversed (picking dusk cost 16.7 points at day/blur). Four day-band calibrations (4 x 4 frames,
+# load 15-19) put dusk at 1.01-1.15 x day's ms, and dark, really slower, at 1.32-1.43 x. 20 % is above
+# that spread and below dark's gap; below 1 ms
 # (3 % of a 33 ms frame at 30 frames/s) a difference is timer and scheduling jitter and buys nothing.
 SPEED_NOISE_REL = 0.2
 SPEED_NOISE_MS = 1.0
