@@ -27,9 +27,10 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from kgadapt.onboard.perception.calibration import ALL, CONDITIONS, CalibrationSettings, calibrate, model_configs, rank_rows
+from kgadapt.onboard.perception.calibration import ALL, CONDITIONS, CalibrationSettings, calibrate, model_configs
 from kgadapt.onboard.perception.illumination import Band
 from kgadapt.onboard.perception.markers import DetectorConfig, MarkerDetector, Score, score
+from kgadapt.onboard.perception.ranking import rank_graph_rows
 
 Progress = Callable[[str], None] | None
 
@@ -56,8 +57,7 @@ def oracle_gap(ask: Callable[[str, dict[str, Any]], list[dict[str, Any]]], bands
     rows = []
     gaps = []
     for band in bands:
-        ranking = rank_rows(ask("config_ranking", {"band": band.name}), score=lambda r: r["score"],
-                            ms=lambda r: r["ms_per_frame"])
+        ranking = rank_graph_rows(ask("config_ranking", {"band": band.name}))
         pick = ranking[0]["config"] if ranking else None
         for condition in (*CONDITIONS, ALL):
             here = {r.config: r for r in results if r.band == band.name and r.condition == condition}

@@ -75,6 +75,15 @@ _FEATURE = Param("str", required=False, default=DEFAULT_FEATURE, help="feature n
 _CONFIG_OPT = Param("str", required=False, help="detector configuration (PerceptionGraph name)")
 
 # Pieces shared by queries; labels and relation types only from knowledge/schema.py.
+# A calibrated configuration's figures in its band's other conditions (not the one ranked, not the whole
+# band), of the same source: what breaks a tie by robustness (kgadapt.onboard.perception.ranking).
+# count(o) says whether there were any, rather than what each backend makes of an average over none.
+_WHOLE = Param("str", required=False, default="all",
+               help="the condition that stands for the band as a whole, left out of the other conditions (default all)")
+_OTHER_CONDITIONS = f"""OPTIONAL MATCH (g)-[o:{S.CALIBRATED}]->(b)
+WHERE o.condition <> $condition AND o.condition <> $whole AND coalesce(o.source, $source) = $source"""
+_OTHER_FIGURES = ("avg(o.detection_rate) AS other_rate, avg(coalesce(o.false_per_frame, 0.0)) AS other_false_per_frame, "
+                  "count(o) AS other_conditions")
 _DEMAND = f"""
 MATCH (g)-[:{S.CONTAINS}]->(c:{S.COMPONENT})
 WITH g, sum(c.memory_demand_mb) AS demand"""
@@ -203,7 +212,9 @@ ORDER BY min_level, config""",
         "Every configuration realising a feature, ranked by its calibrated figures in a band and "
         "condition (all = the band as a whole): score = detection rate minus penalty x false markers "
         "per frame; configurations slower than max_ms per frame are left out. Memory demand is "
-        "returned for the planner's placement. Best first; equal scores go to the faster.",
+        "returned for the planner's placement. Highest score first; the planner breaks ties within half a "
+        "point by speed beyond timing noise, then robustness (config_robustness), then name "
+        "(kgadapt.onboard.perception.ranking).",
         {"feature": _FEATURE, "band": Param("str", help="illumination band, e.g. dark"),
          "condition": Param("str", required=False, default="all",
                             help="all, clean, blur, uneven, window or small (default all)"),
@@ -225,6 +236,27 @@ RETURN g.name AS config, cal.detection_rate AS detection_rate, cal.false_per_fra
        demand AS memory_demand_mb, s.name AS suited_for,
        cal.detection_rate - $penalty * coalesce(cal.false_per_frame, 0.0) AS score
 ORDER BY score DESC, ms_per_frame ASC, config""",
+    ),
+    NamedQuery(
+        "config_robustness",
+        "How robust each configuration calibrated in a band and condition is: its mean figures in the "
+        "band's other conditions from the same source (neither condition nor whole): other_rate, "
+        "other_false_per_frame, other_conditions (how many; null rate and 0 where none). What breaks a tie "
+        "of config_ranking between equally fast configurations (kgadapt.onboard.perception.ranking).",
+        {"feature": _FEATURE, "band": Param("str", help="illumination band, e.g. dark"),
+         "condition": Param("str", required=False, default="all",
+                            help="the condition ranked: all, clean, blur, uneven, window or small (default all)"),
+         "source": Param("str", required=False, default="synthetic",
+                         help="what the figures were measured on: synthetic or frames:NAME (default synthetic)"),
+         "whole": _WHOLE},
+        f"""
+MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
+      -[cal:{S.CALIBRATED}]->(b:{S.ILLUMINATION_BAND} {{name: $band}})
+WHERE cal.condition = $condition AND coalesce(cal.source, $source) = $source
+{_OTHER_CONDITIONS}
+WITH g, {_OTHER_FIGURES}
+RETURN g.name AS config, other_rate, other_false_per_frame, other_conditions
+ORDER BY config""",
     ),
     NamedQuery(
         "live_rates",
@@ -250,13 +282,16 @@ ORDER BY config""",
         "(condition, default all) or suited for it, with its settings, its figures, whether the running "
         "deployment may take it in place on the host (in_place_change's rule) and the feature's "
         "ms-per-frame budget, and this robot's live figures of it in the band (live_rate, live_frames_expected, "
-        "live_at; as live_rates gives them). The detector ranks the rows as the planner does: config_ranking's "
-        "order, with fresh live evidence weighed above calibration (kgadapt.onboard.adaptation.live_rate).",
+        "live_at; as live_rates gives them), and its mean figures in the band's other conditions (other_rate, "
+        "other_false_per_frame, other_conditions, as config_robustness gives them). The detector ranks the rows "
+        "as the planner does (kgadapt.onboard.perception.ranking), with fresh live evidence weighed above "
+        "calibration (kgadapt.onboard.adaptation.live_rate).",
         {"feature": _FEATURE, "deployment": Param("str", help="deployment of the running detector"),
          "host": Param("str", help="platform it runs on"),
          "condition": Param("str", required=False, default="all", help="calibration condition (default all)"),
          "source": Param("str", required=False, default="synthetic",
-                         help="what the figures were measured on: synthetic or frames:NAME (default synthetic)")},
+                         help="what the figures were measured on: synthetic or frames:NAME (default synthetic)"),
+         "whole": _WHOLE},
         f"""
 MATCH (f:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
 MATCH (b:{S.ILLUMINATION_BAND})
@@ -265,12 +300,14 @@ WHERE coalesce(cal.source, $source) = $source
 OPTIONAL MATCH (g)-[suit:{S.SUITED_FOR}]->(b)
 WITH f, g, b, cal, suit
 WHERE cal IS NOT NULL OR suit IS NOT NULL
+{_OTHER_CONDITIONS}
+WITH f, g, b, cal, suit, {_OTHER_FIGURES}
 MATCH (g)-[:{S.CONTAINS}]->(m:{S.PROCESSING_COMPONENT})
 WHERE m.config_json IS NOT NULL
 OPTIONAL MATCH (g)-[lr:{S.LIVE_RATE} {{condition: $condition}}]->(b)
 OPTIONAL MATCH (g)<-[:{S.DEPLOYS}]-(d:{S.DEPLOYMENT})-[:{S.EXECUTABLE_ON}]->(:{S.PLATFORM} {{name: $host}})
 OPTIONAL MATCH (a:{S.DEPLOYMENT} {{name: $deployment}})-[:{S.EXECUTABLE_ON}]->(:{S.PLATFORM} {{name: $host}})
-WITH f, g, b, cal, suit, lr, m, d,
+WITH f, g, b, cal, suit, other_rate, other_false_per_frame, other_conditions, lr, m, d,
      d IS NOT NULL AND a IS NOT NULL AND (d.name = a.name OR (a.reconfigurable_as IS NOT NULL
          AND a.reconfigurable_as = d.reconfigurable_as AND a.executable = d.executable)) AS here
 RETURN b.name AS band, b.min_level AS min_level, b.max_level AS max_level, b.margin AS margin,
@@ -278,7 +315,8 @@ RETURN b.name AS band, b.min_level AS min_level, b.max_level AS max_level, b.mar
        cal.detection_rate AS detection_rate, cal.false_per_frame AS false_per_frame,
        coalesce(cal.ms_per_frame, m.ms_per_frame) AS ms_per_frame, suit IS NOT NULL AS suited,
        d.name AS deployment, here AS in_place, f.frame_budget_ms AS budget_ms,
-       lr.detection_rate AS live_rate, lr.frames_expected AS live_frames_expected, lr.at AS live_at
+       lr.detection_rate AS live_rate, lr.frames_expected AS live_frames_expected, lr.at AS live_at,
+       other_rate, other_false_per_frame, other_conditions
 ORDER BY min_level, config, in_place DESC, deployment""",
     ),
     NamedQuery(

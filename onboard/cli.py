@@ -25,15 +25,17 @@ def register(subparsers: Any) -> None:
         description="Run the onboard agent: host monitor, deployer, and optionally camera, MAVLink bridge "
         "and adaptation manager; stops cleanly on SIGINT or SIGTERM.",
     )
+    from kgadapt.onboard.adaptation.planning_defaults import ONBOARD_HOST
     from kgadapt.shared.agent import add_agent_arguments
 
-    add_agent_arguments(parser, default_host="onboard")
+    add_agent_arguments(parser, default_host=ONBOARD_HOST)
     add_part_arguments(parser)
     parser.set_defaults(func=run)
 
 
 def add_part_arguments(parser: argparse.ArgumentParser) -> None:
     from kgadapt.deploy import options as deploy_options
+    from kgadapt.onboard.adaptation.planning_defaults import DEFAULT_PREFERENCE, PREFERENCES
     from kgadapt.shared import hostmonitor
 
     hostmonitor.add_arguments(parser)
@@ -61,8 +63,8 @@ def add_part_arguments(parser: argparse.ArgumentParser) -> None:
                     help="the graph's site to use when it holds several (default: the only one)")
     ad = parser.add_argument_group("adaptation")
     ad.add_argument("--adapt", action="store_true", help="run the adaptation manager on this agent")
-    ad.add_argument("--prefer", choices=("onboard-first", "remote-first"), default="onboard-first",
-                    help="where a detector goes when both hosts can hold it (default onboard-first: "
+    ad.add_argument("--prefer", choices=PREFERENCES, default=DEFAULT_PREFERENCE,
+                    help=f"where a detector goes when both hosts can hold it (default {DEFAULT_PREFERENCE}: "
                     "the link to the remote host can fail)")
     ad.add_argument("--dwell", type=float, default=1.0, metavar="S",
                     help="seconds a new illumination band must hold before the detector changes (default 1)")

@@ -15,7 +15,8 @@ Analyse
 
 Plan
     :class:`Planner` asks the graph which configuration suits the band (best
-    calibrated detection rate, then fewest ms per frame) and which platforms
+    calibrated detection rate; of equal ones the faster beyond timing noise,
+    then the more robust in the band's other conditions) and which platforms
     can hold it (the ``placement`` query, with live free memory), then picks a
     host by the preference setting. The default, ``onboard-first``, keeps the
     detector on the quadcopter while it fits, because the link to the remote
@@ -31,7 +32,9 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.onboard.adaptation.live_rate import LIVE, LiveSettings, decided_by, weigh
+from kgadapt.onboard.adaptation.planning_defaults import DEFAULT_PREFERENCE, IN_PLACE, ONBOARD_FIRST, ONBOARD_HOST, PREFERENCES
 from kgadapt.onboard.perception.illumination import Band, bands_from_rows
+from kgadapt.onboard.perception.ranking import OTHER_FIGURES, PENALTY, TIE_RATE, rank_graph_rows, ties
 from kgadapt.shared.states import URGENT_TRIGGERS, Change, TriggerKind
 
 __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Placement", "Plan", "Trigger",
@@ -41,7 +44,6 @@ __all__ = ["Band", "bands_from_rows", "BandTracker", "Analyzer", "Planner", "Pla
 KnowledgeAsk = Callable[[str, Mapping[str, Any]], list[dict[str, Any]]]
 
 FEATURE = "MarkerDetection"
-PREFERENCES = ("onboard-first", "remote-first")
 
 
 @dataclass(kw_only=True)
@@ -329,7 +331,10 @@ class Planner:
     Configurations are ranked by the named query ``config_ranking`` (every
     configuration of the feature calibrated in the band: detection rate minus
     ``penalty`` x false markers per frame, none slower than ``max_ms``; within
-    ``tie_rate`` the faster first). The first in the ranking that a host can hold
+    ``tie_rate`` the faster beyond timing noise, then the more robust in the band's
+    other conditions (named query ``config_robustness``, asked only on a tie), then by
+    name: :mod:`kgadapt.onboard.perception.ranking`, the rule the detector's reflex table
+    ranks by too). The first in the ranking that a host can hold
     wins. A graph without calibration falls back to the configuration
     ``SUITED_FOR`` the band. Calibration of ``source`` (synthetic, or a recording's
     ``frames:NAME``) gives way to this robot's own live figures (named query
@@ -339,12 +344,12 @@ class Planner:
 
     ask: KnowledgeAsk
     feature: str = FEATURE
-    preference: str = "onboard-first"
-    onboard_host: str = "onboard"
-    penalty: float = 1.0
+    preference: str = DEFAULT_PREFERENCE
+    onboard_host: str = ONBOARD_HOST
+    penalty: float = PENALTY
     max_ms: float = 1000.0
-    tie_rate: float = 0.005
-    in_place: bool = True  # False: every change is a new process (for comparison)
+    tie_rate: float = TIE_RATE
+    in_place: bool = IN_PLACE  # False: every change is a new process (for comparison)
     source: str = "synthetic"  # the calibration ranked by
     live: LiveSettings = field(default_factory=LiveSettings)
     clock: Callable[[], float] = time.time  # the wall clock live figures are aged by
@@ -357,16 +362,18 @@ class Planner:
         return self.ask("detector_configs", {"feature": self.feature})
 
     def ranking(self, band: str, condition: str = "all") -> list[dict[str, Any]]:
-        """Every calibrated configuration of the feature for ``band``, best first."""
-        from kgadapt.onboard.perception.calibration import rank_rows
-
+        """Every calibrated configuration of the feature for ``band``, best first (each with its ``robustness``)."""
         rows = self.ask("config_ranking", {"feature": self.feature, "band": band, "condition": condition,
                                            "penalty": self.penalty, "max_ms": self.max_ms, "source": self.source})
         if rows:
             live = self.ask("live_rates", {"feature": self.feature, "band": band, "condition": condition})
             rows = weigh(rows, live, now=self.clock(), settings=self.live, penalty=self.penalty, source=self.source)
-        return rank_rows(rows, score=lambda r: float(r.get("score") or 0.0),
-                         ms=lambda r: float(r.get("ms_per_frame") or math.inf), tie_rate=self.tie_rate)
+        if ties([float(r.get("score") or 0.0) for r in rows], self.tie_rate):
+            # Only a tie needs the other conditions' figures: one more question, asked when it can matter.
+            others = {r.get("config"): r for r in self.ask("config_robustness", {
+                "feature": self.feature, "band": band, "condition": condition, "source": self.source})}
+            rows = [{**r, **{k: others.get(r.get("config"), {}).get(k) for k in OTHER_FIGURES}} for r in rows]
+        return rank_graph_rows(rows, penalty=self.penalty, tie_rate=self.tie_rate)
 
     def choose_config(self, band: str, *, exclude: Sequence[str] = ()) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         """The first configuration of the ranking for ``band`` not in ``exclude``, and the ranking."""
@@ -436,7 +443,8 @@ class Planner:
             "ranking": [{**{k: r.get(k) for k in ("config", "score", "detection_rate", "false_per_frame",
                                                    "ms_per_frame", "memory_demand_mb")},
                          **{k: r[k] for k in ("evidence", "calibrated_score", "live_rate", "live_frames_expected",
-                                              "live_age_s", "live_agrees") if k in r}}
+                                              "live_age_s", "live_agrees") if k in r},
+                         **({"robustness": r["robustness"]} if r.get("robustness") is not None else {})}
                         for r in full],
             "evidence": decided_by(full, config_row, tie=self.tie_rate),
             "excluded": list(exclude),
@@ -445,9 +453,10 @@ class Planner:
             "platforms": [{"platform": h, "free_mb": fits[h].get("free_mb")} for h in order],
             "running": None if running is None else {"config": running.config, "host": running.host},
         }
-        queries: tuple[str, ...] = ("config_ranking", "placement")
-        if any(r.get("live_rate") is not None for r in full):
-            queries = ("config_ranking", "live_rates", "placement")
+        queries: tuple[str, ...] = ("config_ranking",
+                                    *(("live_rates",) if any(r.get("live_rate") is not None for r in full) else ()),
+                                    *(("config_robustness",) if any("other_conditions" in r for r in full) else ()),
+                                    "placement")
         if running is not None and running.instance and (running.config, running.host) != (config, host):
             inputs["change"], inputs["change_why"] = self.change(running, target)
             queries += ("in_place_change",)
@@ -537,7 +546,7 @@ class Planner:
 
     def _host_rank(self, host: str) -> tuple[int, str]:
         onboard = host == self.onboard_host
-        first = onboard if self.preference == "onboard-first" else not onboard
+        first = onboard if self.preference == ONBOARD_FIRST else not onboard
         return (0 if first else 1, host)
 
 

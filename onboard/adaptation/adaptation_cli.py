@@ -74,13 +74,15 @@ def render(data: dict[str, Any]) -> str:
             excluded = set(inputs.get("excluded") or [])
             skipped = {k.get("config"): k.get("why") for k in inputs.get("skipped") or []}
             lines.append(f"  ranking for band {inputs.get('band')} (named query config_ranking: "
-                         f"rate - false markers per frame, then ms; live_rates: this robot's own figures):")
+                         f"rate - false markers per frame; within half a point the faster beyond timing noise, "
+                         f"then the more robust in the band's other conditions; live_rates: this robot's own figures):")
             for i, c in enumerate(inputs["ranking"], start=1):
                 note = (" (left out: its detections collapsed)" if c.get("config") in excluded
                         else f" (skipped: {skipped[c.get('config')]})" if c.get("config") in skipped else "")
                 lines.append(f"   {i}. {c.get('config')}: score {_num(c.get('score'))}{_evidence(c)}, "
                              f"false/frame {_num(c.get('false_per_frame'))}, {_num(c.get('ms_per_frame'))} ms/frame, "
-                             f"{_num(c.get('memory_demand_mb'))} MiB{note}")
+                             + (f"robustness {_num(c['robustness'])}, " if c.get("robustness") is not None else "")
+                             + f"{_num(c.get('memory_demand_mb'))} MiB{note}")
             if inputs.get("evidence"):
                 lines.append(f"  decided by: {_decided_by(inputs['evidence'])}")
         for c in inputs.get("candidates") or []:

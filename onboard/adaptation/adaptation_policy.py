@@ -26,6 +26,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from kgadapt.onboard.adaptation.adaptation import FEATURE, Analyzer, HostView, Placement, Plan, Trigger, memory_short
 from kgadapt.onboard.adaptation.live_rate import LiveSettings
+from kgadapt.onboard.adaptation.planning_defaults import DEFAULT_PREFERENCE, IN_PLACE, ONBOARD_HOST
 from kgadapt.shared import messages
 from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, ProcessEventKind, TriggerKind
 
@@ -50,8 +51,8 @@ class AdaptationSettings:
     robot: str
     camera: str = "cam0"
     feature: str = FEATURE
-    preference: str = "onboard-first"
-    onboard_host: str = "onboard"
+    preference: str = DEFAULT_PREFERENCE
+    onboard_host: str = ONBOARD_HOST
     hysteresis: float = 4.0
     dwell_s: float = 1.0
     ready_timeout: float = 20.0
@@ -63,7 +64,7 @@ class AdaptationSettings:
     settle_s: float = 1.0  # after a change, host statuses this young do not count for memory_short
     retry_s: float = 1.0  # the running host lost and no replacement started: try again this often
     reconcile_s: float = 0.5  # ask the running detector's deployer how it is at least this often
-    in_place: bool = True  # reconfigure in place where the graph allows it (False: always migrate)
+    in_place: bool = IN_PLACE  # reconfigure in place where the graph allows it (False: always migrate)
     status_window_s: float = 1.5  # a host's free memory counts when its statuses of this window (>= 2) agree
     standby: bool = False  # keep the neighbouring band's configuration started but idle where a host has room
     standby_check_s: float = 1.0  # how often the standby is checked against the graph

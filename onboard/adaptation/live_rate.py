@@ -29,6 +29,8 @@ import collections
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
+from kgadapt.onboard.perception.ranking import TIE_RATE
+
 LIVE = "live"  # the evidence name of a live figure (calibration's are its source: synthetic, frames:NAME)
 CLOCK_SKEW_S = 5.0  # a live figure stamped this far in the future still counts as fresh
 
@@ -51,7 +53,7 @@ class LiveSettings:
             raise ValueError(f"min_expected {self.min_expected} is more than a window holds ({self.window})")
 
 
-def decided_by(ranking: Sequence[Mapping[str, Any]], chosen: Mapping[str, Any], *, tie: float = 0.005) -> str | None:
+def decided_by(ranking: Sequence[Mapping[str, Any]], chosen: Mapping[str, Any], *, tie: float = TIE_RATE) -> str | None:
     """Which evidence put ``chosen`` where it is in ``ranking`` (rows from :func:`weigh`, best first):
     ``live`` when its own score is live, or when a configuration that calibration put above it was
     ranked below it on live evidence; else its calibration's source (None: rows not weighed)."""

@@ -21,10 +21,12 @@ pre-processing plus detection). They go into the graph as
 ``(PerceptionGraph)-[:CALIBRATED {condition}]->(IlluminationBand)`` through
 ``kgadapt.knowledge.runtime.record_calibration``, and into a JSON file and a PNG plot.
 
-The ranking of a band and condition (:func:`rank`, and the named query
-``config_ranking`` on the graph) orders configurations by detection rate minus
-``penalty`` x false markers per frame; scores within ``tie_rate`` (half a
-point) of the best are equal, and then the faster one goes first.
+The ranking of a band and condition (:func:`rank` here, ``config_ranking`` and
+``reflex_table`` for the planner and the detector's reflexes) follows one rule,
+:mod:`kgadapt.onboard.perception.ranking`: detection rate minus ``penalty`` x
+false markers per frame; scores within ``tie_rate`` (half a point) of the best
+are equal, and of those the faster beyond the timing's noise goes first, then
+the more robust in the band's other conditions, then by name.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ import numpy as np
 from kgadapt.onboard.flight.site import DEFAULT_DICTIONARY, SiteMarkers
 from kgadapt.onboard.perception.illumination import Band, bands_from_rows
 from kgadapt.onboard.perception.markers import DetectorConfig, MarkerDetector, Score, aruco_dictionary, parse_config, score
+from kgadapt.onboard.perception.ranking import TIE_RATE, rank_rows, robustness_of, score_of
 from kgadapt.shared.errors import ConfigError, KgadaptError
 from kgadapt.shared.preprocessing import is_dictionary_file
 from kgadapt.shared.resources import models, results_dir
@@ -70,7 +73,6 @@ ALL = "all"
 # light decision hanging on a motion nobody measured. Its figures stay per condition (config_ranking, blur).
 APART = ("blur",)
 SYNTHETIC = "synthetic"  # the source of figures from the synthetic scene; recorded frames: frames:NAME
-PENALTY = 1.0  # score lost per false marker per frame
 
 
 def condition_profile(condition: str, level: float) -> Any:
@@ -104,7 +106,7 @@ class CalibrationSettings:
     width: int = 640
     height: int = 480
     tolerance_px: float = 5.0
-    tie_rate: float = 0.005  # half a point: about one marker in 200
+    tie_rate: float = TIE_RATE
     seed: int = 7
 
     def __post_init__(self) -> None:
@@ -134,11 +136,6 @@ class CalibrationResult:
     @property
     def score(self) -> float:
         return score_of(self.detection_rate, self.false_per_frame)
-
-
-def score_of(detection_rate: float, false_per_frame: float | None, penalty: float = PENALTY) -> float:
-    """What a configuration is ranked by: detection rate minus ``penalty`` x false markers per frame."""
-    return round(detection_rate - penalty * (false_per_frame or 0.0), 6)
 
 
 def band_levels(band: Band, count: int, *, max_level: float = 200.0) -> list[float]:
@@ -302,27 +299,26 @@ def calibrate(
 
 
 def rank(results: Sequence[CalibrationResult], band: str, condition: str = ALL, *,
-         tie_rate: float = 0.005) -> list[CalibrationResult]:
+         tie_rate: float = TIE_RATE) -> list[CalibrationResult]:
     """The configurations of ``band`` and ``condition`` best first (see the module's docstring)."""
+    others: dict[str, list[CalibrationResult]] = {}
+    for r in results:
+        if r.band == band and r.condition not in (condition, ALL):
+            others.setdefault(r.config, []).append(r)
+
+    def robustness(r: CalibrationResult) -> float | None:
+        mine = others.get(r.config, [])
+        if not mine:
+            return None
+        return robustness_of(float(np.mean([o.detection_rate for o in mine])),
+                             float(np.mean([o.false_per_frame for o in mine])), len(mine))
+
     return rank_rows([r for r in results if r.band == band and r.condition == condition],
-                     score=lambda r: r.score, ms=lambda r: r.ms_per_frame, tie_rate=tie_rate)
+                     score=lambda r: r.score, ms=lambda r: r.ms_per_frame, robustness=robustness,
+                     name=lambda r: r.config, tie_rate=tie_rate)
 
 
-def rank_rows(rows: Sequence[Any], *, score: Callable[[Any], float], ms: Callable[[Any], float],
-              tie_rate: float = 0.005) -> list[Any]:
-    """``rows`` best first: highest score; scores within ``tie_rate`` of the best left go to the faster."""
-    left = list(rows)
-    ordered = []
-    while left:
-        best = max(score(r) for r in left)
-        tied = [r for r in left if best - score(r) <= tie_rate + 1e-9]
-        pick = min(tied, key=lambda r: (ms(r), -score(r)))
-        ordered.append(pick)
-        left.remove(pick)
-    return ordered
-
-
-def best_per_band(results: Sequence[CalibrationResult], *, tie_rate: float = 0.005,
+def best_per_band(results: Sequence[CalibrationResult], *, tie_rate: float = TIE_RATE,
                   condition: str = ALL) -> dict[str, str]:
     """The winning configuration of each band in ``condition`` (see :func:`rank`)."""
     bands = sorted({r.band for r in results})
@@ -434,7 +430,8 @@ def table(results: Sequence[CalibrationResult], bands: Sequence[Band]) -> str:
                 cells.append(f"  {mark}{r.detection_rate:7.1%} {r.false_per_frame * 1000:7.0f} {r.ms_per_frame:7.2f} ms"
                              if r else " " * 32)
             lines.append(f"{c} {condition}".ljust(width) + "".join(cells))
-    lines.append("* first in the ranking (rate minus false markers per frame; within half a point the faster)")
+    lines.append("* first in the ranking (rate minus false markers per frame; within half a point the faster "
+                 "beyond timing noise, then the more robust in the band's other conditions)")
     return "\n".join(lines)
 
 

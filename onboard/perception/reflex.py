@@ -39,6 +39,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.onboard.adaptation.live_rate import LiveSettings
 from kgadapt.onboard.perception.illumination import Band
+from kgadapt.onboard.perception.ranking import PENALTY, TIE_RATE, rank_graph_rows, score_of
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.states import ReflexEvidence
 
@@ -76,18 +77,18 @@ class ReflexTable:
 
     @classmethod
     def from_rows(cls, rows: Sequence[Mapping[str, Any]], *, parse: Callable[[str, str, str | None], Any],
-                  default_margin: float = 3.0, penalty: float = 1.0, tie_rate: float = 0.005,
+                  default_margin: float = 3.0, penalty: float = PENALTY, tie_rate: float = TIE_RATE,
                   now: float | None = None, live: LiveSettings | None = None) -> "ReflexTable":
         """The table of ``reflex_table`` rows; ``parse(name, config_json, dictionary)`` checks a configuration.
 
-        Ranked as the planner ranks (``config_ranking``, then :func:`~kgadapt.onboard.adaptation.live_rate.weigh`):
-        calibrated configurations by detection rate minus ``penalty`` x false markers per frame, a
-        fresh live figure of this robot (as of ``now``; none without it) that disagrees with the
-        calibrated rate in its place, within ``tie_rate`` the faster first; a band without calibration
-        falls back to the configurations suited for it.
+        Ranked as the planner ranks (``config_ranking``, then :func:`~kgadapt.onboard.adaptation.live_rate.weigh`,
+        then :func:`~kgadapt.onboard.perception.ranking.rank_graph_rows`): calibrated configurations by
+        detection rate minus ``penalty`` x false markers per frame, a fresh live figure of this robot (as of
+        ``now``; none without it) that disagrees with the calibrated rate in its place; within ``tie_rate``
+        the faster beyond timing noise, then the more robust in the band's other conditions, then by name;
+        a band without calibration falls back to the configurations suited for it.
         """
         from kgadapt.onboard.adaptation.live_rate import weigh
-        from kgadapt.onboard.perception.calibration import rank_rows
 
         by_band: dict[str, list[Mapping[str, Any]]] = {}
         bands: dict[str, tuple[Band, float]] = {}
@@ -106,26 +107,18 @@ class ReflexTable:
         entries = []
         parsed: dict[str, Any] = {}
         for name, band_rows in by_band.items():
-            calibrated = [r for r in band_rows if r.get("detection_rate") is not None]
-
+            calibrated: list[dict[str, Any]] = [
+                {**r, "score": score_of(float(r["detection_rate"]), r.get("false_per_frame"), penalty)}
+                for r in band_rows if r.get("detection_rate") is not None]
             if calibrated and now is not None:
-                scored = [{**r, "score": float(r["detection_rate"]) - penalty * float(r.get("false_per_frame") or 0.0)}
-                          for r in calibrated]
                 seen = [{"config": r["config"], "detection_rate": r["live_rate"], "at": r.get("live_at"),
                          "frames_expected": r.get("live_frames_expected")}
                         for r in calibrated if r.get("live_rate") is not None]
-                calibrated = list(weigh(scored, seen, now=now, settings=live or LiveSettings(), penalty=penalty))
+                calibrated = list(weigh(calibrated, seen, now=now, settings=live or LiveSettings(), penalty=penalty))
 
-            def score(r: Mapping[str, Any]) -> float:
-                if "score" in r:
-                    return float(r["score"])
-                return float(r["detection_rate"]) - penalty * float(r.get("false_per_frame") or 0.0)
-
-            def ms(r: Mapping[str, Any]) -> float:
-                return float(r.get("ms_per_frame") or math.inf)
-
-            ranked = (rank_rows(calibrated, score=score, ms=ms, tie_rate=tie_rate) if calibrated
-                      else [r for r in band_rows if r.get("suited")])
+            ranked: Sequence[Mapping[str, Any]] = (
+                rank_graph_rows(calibrated, penalty=penalty, tie_rate=tie_rate) if calibrated
+                else [r for r in band_rows if r.get("suited")])
             choices: list[Choice] = []
             elsewhere = None
             for r in ranked:

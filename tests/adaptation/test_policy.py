@@ -325,3 +325,21 @@ def test_a_decision_record_carries_trigger_plan_and_outcome():
     bare, _ = P.decision_record(P.Outcome(trigger=trigger(TriggerKind.HOST_BACK), outcome="kept"), robot="quad1",
                                 wall=1.0, seq=1, instance=None)
     assert bare["config"] is None and bare["outcome"] == "kept" and bare["query"] is None
+
+
+def test_the_manager_s_settings_and_the_planner_default_alike_wherever_they_share_a_setting():
+    # The manager builds its planner from these settings; a default spelt twice could drift (issue 31).
+    import dataclasses
+
+    from kgadapt.onboard.adaptation import planning_defaults as D
+    from kgadapt.onboard.adaptation.adaptation import Planner
+
+    def defaults(obj) -> dict:
+        return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+
+    settings, planner = defaults(P.AdaptationSettings(robot="r")), defaults(Planner(ask=lambda name, params: []))
+    shared = settings.keys() & planner.keys()
+    assert {"preference", "onboard_host", "in_place", "feature", "live"} <= shared
+    assert {k: settings[k] for k in shared} == {k: planner[k] for k in shared}
+    assert (settings["preference"], settings["onboard_host"], settings["in_place"]) == (
+        D.DEFAULT_PREFERENCE, D.ONBOARD_HOST, D.IN_PLACE) == ("onboard-first", "onboard", True)

@@ -87,6 +87,7 @@ EXAMPLES = {
     "cpu_overload": {"platform": "onboard"},
     "detector_configs": {},
     "config_ranking": {"band": "day"},
+    "config_robustness": {"band": "dark"},
     "live_rates": {"band": "dark"},
     "reflex_table": {"deployment": "detector_day", "host": "onboard"},
     "detector_config": {"config": "marker_detection_dark"},
