@@ -76,9 +76,9 @@ def register(bench_subparsers: Any) -> None:
                    "each), with the graph's frame budget, unbounded and without hedging, side by side "
                    "(default 2; 0 skips)")
     p.add_argument("--only-hedge", action="store_true", help="measure only what hedging costs")
-    p.add_argument("--pool", type=int, default=0, metavar="N",
-                   help="the agents' --pool N: idle detectors their launchers keep for each kind of start made "
-                        "(default 0: none)")
+    p.add_argument("--pool", type=int, default=None, metavar="N",
+                   help="the agents' --pool N: idle detectors their launchers keep for each kind of start the "
+                        "graph says may run on their host (default: the agents' own default; 0: none)")
     p.add_argument("--out", default=str(RESULTS), help="results file (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the records as JSON")
     p.set_defaults(func=run)
@@ -306,7 +306,7 @@ def run(args: argparse.Namespace) -> int:
     lines: list[str] = []
     if args.only_hedge:
         cpus, modes = [], []
-    pool = ("--pool", str(args.pool)) if args.pool else ()
+    pool = ("--pool", str(args.pool)) if args.pool is not None else ()
     extra: dict[str, Any] = {"extra_onboard_args": pool, "extra_remote_args": pool} if pool else {}
     try:
         for budget in HEDGE_BUDGETS if args.hedge_cycles else ():
@@ -333,7 +333,8 @@ def run(args: argparse.Namespace) -> int:
                                               **extra)
                 if failovers:
                     records.append(make_record(store=store, n=None, op="failover_after_kill9", samples_ms=failovers,
-                                               target_ms=150, onboard=onboard, pool=args.pool,
+                                               target_ms=150, onboard=onboard,
+                                               pool="default" if args.pool is None else args.pool,
                                                **({"changes": "standby"} if standby else {})))
     finally:
         shutil.rmtree(workdir, ignore_errors=True)

@@ -368,6 +368,11 @@ class _Probe:
         if op == "cypher":
             return KnowledgeClient(self.session, self.robot, timeout=timeout).cypher(
                 request["cypher"], request.get("params") or {})
+        if op == "launchers":  # each answering deployer's launcher: pid, ready, idle pool members
+            import msgspec
+
+            return {host: msgspec.to_builtins(launcher) for host, launcher in DeployerClient(
+                self.session, self.robot, timeout=timeout).launchers(request.get("host", "*")).items()}
         if op == "list":
             import msgspec
 
@@ -510,6 +515,33 @@ class DetectorProcess:
     instance: str
 
 
+def _ancestors(pid: int) -> list[int]:
+    """``pid``'s parent, its parent, ... (psutil); empty when it is gone."""
+    import psutil
+
+    try:
+        return [p.pid for p in psutil.Process(pid).parents()]
+    except psutil.Error:
+        return []
+
+
+def held_pool_members(procs: Sequence[DetectorProcess], named: Mapping[int, int], *, agents: set[int],
+                      ancestors: Callable[[int], list[int]]) -> set[int]:
+    """The pids among ``procs`` that are idle pool members held by a live agent: ``named`` (pid -> the pid
+    of the launcher whose deployer named it idle) says so, and that launcher is among its ancestors with
+    one of ``agents`` (the live agents' pids) as the launcher's parent. A process that only looks like one
+    (a detector under a launcher that no deployer names, a member whose agent is gone) is not."""
+    held = set()
+    for d in procs:
+        launcher = named.get(d.pid)
+        if launcher is None:
+            continue
+        chain = ancestors(d.pid)
+        if launcher in chain and chain.index(launcher) + 1 < len(chain) and chain[chain.index(launcher) + 1] in agents:
+            held.add(d.pid)
+    return held
+
+
 class RobotOnHosts:
     """Network, cluster and probe, started together and always stopped together.
 
@@ -582,8 +614,10 @@ class RobotOnHosts:
         return [p for p in processes if p.get("state") in KEPT_STATES and str(p.get("config", "")).startswith(
             "marker_detection")]
 
-    def detector_processes(self) -> list[DetectorProcess]:
-        """Detector programs running in our namespaces, found with psutil (not through the agents)."""
+    def detector_processes(self, *, pooled: bool = False) -> list[DetectorProcess]:
+        """Detector programs running in our namespaces, found with psutil (not through the agents); the
+        idle pool members a live agent's launcher holds (:meth:`held_members`) only with ``pooled``: they
+        are no detector yet."""
         import psutil
 
         hosts = {self.network.inode(h): h for h in ("onboard", "remote")}
@@ -599,12 +633,36 @@ class RobotOnHosts:
             if inode in hosts:
                 instance = cmdline[cmdline.index("--instance") + 1] if "--instance" in cmdline else "?"
                 found.append(DetectorProcess(p.info["pid"], p.info["ppid"], hosts[inode], instance))
-        return found
+        if pooled:
+            return found
+        agents = self.agent_pids()
+        strays = [d for d in found if d.ppid not in agents]  # a held member is never an agent's child
+        held = self.held_members(strays) if strays else set()
+        return [d for d in found if d.pid not in held]
+
+    def agent_pids(self) -> set[int]:
+        return {c.process.pid for n, c in self.cluster.children.items()
+                if n in ("onboard", "remote") and c.process.poll() is None}
+
+    def held_members(self, procs: Sequence[DetectorProcess]) -> set[int]:
+        """The pids among ``procs`` of idle pool members (deploy/launcher.py) that a live agent holds: named
+        idle by that agent's deployer (its ``list`` reply), and below that deployer's launcher, the
+        agent's child, in the process tree. A detector that is neither an agent's child nor such a member
+        is an orphan."""
+
+        assert self.probe is not None
+        try:
+            launchers = self.probe.request("launchers", timeout=2.0, wait=12)
+        except KgadaptError:  # no deployer answered: none holds a member
+            launchers = {}
+        named = {int(pid): int(launcher["pid"]) for launcher in launchers.values() if launcher.get("pid")
+                 for pid in launcher.get("idle_members") or []}
+        return held_pool_members(procs, named, agents=self.agent_pids(), ancestors=_ancestors)
 
     def orphans(self) -> list[DetectorProcess]:
-        """Detector programs whose parent is not a live agent of this cluster."""
-        agents = {c.process.pid for n, c in self.cluster.children.items()
-                  if n in ("onboard", "remote") and c.process.poll() is None}
+        """Detector programs whose parent is not a live agent of this cluster, other than the idle pool
+        members a live agent's launcher holds."""
+        agents = self.agent_pids()
         return [d for d in self.detector_processes() if d.ppid not in agents]
 
     def active(self, window: float = 1.0) -> dict[str, dict[str, Any]]:

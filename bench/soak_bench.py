@@ -129,7 +129,8 @@ class Soak:
         self.robot.stop()
 
     def detector_processes(self) -> list[Any]:
-        """Detector programs in our namespaces (psutil, not the agents' word): pid, ppid, host, instance."""
+        """Detector programs in our namespaces (psutil, not the agents' word): pid, ppid, host, instance;
+        the idle pool members the agents' launchers hold (their deployers name them) are no detectors yet."""
         return self.robot.detector_processes()
 
     def store_pid(self) -> int | None:

@@ -77,11 +77,17 @@ class DeployerClient:
                                      f"(is the {host} agent running and reachable?)")
 
     def launcher(self, host: str) -> messages.Launcher | None:
-        """``pid`` and ``ready`` of ``host``'s launcher, None when its deployer runs none."""
-        details = self._ask(host, "list", messages.DeployRequest(), self.timeout)
+        """``pid``, ``ready`` and ``idle_members`` of ``host``'s launcher, None when its deployer runs none."""
+        details = self._ask(host, "list", messages.DeployRequest(idle=True), self.timeout)
         if not details:
             raise DeploymentError(f"no deployer of host {host} answered")
         return details[0].launcher
+
+    def launchers(self, host: str = "*") -> dict[str, messages.Launcher]:
+        """Each answering deployer's launcher (``pid``, ``ready``, ``idle_members``), by host; a host whose
+        deployer runs none is left out."""
+        details = self._ask(host, "list", messages.DeployRequest(idle=True), self.timeout)
+        return {str(d.host): d.launcher for d in details if d.launcher is not None}
 
     def find(self, instance: str) -> messages.ProcessDetail:
         """The snapshot of ``instance`` on whichever host runs it (a live one first)."""

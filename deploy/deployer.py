@@ -7,11 +7,12 @@ parts. It answers four queryables (``kgadapt.shared.keys.deployer_verb``)::
                                                                   wait_ready?, ready_timeout?, idle?}
     kgadapt/<robot>/host/<host>/deployer/stop     deploy_request {instance}
     kgadapt/<robot>/host/<host>/deployer/status   deploy_request {instance}
-    kgadapt/<robot>/host/<host>/deployer/list     deploy_request {}
+    kgadapt/<robot>/host/<host>/deployer/list     deploy_request {idle?}
 
 and replies ``deploy_reply {ok, detail}``: ``detail`` is the process snapshot
 (``ProcessInfo`` as ``ProcessDetail``, with ``host``), for ``list`` ``{host, processes, launcher}``
-(``launcher``: ``{pid, ready}`` of the host's launcher, absent without one);
+(``launcher``: ``{pid, ready}`` of the host's launcher, absent without one; with ``idle``
+also ``idle_members``, the pids of its idle pool members);
 a refusal or failure is ``ok: false`` with ``detail {error, error_type}``. A
 request that is not a valid ``deploy_request`` gets ``query.reply_err``.
 Events (``started``, ``ready``, ``exited``, ``restarted``, ``stopped``,
@@ -26,6 +27,15 @@ request names what to run, it never says how.
 
 Requests are answered on a small thread pool, never in the Zenoh callback;
 profiles are written through the knowledge service by :class:`ProfileRecorder`.
+
+Warm pool (``pool`` > 0, with the launcher): ahead of any start the deployer
+has the launcher keep idle detectors for every kind of start the graph says may
+run on this host (:meth:`Deployer.warm_host`: the feature's deployments
+executable here, ``feature_deployments``), so the first start of a kind, a
+failover's included, takes an idle member instead of a fork. It does so once
+the launcher is ready, again when a new launcher replaced a dead one (it has no
+pool), and every ``warm_refresh_s`` (the graph may have changed; nothing tells a
+deployer that it did, and the refresh is a handful of named queries).
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ from __future__ import annotations
 import argparse
 import base64
 import contextlib
+import dataclasses
 import hashlib
 import logging
 import re
@@ -46,14 +57,17 @@ from typing import Any, Callable, Mapping, TypeVar
 import msgspec
 import zenoh
 
-from kgadapt.deploy.options import add_arguments  # noqa: F401  (re-exported for agents)
+from kgadapt.deploy.options import (
+    DEFAULT_POOL,
+    add_arguments,  # noqa: F401  (re-exported for agents)
+)
 from kgadapt.deploy.profile import ProfileRecorder, ProfileSettings
 from kgadapt.deploy.supervisor import ProcessEvent, ProcessInfo, ProcessSpec, RestartPolicy, Supervisor, SupervisorSettings
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.agent import DEFAULT_ROBOT
 from kgadapt.shared.children import StopPolicy
 from kgadapt.shared.errors import ConfigError, DeploymentError, KgadaptError, MessageError, RemoteError, TransportError
-from kgadapt.shared.readiness import RESOLVED_CONFIG_ENV, START_IDLE_ENV
+from kgadapt.shared.readiness import POOL_DEPLOYMENTS_ENV, RESOLVED_CONFIG_ENV, START_IDLE_ENV
 from kgadapt.shared.session import DEFAULT_ENDPOINT
 
 log = logging.getLogger(__name__)
@@ -68,7 +82,7 @@ _ALLOWED = {
     "start": {"deployment", "config", "instance", "wait_ready", "ready_timeout", "idle"},
     "stop": {"instance"},
     "status": {"instance"},
-    "list": set(),
+    "list": {"idle"},
 }
 
 
@@ -95,8 +109,11 @@ class DeployerSettings:
     # Fork detectors from the host's launcher (deploy/launcher.py); a plain start when it is absent.
     launcher: bool = True
     # Idle detectors the launcher keeps per kind of start (deploy/launcher.py's pool), within the memory
-    # budget; each counts as its configuration's declared memory. 0: no pool.
+    # budget; each counts as the least declared memory of its kind's configurations. 0: no pool. (The
+    # agents' --pool default is deploy/options.py's; this library default stays 0 so a bare Deployer forks.)
     pool: int = 0
+    # Seconds between two readings of what the graph says may run on this host (the pool's kinds of start).
+    warm_refresh_s: float = 30.0
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
@@ -128,8 +145,9 @@ class Deployer:
         # list (instance -> (config, declared MiB)), so that raced starts cannot pass together.
         self._admission = threading.Lock()
         self._admitted: dict[str, tuple[str, float]] = {}
-        # Kinds of start the launcher keeps idle members for: (deployment, config) -> a spec of such a start.
-        self._warm: dict[tuple[str, str], ProcessSpec] = {}
+        # Kinds of start the launcher keeps idle members for, by what a member can take (its pool key).
+        self._warm: dict[str, _Kind] = {}
+        self._stop_warming = threading.Event()
         self.supervisor = Supervisor(SupervisorSettings(launcher=settings.launcher, python=settings.python))
         self.recorder: ProfileRecorder | None = None
         self._session: Any = None
@@ -167,6 +185,12 @@ class Deployer:
             self.supervisor.add_listener(self._publish_event)
             self.supervisor.setup()
             stack.callback(self.supervisor.shutdown)
+            if s.pool > 0 and self.supervisor.launcher is not None:
+                self._stop_warming.clear()
+                warmer = threading.Thread(target=self._keep_host_warm, name=f"deployer-warm-{s.host}", daemon=True)
+                warmer.start()
+                stack.callback(warmer.join, 10.0)
+                stack.callback(self._stop_warming.set)
             stack.callback(server.undeclare)
             for verb in VERBS:
                 key = keys.deployer_verb(s.robot, s.host, verb)
@@ -190,12 +214,13 @@ class Deployer:
     # -- operations ---------------------------------------------------------------
 
     def resolve(self, deployment: str, config: str, instance: str | None = None,
-                *, ready_timeout: float | None = None, idle: bool = False) -> ProcessSpec:
+                *, ready_timeout: float | None = None, idle: bool = False, carry: bool = True) -> ProcessSpec:
         """What to run for ``deployment`` with ``config`` on this host, from the knowledge store.
 
         Raises DeploymentError naming what is wrong: an unknown deployment, one
         that does not deploy ``config`` or is not executable on this host, a
-        placeholder that is not allowed.
+        placeholder that is not allowed. ``carry``: the configuration as the graph
+        gives it goes with the start (``$KGADAPT_RESOLVED_CONFIG``).
         """
         s = self.settings
         keys.check_name(deployment, "deployment name")
@@ -234,7 +259,7 @@ class Deployer:
             env.append(("KGADAPT_ZENOH_MODE", s.zenoh_mode))
         if idle:
             env.append((START_IDLE_ENV, "1"))
-        resolved = self._resolved_config(config)
+        resolved = self._resolved_config(config) if carry else None
         if resolved is not None:
             env.append((RESOLVED_CONFIG_ENV, resolved))
         for item in _as_list(row.get("environment"), deployment, "environment"):
@@ -280,7 +305,7 @@ class Deployer:
 
         ``idle``: the process is told to start idle (``$KGADAPT_START_IDLE``), as a warm standby does."""
         spec = self.resolve(deployment, config, instance, ready_timeout=ready_timeout, idle=idle)
-        self._admit(spec.instance, config, spec)
+        self._admit(spec.instance, config)
         try:
             log.info("host %s: starting %s (%s, %s): %s", self.settings.host, spec.instance, deployment, config,
                      " ".join(spec.argv))
@@ -288,43 +313,125 @@ class Deployer:
         finally:
             with self._admission:  # from now on the supervisor's list holds it (or it failed)
                 self._admitted.pop(spec.instance, None)
-        if self.settings.pool > 0 and info.via in ("launcher", "pool"):
-            self._keep_warm(deployment, config, spec)  # the next start like it takes an idle member
+        if self.settings.pool > 0:
+            # The next start like it takes an idle member; every kind is sized again within the budget
+            # with this process in it (idle members yielded to it: fewer may be kept now).
+            try:
+                if info.via in ("launcher", "pool"):
+                    self._keep_warm(deployment, config, spec, replace=False)
+                self._resize_pool(but=self.supervisor.pool_key(spec))
+            except KgadaptError as exc:  # the start is done; the pool waits for the next reading
+                log.info("host %s: pool not sized after starting %s: %s", self.settings.host, spec.instance, exc)
         return info
+
+    def _resize_pool(self, *, but: str | None = None) -> None:
+        """Size every kind kept warm (but ``but``) again within the budget."""
+        for key, kind in list(self._warm.items()):
+            if key == but:
+                continue
+            with self._admission:
+                size = self._pool_size(key, kind.config)
+            if size < self.supervisor.idle_for(kind.spec):
+                self.supervisor.keep_pool(kind.spec, size)
 
     def warm(self, deployment: str, config: str) -> int:
         """Have the launcher keep idle members for starts of ``deployment`` with ``config`` (as many as
         ``pool`` and the memory budget allow); the number asked for."""
         spec = self.resolve(deployment, config, "pooled")
-        return self._keep_warm(deployment, config, spec)
+        return self._keep_warm(deployment, config, _preparing(spec, [deployment]))
 
-    def _keep_warm(self, deployment: str, config: str, spec: ProcessSpec) -> int:
+    def warm_host(self) -> int:
+        """Have the launcher keep idle members, as many as ``pool`` and the memory budget allow, for every
+        kind of start the graph says may run on this host: the feature's deployments executable here
+        (``feature_deployments``), grouped by what one member can take (deploy/launcher.py's ``pool_key``;
+        the shipped detector deployments are one kind). A kind's members count as its least demanding
+        configuration (an idle member is none of them yet) and prepare the reflex table of each of its
+        deployments. Kinds the launcher does not fork are left out. The number of members asked for;
+        DeploymentError when the graph does not answer."""
+        s = self.settings
+        if s.pool <= 0:
+            return 0
+        try:
+            rows = self._knowledge.query("feature_deployments", {"platform": s.host})
+        except (RemoteError, TransportError) as exc:
+            raise DeploymentError(f"host {s.host}: cannot ask the graph what may run here: {exc}") from exc
+        kinds: dict[str, list[tuple[str, str, ProcessSpec]]] = {}
+        for deployment, config in sorted({(str(r.get("deployment")), str(r.get("config"))) for r in rows}):
+            if self._stop_warming.is_set():  # shutting down: no more questions to the graph
+                return 0
+            try:
+                spec = self.resolve(deployment, config, "pooled", carry=False)
+            except DeploymentError as exc:  # a deployment the graph describes badly: not one to keep warm
+                log.info("host %s: no pool for %s (%s): %s", s.host, deployment, config, exc)
+                continue
+            key = self.supervisor.pool_key(spec)
+            if key is not None:
+                kinds.setdefault(key, []).append((deployment, config, spec))
+        asked = 0
+        for options in kinds.values():
+            demands = self._declared_demands({config for _, config, _ in options})
+            deployment, config, spec = min(options, key=lambda o: (demands[o[1]], o[1], o[0]))
+            asked += self._keep_warm(deployment, config, _preparing(spec, [d for d, _, _ in options]))
+        return asked
+
+    def _keep_host_warm(self) -> None:
+        """Thread: :meth:`warm_host` once the launcher is ready, again when a new launcher replaced a dead
+        one (it has no pool) and every ``warm_refresh_s``; after a failed reading, again 2 s later."""
+        launcher = self.supervisor.launcher
+        assert launcher is not None
+        seen, due = -1, 0.0
+        while not self._stop_warming.wait(0.25):  # a flag read: cheap, and a new launcher is seen soon
+            if not launcher.ready:
+                continue
+            now = time.monotonic()
+            if launcher.starts == seen and now < due:
+                continue
+            seen = launcher.starts
+            try:
+                asked = self.warm_host()
+            except KgadaptError as exc:
+                log.info("host %s: pool not warmed yet: %s", self.settings.host, exc)
+                due = now + 2.0
+                continue
+            due = now + self.settings.warm_refresh_s
+            log.debug("host %s: %d idle detector(s) kept", self.settings.host, asked)
+
+    def _keep_warm(self, deployment: str, config: str, spec: ProcessSpec, *, replace: bool = True) -> int:
+        """Keep idle members for ``spec``'s kind of start, counted as ``config``, as many as ``pool`` and the
+        budget allow (the launcher ends the ones beyond); ``replace``: this spec is the kind's from now on
+        (else a kind already kept keeps its own, which prepares for more)."""
+        key = self.supervisor.pool_key(spec)
+        if key is None:  # the launcher does not fork it (or is not ready): nothing to keep
+            return 0
         with self._admission:
-            self._warm[(deployment, config)] = spec
-            size = self._pool_size(config, spec)
-        self.supervisor.keep_pool(spec, size)
+            kind = self._warm.get(key)
+            if kind is None or replace:
+                kind = self._warm[key] = _Kind(deployment=deployment, config=config, spec=spec)
+            size = self._pool_size(key, kind.config)
+        self.supervisor.keep_pool(kind.spec, size)
         return size
 
-    def _pooled(self) -> list[tuple[str, int]]:
-        """(config, idle members) of every kind of start kept warm."""
-        return [(config, self.supervisor.idle_for(spec)) for (_, config), spec in self._warm.items()]
+    def _pooled(self) -> list[tuple[str, str, int]]:
+        """(pool key, config counted, idle members) of every kind of start kept warm."""
+        return [(key, kind.config, self.supervisor.idle_for(kind.spec)) for key, kind in self._warm.items()]
 
-    def _pool_size(self, config: str, spec: ProcessSpec) -> int:
-        """Idle members for ``spec``'s kind of start: ``pool``, fewer when the budget has no room for
-        them beside what the graph declares for the processes of this host (caller holds _admission)."""
+    def _pool_size(self, key: str, config: str) -> int:
+        """Idle members for the kind of start ``key``, each counted as ``config``: ``pool``, fewer when the
+        budget has no room for them beside what the graph declares for the processes of this host (caller
+        holds _admission)."""
         size = self.settings.pool
         if self._budget is None or size <= 0:
             return size
         held = [info.config for info in self.supervisor.processes(include_finished=False)]
         held += [c for c, _ in self._admitted.values()]
-        others = [(c, self.supervisor.idle_for(other)) for (_, c), other in self._warm.items() if other is not spec]
+        others = [(c, n) for k, c, n in self._pooled() if k != key]
         demands = self._declared_demands({config, *held, *(c for c, _ in others)})
         used = sum(demands[c] for c in held) + sum(demands[c] * n for c, n in others)
         room = float(self._budget()) - used
         each = demands[config]
         return max(0, min(size, int(room // each))) if each > 0 else size
 
-    def _admit(self, instance: str, config: str, spec: ProcessSpec | None = None) -> None:
+    def _admit(self, instance: str, config: str) -> None:
         """Admit a start of ``config`` as ``instance`` or raise DeploymentError naming the figures.
 
         Two checks, under one lock with the starts already admitted:
@@ -334,6 +441,10 @@ class Deployer:
           just started has not yet taken its memory, so only this check holds against raced starts;
         - by measure: the host monitor's free memory, less what the starts under way have declared
           and not yet taken, must cover this one's demand.
+
+        Idle pool members yield to a start: they are not counted against it (the pool is sized
+        again after the start, within the budget: :meth:`_keep_warm`); the agents' host monitor
+        leaves them out of its measure too (``HostMonitor.yielding``: :meth:`idle_pids`).
         """
         if self._free_memory is None and self._budget is None:
             return
@@ -345,24 +456,17 @@ class Deployer:
                 info.instance: (info.config, False) for info in self.supervisor.processes(include_finished=False)}
             for name, (other, _) in self._admitted.items():
                 held[name] = (other, True)
-            # Idle pool members count as their configuration's declared memory; the one this start
-            # takes (if any) is this start's.
-            pooled = self._pooled()
-            if spec is not None and self.supervisor.idle_for(spec) > 0:
-                pooled = [(c, n - 1) if c == config and n > 0 else (c, n) for c, n in pooled]
-            demands = self._declared_demands({config, *(c for c, _ in held.values()), *(c for c, _ in pooled)})
+            demands = self._declared_demands({config, *(c for c, _ in held.values())})
             demand = demands[config]
             if self._budget is not None:
                 budget = float(self._budget())
-                pool_mb = sum(demands[c] * n for c, n in pooled)
-                declared = sum(demands[c] for c, _ in held.values()) + pool_mb
+                declared = sum(demands[c] for c, _ in held.values())
                 if declared + demand > budget:
                     each = ", ".join(f"{name} {c} {demands[c]:.0f} MiB" for name, (c, _) in sorted(held.items()))
-                    idle = f"; idle pool members {pool_mb:.0f} MiB" if pool_mb else ""
                     raise DeploymentError(
                         f"start of {config} refused: it declares {demand:.0f} MiB and host {host}'s "
-                        f"{len(held)} process(es) already declare {declared - pool_mb:.0f} MiB ({each or 'none'}"
-                        f"{idle}): {declared + demand:.0f} MiB would exceed its memory budget of {budget:.0f} MiB"
+                        f"{len(held)} process(es) already declare {declared:.0f} MiB ({each or 'none'}): "
+                        f"{declared + demand:.0f} MiB would exceed its memory budget of {budget:.0f} MiB"
                     )
             if self._free_memory is not None:
                 free = float(self._free_memory())
@@ -386,6 +490,11 @@ class Deployer:
                 raise DeploymentError(f"cannot look up the memory demand of {config}: {exc}") from exc
             demands[config] = float((rows[0].get("memory_demand_mb") or 0.0) if rows else 0.0)
         return demands
+
+    def idle_pids(self) -> list[int]:
+        """The pids of the launcher's idle pool members (they yield their memory to a start)."""
+        launcher = self.supervisor.launcher
+        return launcher.idle_pids() if launcher is not None else []
 
     def stop(self, instance: str) -> ProcessInfo:
         """Stop one instance (SIGINT, SIGTERM, SIGKILL)."""
@@ -432,7 +541,9 @@ class Deployer:
             launcher = self.supervisor.launcher
             return messages.DeployDetail(
                 host=host, processes=[_detail(i, host, messages.ProcessDetail) for i in self.processes()],
-                launcher=messages.Launcher(pid=launcher.pid, ready=launcher.ready) if launcher is not None else None)
+                launcher=messages.Launcher(pid=launcher.pid, ready=launcher.ready,
+                                           idle_members=(launcher.idle_pids() or None) if request.idle else None)
+                if launcher is not None else None)
         if verb in ("stop", "status"):
             instance = request.instance
             if not instance:
@@ -463,6 +574,21 @@ class Deployer:
                 self._publisher.put(messages.encode(body))
             except Exception as exc:  # noqa: BLE001 - never let a transport hiccup stop supervision
                 log.warning("cannot publish deployer event %s: %s", event.event, exc)
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Kind:
+    """A kind of start kept warm: the spec its members are forked with, and the configuration they count as."""
+
+    deployment: str
+    config: str
+    spec: ProcessSpec
+
+
+def _preparing(spec: ProcessSpec, deployments: list[str]) -> ProcessSpec:
+    """``spec`` for a pool member that prepares the starts of ``deployments`` (their reflex tables)."""
+    env = tuple((k, v) for k, v in spec.env if k != POOL_DEPLOYMENTS_ENV)
+    return dataclasses.replace(spec, env=(*env, (POOL_DEPLOYMENTS_ENV, ",".join(sorted(set(deployments))))))
 
 
 def new_instance_name(config: str, host: str) -> str:
@@ -521,7 +647,7 @@ def settings_from_args(args: argparse.Namespace, *, robot: str, host: str) -> De
         stop=StopPolicy(sigint_timeout=stop, sigterm_timeout=stop),
         sample_interval=getattr(args, "profile_interval", 1.0),
         launcher=not getattr(args, "no_launcher", False),
-        pool=max(0, int(getattr(args, "pool", 0) or 0)),
+        pool=max(0, int(getattr(args, "pool", DEFAULT_POOL))),
     )
 
 

@@ -29,7 +29,7 @@ and restarts it like any other child.
 
 Warm pool: the agent may also ask the launcher to keep idle members for a
 start it expects (``{"pool": N, ...}`` with the argv and environment of such a
-start). A member is forked the same way but stops before the module's work:
+start; fewer than it has: the extra ones are ended). A member is forked the same way but stops before the module's work:
 it takes the environment, opens its Zenoh session (the module's
 ``pool_session(args)``) and waits on a socket of its own. A fork request whose
 argv and environment match a member's, but for the ``--instance`` and
@@ -45,9 +45,13 @@ Protocol (JSON, one message per datagram)::
     launcher -> agent   {"ready": true, "pid": P, "python": EXE, "runnable": [modules]}   once, after the imports
     agent -> launcher   {"argv": [...], "env": {...}, "cwd": str|null, "parent": AGENT_PID, "death_signal": N}
                         + two descriptors: stdin, stdout (stderr goes to stdout)
-    launcher -> agent   {"pid": DETECTOR_PID, "pooled": bool, "idle": IDLE_LEFT} or {"error": "..."}
+    launcher -> agent   {"pid": DETECTOR_PID, "pooled": bool, "idle": IDLE_LEFT, "members": [PIDS]}
+                        or {"error": "..."}
     agent -> launcher   {"pool": N, "argv": [...], "env": {...}, "cwd": ..., "parent": ..., "death_signal": N}
-    launcher -> agent   {"idle": IDLE_MEMBERS_FOR_THAT_START} or {"error": "..."}
+    launcher -> agent   {"idle": IDLE_MEMBERS_FOR_THAT_START, "members": [PIDS]} or {"error": "..."}
+
+``members``: the pids of the idle members for that kind of start, so the agent can say which
+processes under its launcher are idle members (its ``list`` reply) and tools can tell them from orphans.
 
 The launcher exits when the agent closes its end of the socket (or dies).
 """
@@ -81,7 +85,8 @@ PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.perception.markers", "kgada
 _MAX_MESSAGE = 1 << 20
 # What differs between two starts a pool member can take: these flags' values and these variables.
 PER_START_ARGS = ("--instance", "--config")
-PER_START_ENV = ("KGADAPT_START_IDLE", "KGADAPT_RESOLVED_CONFIG")
+# (KGADAPT_POOL_DEPLOYMENTS is a member's own: what it prepares for, never a start's.)
+PER_START_ENV = ("KGADAPT_START_IDLE", "KGADAPT_RESOLVED_CONFIG", "KGADAPT_POOL_DEPLOYMENTS")
 MAX_POOL = 8  # idle members per kind of start, whatever the agent asks
 # The launcher's argv carries this much room: a forked detector writes its own command line there,
 # so ps, psutil and the tools that find detectors by their command line see it as a plain-started one.
@@ -204,17 +209,33 @@ def _fork_request(data: bytes, fds: list[int], runnable: Sequence[str], sock: so
         if not hasattr(importlib.import_module(module), "pool_session"):
             raise DeploymentError(f"{module} cannot wait in a pool (it has no pool_session)")
         members = pool.setdefault(key, [])
+        while len(members) > size:  # fewer asked (the memory budget has less room now): the newest end
+            _end_member(members.pop())
         while len(members) < size:
             members.append(_fork_member(module, argv, env, cwd, sock))
-        return {"idle": len(members)}
+        return {"idle": len(members), "members": [m.pid for m in members]}
     if len(fds) != 2:
         raise DeploymentError(f"a fork request carries stdin and stdout, not {len(fds)} descriptors")
     members = pool.get(key) or []
     while members:
         member = members.pop(0)
         if _hand_over(member, data, fds):
-            return {"pid": member.pid, "pooled": True, "idle": len(members)}
-    return {**_fork_detector(module, argv, env, cwd, parent, death_signal, fds, sock), "pooled": False, "idle": 0}
+            return {"pid": member.pid, "pooled": True, "idle": len(members), "members": [m.pid for m in members]}
+    return {**_fork_detector(module, argv, env, cwd, parent, death_signal, fds, sock), "pooled": False, "idle": 0,
+            "members": []}
+
+
+def _end_member(member: _Member) -> None:
+    """End an idle member (it may still be opening its session) and reap its intermediate process."""
+    member.sock.close()
+    try:
+        os.kill(member.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    try:
+        os.waitpid(member.middle, 0)  # it exits as its member does (end of file on their pipe)
+    except ChildProcessError:
+        pass
 
 
 def _hand_over(member: _Member, data: bytes, fds: list[int]) -> bool:
@@ -560,6 +581,7 @@ class LauncherClient:
         self._closing = False
         self.starts = 0  # launcher processes started so far
         self.idle: dict[str, int] = {}  # idle pool members by pool_key, as the launcher last said
+        self._members: dict[str, list[int]] = {}  # their pids, by pool_key, as the launcher last said
 
     @property
     def pid(self) -> int | None:
@@ -600,7 +622,7 @@ class LauncherClient:
         with self._lock:
             self._proc, self._sock, self._ready = proc, ours, False
             self.starts += 1
-            self.idle = {}  # a new launcher has no pool
+            self.idle, self._members = {}, {}  # a new launcher has no pool
         threading.Thread(target=self._await_hello, args=(proc, ours), name="launcher-hello", daemon=True).start()
         threading.Thread(target=self._watch, args=(proc,), name="launcher-wait", daemon=True).start()
 
@@ -672,7 +694,7 @@ class LauncherClient:
         pid = reply.get("pid") if isinstance(reply, dict) else None
         if isinstance(pid, int):
             with self._lock:
-                self.idle[pool_key(argv, env)] = int(reply.get("idle") or 0)
+                self._note_pool(pool_key(argv, env), reply)
         if not isinstance(pid, int):
             os.close(r)
             log.warning("launcher (pid %s) did not fork %s: %s", proc.pid, argv[2] if len(argv) > 2 else argv,
@@ -683,8 +705,8 @@ class LauncherClient:
         return ForkedProcess(pid, os.fdopen(r, "rb"), pooled=bool(reply.get("pooled")))
 
     def fill(self, argv: Sequence[str], env: dict[str, str], cwd: str | None, size: int) -> int | None:
-        """Have ``size`` idle members wait for starts like ``argv`` (fewer: the extra ones are not
-        ended, the next starts use them); the number idle now, None when the launcher cannot."""
+        """Have ``size`` idle members wait for starts like ``argv`` (fewer than there are: the extra ones
+        end); the number idle now, None when the launcher cannot."""
         with self._lock:
             if not self._ready or self._sock is None:
                 return None
@@ -703,8 +725,24 @@ class LauncherClient:
             if not isinstance(idle, int):
                 log.info("launcher: pool refused: %s", reply.get("error") if isinstance(reply, dict) else reply)
                 return None
-            self.idle[pool_key(argv, env)] = idle
+            self._note_pool(pool_key(argv, env), reply)
             return idle
+
+    def _note_pool(self, key: str, reply: dict[str, Any]) -> None:
+        """What the launcher said of the idle members for ``key`` (caller holds the lock)."""
+        self.idle[key] = int(reply.get("idle") or 0)
+        members = reply.get("members")
+        self._members[key] = [int(p) for p in members if isinstance(p, int)] if isinstance(members, list) else []
+
+    def idle_pids(self) -> list[int]:
+        """The pids of every idle pool member, as the launcher last said (none while it is not ready)."""
+        with self._lock:
+            return sorted(p for pids in self._members.values() for p in pids) if self._ready else []
+
+    def runs(self, argv: Sequence[str]) -> bool:
+        """Whether the ready launcher forks ``argv`` (so could keep pool members for it)."""
+        with self._lock:
+            return self._ready and runnable_module(argv, self.python, self._runnable) is not None
 
     def idle_for(self, argv: Sequence[str], env: dict[str, str]) -> int:
         """Idle members that could take a start of ``argv`` with ``env``."""

@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import argparse
 
+# Idle detectors per kind of start an agent's launcher keeps by default: one, so that the first start of
+# a kind (a failover's) is a hand-over, not a fork; the memory budget may allow fewer.
+DEFAULT_POOL = 1
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The deployer's flags for agent commands (``kgadapt onboard``, ``kgadapt remote``, ``kgadapt deploy serve``)."""
@@ -27,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--no-launcher", action="store_true",
                        help="start every detector as a new interpreter instead of forking it from the host's "
                             "launcher (a process with the detector's code already imported)")
-    group.add_argument("--pool", type=int, default=0, metavar="N",
+    group.add_argument("--pool", type=int, default=DEFAULT_POOL, metavar="N",
                        help="idle detectors the launcher keeps, with their Zenoh session open, for each kind of "
-                            "start this host has made (a start then takes one); within the memory budget, each "
-                            "counted at its configuration's declared memory (default 0: none)")
+                            "start the graph says may run on this host (a start, a failover's too, then takes "
+                            "one); within the memory budget, each counted at the least declared memory of its "
+                            f"kind's configurations (default {DEFAULT_POOL}; 0: none)")

@@ -52,7 +52,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Literal
 
-from kgadapt.deploy.launcher import ForkedProcess, LauncherClient, become_subreaper
+from kgadapt.deploy.launcher import ForkedProcess, LauncherClient, become_subreaper, pool_key
 from kgadapt.shared import parent_death
 from kgadapt.shared.children import StopPolicy, escalate
 from kgadapt.shared.errors import ConfigError, DeploymentError, NotReady, ReadinessTimeout
@@ -556,6 +556,13 @@ class Supervisor:
     def idle_for(self, spec: ProcessSpec) -> int:
         """The launcher's idle members that could take ``spec``."""
         return self.launcher.idle_for(spec.argv, self.child_env(spec)) if self.launcher is not None else 0
+
+    def pool_key(self, spec: ProcessSpec) -> str | None:
+        """What pool members for ``spec`` share with the starts they can take (deploy/launcher.py's
+        ``pool_key``); None when the launcher does not fork ``spec`` (not ready, or not its program)."""
+        if self.launcher is None or not self.launcher.runs(spec.argv):
+            return None
+        return pool_key(spec.argv, self.child_env(spec))
 
     def _read_output(self, inst: _Instance, run: _Run) -> None:
         child_log = logging.getLogger(f"{__name__}.{inst.spec.instance}")

@@ -155,11 +155,10 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
     from kgadapt.shared.hostmonitor import HostMonitor, settings_from_args
 
     monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))
-    parts: list[Any] = [
-        monitor,
-        Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb,
-                 budget=monitor.budget_mb),
-    ]
+    deployer = Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb,
+                        budget=monitor.budget_mb)
+    monitor.yielding = deployer.idle_pids  # idle pool members yield their memory to a start
+    parts: list[Any] = [monitor, deployer]
     if args.camera_source:
         from kgadapt.onboard.perception.camera import CameraPart, CameraSettings, make_source
 

@@ -3,7 +3,8 @@
 What it publishes (``host_status`` on ``kgadapt/<robot>/host/<host>/status``)::
 
     memory_total_mb   the budget when one is given, else the machine's total memory
-    memory_free_mb    budget - our process tree's RSS - reservation   (with a budget)
+    memory_free_mb    budget - our process tree's RSS - reservation   (with a budget; the launcher's
+                      idle pool members left out: they yield to a start)
                       the machine's available memory - reservation    (without)
     cpu_load          machine CPU load in percent of one core (2 busy cores = 200)
     cpu_cores         logical CPUs
@@ -36,7 +37,7 @@ import secrets
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable, Collection
 
 import msgspec
 import psutil
@@ -312,11 +313,15 @@ class HostMonitor:
         # Who sends (random per monitor life) and in which order: consumers tell a second sender on this
         # host's key (a forger, a replay) from this monitor by them (StatusTrust).
         self.origin = secrets.token_hex(4)
+        # Pids of processes of ours that give their memory back when a start needs it (the launcher's idle
+        # pool members: a start takes one, or the pool is made smaller): left out of ``ours_mb``, so free
+        # memory is what a start can have. Set by the agent once its deployer exists.
+        self.yielding: Callable[[], Collection[int]] | None = None
 
     # -- measurements -------------------------------------------------------
 
     def ours_mb(self) -> float:
-        """RSS of this process and all its descendants, in MiB."""
+        """RSS of this process and all its descendants, in MiB (but the ``yielding`` ones)."""
         if self._me is None:
             self._me = psutil.Process(os.getpid())
         total = 0
@@ -324,7 +329,10 @@ class HostMonitor:
             procs = [self._me, *self._me.children(recursive=True)]
         except psutil.Error:
             procs = [self._me]
+        left_out = set(self.yielding()) if self.yielding is not None else set()
         for proc in procs:
+            if proc.pid in left_out:
+                continue
             try:
                 total += proc.memory_info().rss
             except psutil.Error:  # a child may exit between listing and reading

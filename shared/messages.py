@@ -205,7 +205,9 @@ class DeployRequest(Message, tag="deploy_request", frozen=True, kw_only=True):
     instance: Name | None = None
     wait_ready: bool | None = None  # absent: true
     ready_timeout: Number | None = None  # seconds
-    idle: bool | None = None  # absent: false; true starts a detector idle (a warm standby)
+    # absent: false. start: true starts a detector idle (a warm standby); list: true also names the
+    # launcher's idle pool members (``Launcher.idle_members``).
+    idle: bool | None = None
 
 
 class ResolvedConfig(Message, tag="resolved_config", frozen=True, kw_only=True):
@@ -229,6 +231,9 @@ class Launcher(Struct, frozen=True, kw_only=True, omit_defaults=True):
 
     pid: int | None = None
     ready: bool | None = None
+    # The pids of its idle pool members (forked ahead of starts; deploy/launcher.py), so that whoever
+    # looks for stray detector processes can tell them from orphans; only for a list request with idle.
+    idle_members: Annotated[list[int], Meta(max_length=64)] | None = None
 
 
 class ProcessDetail(Struct, frozen=True, kw_only=True, omit_defaults=True):

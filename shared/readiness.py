@@ -40,6 +40,9 @@ START_IDLE_ENV = "KGADAPT_START_IDLE"
 # A started detector's configuration as its deployer resolved it from the graph (a ``resolved_config``
 # message, base64): the detector takes it instead of asking the knowledge service again.
 RESOLVED_CONFIG_ENV = "KGADAPT_RESOLVED_CONFIG"
+# An idle pool member's environment only (deploy/launcher.py): the deployments, comma-separated, whose starts
+# it may take on its host, so it prepares each one's reflex table while it waits.
+POOL_DEPLOYMENTS_ENV = "KGADAPT_POOL_DEPLOYMENTS"
 
 Payload = dict[str, Any]
 

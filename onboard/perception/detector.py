@@ -60,7 +60,7 @@ import os
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 import msgspec
@@ -75,7 +75,14 @@ from kgadapt.shared.errors import (
     RequestTimeout,
     TransportError,
 )
-from kgadapt.shared.readiness import CONFIGURED_TOKEN, READY_TOKEN, RESOLVED_CONFIG_ENV, START_IDLE_ENV, announce_ready
+from kgadapt.shared.readiness import (
+    CONFIGURED_TOKEN,
+    POOL_DEPLOYMENTS_ENV,
+    READY_TOKEN,
+    RESOLVED_CONFIG_ENV,
+    START_IDLE_ENV,
+    announce_ready,
+)
 
 log = logging.getLogger("kgadapt.onboard.perception.detector")
 
@@ -208,23 +215,32 @@ def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, 
                                  now=time.time())
 
 
-def build_cores(table: Any) -> dict[str, Any]:
-    """A detector for every configuration of the reflex ``table``, by name."""
+def build_cores(table: Any, *, built: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """A detector for every configuration of the reflex ``table``, by name (those in ``built`` reused)."""
     from kgadapt.onboard.perception.markers import MarkerDetector
 
-    return {name: MarkerDetector(choice.settings) for name, choice in table.choices().items()}
+    built = built or {}
+    return {name: built[name] if name in built else MarkerDetector(choice.settings)
+            for name, choice in table.choices().items()}
 
 
 @dataclass(frozen=True)
 class WarmStart:
     """What a launcher's pool member prepared while it waited for a start (deploy/launcher.py): its
-    Zenoh session, and the reflex table of the deployment it expects with its detectors built."""
+    Zenoh session, and the reflex table of each deployment it may be started as (on ``host``), with
+    every candidate's detector built once."""
 
     session: Any
-    deployment: str | None = None
     host: str | None = None
-    table: Any = None
-    cores: dict[str, Any] | None = None
+    tables: Mapping[str, Any] = field(default_factory=dict)  # deployment -> its reflex table
+    cores: dict[str, Any] = field(default_factory=dict)  # configuration -> its detector
+
+    def armed(self, deployment: str | None, host: str) -> tuple[Any, dict[str, Any]] | None:
+        """The table and detectors prepared for a start of ``deployment`` on ``host``; None if none was."""
+        table = self.tables.get(deployment) if deployment and host == self.host else None
+        if table is None:
+            return None
+        return table, {name: self.cores[name] for name in table.choices()}
 
 
 def _clean_count(result: Any) -> int:
@@ -751,22 +767,29 @@ def _zenoh_settings(args: argparse.Namespace) -> Any:
 def pool_session(argv: Sequence[str]) -> WarmStart:
     """What a launcher's pool member prepares while it waits for a start like ``argv`` (deploy/launcher.py):
     the Zenoh session such a detector would open (a start's own flags name the same settings), and, for
-    the deployment its start request carried, the reflex table with every candidate configuration's
-    detector built. A start of another deployment asks the graph for its own table."""
+    each deployment it may be started as (``$KGADAPT_POOL_DEPLOYMENTS``, set by its deployer; else the
+    one of the configuration its spec carried), the reflex table with every candidate configuration's
+    detector built once. A start of another deployment asks the graph for its own table."""
     from kgadapt.shared.session import open_session
 
     args = build_parser().parse_args(argv)
     session = open_session(_zenoh_settings(args))
-    carried = carried_config(args.config) if args.config else None
-    deployment = carried[1].get("deployment") if carried else None
-    if not deployment:
-        return WarmStart(session)
-    try:
-        table = fetch_reflex_table(session, args.robot, deployment=str(deployment), host=args.host)
-    except KgadaptError as exc:
-        log.info("pool member: no reflex table for %s yet (%s)", deployment, exc)
-        return WarmStart(session)
-    return WarmStart(session, str(deployment), args.host, table, build_cores(table))
+    deployments = [d for d in os.environ.get(POOL_DEPLOYMENTS_ENV, "").split(",") if d]
+    if not deployments:
+        carried = carried_config(args.config) if args.config else None
+        deployments = [str(carried[1]["deployment"])] if carried and carried[1].get("deployment") else []
+    tables: dict[str, Any] = {}
+    cores: dict[str, Any] = {}
+    for deployment in deployments:
+        try:
+            table = fetch_reflex_table(session, args.robot, deployment=deployment, host=args.host)
+        except KgadaptError as exc:
+            log.info("pool member: no reflex table for %s yet (%s)", deployment, exc)
+            continue
+        tables[deployment] = table
+        for name, core in build_cores(table, built=cores).items():
+            cores.setdefault(name, core)
+    return WarmStart(session, args.host, tables, cores)
 
 
 def run(args: argparse.Namespace, *, session: Any = None) -> int:
@@ -792,17 +815,24 @@ def run(args: argparse.Namespace, *, session: Any = None) -> int:
             if session is None:
                 session = open_session(_zenoh_settings(args))
             row: dict[str, Any] = {}
+            source = "given inline"
             if args.config is not None:
                 # Carried by the start request (resolved by the deployer): no second question to the graph.
                 carried = carried_config(args.config)
+                source = "carried by the start request" if carried is not None else "asked of the knowledge service"
                 config, row = carried if carried is not None else fetch_config_row(
                     session, args.robot, args.config, wait_s=args.config_wait)
             detector = Detector(settings, config, deployment=str(row["deployment"]) if row.get("deployment") else None)
-            if warm is not None and warm.table is not None and (warm.deployment, warm.host) == (
-                    detector.deployment, settings.host):
-                detector.arm(warm.table, warm.cores)  # fetched and built while the pool member waited
-            else:
+            prepared = warm.armed(detector.deployment, settings.host) if warm is not None else None
+            if prepared is not None:
+                detector.arm(*prepared)  # fetched and built while the pool member waited
+            elif detector.deployment is not None:
                 arm(detector, session)
+            # For the record (the deployer keeps a process's last lines): what this start asked the graph.
+            table = ("prepared in the launcher's pool" if prepared is not None else
+                     "asked of the knowledge service" if detector.deployment is not None else "none")
+            print(f"detector {args.instance}: configuration {config.name} {source}; reflex table {table}",
+                  file=sys.stderr, flush=True)
             detector.setup(session)
             switch = ActivitySwitch(detector)
             switch.setup(session)

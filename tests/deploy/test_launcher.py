@@ -163,11 +163,14 @@ def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launche
         launcher = wait_until(lambda: (found := client.launcher("onboard")) and found.ready and found,
                               timeout=60.0, what="the agent's launcher ready")
         info = client.start("onboard", "detector_day", DAY)
-        assert info.via == "launcher" and psutil.Process(info.pid).ppid() == agent.pid
+        # Forked, or handed to the idle detector its launcher keeps by default (--pool 1).
+        assert info.via in ("launcher", "pool") and psutil.Process(info.pid).ppid() == agent.pid
+        idle = wait_until(lambda: client.launcher("onboard").idle_members, timeout=30.0, what="an idle pool member")
         os.kill(agent.pid, signal.SIGKILL)
         agent.process.wait()
         wait_until(lambda: not alive(info.pid), timeout=5.0, what="forked detector gone after kill -9 of its agent")
         wait_until(lambda: not alive(launcher.pid), timeout=5.0, what="launcher gone after kill -9 of its agent")
+        wait_until(lambda: not any(alive(pid) for pid in idle), timeout=5.0, what="idle members gone with the launcher")
     finally:
         agent.stop()
 
@@ -270,3 +273,48 @@ def test_a_pooled_start_hands_the_configuration_to_an_idle_detector_and_asks_the
         host.close()
     # Idle members end with their launcher.
     wait_until(lambda: not any(alive(pid) for pid in idle), what="the idle pool members to end with the launcher")
+
+
+def test_the_deployer_keeps_an_idle_detector_for_what_may_run_on_its_host_before_any_start(
+        knowledge, endpoint, test_session):
+    """Issue 32 item 1: with a pool, a host's deployer has its launcher keep an idle detector for the
+    detector deployments the graph lets run on the host as soon as the launcher is ready, before
+    anything was started there; the first start of any of them (a failover's) takes it and asks the
+    graph nothing, neither the configuration nor the reflex table."""
+    # No reading of the graph again during the test (it would ask for the configurations' memory).
+    host = DeployerHost(endpoint, "onboard", launcher=True, pool=1, warm_refresh_s=600.0)
+    asked: list[tuple[str, float]] = []
+    answer_named = knowledge.answer_named
+    events = Collector(test_session, keys.deployer_events(ROBOT, "onboard"), "deploy_event")
+    try:
+        wait_for_deployers(test_session, ["onboard"])
+        client = DeployerClient(test_session, ROBOT)
+        idle = wait_until(lambda: client.launcher("onboard").idle_members, timeout=60.0,
+                          what="an idle detector kept with nothing started")
+        launcher = host.deployer.supervisor.launcher
+        assert launcher is not None and len(idle) == 1  # one kind: every detector deployment of the models
+        under = [p.pid for p in psutil.Process(launcher.pid).children(recursive=True)]
+        assert set(idle) <= set(under), (idle, under)  # the deployer names the launcher's own members
+        assert host.deployer.processes() == []
+
+        def counting(name, *args, **kwargs):  # the real service's answer, with when it was asked
+            asked.append((name, time.time()))
+            return answer_named(name, *args, **kwargs)
+
+        knowledge.answer_named = counting
+        # Not the deployment the member counts as (the least demanding, day's), but one of its kind.
+        info = client.start("onboard", "detector_dusk", "marker_detection_dusk", instance="first")
+        assert info.via == "pool" and info.pid in idle
+        _, started = events.wait_for(lambda e: e["instance"] == "first" and e["event"] == "started")
+        output = "\n".join(client.status("onboard", "first").output or [])
+        assert ("configuration marker_detection_dusk carried by the start request; "
+                "reflex table prepared in the launcher's pool") in output, output
+        # Another idle one takes its place; the one taken is no member any more.
+        again = wait_until(lambda: client.launcher("onboard").idle_members, timeout=30.0, what="the pool refilled")
+        assert info.pid not in again
+        assert [n for n, at in asked if n == "detector_config" and at >= started["time"]] == []
+        client.stop("onboard", "first")
+    finally:
+        knowledge.answer_named = answer_named
+        events.close()
+        host.close()

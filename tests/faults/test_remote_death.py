@@ -41,4 +41,5 @@ def test_a_detector_runs_onboard_after_kill_9_of_the_remote_agent_also_right_aft
     assert again["instance"] != placed["instance"]
     running = robot.settle()
     assert running["host"] == "onboard"
-    assert running["via"] == "launcher"  # the takeover was forked by the onboard host's launcher
+    # The takeover was forked by the onboard host's launcher, or handed to the idle detector it keeps (--pool).
+    assert running["via"] in ("launcher", "pool")

@@ -402,7 +402,7 @@ def test_a_detector_runs_with_its_own_identity(network, session_as):
         info = operator.start("onboard", "detector_dusk", "marker_detection_dusk", instance="own_identity")
         try:
             assert info.state == "ready"
-            if info.via != "launcher":  # a forked detector's /proc environ is the launcher's (test_launcher)
+            if info.via == "exec":  # a forked or pooled detector's /proc environ is the launcher's (test_launcher)
                 environ = Path(f"/proc/{info['pid']}/environ").read_bytes().split(b"\0")
                 assert f"KGADAPT_ZENOH_CONFIG={network.detector_config}".encode() in environ
             wait_for(lambda: keys.detector_alive(ROBOT, "own_identity") in alive, 5, "the detector's token")

@@ -73,6 +73,21 @@ def test_under_a_budget_free_memory_is_the_budget_minus_the_agents_process_tree(
     assert before.memory_free_mb - during.memory_free_mb > 90
 
 
+def test_a_process_that_yields_its_memory_to_a_start_is_left_out_of_ours():
+    # The launcher's idle pool members (issue 32): a start takes one or the pool shrinks, so their memory
+    # is free for a start; the agent names them to its monitor (HostMonitor.yielding).
+    monitor = HostMonitor(HostMonitorSettings(robot="quad1", host="remote", memory_budget_mb=4096))
+    hog = start_hog(100)
+    try:
+        counted = monitor.sample()
+        monitor.yielding = lambda: [hog.pid]
+        left_out = monitor.sample()
+    finally:
+        stop_hog(hog)
+    assert counted.ours_mb - left_out.ours_mb > 90
+    assert left_out.memory_free_mb - counted.memory_free_mb > 90
+
+
 def test_without_a_budget_free_memory_is_what_the_machine_has_available():
     monitor = HostMonitor(HostMonitorSettings(robot="quad1", host="remote"))
     sample = monitor.sample()
