@@ -70,6 +70,12 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
                    help="with --photos: the oracle gap of DICTIONARY on this real photograph of its markers "
                         "(repeatable) instead of the shipped ones or the recoded stand-in; for photographs "
                         "whose licence keeps them out of sim/photographs (see its SOURCES.txt)")
+    p.add_argument("--only-given", action="store_true",
+                   help="with --photo: the oracle gap of the dictionaries given photographs only (the others take "
+                        "a calibration each on the recoded stand-in)")
+    p.add_argument("--photos-out", type=Path, default=None, metavar="FILE",
+                   help="with --photos: where to write the figures (default perception.photos.json beside --out, "
+                        "perception.photos.given.json with --photo)")
     p.add_argument("--skip-blur", action="store_true", help="with --photos: leave out the blur agreement")
     p.set_defaults(func=_run)
 
@@ -79,11 +85,12 @@ PHOTO_DICTIONARIES = ("DICT_4X4_50", "DICT_6X6_250", "DICT_5X5_1000", "DICT_ARUC
 
 def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / "perception.photos.json",
                progress: Any = None, photos: Mapping[str, Sequence[Path]] | None = None,
-               blur: bool = True) -> dict[str, Any]:
+               blur: bool = True, only_given: bool = False) -> dict[str, Any]:
     """Blur agreement and the oracle gap per dictionary on real photographs; write them to ``out``.
 
     ``photos``: per dictionary, photograph files of its markers to measure its oracle gap on (read
     as the shipped ones are, at 640 x 480), in place of the shipped photographs or the recoded stand-in.
+    ``only_given``: measure the dictionaries of ``photos`` only.
     """
     import json
 
@@ -114,7 +121,7 @@ def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / 
     # (16 a band and condition, 96 marker sightings for six) so that one marker is about one point, not four.
     oracle = {d: quality.photo_oracle_gap(d, bands, calibration=settings, progress=progress, given=given.get(d),
                                           **({"frames": frames, "levels": levels} if d in given else {}))
-              for d in PHOTO_DICTIONARIES}
+              for d in PHOTO_DICTIONARIES if not only_given or d in given}
     data = {"machine": stats.machine_info(), "load_average_before": [round(v, 2) for v in load_before],
             "load_average_after": [round(v, 2) for v in os.getloadavg()],
             "calibration": {"frames_per_level": frames, "levels_per_band": levels},
@@ -137,10 +144,13 @@ def _run_photos(args: argparse.Namespace) -> int:
             raise SystemExit(f"kgadapt bench perception: --photo {item!r}: give DICTIONARY=FILE, DICTIONARY one of "
                              f"{', '.join(PHOTO_DICTIONARIES)} and FILE an existing photograph")
         photos.setdefault(dictionary, []).append(Path(file))
+    if args.only_given and not photos:
+        raise SystemExit("kgadapt bench perception: --only-given needs at least one --photo DICTIONARY=FILE")
     # Figures on photographs given here (not shipped) go beside the shipped ones', not over them.
     name = "perception.photos.given.json" if photos else "perception.photos.json"
-    data = run_photos(frames=args.frames, levels=args.levels, out=Path(args.out).parent / name,
-                      progress=None if args.json else _say, photos=photos, blur=not args.skip_blur)
+    data = run_photos(frames=args.frames, levels=args.levels, out=args.photos_out or Path(args.out).parent / name,
+                      progress=None if args.json else _say, photos=photos, blur=not args.skip_blur,
+                      only_given=args.only_given)
     if args.json:
         print(json.dumps(data, indent=2))
         return 0

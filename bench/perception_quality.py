@@ -387,7 +387,8 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
                 progress(f"{dictionary} {band.name}/{condition}: pick {picks[band.name]} {rates[picks[band.name]]:.1%}, "
                          f"best {best} {rates[best]:.1%}, gap {gap} points")
     worst = max(gaps, key=lambda g: g["oracle_gap_points"])
-    return {"dictionary": dictionary, "frames": source, "picks": picks, "gaps": gaps, "worst_gap": worst,
+    return {"dictionary": dictionary, "frames": source, "photo_markers": [len(t) for _, t in photos],
+            "picks": picks, "gaps": gaps, "worst_gap": worst,
             "target_points": 5.0, "target_met": worst["oracle_gap_points"] <= 5.0,
             "calibrated": [{"config": r.config, "band": r.band, "condition": r.condition,
                             "detection_rate": r.detection_rate} for r in results]}

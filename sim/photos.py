@@ -36,6 +36,20 @@ PHOTO_DICTIONARIES = {
     "contrib_diamondmarkers.png": "custom",
 }
 
+# Real photographs of the other dictionaries' markers, found in repositories whose licence allows
+# redistribution (SOURCES.txt: repository, commit, path, licence) but not shipped yet: material fetched
+# from other repositories is placed by the steering session, not committed by a developer. Tests use
+# those present here; `kgadapt bench perception --photos --photo DICTIONARY=FILE` measures any of them.
+# name -> (dictionary they are read with, markers OpenCV's default detector finds at 640 x 480)
+AWAITED_PHOTOS: dict[str, tuple[str, int]] = {
+    "moveit_test_aruco_marker_detection.png": ("DICT_4X4_50", 12),
+    "moveit_test_charuco_board_detection.jpg": ("DICT_5X5_1000", 16),  # of the board's 17
+    "fiducials_tag_01_d7_14cm.png": ("DICT_5X5_1000", 1),
+    "fiducials_tag_245-246_d7_14cm.png": ("DICT_5X5_1000", 2),
+    "fiducials_403.jpg": ("DICT_5X5_1000", 1),
+    "charuco2_board_image.jpg": ("DICT_ARUCO_MIP_36h12", 23),
+}
+
 
 @dataclass(frozen=True)
 class PhotoFrame:
