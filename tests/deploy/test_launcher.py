@@ -154,7 +154,7 @@ def test_the_launcher_forks_only_modules_it_preloaded(hosts):
 
 def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launcher(knowledge, endpoint, test_session, tmp_path):
     agent = Child([sys.executable, "-m", "kgadapt", "deploy", "serve", "--robot", ROBOT, "--host", "onboard",
-                   "--connect", endpoint], "agent", tmp_path)
+                   "--connect", endpoint, "--pool", "1"], "agent", tmp_path)
     try:
         agent.wait_ready()
         assert "agent ready" in agent.output[0]  # the line for people comes first
@@ -163,7 +163,7 @@ def test_killing_the_agent_with_sigkill_ends_its_forked_detector_and_its_launche
         launcher = wait_until(lambda: (found := client.launcher("onboard")) and found.ready and found,
                               timeout=60.0, what="the agent's launcher ready")
         info = client.start("onboard", "detector_day", DAY)
-        # Forked, or handed to the idle detector its launcher keeps by default (--pool 1).
+        # Forked, or handed to the idle detector its launcher keeps (--pool 1).
         assert info.via in ("launcher", "pool") and psutil.Process(info.pid).ppid() == agent.pid
         idle = wait_until(lambda: client.launcher("onboard").idle_members, timeout=30.0, what="an idle pool member")
         os.kill(agent.pid, signal.SIGKILL)
