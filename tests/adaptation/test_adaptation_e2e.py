@@ -201,9 +201,16 @@ def test_during_final_descent_the_detector_still_answers_a_step_in_place(tmp_pat
     # manager records it and moves nothing else.
     with Run(tmp_path, [[0, 120], [6, 120], [6.001, 5], [40, 5]], land_after_s=1.0, descent_s=30.0) as run:
         first = run.wait_for(run.decision("startup"), 20, "the first detector")
-        reflex = run.wait_for(run.decision("reflex"), 20, "the reflex into the dark")
+        reflex = run.wait_for(run.decision("reflex", config="marker_detection_dark"), 20, "the reflex into the dark")
         run.wait_for(lambda: run.running(reflex.time) == {("marker_detection_dark", first.host)}, 10,
                      "dark detections")
         time.sleep(3.0)
     assert (reflex.config, reflex.change, reflex.instance) == ("marker_detection_dark", "reflex", first.instance)
-    assert [d.kind for d in run.recorder.decisions] == ["startup", "reflex"], run.recorder.decisions
+    decisions = run.recorder.decisions
+    assert [d.kind for d in decisions][0] == "startup", decisions
+    # A frame exposed within the step's 1 ms ramp reads a dusk level, and the detector may take dusk for that
+    # one frame on the way (in place too); nothing else may happen.
+    later = decisions[1:]
+    assert all(d.kind == "reflex" and d.change == "reflex" and d.instance == first.instance for d in later), decisions
+    assert [d.config for d in later] in (["marker_detection_dark"],
+                                         ["marker_detection_dusk", "marker_detection_dark"]), decisions
