@@ -19,6 +19,7 @@ from kgadapt.deploy.client import DeployerClient
 from kgadapt.deploy.deployer import Deployer, DeployerSettings
 from kgadapt.deploy.supervisor import RestartPolicy, StopPolicy
 from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
@@ -92,10 +93,26 @@ def peer_session(endpoint: str) -> Any:
     return open_session(ZenohSettings(mode="peer", connect=(endpoint,), extra=FAST_OPEN))
 
 
+class AskLog:
+    """A knowledge client that notes the name of every named query put through it."""
+
+    def __init__(self, client: Any, names: list[str]) -> None:
+        self.client, self.names = client, names
+
+    def query(self, name: str, *args: Any, **kwargs: Any) -> Any:
+        self.names.append(name)  # before asking: the service never counts a question this log has not
+        return self.client.query(name, *args, **kwargs)
+
+    def __getattr__(self, attr: str) -> Any:
+        return getattr(self.client, attr)
+
+
 class DeployerHost:
     """A deployer in its own peer session, as an agent would run it."""
 
-    def __init__(self, endpoint: str, host: str, *, memory: dict[str, Any] | None = None, **changes: Any) -> None:
+    def __init__(self, endpoint: str, host: str, *, memory: dict[str, Any] | None = None,
+                 asks: list[str] | None = None, **changes: Any) -> None:
+        """``asks``: every named query the deployer puts to the knowledge service is appended to it."""
         settings = DeployerSettings(
             robot=ROBOT, host=host, connect=endpoint, ready_timeout=10.0,
             restart=RestartPolicy(max_restarts=1, backoff_initial=0.05),
@@ -104,7 +121,12 @@ class DeployerHost:
         # The launcher costs an interpreter's imports per deployer; the echo tests do not need it.
         settings = replace(settings, **{"launcher": False, **changes})
         self.session = peer_session(endpoint)
-        self.deployer = Deployer(settings, **(memory or {}))  # memory: free_memory and budget callables
+        knowledge = None
+        if asks is not None:
+            knowledge = AskLog(KnowledgeClient(self.session, ROBOT, timeout=settings.knowledge_timeout, own=True,
+                                               host=host), asks)
+        # memory: free_memory and budget callables
+        self.deployer = Deployer(settings, knowledge=knowledge, **(memory or {}))
         self.deployer.setup(self.session)
 
     def close(self) -> None:
