@@ -7,7 +7,9 @@ Used by ``kgadapt bench perception``:
   markers per 1,000 frames, ms per frame; and the **oracle gap**: the rate of
   the configuration the planner picks for the band (the graph's
   ``config_ranking``, condition ``all``: the planner does not know the
-  condition) minus the best configuration's rate in that band and condition.
+  condition) minus the best configuration's rate in that band and condition;
+  its worst is also given apart for the conditions the pick is ranked on and
+  for those calibration sets apart (motion blur): :func:`gaps_by_ranking`.
 * :func:`phantoms` - frames of scenes without the site's markers (real
   photographs at their own light, darkened and blurred; synthetic textures,
   other dictionaries and ChArUco-like boards), through every configuration and
