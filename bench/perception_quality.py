@@ -29,8 +29,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from kgadapt.onboard.perception.calibration import (ALL, APART, CONDITIONS, CalibrationSettings, calibrate,
-                                                    model_configs)
+from kgadapt.onboard.perception.calibration import ALL, APART, CONDITIONS, CalibrationSettings, calibrate, model_configs
 from kgadapt.onboard.perception.illumination import Band
 from kgadapt.onboard.perception.markers import DetectorConfig, MarkerDetector, Score, score
 from kgadapt.onboard.perception.ranking import rank_graph_rows
