@@ -188,6 +188,14 @@ def _run(args: argparse.Namespace) -> int:
             f"{g['band']}/{g['condition']} {g['oracle_gap_points']}" for g in q["oracle"]["gaps"]))
         print(f"worst oracle gap {q['oracle']['worst_gap']['oracle_gap_points']} points "
               f"(target <= 5: {'met' if q['oracle']['target_met'] else 'NOT met'})")
+        for kind, what in (("ranked", "conditions the band's pick is ranked on"),
+                           ("apart", "conditions figured apart from the ranking")):
+            part = q["oracle"]["by_ranking"][kind]
+            if part["worst_gap"] is not None:
+                w = part["worst_gap"]
+                print(f"  {what} ({', '.join(part['conditions'])}): worst {w['oracle_gap_points']} points at "
+                      f"{w['band']}/{w['condition']} ({w['planner_pick']} {w['pick_rate']:.1%}, "
+                      f"{w['best']} {w['best_rate']:.1%}; target <= 5: {'met' if part['target_met'] else 'NOT met'})")
         ph = q["phantoms"]
         print(f"phantoms over {ph['frames']} frames without site markers: " + "; ".join(
             f"{c}: raw {v['raw_false_markers']}, landing targets {v['landing_targets_no_site']} (no site) / "

@@ -7,7 +7,9 @@ Used by ``kgadapt bench perception``:
   markers per 1,000 frames, ms per frame; and the **oracle gap**: the rate of
   the configuration the planner picks for the band (the graph's
   ``config_ranking``, condition ``all``: the planner does not know the
-  condition) minus the best configuration's rate in that band and condition.
+  condition) minus the best configuration's rate in that band and condition;
+  its worst is also given apart for the conditions the pick is ranked on and
+  for those calibration sets apart (motion blur): :func:`gaps_by_ranking`.
 * :func:`phantoms` - frames of scenes without the site's markers (real
   photographs at their own light, darkened and blurred; synthetic textures,
   other dictionaries and ChArUco-like boards), through every configuration and
@@ -27,7 +29,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from kgadapt.onboard.perception.calibration import ALL, CONDITIONS, CalibrationSettings, calibrate, model_configs
+from kgadapt.onboard.perception.calibration import ALL, APART, CONDITIONS, CalibrationSettings, calibrate, model_configs
 from kgadapt.onboard.perception.illumination import Band
 from kgadapt.onboard.perception.markers import DetectorConfig, MarkerDetector, Score, score
 from kgadapt.onboard.perception.ranking import rank_graph_rows
@@ -73,7 +75,26 @@ def oracle_gap(ask: Callable[[str, dict[str, Any]], list[dict[str, Any]]], bands
                              "ms_per_frame": r.ms_per_frame, "frames": r.frames})
     worst = max((g for g in gaps if g["oracle_gap_points"] is not None), key=lambda g: g["oracle_gap_points"])
     return {"rows": rows, "gaps": gaps, "worst_gap": worst, "target_points": 5.0,
-            "target_met": worst["oracle_gap_points"] <= 5.0}
+            "target_met": worst["oracle_gap_points"] <= 5.0, "by_ranking": gaps_by_ranking(gaps)}
+
+
+def gaps_by_ranking(gaps: Sequence[dict[str, Any]], *, target_points: float = 5.0) -> dict[str, Any]:
+    """The worst gap where the band's pick is ranked (the conditions of ``all``) and where it is not
+    (calibration's ``APART``: motion blur), each against the target.
+
+    Both figures, because they answer different questions: the first is whether the ranking picks well
+    for the light it ranks on; the second is what a pick made for the light loses to a motion it is not
+    ranked on. Since the blur condition took the real photographs' marker sizes (f50966c) and left
+    ``all`` (4514836), the second is 33 points at day where the first is 2.8; the overall ``worst_gap``
+    and ``target_met`` stay over every condition.
+    """
+    out: dict[str, Any] = {}
+    for kind, inside in (("ranked", lambda c: c not in APART), ("apart", lambda c: c in APART)):
+        here = [g for g in gaps if inside(g["condition"]) and g["oracle_gap_points"] is not None]
+        worst = max(here, key=lambda g: g["oracle_gap_points"], default=None)
+        out[kind] = {"conditions": sorted({g["condition"] for g in here}), "worst_gap": worst,
+                     "target_met": None if worst is None else worst["oracle_gap_points"] <= target_points}
+    return out
 
 
 def phantom_scenes(total: int, *, run: int = 20):
