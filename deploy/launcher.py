@@ -60,13 +60,15 @@ Protocol (JSON, one message per datagram)::
     launcher -> agent   {"ready": true, "pid": P, "python": EXE, "runnable": [modules]}   once, after the imports
     agent -> launcher   {"argv": [...], "env": {...}, "cwd": str|null, "parent": AGENT_PID, "death_signal": N}
                         + two descriptors: stdin, stdout (stderr goes to stdout)
-    launcher -> agent   {"pid": DETECTOR_PID, "pooled": bool, "idle": IDLE_LEFT, "members": [PIDS]}
+    launcher -> agent   {"pid": DETECTOR_PID, "pooled": bool, "idle": IDLE_LEFT, "members": [PIDS], "middles": [PIDS]}
                         or {"error": "..."}
     agent -> launcher   {"pool": N, "argv": [...], "env": {...}, "cwd": ..., "parent": ..., "death_signal": N}
-    launcher -> agent   {"idle": IDLE_MEMBERS_FOR_THAT_START, "members": [PIDS]} or {"error": "..."}
+    launcher -> agent   {"idle": IDLE_MEMBERS_FOR_THAT_START, "members": [PIDS], "middles": [PIDS]} or {"error": "..."}
 
 ``members``: the pids of the idle members for that kind of start, so the agent can say which
 processes under its launcher are idle members (its ``list`` reply) and tools can tell them from orphans.
+``middles``: their intermediate processes. Both give their memory back when a start takes a member (the
+intermediate process then ends), so the agent's host monitor leaves both out of measured use.
 
 The launcher exits when the agent closes its end of the socket (or dies).
 """
@@ -232,16 +234,20 @@ def _fork_request(data: bytes, fds: list[int], runnable: Sequence[str], sock: so
             _end_member(members.pop())
         while len(members) < size:
             members.append(_fork_member(module, argv, env, cwd, sock, lifeline))
-        return {"idle": len(members), "members": [m.pid for m in members]}
+        return _pool_reply(members)
     if len(fds) != 2:
         raise DeploymentError(f"a fork request carries stdin and stdout, not {len(fds)} descriptors")
     members = pool.get(key) or []
     while members:
         member = members.pop(0)
         if _hand_over(member, data, fds):
-            return {"pid": member.pid, "pooled": True, "idle": len(members), "members": [m.pid for m in members]}
-    return {**_fork_detector(module, argv, env, cwd, parent, death_signal, fds, sock), "pooled": False, "idle": 0,
-            "members": []}
+            return {"pid": member.pid, "pooled": True, **_pool_reply(members)}
+    return {**_fork_detector(module, argv, env, cwd, parent, death_signal, fds, sock), "pooled": False,
+            **_pool_reply([])}
+
+
+def _pool_reply(members: Sequence[_Member]) -> dict[str, Any]:
+    return {"idle": len(members), "members": [m.pid for m in members], "middles": [m.middle for m in members]}
 
 
 def _end_member(member: _Member) -> None:
@@ -631,6 +637,7 @@ class LauncherClient:
         self.starts = 0  # launcher processes started so far
         self.idle: dict[str, int] = {}  # idle pool members by pool_key, as the launcher last said
         self._members: dict[str, list[int]] = {}  # their pids, by pool_key, as the launcher last said
+        self._middles: dict[str, list[int]] = {}  # ... and their intermediate processes' pids
 
     @property
     def pid(self) -> int | None:
@@ -676,7 +683,7 @@ class LauncherClient:
             self._proc, self._sock, self._ready = proc, ours, False
             self._lifelines[proc.pid] = line_w
             self.starts += 1
-            self.idle, self._members = {}, {}  # a new launcher has no pool
+            self.idle, self._members, self._middles = {}, {}, {}  # a new launcher has no pool
         threading.Thread(target=self._await_hello, args=(proc, ours), name="launcher-hello", daemon=True).start()
         threading.Thread(target=self._watch, args=(proc,), name="launcher-wait", daemon=True).start()
 
@@ -792,13 +799,22 @@ class LauncherClient:
     def _note_pool(self, key: str, reply: dict[str, Any]) -> None:
         """What the launcher said of the idle members for ``key`` (caller holds the lock)."""
         self.idle[key] = int(reply.get("idle") or 0)
-        members = reply.get("members")
-        self._members[key] = [int(p) for p in members if isinstance(p, int)] if isinstance(members, list) else []
+        for name, into in (("members", self._members), ("middles", self._middles)):
+            pids = reply.get(name)
+            into[key] = [int(p) for p in pids if isinstance(p, int)] if isinstance(pids, list) else []
 
     def idle_pids(self) -> list[int]:
         """The pids of every idle pool member, as the launcher last said (none while it is not ready)."""
         with self._lock:
             return sorted(p for pids in self._members.values() for p in pids) if self._ready else []
+
+    def yielding_pids(self) -> list[int]:
+        """The pids of the processes that hold idle members: the members and their intermediate processes
+        (a start takes a member and its intermediate process ends), as the launcher last said."""
+        with self._lock:
+            if not self._ready:
+                return []
+            return sorted(p for table in (self._members, self._middles) for pids in table.values() for p in pids)
 
     def runs(self, argv: Sequence[str]) -> bool:
         """Whether the ready launcher forks ``argv`` (so could keep pool members for it)."""

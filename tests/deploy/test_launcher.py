@@ -224,6 +224,32 @@ def test_idle_members_end_when_the_agents_lifeline_closes_though_their_launcher_
         host.close()
 
 
+def test_every_process_that_holds_an_idle_member_yields_its_memory_to_a_start(knowledge, endpoint, test_session):
+    """The host monitor leaves out of measured use what its deployer names yielding: every process under
+    the launcher while only idle members are there (each member and the intermediate process above it,
+    a fork of the launcher of some 30 MiB RSS that ends when its member is taken). Counted, they left the
+    700 MiB onboard budget 21 MiB above the dark detector's 324 MiB, and a reflex could send it remote."""
+    host = DeployerHost(endpoint, "onboard", launcher=True, pool=1, warm_refresh_s=600.0)
+    try:
+        launcher = host.deployer.supervisor.launcher
+        assert launcher is not None and launcher.wait_ready(60.0)
+        assert host.deployer.warm("detector_day", DAY) == 1
+        members = wait_until(lambda: launcher.idle_pids(), what="an idle pool member")
+        under = {p.pid for p in psutil.Process(launcher.pid).children(recursive=True)}
+        assert len(under) == 2 * len(members), under  # each member and its intermediate process
+        assert set(host.deployer.yielding_pids()) == under
+        client = DeployerClient(test_session, ROBOT)
+        info = client.start("onboard", "detector_day", DAY, instance="yields1")
+        assert info.via == "pool" and info.pid in members
+        # Taken, the member is a detector like any other: measured; the refilled pool yields again.
+        wait_until(lambda: launcher.idle_pids() and set(launcher.idle_pids()).isdisjoint(members), what="the pool refilled")
+        assert info.pid not in host.deployer.yielding_pids()
+        assert set(host.deployer.yielding_pids()) == {p.pid for p in psutil.Process(launcher.pid).children(recursive=True)}
+        client.stop("onboard", "yields1")
+    finally:
+        host.close()
+
+
 def _link(fd: str) -> str:
     try:
         return os.readlink(f"/proc/self/fd/{fd}")
