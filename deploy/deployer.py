@@ -444,7 +444,7 @@ class Deployer:
 
         Idle pool members yield to a start: they are not counted against it (the pool is sized
         again after the start, within the budget: :meth:`_keep_warm`); the agents' host monitor
-        leaves them out of its measure too (``HostMonitor.yielding``: :meth:`idle_pids`).
+        leaves them out of its measure too (``HostMonitor.yielding``: :meth:`yielding_pids`).
         """
         if self._free_memory is None and self._budget is None:
             return
@@ -492,9 +492,15 @@ class Deployer:
         return demands
 
     def idle_pids(self) -> list[int]:
-        """The pids of the launcher's idle pool members (they yield their memory to a start)."""
+        """The pids of the launcher's idle pool members."""
         launcher = self.supervisor.launcher
         return launcher.idle_pids() if launcher is not None else []
+
+    def yielding_pids(self) -> list[int]:
+        """The pids of the processes that yield their memory to a start: the idle pool members and the
+        launcher's intermediate process above each (it ends when its member is taken)."""
+        launcher = self.supervisor.launcher
+        return launcher.yielding_pids() if launcher is not None else []
 
     def stop(self, instance: str) -> ProcessInfo:
         """Stop one instance (SIGINT, SIGTERM, SIGKILL)."""

@@ -40,18 +40,35 @@ forked detector is, and runs the module's ``main(args, session=...)`` with the
 session it already has. A member's intermediate process stays until then (so
 a member is the launcher's grandchild while idle: it dies with the launcher).
 
+An idle member must also die with the agent, at once, as a forked detector
+does. Its parent-death signal cannot give that: it fires when its intermediate
+process ends, which follows the launcher's death, which follows the agent's:
+three processes torn down one after another, so for a while after ``kill -9``
+of the agent an idle member is an orphan (and were the launcher to die before
+an intermediate process asked for its signal, one would never end). So the
+agent holds the write end of a *lifeline* pipe no other process holds (the
+launcher gets the read end: ``--lifeline FD``), and each member (and its
+intermediate process) opens that pipe anew, as its own open file (the signal's owner belongs to the open file, which
+a fork shares), and asks the kernel to send it SIGKILL when the pipe's last
+writer closes (``O_ASYNC`` with ``F_SETSIG``): the kernel closes a dying
+process's files before its parent can reap it, as it sends the parent-death
+signal. A member drops its lifeline once it has been adopted by the agent and
+has its parent-death signal instead.
+
 Protocol (JSON, one message per datagram)::
 
     launcher -> agent   {"ready": true, "pid": P, "python": EXE, "runnable": [modules]}   once, after the imports
     agent -> launcher   {"argv": [...], "env": {...}, "cwd": str|null, "parent": AGENT_PID, "death_signal": N}
                         + two descriptors: stdin, stdout (stderr goes to stdout)
-    launcher -> agent   {"pid": DETECTOR_PID, "pooled": bool, "idle": IDLE_LEFT, "members": [PIDS]}
+    launcher -> agent   {"pid": DETECTOR_PID, "pooled": bool, "idle": IDLE_LEFT, "members": [PIDS], "middles": [PIDS]}
                         or {"error": "..."}
     agent -> launcher   {"pool": N, "argv": [...], "env": {...}, "cwd": ..., "parent": ..., "death_signal": N}
-    launcher -> agent   {"idle": IDLE_MEMBERS_FOR_THAT_START, "members": [PIDS]} or {"error": "..."}
+    launcher -> agent   {"idle": IDLE_MEMBERS_FOR_THAT_START, "members": [PIDS], "middles": [PIDS]} or {"error": "..."}
 
 ``members``: the pids of the idle members for that kind of start, so the agent can say which
 processes under its launcher are idle members (its ``list`` reply) and tools can tell them from orphans.
+``middles``: their intermediate processes. Both give their memory back when a start takes a member (the
+intermediate process then ends), so the agent's host monitor leaves both out of measured use.
 
 The launcher exits when the agent closes its end of the socket (or dies).
 """
@@ -59,11 +76,13 @@ The launcher exits when the agent closes its end of the socket (or dies).
 from __future__ import annotations
 
 import argparse
+import fcntl
 import importlib
 import io
 import json
 import logging
 import os
+import select
 import signal
 import socket
 import subprocess
@@ -142,8 +161,10 @@ def _threads() -> int:
         return threading.active_count()
 
 
-def serve(sock: socket.socket, *, runnable: Sequence[str] = RUNNABLE) -> int:
-    """Answer fork requests on ``sock`` until the agent closes it; the launcher's main loop."""
+def serve(sock: socket.socket, *, runnable: Sequence[str] = RUNNABLE, lifeline: int | None = None) -> int:
+    """Answer fork requests on ``sock`` until the agent closes it; the launcher's main loop. ``lifeline``:
+    the read end of the agent's lifeline pipe (pool members die when its writer closes); None: members
+    die with the launcher only."""
     hello = {"ready": True, "pid": os.getpid(), "python": sys.executable, "runnable": list(runnable)}
     sock.send(json.dumps(hello).encode())
     pool: dict[str, list[_Member]] = {}
@@ -161,7 +182,7 @@ def serve(sock: socket.socket, *, runnable: Sequence[str] = RUNNABLE) -> int:
             return 0  # the agent closed its end or died
         try:
             _reap_members(pool)
-            reply = _fork_request(data, fds, runnable, sock, pool)
+            reply = _fork_request(data, fds, runnable, sock, pool, lifeline)
         except DeploymentError as exc:
             reply = {"error": str(exc)}
         finally:
@@ -189,7 +210,7 @@ def _reap_members(pool: dict[str, list[_Member]]) -> None:
 
 
 def _fork_request(data: bytes, fds: list[int], runnable: Sequence[str], sock: socket.socket,
-                  pool: dict[str, list[_Member]] | None = None) -> dict[str, Any]:
+                  pool: dict[str, list[_Member]] | None = None, lifeline: int | None = None) -> dict[str, Any]:
     pool = {} if pool is None else pool
     try:
         request = json.loads(data)
@@ -212,17 +233,21 @@ def _fork_request(data: bytes, fds: list[int], runnable: Sequence[str], sock: so
         while len(members) > size:  # fewer asked (the memory budget has less room now): the newest end
             _end_member(members.pop())
         while len(members) < size:
-            members.append(_fork_member(module, argv, env, cwd, sock))
-        return {"idle": len(members), "members": [m.pid for m in members]}
+            members.append(_fork_member(module, argv, env, cwd, sock, lifeline))
+        return _pool_reply(members)
     if len(fds) != 2:
         raise DeploymentError(f"a fork request carries stdin and stdout, not {len(fds)} descriptors")
     members = pool.get(key) or []
     while members:
         member = members.pop(0)
         if _hand_over(member, data, fds):
-            return {"pid": member.pid, "pooled": True, "idle": len(members), "members": [m.pid for m in members]}
-    return {**_fork_detector(module, argv, env, cwd, parent, death_signal, fds, sock), "pooled": False, "idle": 0,
-            "members": []}
+            return {"pid": member.pid, "pooled": True, **_pool_reply(members)}
+    return {**_fork_detector(module, argv, env, cwd, parent, death_signal, fds, sock), "pooled": False,
+            **_pool_reply([])}
+
+
+def _pool_reply(members: Sequence[_Member]) -> dict[str, Any]:
+    return {"idle": len(members), "members": [m.pid for m in members], "middles": [m.middle for m in members]}
 
 
 def _end_member(member: _Member) -> None:
@@ -256,7 +281,8 @@ def _hand_over(member: _Member, data: bytes, fds: list[int]) -> bool:
     return said == b"taken"
 
 
-def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | None, sock: socket.socket) -> _Member:
+def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | None, sock: socket.socket,
+                 lifeline: int | None = None) -> _Member:
     """Fork an idle pool member for starts like ``argv``; it opens its session on its own time."""
     if _threads() != 1:
         raise DeploymentError(f"the launcher has {_threads()} threads; it forks only single-threaded")
@@ -264,11 +290,16 @@ def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | N
     sys.stderr.flush()
     ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     r, w = os.pipe()
+    launcher = os.getpid()
     middle = os.fork()
     if middle == 0:  # the intermediate process: fork the member, say its pid, wait until it is taken
         code = 1
         try:
             parent_death.set_death_signal(signal.SIGKILL)  # dies with the launcher, and so its member
+            if os.getppid() != launcher:  # the launcher died before the request: nobody would signal us
+                os._exit(1)
+            if lifeline is not None:  # ... and with the agent, at once
+                lifeline = _hold_lifeline(lifeline)
             me = os.getpid()
             os.close(r)
             ours.close()
@@ -277,7 +308,7 @@ def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | N
             pid = os.fork()
             if pid == 0:
                 os.close(release_r)
-                _pool_member(me, module, argv, env, cwd, theirs, release_w)
+                _pool_member(me, module, argv, env, cwd, theirs, release_w, lifeline)
             os.close(release_w)
             theirs.close()
             os.write(w, str(pid).encode())
@@ -299,15 +330,17 @@ def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | N
 
 
 def _pool_member(middle: int, module: str, argv: list[str], env: dict[str, str], cwd: str | None,
-                 member_sock: socket.socket, release: int) -> None:
+                 member_sock: socket.socket, release: int, lifeline: int | None = None) -> None:
     """In a pool member: open the session, wait for a start, become it. Never returns."""
 
     def run() -> int:
         nonlocal argv
-        _close_fds_but(member_sock.fileno(), release)  # the launcher's sockets, other members' ones
+        kept = (member_sock.fileno(), release) if lifeline is None else (member_sock.fileno(), release, lifeline)
+        _close_fds_but(*kept)  # the launcher's sockets, other members' ones
         parent_death.set_death_signal(signal.SIGKILL)  # idle, it dies with its intermediate process
         if os.getppid() != middle:
             os._exit(1)
+        own_line = None if lifeline is None else _hold_lifeline(lifeline)  # ... and with the agent, at once
         os.setsid()
         devnull = os.open(os.devnull, os.O_RDWR)
         os.dup2(devnull, 0)
@@ -328,6 +361,8 @@ def _pool_member(middle: int, module: str, argv: list[str], env: dict[str, str],
         os.write(release, b"x")
         os.close(release)
         _await_adoption(middle, parent, death_signal)
+        if own_line is not None:  # adopted, with the agent's parent-death signal: the lifeline's work is done
+            os.close(own_line)
         member_sock.send(b"taken")
         member_sock.close()
         _take_stdio(fds)
@@ -425,6 +460,21 @@ def _await_adoption(middle: int, parent: int, death_signal: int) -> None:
         os._exit(1)
 
 
+def _hold_lifeline(lifeline: int) -> int:
+    """Have the kernel SIGKILL this process when the lifeline pipe's last writer (the agent) closes it;
+    ends the process at once if that has happened already. Returns this process's own descriptor of it."""
+    # An open file of our own: the signal goes to the owner of the open file, one per open, shared by forks.
+    own = os.open(f"/proc/self/fd/{lifeline}", os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    os.close(lifeline)
+    fcntl.fcntl(own, fcntl.F_SETOWN, os.getpid())
+    fcntl.fcntl(own, fcntl.F_SETSIG, signal.SIGKILL)
+    fcntl.fcntl(own, fcntl.F_SETFL, fcntl.fcntl(own, fcntl.F_GETFL) | os.O_ASYNC)
+    if select.select([own], [], [], 0)[0]:  # end of file already (nothing is ever written): the agent is gone
+        os.kill(os.getpid(), signal.SIGKILL)
+        os._exit(1)
+    return own
+
+
 def _close_fds_but(*keep: int) -> None:
     """Close every descriptor above stderr except ``keep``."""
     for name in os.listdir("/proc/self/fd"):
@@ -507,6 +557,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      description="Fork detectors for the agent that started this (see deploy/launcher.py).")
     parser.add_argument("--fd", type=int, required=True, help="descriptor of the socket to the agent")
     parser.add_argument("--title-room", default="", help="room for the forked detectors' command lines")
+    parser.add_argument("--lifeline", type=int, help="descriptor of the read end of the agent's lifeline pipe "
+                        "(idle pool members die when the agent closes its end)")
     args = parser.parse_args(argv)
     set_title([sys.executable, "-m", "kgadapt.deploy.launcher", "--fd", str(args.fd)])
     # OpenBLAS starts a thread pool at import; the launcher must stay single-threaded to fork safely.
@@ -524,7 +576,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     gc.collect()
     gc.freeze()
     try:
-        return serve(sock)
+        return serve(sock, lifeline=args.lifeline)
     finally:
         sock.close()
 
@@ -576,12 +628,16 @@ class LauncherClient:
         self._changed = threading.Condition(self._lock)
         self._proc: subprocess.Popen[bytes] | None = None
         self._sock: socket.socket | None = None
+        # The write end of each live launcher's lifeline pipe (this process alone holds it: O_CLOEXEC, and
+        # never passed on); its pool members die when it closes, with this process or with their launcher.
+        self._lifelines: dict[int, int] = {}
         self._runnable: tuple[str, ...] = ()
         self._ready = False
         self._closing = False
         self.starts = 0  # launcher processes started so far
         self.idle: dict[str, int] = {}  # idle pool members by pool_key, as the launcher last said
         self._members: dict[str, list[int]] = {}  # their pids, by pool_key, as the launcher last said
+        self._middles: dict[str, list[int]] = {}  # ... and their intermediate processes' pids
 
     @property
     def pid(self) -> int | None:
@@ -604,25 +660,30 @@ class LauncherClient:
             if self._closing or self._proc is not None:
                 return
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        line_r, line_w = os.pipe2(os.O_CLOEXEC)
         env = dict(os.environ)
         env["PYTHONUNBUFFERED"] = "1"
         try:
             proc = subprocess.Popen(
-                [self.python, "-m", "kgadapt.deploy.launcher", "--fd", str(theirs.fileno()), "--title-room", "." * TITLE_ROOM],
-                stdin=subprocess.DEVNULL, pass_fds=(theirs.fileno(),), env=env, start_new_session=True,
+                [self.python, "-m", "kgadapt.deploy.launcher", "--fd", str(theirs.fileno()), "--lifeline", str(line_r),
+                 "--title-room", "." * TITLE_ROOM],
+                stdin=subprocess.DEVNULL, pass_fds=(theirs.fileno(), line_r), env=env, start_new_session=True,
                 preexec_fn=self._preexec(),
             )
         except (OSError, subprocess.SubprocessError) as exc:
             ours.close()
+            os.close(line_w)
             log.warning("cannot start the launcher (%s); detectors start the plain way", exc)
             self._schedule_restart(self.restart_delay * 10)
             return
         finally:
             theirs.close()
+            os.close(line_r)
         with self._lock:
             self._proc, self._sock, self._ready = proc, ours, False
+            self._lifelines[proc.pid] = line_w
             self.starts += 1
-            self.idle, self._members = {}, {}  # a new launcher has no pool
+            self.idle, self._members, self._middles = {}, {}, {}  # a new launcher has no pool
         threading.Thread(target=self._await_hello, args=(proc, ours), name="launcher-hello", daemon=True).start()
         threading.Thread(target=self._watch, args=(proc,), name="launcher-wait", daemon=True).start()
 
@@ -646,6 +707,7 @@ class LauncherClient:
 
     def _watch(self, proc: subprocess.Popen[bytes]) -> None:
         code = proc.wait()
+        self._cut_lifeline(proc.pid)  # its idle members, should any outlive it, end now
         with self._lock:
             if self._proc is not proc:
                 return
@@ -659,6 +721,12 @@ class LauncherClient:
             return
         log.warning("launcher (pid %s) ended with status %s; starting another, plain starts meanwhile", proc.pid, code)
         self._schedule_restart(self.restart_delay)
+
+    def _cut_lifeline(self, pid: int) -> None:
+        with self._lock:
+            line = self._lifelines.pop(pid, None)
+        if line is not None:
+            os.close(line)
 
     def _kill(self, proc: subprocess.Popen[bytes]) -> None:
         try:
@@ -731,13 +799,22 @@ class LauncherClient:
     def _note_pool(self, key: str, reply: dict[str, Any]) -> None:
         """What the launcher said of the idle members for ``key`` (caller holds the lock)."""
         self.idle[key] = int(reply.get("idle") or 0)
-        members = reply.get("members")
-        self._members[key] = [int(p) for p in members if isinstance(p, int)] if isinstance(members, list) else []
+        for name, into in (("members", self._members), ("middles", self._middles)):
+            pids = reply.get(name)
+            into[key] = [int(p) for p in pids if isinstance(p, int)] if isinstance(pids, list) else []
 
     def idle_pids(self) -> list[int]:
         """The pids of every idle pool member, as the launcher last said (none while it is not ready)."""
         with self._lock:
             return sorted(p for pids in self._members.values() for p in pids) if self._ready else []
+
+    def yielding_pids(self) -> list[int]:
+        """The pids of the processes that hold idle members: the members and their intermediate processes
+        (a start takes a member and its intermediate process ends), as the launcher last said."""
+        with self._lock:
+            if not self._ready:
+                return []
+            return sorted(p for table in (self._members, self._middles) for pids in table.values() for p in pids)
 
     def runs(self, argv: Sequence[str]) -> bool:
         """Whether the ready launcher forks ``argv`` (so could keep pool members for it)."""
@@ -764,6 +841,7 @@ class LauncherClient:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+            self._cut_lifeline(proc.pid)
 
 
 if __name__ == "__main__":

@@ -62,7 +62,7 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
     monitor = HostMonitor(settings_from_args(args, robot=args.robot, host=args.host))
     deployer = Deployer(deployer_settings(args, robot=args.robot, host=args.host), free_memory=monitor.free_mb,
                         budget=monitor.budget_mb)
-    monitor.yielding = deployer.idle_pids  # idle pool members yield their memory to a start
+    monitor.yielding = deployer.yielding_pids  # idle pool members (and their intermediate processes) yield to a start
     return [monitor, deployer]
 
 
