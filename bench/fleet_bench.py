@@ -16,7 +16,9 @@ Measured, for each N of ``--sizes``:
 
 ``fleet_question``   ``current_placement`` asked of all N robots with one get
                      (FleetClient.ask): wall time until the last robot answered,
-                     and how many answered (completeness)
+                     how many answered (completeness), and how many times the
+                     robots' query sandboxes copied their graph meanwhile (the
+                     server's DUMP calls) per answer
 ``router_cpu``       CPU of the router processes (percent of one core) while idle
                      and while asking back to back, divided by N
 Then, with the largest N, status fan-in: ``--hosts`` simulated hosts (spread
@@ -276,6 +278,17 @@ class SimulatedFleet:
             self.children.append(child)
             child.wait_ready(self.start_timeout)
 
+    def dumps(self) -> int:
+        """DUMP calls the server has served: each is a query sandbox copying a robot's graph (the load-independent
+        cost of an answer: a copy is a DUMP here and a RESTORE in the sandbox's own server)."""
+        import redis
+
+        client = redis.Redis(unix_socket_path=self.socket)
+        try:
+            return int(client.info("commandstats").get("cmdstat_dump", {}).get("calls", 0))
+        finally:
+            client.close()
+
     def pids(self) -> list[int]:
         """The processes holding the knowledge services (the transit router excluded)."""
         return [c.pid for c in self.children[int(self.transit):]]
@@ -367,12 +380,16 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
 
             groups = {"services": fleet.pids(), "transit": [fleet.transit_pid()]}
             idle_cpu = measure_cpu_groups(groups, args.idle_s)
+            dumps = fleet.dumps()
             busy_cpu = measure_cpu_groups(groups, 0, during=ask_all)
+            copies = fleet.dumps() - dumps
             idle, busy = idle_cpu["services"], busy_cpu["services"]
             complete = sum(full)
             records.append(make_record(store="falkordb", n=n, op="fleet_question", samples_ms=walls,
                                        routers=routers, complete=complete, reps=len(walls),
-                                       min_answered=min(answered), query="current_placement"))
+                                       min_answered=min(answered), query="current_placement",
+                                       sandbox_copies=copies, answers=sum(answered),
+                                       copies_per_answer=round(copies / max(1, sum(answered)), 4)))
             records.append({"op": "router_cpu", "n": n, "routers": routers, "idle_pct": round(idle, 2),
                             "asking_pct": round(busy, 2), "idle_pct_per_robot": round(idle / n, 4),
                             "asking_pct_per_robot": round(busy / n, 4),
@@ -510,13 +527,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"fleet of {n} robots on {min(args.routers, n)} routers, asked through one more ...", flush=True)
             for size, routers, q, cpu in run_size(n, args, records, Path(tmp), fanin=(n == max(sizes))):
                 rows.append([size, routers, q["p50_ms"], q["p99_ms"], f"{q['complete']}/{q['reps']}",
-                             q["min_answered"], cpu["idle_pct_per_robot"], cpu["asking_pct_per_robot"],
-                             cpu["transit_router_idle_pct"], cpu["transit_router_asking_pct_per_robot"]])
+                             q["min_answered"], q["copies_per_answer"], cpu["idle_pct_per_robot"],
+                             cpu["asking_pct_per_robot"], cpu["transit_router_idle_pct"],
+                             cpu["transit_router_asking_pct_per_robot"]])
     settings = {k: str(v) for k, v in vars(args).items() if k not in ("func",)}
     write_json(args.out, {"machine": {**machine_info(), "load_avg_1_5_15_before": load_before,
                                       "load_avg_1_5_15_after": os.getloadavg()}, "settings": settings, "records": records})
     print(format_table(rows, ["robots", "routers", "p50 ms", "p99 ms", "complete", "min answered",
-                              "services %cpu/robot idle", "… asking", "transit router %cpu idle",
+                              "sandbox copies/answer", "services %cpu/robot idle", "… asking", "transit router %cpu idle",
                               "… /robot asking"]))
     for r in records:
         if r.get("op") == "status_fanin":
