@@ -356,7 +356,8 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
 
     routers = min(args.routers, n)
     out = []
-    with SimulatedFleet(workdir / f"n{n}", robots=n, routers=routers, transit=True) as fleet:
+    with SimulatedFleet(workdir / f"n{n}", robots=n, routers=routers, transit=True,
+                        start_timeout=args.start_timeout) as fleet:
         session = open_session(ZenohSettings(mode="client", connect=(fleet.endpoints[0],)))
         try:
             client = FleetClient(session, FleetSettings(timeout=args.timeout, expect=tuple(fleet.robots),
@@ -506,6 +507,9 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hosts", type=int, default=1000, help="simulated hosts for status fan-in (default 1000)")
     p.add_argument("--rate", type=float, default=2.0, help="status rate per host, Hz (default 2)")
     p.add_argument("--fanin-s", type=float, default=10.0, help="fan-in window, s (default 10)")
+    p.add_argument("--start-timeout", type=float, default=120.0,
+                   help="seconds each router process may take to start its services (default 120; a loaded "
+                        "machine starting 100 services with their sandboxes may need more)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"result file (default {DEFAULT_OUT})")
     p.set_defaults(func=run)
 

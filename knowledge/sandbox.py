@@ -46,7 +46,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, cast
+from typing import Any, Callable, Mapping, cast
 
 import redis
 
@@ -234,8 +234,10 @@ class QuerySandbox:
         self._watcher_id = None
         for attempt in (1, 2):
             try:
-                self._watcher.execute_command("UNWATCH")
-                self._watcher.execute_command("WATCH", self.source.settings.graph)
+                # redis-py's own watch()/unwatch() are for pipelines only (warnings, no command): send them.
+                command: Callable[..., Any] = self._watcher.execute_command
+                command("UNWATCH")
+                command("WATCH", self.source.settings.graph)
                 self._watcher_id = int(self._watcher.client_id())
                 return
             except redis.ResponseError as exc:  # e.g. an ACL without WATCH or CLIENT: correct, only slower
