@@ -16,7 +16,9 @@ Measured, for each N of ``--sizes``:
 
 ``fleet_question``   ``current_placement`` asked of all N robots with one get
                      (FleetClient.ask): wall time until the last robot answered,
-                     and how many answered (completeness)
+                     how many answered (completeness), and how many times the
+                     robots' query sandboxes copied their graph meanwhile (the
+                     server's DUMP calls) per answer
 ``router_cpu``       CPU of the router processes (percent of one core) while idle
                      and while asking back to back, divided by N
 Then, with the largest N, status fan-in: ``--hosts`` simulated hosts (spread
@@ -276,6 +278,17 @@ class SimulatedFleet:
             self.children.append(child)
             child.wait_ready(self.start_timeout)
 
+    def dumps(self) -> int:
+        """DUMP calls the server has served: each is a query sandbox copying a robot's graph (the load-independent
+        cost of an answer: a copy is a DUMP here and a RESTORE in the sandbox's own server)."""
+        import redis
+
+        client = redis.Redis(unix_socket_path=self.socket)
+        try:
+            return int(client.info("commandstats").get("cmdstat_dump", {}).get("calls", 0))
+        finally:
+            client.close()
+
     def pids(self) -> list[int]:
         """The processes holding the knowledge services (the transit router excluded)."""
         return [c.pid for c in self.children[int(self.transit):]]
@@ -343,7 +356,8 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
 
     routers = min(args.routers, n)
     out = []
-    with SimulatedFleet(workdir / f"n{n}", robots=n, routers=routers, transit=True) as fleet:
+    with SimulatedFleet(workdir / f"n{n}", robots=n, routers=routers, transit=True,
+                        start_timeout=args.start_timeout) as fleet:
         session = open_session(ZenohSettings(mode="client", connect=(fleet.endpoints[0],)))
         try:
             client = FleetClient(session, FleetSettings(timeout=args.timeout, expect=tuple(fleet.robots),
@@ -367,12 +381,16 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
 
             groups = {"services": fleet.pids(), "transit": [fleet.transit_pid()]}
             idle_cpu = measure_cpu_groups(groups, args.idle_s)
+            dumps = fleet.dumps()
             busy_cpu = measure_cpu_groups(groups, 0, during=ask_all)
+            copies = fleet.dumps() - dumps
             idle, busy = idle_cpu["services"], busy_cpu["services"]
             complete = sum(full)
             records.append(make_record(store="falkordb", n=n, op="fleet_question", samples_ms=walls,
                                        routers=routers, complete=complete, reps=len(walls),
-                                       min_answered=min(answered), query="current_placement"))
+                                       min_answered=min(answered), query="current_placement",
+                                       sandbox_copies=copies, answers=sum(answered),
+                                       copies_per_answer=round(copies / max(1, sum(answered)), 4)))
             records.append({"op": "router_cpu", "n": n, "routers": routers, "idle_pct": round(idle, 2),
                             "asking_pct": round(busy, 2), "idle_pct_per_robot": round(idle / n, 4),
                             "asking_pct_per_robot": round(busy / n, 4),
@@ -489,6 +507,9 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hosts", type=int, default=1000, help="simulated hosts for status fan-in (default 1000)")
     p.add_argument("--rate", type=float, default=2.0, help="status rate per host, Hz (default 2)")
     p.add_argument("--fanin-s", type=float, default=10.0, help="fan-in window, s (default 10)")
+    p.add_argument("--start-timeout", type=float, default=120.0,
+                   help="seconds each router process may take to start its services (default 120; a loaded "
+                        "machine starting 100 services with their sandboxes may need more)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"result file (default {DEFAULT_OUT})")
     p.set_defaults(func=run)
 
@@ -510,13 +531,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"fleet of {n} robots on {min(args.routers, n)} routers, asked through one more ...", flush=True)
             for size, routers, q, cpu in run_size(n, args, records, Path(tmp), fanin=(n == max(sizes))):
                 rows.append([size, routers, q["p50_ms"], q["p99_ms"], f"{q['complete']}/{q['reps']}",
-                             q["min_answered"], cpu["idle_pct_per_robot"], cpu["asking_pct_per_robot"],
-                             cpu["transit_router_idle_pct"], cpu["transit_router_asking_pct_per_robot"]])
+                             q["min_answered"], q["copies_per_answer"], cpu["idle_pct_per_robot"],
+                             cpu["asking_pct_per_robot"], cpu["transit_router_idle_pct"],
+                             cpu["transit_router_asking_pct_per_robot"]])
     settings = {k: str(v) for k, v in vars(args).items() if k not in ("func",)}
     write_json(args.out, {"machine": {**machine_info(), "load_avg_1_5_15_before": load_before,
                                       "load_avg_1_5_15_after": os.getloadavg()}, "settings": settings, "records": records})
     print(format_table(rows, ["robots", "routers", "p50 ms", "p99 ms", "complete", "min answered",
-                              "services %cpu/robot idle", "… asking", "transit router %cpu idle",
+                              "sandbox copies/answer", "services %cpu/robot idle", "… asking", "transit router %cpu idle",
                               "… /robot asking"]))
     for r in records:
         if r.get("op") == "status_fanin":

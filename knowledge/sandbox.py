@@ -7,10 +7,23 @@ persistence, every thread ``SCHED_IDLE`` so the robot's own processes always
 win the CPU), and copies
 the graph into it from the primary with ``DUMP``/``RESTORE`` (measured here:
 1.2 ms + 2.1 ms for the robot's models, 22 ms to start the server). When a
-query needs it, the copy is taken again if the primary was written to since
-(Redis' write counter, read at most every ``check_interval_s``), so answers
-are as fresh as the primary's to within that interval, and nobody asking
-costs the primary nothing.
+query needs it, the copy is taken again if the robot's graph was written to
+since (checked at most every ``check_interval_s``), so answers are as fresh
+as the primary's to within that interval, and nobody asking costs the primary
+more than that check.
+
+How a change is seen: the sandbox keeps a connection to the primary that
+``WATCH``es the graph's key, set just before each ``DUMP``. Redis flags a
+watching connection when the watched key is modified, whoever modified it,
+and FalkorDB flags it for every writing query on that graph: when the query
+starts and again when it commits, under the server's lock, before the writer
+gets its answer (a ``SET`` that matched nothing flags it too: one copy too
+many, never one too few). ``CLIENT INFO`` on that connection (one round trip)
+tells whether it has been flagged; nothing is written to the primary for it.
+Writes to other keys of the same server (other robots' graphs, the service's
+lease) leave it alone: Redis' server-wide write counter, used before, moved
+with every one of them, so on a server holding many robots' graphs almost
+every question copied the graph again.
 
 Every query gets a hard time limit. The store is asked to stop it then (its
 own timeout); if no answer has come ``grace_s`` later, the client stops
@@ -33,7 +46,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, cast
+from typing import Any, Callable, Mapping, cast
 
 import redis
 
@@ -49,10 +62,11 @@ log = logging.getLogger(__name__)
 class SandboxSettings:
     """How fresh the copy is kept and how the sandbox server runs."""
 
-    # The copy is taken again when the primary has changed since (Redis' write counter,
-    # looked at no more often than every check_interval_s), and in any case when older than max_age_s.
-    check_interval_s: float = 0.0  # ~0.1 ms on the primary per question
-    max_age_s: float = 5.0
+    # The copy is taken again when the graph was written to since (looked at no more often than every
+    # check_interval_s), and in any case when older than max_age_s (None: no age limit; the watch on the
+    # graph's key sees every write, so none is needed).
+    check_interval_s: float = 0.0  # one CLIENT INFO round trip (~0.1 ms) on the primary per question
+    max_age_s: float | None = None
     # Every thread of the sandbox server runs SCHED_IDLE (only when the CPU is otherwise
     # idle; where that is refused, nice 19): other robots' questions never take CPU from
     # the robot itself. False: same priority as the robot.
@@ -63,7 +77,7 @@ class SandboxSettings:
     grace_s: float = 0.5
 
     def __post_init__(self) -> None:
-        if self.max_age_s < 0:
+        if self.max_age_s is not None and self.max_age_s < 0:
             raise ConfigError(f"max_age_s {self.max_age_s!r}: not negative")
 
 
@@ -81,6 +95,7 @@ class QuerySandbox:
         self.source = cast(FalkorDBStore, source)  # the one backend declaring capabilities.sandbox
         self.settings = settings
         self.restarts = 0  # servers killed for running past a limit (or found dead)
+        self.copies = 0  # times the graph was copied in (tests and benchmarks count them)
         self._lock = threading.Lock()
         self._dir: Path | None = None
         self._server: EmbeddedServer | None = None
@@ -89,7 +104,12 @@ class QuerySandbox:
         self._generation = 0
         self._copied_at = -1e9
         self._checked_at = -1e9
-        self._copied_version: object = None
+        self._stale = True  # no whole copy since the server started (or the last copy failed)
+        # A connection to the primary WATCHing the graph's key since just before the last DUMP, and its
+        # client id then: a reconnected client (another id, or watching nothing) saw nothing meanwhile.
+        self._watcher: redis.Redis | None = None
+        self._watcher_id: int | None = None
+        self._watch_refused = False  # the primary refuses WATCH or CLIENT INFO (ACL): copy every time
 
     @property
     def pid(self) -> int | None:
@@ -140,11 +160,12 @@ class QuerySandbox:
             if self._server is None:
                 self._start()
             now = time.monotonic()
-            if now - self._copied_at > self.settings.max_age_s:
+            max_age = self.settings.max_age_s
+            if self._stale or (max_age is not None and now - self._copied_at > max_age):
                 self._copy()
             elif now - self._checked_at > self.settings.check_interval_s:
                 self._checked_at = now
-                if self._source_version() != self._copied_version:
+                if self._graph_written():
                     self._copy()
             store = self._stores.get(limit_s)
             if store is None:
@@ -161,7 +182,7 @@ class QuerySandbox:
         if self.settings.idle_priority:
             _lower_priority(address.pid)
         self._server = server
-        self._copied_at = -1e9
+        self._stale = True
         self._copy()
 
     def _connect(self, limit_s: float) -> FalkorDBStore:
@@ -176,8 +197,9 @@ class QuerySandbox:
 
     def _copy(self) -> None:
         graph = self.source.settings.graph
+        self._stale = True  # until the copy is whole: a failed one is taken again at the next question
         try:
-            version = self._source_version()
+            self._watch()  # before the DUMP: a write landing after it flags the watch (and may be copied too)
             blob = self.source.redis.dump(graph)
         except (redis.RedisError, OSError) as exc:
             raise StoreUnavailable(f"cannot copy the graph for the query sandbox: {exc}") from exc
@@ -198,15 +220,50 @@ class QuerySandbox:
         except (redis.RedisError, OSError) as exc:
             raise StoreUnavailable(f"cannot load the graph into the query sandbox: {exc}") from exc
         self._copied_at = self._checked_at = time.monotonic()
-        self._copied_version = version
+        self._stale = False
+        self.copies += 1
 
-    def _source_version(self) -> object:
-        """Changes whenever the primary is written to (writes since its last RDB save, and that save)."""
+    def _watch(self) -> None:
+        """(Re)start watching the graph's key on the watcher connection, forgetting any earlier flag."""
+        if self._watch_refused:
+            return
+        if self._watcher is None:
+            source = self.source.redis.connection_pool  # where the primary is, as the source connected to it
+            pool = redis.ConnectionPool(connection_class=source.connection_class, **source.connection_kwargs)
+            self._watcher = redis.Redis(connection_pool=pool, single_connection_client=True)
+        self._watcher_id = None
+        for attempt in (1, 2):
+            try:
+                # redis-py's own watch()/unwatch() are for pipelines only (warnings, no command): send them.
+                command: Callable[..., Any] = self._watcher.execute_command
+                command("UNWATCH")
+                command("WATCH", self.source.settings.graph)
+                self._watcher_id = int(self._watcher.client_id())
+                return
+            except redis.ResponseError as exc:  # e.g. an ACL without WATCH or CLIENT: correct, only slower
+                log.warning("query sandbox: the store refuses to watch graph %r (%s); the graph is copied again "
+                            "for every question", self.source.settings.graph, exc)
+                self._watch_refused = True
+                return
+            except (redis.ConnectionError, OSError):
+                if attempt == 2:  # the DUMP that follows says whether the store is really away
+                    raise
+                # A dropped connection (the client connects anew at its next command): once more.
+
+    def _graph_written(self) -> bool:
+        """Whether the graph may have been written to since the last copy (the watch flagged, or lost)."""
+        if self._watch_refused or self._watcher is None:
+            return True
         try:
-            info = self.source.redis.info("persistence")
+            info = self._watcher.client_info()
         except (redis.RedisError, OSError) as exc:
-            raise StoreUnavailable(f"cannot reach the store to refresh the query sandbox: {exc}") from exc
-        return (info.get("rdb_changes_since_last_save"), info.get("rdb_last_save_time"))
+            # The watch is lost with its connection: copy (the copy watches anew, or says the store is away).
+            log.debug("query sandbox: the watch on graph %r is lost (%s)", self.source.settings.graph, exc)
+            return True
+        # 'd': a watched key was modified. Another id or no key watched: the client reconnected since
+        # the WATCH, and the watch went with the old connection.
+        return (int(info.get("id", -1)) != self._watcher_id or int(info.get("watch", 0)) != 1
+                or "d" in str(info.get("flags", "")))
 
     def _restart(self, generation: int, why: str) -> None:
         with self._lock:
@@ -225,6 +282,10 @@ class QuerySandbox:
         loader, self._loader = self._loader, None
         if loader is not None:
             loader.close()
+        watcher, self._watcher, self._watcher_id = self._watcher, None, None
+        if watcher is not None:
+            watcher.close()
+            watcher.connection_pool.disconnect()  # a pool handed to redis.Redis is not closed with it
         server, self._server = self._server, None
         if server is None:
             return

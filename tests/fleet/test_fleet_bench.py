@@ -19,6 +19,9 @@ def test_a_small_fleet_bench_gets_every_robots_answer_and_measures_the_fan_in(tm
     records = {r["op"]: r for r in json.loads(out.read_text())["records"]}
     question = records["fleet_question"]
     assert (question["n"], question["routers"], question["complete"], question["min_answered"]) == (6, 3, 3, 6)
+    # The sandboxes' copies are counted (on the server, as its DUMP calls) beside the answers.
+    assert question["answers"] == 18 and isinstance(question["sandbox_copies"], int)
+    assert question["copies_per_answer"] == round(question["sandbox_copies"] / 18, 4)
     fanin = records["status_fanin"]
     assert fanin["hosts"] == 60 and fanin["services_cpu_pct"] > 0
     sent = int(fanin["publisher"].split()[-1])

@@ -133,3 +133,50 @@ def _gone(pid: int) -> bool:
         return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] == "Z"
     except FileNotFoundError:
         return True
+
+
+def _primary_dumps(resp_store) -> int:
+    """DUMP calls the store's server has served: each is a public worker's sandbox copying a graph."""
+    return int(resp_store.redis.info("commandstats").get("cmdstat_dump", {}).get("calls", 0))
+
+
+def test_other_robots_answers_show_every_write_and_the_graph_is_copied_only_for_writes_to_it(resp_store, zenoh_pair,
+                                                                                             robot):
+    """One server holding several robots' graphs (the fleet bench, a shared falkordb://): writes to the others
+    and their services' leases copy nothing here; a write to this robot's graph, through the service or
+    straight to the store, shows in its next public answer."""
+    import time
+
+    svc = _serve(resp_store, zenoh_pair, robot, public_workers=1)
+    other = f"{resp_store.settings.graph}_neighbour"
+    redis = resp_store.redis
+
+    def free_mb() -> dict[str, float | None]:
+        rows = messages.decode(svc.answer_named("platforms", None, public=True), "rows")["rows"]
+        return {row["platform"]: row["memory_free_mb"] for row in rows}
+
+    try:
+        # Its roll calls (at setup and 5 s later) write its own roster entry: a write to this graph, copied
+        # as it should be. Stopped, so that whatever is copied below is copied for nothing.
+        svc.roster.shutdown()
+        free_mb()  # the copy taken after the service's own setup writes (its roster)
+        before = _primary_dumps(resp_store)
+        for i in range(10):
+            redis.execute_command("GRAPH.QUERY", other, f"MERGE (r:FleetRobot {{name: 'n'}}) SET r.last_seen = {i}")
+            redis.set(f"kgadapt:knowledge-service:{other}", "holder", px=3000)
+            # A fleet question asking this robot's roster (no roll call: it announces nothing) writes nothing.
+            svc.answer_named("fleet_roster", None, public=True)
+            assert free_mb()["h1"] is None
+        assert _primary_dumps(resp_store) - before == 0
+        # A write through the service (a write verb), then one straight to the store (a CLI tool, redis-cli).
+        svc.answer_write("platform", messages.encode("write_request", {"params": {
+            "name": "h1", "time": time.time(), "memory_total_mb": 4000.0, "memory_free_mb": 1234.0}}))
+        assert free_mb()["h1"] == 1234.0
+        resp_store.execute("MATCH (p:Platform {name: 'h2'}) SET p.memory_free_mb = 777.0")
+        assert free_mb()["h2"] == 777.0
+        redis.execute_command("GRAPH.QUERY", resp_store.settings.graph,
+                              "MATCH (p:Platform {name: 'h2'}) SET p.memory_free_mb = 778.0")
+        assert free_mb()["h2"] == 778.0
+    finally:
+        svc.shutdown()
+        redis.delete(other, f"kgadapt:knowledge-service:{other}")
