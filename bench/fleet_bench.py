@@ -131,7 +131,9 @@ def serve(argv: Sequence[str]) -> int:
     p.add_argument("--socket", required=True)
     p.add_argument("--robots", default="")
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--status-batch-s", type=float, default=None)
     args = p.parse_args(argv)
+    batch = {} if args.status_batch_s is None else {"status_batch_s": args.status_batch_s}
     robots = [r for r in args.robots.split(",") if r]
     with StopSignals() as stop:
         session = open_session(ZenohSettings(mode="router", listen=(args.listen,), connect=tuple(args.connect)))
@@ -140,7 +142,7 @@ def serve(argv: Sequence[str]) -> int:
             for robot in robots:
                 store = graph_store(args.socket, robot)
                 stores.append(store)
-                service = KnowledgeService(store, ServiceSettings(robot=robot, workers=args.workers))
+                service = KnowledgeService(store, ServiceSettings(robot=robot, workers=args.workers, **batch))
                 service.setup(session)
                 services.append(service)
             announce_ready(role="fleet router", robots=len(services))
@@ -160,6 +162,7 @@ from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 endpoints, robots = sys.argv[1].split(","), sys.argv[2].split(",")
 per_robot, rate, duration = int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
+spread = len(sys.argv) > 6 and sys.argv[6] == "spread"  # each host at its own phase, not all at once
 session = open_session(ZenohSettings(mode="client", connect=tuple(endpoints)))
 pubs = []
 for r in robots:
@@ -173,7 +176,11 @@ start = time.monotonic()
 sent = 0
 tick = 0
 while time.monotonic() - start < duration:
-    for host, pub in pubs:
+    for i, (host, pub) in enumerate(pubs):
+        if spread:
+            delay = start + (tick + i / len(pubs)) * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
         pub.put(messages.encode("host_status", {"host": host, "time": time.time(), "memory_total_mb": 4000.0,
                                                 "memory_free_mb": 1000.0 + tick % 100, "cpu_load": 10.0}))
         sent += 1
@@ -232,7 +239,7 @@ class SimulatedFleet:
     """
 
     def __init__(self, workdir: Path, *, robots: int, routers: int, transit: bool = False,
-                 start_timeout: float = 120.0) -> None:
+                 start_timeout: float = 120.0, serve_args: Sequence[str] = ()) -> None:
         if routers < 1 or robots < routers:
             raise ValueError(f"{robots} robots on {routers} routers: need at least one robot per router")
         self.workdir = workdir
@@ -240,6 +247,7 @@ class SimulatedFleet:
         self.routers = routers
         self.transit = transit
         self.start_timeout = start_timeout
+        self.serve_args = list(serve_args)  # more options for every router's ``serve``
         self.endpoints = [f"tcp/127.0.0.1:{_free_port()}" for _ in range(routers + int(transit))]
         self.server: Any = None
         self.children: list[ChildProcess] = []
@@ -270,7 +278,7 @@ class SimulatedFleet:
                 store.shutdown()
         for k in range(len(self.endpoints)):
             argv = [sys.executable, "-m", "kgadapt.bench.fleet_bench", "serve", "--listen", self.endpoints[k],
-                    "--socket", self.socket, "--robots", ",".join(self.share(k))]
+                    "--socket", self.socket, "--robots", ",".join(self.share(k)), *self.serve_args]
             for j in range(k):
                 argv += ["--connect", self.endpoints[j]]
             child = ChildProcess(argv, name=f"router {k}", cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
@@ -356,7 +364,8 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
 
     routers = min(args.routers, n)
     out = []
-    with SimulatedFleet(workdir / f"n{n}", robots=n, routers=routers, transit=True,
+    serve_args = [] if args.status_batch_s is None else ["--status-batch-s", str(args.status_batch_s)]
+    with SimulatedFleet(workdir / f"n{n}", robots=n, routers=routers, transit=True, serve_args=serve_args,
                         start_timeout=args.start_timeout) as fleet:
         session = open_session(ZenohSettings(mode="client", connect=(fleet.endpoints[0],)))
         try:
@@ -407,6 +416,9 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
 
 
 def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]:
+    from kgadapt.knowledge.service import ServiceSettings
+
+    batch_s = ServiceSettings().status_batch_s if args.status_batch_s is None else args.status_batch_s
 
     per_robot = max(1, args.hosts // len(fleet.robots))
     hosts = per_robot * len(fleet.robots)
@@ -429,7 +441,7 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
             if robots:
                 pubs.append(ChildProcess(
                     [sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
-                     str(args.fanin_s + 3)], name=f"publisher {k}", cwd=REPO, env=env))
+                     str(args.fanin_s + 3), args.phases], name=f"publisher {k}", cwd=REPO, env=env))
         for pub in pubs:
             pub.wait_ready(60.0)
         time.sleep(1.0)  # let the first seconds of declarations settle before measuring (a warm-up window)
@@ -451,6 +463,7 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
     sink = _sink_cpu(fleet, args, per_robot)
     return {"op": "status_fanin", "hosts": hosts, "rate_hz": args.rate, "statuses_per_s": hosts * args.rate,
             "robots": len(fleet.robots), "routers": fleet.routers, "window_s": round(elapsed, 2),
+            "status_batch_s": batch_s, "phases": args.phases,
             "services_cpu_pct": round(services, 1), "services_idle_cpu_pct": round(idle, 1),
             "services_cpu_pct_above_idle": round(services - idle, 1), "store_cpu_pct": round(store, 1),
             "publisher": sent_line.strip(), **sink}
@@ -464,7 +477,8 @@ def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -
     try:
         sink.wait_ready(60.0)
         pub = ChildProcess([sys.executable, "-c", _PUBLISHER, fleet.endpoints[0], ",".join(fleet.robots),
-                            str(per_robot), str(args.rate), str(args.fanin_s + 3)], name="publisher", cwd=REPO, env=env)
+                            str(per_robot), str(args.rate), str(args.fanin_s + 3), args.phases],
+                           name="publisher", cwd=REPO, env=env)
         try:
             pub.wait_ready(60.0)
             time.sleep(1.0)  # warm-up window, as above
@@ -507,9 +521,12 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hosts", type=int, default=1000, help="simulated hosts for status fan-in (default 1000)")
     p.add_argument("--rate", type=float, default=2.0, help="status rate per host, Hz (default 2)")
     p.add_argument("--fanin-s", type=float, default=10.0, help="fan-in window, s (default 10)")
+    p.add_argument("--status-batch-s", type=float, default=None,
+                   help="the knowledge services' status batch window, s (default: ServiceSettings')")
     p.add_argument("--start-timeout", type=float, default=120.0,
-                   help="seconds each router process may take to start its services (default 120; a loaded "
-                        "machine starting 100 services with their sandboxes may need more)")
+                   help="how long each router may take to start its services, s (default 120; more on a busy machine)")
+    p.add_argument("--phases", choices=("spread", "burst"), default="spread",
+                   help="fan-in hosts publish each at its own phase (spread, as real hosts do) or all at once")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"result file (default {DEFAULT_OUT})")
     p.set_defaults(func=run)
 

@@ -156,7 +156,11 @@ class ServiceSettings:
     manager_host: str = "onboard"
     # Host statuses wait at most status_batch_s for others and are written together, the newest per
     # host, at most status_batch_max events a batch, in one store call (liveliness changes never wait).
-    status_batch_s: float = 0.02
+    # The window bounds how far the graph's figures lag the statuses: the adaptation manager checks
+    # placements against the statuses it hears itself, so only the placement query's first cut and
+    # operators' views wait for it. Hosts publish at their own phases, so 0.02 s held about one status
+    # of a robot's 10 hosts at 2 Hz: two store calls a status, costing more than the status itself.
+    status_batch_s: float = 0.25
     status_batch_max: int = 1000
     # The fleet roster (knowledge/fleet.py): robots heard on the fleet keys, at most roster_cap; roll
     # calls at setup and 5 s later, then every roster_interval_s (0: no more). roster=False: none kept.
