@@ -22,6 +22,7 @@ import re
 from typing import Any
 
 import msgpack
+import psutil
 import pytest
 
 from kgadapt.deploy.client import DeployerClient
@@ -152,8 +153,11 @@ def test_the_remote_agents_certificate_cannot_write_for_the_onboard_host_as_the_
         "decision": {**write_params("decision"), "name": "forged-by-remote", "host": "onboard"},
         "flight_state": {**write_params("flight_state"), "mode": "FORGED_BY_REMOTE"},
     }
-    wait_for(lambda: (_graph_of_onboard(operator)["platform"] or [{}])[0].get("online") is True, 10,
-             "the onboard host online in the graph")
+    # Online (liveliness, at once) and its first status written (batched): the agent's own figures, this
+    # machine's cores, replace the model's; only then does nothing but a forged write change the graph.
+    wait_for(lambda: (_graph_of_onboard(operator)["platform"] or [{}])[0] == {"online": True,
+                                                                             "cores": psutil.cpu_count()}, 10,
+             "the onboard host online in the graph, with its own status's figures")
     before = _graph_of_onboard(operator)
     # On the onboard host's write key: dropped by the router (asked all at once: each waits its timeout).
     on_onboard_key = KnowledgeClient(remote_session, ROBOT, timeout=1.0, host="onboard")
