@@ -72,6 +72,9 @@ class NamedQuery:
 
 
 _FEATURE = Param("str", required=False, default=DEFAULT_FEATURE, help="feature name")
+_BAND = Param("str", help="illumination band, e.g. dark")
+_SOURCE = Param("str", required=False, default="synthetic",
+                help="what the figures were measured on: synthetic or frames:NAME (default synthetic)")
 _CONFIG_OPT = Param("str", required=False, help="detector configuration (PerceptionGraph name)")
 
 # Pieces shared by queries; labels and relation types only from knowledge/schema.py.
@@ -192,8 +195,7 @@ MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH}
         "band as a whole (condition all) unless another condition is given.",
         {"feature": _FEATURE, "condition": Param("str", required=False, default="all",
                                                  help="calibration condition (default all)"),
-         "source": Param("str", required=False, default="synthetic",
-                         help="what the figures were measured on: synthetic or frames:NAME (default synthetic)")},
+         "source": _SOURCE},
         f"""
 MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
 OPTIONAL MATCH (g)-[:{S.SUITED_FOR}]->(b:{S.ILLUMINATION_BAND})
@@ -215,15 +217,14 @@ ORDER BY min_level, config""",
         "returned for the planner's placement. Highest score first; the planner breaks ties within half a "
         "point by speed beyond timing noise, then robustness (config_robustness), then name "
         "(kgadapt.onboard.perception.ranking).",
-        {"feature": _FEATURE, "band": Param("str", help="illumination band, e.g. dark"),
+        {"feature": _FEATURE, "band": _BAND,
          "condition": Param("str", required=False, default="all",
                             help="all, clean, blur, uneven, window or small (default all)"),
          "penalty": Param("float", required=False, default=1.0,
                           help="score lost per false marker per frame (default 1.0)"),
          "max_ms": Param("float", required=False, default=1000.0,
                          help="leave out configurations slower than this, ms per frame (default 1000)"),
-         "source": Param("str", required=False, default="synthetic",
-                         help="what the figures were measured on: synthetic or frames:NAME (default synthetic)")},
+         "source": _SOURCE},
         f"""
 MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
       -[cal:{S.CALIBRATED}]->(b:{S.ILLUMINATION_BAND} {{name: $band}})
@@ -243,11 +244,10 @@ ORDER BY score DESC, ms_per_frame ASC, config""",
         "band's other conditions from the same source (neither condition nor whole): other_rate, "
         "other_false_per_frame, other_conditions (how many; null rate and 0 where none). What breaks a tie "
         "of config_ranking between equally fast configurations (kgadapt.onboard.perception.ranking).",
-        {"feature": _FEATURE, "band": Param("str", help="illumination band, e.g. dark"),
+        {"feature": _FEATURE, "band": _BAND,
          "condition": Param("str", required=False, default="all",
                             help="the condition ranked: all, clean, blur, uneven, window or small (default all)"),
-         "source": Param("str", required=False, default="synthetic",
-                         help="what the figures were measured on: synthetic or frames:NAME (default synthetic)"),
+         "source": _SOURCE,
          "whole": _WHOLE},
         f"""
 MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
@@ -265,7 +265,7 @@ ORDER BY config""",
         "frames of its window (frames, with markers expected, with markers seen), the window's start and "
         "last update (since, at) and the process measured (run_id, host). The planner weighs fresh "
         "figures with enough frames above calibration (kgadapt.onboard.adaptation.live_rate).",
-        {"feature": _FEATURE, "band": Param("str", help="illumination band, e.g. dark"),
+        {"feature": _FEATURE, "band": _BAND,
          "condition": Param("str", required=False, default="all", help="condition (default all)")},
         f"""
 MATCH (:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
@@ -289,8 +289,7 @@ ORDER BY config""",
         {"feature": _FEATURE, "deployment": Param("str", help="deployment of the running detector"),
          "host": Param("str", help="platform it runs on"),
          "condition": Param("str", required=False, default="all", help="calibration condition (default all)"),
-         "source": Param("str", required=False, default="synthetic",
-                         help="what the figures were measured on: synthetic or frames:NAME (default synthetic)"),
+         "source": _SOURCE,
          "whole": _WHOLE},
         f"""
 MATCH (f:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
