@@ -272,7 +272,10 @@ def _fan_in(fabric: _Fabric, *, hosts: int, rate: float, duration: float, probe_
         while not stop.is_set():
             for name in probes:
                 seq += 1
-                free = float(seq)  # unique: the graph shows this exact figure once applied
+                # Unique (the graph shows this exact figure once applied), and 1 GiB from the host's last
+                # one: a change the service writes at once, not one within its deadband that waits for
+                # the refresh (ServiceSettings.status_deadband_mb, status_refresh_s).
+                free = 1000.0 + 1024.0 * (seq // len(probes) % 2) + seq / 1e6
                 publishers[name].put(status(name, free))
                 sent_at = time.perf_counter()
                 while True:

@@ -74,7 +74,10 @@ liveliness changes. Statuses are gathered for at most ``status_batch_s`` (a
 liveliness change ends the wait at once) and the newest of each host written
 in one ``UNWIND`` store call per batch, each host's figures checked as a
 single write checks them; the profiles' memory StatusTrust needs is read for
-the batch in one call too.
+the batch in one call too. A status within the deadband of what the graph holds
+of its host waits (``status_deadband_mb``, ``status_deadband_load``): the waiting
+ones are written together at most ``status_refresh_s`` later, checked again
+against the profiles read then.
 """
 
 from __future__ import annotations
@@ -162,6 +165,14 @@ class ServiceSettings:
     # of a robot's 10 hosts at 2 Hz: two store calls a status, costing more than the status itself.
     status_batch_s: float = 0.25
     status_batch_max: int = 1000
+    # A status whose figures are within the deadband of what the graph holds (free and total memory
+    # within status_deadband_mb, load within status_deadband_load points, the same cores) waits; every
+    # waiting host's newest status is written together at least every status_refresh_s. Placement
+    # decides on tens to hundreds of MiB, and a host's free memory moves by a few MiB between
+    # statuses: writing each costs a store call per batch, 2 Hz x hosts (0: write every status).
+    status_deadband_mb: float = 16.0
+    status_deadband_load: float = 10.0
+    status_refresh_s: float = 2.0
     # The fleet roster (knowledge/fleet.py): robots heard on the fleet keys, at most roster_cap; roll
     # calls at setup and 5 s later, then every roster_interval_s (0: no more). roster=False: none kept.
     roster: bool = True
@@ -175,6 +186,10 @@ class ServiceSettings:
         keys.check_name(self.manager_host, "manager host")
         if self.public_time_limit_ms < 1:
             raise ConfigError(f"public_time_limit_ms {self.public_time_limit_ms!r}: at least 1")
+        if min(self.status_deadband_mb, self.status_deadband_load, self.status_refresh_s) < 0:
+            raise ConfigError(f"status_deadband_mb {self.status_deadband_mb!r}, status_deadband_load "
+                              f"{self.status_deadband_load!r}, status_refresh_s {self.status_refresh_s!r}: "
+                              "none below 0")
 
 
 class KnowledgeService:
@@ -199,6 +214,12 @@ class KnowledgeService:
         self._event_thread: threading.Thread | None = None
         # Per host, its liveliness changes not yet in the store, oldest first (only the status worker touches it).
         self._liveliness_due: dict[str, list[tuple[bool, float]]] = {}
+        # Per host (status worker only): the figures last written, the newest admitted status within the
+        # deadband of them (not written yet), the profiles' memory last read; when waiting ones are written.
+        self._written: dict[str, messages.HostStatus] = {}
+        self._waiting: dict[str, tuple[messages.HostStatus, float]] = {}
+        self._held: dict[str, float] = {}
+        self._refresh_at = 0.0
         self._stack = contextlib.ExitStack()
         self._stats_lock = threading.Lock()
         self._stats: collections.Counter[str] = collections.Counter()
@@ -507,9 +528,10 @@ class KnowledgeService:
     def _event_loop(self) -> None:
         while True:
             try:
-                first = self._events.get(timeout=self.settings.liveliness_retry_s if self._liveliness_due else None)
+                first = self._events.get(timeout=self._event_wait())
             except queue.Empty:
                 self._apply_liveliness()
+                self._refresh_waiting()
                 continue
             if first is _STOP:
                 return
@@ -537,29 +559,80 @@ class KnowledgeService:
             if stop:
                 return
 
+    def _event_wait(self) -> float | None:
+        """How long the status worker may wait for an event: a liveliness retry or waiting statuses due."""
+        waits = [self.settings.liveliness_retry_s] if self._liveliness_due else []
+        if self._waiting:
+            waits.append(max(0.0, self._refresh_at - time.monotonic()))
+        return min(waits) if waits else None
+
     def _apply_events(self, batch: list[tuple[Any, ...]]) -> None:
         statuses: dict[str, tuple[messages.HostStatus, float]] = {}
-        # What each host's open profiles hold, read for the whole batch in one store call.
-        used = self._held_by_processes(sorted({_host_or_none(key) or "" for kind, key, *_ in batch
-                                               if kind == "status"} - {""}))
+        decoded: list[tuple[str, str, str, Any, float]] = []
         for kind, key, value, received in batch:
             try:
-                if not self._admit_host(_host_of(key), kind):
+                host = _host_of(key)
+                if not self._admit_host(host, kind):
                     continue
+                decoded.append((kind, key, host, self._check_status(key, value) if kind == "status" else value,
+                                received))
+            except KgadaptError as exc:
+                self._drop(f"{kind} on {key}: {exc}")
+        # What the open profiles of the hosts whose statuses are written now hold, read in one store call;
+        # a status within the deadband is checked against the figure last read (at most status_refresh_s old)
+        # and checked again, against a fresh one, before it is written.
+        due = {host for kind, _, host, body, _ in decoded if kind == "status" and self._changed(host, body)}
+        self._held.update(self._held_by_processes(sorted(due)))
+        for kind, key, host, value, received in decoded:
+            try:
                 if kind == "status":
-                    host = _host_of(key)
-                    body = self._trust.admit(host, self._check_status(key, value), received=received,
-                                             used_mb=used.get(host, 0.0))
-                    statuses[body.host] = (body, received)
+                    body = self._trust.admit(host, value, received=received, used_mb=self._held.get(host, 0.0))
+                    if host in due:
+                        statuses[host] = (body, received)
+                        self._waiting.pop(host, None)
+                    else:
+                        if not self._waiting:
+                            self._refresh_at = time.monotonic() + self.settings.status_refresh_s
+                        self._waiting[host] = (body, received)
                 else:
-                    host = _host_of(key)
                     # Every change, in order: a loss and a return in one batch still end the lost life's profiles.
                     self._liveliness_due.setdefault(host, []).append((value, received))
                     self._trust.alive(host, value)
+                    # A new life's first status is written at once; a lost one's waiting status never.
+                    self._written.pop(host, None)
+                    self._waiting.pop(host, None)
+                    statuses.pop(host, None)
             except KgadaptError as exc:
                 self._drop(f"{kind} on {key}: {exc}")
         self._count("events_received", len(batch))
         self._apply_liveliness()
+        if statuses:
+            self._apply_statuses(statuses)
+        self._refresh_waiting()
+
+    def _changed(self, host: str, body: messages.HostStatus) -> bool:
+        """Whether ``body`` differs from what the graph holds of ``host`` by more than the deadband."""
+        s, last = self.settings, self._written.get(host)
+        if last is None or body.cpu_cores != last.cpu_cores:
+            return True
+        return (abs(float(body.memory_free_mb) - float(last.memory_free_mb)) > s.status_deadband_mb
+                or abs(float(body.memory_total_mb) - float(last.memory_total_mb)) > s.status_deadband_mb
+                or abs(float(body.cpu_load) - float(last.cpu_load)) > s.status_deadband_load)
+
+    def _refresh_waiting(self) -> None:
+        """Write every waiting status together once status_refresh_s has passed since the first waited,
+        each checked again against its host's profiles read now."""
+        if not self._waiting or time.monotonic() < self._refresh_at:
+            return
+        waiting, self._waiting = self._waiting, {}
+        self._held.update(self._held_by_processes(sorted(waiting)))
+        statuses: dict[str, tuple[messages.HostStatus, float]] = {}
+        for host, (body, received) in waiting.items():
+            try:
+                self._trust.check_held(host, body, used_mb=self._held.get(host, 0.0))
+                statuses[host] = (body, received)
+            except KgadaptError as exc:
+                self._drop(f"status on {host}: {exc}")
         if statuses:
             self._apply_statuses(statuses)
 
@@ -576,6 +649,9 @@ class KnowledgeService:
             for host in statuses:
                 self._drop(f"status of host {host}: store refused it: {exc}")
             return
+        for host, (body, _) in statuses.items():
+            if host not in refused:
+                self._written[host] = body
         for host, why in refused.items():
             if isinstance(why, UnknownHost):
                 self._refuse_host(host, "status")

@@ -176,10 +176,7 @@ class StatusTrust:
             if record.total_mb is not None and total > record.total_mb * (1 + s.total_slack):
                 raise MessageError(f"host_status of {host}: total {total:.0f} MiB above the host's "
                                    f"{record.total_mb:.0f} MiB")
-            known_total = total if record.total_mb is None else record.total_mb
-            if used_mb > 0 and free > known_total - used_mb * (1 - s.profile_slack):
-                raise MessageError(f"host_status of {host}: {free:.0f} MiB free of {known_total:.0f} MiB, but its "
-                                   f"running processes hold {used_mb:.0f} MiB")
+            self._check_used(host, record, body, used_mb)
             self._check_sender(host, record, body, received)
         except MessageError:
             self.refused += 1
@@ -190,6 +187,22 @@ class StatusTrust:
         keep = max(s.window_s, s.stale_s)
         record.recent = [(t, f) for t, f in record.recent if t > received - keep] + [(received, free)]
         return body
+
+    def check_held(self, host: str, body: messages.HostStatus, *, used_mb: float) -> None:
+        """Raise MessageError (counted in ``refused``) when ``body``, admitted before, claims more free
+        memory than the host's running processes, recorded to hold ``used_mb``, leave."""
+        try:
+            self._check_used(host, self._hosts.setdefault(host, _HostTrust()), body, used_mb)
+        except MessageError:
+            self.refused += 1
+            raise
+
+    def _check_used(self, host: str, record: _HostTrust, body: messages.HostStatus, used_mb: float) -> None:
+        total, free = float(body.memory_total_mb), float(body.memory_free_mb)
+        known_total = total if record.total_mb is None else record.total_mb
+        if used_mb > 0 and free > known_total - used_mb * (1 - self.settings.profile_slack):
+            raise MessageError(f"host_status of {host}: {free:.0f} MiB free of {known_total:.0f} MiB, but its "
+                               f"running processes hold {used_mb:.0f} MiB")
 
     def _check_sender(self, host: str, record: _HostTrust, body: messages.HostStatus, received: float) -> None:
         """Raise MessageError unless this status's sender is the host's current one (or takes over)."""

@@ -6,8 +6,12 @@ import time
 
 import zenoh
 
+from kgadapt.knowledge import runtime
+from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.schema import ensure_indexes
+from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
 from kgadapt.shared import keys, messages
-from tests.zenoh.conftest import wait_for
+from tests.zenoh.conftest import platform_row, wait_for, wait_until_serving
 
 BLOCK = zenoh.CongestionControl.BLOCK
 HOSTS = 300
@@ -71,3 +75,69 @@ def test_statuses_of_hosts_publishing_at_their_own_phases_share_a_write(zenoh_pa
     # At most half as many writes as statuses: a window of ServiceSettings.status_batch_s (0.25 s) holds
     # several hosts' statuses even if the machine stretches the 30 ms phases to 100 ms.
     assert stats["status_writes"] * 2 <= len(hosts), stats
+
+
+def _service(resp_store, zenoh_pair, robot, **settings):
+    """A knowledge service of its own settings, and a client that waits until it serves."""
+    server, session = zenoh_pair
+    ensure_indexes(resp_store)
+    svc = KnowledgeService(resp_store, ServiceSettings(robot=robot, **settings))
+    svc.setup(server)
+    wait_until_serving(session, robot)
+    return svc, KnowledgeClient(session, robot, timeout=3.0)
+
+
+def _status(host: str, free: float, *, total: float = 1000.0, load: float = 10.0) -> bytes:
+    return messages.encode(messages.HostStatus(host=host, time=time.time(), memory_total_mb=total,
+                                               memory_free_mb=free, cpu_load=load, cpu_cores=2))
+
+
+def _free(client, host: str, free: float):
+    return lambda: (platform_row(client, host) or {}).get("memory_free_mb") == free
+
+
+def test_a_status_within_the_deadband_waits_and_one_beyond_it_is_written_at_once(zenoh_pair, robot, resp_store):
+    _, session = zenoh_pair
+    resp_store.execute("MERGE (:Platform {name: 'd0'})")
+    # No refresh within the test: what waits, waits.
+    svc, client = _service(resp_store, zenoh_pair, robot, status_refresh_s=3600.0, status_deadband_mb=16.0)
+    try:
+        session.put(keys.host_status(robot, "d0"), _status("d0", 500.0))
+        wait_for(_free(client, "d0", 500.0), 10, "a host's first status written at once")
+        session.put(keys.host_status(robot, "d0"), _status("d0", 505.0))  # 5 MiB: within the deadband
+        wait_for(lambda: svc.stats().get("events_received", 0) >= 2, 10, "the second status received")
+        session.put(keys.host_status(robot, "d0"), _status("d0", 700.0))  # 195 MiB: beyond it
+        wait_for(_free(client, "d0", 700.0), 10, "a change beyond the deadband written at once")
+        stats = svc.stats()
+        assert stats["events_received"] == 3 and stats.get("events_dropped", 0) == 0, stats
+        # The one within the deadband was never written (its batch ended before the third arrived).
+        assert stats["status_applied"] == 2, stats
+    finally:
+        svc.shutdown()
+
+
+def test_waiting_statuses_are_written_at_the_refresh_checked_against_the_profiles_read_then(
+        zenoh_pair, robot, resp_store):
+    _, session = zenoh_pair
+    resp_store.execute("MERGE (:Platform {name: 'd1'})")
+    svc, client = _service(resp_store, zenoh_pair, robot, status_refresh_s=0.5, status_deadband_mb=16.0)
+    try:
+        session.put(keys.host_status(robot, "d1"), _status("d1", 500.0))
+        wait_for(_free(client, "d1", 500.0), 10, "the first status")
+        # A process on d1 now holds 800 MiB: at most 1000 - 800 x 0.75 = 400 MiB can be free.
+        runtime.record_process_start(resp_store, run_id="run-d1", instance="det-d1", deployment="d", config=None,
+                                     host="d1", pid=4243, start_time=time.time())
+        runtime.record_process_sample(resp_store, run_id="run-d1", rss_mb_last=800.0, rss_mb_mean=800.0,
+                                      rss_mb_max=800.0, cpu_percent_mean=20.0)
+        # Within the deadband of the 500 written, admitted against the profiles read with that one (none),
+        # then refused at the refresh, against the profiles read then.
+        session.put(keys.host_status(robot, "d1"), _status("d1", 505.0))
+        wait_for(lambda: "running processes hold 800 MiB" in (svc.stats().get("last_drop") or ""), 10,
+                 "the waiting status refused at the refresh")
+        assert platform_row(client, "d1")["memory_free_mb"] == 500.0
+        session.put(keys.host_status(robot, "d1"), _status("d1", 350.0))  # beyond the deadband, and believable
+        wait_for(_free(client, "d1", 350.0), 10, "the believable change")
+        session.put(keys.host_status(robot, "d1"), _status("d1", 345.0))  # within it: waits for the refresh
+        wait_for(_free(client, "d1", 345.0), 10, "the waiting status written by the refresh")
+    finally:
+        svc.shutdown()
