@@ -17,7 +17,12 @@ the shared format of bench/stats.py) and summarised for docs/perception.md:
    frames with the oracle gap of the planner's pick; phantom landing targets
    over frames without the site's markers (real photographs and synthetic
    patterns); real photographs against the synthetic scene at the same level;
-   the issue's rate targets.
+   the issue's rate targets; and the **gap under blur with the detector's
+   reflexes** (``reflex_blur``, beside the static gap under blur): the real
+   ``Reflex`` on the calibrated graph's reflex table, fed real photographs
+   sharp and then with a 7 px motion blur at day and dusk light, against the
+   best configuration on the same frames (``--only-reflex-blur`` measures
+   only this, into ``perception.reflex_blur.json``).
 """
 
 from __future__ import annotations
@@ -77,6 +82,10 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
                    help="with --photos: where to write the figures (default perception.photos.json beside --out, "
                         "perception.photos.given.json with --photo)")
     p.add_argument("--skip-blur", action="store_true", help="with --photos: leave out the blur agreement")
+    p.add_argument("--only-reflex-blur", action="store_true",
+                   help="only the gap under blur with the detector's reflexes: calibrate, then real photographs, "
+                        "sharp then with a 7 px motion blur, through the reflex table the graph gives (into "
+                        "perception.reflex_blur.json beside --out)")
     p.set_defaults(func=_run)
 
 
@@ -170,6 +179,8 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.photos:
         return _run_photos(args)
+    if args.only_reflex_blur:
+        return _run_reflex_blur(args)
 
     summary = run(frames=args.frames, levels=args.levels, seconds=args.seconds, fps=args.fps,
                   store_url=args.store, out=args.out, progress=None if args.json else _say,
@@ -196,6 +207,7 @@ def _run(args: argparse.Namespace) -> int:
                 print(f"  {what} ({', '.join(part['conditions'])}): worst {w['oracle_gap_points']} points at "
                       f"{w['band']}/{w['condition']} ({w['planner_pick']} {w['pick_rate']:.1%}, "
                       f"{w['best']} {w['best_rate']:.1%}; target <= 5: {'met' if part['target_met'] else 'NOT met'})")
+        _print_reflex_blur(q["reflex_blur"], q["oracle"]["by_ranking"]["apart"])
         ph = q["phantoms"]
         print(f"phantoms over {ph['frames']} frames without site markers: " + "; ".join(
             f"{c}: raw {v['raw_false_markers']}, landing targets {v['landing_targets_no_site']} (no site) / "
@@ -203,6 +215,64 @@ def _run(args: argparse.Namespace) -> int:
         for case, rates in q["targets"].items():
             print(f"{case}: " + ", ".join(f"{c} {r:.1%}" for c, r in rates.items()))
         print(f"wrote {summary['out']}")
+    return 0
+
+
+def _print_reflex_blur(data: Mapping[str, Any], static: Mapping[str, Any] | None = None) -> None:
+    """The gap under blur with the detector's reflexes, beside the static one (the band's pick alone)."""
+    if static is not None and static.get("worst_gap") is not None:
+        w = static["worst_gap"]
+        print(f"  static gap under blur (synthetic scene, the band's pick alone): worst {w['oracle_gap_points']} "
+              f"points at {w['band']}/{w['condition']}")
+    for band, b in data["bands"].items():
+        print(f"  gap under blur with the detector's reflexes ({b['level']:g} light, real photographs, "
+              f"{data['blur_px']:g} px blur, after {data['reaction_frames']} frames): {band} {b['gap_points']} points "
+              f"(with the reflexes {b['reflex_rate']:.1%}, the pick {b['pick']} alone {b['pick_rate']:.1%}: "
+              f"static {b['static_gap_points']} points; best {b['best']} {b['best_rate']:.1%}; "
+              f"{b['hedged_frames']} hedged frames)")
+    print(f"  worst gap under blur with the detector's reflexes {data['worst_gap_points']} points (target <= 5: "
+          f"{'met' if data['target_met'] else 'NOT met'})")
+
+
+def run_reflex_blur(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / "perception.reflex_blur.json",
+                    progress: Any = None, **options: Any) -> dict[str, Any]:
+    """Calibrate the shipped models in a fresh store, then the gap under blur with the detector's reflexes."""
+    import json
+
+    from kgadapt.bench import perception_quality as quality
+    from kgadapt.bench import stats
+    from kgadapt.knowledge.queries import run_named
+    from kgadapt.knowledge.store import open_store
+    from kgadapt.onboard.perception.calibration import CalibrationSettings, run_calibration
+
+    load_before = os.getloadavg()
+    settings = CalibrationSettings(frames_per_level=frames, levels_per_band=levels)
+    with tempfile.TemporaryDirectory(prefix="kgadapt-reflex-blur-") as tmp:
+        url = f"embedded:{tmp}/store"
+        run_calibration(url, settings=settings, progress=progress, json_path=None, plot_path=None)
+        with open_store(url) as store:
+            data = quality.reflex_blur(lambda name, params: run_named(store, name, params), progress=progress,
+                                       **options)
+    data = {"machine": stats.machine_info(), "load_average_before": [round(v, 2) for v in load_before],
+            "load_average_after": [round(v, 2) for v in os.getloadavg()],
+            "calibration": {"frames_per_level": frames, "levels_per_band": levels}, **data}
+    path = Path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2) + "\n")
+    data["out"] = str(path)
+    return data
+
+
+def _run_reflex_blur(args: argparse.Namespace) -> int:
+    import json
+
+    data = run_reflex_blur(frames=args.frames, levels=args.levels, out=Path(args.out).parent / "perception.reflex_blur.json",
+                           progress=None if args.json else _say)
+    if args.json:
+        print(json.dumps(data, indent=2))
+        return 0
+    _print_reflex_blur(data)
+    print(f"wrote {data['out']} (load average {data['load_average_before']} before, {data['load_average_after']} after)")
     return 0
 
 
@@ -236,6 +306,9 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
             if progress:
                 progress("oracle gap: every configuration on fresh frames ...")
             oracle = quality.oracle_gap(ask, bands, frames=eval_frames, levels=levels)
+            if progress:
+                progress("gap under blur with the detector's reflexes: real photographs through the reflex table ...")
+            reflex_blur = quality.reflex_blur(ask, progress=progress)
     if progress:
         progress(f"phantoms: {phantom_frames} frames without the site's markers ...")
     from kgadapt.onboard.flight.site import load_site
@@ -246,7 +319,8 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
         progress("real photographs against the synthetic scene ...")
     photos = quality.photo_agreement()
     target_rates = quality.targets()
-    quality_summary = {"oracle": oracle, "phantoms": phantoms, "photos": photos, "targets": target_rates}
+    quality_summary = {"oracle": oracle, "reflex_blur": reflex_blur, "phantoms": phantoms, "photos": photos,
+                       "targets": target_rates}
     (folder / "perception.quality.json").write_text(json.dumps({"machine": stats.machine_info(), **quality_summary},
                                                              indent=2) + "\n")
     records: list[dict[str, Any]] = []
@@ -270,8 +344,8 @@ def run(*, frames: int = 4, levels: int = 4, seconds: float = 10.0, fps: float =
         "calibration_best": calibration["best"],
         "calibration_table": calibration["table"],
         "transport": transport,
-        "quality": {"oracle": {k: v for k, v in oracle.items() if k != "rows"}, "phantoms": phantoms,
-                    "targets": target_rates},
+        "quality": {"oracle": {k: v for k, v in oracle.items() if k != "rows"}, "reflex_blur": reflex_blur,
+                    "phantoms": phantoms, "targets": target_rates},
         "records": records,
     }
     path = stats.write_records(out, records)

@@ -413,3 +413,154 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
             "target_points": 5.0, "target_met": worst["oracle_gap_points"] <= 5.0,
             "calibrated": [{"config": r.config, "band": r.band, "condition": r.condition,
                             "detection_rate": r.detection_rate} for r in results]}
+
+
+# -- the robot under blur, end to end: the detector's reflexes on real photographs (issue 29) ---------------
+
+def _clean_count(found: Any) -> int:
+    """Markers a frame's detection found with clean cells (what the detector's reflex counts)."""
+    clean = found.clean or [True] * len(found.ids)
+    return sum(c is not False for c in clean[:len(found.ids)])
+
+
+def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[str] = BLUR_PHOTOS,
+                      sharp_frames: int = 15, blur_frames: int = 30, reaction_frames: int = 5,
+                      blur_px: float = 7.0, fps: float = 30.0, settings: Any = None, timed: bool = True,
+                      progress: Progress = None) -> dict[str, Any]:
+    """What the robot finds under motion blur with the detector's reflexes, against the best configuration.
+
+    For each band in ``levels`` (band -> light level) and each photograph: a
+    fresh :class:`~kgadapt.onboard.perception.reflex.Reflex` on ``table`` (the
+    graph's ``reflex_table``, compiled) runs the band's pick; it is fed
+    ``sharp_frames`` frames of the photograph through the camera model at the
+    level (markers seen), then ``blur_frames`` of the same scene with a
+    ``blur_px`` motion blur at 25 degrees (JPEG 80), at ``fps``. Per frame it
+    does what the running detector does (kgadapt.onboard.perception.detector):
+    the frame's light estimate (weighted around the markers of the last
+    second) to ``on_light``, the running configuration's detection, the hedge
+    the reflex asks for on frames it found nothing on (every frame while a try
+    after a fall is judged), within the graph's ms-per-frame budget when
+    ``timed`` (the detector's rule, with measured times), ``on_result`` with
+    the clean counts, and whichever of the two found more is what it publishes.
+    The rate is over the blurred frames after the first ``reaction_frames``
+    (the reflex's reaction); the oracle is the best single configuration of
+    the table on those same frames.
+    """
+    import time
+
+    from kgadapt.onboard.perception.illumination import estimate_light
+    from kgadapt.onboard.perception.reflex import Reflex, ReflexSettings
+    from kgadapt.onboard.perception.scene import CameraModel
+    from kgadapt.sim.photos import load_photo, photo_frames, photo_truth, shifted
+
+    settings = settings or ReflexSettings()
+    choices = table.choices()
+    cores: dict[str, dict[str, MarkerDetector]] = {}  # dictionary -> configuration -> detector
+    sharp_camera, blur_camera = CameraModel(), CameraModel(blur_px=blur_px, blur_angle=25.0)
+    out: dict[str, Any] = {}
+    for band, level in levels.items():
+        entry = table.entry(band)
+        if entry is None or entry.best is None:
+            raise KeyError(f"reflex table has no in-place choice for band {band!r}")
+        pick = entry.best.config
+        reflex_score = Score()
+        oracle = {name: Score() for name in choices}
+        per_photo: dict[str, dict[str, float]] = {}
+        swaps: list[dict[str, Any]] = []
+        hedged = 0
+        for k, name in enumerate(photos):
+            dictionary = _photo_dictionary(name)
+            here = cores.setdefault(dictionary, {n: MarkerDetector(replace(c.settings, dictionary=dictionary))
+                                                 for n, c in choices.items()})
+            photo = load_photo(name)
+            truth = photo_truth(photo, dictionary)
+            frames = [(False, f) for f in photo_frames(photo, level, count=sharp_frames, camera=sharp_camera, seed=k)]
+            frames += [(True, f) for f in photo_frames(photo, level, count=blur_frames, camera=blur_camera,
+                                                       seed=100 + k)]
+            reflex = Reflex(table=table, running=pick, settings=settings)
+            seen: tuple[float, Any] = (-1e9, [])
+            spent: dict[str, float] = {}
+            blurred = 0
+            mine, theirs = Score(), {n: Score() for n in here}
+            for i, (is_blur, frame) in enumerate(frames):
+                now = i / fps
+                image = _jpeg(frame.image)
+                at, corners = seen
+                level_now = estimate_light(image, corners if now - at <= 1.0 else ()).level
+                swap = reflex.on_light(level_now)
+                if swap is not None:
+                    swaps.append({"photo": name, "frame": i, "blurred": is_blur, "config": swap.config,
+                                  "evidence": str(swap.evidence)})
+                start = time.perf_counter()
+                found = here[reflex.running].detect(image)
+                ms = (time.perf_counter() - start) * 1e3
+                count = _clean_count(found)
+                hedge = reflex.hedge_for(level_now) if (not count or reflex.comparing) else None
+                hedge_found = None
+                if hedge is not None and hedge in here and table.budget_ms is not None:
+                    cost = spent.get(hedge, choices[hedge].ms_per_frame or ms)
+                    if not timed or ms + cost <= table.budget_ms:
+                        start = time.perf_counter()
+                        hedge_found = here[hedge].detect(image)
+                        spent[hedge] = (time.perf_counter() - start) * 1e3
+                        hedged += 1
+                if hedge_found is None:
+                    hedge = None
+                hedge_count = _clean_count(hedge_found) if hedge_found is not None else 0
+                swap = reflex.on_result(count, now, hedge=hedge, hedge_found=hedge_count, level=level_now)
+                published = hedge_found if hedge_found is not None and hedge_count > count else found
+                if swap is not None:
+                    swaps.append({"photo": name, "frame": i, "blurred": is_blur, "config": swap.config,
+                                  "evidence": str(swap.evidence)})
+                if published.ids:
+                    seen = (now, published.corners)
+                if not is_blur:
+                    continue
+                blurred += 1
+                if blurred <= reaction_frames:
+                    continue
+                moved = shifted(truth, frame.shift)
+                mine.add(score(published.ids, published.corners, moved))
+                for n, detector in here.items():
+                    f = detector.detect(image)
+                    theirs[n].add(score(f.ids, f.corners, moved))
+            reflex_score.add(mine)
+            for n, s in theirs.items():
+                oracle[n].add(s)
+            per_photo[name] = {"reflex": round(mine.detection_rate, 4),
+                               **{n: round(s.detection_rate, 4) for n, s in theirs.items()}}
+        rates = {n: round(s.detection_rate, 4) for n, s in oracle.items()}
+        best = max(rates, key=lambda n: rates[n])
+        rate = round(reflex_score.detection_rate, 4)
+        gap = round((rates[best] - rate) * 100, 1)
+        out[band] = {"level": level, "pick": pick, "reflex_rate": rate, "pick_rate": rates[pick],
+                     "best": best, "best_rate": rates[best], "rates": rates, "gap_points": gap,
+                     "static_gap_points": round((rates[best] - rates[pick]) * 100, 1),
+                     "markers": reflex_score.truth, "false_per_frame": round(reflex_score.false_per_frame, 4),
+                     "hedged_frames": hedged, "per_photo": per_photo, "swaps": swaps}
+        if progress:
+            progress(f"blur {blur_px:g} px at {band} (level {level:g}): with the reflexes {rate:.1%}, the pick "
+                     f"{pick} alone {rates[pick]:.1%}, best {best} {rates[best]:.1%}: gap {gap} points")
+    worst = max(out.values(), key=lambda v: v["gap_points"], default=None)
+    return {"photos": list(photos), "sharp_frames": sharp_frames, "blur_frames": blur_frames,
+            "reaction_frames": reaction_frames, "blur_px": blur_px, "fps": fps, "timed": timed,
+            "bands": out, "worst_gap_points": None if worst is None else worst["gap_points"],
+            "target_points": 5.0, "target_met": None if worst is None else worst["gap_points"] <= 5.0}
+
+
+# The levels the bench measures blur at: the issue's day level, and the middle of the shipped dusk band.
+BLUR_LEVELS = {"dusk": 25.0, "day": 120.0}
+
+
+def reflex_blur(ask: Callable[[str, dict[str, Any]], list[dict[str, Any]]], *, deployment: str = "detector_day",
+                host: str = "onboard", levels: dict[str, float] = BLUR_LEVELS, progress: Progress = None,
+                **options: Any) -> dict[str, Any]:
+    """:func:`reflex_under_blur` on the reflex table a detector of ``deployment`` on ``host`` reads from the
+    (calibrated) graph, as the running detector compiles it."""
+    from kgadapt.onboard.perception.markers import parse_config
+    from kgadapt.onboard.perception.reflex import ReflexTable
+
+    table = ReflexTable.from_rows(ask("reflex_table", {"deployment": deployment, "host": host}),
+                                  parse=lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary))
+    return {"deployment": deployment, "host": host,
+            **reflex_under_blur(table, levels, progress=progress, **options)}

@@ -282,15 +282,19 @@ ORDER BY config""",
         "(condition, default all) or suited for it, with its settings, its figures, whether the running "
         "deployment may take it in place on the host (in_place_change's rule) and the feature's "
         "ms-per-frame budget, and this robot's live figures of it in the band (live_rate, live_frames_expected, "
-        "live_at; as live_rates gives them), and its mean figures in the band's other conditions (other_rate, "
-        "other_false_per_frame, other_conditions, as config_robustness gives them). The detector ranks the rows "
+        "live_at; as live_rates gives them), its mean figures in the band's other conditions (other_rate, "
+        "other_false_per_frame, other_conditions, as config_robustness gives them), and its figures under motion "
+        "blur in the band (blur_rate, blur_false_per_frame; condition $blur, null where not calibrated: what a "
+        "collapse of its detections in steady light tries first). The detector ranks the rows "
         "as the planner does (kgadapt.onboard.perception.ranking), with fresh live evidence weighed above "
         "calibration (kgadapt.onboard.adaptation.live_rate).",
         {"feature": _FEATURE, "deployment": Param("str", help="deployment of the running detector"),
          "host": Param("str", help="platform it runs on"),
          "condition": Param("str", required=False, default="all", help="calibration condition (default all)"),
          "source": _SOURCE,
-         "whole": _WHOLE},
+         "whole": _WHOLE,
+         "blur": Param("str", required=False, default="blur",
+                       help="the calibration condition of motion blur (default blur)")},
         f"""
 MATCH (f:{S.FEATURE} {{name: $feature}})<-[:{S.REALIZES}]-(g:{S.PERCEPTION_GRAPH})
 MATCH (b:{S.ILLUMINATION_BAND})
@@ -301,13 +305,17 @@ WITH f, g, b, cal, suit
 WHERE cal IS NOT NULL OR suit IS NOT NULL
 {_OTHER_CONDITIONS}
 WITH f, g, b, cal, suit, {_OTHER_FIGURES}
+OPTIONAL MATCH (g)-[bl:{S.CALIBRATED} {{condition: $blur}}]->(b)
+WHERE coalesce(bl.source, $source) = $source
+WITH f, g, b, cal, suit, other_rate, other_false_per_frame, other_conditions,
+     avg(bl.detection_rate) AS blur_rate, avg(bl.false_per_frame) AS blur_false_per_frame
 MATCH (g)-[:{S.CONTAINS}]->(m:{S.PROCESSING_COMPONENT})
 WHERE m.config_json IS NOT NULL
 OPTIONAL MATCH (g)-[lr:{S.LIVE_RATE} {{condition: $condition}}]->(b)
 OPTIONAL MATCH (g)<-[:{S.DEPLOYS}]-(d:{S.DEPLOYMENT})-[:{S.EXECUTABLE_ON}]->(:{S.PLATFORM} {{name: $host}})
 OPTIONAL MATCH (a:{S.DEPLOYMENT} {{name: $deployment}})-[:{S.EXECUTABLE_ON}]->(:{S.PLATFORM} {{name: $host}})
-WITH f, g, b, cal, suit, other_rate, other_false_per_frame, other_conditions, lr, m, d,
-     d IS NOT NULL AND a IS NOT NULL AND (d.name = a.name OR (a.reconfigurable_as IS NOT NULL
+WITH f, g, b, cal, suit, other_rate, other_false_per_frame, other_conditions, blur_rate, blur_false_per_frame,
+     lr, m, d, d IS NOT NULL AND a IS NOT NULL AND (d.name = a.name OR (a.reconfigurable_as IS NOT NULL
          AND a.reconfigurable_as = d.reconfigurable_as AND a.executable = d.executable)) AS here
 RETURN b.name AS band, b.min_level AS min_level, b.max_level AS max_level, b.margin AS margin,
        g.name AS config, m.dictionary AS dictionary, m.config_json AS config_json,
@@ -315,7 +323,7 @@ RETURN b.name AS band, b.min_level AS min_level, b.max_level AS max_level, b.mar
        coalesce(cal.ms_per_frame, m.ms_per_frame) AS ms_per_frame, suit IS NOT NULL AS suited,
        d.name AS deployment, here AS in_place, f.frame_budget_ms AS budget_ms,
        lr.detection_rate AS live_rate, lr.frames_expected AS live_frames_expected, lr.at AS live_at,
-       other_rate, other_false_per_frame, other_conditions
+       other_rate, other_false_per_frame, other_conditions, blur_rate, blur_false_per_frame
 ORDER BY min_level, config, in_place DESC, deployment""",
     ),
     NamedQuery(

@@ -380,7 +380,8 @@ class Detector:
         reflex = Reflex(table=table, running=config.name)
         previous = self._reflexes
         if previous is not None:  # the band it believed in and the markers it saw carry over
-            reflex.band, reflex.last_seen = previous[0].band, previous[0].last_seen
+            reflex.band, reflex.last_seen, reflex.seen_level = previous[0].band, previous[0].last_seen, \
+                previous[0].seen_level
         self._reflex_generation = generation
         self._reflexes = (reflex, cores)
 
@@ -459,8 +460,10 @@ class Detector:
             reflex, cores = armed
             found = _clean_count(result)
             # Only a frame the running configuration found nothing on can be won by the hedge: the others
-            # are published at once, without its cost.
-            hedge = None if found else self._hedge(reflex, cores, gray, level, result.processing_ms)
+            # are published at once, without its cost; but a try after a fall of the count is judged on
+            # what both find on the same frames (reflex.comparing).
+            hedge = None if found and not reflex.comparing else \
+                self._hedge(reflex, cores, gray, level, result.processing_ms)
             swap = reflex.on_result(found, time.time(), hedge=hedge[0] if hedge else None,
                                     hedge_found=_clean_count(hedge[1]) if hedge else 0, level=level)
             if hedge is not None and _clean_count(hedge[1]) > found:

@@ -17,6 +17,19 @@ gives and says what to run:
 * collapse: markers were seen within ``memory_s`` and the last
   ``collapse_frames`` frames found none: try the next candidate once (evidence
   ``collapse``), and go back (``revert``) when it finds nothing either;
+* a fall: the last ``collapse_frames`` frames found on average less than
+  ``fall_fraction`` of the typical count of the frames before them (within
+  ``memory_s``): real motion blur leaves a marker or two of many, so the
+  count falls without reaching zero. Try the next candidate once (evidence
+  ``collapse``); the previous configuration runs beside it on every frame of
+  the trial, and it stays only when it found more markers on those same frames
+  (else ``revert``).
+  Which candidate: when the light is steady (within the band's margin of where
+  markers were last seen) the light is not the cause; motion blur (or a harder
+  view) is, so the first tried is the in-place choice calibration ranks best
+  under blur in the band (``reflex_table``'s ``blur_rate``), when it is ranked
+  above the running one there. Otherwise, or when the light moved, the band's
+  other choices, then the neighbouring bands' best, nearest first.
 * evidence, not waiting, is the hysteresis: after a switch the previous
   configuration runs beside the new one on the same frames (a hedge, within the
   graph's ms-per-frame budget, on frames the running one found nothing on: the
@@ -34,12 +47,14 @@ Nothing here does I/O or reads a clock: times are arguments.
 from __future__ import annotations
 
 import math
+import statistics
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.onboard.adaptation.live_rate import LiveSettings
 from kgadapt.onboard.perception.illumination import Band
-from kgadapt.onboard.perception.ranking import PENALTY, TIE_RATE, rank_graph_rows, score_of
+from kgadapt.onboard.perception.ranking import PENALTY, TIE_RATE, rank_graph_rows, rank_rows, score_of
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.states import ReflexEvidence
 
@@ -52,6 +67,7 @@ class Choice:
     deployment: str
     ms_per_frame: float | None
     settings: Any  # the parsed configuration (kgadapt.onboard.perception.markers.DetectorConfig)
+    blur_score: float | None = None  # calibrated score in the band under motion blur (None: not calibrated)
 
 
 @dataclass(frozen=True)
@@ -62,6 +78,7 @@ class BandEntry:
     margin: float
     choices: tuple[Choice, ...]
     best_elsewhere: str | None = None  # the band's best configuration when it may not run here in place
+    blur_order: tuple[Choice, ...] = ()  # the choices calibrated under blur, best under blur first
 
     @property
     def best(self) -> Choice | None:
@@ -126,13 +143,22 @@ class ReflexTable:
                 if r.get("in_place") and r.get("deployment") and all(c.config != config for c in choices):
                     if config not in parsed:
                         parsed[config] = parse(config, str(r["config_json"]), r.get("dictionary"))
+                    blur = r.get("blur_rate")
                     choices.append(Choice(config, str(r["deployment"]),
                                           float(r["ms_per_frame"]) if r.get("ms_per_frame") is not None else None,
-                                          parsed[config]))
+                                          parsed[config],
+                                          score_of(float(blur), r.get("blur_false_per_frame"), penalty)
+                                          if isinstance(blur, (int, float)) else None))
                 elif not choices and elsewhere is None:
                     elsewhere = config
             band, margin = bands[name]
-            entries.append(BandEntry(band, margin, tuple(choices), elsewhere))
+            # Under blur by the same rule (score, then speed beyond noise, then name): no robustness step, since
+            # the blur figure is the condition itself.
+            blur_order = rank_rows([c for c in choices if c.blur_score is not None],
+                                   score=lambda c: float(c.blur_score),
+                                   ms=lambda c: c.ms_per_frame if c.ms_per_frame is not None else math.inf,
+                                   name=lambda c: c.config, tie_rate=tie_rate)
+            entries.append(BandEntry(band, margin, tuple(choices), elsewhere, tuple(blur_order)))
         entries.sort(key=lambda e: e.band.min_level)
         return cls(tuple(entries), budget)
 
@@ -173,11 +199,20 @@ class ReflexSettings:
     memory_s: float = 1.0  # ... after markers were seen this recently
     trial_frames: int = 6  # after a switch: frames the previous configuration runs beside it (within budget)
     confirm_frames: int = 2  # frames in a row a hedge must win before it counts
+    # A fall: the mean clean count of the last collapse_frames frames below fall_fraction x the typical (median)
+    # count of the frames before them within memory_s, when that typical count is at least fall_min_typical
+    # (a fall from one or two markers is the zero rule's). A third: a 7 px motion blur leaves 2-13 % of the
+    # real photographs' markers to the band's configuration, while a hovering camera's view or a marker
+    # leaving it moves the count by less. 0 turns the rule off.
+    fall_fraction: float = 1 / 3
+    fall_min_typical: float = 3.0
 
     def __post_init__(self) -> None:
         if self.collapse_frames < 1 or self.trial_frames < 0 or self.confirm_frames < 1 or self.memory_s <= 0:
             raise ConfigError("reflex settings: collapse_frames >= 1, trial_frames >= 0, confirm_frames >= 1, "
                               "memory_s > 0")
+        if not 0 <= self.fall_fraction < 1 or self.fall_min_typical < 1:
+            raise ConfigError("reflex settings: 0 <= fall_fraction < 1, fall_min_typical >= 1")
 
 
 @dataclass(frozen=True)
@@ -192,6 +227,15 @@ class Swap:
     level: float | None
     deployment: str | None = None
     elsewhere: str | None = None  # with config None: the band's best, which needs another process
+
+
+@dataclass
+class FallTrial:
+    """A try after a fall of the count: what each configuration found on the trial's frames."""
+
+    fallen: float  # the mean count of the frames that fell (what the previous one found, for frames it did not run)
+    new: int = 0  # markers the new configuration found
+    old: float = 0.0  # markers the previous one found beside it (or ``fallen`` where it did not run)
 
 
 @dataclass
@@ -211,6 +255,15 @@ class Reflex:
     wins: int = 0  # frames in a row the hedge found markers and the running one did not
     swaps: int = 0
     told: bool = False  # the last band change was only told (nothing here could take it in place)
+    seen_level: float | None = None  # the light when the running configuration last found a marker
+    counts: deque[tuple[float, int]] = field(default_factory=deque)  # (time, clean count) within memory_s
+    fall: FallTrial | None = None  # a try after a fall of the count, being judged
+
+    @property
+    def comparing(self) -> bool:
+        """A try after a fall is being judged: the previous configuration runs beside it on every frame (the
+        detector asks :meth:`hedge_for` on frames the running one found markers on too)."""
+        return self.fall is not None
 
     def on_light(self, level: float | None) -> Swap | None:
         """This frame's light; a Swap when it is past an edge of the band by more than the margin."""
@@ -264,10 +317,17 @@ class Reflex:
             previous, left = self.trial
             self.trial = (previous, left - 1) if left > 1 else None
             expired = self.trial is None
+        if self.fall is not None:
+            return self._judge_fall(found, now, hedge, hedge_found, expired, level)
+        self._count(found, now)
         if found > 0:
             self.last_seen, self.misses, self.muted, self.wins, self.trying = now, 0, False, 0, None
+            if level is not None and math.isfinite(level):
+                self.seen_level = level
             if self.trial is not None and hedge == self.trial[0]:
                 self.trial = None  # the new one finds the markers: it stays
+            if self.trial is None and self._fallen():
+                return self._collapse(level, fall=True)
             return None
         if hedge is not None and hedge_found > 0:
             self.wins += 1
@@ -294,17 +354,78 @@ class Reflex:
             return None
         self.misses = 0
         self.muted = True  # one try per collapse: no cascade down the table
+        return self._collapse(level, fall=False)
+
+    def _count(self, found: int, now: float) -> None:
+        self.counts.append((now, found))
+        while self.counts and now - self.counts[0][0] > self.settings.memory_s:
+            self.counts.popleft()
+
+    def _fallen(self) -> bool:
+        """The last ``collapse_frames`` frames found on average less than ``fall_fraction`` of the typical
+        (median) count of the frames before them within ``memory_s``."""
+        s = self.settings
+        if s.fall_fraction <= 0 or s.trial_frames < 1:  # a fall try is judged over a trial
+            return False
+        counts = [c for _t, c in self.counts]
+        if len(counts) < 2 * s.collapse_frames:
+            return False
+        window, before = counts[-s.collapse_frames:], counts[:-s.collapse_frames]
+        typical = statistics.median(before)
+        return typical >= s.fall_min_typical and statistics.fmean(window) < s.fall_fraction * typical
+
+    def _collapse(self, level: float | None, *, fall: bool) -> Swap | None:
         nxt = self._next_candidate(level)
         if nxt is None:
             return None
+        fallen = statistics.fmean(c for _t, c in list(self.counts)[-self.settings.collapse_frames:]) \
+            if fall and self.counts else 0.0
         self.trying = self.running
-        return self._swap(nxt, ReflexEvidence.COLLAPSE, level)
+        swap = self._swap(nxt, ReflexEvidence.COLLAPSE, level)
+        if fall:
+            self.fall = FallTrial(fallen)
+        return swap
+
+    def _judge_fall(self, found: int, now: float, hedge: str | None, hedge_found: int, expired: bool,
+                    level: float | None) -> Swap | None:
+        """A frame of the trial after a fall: the new configuration stays only when it found more markers
+        than the previous one on the trial's frames (where the previous did not run beside it, the count
+        that fell stands for it)."""
+        fall = self.fall
+        assert fall is not None
+        if found > 0:
+            self.last_seen = now
+            if level is not None and math.isfinite(level):
+                self.seen_level = level
+        fall.new += found
+        fall.old += hedge_found if hedge is not None and hedge == self.trying else fall.fallen
+        if not expired:
+            return None
+        previous, self.fall, self.trying = self.trying, None, None
+        if fall.new > fall.old:
+            return None  # more markers on the same frames: it stays
+        back = self.table.choices().get(previous) if previous is not None else None
+        return self._swap(back, ReflexEvidence.REVERT, level, trial=False) if back is not None else None
+
+    def _steady(self, current: BandEntry, level: float | None) -> bool:
+        """The light is within the band's margin of where markers were last seen: it did not cause the loss."""
+        return (level is not None and math.isfinite(level) and self.seen_level is not None
+                and abs(level - self.seen_level) <= current.margin)
 
     def _next_candidate(self, level: float | None) -> Choice | None:
-        """After a collapse: the band's other choices, then the neighbouring bands' best, nearest first."""
+        """After a collapse in steady light: the band's choice best under motion blur, when it is ranked above
+        the running one there. Otherwise the band's other choices, then the neighbouring bands' best, nearest
+        first."""
         current = self.table.entry(self.band)
         if current is None:
             return None
+        if self._steady(current, level):
+            mine = next((c.blur_score for c in current.choices if c.config == self.running), None)
+            for c in current.blur_order:
+                if c.config == self.running:
+                    break  # it holds best under blur already
+                if mine is None or (c.blur_score is not None and c.blur_score > mine + TIE_RATE):
+                    return c
         for c in current.choices:
             if c.config != self.running:
                 return c
@@ -321,6 +442,8 @@ class Reflex:
     def _swap(self, choice: Choice, evidence: ReflexEvidence, level: float | None, *, from_band: str | None = None,
               trial: bool = True) -> Swap:
         self.told = False
+        self.fall = None
+        self.counts.clear()  # another configuration's counts are no typical for this one
         previous, self.running = self.running, choice.config
         self.trial = (previous, self.settings.trial_frames) if trial and self.settings.trial_frames else None
         self.wins = 0
@@ -331,6 +454,7 @@ class Reflex:
     def taken(self, config: str, level: float | None = None) -> None:
         """The detector was told to run ``config`` (an in-place change from the manager): follow it."""
         self.running = config
-        self.trial, self.trying, self.wins, self.misses = None, None, 0, 0
+        self.trial, self.trying, self.wins, self.misses, self.fall = None, None, 0, 0, None
+        self.counts.clear()
         if level is not None and math.isfinite(level) and self.table.entries:
             self.band = self.table.band_of(level).band.name
