@@ -730,13 +730,19 @@ class AdaptationManager:
                                                                  confirmed=lambda h: self._trust.confirmed_free(h, time.time())))
         except (PlanningError, KgadaptError) as exc:
             log.info("adaptation: no plan after the reflex: %s", exc)
-        kept = plan is not None and plan.same_as(running)
+        planned = plan is not None and plan.same_as(running)
+        # A try on the frames' own evidence stands until its trial or the band ends it (the plan for the
+        # band is what collapsed); the manager records it and keeps placement and memory in its charge.
+        stands = not planned and policy.reflex_stands(d)
+        kept = planned or stands
         # What the detector took, as the decision's choice; the manager's own plan, where it agrees, with it.
-        shown = plan if kept else Plan(target=running, reason=f"the detector's reflex took {running.config} in place "
+        shown = plan if planned else Plan(target=running, reason=f"the detector's reflex took {running.config} in place "
                                        f"on {running.host}", inputs={"band": band}, queries=("reflex_table",))
         if took is not None:
-            outcome = "reconfigured by reflex" + ("" if kept or plan is None else f"; the plan for band {band} "
-                                                  f"is {plan.target.config}@{plan.target.host}")
+            outcome = "reconfigured by reflex" + (
+                "" if planned or plan is None else
+                f"; {'kept on its evidence (collapse); ' if stands else ''}the plan for band {band} "
+                f"is {plan.target.config}@{plan.target.host}")
             self._record(Outcome(trigger=trigger, plan=shown, outcome=outcome, latency_ms=d.get("answered_ms"),
                                  frames_lost=0,
                                  detail={"change": Change.REFLEX, "instance": running.instance,

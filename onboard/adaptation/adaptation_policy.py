@@ -28,7 +28,7 @@ from kgadapt.onboard.adaptation.adaptation import FEATURE, Analyzer, HostView, P
 from kgadapt.onboard.adaptation.live_rate import LiveSettings
 from kgadapt.onboard.adaptation.planning_defaults import DEFAULT_PREFERENCE, IN_PLACE, ONBOARD_HOST
 from kgadapt.shared import messages
-from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, ProcessEventKind, TriggerKind
+from kgadapt.shared.states import ENDED_EVENTS, KEPT_STATES, Change, ProcessEventKind, ReflexEvidence, TriggerKind
 
 UNMEASURED_MB = 5.0  # a detector's profile below this has only its exec-time sample
 MEASURE_WITHIN_S = 10.0  # how long after a change an unmeasured detector is given the benefit of the doubt
@@ -114,6 +114,14 @@ def after_reflex(state: LoopState, *, config: str, band: str | None, rate: float
     """The running detector took ``config`` on its own (a reflex): what is expected of it now."""
     return dataclasses.replace(state, changed_at=wall, settled_after=wall + settle_s,
                                expected=(config, band, rate))
+
+
+def reflex_stands(detail: Mapping[str, Any]) -> bool:
+    """Whether a reflex's choice stands without the manager's plan: a try the detector made on its own
+    frames' evidence (its detections collapsed or fell in steady light, e.g. under motion blur, which the
+    band's plan cannot see). Its trial ends it: a ``revert`` reflex if the try finds no more markers
+    than the configuration it replaced; a change of band ends it too."""
+    return detail.get("evidence") == ReflexEvidence.COLLAPSE and detail.get("config") is not None
 
 
 def reflex_trigger_detail(m: messages.Reflex) -> dict[str, Any]:

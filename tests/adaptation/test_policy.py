@@ -343,3 +343,14 @@ def test_the_manager_s_settings_and_the_planner_default_alike_wherever_they_shar
     assert {k: settings[k] for k in shared} == {k: planner[k] for k in shared}
     assert (settings["preference"], settings["onboard_host"], settings["in_place"]) == (
         D.DEFAULT_PREFERENCE, D.ONBOARD_HOST, D.IN_PLACE) == ("onboard-first", "onboard", True)
+
+
+def test_a_reflex_tried_on_the_frames_evidence_stands_and_one_on_the_light_is_planned():
+    # A collapse (or a fall of the count) in steady light: the band's plan is what collapsed, so the
+    # try stands until the detector's trial reverts it or the band changes.
+    assert P.reflex_stands({"evidence": "collapse", "config": "marker_detection_dark", "band": "day"})
+    # The light, a hedge near an edge, a revert: the manager's plan for the band decides.
+    for evidence in ("light", "hedge", "revert"):
+        assert not P.reflex_stands({"evidence": evidence, "config": "marker_detection_dark", "band": "day"})
+    # Nothing taken in place (the reflex only told): nothing stands.
+    assert not P.reflex_stands({"evidence": "collapse", "band": "day"})
