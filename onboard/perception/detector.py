@@ -440,8 +440,8 @@ class Detector:
                 self._idle()
                 continue
             item = slot.take(timeout=IDLE_WAKE_S)
-            if item is None or not self.active.is_set():
-                continue  # idled while it waited: the next frame is held for the activation
+            if item is None or not self.active.is_set() or self._stop.is_set():
+                continue  # idled (or stopping) while it waited: the next frame is held for the activation
             if time.time() - item[1] > HELD_FRAME_S:
                 continue  # held while idle and the camera stopped since: not an answer to give now
             try:
@@ -620,6 +620,7 @@ class Detector:
                 rpc.undeclare_quietly(thing)
                 setattr(self, name, None)
         self._stop.set()
+        self.active.set()  # wakes an idle worker at once (it looks at _stop before taking a frame)
         self.slot.close()
         if self._worker is not None:
             self._worker.join(timeout=5)
