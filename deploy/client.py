@@ -28,11 +28,15 @@ class DeployerClient:
     may take as long as the process needs to get ready (``start_timeout``).
     """
 
-    def __init__(self, session: Any, robot: str, *, timeout: float = 5.0, start_timeout: float = 60.0) -> None:
+    def __init__(self, session: Any, robot: str, *, timeout: float = 5.0, start_timeout: float = 60.0,
+                 resend_for: float | None = None) -> None:
+        """``resend_for``: how long a request that reached no deployer is sent again (None: ``timeout``;
+        0: not at all, for a caller to whom no deployer means a lost host, which liveliness reports)."""
         self.session = session
         self.robot = keys.check_name(robot, "robot name")
         self.timeout = timeout
         self.start_timeout = start_timeout
+        self.resend_for = timeout if resend_for is None else resend_for
         self.answered: list[str] = []  # hosts whose deployers answered the last list()
 
     def start(self, host: str, deployment: str, config: str, *, instance: str | None = None,
@@ -103,8 +107,8 @@ class DeployerClient:
         keys.check_name(host, "host name")
         # Nobody answering at once means no matching queryable is known (yet): a session
         # opened a moment ago may not have the deployers' declarations. Nobody got the
-        # request, so it is sent again, for up to ``self.timeout``.
-        details = self._ask(host, verb, body, timeout, resend_for=self.timeout)
+        # request, so it is sent again, for up to ``self.resend_for``.
+        details = self._ask(host, verb, body, timeout, resend_for=self.resend_for)
         if not details:
             raise RequestTimeout(
                 f"no deployer on host {host} answered {verb} (is the {host} agent running and reachable?)"

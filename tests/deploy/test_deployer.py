@@ -12,7 +12,7 @@ import pytest
 
 from kgadapt.deploy.client import DeployerClient
 from kgadapt.shared import keys, messages
-from kgadapt.shared.errors import DeploymentError
+from kgadapt.shared.errors import DeploymentError, RequestTimeout
 from tests.deploy.conftest import CONFIG, ROBOT, Collector, add_deployment, wait_for_deployers
 from tests.support import Child
 
@@ -183,3 +183,14 @@ def test_raced_starts_pass_only_while_the_declared_memory_fits_the_budget(graph,
         assert again.state == "ready"
     finally:
         host.close()
+
+
+def test_a_client_told_not_to_resend_gives_up_at_once_on_a_host_without_a_deployer(client_session):
+    # The adaptation manager's probe of the running detector: no deployer answering means its host just
+    # went, which liveliness reports. Sent again for its whole timeout, the probe once held the host's loss
+    # in the manager's queue for 480 ms (issue 32).
+    probe = DeployerClient(client_session, ROBOT, timeout=60.0, resend_for=0.0)
+    started = time.monotonic()
+    with pytest.raises(RequestTimeout, match="no deployer on host gone"):
+        probe.status("gone", "det1")
+    assert time.monotonic() - started < 30.0  # sent once: the default sends it again for the whole 60 s

@@ -170,3 +170,30 @@ def test_a_detector_started_idle_publishes_nothing_until_made_active(hosts, clie
     finally:
         markers.close()
         frames.close()
+
+
+def test_an_activated_standby_answers_the_frame_it_held_instead_of_waiting_for_the_next(hosts, client_session, graph):
+    # Issue 32: a failover to the standby costs the wait for the next frame unless the idle detector keeps
+    # the newest one. Frames come every half second here: the first answer after the activation must be
+    # the frame published before it (the next comes 0.5 s later), and a standby that dropped what it
+    # held answers only that next one.
+    from kgadapt.onboard.perception.detector import set_active
+
+    frames = FrameSource(client_session, fps=2.0, jpeg=marker_jpeg(), size=(320, 240))
+    markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
+    try:
+        client = DeployerClient(client_session, ROBOT)
+        client.start("onboard", "detector_day", "marker_detection_day", instance="held1", idle=True)
+        ready_at = frames.seq
+        wait_for(lambda: frames.seq >= ready_at + 3, 10, "frames after ready")  # warmed on one of them
+        last = frames.seq
+        wait_for(lambda: frames.seq > last, 5, "a new frame")
+        held = frames.seq
+        assert set_active(client_session, ROBOT, "onboard", "held1", True).active is True
+        _, first = markers.wait_for(lambda d: d["instance"] == "held1")
+        assert first["seq"] == held and first["ids"], (first["seq"], held)
+        assert first["dropped"] == 0  # frames replacing each other while idle are not drops
+        client.stop("onboard", "held1")
+    finally:
+        markers.close()
+        frames.close()
