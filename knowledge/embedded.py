@@ -71,6 +71,8 @@ class EmbeddedServer:
         fsync_always: bool = True,
         append_only: bool = True,
         start_timeout: float = 10.0,
+        hz: int | None = None,
+        query_threads: int | None = None,
     ) -> None:
         self.data_dir = Path(data_dir).absolute()
         self.tcp_port = tcp_port
@@ -86,6 +88,9 @@ class EmbeddedServer:
             # stand-in only, so it runs without durability.
             raise StoreUnavailable("FalkorDB's Bolt listener crashes on writes with appendonly on; pass append_only=False")
         self.start_timeout = start_timeout
+        # None: the server's defaults (Redis' 10 Hz housekeeping, one query thread per core).
+        self.hz = hz
+        self.query_threads = query_threads
         self.address: ServerAddress | None = None
         self._process: subprocess.Popen[bytes] | None = None
 
@@ -180,8 +185,12 @@ class EmbeddedServer:
             "--save", "",
             "--daemonize", "no",
             "--protected-mode", "yes",
-            "--loadmodule", get_falkordb_module(),
         ]
+        if self.hz is not None:
+            args += ["--hz", str(self.hz)]
+        args += ["--loadmodule", get_falkordb_module()]
+        if self.query_threads is not None:
+            args += ["THREAD_COUNT", str(self.query_threads)]
         if self.bolt_port:
             args += ["BOLT_PORT", str(self.bolt_port)]
         log_path = self.data_dir / "server.log"

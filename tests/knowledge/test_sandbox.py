@@ -134,3 +134,17 @@ def test_a_watch_lost_with_its_connection_copies_the_graph_again(resp_store, pri
     primary.execute_command("CLIENT", "KILL", "ID", watching[0]["id"])
     resp_store.execute("MATCH (n:Item {id: 1}) SET n.value = 2")  # the watch that would have seen it is gone
     assert _answer(sandbox) == (5, 6)
+
+
+def test_the_sandbox_server_keeps_house_once_a_second_with_one_query_thread(sandbox):
+    """A sandbox answers one question at a time: Redis' 10 Hz housekeeping and a thread per core only cost
+    the robot CPU while idle (0.2 % of a core per server; two per robot, half a core for 100 robots here)."""
+    assert _answer(sandbox) == (5, 5)
+    with open(f"/proc/{sandbox.pid}/cmdline", "rb") as f:  # Redis retitles itself "... unixsocket:<path>"
+        title = f.read().decode().replace("\0", " ")
+    client = redis.Redis(unix_socket_path=title.split("unixsocket:")[1].split()[0], socket_timeout=30)
+    try:
+        assert client.config_get("hz") == {"hz": "1"}
+        assert client.execute_command("GRAPH.CONFIG", "GET", "THREAD_COUNT") == [b"THREAD_COUNT", 1]
+    finally:
+        client.close()
