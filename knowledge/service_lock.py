@@ -30,6 +30,15 @@ from kgadapt.shared.errors import ConfigError, StoreError
 
 log = logging.getLogger(__name__)
 
+# Compare-and-renew and compare-and-delete, each one script so nothing runs between the check and the
+# act (a lease run out between a GET and a PEXPIRE would extend the next holder's). The client may
+# answer strings or bytes (FalkorDB's decodes them); the script compares inside the server.
+_RENEW = ("local held = redis.call('GET', KEYS[1]) "
+          "if held == ARGV[1] then return redis.call('PEXPIRE', KEYS[1], ARGV[2]) end "
+          "if not held then return redis.call('SET', KEYS[1], ARGV[1], 'NX', 'PX', ARGV[2]) and 1 or 0 end "
+          "return -1")
+_RELEASE = "if redis.call('GET', KEYS[1]) == ARGV[1] then return redis.call('DEL', KEYS[1]) end return 0"
+
 
 class ServiceLockHeld(StoreError):
     """Another knowledge service already serves this store."""
@@ -68,8 +77,7 @@ class ServiceLock:
             self._renewer = None
             try:
                 redis = self.store.redis  # type: ignore[attr-defined]  # a lease only on FalkorDB: its redis client
-                if redis.get(self.key) == self.holder.encode():
-                    redis.delete(self.key)
+                redis.eval(_RELEASE, 1, self.key, self.holder)
             except Exception as exc:  # noqa: BLE001 - the store may be gone; the lease then runs out by itself
                 log.debug("service lease not released: %s", exc)
         if self._file is not None:
@@ -110,22 +118,25 @@ class ServiceLock:
                 break
             if time.monotonic() >= deadline:
                 held_by = redis.get(self.key)
+                if isinstance(held_by, bytes):
+                    held_by = held_by.decode(errors="replace")
                 raise ServiceLockHeld(
                     f"another knowledge service already serves the store {self.store.url} "
-                    f"({held_by.decode(errors='replace') if held_by else 'unknown'}); refusing to start a second one"
+                    f"({held_by or 'unknown'}); refusing to start a second one"
                 )
             time.sleep(0.1)
         self._renewer = threading.Thread(target=self._renew, name="knowledge-service-lease", daemon=True)
         self._renewer.start()
 
-    def _renew(self) -> None:
+    def renew(self) -> bool:
+        """Extend the lease for another ``lease_s`` (taken again if it ran out); False when another holds it."""
         redis = self.store.redis  # type: ignore[attr-defined]  # a lease only on FalkorDB: its redis client
-        ttl_ms = int(self.lease_s * 1000)
+        return int(redis.eval(_RENEW, 1, self.key, self.holder, int(self.lease_s * 1000))) >= 0
+
+    def _renew(self) -> None:
         while not self._stop.wait(self.lease_s / 3):
             try:
-                if redis.get(self.key) == self.holder.encode():
-                    redis.pexpire(self.key, ttl_ms)
-                elif not redis.set(self.key, self.holder, nx=True, px=ttl_ms):
+                if not self.renew():
                     log.error("the knowledge service lease on %s is held by another service", self.store.url)
             except Exception as exc:  # noqa: BLE001 - any redis error: renewed again a third of a lease later
                 log.warning("cannot renew the knowledge service lease: %s", exc)
