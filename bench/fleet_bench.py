@@ -430,7 +430,8 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
             store.shutdown()
     pids = fleet.pids()
     store_pids = _store_pids(fleet)
-    idle = measure_cpu(pids, args.fanin_s / 2)
+    idle_cpu = measure_cpu_groups({"services": pids, "store": store_pids}, args.fanin_s / 2)
+    idle = idle_cpu["services"]
     # One publisher per robot-hosting router, for the hosts of its robots: a robot's hosts are
     # clients of its own router, so no status crosses to another router.
     env = {**os.environ, "PYTHONPATH": str(REPO)}
@@ -466,6 +467,7 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
             "status_batch_s": batch_s, "phases": args.phases,
             "services_cpu_pct": round(services, 1), "services_idle_cpu_pct": round(idle, 1),
             "services_cpu_pct_above_idle": round(services - idle, 1), "store_cpu_pct": round(store, 1),
+            "store_idle_cpu_pct": round(idle_cpu["store"], 1),
             "publisher": sent_line.strip(), **sink}
 
 
@@ -561,7 +563,8 @@ def run(args: argparse.Namespace) -> int:
         if r.get("op") == "status_fanin":
             print(f"status fan-in: {r['hosts']} hosts x {r['rate_hz']} Hz into {r['robots']} knowledge services on "
                   f"{r['routers']} routers: {r['services_cpu_pct']} % of one core "
-                  f"({r['services_idle_cpu_pct']} % idle), store {r['store_cpu_pct']} %; a receiver that only "
+                  f"({r['services_idle_cpu_pct']} % idle), store {r['store_cpu_pct']} % "
+                  f"({r.get('store_idle_cpu_pct', '?')} % idle); a receiver that only "
                   f"decodes them: {r['decode_only_receiver_cpu_pct']} %")
     print(f"load average before {load_before[0]:.2f}, after {os.getloadavg()[0]:.2f} (2 cores: others' work "
           f"shares them)")
