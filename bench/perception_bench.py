@@ -101,10 +101,8 @@ def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / 
     as the shipped ones are, at 640 x 480), in place of the shipped photographs or the recoded stand-in.
     ``only_given``: measure the dictionaries of ``photos`` only.
     """
-    import json
 
     from kgadapt.bench import perception_quality as quality
-    from kgadapt.bench import stats
     from kgadapt.knowledge.queries import run_named
     from kgadapt.knowledge.store import open_store
     from kgadapt.onboard.perception.calibration import CalibrationSettings
@@ -131,11 +129,20 @@ def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / 
     oracle = {d: quality.photo_oracle_gap(d, bands, calibration=settings, progress=progress, given=given.get(d),
                                           **({"frames": frames, "levels": levels} if d in given else {}))
               for d in PHOTO_DICTIONARIES if not only_given or d in given}
+    return _save(out, {"blur_agreement": agreement, "oracle_gap": oracle,
+                       "oracle_target_met": all(o["target_met"] for o in oracle.values())},
+                 load_before=load_before, frames=frames, levels=levels)
+
+
+def _save(out: str, data: dict[str, Any], *, load_before: Sequence[float], frames: int, levels: int) -> dict[str, Any]:
+    """``data`` with the machine, the load before and after and the calibration's size, written to ``out``."""
+    import json
+
+    from kgadapt.bench import stats
+
     data = {"machine": stats.machine_info(), "load_average_before": [round(v, 2) for v in load_before],
             "load_average_after": [round(v, 2) for v in os.getloadavg()],
-            "calibration": {"frames_per_level": frames, "levels_per_band": levels},
-            "blur_agreement": agreement, "oracle_gap": oracle,
-            "oracle_target_met": all(o["target_met"] for o in oracle.values())}
+            "calibration": {"frames_per_level": frames, "levels_per_band": levels}, **data}
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")
@@ -237,10 +244,8 @@ def _print_reflex_blur(data: Mapping[str, Any], static: Mapping[str, Any] | None
 def run_reflex_blur(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / "perception.reflex_blur.json",
                     progress: Any = None, **options: Any) -> dict[str, Any]:
     """Calibrate the shipped models in a fresh store, then the gap under blur with the detector's reflexes."""
-    import json
 
     from kgadapt.bench import perception_quality as quality
-    from kgadapt.bench import stats
     from kgadapt.knowledge.queries import run_named
     from kgadapt.knowledge.store import open_store
     from kgadapt.onboard.perception.calibration import CalibrationSettings, run_calibration
@@ -253,14 +258,7 @@ def run_reflex_blur(*, frames: int = 4, levels: int = 4, out: Path | str = RESUL
         with open_store(url) as store:
             data = quality.reflex_blur(lambda name, params: run_named(store, name, params), progress=progress,
                                        **options)
-    data = {"machine": stats.machine_info(), "load_average_before": [round(v, 2) for v in load_before],
-            "load_average_after": [round(v, 2) for v in os.getloadavg()],
-            "calibration": {"frames_per_level": frames, "levels_per_band": levels}, **data}
-    path = Path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=2) + "\n")
-    data["out"] = str(path)
-    return data
+    return _save(out, data, load_before=load_before, frames=frames, levels=levels)
 
 
 def _run_reflex_blur(args: argparse.Namespace) -> int:
