@@ -148,7 +148,8 @@ REAL = {"feature": "MarkerDetection", "platform": "remote", "config": "marker_de
         "threshold_mb": 1000.0, "limit": 20, "limit_pct": 80.0, "condition": "all", "band": "day", "penalty": 1.0,
         "max_ms": 1000.0, "from": "detector_day", "to": "detector_dark", "host": "onboard",
         "standby": "standby", "run_id": "r1", "camera": "camera", "site": "demo-hall", "announce": "quad2",
-        "zid": "ab12", "routers": "ab12,cd34", "source": "synthetic", "deployment": "detector_day", "whole": "all"}
+        "zid": "ab12", "routers": "ab12,cd34", "source": "synthetic", "deployment": "detector_day", "whole": "all",
+        "blur": "blur"}
 
 
 def string_params() -> list[tuple[str, str]]:
