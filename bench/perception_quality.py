@@ -417,12 +417,6 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
 
 # -- the robot under blur, end to end: the detector's reflexes on real photographs (issue 29) ---------------
 
-def _clean_count(found: Any) -> int:
-    """Markers a frame's detection found with clean cells (what the detector's reflex counts)."""
-    clean = found.clean or [True] * len(found.ids)
-    return sum(c is not False for c in clean[:len(found.ids)])
-
-
 def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[str] = BLUR_PHOTOS,
                       sharp_frames: int = 15, blur_frames: int = 30, reaction_frames: int = 5,
                       blur_px: float = 7.0, fps: float = 30.0, settings: Any = None, timed: bool = True,
@@ -494,7 +488,7 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
                 start = time.perf_counter()
                 found = here[reflex.running].detect(image)
                 ms = (time.perf_counter() - start) * 1e3
-                count = _clean_count(found)
+                count = found.clean_count
                 hedge = reflex.hedge_for(level_now) if (not count or reflex.comparing) else None
                 hedge_found = None
                 if hedge is not None and hedge in here and table.budget_ms is not None:
@@ -506,7 +500,7 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
                         hedged += 1
                 if hedge_found is None:
                     hedge = None
-                hedge_count = _clean_count(hedge_found) if hedge_found is not None else 0
+                hedge_count = hedge_found.clean_count if hedge_found is not None else 0
                 swap = reflex.on_result(count, now, hedge=hedge, hedge_found=hedge_count, level=level_now)
                 published = hedge_found if hedge_found is not None and hedge_count > count else found
                 if swap is not None:

@@ -258,11 +258,6 @@ class WarmStart:
         return table, {name: self.cores[name] for name in table.choices()}
 
 
-def _clean_count(result: Any) -> int:
-    clean = result.clean or [True] * len(result.ids)
-    return sum(c is not False for c in clean[:len(result.ids)])
-
-
 _END = b""  # what ends the notifier's thread (no message is empty)
 
 
@@ -518,15 +513,15 @@ class Detector:
         result = core.detect(gray)
         if armed is not None:
             reflex, cores = armed
-            found = _clean_count(result)
+            found = result.clean_count
             # Only a frame the running configuration found nothing on can be won by the hedge: the others
             # are published at once, without its cost; but a try after a fall of the count is judged on
             # what both find on the same frames (reflex.comparing).
             hedge = None if found and not reflex.comparing else \
                 self._hedge(reflex, cores, gray, level, result.processing_ms)
             swap = reflex.on_result(found, time.time(), hedge=hedge[0] if hedge else None,
-                                    hedge_found=_clean_count(hedge[1]) if hedge else 0, level=level)
-            if hedge is not None and _clean_count(hedge[1]) > found:
+                                    hedge_found=hedge[1].clean_count if hedge else 0, level=level)
+            if hedge is not None and hedge[1].clean_count > found:
                 config, result = cores[hedge[0]].config, hedge[1]  # keep whichever finds the markers
             if swap is not None:
                 self._reflex_swap(swap, cores, frame, config)

@@ -200,6 +200,11 @@ class Detection:
     preprocess_ms: float = 0.0
     clean: list[bool] = field(default_factory=list)  # per marker: its cells read clean (cells_are_clean)
 
+    @property
+    def clean_count(self) -> int:
+        """Markers whose cells read clean (no ``clean`` list: all count): what reflexes and hedges weigh."""
+        return sum(c is not False for c in (self.clean or [True] * len(self.ids))[:len(self.ids)])
+
 
 def cells_are_clean(gray: np.ndarray, corners: Any, *, cells: int = 6, max_mixed: float = 0.2) -> bool:
     """Whether the marker at ``corners`` reads as ``cells`` x ``cells`` clean cells, each all dark or all light.

@@ -321,9 +321,8 @@ class Reflex:
             return self._judge_fall(found, now, hedge, hedge_found, expired, level)
         self._count(found, now)
         if found > 0:
-            self.last_seen, self.misses, self.muted, self.wins, self.trying = now, 0, False, 0, None
-            if level is not None and math.isfinite(level):
-                self.seen_level = level
+            self._saw(now, level)
+            self.misses, self.muted, self.wins, self.trying = 0, False, 0, None
             if self.trial is not None and hedge == self.trial[0]:
                 self.trial = None  # the new one finds the markers: it stays
             if self.trial is None and self._fallen():
@@ -355,6 +354,12 @@ class Reflex:
         self.misses = 0
         self.muted = True  # one try per collapse: no cascade down the table
         return self._collapse(level, fall=False)
+
+    def _saw(self, now: float, level: float | None) -> None:
+        """The running configuration found markers: when, and in what light."""
+        self.last_seen = now
+        if level is not None and math.isfinite(level):
+            self.seen_level = level
 
     def _count(self, found: int, now: float) -> None:
         self.counts.append((now, found))
@@ -394,9 +399,7 @@ class Reflex:
         fall = self.fall
         assert fall is not None
         if found > 0:
-            self.last_seen = now
-            if level is not None and math.isfinite(level):
-                self.seen_level = level
+            self._saw(now, level)
         fall.new += found
         fall.old += hedge_found if hedge is not None and hedge == self.trying else fall.fallen
         if not expired:
