@@ -38,15 +38,18 @@ never has more than one question in hand.
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import os
 import select
+import signal
 import struct
 import subprocess
 import sys
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import IO, Any, Mapping
 
 import msgpack
@@ -75,6 +78,10 @@ class PublicWorkerSettings:
     def __post_init__(self) -> None:
         if not 0 <= self.nice <= 19:
             raise ConfigError(f"nice {self.nice!r}: between 0 and 19")
+
+
+class _NoStart(StoreUnavailable):
+    """The child ended or stayed silent before saying it was ready (not a refusal of its own)."""
 
 
 class PublicWorker:
@@ -109,8 +116,19 @@ class PublicWorker:
             self._spawn()
 
     def wait_ready(self) -> None:
+        """Wait (bounded) for the child's sandbox; a child that ended or stayed silent is started once more.
+
+        A start that failed for its own reasons (the store refused the copy) is not retried. One that
+        crashed or hung says so in a warning and gets one more process: the robot's own knowledge
+        service should not fail its start because one helper process did.
+        """
         with self._lock:
-            self._await_ready()
+            try:
+                self._await_ready()
+            except _NoStart as exc:
+                log.warning("public worker: %s; starting another", exc)
+                self.restarts += 1
+                self._start()
 
     def shutdown(self) -> None:
         with self._lock:
@@ -163,10 +181,31 @@ class PublicWorker:
             ready = self._read(time.monotonic() + self.settings.start_timeout_s)
         except KgadaptError:
             ready = None
-        if ready is None or not ready.get("ready"):
+        if ready is not None and ready.get("ready"):
+            return
+        if ready is not None:
             self._stop()
-            why = "no answer" if ready is None else ready.get("text", "refused")
-            raise StoreUnavailable(f"the worker for other robots' questions did not start: {why}")
+            raise StoreUnavailable(f"the worker for other robots' questions did not start: {ready.get('text', 'refused')}")
+        why = self._silence()
+        self._stop()
+        raise _NoStart(f"the worker for other robots' questions did not start: {why}")
+
+    def _silence(self) -> str:
+        """Why the child sent nothing: how it ended, or what state it is in after the start's wait."""
+        assert self._child is not None
+        try:
+            code = self._child.wait(timeout=1.0)  # a child whose pipe ended is about to be reaped
+        except subprocess.TimeoutExpired:
+            code = None
+        if code is not None:
+            return (f"it was killed by signal {signal.Signals(-code).name}" if code < 0
+                    else f"it ended with status {code}")
+        try:
+            state = Path(f"/proc/{self._child.pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
+            state = "?"
+        return (f"no answer in {self.settings.start_timeout_s:g} s from pid {self._child.pid} "
+                f"(state {state}{', stopped by a signal' if state in ('T', 't') else ''})")
 
     def _restart(self, why: str) -> None:
         log.warning("public worker: %s; starting a new one", why)
@@ -281,6 +320,7 @@ def _lower_priority(nice: int) -> None:
 
 
 def main() -> int:
+    faulthandler.enable()  # a crash in a C extension says where on stderr instead of ending silently
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # nothing but frames on the pipe
     first = _receive(inp)

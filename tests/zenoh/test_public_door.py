@@ -180,3 +180,24 @@ def test_other_robots_answers_show_every_write_and_the_graph_is_copied_only_for_
     finally:
         svc.shutdown()
         redis.delete(other, f"kgadapt:knowledge-service:{other}")
+
+
+def test_a_worker_that_dies_before_it_is_ready_is_started_once_more_and_the_log_says_how_it_ended(resp_store, caplog):
+    from kgadapt.knowledge.public_worker import PublicWorker
+
+    resp_store.execute("CREATE (:Mark {name: 'm'})")
+    worker = PublicWorker(resp_store)
+    worker.start()
+    first = worker.pid
+    assert first is not None
+    os.kill(first, signal.SIGKILL)  # before it said it was ready
+    try:
+        with caplog.at_level("WARNING", logger="kgadapt.knowledge.public_worker"):
+            worker.wait_ready()
+        assert worker.restarts == 1 and worker.pid not in (None, first)
+        assert "killed by signal SIGKILL" in caplog.text
+        reply = messages.decode(worker.execute("MATCH (m:Mark) RETURN m.name AS name", {}, limit_ms=5000,
+                                               what="marks"), "rows")
+        assert reply["rows"] == [{"name": "m"}]  # the second process answers
+    finally:
+        worker.shutdown()
