@@ -353,8 +353,11 @@ def recoded_photo(photo: np.ndarray, truth: Sequence[dict[str, Any]], dictionary
 
 def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: CalibrationSettings = CalibrationSettings(),
                      frames: int = 2, levels: int = 2, progress: Progress = None,
-                     given: Sequence[tuple[str, np.ndarray]] | None = None) -> dict[str, Any]:
+                     given: Sequence[tuple[str, np.ndarray]] | None = None, site: Any = None) -> dict[str, Any]:
     """Models naming ``dictionary``, calibrated; their first-ranked per band against the best on real photographs.
+
+    ``site`` (:class:`~kgadapt.onboard.flight.site.SiteMarkers`): calibrated with its markers when it is of
+    ``dictionary`` (its ids, sizes and print layout), as ``kgadapt perception calibrate --site`` does.
 
     Real frames: the photographs of ``dictionary``'s markers where there are
     some (DICT_6X6_250, the custom file), else the DICT_6X6_250 photographs
@@ -367,7 +370,7 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
     from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames, photo_truth, shifted
 
     configs = [replace(c, dictionary=dictionary) for c in shipped_configs()]
-    results = calibrate(configs, bands, calibration)
+    results = calibrate(configs, bands, calibration, site=site)
     picks = {b.name: rank(results, b.name)[0].config for b in bands}
     own = [n for n in BLUR_PHOTOS if _photo_dictionary(n) == dictionary]
     if given is not None:
@@ -409,6 +412,7 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
                          f"best {best} {rates[best]:.1%}, gap {gap} points")
     worst = max(gaps, key=lambda g: g["oracle_gap_points"])
     return {"dictionary": dictionary, "frames": source, "photo_markers": [len(t) for _, t in photos],
+            "site_layout": site.layout if site is not None and site.dictionary == dictionary else None,
             "picks": picks, "gaps": gaps, "worst_gap": worst,
             "target_points": 5.0, "target_met": worst["oracle_gap_points"] <= 5.0,
             "calibrated": [{"config": r.config, "band": r.band, "condition": r.condition,
@@ -420,7 +424,8 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
 def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[str] = BLUR_PHOTOS,
                       sharp_frames: int = 15, blur_frames: int = 30, reaction_frames: int = 5,
                       blur_px: float = 7.0, fps: float = 30.0, settings: Any = None, timed: bool = True,
-                      progress: Progress = None) -> dict[str, Any]:
+                      progress: Progress = None,
+                      given: Sequence[tuple[str, np.ndarray, str]] | None = None) -> dict[str, Any]:
     """What the robot finds under motion blur with the detector's reflexes, against the best configuration.
 
     For each band in ``levels`` (band -> light level) and each photograph: a
@@ -438,7 +443,9 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
     the clean counts, and whichever of the two found more is what it publishes.
     The rate is over the blurred frames after the first ``reaction_frames``
     (the reflex's reaction); the oracle is the best single configuration of
-    the table on those same frames.
+    the table on those same frames. ``given``: ``(name, grey 640x480 frame,
+    dictionary)`` of photographs to use instead of the shipped ``photos``
+    (e.g. real photographs of another dictionary's markers, not shipped).
     """
     import time
 
@@ -462,11 +469,10 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
         per_photo: dict[str, dict[str, float]] = {}
         swaps: list[dict[str, Any]] = []
         hedged = 0
-        for k, name in enumerate(photos):
-            dictionary = _photo_dictionary(name)
+        sources = given if given is not None else [(n, load_photo(n), _photo_dictionary(n)) for n in photos]
+        for k, (name, photo, dictionary) in enumerate(sources):
             here = cores.setdefault(dictionary, {n: MarkerDetector(replace(c.settings, dictionary=dictionary))
                                                  for n, c in choices.items()})
-            photo = load_photo(name)
             truth = photo_truth(photo, dictionary)
             frames = [(False, f) for f in photo_frames(photo, level, count=sharp_frames, camera=sharp_camera, seed=k)]
             frames += [(True, f) for f in photo_frames(photo, level, count=blur_frames, camera=blur_camera,
@@ -536,7 +542,9 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
             progress(f"blur {blur_px:g} px at {band} (level {level:g}): with the reflexes {rate:.1%}, the pick "
                      f"{pick} alone {rates[pick]:.1%}, best {best} {rates[best]:.1%}: gap {gap} points")
     worst = max(out.values(), key=lambda v: v["gap_points"], default=None)
-    return {"photos": list(photos), "sharp_frames": sharp_frames, "blur_frames": blur_frames,
+    return {"photos": [n for n, _p, _d in given] if given is not None else list(photos),
+            "dictionaries": sorted({d for _n, _p, d in given}) if given is not None else None,
+            "sharp_frames": sharp_frames, "blur_frames": blur_frames,
             "reaction_frames": reaction_frames, "blur_px": blur_px, "fps": fps, "timed": timed,
             "bands": out, "worst_gap_points": None if worst is None else worst["gap_points"],
             "target_points": 5.0, "target_met": None if worst is None else worst["gap_points"] <= 5.0}

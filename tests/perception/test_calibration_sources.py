@@ -68,6 +68,47 @@ def test_the_calibration_scene_shows_the_site_ids_at_their_relative_sizes():
                            site=replace(site, dictionary="DICT_4X4_50"))
 
 
+def _corner_shade(scene_settings, outward_px=2.0):
+    """The reflectance just beyond each marker's corners, along its diagonal (a touching neighbour is dark there)."""
+    from kgadapt.onboard.perception.scene import SyntheticScene
+
+    image, truth = SyntheticScene(scene_settings).reflectance(0.0)
+    shades = []
+    for marker in truth:
+        corners = np.float32(marker.corners)
+        centre = corners.mean(axis=0)
+        for corner in corners:
+            away = (corner - centre) / np.linalg.norm(corner - centre)
+            x, y = np.round(corner + away * outward_px).astype(int)
+            shades.append(float(image[y, x]))
+    return shades
+
+
+def test_a_site_whose_markers_touch_is_drawn_so_and_ranks_the_configurations_as_such_a_board_does():
+    # The markers of a ChArUco2 board (a marker in every square) touch at the corners: the day
+    # configuration misses many of them, the dark one (CLAHE, wider windows) does not. Drawn apart, as
+    # before the site could say so, the day configuration ties and wins on speed.
+    from kgadapt.onboard.perception.scene import SceneSettings
+
+    ids = {i: 0.022 for i in range(1, 46, 2)}
+    touching = SiteMarkers(site="board", dictionary="DICT_ARUCO_MIP_36h12", sizes_m=ids, layout="touching")
+    apart = replace(touching, layout="apart")
+    settings = replace(SMALL, conditions=("clean", "small"))
+    frames = render_test_frames([BANDS[2]], settings, dictionary="DICT_ARUCO_MIP_36h12", site=touching)
+    _level, _gray, truth, _hidden = frames[("day", "clean")][0]
+    assert {t.id for t in truth} <= set(ids) and len(truth) >= 4
+    # Drawn touching: just beyond every corner of every marker lies the black border of its diagonal neighbour.
+    drawn = _corner_shade(SceneSettings(dictionary="DICT_ARUCO_MIP_36h12", print_layout="touching"))
+    alone = _corner_shade(SceneSettings(dictionary="DICT_ARUCO_MIP_36h12"))
+    assert max(drawn) < 0.3 < min(alone), (drawn, alone)
+    configs = [replace(c, dictionary="DICT_ARUCO_MIP_36h12") for c in shipped_configs()]
+    on_board = calibrate(configs, [BANDS[2]], settings, site=touching)
+    by = {r.config: r.detection_rate for r in on_board if r.condition == "all"}
+    assert by["marker_detection_dark"] - by["marker_detection_day"] > 0.05, by
+    assert best_per_band(on_board)["day"] == "marker_detection_dark"
+    assert best_per_band(calibrate(configs, [BANDS[2]], settings, site=apart))["day"] != "marker_detection_dark"
+
+
 def _recording(folder, levels=(6.0, 25.0, None), count=2):
     """The photographs of DICT_6X6_250 markers at dark, dusk and their own light, as JPEG frames."""
     folder.mkdir()
