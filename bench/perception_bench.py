@@ -92,6 +92,9 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
                    help="only the gap under blur with the detector's reflexes: calibrate, then real photographs, "
                         "sharp then with a 7 px motion blur, through the reflex table the graph gives (into "
                         "perception.reflex_blur.json beside --out)")
+    p.add_argument("--blur-level", action="append", default=[], metavar="BAND=LEVEL",
+                   help="with --only-reflex-blur: blur at this light level in BAND (dusk or day; repeatable, the "
+                        "band's figures pool its levels; default dusk=25 and day=120)")
     p.set_defaults(func=_run)
 
 
@@ -175,6 +178,22 @@ def _given_photos(args: argparse.Namespace) -> dict[str, list[Path]]:
     return photos
 
 
+def _blur_levels(args: argparse.Namespace) -> dict[str, list[float]]:
+    """The ``--blur-level BAND=LEVEL`` options, per band; SystemExit naming a bad one."""
+    levels: dict[str, list[float]] = {}
+    for item in args.blur_level:
+        band, sep, value = item.partition("=")
+        try:
+            level = float(value)
+        except ValueError:
+            level = -1.0
+        if not sep or band not in ("dusk", "day") or not 0 < level <= 255:
+            raise SystemExit(f"kgadapt bench perception: --blur-level {item!r}: give BAND=LEVEL, BAND dusk or day "
+                             "and LEVEL a mean grey level in (0, 255]")
+        levels.setdefault(band, []).append(level)
+    return levels
+
+
 def _run_photos(args: argparse.Namespace) -> int:
     import json
 
@@ -251,7 +270,8 @@ def _print_reflex_blur(data: Mapping[str, Any], static: Mapping[str, Any] | None
         print(f"  static gap under blur (synthetic scene, the band's pick alone): worst {w['oracle_gap_points']} "
               f"points at {w['band']}/{w['condition']}")
     for band, b in data["bands"].items():
-        print(f"  gap under blur with the detector's reflexes ({b['level']:g} light, real photographs, "
+        level = ", ".join(f"{v:g}" for v in (b["level"] if isinstance(b["level"], list) else [b["level"]]))
+        print(f"  gap under blur with the detector's reflexes ({level} light, real photographs, "
               f"{data['blur_px']:g} px blur, after {data['reaction_frames']} frames): {band} {b['gap_points']} points "
               f"(with the reflexes {b['reflex_rate']:.1%}, the pick {b['pick']} alone {b['pick_rate']:.1%}: "
               f"static {b['static_gap_points']} points; best {b['best']} {b['best_rate']:.1%}; "
@@ -262,11 +282,13 @@ def _print_reflex_blur(data: Mapping[str, Any], static: Mapping[str, Any] | None
 
 def run_reflex_blur(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / "perception.reflex_blur.json",
                     progress: Any = None, photos: Mapping[str, Sequence[Path]] | None = None,
-                    site: Path | None = None, **options: Any) -> dict[str, Any]:
+                    site: Path | None = None, blur_levels: Mapping[str, Sequence[float]] | None = None,
+                    **options: Any) -> dict[str, Any]:
     """Calibrate the shipped models in a fresh store, then the gap under blur with the detector's reflexes.
 
     ``photos``: per dictionary, real photographs of its markers to feed the reflexes instead of the
     shipped blur-agreement photographs (the models calibrated as shipped, or with ``site``'s markers).
+    ``blur_levels``: band -> light levels to blur at (default the day level 120 and the dusk band's middle).
     """
 
     from kgadapt.bench import perception_quality as quality
@@ -279,6 +301,8 @@ def run_reflex_blur(*, frames: int = 4, levels: int = 4, out: Path | str = RESUL
     from kgadapt.onboard.flight.site import load_site
     from kgadapt.sim.photos import load_photo
 
+    if blur_levels:
+        options["levels"] = {band: list(values) for band, values in blur_levels.items()}
     if photos:
         options["given"] = [(str(f), load_photo(str(f)), d) for d, files in photos.items() for f in files]
     with tempfile.TemporaryDirectory(prefix="kgadapt-reflex-blur-") as tmp:
@@ -299,7 +323,8 @@ def _run_reflex_blur(args: argparse.Namespace) -> int:
     # Figures on photographs given here (not shipped) go beside the shipped ones', not over them.
     name = "perception.reflex_blur.given.json" if photos else "perception.reflex_blur.json"
     data = run_reflex_blur(frames=args.frames, levels=args.levels, out=args.photos_out or Path(args.out).parent / name,
-                           progress=None if args.json else _say, photos=photos, site=args.site)
+                           progress=None if args.json else _say, photos=photos, site=args.site,
+                           blur_levels=_blur_levels(args))
     if args.json:
         print(json.dumps(data, indent=2))
         return 0

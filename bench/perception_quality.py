@@ -25,7 +25,7 @@ Used by ``kgadapt bench perception``:
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -421,14 +421,15 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
 
 # -- the robot under blur, end to end: the detector's reflexes on real photographs (issue 29) ---------------
 
-def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[str] = BLUR_PHOTOS,
+def reflex_under_blur(table: Any, levels: Mapping[str, float | Sequence[float]], *, photos: Sequence[str] = BLUR_PHOTOS,
                       sharp_frames: int = 15, blur_frames: int = 30, reaction_frames: int = 5,
                       blur_px: float = 7.0, fps: float = 30.0, settings: Any = None, timed: bool = True,
                       progress: Progress = None,
                       given: Sequence[tuple[str, np.ndarray, str]] | None = None) -> dict[str, Any]:
     """What the robot finds under motion blur with the detector's reflexes, against the best configuration.
 
-    For each band in ``levels`` (band -> light level) and each photograph: a
+    For each band in ``levels`` (band -> light level, or several: the band's
+    figures then pool them) and each photograph: a
     fresh :class:`~kgadapt.onboard.perception.reflex.Reflex` on ``table`` (the
     graph's ``reflex_table``, compiled) runs the band's pick; it is fed
     ``sharp_frames`` frames of the photograph through the camera model at the
@@ -470,12 +471,14 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
         swaps: list[dict[str, Any]] = []
         hedged = 0
         sources = given if given is not None else [(n, load_photo(n), _photo_dictionary(n)) for n in photos]
-        for k, (name, photo, dictionary) in enumerate(sources):
+        band_levels = [float(v) for v in level] if isinstance(level, (list, tuple)) else [float(level)]
+        runs = [(lv, k, source) for lv in band_levels for k, source in enumerate(sources)]
+        for lv, k, (name, photo, dictionary) in runs:
             here = cores.setdefault(dictionary, {n: MarkerDetector(replace(c.settings, dictionary=dictionary))
                                                  for n, c in choices.items()})
             truth = photo_truth(photo, dictionary)
-            frames = [(False, f) for f in photo_frames(photo, level, count=sharp_frames, camera=sharp_camera, seed=k)]
-            frames += [(True, f) for f in photo_frames(photo, level, count=blur_frames, camera=blur_camera,
+            frames = [(False, f) for f in photo_frames(photo, lv, count=sharp_frames, camera=sharp_camera, seed=k)]
+            frames += [(True, f) for f in photo_frames(photo, lv, count=blur_frames, camera=blur_camera,
                                                        seed=100 + k)]
             reflex = Reflex(table=table, running=pick, settings=settings)
             seen: tuple[float, Any] = (-1e9, [])
@@ -527,7 +530,7 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
             reflex_score.add(mine)
             for n, s in theirs.items():
                 oracle[n].add(s)
-            per_photo[name] = {"reflex": round(mine.detection_rate, 4),
+            per_photo[name if len(band_levels) == 1 else f"{name} @ {lv:g}"] = {"reflex": round(mine.detection_rate, 4),
                                **{n: round(s.detection_rate, 4) for n, s in theirs.items()}}
         rates = {n: round(s.detection_rate, 4) for n, s in oracle.items()}
         best = max(rates, key=lambda n: rates[n])
@@ -539,7 +542,7 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
                      "markers": reflex_score.truth, "false_per_frame": round(reflex_score.false_per_frame, 4),
                      "hedged_frames": hedged, "per_photo": per_photo, "swaps": swaps}
         if progress:
-            progress(f"blur {blur_px:g} px at {band} (level {level:g}): with the reflexes {rate:.1%}, the pick "
+            progress(f"blur {blur_px:g} px at {band} (level {', '.join(f'{v:g}' for v in band_levels)}): with the reflexes {rate:.1%}, the pick "
                      f"{pick} alone {rates[pick]:.1%}, best {best} {rates[best]:.1%}: gap {gap} points")
     worst = max(out.values(), key=lambda v: v["gap_points"], default=None)
     return {"photos": [n for n, _p, _d in given] if given is not None else list(photos),
@@ -555,7 +558,7 @@ BLUR_LEVELS = {"dusk": 25.0, "day": 120.0}
 
 
 def reflex_blur(ask: Callable[[str, dict[str, Any]], list[dict[str, Any]]], *, deployment: str = "detector_day",
-                host: str = "onboard", levels: dict[str, float] = BLUR_LEVELS, progress: Progress = None,
+                host: str = "onboard", levels: Mapping[str, float | Sequence[float]] = BLUR_LEVELS, progress: Progress = None,
                 **options: Any) -> dict[str, Any]:
     """:func:`reflex_under_blur` on the reflex table a detector of ``deployment`` on ``host`` reads from the
     (calibrated) graph, as the running detector compiles it."""
