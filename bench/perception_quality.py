@@ -542,7 +542,8 @@ def reflex_under_blur(table: Any, levels: Mapping[str, float | Sequence[float]],
                      "markers": reflex_score.truth, "false_per_frame": round(reflex_score.false_per_frame, 4),
                      "hedged_frames": hedged, "per_photo": per_photo, "swaps": swaps}
         if progress:
-            progress(f"blur {blur_px:g} px at {band} (level {', '.join(f'{v:g}' for v in band_levels)}): with the reflexes {rate:.1%}, the pick "
+            shown = ", ".join(f"{v:g}" for v in band_levels)
+            progress(f"blur {blur_px:g} px at {band} (level {shown}): with the reflexes {rate:.1%}, the pick "
                      f"{pick} alone {rates[pick]:.1%}, best {best} {rates[best]:.1%}: gap {gap} points")
     worst = max(out.values(), key=lambda v: v["gap_points"], default=None)
     return {"photos": [n for n, _p, _d in given] if given is not None else list(photos),
