@@ -190,3 +190,30 @@ def test_calibrate_from_frames_records_the_figures_beside_the_synthetic_ones(tmp
     assert rates["marker_detection_day"] < 0.3 < rates["marker_detection_dark"]
     # The synthetic figures are still there, and were not overwritten by the recording's.
     assert {r["config"]: r["detection_rate"] for r in synthetic} != rates
+
+
+def test_on_the_real_touching_board_the_day_pick_of_a_calibration_with_its_site_is_the_best():
+    # The photograph (rmsalinas/charuco2 board_image.jpg, sim/photographs/SOURCES.txt) is awaited, not shipped.
+    from kgadapt.onboard.flight.site import load_site
+    from kgadapt.onboard.perception.markers import MarkerDetector, Score, score
+    from kgadapt.sim.photos import PHOTO_DIR, shifted
+
+    name = "charuco2_board_image.jpg"
+    if not (PHOTO_DIR / name).is_file():
+        pytest.skip(f"{name} is not placed in sim/photographs yet (SOURCES.txt names its source)")
+    site = load_site(PHOTO_DIR / "charuco2_board.site")
+    configs = [replace(c, dictionary=site.dictionary) for c in shipped_configs()]
+    pick = best_per_band(calibrate(configs, [BANDS[2]], replace(SMALL, conditions=("clean", "small")), site=site))["day"]
+    photo = load_photo(name)
+    truth = photo_truth(photo, site.dictionary)
+    scores = {c.name: Score() for c in configs}
+    detectors = {c.name: MarkerDetector(c) for c in configs}
+    for level in (60.0, 140.0):
+        for frame in photo_frames(photo, level, count=2, seed=3):
+            _ok, jpeg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, 80])  # as on the wire
+            image = cv2.imdecode(jpeg, cv2.IMREAD_GRAYSCALE)
+            for n, detector in detectors.items():
+                found = detector.detect(image)
+                scores[n].add(score(found.ids, found.corners, shifted(truth, frame.shift)))
+    rates = {n: s.detection_rate for n, s in scores.items()}
+    assert max(rates.values()) - rates[pick] <= 0.05, (pick, rates)
