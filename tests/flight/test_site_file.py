@@ -79,6 +79,8 @@ def test_a_site_says_how_its_markers_are_printed_and_a_misspelt_layout_is_refuse
     path.write_text(text)
     assert load_site(path).layout == "touching"
     assert load_site(DEMO).layout == "apart"  # a site that does not say prints its markers apart
+    board = load_site(Path(__file__).resolve().parents[2] / "sim" / "photographs" / "charuco2_board.site")
+    assert (board.layout, board.dictionary, len(board.ids)) == ("touching", "DICT_ARUCO_MIP_36h12", 23)
     # The model loader reads the same file: the layout is the Site node's, beside its dictionary.
     site_node = next(n for n in parse(text, str(path)).nodes if n.name == "board")
     assert site_node.props == {"dictionary": "DICT_ARUCO_MIP_36h12", "layout": "touching"}
