@@ -68,8 +68,9 @@ def test_the_calibration_scene_shows_the_site_ids_at_their_relative_sizes():
                            site=replace(site, dictionary="DICT_4X4_50"))
 
 
-def _corner_shade(scene_settings, outward_px=2.0):
-    """The reflectance just beyond each marker's corners, along its diagonal (a touching neighbour is dark there)."""
+def _corner_shade(scene_settings, outward_px=2.0, *, sides=False, outward_of_side=0.0):
+    """The reflectance just beyond each marker's corners, along its diagonal (a touching neighbour is dark there);
+    ``sides``: beyond the middle of each side instead, ``outward_of_side`` x the side further out."""
     from kgadapt.onboard.perception.scene import SyntheticScene
 
     image, truth = SyntheticScene(scene_settings).reflectance(0.0)
@@ -77,9 +78,11 @@ def _corner_shade(scene_settings, outward_px=2.0):
     for marker in truth:
         corners = np.float32(marker.corners)
         centre = corners.mean(axis=0)
-        for corner in corners:
-            away = (corner - centre) / np.linalg.norm(corner - centre)
-            x, y = np.round(corner + away * outward_px).astype(int)
+        points = (corners + np.roll(corners, -1, axis=0)) / 2 if sides else corners
+        side = float(np.linalg.norm(corners[0] - corners[1]))
+        for point in points:
+            away = (point - centre) / np.linalg.norm(point - centre)
+            x, y = np.round(point + away * (outward_px + outward_of_side * side)).astype(int)
             shades.append(float(image[y, x]))
     return shades
 
@@ -101,6 +104,11 @@ def test_a_site_whose_markers_touch_is_drawn_so_and_ranks_the_configurations_as_
     drawn = _corner_shade(SceneSettings(dictionary="DICT_ARUCO_MIP_36h12", print_layout="touching"))
     alone = _corner_shade(SceneSettings(dictionary="DICT_ARUCO_MIP_36h12"))
     assert max(drawn) < 0.3 < min(alone), (drawn, alone)
+    # On a ChArUco board (chessboard): beyond each side's white margin, the black square next to it.
+    beside = _corner_shade(SceneSettings(dictionary="DICT_ARUCO_MIP_36h12", print_layout="chessboard"),
+                           sides=True, outward_of_side=0.32)
+    margin_only = _corner_shade(SceneSettings(dictionary="DICT_ARUCO_MIP_36h12"), sides=True, outward_of_side=0.32)
+    assert max(beside) < 0.3 < min(margin_only), (beside, margin_only)
     configs = [replace(c, dictionary="DICT_ARUCO_MIP_36h12") for c in shipped_configs()]
     on_board = calibrate(configs, [BANDS[2]], settings, site=touching)
     by = {r.config: r.detection_rate for r in on_board if r.condition == "all"}
