@@ -73,19 +73,28 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
                         "(into perception.photos.json beside --out)")
     p.add_argument("--photo", action="append", default=[], metavar="DICTIONARY=FILE",
                    help="with --photos: the oracle gap of DICTIONARY on this real photograph of its markers "
-                        "(repeatable) instead of the shipped ones or the recoded stand-in; for photographs "
-                        "whose licence keeps them out of sim/photographs (see its SOURCES.txt)")
+                        "(repeatable) instead of the shipped ones or the recoded stand-in; with --only-reflex-blur: "
+                        "these photographs (read with DICTIONARY) through the reflexes instead of the shipped ones "
+                        "(into perception.reflex_blur.given.json); for photographs whose licence keeps them out "
+                        "of sim/photographs (see its SOURCES.txt)")
     p.add_argument("--only-given", action="store_true",
                    help="with --photo: the oracle gap of the dictionaries given photographs only (the others take "
                         "a calibration each on the recoded stand-in)")
     p.add_argument("--photos-out", type=Path, default=None, metavar="FILE",
-                   help="with --photos: where to write the figures (default perception.photos.json beside --out, "
-                        "perception.photos.given.json with --photo)")
+                   help="with --photos or --only-reflex-blur: where to write the figures (default "
+                        "perception.photos.json / perception.reflex_blur.json beside --out, *.given.json with --photo)")
+    p.add_argument("--site", type=Path, default=None, metavar="FILE",
+                   help="with --photos: calibrate models naming the site file's dictionary with its markers, as "
+                        "`kgadapt perception calibrate --site FILE` does (ids, sizes and how they are printed: its "
+                        "layout); with --only-reflex-blur: the site the shipped models are calibrated with")
     p.add_argument("--skip-blur", action="store_true", help="with --photos: leave out the blur agreement")
     p.add_argument("--only-reflex-blur", action="store_true",
                    help="only the gap under blur with the detector's reflexes: calibrate, then real photographs, "
                         "sharp then with a 7 px motion blur, through the reflex table the graph gives (into "
                         "perception.reflex_blur.json beside --out)")
+    p.add_argument("--blur-level", action="append", default=[], metavar="BAND=LEVEL",
+                   help="with --only-reflex-blur: blur at this light level in BAND (dusk or day; repeatable, the "
+                        "band's figures pool its levels; default dusk=25 and day=120)")
     p.set_defaults(func=_run)
 
 
@@ -94,12 +103,13 @@ PHOTO_DICTIONARIES = ("DICT_4X4_50", "DICT_6X6_250", "DICT_5X5_1000", "DICT_ARUC
 
 def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / "perception.photos.json",
                progress: Any = None, photos: Mapping[str, Sequence[Path]] | None = None,
-               blur: bool = True, only_given: bool = False) -> dict[str, Any]:
+               blur: bool = True, only_given: bool = False, site: Path | None = None) -> dict[str, Any]:
     """Blur agreement and the oracle gap per dictionary on real photographs; write them to ``out``.
 
     ``photos``: per dictionary, photograph files of its markers to measure its oracle gap on (read
     as the shipped ones are, at 640 x 480), in place of the shipped photographs or the recoded stand-in.
-    ``only_given``: measure the dictionaries of ``photos`` only.
+    ``only_given``: measure the dictionaries of ``photos`` only. ``site``: a site file whose markers
+    (ids, sizes, layout) the calibration of models naming its dictionary draws.
     """
 
     from kgadapt.bench import perception_quality as quality
@@ -119,17 +129,23 @@ def run_photos(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / 
             bands = bands_from_rows(run_named(store, "detector_configs", {"feature": "MarkerDetection"}))
         finally:
             store.shutdown()
+    from kgadapt.onboard.flight.site import load_site
     from kgadapt.sim.photos import load_photo
 
+    site_markers = load_site(site) if site else None
     agreement = quality.blur_agreement(progress=progress) if blur else None
     settings = CalibrationSettings(frames_per_level=frames, levels_per_band=levels)
     given = {d: [(str(f), load_photo(str(f))) for f in files] for d, files in (photos or {}).items()}
     # A given photograph may hold few markers (six on the DICT_4X4_50 one): frames x levels as calibrated
     # (16 a band and condition, 96 marker sightings for six) so that one marker is about one point, not four.
     oracle = {d: quality.photo_oracle_gap(d, bands, calibration=settings, progress=progress, given=given.get(d),
+                                          site=site_markers,
                                           **({"frames": frames, "levels": levels} if d in given else {}))
               for d in PHOTO_DICTIONARIES if not only_given or d in given}
-    return _save(out, {"blur_agreement": agreement, "oracle_gap": oracle,
+    return _save(out, {"site": None if site_markers is None else {"file": str(site), "site": site_markers.site,
+                                                                  "dictionary": site_markers.dictionary,
+                                                                  "layout": site_markers.layout},
+                       "blur_agreement": agreement, "oracle_gap": oracle,
                        "oracle_target_met": all(o["target_met"] for o in oracle.values())},
                  load_before=load_before, frames=frames, levels=levels)
 
@@ -150,9 +166,8 @@ def _save(out: str, data: dict[str, Any], *, load_before: Sequence[float], frame
     return data
 
 
-def _run_photos(args: argparse.Namespace) -> int:
-    import json
-
+def _given_photos(args: argparse.Namespace) -> dict[str, list[Path]]:
+    """The ``--photo DICTIONARY=FILE`` options, per dictionary; SystemExit naming a bad one."""
     photos: dict[str, list[Path]] = {}
     for item in args.photo:
         dictionary, sep, file = item.partition("=")
@@ -160,13 +175,36 @@ def _run_photos(args: argparse.Namespace) -> int:
             raise SystemExit(f"kgadapt bench perception: --photo {item!r}: give DICTIONARY=FILE, DICTIONARY one of "
                              f"{', '.join(PHOTO_DICTIONARIES)} and FILE an existing photograph")
         photos.setdefault(dictionary, []).append(Path(file))
+    return photos
+
+
+def _blur_levels(args: argparse.Namespace) -> dict[str, list[float]]:
+    """The ``--blur-level BAND=LEVEL`` options, per band; SystemExit naming a bad one."""
+    levels: dict[str, list[float]] = {}
+    for item in args.blur_level:
+        band, sep, value = item.partition("=")
+        try:
+            level = float(value)
+        except ValueError:
+            level = -1.0
+        if not sep or band not in ("dusk", "day") or not 0 < level <= 255:
+            raise SystemExit(f"kgadapt bench perception: --blur-level {item!r}: give BAND=LEVEL, BAND dusk or day "
+                             "and LEVEL a mean grey level in (0, 255]")
+        levels.setdefault(band, []).append(level)
+    return levels
+
+
+def _run_photos(args: argparse.Namespace) -> int:
+    import json
+
+    photos = _given_photos(args)
     if args.only_given and not photos:
         raise SystemExit("kgadapt bench perception: --only-given needs at least one --photo DICTIONARY=FILE")
     # Figures on photographs given here (not shipped) go beside the shipped ones', not over them.
     name = "perception.photos.given.json" if photos else "perception.photos.json"
     data = run_photos(frames=args.frames, levels=args.levels, out=args.photos_out or Path(args.out).parent / name,
                       progress=None if args.json else _say, photos=photos, blur=not args.skip_blur,
-                      only_given=args.only_given)
+                      only_given=args.only_given, site=args.site)
     if args.json:
         print(json.dumps(data, indent=2))
         return 0
@@ -232,7 +270,8 @@ def _print_reflex_blur(data: Mapping[str, Any], static: Mapping[str, Any] | None
         print(f"  static gap under blur (synthetic scene, the band's pick alone): worst {w['oracle_gap_points']} "
               f"points at {w['band']}/{w['condition']}")
     for band, b in data["bands"].items():
-        print(f"  gap under blur with the detector's reflexes ({b['level']:g} light, real photographs, "
+        level = ", ".join(f"{v:g}" for v in (b["level"] if isinstance(b["level"], list) else [b["level"]]))
+        print(f"  gap under blur with the detector's reflexes ({level} light, real photographs, "
               f"{data['blur_px']:g} px blur, after {data['reaction_frames']} frames): {band} {b['gap_points']} points "
               f"(with the reflexes {b['reflex_rate']:.1%}, the pick {b['pick']} alone {b['pick_rate']:.1%}: "
               f"static {b['static_gap_points']} points; best {b['best']} {b['best_rate']:.1%}; "
@@ -242,8 +281,15 @@ def _print_reflex_blur(data: Mapping[str, Any], static: Mapping[str, Any] | None
 
 
 def run_reflex_blur(*, frames: int = 4, levels: int = 4, out: Path | str = RESULTS / "perception.reflex_blur.json",
-                    progress: Any = None, **options: Any) -> dict[str, Any]:
-    """Calibrate the shipped models in a fresh store, then the gap under blur with the detector's reflexes."""
+                    progress: Any = None, photos: Mapping[str, Sequence[Path]] | None = None,
+                    site: Path | None = None, blur_levels: Mapping[str, Sequence[float]] | None = None,
+                    **options: Any) -> dict[str, Any]:
+    """Calibrate the shipped models in a fresh store, then the gap under blur with the detector's reflexes.
+
+    ``photos``: per dictionary, real photographs of its markers to feed the reflexes instead of the
+    shipped blur-agreement photographs (the models calibrated as shipped, or with ``site``'s markers).
+    ``blur_levels``: band -> light levels to blur at (default the day level 120 and the dusk band's middle).
+    """
 
     from kgadapt.bench import perception_quality as quality
     from kgadapt.knowledge.queries import run_named
@@ -252,20 +298,33 @@ def run_reflex_blur(*, frames: int = 4, levels: int = 4, out: Path | str = RESUL
 
     load_before = os.getloadavg()
     settings = CalibrationSettings(frames_per_level=frames, levels_per_band=levels)
+    from kgadapt.onboard.flight.site import load_site
+    from kgadapt.sim.photos import load_photo
+
+    if blur_levels:
+        options["levels"] = {band: list(values) for band, values in blur_levels.items()}
+    if photos:
+        options["given"] = [(str(f), load_photo(str(f)), d) for d, files in photos.items() for f in files]
     with tempfile.TemporaryDirectory(prefix="kgadapt-reflex-blur-") as tmp:
         url = f"embedded:{tmp}/store"
-        run_calibration(url, settings=settings, progress=progress, json_path=None, plot_path=None)
+        run_calibration(url, settings=settings, progress=progress, json_path=None, plot_path=None,
+                        site=load_site(site) if site else None)
         with open_store(url) as store:
             data = quality.reflex_blur(lambda name, params: run_named(store, name, params), progress=progress,
                                        **options)
-    return _save(out, data, load_before=load_before, frames=frames, levels=levels)
+    return _save(out, {"site": None if site is None else str(site), **data}, load_before=load_before,
+                 frames=frames, levels=levels)
 
 
 def _run_reflex_blur(args: argparse.Namespace) -> int:
     import json
 
-    data = run_reflex_blur(frames=args.frames, levels=args.levels, out=Path(args.out).parent / "perception.reflex_blur.json",
-                           progress=None if args.json else _say)
+    photos = _given_photos(args)
+    # Figures on photographs given here (not shipped) go beside the shipped ones', not over them.
+    name = "perception.reflex_blur.given.json" if photos else "perception.reflex_blur.json"
+    data = run_reflex_blur(frames=args.frames, levels=args.levels, out=args.photos_out or Path(args.out).parent / name,
+                           progress=None if args.json else _say, photos=photos, site=args.site,
+                           blur_levels=_blur_levels(args))
     if args.json:
         print(json.dumps(data, indent=2))
         return 0

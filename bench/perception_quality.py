@@ -25,7 +25,7 @@ Used by ``kgadapt bench perception``:
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -353,8 +353,11 @@ def recoded_photo(photo: np.ndarray, truth: Sequence[dict[str, Any]], dictionary
 
 def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: CalibrationSettings = CalibrationSettings(),
                      frames: int = 2, levels: int = 2, progress: Progress = None,
-                     given: Sequence[tuple[str, np.ndarray]] | None = None) -> dict[str, Any]:
+                     given: Sequence[tuple[str, np.ndarray]] | None = None, site: Any = None) -> dict[str, Any]:
     """Models naming ``dictionary``, calibrated; their first-ranked per band against the best on real photographs.
+
+    ``site`` (:class:`~kgadapt.onboard.flight.site.SiteMarkers`): calibrated with its markers when it is of
+    ``dictionary`` (its ids, sizes and print layout), as ``kgadapt perception calibrate --site`` does.
 
     Real frames: the photographs of ``dictionary``'s markers where there are
     some (DICT_6X6_250, the custom file), else the DICT_6X6_250 photographs
@@ -367,7 +370,7 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
     from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_frames, photo_truth, shifted
 
     configs = [replace(c, dictionary=dictionary) for c in shipped_configs()]
-    results = calibrate(configs, bands, calibration)
+    results = calibrate(configs, bands, calibration, site=site)
     picks = {b.name: rank(results, b.name)[0].config for b in bands}
     own = [n for n in BLUR_PHOTOS if _photo_dictionary(n) == dictionary]
     if given is not None:
@@ -409,6 +412,7 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
                          f"best {best} {rates[best]:.1%}, gap {gap} points")
     worst = max(gaps, key=lambda g: g["oracle_gap_points"])
     return {"dictionary": dictionary, "frames": source, "photo_markers": [len(t) for _, t in photos],
+            "site_layout": site.layout if site is not None and site.dictionary == dictionary else None,
             "picks": picks, "gaps": gaps, "worst_gap": worst,
             "target_points": 5.0, "target_met": worst["oracle_gap_points"] <= 5.0,
             "calibrated": [{"config": r.config, "band": r.band, "condition": r.condition,
@@ -417,13 +421,15 @@ def photo_oracle_gap(dictionary: str, bands: Sequence[Band], *, calibration: Cal
 
 # -- the robot under blur, end to end: the detector's reflexes on real photographs (issue 29) ---------------
 
-def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[str] = BLUR_PHOTOS,
+def reflex_under_blur(table: Any, levels: Mapping[str, float | Sequence[float]], *, photos: Sequence[str] = BLUR_PHOTOS,
                       sharp_frames: int = 15, blur_frames: int = 30, reaction_frames: int = 5,
                       blur_px: float = 7.0, fps: float = 30.0, settings: Any = None, timed: bool = True,
-                      progress: Progress = None) -> dict[str, Any]:
+                      progress: Progress = None,
+                      given: Sequence[tuple[str, np.ndarray, str]] | None = None) -> dict[str, Any]:
     """What the robot finds under motion blur with the detector's reflexes, against the best configuration.
 
-    For each band in ``levels`` (band -> light level) and each photograph: a
+    For each band in ``levels`` (band -> light level, or several: the band's
+    figures then pool them) and each photograph: a
     fresh :class:`~kgadapt.onboard.perception.reflex.Reflex` on ``table`` (the
     graph's ``reflex_table``, compiled) runs the band's pick; it is fed
     ``sharp_frames`` frames of the photograph through the camera model at the
@@ -438,7 +444,9 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
     the clean counts, and whichever of the two found more is what it publishes.
     The rate is over the blurred frames after the first ``reaction_frames``
     (the reflex's reaction); the oracle is the best single configuration of
-    the table on those same frames.
+    the table on those same frames. ``given``: ``(name, grey 640x480 frame,
+    dictionary)`` of photographs to use instead of the shipped ``photos``
+    (e.g. real photographs of another dictionary's markers, not shipped).
     """
     import time
 
@@ -462,14 +470,15 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
         per_photo: dict[str, dict[str, float]] = {}
         swaps: list[dict[str, Any]] = []
         hedged = 0
-        for k, name in enumerate(photos):
-            dictionary = _photo_dictionary(name)
+        sources = given if given is not None else [(n, load_photo(n), _photo_dictionary(n)) for n in photos]
+        band_levels = [float(v) for v in level] if isinstance(level, (list, tuple)) else [float(level)]
+        runs = [(lv, k, source) for lv in band_levels for k, source in enumerate(sources)]
+        for lv, k, (name, photo, dictionary) in runs:
             here = cores.setdefault(dictionary, {n: MarkerDetector(replace(c.settings, dictionary=dictionary))
                                                  for n, c in choices.items()})
-            photo = load_photo(name)
             truth = photo_truth(photo, dictionary)
-            frames = [(False, f) for f in photo_frames(photo, level, count=sharp_frames, camera=sharp_camera, seed=k)]
-            frames += [(True, f) for f in photo_frames(photo, level, count=blur_frames, camera=blur_camera,
+            frames = [(False, f) for f in photo_frames(photo, lv, count=sharp_frames, camera=sharp_camera, seed=k)]
+            frames += [(True, f) for f in photo_frames(photo, lv, count=blur_frames, camera=blur_camera,
                                                        seed=100 + k)]
             reflex = Reflex(table=table, running=pick, settings=settings)
             seen: tuple[float, Any] = (-1e9, [])
@@ -521,7 +530,7 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
             reflex_score.add(mine)
             for n, s in theirs.items():
                 oracle[n].add(s)
-            per_photo[name] = {"reflex": round(mine.detection_rate, 4),
+            per_photo[name if len(band_levels) == 1 else f"{name} @ {lv:g}"] = {"reflex": round(mine.detection_rate, 4),
                                **{n: round(s.detection_rate, 4) for n, s in theirs.items()}}
         rates = {n: round(s.detection_rate, 4) for n, s in oracle.items()}
         best = max(rates, key=lambda n: rates[n])
@@ -533,10 +542,13 @@ def reflex_under_blur(table: Any, levels: dict[str, float], *, photos: Sequence[
                      "markers": reflex_score.truth, "false_per_frame": round(reflex_score.false_per_frame, 4),
                      "hedged_frames": hedged, "per_photo": per_photo, "swaps": swaps}
         if progress:
-            progress(f"blur {blur_px:g} px at {band} (level {level:g}): with the reflexes {rate:.1%}, the pick "
+            shown = ", ".join(f"{v:g}" for v in band_levels)
+            progress(f"blur {blur_px:g} px at {band} (level {shown}): with the reflexes {rate:.1%}, the pick "
                      f"{pick} alone {rates[pick]:.1%}, best {best} {rates[best]:.1%}: gap {gap} points")
     worst = max(out.values(), key=lambda v: v["gap_points"], default=None)
-    return {"photos": list(photos), "sharp_frames": sharp_frames, "blur_frames": blur_frames,
+    return {"photos": [n for n, _p, _d in given] if given is not None else list(photos),
+            "dictionaries": sorted({d for _n, _p, d in given}) if given is not None else None,
+            "sharp_frames": sharp_frames, "blur_frames": blur_frames,
             "reaction_frames": reaction_frames, "blur_px": blur_px, "fps": fps, "timed": timed,
             "bands": out, "worst_gap_points": None if worst is None else worst["gap_points"],
             "target_points": 5.0, "target_met": None if worst is None else worst["gap_points"] <= 5.0}
@@ -547,7 +559,7 @@ BLUR_LEVELS = {"dusk": 25.0, "day": 120.0}
 
 
 def reflex_blur(ask: Callable[[str, dict[str, Any]], list[dict[str, Any]]], *, deployment: str = "detector_day",
-                host: str = "onboard", levels: dict[str, float] = BLUR_LEVELS, progress: Progress = None,
+                host: str = "onboard", levels: Mapping[str, float | Sequence[float]] = BLUR_LEVELS, progress: Progress = None,
                 **options: Any) -> dict[str, Any]:
     """:func:`reflex_under_blur` on the reflex table a detector of ``deployment`` on ``host`` reads from the
     (calibrated) graph, as the running detector compiles it."""

@@ -23,7 +23,8 @@ def parse(text: str, path: str) -> ParsedModel:
     key_lines, marker_lines = json_lines(text)
     model = ParsedModel(path=path, notation="site")
     site_origin = Origin(path, key_lines.get("site", 1))
-    model.nodes.append(NodeSpec(S.SITE, site.site, {"dictionary": site.dictionary}, site_origin))
+    model.nodes.append(NodeSpec(S.SITE, site.site, {"dictionary": site.dictionary, "layout": site.layout},
+                                site_origin))
     for index, (mid, size) in enumerate(site.sizes_m.items()):
         origin = Origin(path, marker_lines[index] if index < len(marker_lines) else site_origin.line)
         props: dict[str, Any] = {"marker_id": mid, "size_m": size, "dictionary": site.dictionary_of(mid)}

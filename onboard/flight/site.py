@@ -10,6 +10,14 @@ dictionary::
                  {"id": 16, "size_m": 0.02, "name": "pad, touchdown", "position": [0.0, 0.0, 0.0]},
                  {"id": 5, "size_m": 0.30, "dictionary": "DICT_6X6_250"}]}
 
+``layout`` says how the markers are printed, for the calibration scene to draw
+them so (:mod:`kgadapt.onboard.perception.calibration`): ``apart`` (the
+default: each marker alone with a white margin), ``chessboard`` (each in a white
+square of a chessboard, as on OpenCV's ChArUco boards: black squares beside its
+margin) or ``touching`` (a marker in every square of a chessboard, as on the
+ArUco author's ChArUco2 boards: a marker's only margin is its neighbours'
+inverted border, and it touches its diagonal neighbours at the corners).
+
 ``site`` defaults to the file's name, ``dictionary`` (the site's, and each
 marker's unless it names its own) to ``DICT_4X4_50``. ``position`` is where
 the marker lies from the site's **landing point**, metres (north, east, down:
@@ -46,7 +54,8 @@ from kgadapt.shared.errors import ConfigError, ModelError
 DEFAULT_DICTIONARY = "DICT_4X4_50"
 MAX_ID = 1023  # the largest predefined ArUco dictionaries (ARUCO_ORIGINAL, 7X7_1000) stop below 1024
 MAX_SIZE_M = 10.0  # a larger "marker" is a typo (centimetres for metres)
-_KEYS = {"site", "dictionary", "markers"}
+_KEYS = {"site", "dictionary", "markers", "layout"}
+PRINT_LAYOUTS = ("apart", "chessboard", "touching")  # how a site prints its markers (module docstring)
 _MARKER_KEYS = {"id", "size_m", "name", "dictionary", "position"}
 # What the flight bridge's log and `kgadapt status` say when neither a marker size nor a rangefinder
 # distance gives the landing targets a range.
@@ -69,6 +78,7 @@ class SiteMarkers:
     names: Mapping[int, str] = field(default_factory=dict)
     dictionaries: Mapping[int, str] = field(default_factory=dict)  # only markers not of the site's dictionary
     positions: Mapping[int, tuple[float, float, float]] = field(default_factory=dict)
+    layout: str = "apart"  # how the markers are printed: one of PRINT_LAYOUTS
     source: str = ""  # where it came from: a file's path, or "graph"
 
     @property
@@ -154,6 +164,10 @@ def site_from_dict(data: Any, *, where: str, default_name: str = "", key_lines: 
     for key in ("site", "dictionary"):
         if key in data and (not isinstance(data[key], str) or not data[key]):
             raise fail(f"{key!r} must be a non-empty string, not {data[key]!r:.40}", key_lines.get(key))
+    layout = data.get("layout", "apart")
+    if layout not in PRINT_LAYOUTS:
+        raise fail(f"'layout' must be one of {', '.join(PRINT_LAYOUTS)} (how the markers are printed), "
+                   f"not {layout!r:.40}", key_lines.get("layout"))
     site = data.get("site") or default_name
     if not _SITE_NAME.match(site):
         raise fail(f"site name {site!r} must be letters, digits, '_', '-' or '.' (at most 64)", key_lines.get("site"))
@@ -208,7 +222,7 @@ def site_from_dict(data: Any, *, where: str, default_name: str = "", key_lines: 
                 if count is not None and mid >= count:
                     raise fail(f"marker id {mid} is not in dictionary {name!r} (ids 0..{count - 1})", lines.get(mid))
     return SiteMarkers(site=site, dictionary=default_dictionary, sizes_m=sizes, names=names,
-                       dictionaries=dictionaries, positions=positions, source=where)
+                       dictionaries=dictionaries, positions=positions, layout=layout, source=where)
 
 
 def _resolved(name: str, folder: Path | None) -> str:

@@ -154,8 +154,10 @@ def render_test_frames(bands: Sequence[Band], settings: CalibrationSettings, *, 
                        site: SiteMarkers | None = None) -> dict[tuple[str, str], list[Frame]]:
     """The frames configurations of ``dictionary`` are judged on: ``(band, condition) -> [(level, grey, truth), ...]``.
 
-    The markers are ``dictionary``'s: the site's ids and sizes when ``site`` is of
-    that dictionary, else the scene's poses with ids the dictionary has. Every
+    The markers are ``dictionary``'s: the site's ids and sizes, printed as its
+    ``layout`` says (apart, in a chessboard's white squares, or touching in a
+    board with a marker in every square), when ``site`` is of that dictionary,
+    else the scene's poses with ids the dictionary has. Every
     dictionary gets the same poses, light, noise and seed, so its figures differ
     from another's only by what its markers are.
     """
@@ -167,7 +169,8 @@ def render_test_frames(bands: Sequence[Band], settings: CalibrationSettings, *, 
     use_site = site is not None and site.dictionary == dictionary
     ids = sorted(site.sizes_m) if use_site and site else ()
     sizes = dict(site.sizes_m) if use_site and site else None
-    base = SceneSettings(width=settings.width, height=settings.height, dictionary=dictionary)
+    base = SceneSettings(width=settings.width, height=settings.height, dictionary=dictionary,
+                         print_layout=site.layout if use_site and site else "apart")
     rng = np.random.default_rng(settings.seed)
     out: dict[tuple[str, str], list[Frame]] = {}
     scenes: dict[Any, Any] = {}

@@ -150,7 +150,8 @@ def _register_calibrate(sub: argparse._SubParsersAction[argparse.ArgumentParser]
     p.add_argument("--levels", type=int, default=4, help="levels per band (default 4)")
     p.add_argument("--quality", type=int, default=80, help="JPEG quality of the test frames (default 80)")
     p.add_argument("--site", default=None, metavar="FILE",
-                   help="site file (JSON: dictionary, markers): its ids and sizes in the calibration scene")
+                   help="site file (JSON: dictionary, markers, layout): its ids and sizes in the calibration scene, "
+                        "printed as its layout says (apart, chessboard, touching)")
     p.add_argument("--frames-from", default=None, metavar="DIR_OR_VIDEO",
                    help="calibrate on recorded frames (a folder of images or a video) instead of the synthetic "
                         "scene, markers labelled by the configurations' agreement; recorded as source frames:NAME")

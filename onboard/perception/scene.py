@@ -38,6 +38,7 @@ from typing import Any, Iterable, Mapping, Sequence, cast
 
 import numpy as np
 
+from kgadapt.onboard.flight.site import PRINT_LAYOUTS
 from kgadapt.onboard.perception.markers import aruco_dictionary
 from kgadapt.shared.errors import ConfigError, ModelError
 from kgadapt.shared.resources import scenarios
@@ -674,7 +675,15 @@ class SceneSettings:
     texture: int = 0  # patches of random high-contrast texture
     quiet_zone: float = 0.25  # white margin around each marker, as a fraction of its side
     board: float = 0.15  # markers on_board: the chessboard's black squares beside theirs, this deep (x side)
+    # How the site prints its markers (a site file's "layout", kgadapt.onboard.flight.site): "apart" as the
+    # poses say; "chessboard": every marker in a chessboard's white square (on_board); "touching": a marker in
+    # every square of a chessboard, so each touches its diagonal neighbours at the corners (PRINT_LAYOUTS).
+    print_layout: str = "apart"
     seed: int = 1
+
+    def __post_init__(self) -> None:
+        if self.print_layout not in PRINT_LAYOUTS:
+            raise ConfigError(f"scene: print_layout {self.print_layout!r} is not one of {', '.join(PRINT_LAYOUTS)}")
 
     def with_options(self, options: "SceneOptions") -> "SceneSettings":
         """These settings as a profile's ``scene`` object changes them."""
@@ -733,8 +742,11 @@ class SyntheticScene:
         for pose in self._poses:
             side = max(16, int(round(pose.size * h * 1.2)))
             code = cv2.aruco.generateImageMarker(dictionary, pose.id, side).astype(np.float32) / 255.0
+            if settings.print_layout == "touching":
+                self._patches[pose.id] = _touching_patch(code, int(dictionary.markerSize) + 2, self._rng)
+                continue
             quiet = int(round(side * settings.quiet_zone))
-            ring = int(round(side * settings.board)) if pose.on_board else 0
+            ring = int(round(side * settings.board)) if pose.on_board or settings.print_layout == "chessboard" else 0
             pad = quiet + ring
             patch = np.ones((side + 2 * pad, side + 2 * pad), np.float32)
             if ring:
@@ -921,6 +933,35 @@ class SyntheticScene:
         mask = np.zeros((h, w), bool)
         mask[: int(round(share * h)), :] = True
         return mask
+
+
+def _touching_patch(code: np.ndarray, cells: int, rng: np.random.Generator) -> tuple[np.ndarray, float, int]:
+    """A marker (``code``, 0..1, ``cells`` cells a side with its border) in a board with a marker in every square.
+
+    Around it, half of each neighbouring square: those beside it hold inverted
+    codes (their white border is the marker's only margin, one cell), those at
+    its corners hold codes with a black border that touches the marker's at the
+    corner. The neighbours' codes are random bits, and cut in half they form no
+    marker of their own.
+    """
+    import cv2
+
+    side = code.shape[0]
+
+    def neighbour(inverted: bool) -> np.ndarray:
+        bits = np.zeros((cells, cells), np.float32)
+        bits[1:-1, 1:-1] = rng.random((cells - 2, cells - 2)) > 0.5
+        square: np.ndarray = cv2.resize(bits, (side, side), interpolation=cv2.INTER_NEAREST)
+        return 1.0 - square if inverted else square
+
+    board = np.ones((3 * side, 3 * side), np.float32)
+    for row in range(3):
+        for col in range(3):
+            square = code if (row, col) == (1, 1) else neighbour(inverted=(row + col) % 2 == 1)
+            board[row * side:(row + 1) * side, col * side:(col + 1) * side] = square
+    band = max(int(round(2 * side / cells)), 2)  # two cells of each neighbour: its border and a row of bits
+    patch = _BLACK + (_WHITE - _BLACK) * board[side - band:2 * side + band, side - band:2 * side + band]
+    return patch, float(band), side
 
 
 def _smooth(image: np.ndarray, k: int) -> np.ndarray:

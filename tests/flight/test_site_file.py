@@ -68,3 +68,25 @@ def test_the_agent_and_the_bridge_refuse_a_misspelt_dictionary_before_starting(k
     done = subprocess.run([*kgadapt_cmd, *command, "--site", str(bad)], cwd=tmp_path, capture_output=True,
                           text=True, timeout=60)
     assert done.returncode == 1 and f"{bad}:2: " in done.stderr and "DICT_4X4_5O" in done.stderr, done.stderr
+
+
+def test_a_site_says_how_its_markers_are_printed_and_a_misspelt_layout_is_refused_naming_file_and_line(tmp_path):
+    from kgadapt.knowledge.importers.site_model import parse
+
+    path = tmp_path / "board.site"
+    text = ('{"site": "board",\n "dictionary": "DICT_ARUCO_MIP_36h12",\n "layout": "touching",\n'
+            ' "markers": [{"id": 1, "size_m": 0.022}, {"id": 3, "size_m": 0.022}]}')
+    path.write_text(text)
+    assert load_site(path).layout == "touching"
+    assert load_site(DEMO).layout == "apart"  # a site that does not say prints its markers apart
+    board = load_site(Path(__file__).resolve().parents[2] / "sim" / "photographs" / "charuco2_board.site")
+    assert (board.layout, board.dictionary, len(board.ids)) == ("touching", "DICT_ARUCO_MIP_36h12", 23)
+    # The model loader reads the same file: the layout is the Site node's, beside its dictionary.
+    site_node = next(n for n in parse(text, str(path)).nodes if n.name == "board")
+    assert site_node.props == {"dictionary": "DICT_ARUCO_MIP_36h12", "layout": "touching"}
+    for wrong in ('"touchng"', '["touching"]', "0.1"):
+        path.write_text(text.replace('"touching"', wrong))
+        with pytest.raises(ModelError, match=r"board\.site:3: 'layout' must be one of apart, chessboard, touching"):
+            load_site(path)
+        with pytest.raises(ModelError, match=r"board\.site:3: 'layout'"):
+            parse(path.read_text(), str(path))

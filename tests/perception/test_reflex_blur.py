@@ -72,3 +72,25 @@ def test_under_real_blur_the_reflexes_get_near_the_best_configuration(rows):
     old_order = run(table(rows, blur=False))
     for without in (zero_only, old_order):
         assert with_reflexes["reflex_rate"] - without["reflex_rate"] > 0.05, (with_reflexes, without)
+
+
+def test_photographs_given_from_elsewhere_go_through_the_reflexes_read_with_their_dictionary_at_each_level(
+        rows, tmp_path):
+    # As `bench perception --only-reflex-blur --photo DICTIONARY=FILE --blur-level day=...` gives them: a
+    # photograph that is not shipped, named by its path, read with the dictionary given, pooled over levels.
+    import shutil
+
+    from kgadapt.sim.photos import load_photo
+
+    copy = tmp_path / "elsewhere.jpg"
+    shutil.copy(PHOTO_DIR / PHOTOS[0], copy)
+    given = [(str(copy), load_photo(str(copy)), "DICT_6X6_250")]
+    pooled = reflex_under_blur(table(rows), {"day": [100.0, 140.0]}, given=given, sharp_frames=10, blur_frames=15,
+                               reaction_frames=5, timed=False)
+    day = pooled["bands"]["day"]
+    assert pooled["photos"] == [str(copy)] and pooled["dictionaries"] == ["DICT_6X6_250"]
+    assert sorted(day["per_photo"]) == [f"{copy} @ 100", f"{copy} @ 140"]
+    one = reflex_under_blur(table(rows), {"day": 100.0}, given=given, sharp_frames=10, blur_frames=15,
+                            reaction_frames=5, timed=False)["bands"]["day"]
+    assert day["markers"] == 2 * one["markers"] > 0  # every level's blurred frames, each the photograph's markers
+    assert day["best_rate"] > 0.15 and day["best_rate"] - day["reflex_rate"] <= 0.05, day
