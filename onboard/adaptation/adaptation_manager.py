@@ -168,6 +168,7 @@ class AdaptationManager:
         self._reflexes_seen: tuple[str | None, int] = (None, 0)  # (instance, its reflex count) last acted on
         self._live = LiveRates(settings=settings.live)  # the running detector's live rate per band
         self._ready_move: policy.ReadyMove | None = None  # the move for the running host's loss, planned ahead
+        self._band_moves: dict[str, policy.BandMove] = {}  # band -> the move for a change into it, planned ahead
 
     @property
     def _knowledge(self) -> KnowledgeClient:
@@ -304,6 +305,7 @@ class AdaptationManager:
                     if self.settings.standby:
                         self._keep_standby()
                     self._prepare_move()
+                    self._prepare_band_move()
             except Exception:  # the loop must survive any single bad observation or failed action
                 log.exception("adaptation: handling %s failed", kind)
 
@@ -601,9 +603,23 @@ class AdaptationManager:
             self._set_landing(self._landed_state() == "LANDING")
         if trigger.kind == TriggerKind.BAND_CHANGED:
             self._state = dataclasses.replace(self._state, standby_paused=False)
-        if trigger.kind == TriggerKind.REFLEX and self._record_reflex(trigger, band.name):
-            return
         lost = policy.lost_hosts(a.hosts)
+        # Configurations whose detections collapsed in this band stay out until the band changes.
+        exclude = tuple(sorted(a.collapsed))
+        # A change of band: the move planned ahead for it, if what it rests on still holds.
+        ahead = policy.band_move(
+            self._band_moves.pop(band.name, None), trigger, mono=time.monotonic(), max_age_s=self.settings.ready_move_s,
+            basis=policy.move_basis(band=band.name, running=self.current, standby=self.standby, lost=lost,
+                                    exclude=exclude))
+        ahead_plan = None
+        if ahead is not None and ahead.plan is not None:
+            ahead_plan = dataclasses.replace(ahead.plan, inputs={**ahead.plan.inputs, "planned_ahead_ms": round(
+                (time.monotonic() - ahead.at) * 1000.0)})
+        reflex_plan = None
+        if trigger.kind == TriggerKind.REFLEX:
+            done, reflex_plan = self._record_reflex(trigger, band.name, ahead_plan)
+            if done:
+                return
         action = policy.triage(trigger, running=self.current, standby=self.standby, lost=lost, landing=self.landing,
                                deferred=self._deferred, waiting=waiting is not None)
         if action == Action.WAIT:
@@ -620,8 +636,6 @@ class AdaptationManager:
             return
         running_lost = policy.running_lost(self.current, trigger, lost)
         started = time.perf_counter()
-        # Configurations whose detections collapsed in this band stay out until the band changes.
-        exclude = tuple(sorted(a.collapsed))
         # The running host lost: the move planned ahead for it, if what it rests on still holds.
         ready = policy.ready_move(
             self._ready_move, trigger, running=self.current, mono=time.monotonic(),
@@ -629,10 +643,15 @@ class AdaptationManager:
             basis=policy.move_basis(band=band.name, running=self.current, standby=self.standby,
                                     lost=[h for h in lost if h != trigger.detail.get("host")], exclude=exclude))
         self._ready_move = None  # used or not, what it rests on is changing now
+        how: policy.Execute | None = None  # decided ahead with its plan, or below
         if ready is not None:
             plan, how = ready.plan, ready.how
             plan = dataclasses.replace(plan, inputs={**plan.inputs, "planned_ahead_ms": round(
                 (time.monotonic() - ready.at) * 1000.0)})
+        elif ahead_plan is not None and ahead is not None and ahead.how is not None:
+            plan, how = ahead_plan, ahead.how
+        elif reflex_plan is not None and not running_lost:
+            plan = reflex_plan  # the reflex's record planned what this would plan now
         else:
             try:
                 here = self.current.host if self.current is not None else None
@@ -648,7 +667,7 @@ class AdaptationManager:
                 return
         result: Outcome | None
         try:
-            if ready is None:
+            if how is None:
                 how = policy.execution(plan, trigger, running=self.current, standby=self.standby, lost=lost,
                                        change=self._planner.change)
             if how.how == Execution.NOTHING:
@@ -718,15 +737,52 @@ class AdaptationManager:
             return
         self._ready_move = policy.ReadyMove(host=current.host, basis=basis, plan=plan, how=how, at=mono)
 
-    def _record_reflex(self, trigger: Trigger, band: str) -> bool:
-        """Record what the detector did on its own; True when nothing is left to plan (the plan for the
-        band is what runs now, or final descent: placement is not reconsidered then)."""
+    def _prepare_band_move(self) -> None:
+        """Plan ahead the move for a change into each other band, one band per quiet moment, again when what
+        it rests on changes or after ``ready_move_s``: at the detector's reflex (or the manager's own band
+        change) the change follows without a question to the graph (the decision's inputs say
+        ``planned_ahead_ms``)."""
+        a, current, s = self._analyzer, self.current, self.settings
+        if s.ready_move_s <= 0 or current is None or not current.instance or a.tracker.current is None:
+            self._band_moves.clear()
+            return
+        here = a.tracker.current.name
+        others = [b.name for b in a.tracker.bands if b.name != here]
+        self._band_moves.pop(here, None)
+        lost = policy.lost_hosts(a.hosts)
+        standby = self.standby
+
+        def basis(band: str) -> tuple[Any, ...]:
+            # A band change clears the configurations left out: none is left out of another band's move.
+            return policy.move_basis(band=band, running=current, standby=standby, lost=lost, exclude=())
+
+        mono = time.monotonic()
+        band = policy.band_move_due(self._band_moves, bands=others, basis=basis, mono=mono, every_s=s.ready_move_s)
+        if band is None:
+            return
+        wall = time.time()
+        move = policy.BandMove(band=band, basis=basis(band), at=mono)
+        try:
+            live = policy.live_free(a.hosts, here=current.host, roomiest=lambda h: self._trust.roomiest(h, wall),
+                                    confirmed=lambda h: self._trust.confirmed_free(h, wall))
+            plan = self._planner.plan(band=band, running=current, exclude=(), lost_hosts=lost, live_free=live)
+            how = policy.execution(plan, Trigger(TriggerKind.BAND_CHANGED, wall, {"band": band}), running=current,
+                                   standby=standby, lost=lost, change=self._planner.change)
+            move = dataclasses.replace(move, plan=plan, how=how)
+        except (PlanningError, KgadaptError) as exc:
+            log.debug("adaptation: no move ready for band %s: %s", band, exc)
+        self._band_moves[band] = move
+
+    def _record_reflex(self, trigger: Trigger, band: str, ahead: Plan | None) -> tuple[bool, Plan | None]:
+        """Record what the detector did on its own; (True, ...) when nothing is left to plan (the plan for the
+        band is what runs now, or final descent: placement is not reconsidered then), with the plan for the
+        band: ``ahead`` (planned before the reflex came) or asked now."""
         d, running = trigger.detail, self.current
         assert running is not None  # a reflex comes from the running detector
         took = d.get("config")
-        plan: Plan | None = None
+        plan: Plan | None = ahead
         try:
-            plan = self._planner.plan(band=band, running=running, exclude=tuple(sorted(self._analyzer.collapsed)),
+            plan = plan or self._planner.plan(band=band, running=running, exclude=tuple(sorted(self._analyzer.collapsed)),
                                       lost_hosts=policy.lost_hosts(self._analyzer.hosts),
                                       live_free=policy.live_free(self._analyzer.hosts, here=running.host,
                                                                  roomiest=lambda h: self._trust.roomiest(h, time.time()),
@@ -759,8 +815,8 @@ class AdaptationManager:
                 self._record(Outcome(trigger=trigger, outcome="deferred: final descent"))
             elif not kept:
                 log.info("adaptation: %s deferred again (final descent)", trigger.describe())
-            return True
-        return kept or plan is None
+            return True, plan
+        return kept or plan is None, plan
 
     def _retry_later(self, trigger: Trigger) -> None:
         """The detector is gone and none replaced it: act on ``trigger`` again after ``retry_s``.

@@ -451,6 +451,41 @@ def needs_move(move: ReadyMove | None, *, host: str, basis: tuple[Any, ...], mon
     return move is None or move.host != host or move.basis != basis or mono - move.at >= every_s
 
 
+@dataclass(frozen=True)
+class BandMove:
+    """The move planned ahead for a change into ``band`` (the running detector's band is another): the plan
+    and how to carry it out, as a reflex or the band tracker would have them decided; both None when
+    planning failed (tried again after ``every_s``, not at every quiet moment)."""
+
+    band: str
+    basis: tuple[Any, ...]  # move_basis with this band and no configuration left out (a band change clears them)
+    at: float  # monotonic time it was planned
+    plan: Plan | None = None
+    how: Execute | None = None
+
+
+def band_move_due(moves: Mapping[str, BandMove], *, bands: Sequence[str], basis: Callable[[str], tuple[Any, ...]],
+                  mono: float, every_s: float) -> str | None:
+    """The first of ``bands`` whose move must be planned (again): none yet, its basis changed, or older
+    than ``every_s`` (the graph's figures move); None when every one is ready."""
+    for band in bands:
+        move = moves.get(band)
+        if move is None or move.basis != basis(band) or mono - move.at >= every_s:
+            return band
+    return None
+
+
+def band_move(move: BandMove | None, trigger: Trigger, *, basis: tuple[Any, ...], mono: float,
+              max_age_s: float) -> BandMove | None:
+    """The move planned ahead for the band ``trigger`` (a reflex or a band change) brings, while nothing it
+    rests on changed and it is no older than ``max_age_s``; else None (the band is planned now)."""
+    if move is None or move.plan is None or trigger.kind not in (TriggerKind.REFLEX, TriggerKind.BAND_CHANGED):
+        return None
+    if move.basis != basis or mono - move.at > max_age_s:
+        return None
+    return move
+
+
 def failed(outcome: str) -> bool:
     return outcome.startswith("failed")
 

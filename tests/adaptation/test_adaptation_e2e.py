@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from kgadapt.knowledge.client import KnowledgeClient
+from kgadapt.knowledge.store import open_store
 from kgadapt.operator.cluster import ClusterSettings, WatchedRobot, write_profile
 from kgadapt.shared.hostmonitor import squeeze
 
@@ -50,6 +51,15 @@ class Run(WatchedRobot):
         """(config, host) of detections in the last second after ``since``."""
         now = time.time()
         return {(c, h) for t, _, c, h, _, _ in self.recorder.detections if t >= max(since, now - 1.0)}
+
+
+def decision_inputs(run: Run, kind: str) -> dict:
+    """The inputs the graph holds for the last decision of ``kind``."""
+    with open_store(run.cluster.store_url) as store:
+        rows = store.execute("MATCH (d:AdaptationDecision) WHERE d.trigger STARTS WITH $kind "
+                             "RETURN d.inputs_json AS inputs ORDER BY d.time DESC LIMIT 1", {"kind": kind},
+                             read_only=True)
+    return json.loads(rows[0]["inputs"]) if rows else {}
 
 
 def test_the_detector_follows_the_light_through_the_bands_without_losing_frames(tmp_path):
@@ -100,16 +110,21 @@ def test_the_detector_follows_the_light_through_the_bands_without_losing_frames(
 
 def test_without_in_place_changes_the_reflex_asks_and_the_manager_starts_a_process_at_once(tmp_path):
     # The graph lets no detector deployment change in place: the detector's reflex can only say the band
-    # changed, and the manager starts the band's configuration as a new process without the band's wait.
+    # changed, and the manager starts the band's configuration as a new process without the band's wait,
+    # with the move it planned for the dark band before the reflex came (no question to the graph then).
     from kgadapt.operator.cluster import models_without_in_place
 
-    points = [[0, 120], [5, 120], [5.001, 5], [30, 5]]
+    points = [[0, 120], [10, 120], [10.001, 5], [35, 5]]  # day long enough for the dark move to be planned
     with Run(tmp_path, points, models=models_without_in_place(tmp_path / "models")) as run:
         first = run.wait_for(run.decision("startup"), 20, "the first detector")
         moved = run.wait_for(run.decision("reflex", config="marker_detection_dark"), 20, "the move to dark")
         run.wait_for(lambda: run.running(moved.time) == {("marker_detection_dark", "onboard")}, 10,
                      "dark detections only")
+        inputs = decision_inputs(run, "reflex")
     assert (moved.outcome, moved.change) == ("migrated", "migrate"), moved
+    # Planned ahead: the reflex's decision carries the plan made before it came, with its inputs.
+    assert "planned_ahead_ms" in inputs, inputs
+    assert inputs["band"] == "dark" and inputs["ranking"] and inputs["running"]["config"] == "marker_detection_day"
     assert moved.instance != first.instance
     assert moved.trigger.startswith("reflex(evidence=light, previous=marker_detection_day, band=dark, from_band=day"), (
         moved.trigger)

@@ -281,6 +281,35 @@ def test_the_move_for_a_host_loss_is_planned_ahead_and_used_only_while_what_it_r
     assert P.ready_move(move, lost, **{**use, "mono": 103.0}) is None
 
 
+def test_the_move_into_each_other_band_is_planned_ahead_and_used_only_while_what_it_rests_on_holds():
+    """Issue 32: a change of band (the detector's reflex, the band tracker) has its plan ready before it comes."""
+    def basis(band: str, running: Placement = RUNNING) -> tuple:
+        return P.move_basis(band=band, running=running, standby=None, lost=(), exclude=())
+
+    moves: dict[str, P.BandMove] = {}
+    due = dict(bands=["dusk", "dark"], basis=basis, every_s=2.0)
+    assert P.band_move_due(moves, mono=0.0, **due) == "dusk"
+    how = P.execution(plan("dusk"), trigger(TriggerKind.BAND_CHANGED), running=RUNNING, standby=None, lost=(),
+                      change=no_change)
+    moves["dusk"] = P.BandMove(band="dusk", basis=basis("dusk"), at=100.0, plan=plan("dusk"), how=how)
+    assert P.band_move_due(moves, mono=100.5, **due) == "dark"
+    moves["dark"] = P.BandMove(band="dark", basis=basis("dark"), at=100.5)  # planning failed: not again at once
+    assert P.band_move_due(moves, mono=101.0, **due) is None
+    assert P.band_move_due(moves, mono=102.0, **due) == "dusk"  # the graph's figures moved on
+    other = Placement(config="day", deployment="day_onboard", host="onboard", instance="i9", demand_mb=120)
+    assert P.band_move_due(moves, mono=101.0, **{**due, "basis": lambda b: basis(b, other)}) == "dusk"
+    use = dict(basis=basis("dusk"), mono=101.0, max_age_s=2.0)
+    for kind in (TriggerKind.REFLEX, TriggerKind.BAND_CHANGED):
+        assert P.band_move(moves["dusk"], trigger(kind), **use) is moves["dusk"]
+    # Not for another trigger, once what it rests on changed, too old, or a move that could not be planned.
+    assert P.band_move(moves["dusk"], trigger(TriggerKind.MEMORY_SHORT), **use) is None
+    assert P.band_move(moves["dusk"], trigger(TriggerKind.REFLEX), **{**use, "basis": basis("dusk", other)}) is None
+    left_out = P.move_basis(band="dusk", running=RUNNING, standby=None, lost=(), exclude=("dusk",))
+    assert P.band_move(moves["dusk"], trigger(TriggerKind.REFLEX), **{**use, "basis": left_out}) is None
+    assert P.band_move(moves["dusk"], trigger(TriggerKind.REFLEX), **{**use, "mono": 102.5}) is None
+    assert P.band_move(moves["dark"], trigger(TriggerKind.REFLEX), **{**use, "basis": basis("dark")}) is None
+
+
 def test_what_the_warm_standby_needs():
     hosts = {"remote": HostView(name="remote", online=True)}
     kw = dict(running=RUNNING, landing=False, paused=False, retrying=False, band="dusk", hosts=hosts)

@@ -23,7 +23,7 @@ from kgadapt.knowledge.store import open_store
 from kgadapt.onboard.adaptation.adaptation_cli import explain, render
 from kgadapt.shared.hostmonitor import squeeze
 from kgadapt.shared.states import KEPT_STATES
-from tests.adaptation.test_adaptation_e2e import Run
+from tests.adaptation.test_adaptation_e2e import Run, decision_inputs
 
 pytestmark = pytest.mark.slow
 
@@ -53,17 +53,6 @@ def open_profile(run: Run, config: str) -> dict | None:
             "WHERE r.end_time IS NULL AND r.rss_mb_max > 5 RETURN r.name AS run_id, r.rss_mb_max AS rss, p.name AS host",
             {"config": config}, read_only=True)
     return rows[0] if rows else None
-
-
-def decision_inputs(run: Run, kind: str) -> dict:
-    """The inputs the graph holds for the last decision of ``kind``."""
-    import json
-
-    with open_store(run.cluster.store_url) as store:
-        rows = store.execute("MATCH (d:AdaptationDecision) WHERE d.trigger STARTS WITH $kind "
-                             "RETURN d.inputs_json AS inputs ORDER BY d.time DESC LIMIT 1", {"kind": kind},
-                             read_only=True)
-    return json.loads(rows[0]["inputs"]) if rows else {}
 
 
 def test_the_standby_is_counted_takes_over_a_lost_host_is_switched_to_and_goes_first_in_a_squeeze(tmp_path):
