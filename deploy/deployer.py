@@ -145,6 +145,9 @@ class Deployer:
         # list (instance -> (config, declared MiB)), so that raced starts cannot pass together.
         self._admission = threading.Lock()
         self._admitted: dict[str, tuple[str, float]] = {}
+        # What each process started here declared when it was admitted (instance -> (config, MiB)): the
+        # figure its admission counted, counted again for it at the next start instead of asking the graph.
+        self._declared: dict[str, tuple[str, float]] = {}
         # Kinds of start the launcher keeps idle members for, by what a member can take (its pool key).
         self._warm: dict[str, _Kind] = {}
         self._stop_warming = threading.Event()
@@ -222,6 +225,12 @@ class Deployer:
         placeholder that is not allowed. ``carry``: the configuration as the graph
         gives it goes with the start (``$KGADAPT_RESOLVED_CONFIG``).
         """
+        return self._resolve(deployment, config, instance, ready_timeout=ready_timeout, idle=idle, carry=carry)[0]
+
+    def _resolve(self, deployment: str, config: str, instance: str | None = None, *, ready_timeout: float | None,
+                 idle: bool, carry: bool) -> tuple[ProcessSpec, float | None]:
+        """:meth:`resolve`, and the memory ``config`` declares when the carried configuration's row said it
+        (None: not looked up, or not known)."""
         s = self.settings
         keys.check_name(deployment, "deployment name")
         keys.check_name(config, "configuration name")
@@ -259,7 +268,7 @@ class Deployer:
             env.append(("KGADAPT_ZENOH_MODE", s.zenoh_mode))
         if idle:
             env.append((START_IDLE_ENV, "1"))
-        resolved = self._resolved_config(config) if carry else None
+        resolved, demand = self._resolved_config(config) if carry else (None, None)
         if resolved is not None:
             env.append((RESOLVED_CONFIG_ENV, resolved))
         for item in _as_list(row.get("environment"), deployment, "environment"):
@@ -273,20 +282,22 @@ class Deployer:
         return ProcessSpec(
             instance=instance, argv=tuple(argv), env=tuple(env), deployment=deployment, config=config,
             ready_timeout=timeout, restart=s.restart, stop=s.stop,
-        )
+        ), demand
 
-    def _resolved_config(self, config: str) -> str | None:
+    def _resolved_config(self, config: str) -> tuple[str | None, float | None]:
         """``config`` as the graph gives it now (``detector_config``), for the started detector to take
         instead of asking again: a ``resolved_config`` message, base64. None when the graph has no
-        such row (a program that is not a detector) or does not answer: the child then asks itself."""
+        such row (a program that is not a detector) or does not answer: the child then asks itself.
+        With it, the memory the row declares (what admission counts; None when the graph did not answer)."""
         try:
             rows = self._knowledge.query("detector_config", {"config": config})
         except (RemoteError, TransportError) as exc:
             log.info("host %s: %s not resolved for its start (%s); the process asks itself", self.settings.host,
                      config, exc)
-            return None
+            return None, None
+        demand = float((rows[0].get("memory_demand_mb") or 0.0) if rows else 0.0)  # as _declared_demands has it
         if not rows or not isinstance(rows[0].get("config_json"), str):
-            return None
+            return None, demand
         row = rows[0]
         try:
             body = messages.encode(messages.ResolvedConfig(
@@ -296,16 +307,17 @@ class Deployer:
         except (MessageError, TypeError) as exc:
             log.info("host %s: %s not carried to its start (%s); the process asks itself", self.settings.host,
                      config, exc)
-            return None
-        return base64.b64encode(body).decode("ascii")
+            return None, demand
+        return base64.b64encode(body).decode("ascii"), demand
 
     def start(self, deployment: str, config: str, *, instance: str | None = None,
               wait_ready: bool = True, ready_timeout: float | None = None, idle: bool = False) -> ProcessInfo:
         """Check with the knowledge store and the host's memory, then start; see :meth:`Supervisor.start`.
 
         ``idle``: the process is told to start idle (``$KGADAPT_START_IDLE``), as a warm standby does."""
-        spec = self.resolve(deployment, config, instance, ready_timeout=ready_timeout, idle=idle)
-        self._admit(spec.instance, config)
+        # One question for the configuration: carried with the start, and its declared memory for admission.
+        spec, demand = self._resolve(deployment, config, instance, ready_timeout=ready_timeout, idle=idle, carry=True)
+        self._admit(spec.instance, config, demand)
         try:
             log.info("host %s: starting %s (%s, %s): %s", self.settings.host, spec.instance, deployment, config,
                      " ".join(spec.argv))
@@ -431,7 +443,7 @@ class Deployer:
         each = demands[config]
         return max(0, min(size, int(room // each))) if each > 0 else size
 
-    def _admit(self, instance: str, config: str) -> None:
+    def _admit(self, instance: str, config: str, demand: float | None = None) -> None:
         """Admit a start of ``config`` as ``instance`` or raise DeploymentError naming the figures.
 
         Two checks, under one lock with the starts already admitted:
@@ -445,6 +457,10 @@ class Deployer:
         Idle pool members yield to a start: they are not counted against it (the pool is sized
         again after the start, within the budget: :meth:`_keep_warm`); the agents' host monitor
         leaves them out of its measure too (``HostMonitor.yielding``: :meth:`yielding_pids`).
+
+        ``demand``: what the graph declares for ``config``, read with its row just before (None: asked here).
+        A live process started here counts what it declared when it was admitted; the graph is asked only
+        for the others.
         """
         if self._free_memory is None and self._budget is None:
             return
@@ -456,7 +472,12 @@ class Deployer:
                 info.instance: (info.config, False) for info in self.supervisor.processes(include_finished=False)}
             for name, (other, _) in self._admitted.items():
                 held[name] = (other, True)
-            demands = self._declared_demands({config, *(c for c, _ in held.values())})
+            for gone in set(self._declared) - set(held):
+                del self._declared[gone]
+            known = {c: mb for name, (c, mb) in self._declared.items() if held.get(name, ("",))[0] == c}
+            if demand is not None:
+                known[config] = demand
+            demands = self._declared_demands({config, *(c for c, _ in held.values())}, known)
             demand = demands[config]
             if self._budget is not None:
                 budget = float(self._budget())
@@ -479,11 +500,13 @@ class Deployer:
                         f"(measured {free:.0f} MiB{under_way})"
                     )
             self._admitted[instance] = (config, demand)
+            self._declared[instance] = (config, demand)
 
-    def _declared_demands(self, configs: set[str]) -> dict[str, float]:
-        """Each configuration's declared memory demand (MiB; 0 for one the graph does not know)."""
-        demands: dict[str, float] = {}
-        for config in sorted(configs):
+    def _declared_demands(self, configs: set[str], known: Mapping[str, float] | None = None) -> dict[str, float]:
+        """Each configuration's declared memory demand (MiB; 0 for one the graph does not know); those in
+        ``known`` as given there."""
+        demands: dict[str, float] = {c: float(known[c]) for c in configs if known and c in known}
+        for config in sorted(configs - set(demands)):
             try:
                 rows = self._knowledge.query("detector_config", {"config": config})
             except (RemoteError, TransportError) as exc:

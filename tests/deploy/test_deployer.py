@@ -185,6 +185,35 @@ def test_raced_starts_pass_only_while_the_declared_memory_fits_the_budget(graph,
         host.close()
 
 
+def test_a_start_beside_a_running_process_asks_the_graph_for_its_configuration_once(graph, knowledge, endpoint,
+                                                                                    test_session):
+    """Issue 32: a change as a new process waits for the deployer's questions to the graph. Its admission
+    counts the new configuration's memory from the row it carries to the start, and the running process's
+    from its own admission: one question for the configuration, none for what already runs."""
+    from tests.deploy.conftest import CONFIG_DUSK, DeployerHost
+
+    for config, mb in ((CONFIG, 100), (CONFIG_DUSK, 200)):
+        graph.execute("MATCH (g:PerceptionGraph {name: $c}) MERGE (x:Component {name: $x}) "
+                      "SET x.memory_demand_mb = $mb MERGE (g)-[:CONTAINS]->(x)", {"c": config, "x": f"{config}_x", "mb": mb})
+    asks: list[str] = []
+    host = DeployerHost(endpoint, "onboard", asks=asks, memory={"free_memory": lambda: 10_000.0, "budget": lambda: 350.0})
+    try:
+        wait_for_deployers(test_session, ["onboard"])
+        client = DeployerClient(test_session, ROBOT)
+        client.start("onboard", "echo", CONFIG, instance="day1")
+        before = len(asks)
+        client.start("onboard", "echo", CONFIG_DUSK, instance="dusk1")
+        assert asks[before:] == ["deployment", "detector_config"], asks[before:]
+        # The figures still count: 100 + 200 held, a third 100 would pass 350.
+        with pytest.raises(DeploymentError, match="300 MiB would exceed|already declare 300 MiB"):
+            client.start("onboard", "echo", CONFIG, instance="day2")
+        # A stopped process is no longer counted: its figure goes with it.
+        client.stop("onboard", "dusk1")
+        assert client.start("onboard", "echo", CONFIG, instance="day3").state == "ready"
+    finally:
+        host.close()
+
+
 def test_a_client_told_not_to_resend_gives_up_at_once_on_a_host_without_a_deployer(client_session):
     # The adaptation manager's probe of the running detector: no deployer answering means its host just
     # went, which liveliness reports. Sent again for its whole timeout, the probe once held the host's loss
