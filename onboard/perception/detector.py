@@ -47,6 +47,8 @@ frame without publishing, so that its first detection after activation runs warm
 active, it answers the frame it holds at once (captured within a frame period before the
 activation; its detections carry its capture time) rather than waiting for the next one;
 a frame held longer than ``HELD_FRAME_S`` (the camera stopped) is not answered.
+A launcher's idle pool member holds its camera's newest frame the same way while it
+waits (``pool_session``), and the detector it becomes answers that frame first.
 
 Stale frames are dropped, never queued: the Zenoh callback only puts the
 payload into a one-frame slot (replacing an unprocessed one) and a worker
@@ -242,13 +244,18 @@ def build_cores(table: Any, *, built: Mapping[str, Any] | None = None) -> dict[s
 @dataclass(frozen=True)
 class WarmStart:
     """What a launcher's pool member prepared while it waited for a start (deploy/launcher.py): its
-    Zenoh session, and the reflex table of each deployment it may be started as (on ``host``), with
-    every candidate's detector built once."""
+    Zenoh session, the reflex table of each deployment it may be started as (on ``host``), with
+    every candidate's detector built once, and its camera's newest frame, held (``frames``, from
+    ``frame_subscriber``, on ``camera``: (robot, camera)) so that its first detection need not wait
+    for the camera's next frame."""
 
     session: Any
     host: str | None = None
     tables: Mapping[str, Any] = field(default_factory=dict)  # deployment -> its reflex table
     cores: dict[str, Any] = field(default_factory=dict)  # configuration -> its detector
+    camera: tuple[str, str] | None = None
+    frames: LatestSlot | None = None
+    frame_subscriber: Any = None
 
     def armed(self, deployment: str | None, host: str) -> tuple[Any, dict[str, Any]] | None:
         """The table and detectors prepared for a start of ``deployment`` on ``host``; None if none was."""
@@ -403,6 +410,13 @@ class Detector:
             self._generation_seen.wait_for(lambda: generation in self._first_frame, timeout)
             return self._first_frame.get(generation)
 
+    def take_frames(self, slot: LatestSlot, subscriber: Any) -> None:
+        """Before :meth:`setup`: take the camera subscription a pool member declared while it waited
+        (``subscriber`` putting into ``slot``), so the first frame answered is the one it holds (at most a
+        frame period old; older than ``HELD_FRAME_S`` it is not answered) instead of the camera's next."""
+        self.slot, self._subscriber = slot, subscriber
+        self._idle_replaced = slot.replaced  # frames that replaced each other before the start: no drops of ours
+
     def setup(self, session: Any) -> None:
         import zenoh
 
@@ -419,7 +433,8 @@ class Detector:
             ), s.instance, again=self._reflex_again)
             self._worker = threading.Thread(target=self._work, name="detector-worker", daemon=True)
             self._worker.start()
-            self._subscriber = session.declare_subscriber(keys.camera_frame(s.robot, s.camera), self._on_frame)
+            if self._subscriber is None:  # else the pool member's, holding its newest frame (take_frames)
+                self._subscriber = session.declare_subscriber(keys.camera_frame(s.robot, s.camera), self._on_frame)
             self._token = session.liveliness().declare_token(keys.detector_alive(s.robot, s.instance))
         except Exception as exc:  # whatever zenoh raises: translated here
             self.shutdown()
@@ -849,7 +864,15 @@ def pool_session(argv: Sequence[str]) -> WarmStart:
         for name, core in build_cores(table, built=cores).items():
             cores.setdefault(name, core)
     warm_up(cores.values())
-    return WarmStart(session, args.host, tables, cores)
+    frames = LatestSlot()
+    try:  # the newest frame, held for the start (a pointer swap per frame in the callback)
+        subscriber = session.declare_subscriber(keys.camera_frame(args.robot, args.camera),
+                                                lambda sample: frames.put((sample.payload.to_bytes(), time.time())))
+    except Exception as exc:  # noqa: BLE001 - whatever zenoh raises: the start declares its own then
+        log.info("pool member: no camera subscription held (%s)", exc)
+        return WarmStart(session, args.host, tables, cores)
+    return WarmStart(session, args.host, tables, cores, camera=(args.robot, args.camera), frames=frames,
+                     frame_subscriber=subscriber)
 
 
 def warm_up(cores: Any) -> None:
@@ -902,6 +925,10 @@ def run(args: argparse.Namespace, *, session: Any = None) -> int:
                     session, args.robot, args.config, wait_s=args.config_wait)
             detector = Detector(settings, config, deployment=str(row["deployment"]) if row.get("deployment") else None)
             prepared = warm.armed(detector.deployment, settings.host) if warm is not None else None
+            if warm is not None and warm.frames is not None and warm.camera == (args.robot, args.camera):
+                detector.take_frames(warm.frames, warm.frame_subscriber)  # its newest frame, held
+            elif warm is not None and warm.frame_subscriber is not None:
+                rpc.undeclare_quietly(warm.frame_subscriber)  # another camera's: the detector declares its own
             if prepared is not None:
                 detector.arm(*prepared)  # fetched and built while the pool member waited
             elif detector.deployment is not None:

@@ -384,6 +384,35 @@ def test_a_pooled_start_hands_the_configuration_to_an_idle_detector_and_asks_the
     wait_until(lambda: not any(alive(pid) for pid in idle), what="the idle pool members to end with the launcher")
 
 
+def test_a_pooled_start_answers_the_frame_its_idle_member_held_instead_of_waiting_for_the_next(
+        knowledge, endpoint, test_session):
+    """Issue 32: a change as a new process waited for the camera's next frame after the pooled detector
+    subscribed. The idle member holds the newest frame while it waits; the detector it becomes answers
+    that frame, published before the start was asked for (frames come about once a second here: a
+    detector that subscribed only once taken answers a later one)."""
+    host = DeployerHost(endpoint, "onboard", launcher=True, pool=1, warm_refresh_s=600.0)
+    frames = FrameSource(test_session, fps=1.1, jpeg=marker_jpeg(), size=(320, 240))
+    markers = Collector(test_session, keys.detector_markers(ROBOT, "*"), "detections")
+    try:
+        wait_for_deployers(test_session, ["onboard"])
+        launcher = host.deployer.supervisor.launcher
+        assert launcher is not None and launcher.wait_ready(60.0)
+        assert host.deployer.warm("detector_day", DAY) == 1
+        wait_until(lambda: sum(launcher.idle.values()) == 1, timeout=60.0, what="an idle pool member")
+        last = frames.seq
+        wait_until(lambda: frames.seq > last, what="a new frame")  # the member holds it (or it is on its way)
+        asked_after = frames.seq
+        info = DeployerClient(test_session, ROBOT).start("onboard", "detector_day", DAY, instance="held2")
+        assert info.via == "pool"
+        _, first = markers.wait_for(lambda d: d["instance"] == "held2")
+        assert first["seq"] <= asked_after and first["ids"], (first["seq"], asked_after)
+        assert first["dropped"] == 0  # frames replacing each other while it waited are not drops
+    finally:
+        markers.close()
+        frames.close()
+        host.close()
+
+
 def test_the_deployer_keeps_an_idle_detector_for_what_may_run_on_its_host_before_any_start(
         knowledge, endpoint, test_session):
     """Issue 32 item 1: with a pool, a host's deployer has its launcher keep an idle detector for the
