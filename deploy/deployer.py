@@ -114,6 +114,10 @@ class DeployerSettings:
     pool: int = 0
     # Seconds between two readings of what the graph says may run on this host (the pool's kinds of start).
     warm_refresh_s: float = 30.0
+    # Seconds after a start taken from the pool (or forked) before the pool is filled again: a member's
+    # fork, Zenoh session and prepared detectors cost a loaded core 100 ms and more, which the started
+    # detector's first frames would otherwise wait behind.
+    pool_refill_s: float = 0.5
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
@@ -235,10 +239,20 @@ class Deployer:
         keys.check_name(deployment, "deployment name")
         keys.check_name(config, "configuration name")
         instance = keys.check_name(instance, "instance") if instance else new_instance_name(config, s.host)
+        # The configuration's row is asked for beside the deployment's, not after it: on a loaded host each
+        # question waits its turn at the service and the store, and a start waits for both.
+        carried: list[tuple[str | None, float | None]] = []
+        asking = threading.Thread(target=lambda: carried.append(self._resolved_config(config)),
+                                  name="deployer-config", daemon=True) if carry else None
+        if asking is not None:
+            asking.start()
         try:
             rows = self._knowledge.query("deployment", {"name": deployment})
         except (RemoteError, TransportError) as exc:
             raise DeploymentError(f"cannot look up deployment {deployment} in the knowledge store: {exc}") from exc
+        finally:
+            if asking is not None:
+                asking.join()  # bounded by the client's own timeout
         if not rows:
             raise DeploymentError(f"deployment {deployment!r} is not in the knowledge store")
         row = rows[0]
@@ -268,7 +282,7 @@ class Deployer:
             env.append(("KGADAPT_ZENOH_MODE", s.zenoh_mode))
         if idle:
             env.append((START_IDLE_ENV, "1"))
-        resolved, demand = self._resolved_config(config) if carry else (None, None)
+        resolved, demand = carried[0] if carried else (None, None)
         if resolved is not None:
             env.append((RESOLVED_CONFIG_ENV, resolved))
         for item in _as_list(row.get("environment"), deployment, "environment"):
@@ -326,15 +340,29 @@ class Deployer:
             with self._admission:  # from now on the supervisor's list holds it (or it failed)
                 self._admitted.pop(spec.instance, None)
         if self.settings.pool > 0:
-            # The next start like it takes an idle member; every kind is sized again within the budget
-            # with this process in it (idle members yielded to it: fewer may be kept now).
+            # Every other kind is sized again within the budget with this process in it at once (idle
+            # members yielded to it: fewer may be kept now); the next start like it takes an idle member
+            # made pool_refill_s from now.
             try:
-                if info.via in ("launcher", "pool"):
-                    self._keep_warm(deployment, config, spec, replace=False)
                 self._resize_pool(but=self.supervisor.pool_key(spec))
             except KgadaptError as exc:  # the start is done; the pool waits for the next reading
                 log.info("host %s: pool not sized after starting %s: %s", self.settings.host, spec.instance, exc)
+            if info.via in ("launcher", "pool"):
+                self._refill_later(deployment, config, spec)
         return info
+
+    def _refill_later(self, deployment: str, config: str, spec: ProcessSpec) -> None:
+        """The pool kept for starts like ``spec`` filled again ``pool_refill_s`` from now, on a thread."""
+        def refill() -> None:
+            if self._stop_warming.wait(self.settings.pool_refill_s):
+                return  # shutting down
+            try:
+                self._keep_warm(deployment, config, spec, replace=False)
+            except KgadaptError as exc:  # the pool waits for the next reading
+                log.info("host %s: pool not filled again after starting %s: %s", self.settings.host,
+                         spec.instance, exc)
+
+        threading.Thread(target=refill, name=f"deployer-refill-{self.settings.host}", daemon=True).start()
 
     def _resize_pool(self, *, but: str | None = None) -> None:
         """Size every kind kept warm (but ``but``) again within the budget."""
@@ -434,10 +462,12 @@ class Deployer:
         size = self.settings.pool
         if self._budget is None or size <= 0:
             return size
-        held = [info.config for info in self.supervisor.processes(include_finished=False)]
-        held += [c for c, _ in self._admitted.values()]
+        running = {info.instance: info.config for info in self.supervisor.processes(include_finished=False)}
+        held = [*running.values(), *(c for c, _ in self._admitted.values())]
         others = [(c, n) for k, c, n in self._pooled() if k != key]
-        demands = self._declared_demands({config, *held, *(c for c, _ in others)})
+        # A live process's configuration as it was admitted with (not one it was changed to in place since).
+        declared = {c: mb for name, (c, mb) in self._declared.items() if running.get(name) == c}
+        demands = self._declared_demands({config, *held, *(c for c, _ in others)}, declared)
         used = sum(demands[c] for c in held) + sum(demands[c] * n for c, n in others)
         room = float(self._budget()) - used
         each = demands[config]

@@ -28,7 +28,11 @@ loop's quiet moments the manager plans the loss of the running detector's host (
 that host counted lost, and whether the standby takes it) and plans it again when what it rests on
 changes (band, running detector, standby, hosts lost, configurations left out) or after
 ``ready_move_s``; at the loss it is carried out with no question to the graph (the decision's inputs
-say ``planned_ahead_ms``). During final
+say ``planned_ahead_ms``). A change of band is planned ahead the same way: one band per quiet moment,
+the manager plans the move into each band other than the running one (the running detector's host
+credited with what it holds, no configuration left out: a band change clears them), again when the
+running detector, the standby or the hosts lost change, or after ``ready_move_s``; the detector's
+reflex (or the manager's own band change) then acts on it at once. During final
 descent (flight state ``LANDING``, or landed state unknown in LAND/RTL:
 :func:`kgadapt.onboard.flight.flight_phase.in_final_descent`) planned changes are deferred; losing the
 running host is still acted on.
