@@ -24,7 +24,8 @@ gives and says what to run:
   ``collapse``); the previous configuration runs beside it on every frame of
   the trial, and it stays only when it found more markers on those same frames
   (else ``revert``). Where the previous one could not run beside it, the count
-  that fell stands for it, and a count still falling makes that stale: so after
+  that fell (of the frames below the threshold, not those before the fall)
+  stands for it, and a count still falling makes that stale: so after
   such a revert the previous configuration's own count is watched for
   ``recheck_frames`` frames (the try beside it within the budget), and when it
   finds fewer than the try did, the try is taken again (``collapse``) and kept.
