@@ -417,7 +417,7 @@ class Reflex:
         return statistics.fmean(c for c in window if c < threshold)  # the mean is below it: a frame is
 
     def _collapse(self, level: float | None, *, fallen: float | None = None) -> Swap | None:
-        nxt = self._next_candidate(level)
+        nxt = self._next_candidate(level, fall=fallen is not None)
         if nxt is None:
             return None
         self.trying = self.running
@@ -480,10 +480,11 @@ class Reflex:
         return (level is not None and math.isfinite(level) and self.seen_level is not None
                 and abs(level - self.seen_level) <= current.margin)
 
-    def _next_candidate(self, level: float | None) -> Choice | None:
+    def _next_candidate(self, level: float | None, *, fall: bool = False) -> Choice | None:
         """After a collapse in steady light: the band's choice best under motion blur, when it is ranked above
-        the running one there. Otherwise the band's other choices, then the neighbouring bands' best, nearest
-        first."""
+        the running one there; after a fall (markers still found) none when the running one holds best under
+        blur already (a blur's fall is no reason to try what holds worse under it). Otherwise the band's other
+        choices, then the neighbouring bands' best, nearest first."""
         current = self.table.entry(self.band)
         if current is None:
             return None
@@ -491,6 +492,8 @@ class Reflex:
             mine = next((c.blur_score for c in current.choices if c.config == self.running), None)
             for c in current.blur_order:
                 if c.config == self.running:
+                    if fall:
+                        return None
                     break  # it holds best under blur already
                 if mine is None or (c.blur_score is not None and c.blur_score > mine + TIE_RATE):
                     return c

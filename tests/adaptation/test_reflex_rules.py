@@ -363,3 +363,15 @@ def test_a_fall_s_try_is_judged_against_the_frames_that_fell_not_those_before_th
     r.on_light(120.0)
     assert feed(r, [35] * 30 + [2, 1], beside=False) == [(31, "dark", ReflexEvidence.COLLAPSE)]
     assert feed(r, [3] * 30, start=2.0, beside=False) == [] and r.running == "dark"
+
+
+def test_a_fall_of_what_holds_best_under_blur_tries_nothing_that_holds_worse():
+    # The dark configuration, best under blur in the day band, runs through a blur (5 a frame), then its
+    # count dips (1, 0, 1): a fall, but nothing in the band holds better under blur, so no try.
+    r = Reflex(table=day_band(), running="dark")
+    r.band = "day"
+    assert feed(r, [5] * 30 + [1, 0, 1] + [5] * 10, beside=False) == [] and r.running == "dark"
+    # Without blur figures the old order: the band's first choice is tried.
+    r = Reflex(table=day_band(blur=False), running="dark")
+    r.band = "day"
+    assert feed(r, [5] * 30 + [1, 0, 1], beside=False)[0][1:] == ("day", ReflexEvidence.COLLAPSE)
