@@ -33,7 +33,8 @@ gives and says what to run:
   markers were last seen) the light is not the cause; motion blur (or a harder
   view) is, so the first tried is the in-place choice calibration ranks best
   under blur in the band (``reflex_table``'s ``blur_rate``), when it is ranked
-  above the running one there. Otherwise, or when the light moved, the band's
+  above the running one there; after a fall, none when the running one holds
+  best under blur already. Otherwise, or when the light moved, the band's
   other choices, then the neighbouring bands' best, nearest first.
 * evidence, not waiting, is the hysteresis: after a switch the previous
   configuration runs beside the new one on the same frames (a hedge, within the
