@@ -23,12 +23,18 @@ gives and says what to run:
   count falls without reaching zero. Try the next candidate once (evidence
   ``collapse``); the previous configuration runs beside it on every frame of
   the trial, and it stays only when it found more markers on those same frames
-  (else ``revert``).
+  (else ``revert``). Where the previous one could not run beside it, the count
+  that fell (of the frames below the threshold, not those before the fall)
+  stands for it, and a count still falling makes that stale: so after
+  such a revert the previous configuration's own count is watched for
+  ``recheck_frames`` frames (the try beside it within the budget), and when it
+  finds fewer than the try did, the try is taken again (``collapse``) and kept.
   Which candidate: when the light is steady (within the band's margin of where
   markers were last seen) the light is not the cause; motion blur (or a harder
   view) is, so the first tried is the in-place choice calibration ranks best
   under blur in the band (``reflex_table``'s ``blur_rate``), when it is ranked
-  above the running one there. Otherwise, or when the light moved, the band's
+  above the running one there; after a fall, none when the running one holds
+  best under blur already. Otherwise, or when the light moved, the band's
   other choices, then the neighbouring bands' best, nearest first.
 * evidence, not waiting, is the hysteresis: after a switch the previous
   configuration runs beside the new one on the same frames (a hedge, within the
@@ -201,18 +207,24 @@ class ReflexSettings:
     confirm_frames: int = 2  # frames in a row a hedge must win before it counts
     # A fall: the mean clean count of the last collapse_frames frames below fall_fraction x the typical (median)
     # count of the frames before them within memory_s, when that typical count is at least fall_min_typical
-    # (a fall from one or two markers is the zero rule's). A third: a 7 px motion blur leaves 2-13 % of the
-    # real photographs' markers to the band's configuration, while a hovering camera's view or a marker
-    # leaving it moves the count by less. 0 turns the rule off.
-    fall_fraction: float = 1 / 3
+    # (a fall from one or two markers is the zero rule's). A half: a 7 px motion blur leaves 2-13 % of the
+    # shipped photographs' markers to the band's configuration, but 37 % of a real DICT_4X4_50 board's at the
+    # dusk band's darkest level (the dark configuration keeps 66 %); a hovering camera's view or a marker
+    # leaving it moves the count by less. A try on a fall that was not one costs its trial: the previous
+    # configuration runs beside it, or is rechecked after going back. 0 turns the rule off.
+    fall_fraction: float = 1 / 2
     fall_min_typical: float = 3.0
+    # After a fall's try went back: frames the previous configuration's own count is watched for. A try judged
+    # against a count still falling (the previous one could not run beside it) is taken again when the previous
+    # one then finds fewer than the try did. 0 turns the recheck off.
+    recheck_frames: int = 3
 
     def __post_init__(self) -> None:
         if self.collapse_frames < 1 or self.trial_frames < 0 or self.confirm_frames < 1 or self.memory_s <= 0:
             raise ConfigError("reflex settings: collapse_frames >= 1, trial_frames >= 0, confirm_frames >= 1, "
                               "memory_s > 0")
-        if not 0 <= self.fall_fraction < 1 or self.fall_min_typical < 1:
-            raise ConfigError("reflex settings: 0 <= fall_fraction < 1, fall_min_typical >= 1")
+        if not 0 <= self.fall_fraction < 1 or self.fall_min_typical < 1 or self.recheck_frames < 0:
+            raise ConfigError("reflex settings: 0 <= fall_fraction < 1, fall_min_typical >= 1, recheck_frames >= 0")
 
 
 @dataclass(frozen=True)
@@ -236,6 +248,19 @@ class FallTrial:
     fallen: float  # the mean count of the frames that fell (what the previous one found, for frames it did not run)
     new: int = 0  # markers the new configuration found
     old: float = 0.0  # markers the previous one found beside it (or ``fallen`` where it did not run)
+    frames: int = 0  # frames of the trial so far
+    beside: int = 0  # of those, frames the previous one ran beside it
+
+
+@dataclass
+class Recheck:
+    """After a fall's try went back: the previous configuration's own count against what the try found."""
+
+    tried: str  # the configuration tried
+    per_frame: float  # markers a frame the try found on its trial (what it stands for where it does not run beside)
+    left: int  # frames still to watch
+    mine: int = 0  # markers the previous (running again) configuration found
+    theirs: float = 0.0  # markers the try found beside it (or ``per_frame`` where it did not run)
 
 
 @dataclass
@@ -258,12 +283,14 @@ class Reflex:
     seen_level: float | None = None  # the light when the running configuration last found a marker
     counts: deque[tuple[float, int]] = field(default_factory=deque)  # (time, clean count) within memory_s
     fall: FallTrial | None = None  # a try after a fall of the count, being judged
+    recheck: Recheck | None = None  # after that try went back: the previous configuration's count, watched
 
     @property
     def comparing(self) -> bool:
-        """A try after a fall is being judged: the previous configuration runs beside it on every frame (the
-        detector asks :meth:`hedge_for` on frames the running one found markers on too)."""
-        return self.fall is not None
+        """A try after a fall is being judged, or the configuration it went back to is: the other one runs
+        beside it on every frame (the detector asks :meth:`hedge_for` on frames the running one found markers
+        on too)."""
+        return self.fall is not None or self.recheck is not None
 
     def on_light(self, level: float | None) -> Swap | None:
         """This frame's light; a Swap when it is past an edge of the band by more than the margin."""
@@ -297,6 +324,8 @@ class Reflex:
         during a trial, else near an edge (within the band's margin) the neighbouring band's best."""
         if self.trial is not None:
             return self.trial[0]
+        if self.recheck is not None:
+            return self.recheck.tried
         current = self.table.entry(self.band)
         if current is None or level is None or not math.isfinite(level):
             return None
@@ -319,14 +348,19 @@ class Reflex:
             expired = self.trial is None
         if self.fall is not None:
             return self._judge_fall(found, now, hedge, hedge_found, expired, level)
+        if self.recheck is not None:
+            again = self._recheck(found, hedge, hedge_found, level)
+            if again is not None:
+                return again
         self._count(found, now)
         if found > 0:
             self._saw(now, level)
             self.misses, self.muted, self.wins, self.trying = 0, False, 0, None
             if self.trial is not None and hedge == self.trial[0]:
                 self.trial = None  # the new one finds the markers: it stays
-            if self.trial is None and self._fallen():
-                return self._collapse(level, fall=True)
+            fallen = self._fallen() if self.trial is None else None
+            if fallen is not None:
+                return self._collapse(level, fallen=fallen)
             return None
         if hedge is not None and hedge_found > 0:
             self.wins += 1
@@ -353,7 +387,7 @@ class Reflex:
             return None
         self.misses = 0
         self.muted = True  # one try per collapse: no cascade down the table
-        return self._collapse(level, fall=False)
+        return self._collapse(level)
 
     def _saw(self, now: float, level: float | None) -> None:
         """The running configuration found markers: when, and in what light."""
@@ -366,28 +400,30 @@ class Reflex:
         while self.counts and now - self.counts[0][0] > self.settings.memory_s:
             self.counts.popleft()
 
-    def _fallen(self) -> bool:
-        """The last ``collapse_frames`` frames found on average less than ``fall_fraction`` of the typical
-        (median) count of the frames before them within ``memory_s``."""
+    def _fallen(self) -> float | None:
+        """When the last ``collapse_frames`` frames found on average less than ``fall_fraction`` of the typical
+        (median) count of the frames before them within ``memory_s``: the mean count of the frames of those
+        below it (None: no fall). Only those: a frame still before the fall is no figure for the trial's."""
         s = self.settings
         if s.fall_fraction <= 0 or s.trial_frames < 1:  # a fall try is judged over a trial
-            return False
+            return None
         counts = [c for _t, c in self.counts]
         if len(counts) < 2 * s.collapse_frames:
-            return False
+            return None
         window, before = counts[-s.collapse_frames:], counts[:-s.collapse_frames]
         typical = statistics.median(before)
-        return typical >= s.fall_min_typical and statistics.fmean(window) < s.fall_fraction * typical
+        threshold = s.fall_fraction * typical
+        if typical < s.fall_min_typical or statistics.fmean(window) >= threshold:
+            return None
+        return statistics.fmean(c for c in window if c < threshold)  # the mean is below it: a frame is
 
-    def _collapse(self, level: float | None, *, fall: bool) -> Swap | None:
-        nxt = self._next_candidate(level)
+    def _collapse(self, level: float | None, *, fallen: float | None = None) -> Swap | None:
+        nxt = self._next_candidate(level, fall=fallen is not None)
         if nxt is None:
             return None
-        fallen = statistics.fmean(c for _t, c in list(self.counts)[-self.settings.collapse_frames:]) \
-            if fall and self.counts else 0.0
         self.trying = self.running
         swap = self._swap(nxt, ReflexEvidence.COLLAPSE, level)
-        if fall:
+        if fallen is not None:
             self.fall = FallTrial(fallen)
         return swap
 
@@ -400,25 +436,56 @@ class Reflex:
         assert fall is not None
         if found > 0:
             self._saw(now, level)
+        beside = hedge is not None and hedge == self.trying
         fall.new += found
-        fall.old += hedge_found if hedge is not None and hedge == self.trying else fall.fallen
+        fall.old += hedge_found if beside else fall.fallen
+        fall.frames += 1
+        fall.beside += beside
         if not expired:
             return None
         previous, self.fall, self.trying = self.trying, None, None
         if fall.new > fall.old:
             return None  # more markers on the same frames: it stays
         back = self.table.choices().get(previous) if previous is not None else None
-        return self._swap(back, ReflexEvidence.REVERT, level, trial=False) if back is not None else None
+        if back is None:
+            return None
+        tried = self.running
+        swap = self._swap(back, ReflexEvidence.REVERT, level, trial=False)
+        if fall.beside < fall.frames and self.settings.recheck_frames > 0:
+            # Judged, at least in part, against the count that fell: see what the previous one finds now.
+            self.recheck = Recheck(tried, fall.new / fall.frames, self.settings.recheck_frames)
+        return swap
+
+    def _recheck(self, found: int, hedge: str | None, hedge_found: int, level: float | None) -> Swap | None:
+        """A frame after a fall's try went back: the try again, kept, when the previous configuration finds
+        fewer markers than the try did (beside it on the same frames, else on its trial)."""
+        check = self.recheck
+        assert check is not None
+        check.mine += found
+        check.theirs += hedge_found if hedge is not None and hedge == check.tried else check.per_frame
+        check.left -= 1
+        if check.left > 0:
+            return None
+        self.recheck = None
+        if check.mine >= check.theirs:
+            return None  # the previous one finds as many: it was right to go back
+        tried = self.table.choices().get(check.tried)
+        if tried is None:
+            return None
+        # A collapse's try, kept on evidence: the manager lets it stand (adaptation_policy.reflex_stands). It runs
+        # with the usual trial (back only when the previous one finds markers and it does not).
+        return self._swap(tried, ReflexEvidence.COLLAPSE, level)
 
     def _steady(self, current: BandEntry, level: float | None) -> bool:
         """The light is within the band's margin of where markers were last seen: it did not cause the loss."""
         return (level is not None and math.isfinite(level) and self.seen_level is not None
                 and abs(level - self.seen_level) <= current.margin)
 
-    def _next_candidate(self, level: float | None) -> Choice | None:
+    def _next_candidate(self, level: float | None, *, fall: bool = False) -> Choice | None:
         """After a collapse in steady light: the band's choice best under motion blur, when it is ranked above
-        the running one there. Otherwise the band's other choices, then the neighbouring bands' best, nearest
-        first."""
+        the running one there; after a fall (markers still found) none when the running one holds best under
+        blur already (a blur's fall is no reason to try what holds worse under it). Otherwise the band's other
+        choices, then the neighbouring bands' best, nearest first."""
         current = self.table.entry(self.band)
         if current is None:
             return None
@@ -426,6 +493,8 @@ class Reflex:
             mine = next((c.blur_score for c in current.choices if c.config == self.running), None)
             for c in current.blur_order:
                 if c.config == self.running:
+                    if fall:
+                        return None
                     break  # it holds best under blur already
                 if mine is None or (c.blur_score is not None and c.blur_score > mine + TIE_RATE):
                     return c
@@ -445,7 +514,7 @@ class Reflex:
     def _swap(self, choice: Choice, evidence: ReflexEvidence, level: float | None, *, from_band: str | None = None,
               trial: bool = True) -> Swap:
         self.told = False
-        self.fall = None
+        self.fall, self.recheck = None, None
         self.counts.clear()  # another configuration's counts are no typical for this one
         previous, self.running = self.running, choice.config
         self.trial = (previous, self.settings.trial_frames) if trial and self.settings.trial_frames else None
@@ -457,7 +526,7 @@ class Reflex:
     def taken(self, config: str, level: float | None = None) -> None:
         """The detector was told to run ``config`` (an in-place change from the manager): follow it."""
         self.running = config
-        self.trial, self.trying, self.wins, self.misses, self.fall = None, None, 0, 0, None
+        self.trial, self.trying, self.wins, self.misses, self.fall, self.recheck = None, None, 0, 0, None, None
         self.counts.clear()
         if level is not None and math.isfinite(level) and self.table.entries:
             self.band = self.table.band_of(level).band.name

@@ -281,12 +281,13 @@ def test_a_collapse_in_steady_light_tries_the_band_s_best_under_blur_first():
     assert collapse_after_markers(r, [120.0, 121.0, 119.0, 120.5])[2].config == "day"
 
 
-def feed(r, counts, *, start=0.0, level=120.0, hedge_found=None):
+def feed(r, counts, *, start=0.0, level=120.0, hedge_found=None, beside=True):
     """``counts`` per frame at 30 frames/s (the previous configuration finding ``hedge_found`` beside it
-    whenever the reflex compares); the swaps that came, with their frame."""
+    whenever the reflex compares; ``beside`` False: nothing fits the budget beside it); the swaps that came,
+    with their frame."""
     out = []
     for i, n in enumerate(counts):
-        hedge = r.hedge_for(level) if (not n or r.comparing) else None
+        hedge = r.hedge_for(level) if beside and (not n or r.comparing) else None
         swap = r.on_result(n, start + i / 30, hedge=hedge,
                            hedge_found=(hedge_found if hedge_found is not None else 0) if hedge else 0, level=level)
         if swap is not None:
@@ -300,11 +301,11 @@ def test_a_fall_of_the_count_is_a_collapse_where_the_zero_rule_never_fires():
     r = Reflex(table=day_band(), running="day")
     r.on_light(120.0)
     swaps = feed(r, sharp + blurred, hedge_found=1)
-    assert swaps[0] == (32, "dark", ReflexEvidence.COLLAPSE)  # the third blurred frame
+    assert swaps[0] == (31, "dark", ReflexEvidence.COLLAPSE)  # the second blurred frame (20, 1, 2: below half)
     off = Reflex(table=day_band(), running="day", settings=ReflexSettings(fall_fraction=0.0))
     off.on_light(120.0)
     assert feed(off, sharp + blurred) == []
-    # A third is the threshold: a view that loses half its markers is no collapse.
+    # A half is the threshold: a view that keeps half its markers (a turn, markers leaving it) is no collapse.
     calm = Reflex(table=day_band(), running="day")
     calm.on_light(120.0)
     assert feed(calm, sharp + [10] * 10) == []
@@ -312,7 +313,7 @@ def test_a_fall_of_the_count_is_a_collapse_where_the_zero_rule_never_fires():
 
 def test_after_a_fall_the_try_stays_only_when_it_finds_more_on_the_same_frames():
     s = ReflexSettings(trial_frames=6)
-    sharp, blurred = [20] * 30, [1, 1, 1]
+    sharp, blurred = [20] * 30, [1, 1]  # a fall on the second blurred frame
     # The try finds 5 a frame where the previous one, run beside it on every frame, finds 1: it stays.
     r = Reflex(table=day_band(), running="day", settings=s)
     r.on_light(120.0)
@@ -326,3 +327,51 @@ def test_after_a_fall_the_try_stays_only_when_it_finds_more_on_the_same_frames()
     back = feed(r, [1] * 6, start=2.0, hedge_found=1)
     assert back == [(5, "day", ReflexEvidence.REVERT)] and r.running == "day"
     assert feed(r, [1] * 30, start=3.0, hedge_found=1) == []
+
+
+def test_a_try_judged_against_a_count_still_falling_is_taken_again_when_the_previous_one_finds_fewer():
+    # 20 markers a frame, then a blur that keeps taking markers: 6, 5, 4 (a fall), and nothing fits the budget
+    # beside the try, so its trial is judged against the count that fell (5 a frame). The try (dark) finds 3 a
+    # frame: reverted. Back on the previous configuration the count has gone on falling: 1 a frame, fewer
+    # than the try found. The try is taken again and kept.
+    sharp, falling = [20] * 30, [6, 5, 4]
+
+    def reverted():
+        r = Reflex(table=day_band(), running="day")
+        r.on_light(120.0)
+        assert feed(r, sharp + falling, beside=False) == [(32, "dark", ReflexEvidence.COLLAPSE)]
+        assert feed(r, [3] * 6, start=2.0, beside=False) == [(5, "day", ReflexEvidence.REVERT)]
+        return r
+
+    r = reverted()
+    assert r.comparing and r.hedge_for(120.0) == "dark"  # the try beside the previous one, within the budget
+    assert feed(r, [1] * 3, start=3.0, beside=False) == [(2, "dark", ReflexEvidence.COLLAPSE)]
+    assert feed(r, [3] * 30, start=4.0, hedge_found=1) == [] and r.running == "dark"
+    # The previous one finds as many as the try did: it was right to go back, and stays.
+    r = reverted()
+    assert feed(r, [3] * 30, start=3.0, beside=False) == [] and r.running == "day" and not r.comparing
+    # The try run beside it on the same frames finds fewer than the previous one: that, not its trial, decides.
+    r = reverted()
+    assert feed(r, [2] * 30, start=3.0, hedge_found=1) == [] and r.running == "day"
+
+
+def test_a_fall_s_try_is_judged_against_the_frames_that_fell_not_those_before_the_fall():
+    # At a fall rule of a half the fall fires on the second blurred frame, while the window still holds a sharp
+    # one (35, 2, 1). The previous configuration's figure for the trial is what it found after the fall (1.5 a
+    # frame), not the window's mean (12.7): the try finding 3 a frame stays.
+    r = Reflex(table=day_band(), running="day", settings=ReflexSettings(fall_fraction=1 / 2))
+    r.on_light(120.0)
+    assert feed(r, [35] * 30 + [2, 1], beside=False) == [(31, "dark", ReflexEvidence.COLLAPSE)]
+    assert feed(r, [3] * 30, start=2.0, beside=False) == [] and r.running == "dark"
+
+
+def test_a_fall_of_what_holds_best_under_blur_tries_nothing_that_holds_worse():
+    # The dark configuration, best under blur in the day band, runs through a blur (5 a frame), then its
+    # count dips (1, 0, 1): a fall, but nothing in the band holds better under blur, so no try.
+    r = Reflex(table=day_band(), running="dark")
+    r.band = "day"
+    assert feed(r, [5] * 30 + [1, 0, 1] + [5] * 10, beside=False) == [] and r.running == "dark"
+    # Without blur figures the old order: the band's first choice is tried.
+    r = Reflex(table=day_band(blur=False), running="dark")
+    r.band = "day"
+    assert feed(r, [5] * 30 + [1, 0, 1], beside=False)[0][1:] == ("day", ReflexEvidence.COLLAPSE)
