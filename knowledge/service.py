@@ -125,7 +125,9 @@ log = logging.getLogger(__name__)
 _STOP = object()
 _MAX_LIVELINESS_DUE = 100  # per host: a flapping token while the store is away
 _MAX_REFUSED_HOSTS = 256  # names of refused hosts remembered (and logged); past that only counted
-_UNKNOWN_RECHECK_S = 10.0  # a refused host is looked up again this often (the models may be reloaded)
+_UNKNOWN_RECHECK_S = 10.0
+_QUIET_TAKES = 4  # status takes that found nothing before the ring is taken every _QUIET_TAKE_S
+_QUIET_TAKE_S = 1.0  # a refused host is looked up again this often (the models may be reloaded)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -137,6 +139,8 @@ class ServiceSettings:
     workers: int = 2  # request worker threads (a slow Cypher query then blocks only one)
     query_timeout_ms: int = 5000  # named queries (FalkorDB honours it late for reads)
     max_pending_requests: int = 1000
+    # Statuses waiting in Zenoh's ring for the status worker (when it is full the oldest go first: only each
+    # host's newest is written), and events on its queue.
     max_pending_statuses: int = 10000
     # A liveliness change the store could not take (e.g. it was restarting) is tried again this often,
     # in order with the host's later changes; the profiles of a lost host must end even then.
@@ -568,7 +572,11 @@ class KnowledgeService:
     def _event_loop(self) -> None:
         # Statuses gather in Zenoh's ring for status_batch_s, to be written together in one store call;
         # a liveliness change (queued by its callback) wakes the worker at once and is never delayed.
+        # When no status has come for _QUIET_TAKES takes (no host publishes: hosts send at 2 Hz), the ring
+        # is taken every _QUIET_TAKE_S until a status or a liveliness change comes: a robot's hundred
+        # services then cost nothing polling.
         due = time.monotonic() + self.settings.status_batch_s
+        empty_takes = 0
         while True:
             try:
                 first = self._events.get(timeout=max(0.0, min(due, self._event_due()) - time.monotonic()))
@@ -578,9 +586,13 @@ class KnowledgeService:
             if first is None and now < due:  # a liveliness retry or a refresh, not yet the statuses' turn
                 self._act_on_time()
                 continue
-            if now >= due:
-                due = now + self.settings.status_batch_s
             batch = self._take_events(first)
+            empty_takes = 0 if batch else empty_takes + 1
+            if now >= due:
+                quiet = empty_takes >= _QUIET_TAKES
+                due = now + (max(self.settings.status_batch_s, _QUIET_TAKE_S) if quiet else self.settings.status_batch_s)
+            elif first is not None:  # a liveliness change: its host's statuses follow
+                due = min(due, now + self.settings.status_batch_s)
             stop = _STOP in batch
             if stop:
                 batch = batch[:batch.index(_STOP)]

@@ -192,3 +192,31 @@ def test_a_liveliness_change_is_written_at_once_whatever_the_status_window(zenoh
         wait_for(lambda: (platform_row(client, "o1") or {}).get("online") is False, 10, "o1 offline")
     finally:
         svc.shutdown()
+
+
+def test_a_service_that_hears_no_status_takes_zenohs_ring_once_a_second(zenoh_pair, robot, resp_store):
+    # A hundred services taking an empty ring four times a second cost 3 % of a core doing nothing.
+    server, session = zenoh_pair
+    resp_store.execute("MERGE (:Platform {name: 'w1'})")
+    ensure_indexes(resp_store)
+    svc = KnowledgeService(resp_store, ServiceSettings(robot=robot, status_batch_s=0.25))
+    takes: list[float] = []
+    take = svc._take_events
+
+    def counted(first):
+        takes.append(time.monotonic())
+        return take(first)
+    svc._take_events = counted
+    svc.setup(server)
+    try:
+        wait_until_serving(session, robot)
+        client = KnowledgeClient(session, robot, timeout=3.0)
+        seen = len(takes)
+        wait_for(lambda: len(takes) >= seen + 8, 30, "eight takes of the quiet ring")
+        quiet = takes[-4:]
+        assert quiet[-1] - quiet[0] >= 3 * 0.9, [round(b - a, 2) for a, b in zip(takes, takes[1:])]
+        # A status after the quiet is still taken, and the takes come every status_batch_s again.
+        session.put(keys.host_status(robot, "w1"), _status("w1", 300.0))
+        wait_for(_free(client, "w1", 300.0), 10, "the status after the quiet")
+    finally:
+        svc.shutdown()
