@@ -531,7 +531,8 @@ class KnowledgeService:
         sub = self._status_sub
         if sub is None:
             return []
-        now, events = time.time(), []
+        now = time.time()
+        events: list[tuple[Any, ...]] = []
         try:
             while (limit is None or len(events) < limit) and (sample := sub.try_recv()) is not None:
                 events.append(("status", str(sample.key_expr), sample.payload.to_bytes(), now))
