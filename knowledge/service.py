@@ -70,8 +70,14 @@ offline; the liveliness history then marks the live ones online again.
 Threads: Zenoh callbacks only put work on queues. Request workers (two
 :class:`kgadapt.shared.rpc.Server` pools: ``workers`` for the robot's own requests,
 ``public_workers`` for other robots') answer queries; one status worker applies host statuses and
-liveliness changes. Statuses are gathered for at most ``status_batch_s`` (a
-liveliness change ends the wait at once) and the newest of each host written
+liveliness changes. Statuses have no callback: Zenoh keeps them in a ring of
+``max_pending_statuses`` (the oldest dropped first when it is full), and the status worker takes
+them all every ``status_batch_s`` (a Python callback per status cost the
+services more than everything they then did with it). A liveliness change
+comes by callback, which first moves the statuses received before it onto the
+queue, so the worker sees both in the order they arrived, and ends the wait at
+once. A status's receive time is when it is taken (at most ``status_batch_s``
+after it arrived; the order of receive times is the order of arrival). The newest of each host is written
 in one ``UNWIND`` store call per batch, each host's figures checked as a
 single write checks them; the profiles' memory StatusTrust needs is read for
 the batch in one call too. A status within the deadband of what the graph holds
@@ -120,6 +126,8 @@ _STOP = object()
 _MAX_LIVELINESS_DUE = 100  # per host: a flapping token while the store is away
 _MAX_REFUSED_HOSTS = 256  # names of refused hosts remembered (and logged); past that only counted
 _UNKNOWN_RECHECK_S = 10.0  # a refused host is looked up again this often (the models may be reloaded)
+_QUIET_TAKES = 4  # status takes that found nothing before the ring is taken every _QUIET_TAKE_S
+_QUIET_TAKE_S = 1.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -131,6 +139,8 @@ class ServiceSettings:
     workers: int = 2  # request worker threads (a slow Cypher query then blocks only one)
     query_timeout_ms: int = 5000  # named queries (FalkorDB honours it late for reads)
     max_pending_requests: int = 1000
+    # Statuses waiting in Zenoh's ring for the status worker (when it is full the oldest go first: only each
+    # host's newest is written), and events on its queue.
     max_pending_statuses: int = 10000
     # A liveliness change the store could not take (e.g. it was restarting) is tried again this often,
     # in order with the host's later changes; the profiles of a lost host must end even then.
@@ -212,6 +222,11 @@ class KnowledgeService:
         self.own_first = OwnFirst(max_wait_s=settings.own_first_wait_s)
         self._events: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_statuses)
         self._event_thread: threading.Thread | None = None
+        # The status subscriber (its samples wait in Zenoh's ring until taken), and the lock that keeps a
+        # liveliness change behind the statuses received before it: taking statuses and queueing a change
+        # each hold it.
+        self._status_sub: Any = None
+        self._take_lock = threading.Lock()
         # Per host, its liveliness changes not yet in the store, oldest first (only the status worker touches it).
         self._liveliness_due: dict[str, list[tuple[bool, float]]] = {}
         # Per host (status worker only): the figures last written, the newest admitted status within the
@@ -220,6 +235,7 @@ class KnowledgeService:
         self._waiting: dict[str, tuple[messages.HostStatus, float]] = {}
         self._held: dict[str, float] = {}
         self._refresh_at = 0.0
+        self._retry_at = 0.0  # when the liveliness changes the store refused are tried again
         self._stack = contextlib.ExitStack()
         self._stats_lock = threading.Lock()
         self._stats: collections.Counter[str] = collections.Counter()
@@ -288,7 +304,8 @@ class KnowledgeService:
             try:
                 rpc.declared(stack, session.liveliness().declare_subscriber(keys.host_alive(robot, "*"), self._on_alive,
                                                                             history=True))
-                rpc.declared(stack, session.declare_subscriber(keys.host_status(robot, "*"), self._on_status))
+                self._status_sub = rpc.declared(stack, session.declare_subscriber(
+                    keys.host_status(robot, "*"), zenoh.handlers.RingChannel(self.settings.max_pending_statuses)))
             except zenoh.ZError as exc:
                 raise TransportError(f"knowledge service of {robot}: cannot subscribe to host statuses: {exc}") from exc
             stack.callback(self._own.undeclare)
@@ -501,12 +518,40 @@ class KnowledgeService:
                 reply_key = keys.knowledge_write(robot, verb)
         return rpc.Reply(key=reply_key, payload=body)
 
-    def _on_status(self, sample: Any) -> None:
-        self._enqueue_event(("status", str(sample.key_expr), sample.payload.to_bytes(), time.time()))
-
     def _on_alive(self, sample: Any) -> None:
         online = sample.kind == zenoh.SampleKind.PUT
-        self._enqueue_event(("alive", str(sample.key_expr), online, time.time()))
+        with self._take_lock:  # the statuses received before the change go first
+            for event in self._received_statuses():
+                self._enqueue_event(event)
+            self._enqueue_event(("alive", str(sample.key_expr), online, time.time()))
+
+    def _received_statuses(self, limit: int | None = None) -> list[tuple[Any, ...]]:
+        """The statuses waiting in Zenoh's ring, oldest first, at most ``limit``, stamped now (caller holds
+        _take_lock)."""
+        sub = self._status_sub
+        if sub is None:
+            return []
+        now = time.time()
+        events: list[tuple[Any, ...]] = []
+        try:
+            while (limit is None or len(events) < limit) and (sample := sub.try_recv()) is not None:
+                events.append(("status", str(sample.key_expr), sample.payload.to_bytes(), now))
+        except zenoh.ZError:  # undeclared at shutdown: nothing more comes
+            pass
+        return events
+
+    def _take_events(self, first: Any) -> list[Any]:
+        """``first`` (None: nothing), then the queued events and the statuses received since, in order of
+        arrival, at most ``status_batch_max`` (the rest wait in order for the next batch)."""
+        batch = [] if first is None else [first]
+        with self._take_lock:
+            while True:
+                try:
+                    batch.append(self._events.get_nowait())
+                except queue.Empty:
+                    break
+            batch.extend(self._received_statuses(max(0, self.settings.status_batch_max - len(batch))))
+        return batch
 
     def _enqueue_event(self, event: tuple[Any, ...]) -> None:
         try:
@@ -526,45 +571,56 @@ class KnowledgeService:
             self._event_thread = None
 
     def _event_loop(self) -> None:
+        # Statuses gather in Zenoh's ring for status_batch_s, to be written together in one store call;
+        # a liveliness change (queued by its callback) wakes the worker at once and is never delayed.
+        # When no status has come for _QUIET_TAKES takes (no host publishes: hosts send at 2 Hz), the ring
+        # is taken every _QUIET_TAKE_S until a status or a liveliness change comes (a hundred quiet services
+        # taking it every 0.25 s cost about 3 % of a core).
+        due = time.monotonic() + self.settings.status_batch_s
+        empty_takes = 0
         while True:
             try:
-                first = self._events.get(timeout=self._event_wait())
+                first = self._events.get(timeout=max(0.0, min(due, self._event_due()) - time.monotonic()))
             except queue.Empty:
-                self._apply_liveliness()
-                self._refresh_waiting()
+                first = None
+            now = time.monotonic()
+            if first is None and now < due:  # a liveliness retry or a refresh, not yet the statuses' turn
+                self._act_on_time()
                 continue
-            if first is _STOP:
-                return
-            batch = [first]
-            stop = False
-            # Statuses wait up to status_batch_s for others, to be written together in one store call;
-            # a liveliness change ends the wait at once (the liveliness path is never delayed).
-            until = time.monotonic() + self.settings.status_batch_s if first[0] == "status" else 0.0
-            while len(batch) < self.settings.status_batch_max:  # only the newest status per host matters
-                try:
-                    wait = until - time.monotonic()
-                    item = self._events.get(timeout=wait) if wait > 0 else self._events.get_nowait()
-                except queue.Empty:
-                    break
-                if item is _STOP:
-                    stop = True
-                    break
-                batch.append(item)
-                if item[0] != "status":
-                    until = 0.0
+            batch = self._take_events(first)
+            empty_takes = 0 if batch else empty_takes + 1
+            if now >= due:
+                quiet = empty_takes >= _QUIET_TAKES
+                due = now + (max(self.settings.status_batch_s, _QUIET_TAKE_S) if quiet else self.settings.status_batch_s)
+            elif first is not None:  # a liveliness change: its host's statuses follow
+                due = min(due, now + self.settings.status_batch_s)
+            stop = _STOP in batch
+            if stop:
+                batch = batch[:batch.index(_STOP)]
             try:
-                self._apply_events(batch)
+                if batch:
+                    self._apply_events(batch)
+                else:
+                    self._act_on_time()
             except Exception:  # the worker must outlive one bad batch
                 log.exception("status worker: unexpected failure")
             if stop:
                 return
 
-    def _event_wait(self) -> float | None:
-        """How long the status worker may wait for an event: a liveliness retry or waiting statuses due."""
-        waits = [self.settings.liveliness_retry_s] if self._liveliness_due else []
+    def _event_due(self) -> float:
+        """When the status worker must act without an event: a liveliness retry or waiting statuses due."""
+        dues = [float("inf")]
+        if self._liveliness_due:
+            dues.append(self._retry_at)
         if self._waiting:
-            waits.append(max(0.0, self._refresh_at - time.monotonic()))
-        return min(waits) if waits else None
+            dues.append(self._refresh_at)
+        return min(dues)
+
+    def _act_on_time(self) -> None:
+        """Without new events: retry the liveliness changes the store refused, write the waiting statuses, when due."""
+        if self._liveliness_due and time.monotonic() >= self._retry_at:
+            self._apply_liveliness()
+        self._refresh_waiting()
 
     def _apply_events(self, batch: list[tuple[Any, ...]]) -> None:
         statuses: dict[str, tuple[messages.HostStatus, float]] = {}
@@ -679,6 +735,7 @@ class KnowledgeService:
                     break
                 except KgadaptError as exc:
                     self._count("liveliness_retried")
+                    self._retry_at = time.monotonic() + self.settings.liveliness_retry_s
                     log.warning("liveliness of host %s (%s): the store refused it, trying again: %s",
                                 host, "online" if online else "offline", exc)
                     break

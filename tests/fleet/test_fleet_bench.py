@@ -28,3 +28,13 @@ def test_a_small_fleet_bench_gets_every_robots_answer_and_measures_the_fan_in(tm
     decoded = int(fanin["decode_only_receiver"].split()[-1])
     assert sent >= 60 * 2 and decoded > 0  # the statuses flowed through the routers
     assert "status fan-in: 60 hosts" in done.stdout
+
+
+def test_the_fan_in_counts_as_the_store_only_the_falkordb_server(tmp_path):
+    # The routers name the store's socket on their command lines (``serve --socket``): matching it took
+    # them too, and the store's figure then held the knowledge services' CPU.
+    from kgadapt.bench.fleet_bench import SimulatedFleet, _store_pids
+
+    with SimulatedFleet(tmp_path / "fleet", robots=2, routers=2, transit=True) as fleet:
+        assert _store_pids(fleet) == [fleet.server.address.pid]
+        assert not set(_store_pids(fleet)) & {*fleet.pids(), fleet.transit_pid()}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 
 import zenoh
@@ -139,5 +140,83 @@ def test_waiting_statuses_are_written_at_the_refresh_checked_against_the_profile
         wait_for(_free(client, "d1", 350.0), 10, "the believable change")
         session.put(keys.host_status(robot, "d1"), _status("d1", 345.0))  # within it: waits for the refresh
         wait_for(_free(client, "d1", 345.0), 10, "the waiting status written by the refresh")
+    finally:
+        svc.shutdown()
+
+
+def test_statuses_wait_in_zenohs_ring_for_the_status_worker_not_in_a_python_callback_each(zenoh_pair, robot,
+                                                                                          resp_store):
+    # 2,000 statuses a second into 100 services: a Python callback per status (its thread taking the
+    # interpreter, a queue hand-off) cost more than everything the worker then did with it.
+    server, session = zenoh_pair
+    hosts = [f"q{i:02d}" for i in range(20)]
+    resp_store.execute("UNWIND $names AS name MERGE (:Platform {name: name})", {"names": hosts})
+    ensure_indexes(resp_store)
+    svc = KnowledgeService(resp_store, ServiceSettings(robot=robot))
+    queued: list[str] = []  # the threads that put a status on the worker's queue
+    enqueue = svc._enqueue_event
+
+    def counted(event):
+        if event[0] == "status":
+            queued.append(threading.current_thread().name)
+        enqueue(event)
+    svc._enqueue_event = counted
+    svc.setup(server)
+    try:
+        wait_until_serving(session, robot)
+        client = KnowledgeClient(session, robot, timeout=3.0)
+        for i, host in enumerate(hosts):
+            session.put(keys.host_status(robot, host), _status(host, 100.0 + i))
+
+        def every_host_written() -> bool:
+            rows = {r["platform"]: r for r in client.query("platforms", {})}
+            return all((rows.get(h) or {}).get("memory_free_mb") == 100.0 + i for i, h in enumerate(hosts))
+        wait_for(every_host_written, 30, "every host's status in the graph")
+        stats = svc.stats()
+        assert stats["events_received"] == len(hosts) and stats.get("events_dropped", 0) == 0, stats
+        assert queued == [], f"{len(queued)} statuses handed over one by one by {set(queued)}"
+    finally:
+        svc.shutdown()
+
+
+def test_a_liveliness_change_is_written_at_once_whatever_the_status_window(zenoh_pair, robot, resp_store):
+    # Statuses are taken from Zenoh's ring every status_batch_s; a liveliness change comes by callback
+    # and wakes the worker at once (taking the statuses received before it along).
+    server, session = zenoh_pair
+    resp_store.execute("MERGE (:Platform {name: 'o1'})")
+    svc, client = _service(resp_store, zenoh_pair, robot, status_batch_s=3600.0)
+    try:
+        token = session.liveliness().declare_token(keys.host_alive(robot, "o1"))
+        wait_for(lambda: (platform_row(client, "o1") or {}).get("online") is True, 10, "o1 online")
+        token.undeclare()
+        wait_for(lambda: (platform_row(client, "o1") or {}).get("online") is False, 10, "o1 offline")
+    finally:
+        svc.shutdown()
+
+
+def test_a_service_that_hears_no_status_takes_zenohs_ring_once_a_second(zenoh_pair, robot, resp_store):
+    # A hundred services taking an empty ring four times a second cost 3 % of a core doing nothing.
+    server, session = zenoh_pair
+    resp_store.execute("MERGE (:Platform {name: 'w1'})")
+    ensure_indexes(resp_store)
+    svc = KnowledgeService(resp_store, ServiceSettings(robot=robot, status_batch_s=0.25))
+    takes: list[float] = []
+    take = svc._take_events
+
+    def counted(first):
+        takes.append(time.monotonic())
+        return take(first)
+    svc._take_events = counted
+    svc.setup(server)
+    try:
+        wait_until_serving(session, robot)
+        client = KnowledgeClient(session, robot, timeout=3.0)
+        seen = len(takes)
+        wait_for(lambda: len(takes) >= seen + 8, 30, "eight takes of the quiet ring")
+        quiet = takes[-4:]
+        assert quiet[-1] - quiet[0] >= 3 * 0.9, [round(b - a, 2) for a, b in zip(takes, takes[1:])]
+        # A status after the quiet is still taken, and the takes come every status_batch_s again.
+        session.put(keys.host_status(robot, "w1"), _status("w1", 300.0))
+        wait_for(_free(client, "w1", 300.0), 10, "the status after the quiet")
     finally:
         svc.shutdown()
