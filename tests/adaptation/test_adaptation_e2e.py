@@ -114,7 +114,7 @@ def test_without_in_place_changes_the_reflex_asks_and_the_manager_starts_a_proce
     # with the move it planned for the dark band before the reflex came (no question to the graph then).
     from kgadapt.operator.cluster import models_without_in_place
 
-    points = [[0, 120], [10, 120], [10.001, 5], [35, 5]]  # day long enough for the dark move to be planned
+    points = [[0, 120], [10, 120], [10.000001, 5], [35, 5]]  # day long enough for the dark move to be planned
     with Run(tmp_path, points, models=models_without_in_place(tmp_path / "models")) as run:
         first = run.wait_for(run.decision("startup"), 20, "the first detector")
         moved = run.wait_for(run.decision("reflex", config="marker_detection_dark"), 20, "the move to dark")
@@ -214,7 +214,7 @@ def test_during_final_descent_the_detector_still_answers_a_step_in_place(tmp_pat
     # What a landing needs most: the pad's markers back within frames of a shadow. The detector's own
     # reflex is not a planned change (no process starts or stops): it acts during the descent, the
     # manager records it and moves nothing else.
-    with Run(tmp_path, [[0, 120], [6, 120], [6.001, 5], [40, 5]], land_after_s=1.0, descent_s=30.0) as run:
+    with Run(tmp_path, [[0, 120], [6, 120], [6.000001, 5], [40, 5]], land_after_s=1.0, descent_s=30.0) as run:
         first = run.wait_for(run.decision("startup"), 20, "the first detector")
         reflex = run.wait_for(run.decision("reflex", config="marker_detection_dark"), 20, "the reflex into the dark")
         run.wait_for(lambda: run.running(reflex.time) == {("marker_detection_dark", first.host)}, 10,

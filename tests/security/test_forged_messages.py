@@ -122,7 +122,8 @@ def test_a_forged_final_descent_does_not_hold_back_a_band_change(tmp_path):
     # detector's reflex asks for at once.
     from kgadapt.operator.cluster import models_without_in_place
 
-    with Run(tmp_path, [[0, 120], [5, 120], [5.001, 5], [40, 5]],
+    # A step of 1 µs: with 1 ms, one frame in 33 fell on the ramp, read dusk, and the first reflex was to dusk.
+    with Run(tmp_path, [[0, 120], [5, 120], [5.000001, 5], [40, 5]],
              models=models_without_in_place(tmp_path / "models")) as run:
         run.wait_for(run.decision("startup"), 20, "the first detector")
         forger = open_session(ZenohSettings(mode="peer", connect=(run.cluster.endpoint,)))
