@@ -77,7 +77,8 @@ services more than everything they then did with it). A liveliness change
 comes by callback, which first moves the statuses received before it onto the
 queue, so the worker sees both in the order they arrived, and ends the wait at
 once. A status's receive time is when it is taken (at most ``status_batch_s``
-after it arrived; the order of receive times is the order of arrival). The newest of each host is written
+after it arrived, or a second after a spell with no status at all; the order of
+receive times is the order of arrival). The newest of each host is written
 in one ``UNWIND`` store call per batch, each host's figures checked as a
 single write checks them; the profiles' memory StatusTrust needs is read for
 the batch in one call too. A status within the deadband of what the graph holds
