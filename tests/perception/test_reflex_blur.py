@@ -29,16 +29,24 @@ pytestmark = pytest.mark.skipif(not all((PHOTO_DIR / p).is_file() for p in PHOTO
 def rows(tmp_path_factory):
     """``reflex_table`` of the day detector onboard after a calibration: the synthetic figures of a 2 x 2 run
     (day band as a whole: day first; under blur: dark 48 %, day 12 %, dusk 8 %)."""
-    figures = {"all": {"marker_detection_day": 0.99, "marker_detection_dusk": 0.985, "marker_detection_dark": 0.97},
-               "blur": {"marker_detection_day": 0.12, "marker_detection_dusk": 0.08, "marker_detection_dark": 0.48}}
-    ms = {"marker_detection_day": 4.0, "marker_detection_dusk": 5.0, "marker_detection_dark": 9.0}
+    return reflex_rows(tmp_path_factory, {})
+
+
+FIGURES = {"all": {"marker_detection_day": 0.99, "marker_detection_dusk": 0.985, "marker_detection_dark": 0.97},
+           "blur": {"marker_detection_day": 0.12, "marker_detection_dusk": 0.08, "marker_detection_dark": 0.48}}
+MS = {"marker_detection_day": 4.0, "marker_detection_dusk": 5.0, "marker_detection_dark": 9.0}
+
+
+def reflex_rows(tmp_path_factory, bands: dict) -> list:
+    """``reflex_table`` of the day detector onboard after a calibration recording ``bands[band]`` (condition
+    -> configuration -> rate) for the bands named there and ``FIGURES`` for the others."""
     with open_store(f"embedded:{tmp_path_factory.mktemp('store')}/store") as store:
         load_models(store, [str(models())])
         for band in ("dark", "dusk", "day"):
-            for condition, rates in figures.items():
+            for condition, rates in bands.get(band, FIGURES).items():
                 for config, rate in rates.items():
                     record_calibration(store, config=config, band=band, condition=condition, detection_rate=rate,
-                                       false_per_frame=0.0, ms_per_frame=ms[config], time=1.0)
+                                       false_per_frame=0.0, ms_per_frame=MS[config], time=1.0)
         return run_named(store, "reflex_table", {"deployment": "detector_day", "host": "onboard"})
 
 
@@ -107,17 +115,7 @@ def dusk_rows(tmp_path_factory):
     18 %, day 15 %); the other bands as ``rows``."""
     dusk = {"all": {"marker_detection_day": 0.88, "marker_detection_dusk": 0.997, "marker_detection_dark": 1.0},
             "blur": {"marker_detection_day": 0.15, "marker_detection_dusk": 0.18, "marker_detection_dark": 0.31}}
-    other = {"all": {"marker_detection_day": 0.99, "marker_detection_dusk": 0.985, "marker_detection_dark": 0.97},
-             "blur": {"marker_detection_day": 0.12, "marker_detection_dusk": 0.08, "marker_detection_dark": 0.48}}
-    ms = {"marker_detection_day": 4.0, "marker_detection_dusk": 5.0, "marker_detection_dark": 9.0}
-    with open_store(f"embedded:{tmp_path_factory.mktemp('store')}/store") as store:
-        load_models(store, [str(models())])
-        for band in ("dark", "dusk", "day"):
-            for condition, rates in (dusk if band == "dusk" else other).items():
-                for config, rate in rates.items():
-                    record_calibration(store, config=config, band=band, condition=condition, detection_rate=rate,
-                                       false_per_frame=0.0, ms_per_frame=ms[config], time=1.0)
-        return run_named(store, "reflex_table", {"deployment": "detector_day", "host": "onboard"})
+    return reflex_rows(tmp_path_factory, {"dusk": dusk})
 
 
 def test_on_a_real_dict_4x4_50_board_at_dusk_s_darkest_level_a_fall_to_a_third_is_acted_on(dusk_rows):
