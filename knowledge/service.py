@@ -307,6 +307,9 @@ class KnowledgeService:
                                                                             history=True))
                 self._status_sub = rpc.declared(stack, session.declare_subscriber(
                     keys.host_status(robot, "*"), zenoh.handlers.RingChannel(self.settings.max_pending_statuses)))
+                # Forgotten (under the take-lock) before it is undeclared: a take from the ring while
+                # zenoh-python undeclares it raises "Already mutably borrowed" (seen at a test's shutdown).
+                stack.callback(self._forget_status_sub)
             except zenoh.ZError as exc:
                 raise TransportError(f"knowledge service of {robot}: cannot subscribe to host statuses: {exc}") from exc
             stack.callback(self._own.undeclare)
@@ -526,6 +529,10 @@ class KnowledgeService:
                 self._enqueue_event(event)
             self._enqueue_event(("alive", str(sample.key_expr), online, time.time()))
 
+    def _forget_status_sub(self) -> None:
+        with self._take_lock:
+            self._status_sub = None
+
     def _received_statuses(self, limit: int | None = None) -> list[tuple[Any, ...]]:
         """The statuses waiting in Zenoh's ring, oldest first, at most ``limit``, stamped now (caller holds
         _take_lock)."""
@@ -588,7 +595,11 @@ class KnowledgeService:
             if first is None and now < due:  # a liveliness retry or a refresh, not yet the statuses' turn
                 self._act_on_time()
                 continue
-            batch = self._take_events(first)
+            try:
+                batch = self._take_events(first)
+            except Exception:  # the worker must outlive a failed take too
+                log.exception("status worker: could not take the waiting statuses")
+                batch = [] if first is None else [first]
             empty_takes = 0 if batch else empty_takes + 1
             if now >= due:
                 quiet = empty_takes >= _QUIET_TAKES

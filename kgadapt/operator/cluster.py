@@ -141,7 +141,13 @@ class LocalCluster:
                                       "--out", str(s.workdir / "calibration.json"),
                                       "--plot", str(s.workdir / "calibration.png")))
         for argv in steps:
-            result = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+            try:
+                # Within a test's own time limit (120 s), so that a step that hangs says what it printed.
+                result = subprocess.run(argv, capture_output=True, text=True, timeout=90)
+            except subprocess.TimeoutExpired as exc:
+                printed = exc.stderr.decode(errors="replace") if isinstance(exc.stderr, bytes) else exc.stderr or ""
+                raise KgadaptError(f"{' '.join(argv[3:6])} did not end within 90 s; it printed: "
+                                   f"{printed.strip()[-1500:] or 'nothing'}") from exc
             if result.returncode != 0:
                 raise KgadaptError(f"{' '.join(argv[3:6])} failed: {result.stderr.strip()[-500:]}")
             out.append(result.stdout)
