@@ -9,9 +9,8 @@ Durability: append-only file with ``appendfsync always``. On this machine
 ``always`` lost none (the README's reliability figures: 0 acknowledged writes lost).
 
 The server runs in its own session (a Ctrl-C at the terminal reaches only its
-owner, which then stops it cleanly) and is asked by the kernel to terminate
-when its owner dies (``PR_SET_PDEATHSIG``), so a crashed owner leaves no
-server behind.
+owner, which then stops it cleanly) and is killed by the kernel when its owner
+dies (``PR_SET_PDEATHSIG``), so a crashed owner leaves no server behind.
 """
 
 from __future__ import annotations
@@ -27,6 +26,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import redis
 from redis.backoff import NoBackoff
@@ -42,7 +42,10 @@ _UNIX_PATH_MAX = 100  # sun_path is 108 bytes; keep a margin
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
-    parent_death.set_death_signal(signal.SIGTERM)
+    # SIGKILL, not SIGTERM: redis only flags a SIGTERM for its main loop, so a deadlocked server (seen in
+    # CI: every thread on a futex) outlived its owner by hours. Nothing acknowledged is lost: every write
+    # is in the kernel (and with appendfsync always on disk) before its answer is sent.
+    parent_death.set_death_signal(signal.SIGKILL)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -73,6 +76,7 @@ class EmbeddedServer:
         start_timeout: float = 10.0,
         hz: int | None = None,
         query_threads: int | None = None,
+        on_start: Callable[[int], None] | None = None,
     ) -> None:
         self.data_dir = Path(data_dir).absolute()
         self.tcp_port = tcp_port
@@ -91,6 +95,9 @@ class EmbeddedServer:
         # None: the server's defaults (Redis' 10 Hz housekeeping, one query thread per core).
         self.hz = hz
         self.query_threads = query_threads
+        # Called with the pid of each server this object starts, once it answers (tests stop it there).
+        self.on_start = on_start
+        self.starts = 0  # servers this object started
         self.address: ServerAddress | None = None
         self._process: subprocess.Popen[bytes] | None = None
 
@@ -151,17 +158,38 @@ class EmbeddedServer:
             return
         log.error("embedded FalkorDB pid %s at %s answers no PING: killing it to start another",
                   address.pid, address.unix_socket)
+        self._kill(address)
+
+    def kill(self) -> None:
+        """Kill (SIGKILL) the server of the last ``ensure()``, found or started, and wait until it is gone.
+
+        For a server that answers nothing: ``kill -9`` loses no acknowledged write. The next ``ensure()``
+        starts another on the same data directory.
+        """
+        if self.address is not None:
+            self._kill(self.address)
+
+    def _kill(self, address: ServerAddress) -> None:
+        own = self._process is not None and self._process.pid == address.pid
+        if not own and not _is_our_server(address.pid, address.unix_socket):
+            return  # gone already, or the number now belongs to another process
         try:
             os.kill(address.pid, signal.SIGKILL)
         except ProcessLookupError:
-            return
-        if self._process is not None and self._process.pid == address.pid:
+            pass
+        if own and self._process is not None:
             self._process.wait()
             self._process = None
             return
         deadline = time.monotonic() + self.start_timeout
         while _is_our_server(address.pid, address.unix_socket) and time.monotonic() < deadline:
             time.sleep(0.01)  # not our child: nothing to wait on but /proc
+
+    def describe(self) -> str:
+        """What the server of the last ``ensure()`` is doing, from /proc: pid, state, each thread's wait channel."""
+        if self.address is None:
+            return "no server"
+        return describe_process(self.address.pid)
 
     def answers(self) -> bool:
         """True when the server of the last ``ensure()`` answers a PING within a second."""
@@ -226,11 +254,14 @@ class EmbeddedServer:
             process.wait()
             raise StoreUnavailable(f"FalkorDB did not answer within {self.start_timeout:.0f} s; see {log_path}")
         self._process = process
+        self.starts += 1
         address = ServerAddress(unix_socket=sock, pid=process.pid, tcp_port=self.tcp_port, bolt_port=self.bolt_port)
         tmp = self.info_path.with_suffix(".tmp")
         tmp.write_text(json.dumps(address.__dict__))
         os.replace(tmp, self.info_path)
         log.info("started embedded FalkorDB pid %s in %s", process.pid, self.data_dir)
+        if self.on_start is not None:
+            self.on_start(process.pid)
         return address
 
     def stop(self, *, timeout: float = 10.0) -> None:
@@ -278,6 +309,33 @@ def _is_our_server(pid: int, sock: str) -> bool:
     return state != "Z" and b"redis-server" in cmdline and sock.encode() in cmdline
 
 
+def describe_process(pid: int) -> str:
+    """``pid 12 state S (sleeping), threads' wait channels: futex_do_wait x11, ep_poll x1`` (or why not known).
+
+    A server that answers nothing is either stopped (T), in the kernel (D), or waiting on a lock (a futex in
+    every thread, where an idle redis waits in epoll): the next occurrence says which.
+    """
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return f"pid {pid} (gone)"
+    state = stat.rsplit(")", 1)[1].split()[0]
+    channels: dict[str, int] = {}
+    try:
+        for tid in sorted(os.listdir(f"/proc/{pid}/task")):
+            try:
+                channel = Path(f"/proc/{pid}/task/{tid}/wchan").read_text().strip() or "-"
+            except OSError:
+                continue  # the thread ended meanwhile
+            channels[channel] = channels.get(channel, 0) + 1
+    except OSError:
+        pass
+    waits = ", ".join(f"{name} x{count}" for name, count in sorted(channels.items())) or "unknown"
+    return f"pid {pid} state {state} ({_STATES.get(state, '?')}), threads' wait channels: {waits}"
+
+
+_STATES = {"R": "running", "S": "sleeping", "D": "uninterruptible wait", "T": "stopped", "t": "traced",
+           "Z": "zombie", "X": "dead", "I": "idle"}
 _READY = b"Ready to accept connections"
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence, TypeVar
 
 import redis
 from falkordb import FalkorDB
@@ -26,6 +26,7 @@ from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, St
 from kgadapt.shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 _LOADING_POLL_S = 0.1  # how often a query asks again while a restarted server reads its AOF
 
 
@@ -37,16 +38,33 @@ class FalkorDBStore(GraphStore):
         self.server = server
         self._db: FalkorDB | None = None
         self._graph: Any = None
-        self._reconnect_lock = threading.Lock()
+        # A second client whose every answer is bounded by settings.setup_timeout, used by the thread in prepare().
+        self._setup_db: FalkorDB | None = None
+        self._setup_graph: Any = None
+        self._preparing = threading.local()
+        self._reconnect_lock = threading.RLock()  # _reopen() may meet a lost connection and reconnect
 
     def setup(self, *, timeout: float | None = None) -> None:
+        self.prepare(lambda store: self._open(timeout))
+
+    def _open(self, timeout: float | None) -> None:
+        if self._connect(timeout):
+            # A freshly started server's first statement, bounded: twice in CI one never answered it (every
+            # thread of the server waiting on a lock). prepare() kills such a server and starts another.
+            _first_answer(self)
+
+    def _connect(self, timeout: float | None) -> bool:
+        """Connect (starting the embedded server if none runs); True when this call started it."""
         timeout = timeout or self.settings.connect_timeout
+        started = False
         if self.settings.kind == "embedded":
             if self.server is None:
                 if self.settings.data_dir is None:
                     raise StoreUnavailable(f"store {self.settings.url}: an embedded store needs a data directory")
                 self.server = EmbeddedServer(self.settings.data_dir, start_timeout=timeout)
+            starts = self.server.starts
             address = self.server.ensure()
+            started = self.server.starts > starts
             kwargs: dict[str, Any] = {"unix_socket_path": address.unix_socket}
         elif self.settings.unix_socket:
             kwargs = {"unix_socket_path": self.settings.unix_socket}
@@ -59,25 +77,95 @@ class FalkorDBStore(GraphStore):
         loading_since = time.monotonic()
         while True:
             try:
+                # The bounded client first: FalkorDB() itself asks the server (INFO), then PING. The ordinary
+                # client is made once the server has answered.
+                setup_db = FalkorDB(socket_connect_timeout=timeout, socket_timeout=self._setup_limit(), **kwargs)
+                setup_db.connection.ping()
                 db = FalkorDB(socket_connect_timeout=timeout, socket_timeout=self.settings.socket_timeout, **kwargs)
-                db.connection.ping()
                 break
             except redis.BusyLoadingError as exc:
                 self._wait_while_loading(loading_since, timeout, exc)
+            except redis.TimeoutError as exc:
+                raise self._no_setup_answer("connecting: INFO, PING", exc) from exc
             except (redis.RedisError, OSError) as exc:
                 raise StoreUnavailable(f"cannot reach FalkorDB at {self.settings.url}: {exc}") from exc
-        # Other threads keep using the old client until the new one is whole.
+        # Other threads keep using the old clients until the new ones are whole.
+        self._setup_graph = setup_db.select_graph(self.settings.graph)
+        self._setup_db = setup_db
         self._graph = db.select_graph(self.settings.graph)
         self._db = db
+        return started
+
+    def _setup_limit(self) -> float:
+        limit = self.settings.setup_timeout
+        return limit if self.settings.socket_timeout is None else min(limit, self.settings.socket_timeout)
+
+    def prepare(self, steps: Callable[[GraphStore], T]) -> T:
+        """``steps(self)`` with every answer bounded by ``settings.setup_timeout``.
+
+        An embedded server that does not answer in time and is ours to end (we started it, or it answers
+        no PING) is killed and another started on the same data; the steps then run once more. Otherwise,
+        or if the new server does not answer either, StoreUnavailable naming what each server was doing:
+        its pid, state and its threads' wait channels.
+        """
+        if getattr(self._preparing, "on", False):
+            return steps(self)  # the outer prepare() bounds these and retries
+        self._preparing.on = True
+        try:
+            try:
+                return steps(self)
+            except _NoSetupAnswer as exc:
+                first = exc
+            if not self._end_hung(first):
+                raise StoreUnavailable(str(first)) from first
+            log.error("%s; killed it, starting another on the same data", first)
+            try:
+                self._reopen()
+                return steps(self)
+            except _NoSetupAnswer as exc:
+                self._end_hung(exc)
+                raise StoreUnavailable(f"{exc}; killed it too, as the server before it, which had "
+                                       f"not answered either ({first.server})") from exc
+        finally:
+            self._preparing.on = False
+            setup_db = self._setup_db
+            if setup_db is not None:
+                setup_db.connection.connection_pool.disconnect(inuse_connections=False)  # no idle connection kept after setup
+
+    def _preparing_now(self) -> bool:
+        return bool(getattr(self._preparing, "on", False))
+
+    def _no_setup_answer(self, what: str, exc: Exception) -> "_NoSetupAnswer":
+        server = "not ours to see"
+        if self.settings.kind == "embedded" and self.server is not None:
+            server = self.server.describe() + f", answers PING: {'yes' if self.server.answers() else 'no'}"
+        return _NoSetupAnswer(f"FalkorDB at {self.settings.url} gave no answer to a setup statement "
+                              f"({what[:80]}) within {self._setup_limit():g} s: server {server}", server=server)
+
+    def _end_hung(self, exc: "_NoSetupAnswer") -> bool:
+        """Kill the embedded server that did not answer a setup statement; False when it is not ours to
+        kill (not embedded, or another process's server that still answers PING)."""
+        server = self.server
+        if self.settings.kind != "embedded" or server is None or (not server.owned and server.answers()):
+            return False
+        server.kill()
+        return True
+
+    def _reopen(self) -> None:
+        with self._reconnect_lock:
+            old, old_setup = self._db, self._setup_db
+            self._open(None)  # nothing answers at the old address now: ensure() starts another server
+            _close_replaced((old, old_setup), keep=(self._db, self._setup_db))
 
     def shutdown(self) -> None:
-        if self._db is not None:
-            try:
-                self._db.connection.close()
-            except redis.RedisError:
-                pass
-            self._db = None
-            self._graph = None
+        for db in (self._db, self._setup_db):
+            if db is not None:
+                try:
+                    db.connection.close()
+                except redis.RedisError:
+                    pass
+        self._db = self._setup_db = None
+        self._graph = self._setup_graph = None
         if self.server is not None:
             self.server.stop()
 
@@ -98,7 +186,8 @@ class FalkorDBStore(GraphStore):
         """The underlying redis client (for admin commands such as ``GRAPH.CONFIG``)."""
         if self._db is None:
             raise StoreUnavailable("store is not set up; call setup() first")
-        client: redis.Redis = self._db.connection
+        db = self._setup_db if self._preparing_now() and self._setup_db is not None else self._db
+        client: redis.Redis = db.connection
         return client
 
     def _execute(self, cypher: str, params: Mapping[str, Any] | None, read_only: bool,
@@ -115,10 +204,11 @@ class FalkorDBStore(GraphStore):
         loading_since: float | None = None
         reconnected = False
         while True:
+            graph = self._setup_graph if self._preparing_now() else self._graph
             try:
                 if read_only:
-                    return self._graph.ro_query(query, timeout=timeout_ms)
-                return self._graph.query(query, timeout=timeout_ms)
+                    return graph.ro_query(query, timeout=timeout_ms)
+                return graph.query(query, timeout=timeout_ms)
             except redis.BusyLoadingError as exc:
                 loading_since = loading_since or time.monotonic()
                 self._wait_while_loading(loading_since, self.settings.connect_timeout, exc)
@@ -132,6 +222,8 @@ class FalkorDBStore(GraphStore):
                     raise StoreTimeout(f"store rejected the query: {message}") from exc
                 raise QueryError(f"store rejected the query: {message}") from exc
             except redis.TimeoutError as exc:
+                if self._preparing_now():
+                    raise self._no_setup_answer(query, exc) from exc
                 # The socket timeout is the hard limit: the answer is abandoned (redis-py drops
                 # the connection); the server may still be working on it.
                 limit = self.settings.socket_timeout
@@ -177,13 +269,9 @@ class FalkorDBStore(GraphStore):
         with self._reconnect_lock:
             if self._graph is not failed_graph and self._graph is not None:
                 return  # another thread already reconnected
-            old = self._db
-            self.setup()  # replaces _db and _graph only when it succeeds
-            if old is not None and old is not self._db:
-                try:
-                    old.connection.close()
-                except redis.RedisError:
-                    pass
+            old, old_setup = self._db, self._setup_db
+            self.setup()  # replaces the clients only when it succeeds
+            _close_replaced((old, old_setup), keep=(self._db, self._setup_db))
 
     def execute_atomic(self, statements: Sequence[Statement]) -> None:
         """MULTI/EXEC: the batch runs in isolation and in one AOF write.
@@ -194,13 +282,17 @@ class FalkorDBStore(GraphStore):
         """
         if self._graph is None or self._db is None:
             raise StoreUnavailable("store is not set up; call setup() first")
-        pipe = self._db.connection.pipeline(transaction=True)
+        preparing = self._preparing_now() and self._setup_db is not None
+        pipe = (self._setup_db if preparing and self._setup_db is not None else self._db).connection.pipeline(
+            transaction=True)
         batch = [params_header(params) + cypher for cypher, params in statements]  # all checked before any is sent
         for query in batch:
             pipe.execute_command("GRAPH.QUERY", self.settings.graph, query, "--compact")
         try:
             replies = pipe.execute(raise_on_error=False)
         except redis.TimeoutError as exc:
+            if preparing:
+                raise self._no_setup_answer(f"a batch of {len(batch)} statements", exc) from exc
             graph = self._graph
             restarted = self._restart_if_hung(graph)
             raise StoreUnavailable(f"lost FalkorDB at {self.settings.url}: {exc}"
@@ -249,6 +341,27 @@ class FalkorDBStore(GraphStore):
         except redis.ResponseError:
             pass  # no such graph yet
         self._graph = self._db.select_graph(self.settings.graph)
+
+
+class _NoSetupAnswer(StoreUnavailable):
+    """A setup statement had no answer within the setup limit (prepare() turns it into StoreUnavailable)."""
+
+    def __init__(self, message: str, *, server: str) -> None:
+        super().__init__(message)
+        self.server = server
+
+
+def _close_replaced(clients: Sequence[FalkorDB | None], *, keep: Sequence[FalkorDB | None]) -> None:
+    for client in clients:
+        if client is not None and all(client is not kept for kept in keep):
+            try:
+                client.connection.close()
+            except redis.RedisError:
+                pass
+
+
+def _first_answer(store: GraphStore) -> None:
+    store.ping()  # GRAPH.RO_QUERY: answered by the module even before the graph exists
 
 
 def params_header(params: Mapping[str, Any] | None) -> str:

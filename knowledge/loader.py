@@ -244,7 +244,16 @@ def report(resolved: ResolvedModels, statements: int = 0) -> LoadReport:
 
 
 def load_models(store: GraphStore, paths: Sequence[Path | str]) -> LoadReport:
-    """Check every model under ``paths``, then write them all in one atomic batch."""
+    """Check every model under ``paths``, then write them all in one atomic batch.
+
+    A setup step of the store (GraphStore.prepare): each answer bounded, and the whole load run once more
+    on a restarted server if a fresh embedded one never answers. Safe to run twice: the batch is atomic
+    and it MERGEs.
+    """
+    return store.prepare(lambda bounded: _load(bounded, paths))
+
+
+def _load(store: GraphStore, paths: Sequence[Path | str]) -> LoadReport:
     resolved = check_models(paths, store)
     statements = plan(resolved, previous_model_keys(store, resolved))
     S.ensure_indexes(store)

@@ -112,7 +112,14 @@ INDEXED_NAMES = (
 
 
 def ensure_indexes(store: GraphStore) -> None:
-    """Create the name indexes in the store's own dialect; idempotent on every backend."""
+    """Create the name indexes in the store's own dialect; idempotent on every backend.
+
+    Often a fresh store's first statements: bounded and retried on a restarted server (GraphStore.prepare).
+    """
+    store.prepare(_ensure_indexes)
+
+
+def _ensure_indexes(store: GraphStore) -> None:
     dialect = store.dialect
     existing = dialect.indexed(store.execute(dialect.list_statement))
     for label in INDEXED_NAMES:

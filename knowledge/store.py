@@ -29,7 +29,7 @@ import os
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Sequence, TypeVar
 from urllib.parse import parse_qs, urlsplit
 
 from kgadapt.knowledge.cypher_guard import writing_clause
@@ -38,6 +38,7 @@ from kgadapt.shared.errors import ConfigError, ReadOnlyViolation
 if TYPE_CHECKING:
     from kgadapt.knowledge.dialect import Dialect
 
+T = TypeVar("T")
 Row = dict[str, Any]
 Statement = tuple[str, Mapping[str, Any]]
 
@@ -69,6 +70,11 @@ class StoreSettings:
     # Hard limit on one round trip (s): the client abandons a query whose answer has not
     # come by then, whatever the store does with its own timeout. None: wait for ever.
     socket_timeout: float | None = None
+    # Hard limit (s) on each answer a store owes while it is set up: a freshly started embedded server's
+    # first statement, and every statement of GraphStore.prepare (indexes, a model load). A fresh FalkorDB
+    # was seen twice in CI never to answer its first statement; past this limit such a server is killed
+    # and started once more. Ordinary queries keep socket_timeout.
+    setup_timeout: float = 15.0
     tls: str = ""  # "" (none), "verify" (+s) or "self-signed" (+ssc); Bolt backends only
     ca_file: str | None = None  # CA bundle for "verify"; None: the system's CAs
 
@@ -217,6 +223,12 @@ class GraphStore(ABC):
     @abstractmethod
     def execute_atomic(self, statements: Sequence[Statement]) -> None:
         """Run statements so that either all take effect or none does."""
+
+    def prepare(self, steps: "Callable[[GraphStore], T]") -> T:
+        """Run a store's setup statements (indexes, a model load): ``steps(self)``, each of its answers bounded
+        by ``settings.setup_timeout`` where the backend can. Steps must be safe to run twice: a backend that
+        restarts a server found hung runs them once more. Nested calls run ``steps`` as they are."""
+        return steps(self)
 
     def compact(self) -> None:  # noqa: B027 - optional: only a backend with a durable copy to rewrite has one
         """Make the store's durable copy a snapshot of the graph as it is now (nothing to do where the

@@ -1,6 +1,7 @@
 """An embedded FalkorDB that stops answering (alive, not dead) is restarted, and keeps what it acknowledged.
 
-The hang is made with SIGSTOP: the process and its socket stay, nothing answers.
+The hang is made with SIGSTOP: the process and its socket stay, nothing answers. So also for a freshly
+started server that never answers its setup statements, as one did twice in CI.
 """
 
 from __future__ import annotations
@@ -10,7 +11,12 @@ import signal
 
 import pytest
 
-from kgadapt.knowledge.store import open_store
+from kgadapt.bench.fleet_bench import MODELS
+from kgadapt.knowledge.embedded import EmbeddedServer
+from kgadapt.knowledge.falkordb_store import FalkorDBStore
+from kgadapt.knowledge.loader import load_models
+from kgadapt.knowledge.schema import ensure_indexes
+from kgadapt.knowledge.store import StoreSettings, open_store
 from kgadapt.shared.errors import QueryTimeLimit, StoreUnavailable
 
 
@@ -79,3 +85,110 @@ def test_a_hung_server_found_by_another_process_is_replaced_not_joined(tmp_path)
             first.shutdown()
         except StoreUnavailable:
             pass
+
+
+# -- a fresh server that never answers its setup statements (seen twice in CI: every thread on a futex) ------
+
+
+def _state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat") as stat:
+        return stat.read().rsplit(")", 1)[1].split()[0]
+
+
+def _store_with_hook(data, on_start, *, setup_timeout=1.0):
+    # setup_timeout small: the test's wall time is about two such bounds
+    settings = StoreSettings(kind="embedded", url=f"embedded:{data}", data_dir=data, setup_timeout=setup_timeout)
+    return FalkorDBStore(settings, server=EmbeddedServer(data, on_start=on_start))
+
+
+def _seeded(data) -> None:
+    with open_store(f"embedded:{data}") as store:
+        store.execute("CREATE (:Mark {name: $name})", {"name": "before the start"})
+
+
+@pytest.mark.timeout(60)
+def test_a_fresh_server_that_never_answers_its_first_statement_is_killed_and_started_once_more(tmp_path):
+    data = tmp_path / "store"
+    _seeded(data)
+    stopped: list[int] = []
+
+    def stop_the_first(pid: int) -> None:
+        if not stopped:
+            os.kill(pid, signal.SIGSTOP)  # alive, its socket open, answering nothing: as the hung server was
+            stopped.append(pid)
+
+    store = _store_with_hook(data, stop_the_first)
+    try:
+        store.setup()
+        assert stopped and not _alive(stopped[0])
+        assert store.server.address.pid != stopped[0] and store.server.starts == 2
+        ensure_indexes(store)
+        assert store.execute("MATCH (m:Mark) RETURN m.name AS name", read_only=True) == [{"name": "before the start"}]
+    finally:
+        store.shutdown()
+        for pid in stopped:
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.timeout(60)
+def test_when_the_restarted_server_hangs_too_the_error_says_what_each_was_doing(tmp_path):
+    data = tmp_path / "store"
+    stopped: list[int] = []
+
+    def stop_every(pid: int) -> None:
+        os.kill(pid, signal.SIGSTOP)
+        stopped.append(pid)
+
+    store = _store_with_hook(data, stop_every)
+    try:
+        with pytest.raises(StoreUnavailable) as caught:
+            store.setup()
+        message = str(caught.value)
+        assert len(stopped) == 2, message
+        # state T: stopped; the wait channel of a stopped thread (do_signal_stop) is named too
+        assert f"pid {stopped[1]} state T (stopped), threads' wait channels: " in message
+        assert f"pid {stopped[0]} state T (stopped)" in message
+        assert "within 1 s" in message and "answers PING: no" in message
+        assert not _alive(stopped[0]) and not _alive(stopped[1])  # neither left behind, hung
+    finally:
+        store.shutdown()
+        for pid in stopped:
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.timeout(60)
+def test_a_model_load_whose_own_server_stops_answering_runs_again_on_a_restarted_one(tmp_path):
+    store = _store_with_hook(tmp_path / "store", None)
+    store.setup()
+    hung = store.server.address.pid
+    try:
+        store.execute("CREATE (:Mark {name: $name})", {"name": "kept"})
+        os.kill(hung, signal.SIGSTOP)
+        loaded = load_models(store, [MODELS])
+        assert not _alive(hung) and store.server.address.pid != hung
+        platforms = store.execute("MATCH (p:Platform) RETURN count(p) AS n", read_only=True)[0]["n"]
+        assert platforms == loaded.labels["Platform"] > 0
+        assert store.execute("MATCH (m:Mark) RETURN m.name AS name", read_only=True) == [{"name": "kept"}]
+    finally:
+        store.shutdown()
+        if _alive(hung):
+            os.kill(hung, signal.SIGKILL)
+
+
+def test_a_server_found_stopped_is_described_by_its_state_and_threads(tmp_path):
+    server = EmbeddedServer(tmp_path / "store", append_only=False)
+    address = server.ensure()
+    try:
+        os.kill(address.pid, signal.SIGSTOP)
+        os.waitid(os.P_PID, address.pid, os.WSTOPPED | os.WNOWAIT)  # until the kernel has stopped it
+        text = server.describe()
+        assert text.startswith(f"pid {address.pid} state T (stopped), threads' wait channels: ")
+        threads = len(os.listdir(f"/proc/{address.pid}/task"))
+        counts = [int(part.rsplit(" x", 1)[1]) for part in text.split(": ", 1)[1].split(", ")]
+        assert sum(counts) == threads
+        assert _state(address.pid) == "T"
+    finally:
+        os.kill(address.pid, signal.SIGKILL)
+        server.stop()
