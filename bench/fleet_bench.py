@@ -267,15 +267,28 @@ class SimulatedFleet:
         from kgadapt.knowledge.embedded import EmbeddedServer
 
         self.workdir.mkdir(parents=True, exist_ok=True)
+        from kgadapt.shared.errors import StoreUnavailable
+
         self.server = EmbeddedServer(self.workdir / "store", append_only=False)
         self.server.ensure()
         now = time.time()
-        for i, robot in enumerate(self.robots):
-            store = graph_store(self.socket, robot)
+        for attempt in (1, 2):
             try:
-                self.seeded[robot] = seed_robot(store, robot, i, now=now)
-            finally:
-                store.shutdown()
+                for i, robot in enumerate(self.robots):
+                    store = graph_store(self.socket, robot)
+                    try:
+                        self.seeded[robot] = seed_robot(store, robot, i, now=now)
+                    finally:
+                        store.shutdown()
+                break
+            except StoreUnavailable as exc:
+                # The seeding's statements are bounded (StoreSettings.setup_timeout); a fresh server that never
+                # answers them (seen in CI) is killed and the fleet seeded again on another (nothing is kept).
+                if attempt == 2:
+                    raise
+                log.error("%s; killing the fleet's store and seeding another", exc)
+                self.server.kill()
+                self.server.ensure()
         for k in range(len(self.endpoints)):
             argv = [sys.executable, "-m", "kgadapt.bench.fleet_bench", "serve", "--listen", self.endpoints[k],
                     "--socket", self.socket, "--robots", ",".join(self.share(k)), *self.serve_args]

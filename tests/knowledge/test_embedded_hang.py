@@ -192,3 +192,30 @@ def test_a_server_found_stopped_is_described_by_its_state_and_threads(tmp_path):
     finally:
         os.kill(address.pid, signal.SIGKILL)
         server.stop()
+
+
+@pytest.mark.timeout(60)
+def test_a_query_sandbox_whose_fresh_server_never_answers_its_first_copy_starts_another(resp_store, monkeypatch):
+    from kgadapt.knowledge import sandbox as sandbox_module
+
+    stopped: list[int] = []
+
+    def stop_the_first(pid: int) -> None:
+        if not stopped:
+            os.kill(pid, signal.SIGSTOP)
+            stopped.append(pid)
+
+    # the sandbox makes its own server: hand it one that stops its first start (the seam is the hook alone)
+    monkeypatch.setattr(sandbox_module, "EmbeddedServer",
+                        lambda *args, **kwargs: EmbeddedServer(*args, on_start=stop_the_first, **kwargs))
+    resp_store.execute("UNWIND range(1, 3) AS i CREATE (:Item {id: i})")
+    box = sandbox_module.QuerySandbox(resp_store)
+    try:
+        box.setup()
+        assert stopped and not _alive(stopped[0]) and box.pid != stopped[0]
+        assert box.execute("MATCH (n:Item) RETURN count(n) AS n", limit_s=5.0) == [{"n": 3}]
+    finally:
+        box.shutdown()
+        for pid in stopped:
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
