@@ -129,8 +129,8 @@ class FalkorDBStore(GraphStore):
         finally:
             self._preparing.on = False
             setup_db = self._setup_db
-            if setup_db is not None:
-                setup_db.connection.connection_pool.disconnect(inuse_connections=False)  # no idle connection kept after setup
+            if setup_db is not None:  # keep no idle connection once set up
+                setup_db.connection.connection_pool.disconnect(inuse_connections=False)
 
     def _preparing_now(self) -> bool:
         return bool(getattr(self._preparing, "on", False))
@@ -282,9 +282,9 @@ class FalkorDBStore(GraphStore):
         """
         if self._graph is None or self._db is None:
             raise StoreUnavailable("store is not set up; call setup() first")
-        preparing = self._preparing_now() and self._setup_db is not None
-        pipe = (self._setup_db if preparing and self._setup_db is not None else self._db).connection.pipeline(
-            transaction=True)
+        preparing = self._preparing_now()
+        db = self._setup_db if preparing and self._setup_db is not None else self._db
+        pipe = db.connection.pipeline(transaction=True)
         batch = [params_header(params) + cypher for cypher, params in statements]  # all checked before any is sent
         for query in batch:
             pipe.execute_command("GRAPH.QUERY", self.settings.graph, query, "--compact")
