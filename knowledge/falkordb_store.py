@@ -79,9 +79,13 @@ class FalkorDBStore(GraphStore):
             try:
                 # The bounded client first: FalkorDB() itself asks the server (INFO), then PING. The ordinary
                 # client is made once the server has answered.
-                setup_db = FalkorDB(socket_connect_timeout=timeout, socket_timeout=self._setup_limit(), **kwargs)
+                limit = self._setup_limit()
+                setup_db = FalkorDB(socket_connect_timeout=timeout, socket_timeout=limit, **kwargs)
                 setup_db.connection.ping()
-                db = FalkorDB(socket_connect_timeout=timeout, socket_timeout=self.settings.socket_timeout, **kwargs)
+                # One client where the ordinary limit is the setup limit (sandboxes, the public worker): a
+                # FalkorDB() costs a connection and two INFOs (about 1 ms).
+                db = setup_db if self.settings.socket_timeout == limit else FalkorDB(
+                    socket_connect_timeout=timeout, socket_timeout=self.settings.socket_timeout, **kwargs)
                 break
             except redis.BusyLoadingError as exc:
                 self._wait_while_loading(loading_since, timeout, exc)
@@ -129,7 +133,7 @@ class FalkorDBStore(GraphStore):
         finally:
             self._preparing.on = False
             setup_db = self._setup_db
-            if setup_db is not None:  # keep no idle connection once set up
+            if setup_db is not None and setup_db is not self._db:  # keep no idle connection once set up
                 setup_db.connection.connection_pool.disconnect(inuse_connections=False)
 
     def _preparing_now(self) -> bool:
@@ -158,7 +162,7 @@ class FalkorDBStore(GraphStore):
             _close_replaced((old, old_setup), keep=(self._db, self._setup_db))
 
     def shutdown(self) -> None:
-        for db in (self._db, self._setup_db):
+        for db in {id(db): db for db in (self._db, self._setup_db)}.values():
             if db is not None:
                 try:
                     db.connection.close()
