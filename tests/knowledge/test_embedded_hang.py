@@ -11,13 +11,13 @@ import signal
 
 import pytest
 
-from kgadapt.bench.fleet_bench import MODELS
 from kgadapt.knowledge.embedded import EmbeddedServer
 from kgadapt.knowledge.falkordb_store import FalkorDBStore
 from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.schema import ensure_indexes
 from kgadapt.knowledge.store import StoreSettings, open_store
 from kgadapt.shared.errors import QueryTimeLimit, StoreUnavailable
+from kgadapt.shared.resources import models as shipped_models
 
 
 def _alive(pid: int) -> bool:
@@ -166,7 +166,7 @@ def test_a_model_load_whose_own_server_stops_answering_runs_again_on_a_restarted
     try:
         store.execute("CREATE (:Mark {name: $name})", {"name": "kept"})
         os.kill(hung, signal.SIGSTOP)
-        loaded = load_models(store, [MODELS])
+        loaded = load_models(store, [shipped_models()])
         assert not _alive(hung) and store.server.address.pid != hung
         platforms = store.execute("MATCH (p:Platform) RETURN count(p) AS n", read_only=True)[0]["n"]
         assert platforms == loaded.labels["Platform"] > 0
