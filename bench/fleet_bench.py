@@ -18,7 +18,10 @@ Measured, for each N of ``--sizes``:
                      (FleetClient.ask): wall time until the last robot answered,
                      how many answered (completeness), and how many times the
                      robots' query sandboxes copied their graph meanwhile (the
-                     server's DUMP calls) per answer
+                     server's DUMP calls) per answer; per question its wall
+                     time, the copies taken during it and the robot that
+                     answered last (``walls_ms``, ``copies_by_question``,
+                     ``slowest_robot``), after ``--idle-s`` of idle fleet
 ``router_cpu``       CPU of the router processes (percent of one core) while idle
                      and while asking back to back, divided by N
 Then, with the largest N, status fan-in: ``--hosts`` simulated hosts (spread
@@ -380,26 +383,35 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
             walls: list[float] = []
             answered: list[int] = []
             full: list[bool] = []
+            copied: list[int] = []  # sandbox copies taken during each question (DUMPs, read between questions)
+            slowest: list[str] = []  # the robot whose answer came last
 
             def ask_all() -> None:
+                dumps = fleet.dumps()
                 for _ in range(args.reps):
                     answer = client.ask("current_placement")
                     walls.append(answer.wall_ms)
                     answered.append(len(answer.answered))
                     full.append(answer.complete and all(a.rows for a in answer.robots))
+                    last = max(answer.robots, key=lambda a: a.arrived_ms or 0.0)
+                    slowest.append(last.robot)
+                    now = fleet.dumps()
+                    copied.append(now - dumps)
+                    dumps = now
 
             groups = {"services": fleet.pids(), "transit": [fleet.transit_pid()]}
             idle_cpu = measure_cpu_groups(groups, args.idle_s)
-            dumps = fleet.dumps()
             busy_cpu = measure_cpu_groups(groups, 0, during=ask_all)
-            copies = fleet.dumps() - dumps
+            copies = sum(copied)
             idle, busy = idle_cpu["services"], busy_cpu["services"]
             complete = sum(full)
             records.append(make_record(store="falkordb", n=n, op="fleet_question", samples_ms=walls,
                                        routers=routers, complete=complete, reps=len(walls),
                                        min_answered=min(answered), query="current_placement",
                                        sandbox_copies=copies, answers=sum(answered),
-                                       copies_per_answer=round(copies / max(1, sum(answered)), 4)))
+                                       copies_per_answer=round(copies / max(1, sum(answered)), 4),
+                                       walls_ms=[round(w, 2) for w in walls], copies_by_question=copied,
+                                       slowest_robot=slowest))
             records.append({"op": "router_cpu", "n": n, "routers": routers, "idle_pct": round(idle, 2),
                             "asking_pct": round(busy, 2), "idle_pct_per_robot": round(idle / n, 4),
                             "asking_pct_per_robot": round(busy / n, 4),
