@@ -304,6 +304,16 @@ class SimulatedFleet:
         """The processes holding the knowledge services (the transit router excluded)."""
         return [c.pid for c in self.children[int(self.transit):]]
 
+    def helper_pids(self) -> tuple[list[int], list[int]]:
+        """The services' public worker processes and their sandboxes' FalkorDB servers."""
+        import psutil
+
+        workers, servers = [], []
+        for pid in self.pids():
+            for child in psutil.Process(pid).children(recursive=True):
+                (servers if "falkordb" in " ".join(child.cmdline()).lower() else workers).append(child.pid)
+        return workers, servers
+
     def transit_pid(self) -> int | None:
         return self.children[0].pid if self.transit else None
 
@@ -399,7 +409,9 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
                     copied.append(now - dumps)
                     dumps = now
 
-            groups = {"services": fleet.pids(), "transit": [fleet.transit_pid()]}
+            workers, sandboxes = fleet.helper_pids()
+            groups = {"services": fleet.pids(), "transit": [fleet.transit_pid()], "public_workers": workers,
+                      "sandbox_servers": sandboxes, "store": _store_pids(fleet)}
             idle_cpu = measure_cpu_groups(groups, args.idle_s)
             busy_cpu = measure_cpu_groups(groups, 0, during=ask_all)
             copies = sum(copied)
@@ -418,7 +430,12 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
                             "transit_router_idle_pct": round(idle_cpu["transit"], 2),
                             "transit_router_asking_pct": round(busy_cpu["transit"], 2),
                             "transit_router_asking_pct_per_robot": round(busy_cpu["transit"] / n, 4),
-                            "questions_per_s": round(len(walls) / (sum(walls) / 1000), 2)})
+                            "questions_per_s": round(len(walls) / (sum(walls) / 1000), 2),
+                            # Where an answer's CPU goes, per hop (percent of one core while asking; ms per answer)
+                            "asking_pct_by_hop": {g: round(v, 2) for g, v in busy_cpu.items()},
+                            "cpu_ms_per_answer_by_hop": {
+                                g: round(v / 100 * (sum(walls) / 1000) * 1000 / max(1, sum(answered)), 3)
+                                for g, v in busy_cpu.items()}})
             out.append((n, routers, records[-2], records[-1]))
             if fanin:
                 records.append(run_fanin(fleet, args))

@@ -393,9 +393,10 @@ class KnowledgeService:
                 # Rows are parsed here, under the GIL the robot's own requests need too:
                 # fig4_literal's 21,344 rows cost them tens of ms. Same bound as free Cypher.
                 text = f"{text.rstrip()}\nLIMIT {CypherLimits().max_rows}"
+            # A named query's text has no clock or random number: on an unchanged copy, the same answer.
             if self.public_processes:
-                return self._run_in_public_process(text, values, limit_ms, f"query {name!r}")
-            rows = self._run_untrusted(text, values, limit_ms, f"query {name!r}")
+                return self._run_in_public_process(text, values, limit_ms, f"query {name!r}", cacheable=True)
+            rows = self._run_untrusted(text, values, limit_ms, f"query {name!r}", cacheable=True)
             self.own_first.wait_turn()  # encoding a large answer holds the interpreter too
         else:
             with self._store_lock:
@@ -428,26 +429,28 @@ class KnowledgeService:
         self.own_first.wait_turn()
         return rows_reply(rows, (time.perf_counter() - start) * 1000, "cypher")
 
-    def _run_in_public_process(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str) -> bytes:
+    def _run_in_public_process(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str, *,
+                               cacheable: bool = False) -> bytes:
         """The encoded reply, from a lower-priority child process (read, encoded there)."""
         self.own_first.wait_turn()
         worker = self._sandbox_pool.get()  # as many as public workers: never waits
         try:
-            return bytes(worker.execute(text, params, limit_ms=limit_ms, what=what))
+            return bytes(worker.execute(text, params, limit_ms=limit_ms, what=what, cacheable=cacheable))
         except QueryTimeLimit:
             self._count("time_limits_hit")
             raise
         finally:
             self._sandbox_pool.put(worker)
 
-    def _run_untrusted(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str) -> list[dict[str, Any]]:
+    def _run_untrusted(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str, *,
+                       cacheable: bool = False) -> list[dict[str, Any]]:
         """In the sandbox when there is one (killed past the limit), else on the store with its timeout."""
         self.own_first.wait_turn()
         try:
             if self.sandboxes:
                 sandbox = self._sandbox_pool.get()  # as many as public workers: never waits
                 try:
-                    return sandbox.execute(text, params, limit_s=limit_ms / 1000)
+                    return sandbox.execute(text, params, limit_s=limit_ms / 1000, cacheable=cacheable)
                 finally:
                     self._sandbox_pool.put(sandbox)
             if not self.store.capabilities.timeouts:
