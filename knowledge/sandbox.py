@@ -92,10 +92,10 @@ class SandboxSettings:
     # The store is asked to stop a question at its limit; only if no answer has come
     # ``grace_s`` later is the server killed. Restarting one costs ~50 ms of CPU.
     grace_s: float = 0.5
-    # Answers to cacheable questions kept for the current copy (the least recently asked go first), each
-    # of at most answer_cache_rows rows; 0: none kept.
+    # Answers to cacheable questions kept for the current copy: at most answer_cache answers of answer_cache_rows
+    # rows in all (the least recently asked go first; fig4_literal's 1,000 rows are about 0.6 MB); 0: none.
     answer_cache: int = 32
-    answer_cache_rows: int = 1000
+    answer_cache_rows: int = 2000
 
     def __post_init__(self) -> None:
         if self.max_age_s is not None and self.max_age_s < 0:
@@ -123,6 +123,7 @@ class QuerySandbox:
         self.cached_answers = 0  # questions answered with rows kept from an earlier one on the same copy
         # (cypher, params) -> rows, answered on copy number self.copies (forgotten at every copy)
         self._answers: collections.OrderedDict[tuple[str, str], list[Row]] = collections.OrderedDict()
+        self._kept_rows = 0  # rows in self._answers
         self._lock = threading.Lock()
         self._dir: Path | None = None
         self._server: EmbeddedServer | None = None
@@ -222,6 +223,10 @@ class QuerySandbox:
                 kept = None
             return self._connect_for(limit_s), self._generation, self.copies, kept
 
+    def _forget_answers(self) -> None:
+        self._answers.clear()
+        self._kept_rows = 0
+
     def _connect_for(self, limit_s: float) -> FalkorDBStore:
         store = self._stores.get(limit_s)
         if store is None:
@@ -236,10 +241,10 @@ class QuerySandbox:
         with self._lock:
             if copy != self.copies:  # copied again while it ran: the answer may be older than the copy
                 return
+            self._kept_rows += len(rows) - len(self._answers.pop(key, ()))
             self._answers[key] = rows
-            self._answers.move_to_end(key)
-            while len(self._answers) > self.settings.answer_cache:
-                self._answers.popitem(last=False)
+            while len(self._answers) > self.settings.answer_cache or self._kept_rows > self.settings.answer_cache_rows:
+                self._kept_rows -= len(self._answers.popitem(last=False)[1])
 
     def _start(self) -> None:
         assert self._dir is not None, "setup() first"
@@ -270,7 +275,7 @@ class QuerySandbox:
         written failed every later question at this copy."""
         graph = self.source.settings.graph
         self._stale = True  # until the copy is whole: a failed one is taken again at the next question
-        self._answers.clear()  # kept from a copy about to be replaced
+        self._forget_answers()  # kept from a copy about to be replaced
         try:
             self._watch()  # before the DUMP: a write landing after it flags the watch (and may be copied too)
             blob = self.source.redis.dump(graph)
@@ -304,7 +309,7 @@ class QuerySandbox:
             raise StoreUnavailable(f"cannot load the graph into the query sandbox: {exc}") from exc
         self._copied_at = self._checked_at = time.monotonic()
         self._stale = False
-        self._answers.clear()
+        self._forget_answers()
         self.copies += 1
 
     def _watch(self) -> None:

@@ -211,3 +211,28 @@ def test_every_named_query_gives_the_same_rows_on_the_same_graph():
             p: {"str": "x", "int": 1, "float": 1.0, "bool": True}.get(spec.type, "x")
             for p, spec in query.params.items() if spec.required}))
         assert not varying.search(text), f"named query {name!r} reads a clock or a random number"
+
+
+def test_the_answers_kept_are_bounded_in_count_and_in_rows(resp_store):
+    from kgadapt.knowledge.sandbox import SandboxSettings
+
+    resp_store.execute("UNWIND range(1, 5) AS i CREATE (:Item {id: i, value: 1})")
+    box = QuerySandbox(resp_store, SandboxSettings(answer_cache=2, answer_cache_rows=6))
+    box.setup()
+    try:
+        rows = "MATCH (n:Item) WHERE n.value >= $v RETURN n.id AS id ORDER BY id"
+        box.execute(rows, {"v": 1}, limit_s=30.0, cacheable=True)  # 5 rows kept
+        run = _queries_run(box)
+        box.execute(rows, {"v": 1}, limit_s=30.0, cacheable=True)
+        assert _queries_run(box) == run
+        box.execute(rows, {"v": 0}, limit_s=30.0, cacheable=True)  # 5 more: 10 > 6, the first goes
+        box.execute(rows, {"v": 1}, limit_s=30.0, cacheable=True)
+        assert _queries_run(box) == run + 2
+        for v in (2, 3, 4):  # no rows each: three answers, at most two kept
+            box.execute(rows, {"v": v}, limit_s=30.0, cacheable=True)
+        box.execute(rows, {"v": 2}, limit_s=30.0, cacheable=True)
+        assert _queries_run(box) == run + 6
+        box.execute(rows, {"v": 4}, limit_s=30.0, cacheable=True)
+        assert _queries_run(box) == run + 6
+    finally:
+        box.shutdown()
