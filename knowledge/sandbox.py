@@ -298,12 +298,7 @@ class QuerySandbox:
         except (redis.ConnectionError, OSError) as exc:
             if not replace_gone:
                 raise StoreUnavailable(f"cannot load the graph into the query sandbox: {exc}") from exc
-            log.warning("query sandbox: the server was gone (%s); killing server pid %s and starting a new one",
-                        exc, self.pid)
-            self.restarts += 1
-            self._stop()
-            self._generation += 1
-            self._start()
+            self._replace(f"the server was gone ({exc})")
             return
         except redis.RedisError as exc:
             raise StoreUnavailable(f"cannot load the graph into the query sandbox: {exc}") from exc
@@ -358,11 +353,15 @@ class QuerySandbox:
         with self._lock:
             if generation != self._generation:
                 return  # someone else restarted it already
-            log.warning("query sandbox: %s; killing server pid %s and starting a new one", why, self.pid)
-            self.restarts += 1
-            self._stop()
-            self._generation += 1
-            self._start()
+            self._replace(why)
+
+    def _replace(self, why: str) -> None:
+        """Kill the server and start a new one, which copies the graph (under the lock)."""
+        log.warning("query sandbox: %s; killing server pid %s and starting a new one", why, self.pid)
+        self.restarts += 1
+        self._stop()
+        self._generation += 1
+        self._start()
 
     def _stop(self) -> None:
         for store in self._stores.values():
