@@ -45,6 +45,8 @@ import base64
 import contextlib
 import dataclasses
 import hashlib
+import heapq
+import itertools
 import logging
 import re
 import secrets
@@ -155,6 +157,9 @@ class Deployer:
         # Kinds of start the launcher keeps idle members for, by what a member can take (its pool key).
         self._warm: dict[str, _Kind] = {}
         self._stop_warming = threading.Event()
+        # The pool's upkeep after a start (sized again, filled again later), on a thread of its own: the
+        # start's reply does not wait for it.
+        self._upkeep = _Later(f"deployer-pool-{settings.host}")
         self.supervisor = Supervisor(SupervisorSettings(launcher=settings.launcher, python=settings.python))
         self.recorder: ProfileRecorder | None = None
         self._session: Any = None
@@ -192,6 +197,8 @@ class Deployer:
             self.supervisor.add_listener(self._publish_event)
             self.supervisor.setup()
             stack.callback(self.supervisor.shutdown)
+            self._upkeep.setup()
+            stack.callback(self._upkeep.shutdown)  # before the supervisor stops: no pool asked for meanwhile
             if s.pool > 0 and self.supervisor.launcher is not None:
                 self._stop_warming.clear()
                 warmer = threading.Thread(target=self._keep_host_warm, name=f"deployer-warm-{s.host}", daemon=True)
@@ -208,6 +215,7 @@ class Deployer:
     def shutdown(self) -> None:
         """Refuse new requests, stop every process (SIGINT, SIGTERM, SIGKILL), flush profiles."""
         self._stack.close()
+        self._upkeep.shutdown()
         self._session = None
 
     def _forget_publisher(self) -> None:
@@ -340,29 +348,27 @@ class Deployer:
             with self._admission:  # from now on the supervisor's list holds it (or it failed)
                 self._admitted.pop(spec.instance, None)
         if self.settings.pool > 0:
-            # Every other kind is sized again within the budget with this process in it at once (idle
-            # members yielded to it: fewer may be kept now); the next start like it takes an idle member
-            # made pool_refill_s from now.
-            try:
-                self._resize_pool(but=self.supervisor.pool_key(spec))
-            except KgadaptError as exc:  # the start is done; the pool waits for the next reading
-                log.info("host %s: pool not sized after starting %s: %s", self.settings.host, spec.instance, exc)
+            # Right after the reply, every other kind is sized again within the budget with this process
+            # in it (idle members yielded to it: fewer may be kept now); the next start like it takes an
+            # idle member made pool_refill_s from now.
+            self._upkeep.after(0.0, lambda: self._resize_after(spec))
             if info.via in ("launcher", "pool"):
-                self._refill_later(deployment, config, spec)
+                self._upkeep.after(self.settings.pool_refill_s, lambda: self._refill(deployment, config, spec))
         return info
 
-    def _refill_later(self, deployment: str, config: str, spec: ProcessSpec) -> None:
-        """The pool kept for starts like ``spec`` filled again ``pool_refill_s`` from now, on a thread."""
-        def refill() -> None:
-            if self._stop_warming.wait(self.settings.pool_refill_s):
-                return  # shutting down
-            try:
-                self._keep_warm(deployment, config, spec, replace=False)
-            except KgadaptError as exc:  # the pool waits for the next reading
-                log.info("host %s: pool not filled again after starting %s: %s", self.settings.host,
-                         spec.instance, exc)
+    def _resize_after(self, spec: ProcessSpec) -> None:
+        try:
+            self._resize_pool(but=self.supervisor.pool_key(spec))
+        except KgadaptError as exc:  # the start is done; the pool waits for the next reading
+            log.info("host %s: pool not sized after starting %s: %s", self.settings.host, spec.instance, exc)
 
-        threading.Thread(target=refill, name=f"deployer-refill-{self.settings.host}", daemon=True).start()
+    def _refill(self, deployment: str, config: str, spec: ProcessSpec) -> None:
+        """The pool kept for starts like ``spec`` filled again."""
+        try:
+            self._keep_warm(deployment, config, spec, replace=False)
+        except KgadaptError as exc:  # the pool waits for the next reading
+            log.info("host %s: pool not filled again after starting %s: %s", self.settings.host,
+                     spec.instance, exc)
 
     def _resize_pool(self, *, but: str | None = None) -> None:
         """Size every kind kept warm (but ``but``) again within the budget."""
@@ -633,6 +639,59 @@ class Deployer:
                 self._publisher.put(messages.encode(body))
             except Exception as exc:  # noqa: BLE001 - never let a transport hiccup stop supervision
                 log.warning("cannot publish deployer event %s: %s", event.event, exc)
+
+
+class _Later:
+    """Jobs run one after another on a thread of their own, each at its time (``setup`` starts the thread,
+    else the first job does). ``shutdown`` drops those not yet due and ends the thread."""
+
+    def __init__(self, name: str) -> None:
+        self._name = name
+        self._changed = threading.Condition()
+        self._jobs: list[tuple[float, int, Callable[[], None]]] = []  # a heap by due time
+        self._order = itertools.count()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+
+    def setup(self) -> None:
+        with self._changed:
+            self._start()
+
+    def after(self, delay: float, job: Callable[[], None]) -> None:
+        """Run ``job`` ``delay`` seconds from now (not at all once shut down)."""
+        with self._changed:
+            if self._closed:
+                return
+            heapq.heappush(self._jobs, (time.monotonic() + delay, next(self._order), job))
+            self._start()
+            self._changed.notify()
+
+    def _start(self) -> None:
+        if self._thread is None and not self._closed:
+            self._thread = threading.Thread(target=self._run, name=self._name, daemon=True)
+            self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            with self._changed:
+                while not self._closed and (not self._jobs or self._jobs[0][0] > time.monotonic()):
+                    self._changed.wait(self._jobs[0][0] - time.monotonic() if self._jobs else None)
+                if self._closed:
+                    return
+                job = heapq.heappop(self._jobs)[2]
+            try:
+                job()
+            except Exception:  # noqa: BLE001 - a bug in one job must not end the others
+                log.exception("%s: a job failed", self._name)
+
+    def shutdown(self) -> None:
+        with self._changed:
+            self._closed = True
+            self._jobs.clear()
+            thread, self._thread = self._thread, None
+            self._changed.notify_all()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=10.0)
 
 
 @dataclass(frozen=True, kw_only=True)

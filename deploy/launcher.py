@@ -35,10 +35,16 @@ it takes the environment, opens its Zenoh session (the module's
 argv and environment match a member's, but for the ``--instance`` and
 ``--config`` values and the per-start variables (:data:`PER_START_ENV`;
 :func:`pool_key`), is handed to an idle member instead of a new fork: it
-takes the descriptors, environment and argv, is re-parented to the agent as a
-forked detector is, and runs the module's ``main(args, session=...)`` with the
-session it already has. A member's intermediate process stays until then (so
-a member is the launcher's grandchild while idle: it dies with the launcher).
+takes the descriptors, environment and argv and tells its intermediate process
+to exit, so it is re-parented to the agent as a forked detector is; the
+launcher replies with its pid once that process has exited (status 0: the
+member took the start). Meanwhile the member runs the module's
+``main(args, session=..., adoption=...)`` with the session it already has: the
+module does its own setup while the re-parenting happens, and calls
+``adoption()`` before it says it is ready, which checks that its parent is
+the agent and takes the agent's parent-death signal (until then the lifeline
+below holds). A member's intermediate process stays until the start (so a
+member is the launcher's grandchild while idle: it dies with the launcher).
 
 An idle member must also die with the agent, at once, as a forked detector
 does. Its parent-death signal cannot give that: it fires when its intermediate
@@ -53,7 +59,7 @@ a fork shares), and asks the kernel to send it SIGKILL when the pipe's last
 writer closes (``O_ASYNC`` with ``F_SETSIG``): the kernel closes a dying
 process's files before its parent can reap it, as it sends the parent-death
 signal. A member drops its lifeline once it has been adopted by the agent and
-has its parent-death signal instead.
+has its parent-death signal instead (at ``adoption()``).
 
 Protocol (JSON, one message per datagram)::
 
@@ -124,7 +130,8 @@ def runnable_module(argv: Sequence[str], python: str, modules: Sequence[str]) ->
     """The module of ``argv`` when it is ``<python> -m <module> ...`` with a module the launcher runs, else None."""
     if len(argv) < 3 or argv[1] != "-m" or argv[2] not in modules:
         return None
-    if os.path.realpath(argv[0]) != os.path.realpath(python) and argv[0] != python:
+    # The same path as given needs no look at the file system (resolving both cost 0.2 ms a start).
+    if argv[0] != python and os.path.realpath(argv[0]) != os.path.realpath(python):
         return None
     return argv[2]
 
@@ -264,21 +271,20 @@ def _end_member(member: _Member) -> None:
 
 
 def _hand_over(member: _Member, data: bytes, fds: list[int]) -> bool:
-    """Give ``member`` the start request and its descriptors; True once it is the agent's (its
-    intermediate process has ended, so it was re-parented)."""
+    """Give ``member`` the start request and its descriptors; True once it is the agent's: its
+    intermediate process ended because the member took the start (status 0), and the kernel re-parents
+    a process's children before its parent can reap it. False: the member had died."""
     try:
-        socket.send_fds(member.sock, [data], fds)
-        member.sock.settimeout(5.0)
-        said = member.sock.recv(64)
-    except OSError:
-        said = b""
+        socket.send_fds(member.sock, [data], fds)  # queued: the member reads it though we close at once
+    except OSError:  # it died (its end closed): its intermediate process ends with it
+        pass
     finally:
         member.sock.close()
     try:
-        os.waitpid(member.middle, 0)  # it exits when the member says so (or died with it)
+        _, status = os.waitpid(member.middle, 0)  # it exits when the member says so (or died with it)
     except ChildProcessError:
-        pass
-    return said == b"taken"
+        return False
+    return os.waitstatus_to_exitcode(status) == 0
 
 
 def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | None, sock: socket.socket,
@@ -292,7 +298,7 @@ def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | N
     r, w = os.pipe()
     launcher = os.getpid()
     middle = os.fork()
-    if middle == 0:  # the intermediate process: fork the member, say its pid, wait until it is taken
+    if middle == 0:  # the intermediate process: fork the member, say its pid, exit when it is taken
         code = 1
         try:
             parent_death.set_death_signal(signal.SIGKILL)  # dies with the launcher, and so its member
@@ -312,8 +318,8 @@ def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | N
             os.close(release_w)
             theirs.close()
             os.write(w, str(pid).encode())
-            os.read(release_r, 1)  # the member was taken (it wrote) or died (end of file)
-            code = 0
+            # 0: the member took a start (it wrote); 1: it died (end of file).
+            code = 0 if os.read(release_r, 1) == b"x" else 1
         finally:
             os._exit(code)
     os.close(w)
@@ -357,20 +363,25 @@ def _pool_member(middle: int, module: str, argv: list[str], env: dict[str, str],
         request = json.loads(data)
         argv = [str(a) for a in request["argv"]]
         parent, death_signal = int(request["parent"]), int(request["death_signal"])
-        parent_death.set_death_signal(0)  # not when the intermediate process ends now
-        os.write(release, b"x")
-        os.close(release)
-        _await_adoption(middle, parent, death_signal)
-        if own_line is not None:  # adopted, with the agent's parent-death signal: the lifeline's work is done
-            os.close(own_line)
-        member_sock.send(b"taken")
-        member_sock.close()
         _take_stdio(fds)
         os.close(fds[0])
         os.close(fds[1])
         _enter({str(k): str(v) for k, v in dict(request["env"]).items()}, request.get("cwd"), argv)
         _line_buffered()
-        return _run_module(module, argv, session=session)
+        parent_death.set_death_signal(0)  # not when the intermediate process ends now
+        member_sock.close()
+        # The intermediate process exits, this one is re-parented to the agent and the launcher names it
+        # to the agent, while the module does its own setup. Before it says it is ready, the module
+        # checks its adoption and takes the agent's parent-death signal; until then the lifeline holds.
+        os.write(release, b"x")
+        os.close(release)
+
+        def adoption() -> None:
+            _await_adoption(middle, parent, death_signal)
+            if own_line is not None:  # adopted, with the agent's parent-death signal: the lifeline's work is done
+                os.close(own_line)
+
+        return _run_module(module, argv, session=session, adoption=adoption)
 
     _end_with(run)
 
@@ -532,8 +543,9 @@ def set_title(argv: Sequence[str]) -> bool:
         return False
 
 
-def _run_module(module: str, argv: list[str], *, session: Any = None) -> int:
-    """Run ``module``'s ``main(args)`` as ``python -m module args`` would (a pool member's with its session).
+def _run_module(module: str, argv: list[str], *, session: Any = None, adoption: Callable[[], None] | None = None) -> int:
+    """Run ``module``'s ``main(args)`` as ``python -m module args`` would (a pool member's with its session,
+    and ``adoption``, which the module calls before it says it is ready).
 
     Its preloaded copy is used as it is: running it again as ``__main__`` (runpy) would execute a
     second copy beside the imported one, which Python warns about in the detector's output.
@@ -541,7 +553,8 @@ def _run_module(module: str, argv: list[str], *, session: Any = None) -> int:
     sys.argv = [argv[0], *argv[3:]]
     try:
         runner = importlib.import_module(module)
-        code = runner.main(sys.argv[1:]) if session is None else runner.main(sys.argv[1:], session=session)
+        code = runner.main(sys.argv[1:]) if session is None else \
+            runner.main(sys.argv[1:], session=session, adoption=adoption)
     except SystemExit as exc:
         if exc.code is None:
             return 0

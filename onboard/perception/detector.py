@@ -62,6 +62,8 @@ knowledge store does not know the configuration (the message names it).
 from __future__ import annotations
 
 import argparse
+import base64
+import binascii
 import logging
 import os
 import sys
@@ -200,9 +202,6 @@ def carried_config(name: str, environ: Mapping[str, str] = os.environ) -> tuple[
     """Configuration ``name`` as the deployer resolved it from the graph for this start
     ($KGADAPT_RESOLVED_CONFIG, a ``resolved_config`` message), checked as a fetched one is; None when
     none was carried, or it names another configuration, or it does not check (then the graph is asked)."""
-    import base64
-    import binascii
-
     from kgadapt.onboard.perception.markers import parse_config
 
     text = environ.get(RESOLVED_CONFIG_ENV)
@@ -247,7 +246,7 @@ class WarmStart:
     Zenoh session, the reflex table of each deployment it may be started as (on ``host``), with
     every candidate's detector built once, and its camera's newest frame, held (``frames``, from
     ``frame_subscriber``, on ``camera``: (robot, camera)) so that its first detection need not wait
-    for the camera's next frame."""
+    for the camera's next frame; the argument parser, built and used once (a start only parses)."""
 
     session: Any
     host: str | None = None
@@ -256,6 +255,7 @@ class WarmStart:
     camera: tuple[str, str] | None = None
     frames: LatestSlot | None = None
     frame_subscriber: Any = None
+    parser: argparse.ArgumentParser | None = None
 
     def armed(self, deployment: str | None, host: str) -> tuple[Any, dict[str, Any]] | None:
         """The table and detectors prepared for a start of ``deployment`` on ``host``; None if none was."""
@@ -824,12 +824,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None, *, session: Any = None) -> int:
-    """``session``: one already open (a launcher's pool member opened it while it waited; closed at the end)."""
-    args = build_parser().parse_args(argv)
+def main(argv: Sequence[str] | None = None, *, session: Any = None, adoption: Callable[[], None] | None = None) -> int:
+    """``session``: one already open (a launcher's pool member opened it while it waited; closed at the end);
+    ``adoption``: the pool member's wait to become its agent's child, called before it says it is ready
+    (deploy/launcher.py), so that its own setup runs meanwhile."""
+    parser = session.parser if isinstance(session, WarmStart) and session.parser is not None else build_parser()
+    args = parser.parse_args(argv)
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    return run(args, session=session)
+    return run(args, session=session, adoption=adoption)
 
 
 def _zenoh_settings(args: argparse.Namespace) -> Any:
@@ -843,10 +846,14 @@ def pool_session(argv: Sequence[str]) -> WarmStart:
     the Zenoh session such a detector would open (a start's own flags name the same settings), and, for
     each deployment it may be started as (``$KGADAPT_POOL_DEPLOYMENTS``, set by its deployer; else the
     one of the configuration its spec carried), the reflex table with every candidate configuration's
-    detector built once. A start of another deployment asks the graph for its own table."""
+    detector built once. A start of another deployment asks the graph for its own table. It keeps the
+    parser it parsed ``argv`` with (a start parses with it) and reads a made-up carried configuration
+    (:func:`rehearse_carried`), so that the start does neither for the first time in this process."""
     from kgadapt.shared.session import open_session
 
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    rehearse_carried()
     session = open_session(_zenoh_settings(args))
     deployments = [d for d in os.environ.get(POOL_DEPLOYMENTS_ENV, "").split(",") if d]
     if not deployments:
@@ -870,9 +877,19 @@ def pool_session(argv: Sequence[str]) -> WarmStart:
                                                 lambda sample: frames.put((sample.payload.to_bytes(), time.time())))
     except Exception as exc:  # noqa: BLE001 - whatever zenoh raises: the start declares its own then
         log.info("pool member: no camera subscription held (%s)", exc)
-        return WarmStart(session, args.host, tables, cores)
+        return WarmStart(session, args.host, tables, cores, parser=parser)
     return WarmStart(session, args.host, tables, cores, camera=(args.robot, args.camera), frames=frames,
-                     frame_subscriber=subscriber)
+                     frame_subscriber=subscriber, parser=parser)
+
+
+def rehearse_carried() -> None:
+    """Read a made-up carried configuration once, so that a pool member's start does not do it for the
+    first time in this process: in a fork of the launcher the first touch of a page copies it, and
+    msgspec builds its checks for a message type on its first use (with base64, then imported from disk,
+    that was the 1.4-6 ms "configuration carried" step of a pooled start; 0.5 ms with it, load 10-20;
+    parsing the arguments with a parser built and used while idle: 0.9 -> 0.15 ms)."""
+    made_up = messages.ResolvedConfig(config="rehearsal", config_json="{}", resolved_at=0.0, digest="-")
+    carried_config("rehearsal", {RESOLVED_CONFIG_ENV: base64.b64encode(messages.encode(made_up)).decode("ascii")})
 
 
 def warm_up(cores: Any) -> None:
@@ -893,8 +910,8 @@ def warm_up(cores: Any) -> None:
             log.debug("pool member: warm-up detection failed: %s", exc)
 
 
-def run(args: argparse.Namespace, *, session: Any = None) -> int:
-    """Run the detector until SIGINT or SIGTERM; return the exit status."""
+def run(args: argparse.Namespace, *, session: Any = None, adoption: Callable[[], None] | None = None) -> int:
+    """Run the detector until SIGINT or SIGTERM; return the exit status. ``adoption``: see :func:`main`."""
     from kgadapt.shared.agent import StopSignals
     from kgadapt.shared.session import open_session
 
@@ -944,6 +961,8 @@ def run(args: argparse.Namespace, *, session: Any = None) -> int:
             if row.get("deployment"):  # only a configuration from the graph can be changed from the graph
                 reconfigurer = Reconfigurer(detector)
                 reconfigurer.setup(session)
+            if adoption is not None:
+                adoption()
             announce_ready(instance=args.instance, config=config.name)
             log.info("detector %s ready: config %s, camera %s", args.instance, config.name, args.camera)
             stop.wait()

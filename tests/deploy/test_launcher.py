@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -457,4 +458,67 @@ def test_the_deployer_keeps_an_idle_detector_for_what_may_run_on_its_host_before
     finally:
         knowledge.answer_named = answer_named
         events.close()
+        host.close()
+
+
+def test_a_taken_pool_member_sets_itself_up_while_it_is_re_parented_and_says_ready_only_once_adopted(
+        knowledge, endpoint, test_session):
+    """Issue 32: a pooled start's own setup (its arguments, configuration, detector, Zenoh declarations)
+    waited for the member's re-parenting to the agent; now it runs meanwhile, and only its readiness
+    waits. The member's intermediate process is held stopped, so the member cannot be re-parented: taken,
+    it declares its liveliness token while that process is still its parent, and the start is not ready;
+    let go, the member is the agent's child and ready."""
+    host = DeployerHost(endpoint, "onboard", launcher=True, pool=1, warm_refresh_s=600.0)
+    alive_tokens: list[str] = []
+    tokens = test_session.liveliness().declare_subscriber(keys.detector_alive(ROBOT, "*"),
+                                                          lambda s: alive_tokens.append(str(s.key_expr)))
+    camera = test_session.declare_publisher(keys.camera_frame(ROBOT, "cam0"))
+    outcome: dict[str, object] = {}
+    starter: threading.Thread | None = None
+    middle: int | None = None
+    try:
+        launcher = host.deployer.supervisor.launcher
+        assert launcher is not None and launcher.wait_ready(60.0)
+        launcher.reply_timeout = 30.0  # the launcher answers only once the stopped process is let go
+        assert host.deployer.warm("detector_day", DAY) == 1
+        (member,) = wait_until(lambda: launcher.idle_pids(), timeout=60.0, what="an idle pool member")
+        # Idle: its camera subscription is the last thing it declares before it waits for a start.
+        wait_until(lambda: camera.matching_status.matching, timeout=60.0, what="the idle member's camera subscription")
+        (middle,) = set(launcher.yielding_pids()) - {member}
+        assert psutil.Process(member).ppid() == middle
+        os.kill(middle, signal.SIGSTOP)
+
+        def start() -> None:
+            try:
+                outcome["info"] = DeployerClient(test_session, ROBOT, timeout=3.0, start_timeout=30.0).start(
+                    "onboard", "detector_day", DAY, instance="overlap1")
+            except Exception as exc:  # noqa: BLE001 - reported by the assertion below
+                outcome["error"] = exc
+
+        starter = threading.Thread(target=start, name="test-start")
+        starter.start()
+        token = keys.detector_alive(ROBOT, "overlap1")
+        wait_until(lambda: token in alive_tokens, timeout=8.0,
+                   what="the taken member's liveliness token while its intermediate process is stopped")
+        assert psutil.Process(member).ppid() == middle  # set up before its re-parenting
+        assert host.deployer.status("overlap1").state == "starting"  # ... but not ready before it
+    finally:
+        if middle is not None:
+            try:
+                os.kill(middle, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+        if starter is not None:
+            starter.join(timeout=30.0)
+        tokens.undeclare()
+        camera.undeclare()
+    try:
+        info = outcome.get("info")
+        assert info is not None, outcome.get("error")
+        assert info.via == "pool" and info.pid == member and info.state in ("ready", "running")
+        assert psutil.Process(member).ppid() == os.getpid()  # the agent's child, as a forked detector
+        assert not alive(middle)
+        stopped = host.deployer.stop("overlap1")
+        assert stopped.state == "stopped" and stopped.returncode == 0
+    finally:
         host.close()
