@@ -162,13 +162,12 @@ ZENOH_RUNTIME = "(rx: (worker_threads: 8))"
 # receive runtime, one rx thread is woken and reads it. Measured (33 services, 330 hosts at 2 Hz, one
 # router process): 8.2 % of a core against 11.5-13.0 %, the 8 rx threads kept for the reason above.
 SERVICE_RUNTIME = "(rx: (worker_threads: 8), acc: (handover: rx))"
+_RUNTIME_SET_BY_US = "KGADAPT_ZENOH_RUNTIME_DEFAULT"  # the value of $ZENOH_RUNTIME that we set, not the user
 
 
 def open_session(settings: ZenohSettings) -> zenoh.Session:
     """Open a session; raise TransportError (or ConfigError) on failure."""
-    chosen = os.environ.setdefault("ZENOH_RUNTIME", settings.runtime or ZENOH_RUNTIME)
-    if settings.runtime and chosen != settings.runtime:
-        log.debug("ZENOH_RUNTIME %s holds for this process (asked for %s)", chosen, settings.runtime)
+    _choose_runtime(settings.runtime or ZENOH_RUNTIME)
     config = build_config(settings)
     try:
         session = zenoh.open(config)
@@ -179,6 +178,18 @@ def open_session(settings: ZenohSettings) -> zenoh.Session:
         ) from exc
     log.debug("zenoh session %s open (mode %s)", session.info.zid(), settings.mode)
     return session
+
+
+def _choose_runtime(wanted: str) -> None:
+    """Set $ZENOH_RUNTIME to ``wanted`` unless the user set it. A value we set ourselves is marked, so that
+    a child (e.g. a knowledge service started by a process with a session open) does not take the
+    parent's inherited default for the user's choice."""
+    env = os.environ
+    current = env.get("ZENOH_RUNTIME")
+    if current is None or current == env.get(_RUNTIME_SET_BY_US):
+        env["ZENOH_RUNTIME"] = env[_RUNTIME_SET_BY_US] = wanted
+    if env["ZENOH_RUNTIME"] != wanted:
+        log.debug("ZENOH_RUNTIME %s holds for this process (asked for %s)", env["ZENOH_RUNTIME"], wanted)
 
 
 def _file_sets(path: str | None, key: str) -> bool:
