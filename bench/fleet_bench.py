@@ -18,7 +18,10 @@ Measured, for each N of ``--sizes``:
                      (FleetClient.ask): wall time until the last robot answered,
                      how many answered (completeness), and how many times the
                      robots' query sandboxes copied their graph meanwhile (the
-                     server's DUMP calls) per answer
+                     server's DUMP calls) per answer; per question its wall
+                     time, the copies taken during it and the robot that
+                     answered last (``walls_ms``, ``copies_by_question``,
+                     ``slowest_robot``), after ``--idle-s`` of idle fleet
 ``router_cpu``       CPU of the router processes (percent of one core) while idle
                      and while asking back to back, divided by N
 Then, with the largest N, status fan-in: ``--hosts`` simulated hosts (spread
@@ -315,6 +318,16 @@ class SimulatedFleet:
         """The processes holding the knowledge services (the transit router excluded)."""
         return [c.pid for c in self.children[int(self.transit):]]
 
+    def helper_pids(self) -> tuple[list[int], list[int]]:
+        """The services' public worker processes and their sandboxes' FalkorDB servers."""
+        import psutil
+
+        workers, servers = [], []
+        for pid in self.pids():
+            for child in psutil.Process(pid).children(recursive=True):
+                (servers if "falkordb" in " ".join(child.cmdline()).lower() else workers).append(child.pid)
+        return workers, servers
+
     def transit_pid(self) -> int | None:
         return self.children[0].pid if self.transit else None
 
@@ -394,33 +407,49 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
             walls: list[float] = []
             answered: list[int] = []
             full: list[bool] = []
+            copied: list[int] = []  # sandbox copies taken during each question (DUMPs, read between questions)
+            slowest: list[str] = []  # the robot whose answer came last
 
             def ask_all() -> None:
+                dumps = fleet.dumps()
                 for _ in range(args.reps):
                     answer = client.ask("current_placement")
                     walls.append(answer.wall_ms)
                     answered.append(len(answer.answered))
                     full.append(answer.complete and all(a.rows for a in answer.robots))
+                    last = max(answer.robots, key=lambda a: a.arrived_ms or 0.0)
+                    slowest.append(last.robot)
+                    now = fleet.dumps()
+                    copied.append(now - dumps)
+                    dumps = now
 
-            groups = {"services": fleet.pids(), "transit": [fleet.transit_pid()]}
+            workers, sandboxes = fleet.helper_pids()
+            groups = {"services": fleet.pids(), "transit": [fleet.transit_pid()], "public_workers": workers,
+                      "sandbox_servers": sandboxes, "store": _store_pids(fleet)}
             idle_cpu = measure_cpu_groups(groups, args.idle_s)
-            dumps = fleet.dumps()
             busy_cpu = measure_cpu_groups(groups, 0, during=ask_all)
-            copies = fleet.dumps() - dumps
+            copies = sum(copied)
             idle, busy = idle_cpu["services"], busy_cpu["services"]
             complete = sum(full)
             records.append(make_record(store="falkordb", n=n, op="fleet_question", samples_ms=walls,
                                        routers=routers, complete=complete, reps=len(walls),
                                        min_answered=min(answered), query="current_placement",
                                        sandbox_copies=copies, answers=sum(answered),
-                                       copies_per_answer=round(copies / max(1, sum(answered)), 4)))
+                                       copies_per_answer=round(copies / max(1, sum(answered)), 4),
+                                       walls_ms=[round(w, 2) for w in walls], copies_by_question=copied,
+                                       slowest_robot=slowest))
             records.append({"op": "router_cpu", "n": n, "routers": routers, "idle_pct": round(idle, 2),
                             "asking_pct": round(busy, 2), "idle_pct_per_robot": round(idle / n, 4),
                             "asking_pct_per_robot": round(busy / n, 4),
                             "transit_router_idle_pct": round(idle_cpu["transit"], 2),
                             "transit_router_asking_pct": round(busy_cpu["transit"], 2),
                             "transit_router_asking_pct_per_robot": round(busy_cpu["transit"] / n, 4),
-                            "questions_per_s": round(len(walls) / (sum(walls) / 1000), 2)})
+                            "questions_per_s": round(len(walls) / (sum(walls) / 1000), 2),
+                            # Where an answer's CPU goes, per hop (percent of one core while asking; ms per answer)
+                            "asking_pct_by_hop": {g: round(v, 2) for g, v in busy_cpu.items()},
+                            "cpu_ms_per_answer_by_hop": {
+                                g: round(v / 100 * (sum(walls) / 1000) * 1000 / max(1, sum(answered)), 3)
+                                for g, v in busy_cpu.items()}})
             out.append((n, routers, records[-2], records[-1]))
             if fanin:
                 records.append(run_fanin(fleet, args))

@@ -317,6 +317,11 @@ class RosterSettings:
     interval_s: float = 600.0
     timeout_s: float = 2.0
     jitter_s: float = 1.0  # each roll call up to this much later: services started together do not call together
+    # Keep the roster in a graph of its own beside the robot's (``<graph>.fleet_roster`` on the same FalkorDB
+    # server over RESP; other backends: in the robot's graph, as before). The robot's query sandboxes copy its
+    # graph again after every write to it, and every roll call writes every robot's roster: in the robot's
+    # graph that made the fleet's next question to each robot pay a copy (issue 32).
+    apart: bool = False
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
@@ -354,18 +359,31 @@ def forget_robot(store: Any, *, robot: str) -> None:
     store.execute(f"MATCH (r:{S.FLEET_ROBOT} {{name: $robot}}) DELETE r", {"robot": robot})
 
 
-class FleetRoster:
-    """The robots a knowledge service has heard answer or announce on the fleet keys, kept in its graph.
+ROSTER_GRAPH_SUFFIX = ".fleet_roster"
 
-    ``setup(session)`` records the service's own robot and starts the roll calls (a thread of its own:
-    a roll call waits on replies); ``shutdown()`` stops them. Only what arrives on the fleet keys is
-    recorded: answers to the roll call (the robot from the reply's key) and other robots' roll calls
-    (the ``announce`` parameter, see :meth:`heard`). Bounded by ``cap``.
+
+def roster_graph(graph: str) -> str:
+    """The name of the graph that holds the roster of the robot whose graph is ``graph`` (``apart``)."""
+    return f"{graph}{ROSTER_GRAPH_SUFFIX}"
+
+
+class FleetRoster:
+    """The robots a knowledge service has heard answer or announce on the fleet keys, kept in its store.
+
+    ``open()`` connects to where the roster is kept: ``store`` itself, or with ``apart`` a graph of
+    its own beside it (see :class:`RosterSettings`), moving any roster an older version kept in the
+    robot's graph there. ``setup(session)`` (opening first if need be) records the service's own robot
+    and starts the roll calls (a thread of its own: a roll call waits on replies); ``shutdown()`` stops
+    them and closes what ``open()`` opened. :attr:`store` is where the roster is. Only what arrives on
+    the fleet keys is recorded: answers to the roll call (the robot from the reply's key) and other
+    robots' roll calls (the ``announce`` parameter, see :meth:`heard`). Bounded by ``cap``.
     """
 
     def __init__(self, store: Any, settings: RosterSettings) -> None:
-        self.store = store
+        self.primary = store
+        self.store = store  # where the roster is: the primary until open() finds it kept apart
         self.settings = settings
+        self._opened: Any = None  # the store open() opened beside the primary (closed at shutdown)
         self._session: Any = None
         self._zid: str | None = None
         self._routers: list[str] = []
@@ -373,7 +391,31 @@ class FleetRoster:
         self._thread: threading.Thread | None = None
         self.refused = 0  # robots not recorded because the roster was full
 
+    def open(self) -> None:
+        """Connect to where the roster is kept (no-op when it is the primary or already open)."""
+        if self._opened is not None or not (self.settings.apart and self.primary.capabilities.sandbox):
+            return
+        import dataclasses
+
+        from kgadapt.knowledge.falkordb_store import FalkorDBStore
+
+        primary = self.primary
+        settings = primary.settings
+        if settings.kind == "embedded":  # the primary runs the server: reach it on its socket
+            sock = primary.server.address.unix_socket
+            settings = dataclasses.replace(settings, kind="falkordb", url=f"falkordb+unix://{sock}", unix_socket=sock,
+                                           data_dir=None)
+        store = FalkorDBStore(dataclasses.replace(settings, graph=roster_graph(primary.settings.graph)))
+        store.setup()
+        try:
+            _move_roster(primary, store)
+        except BaseException:
+            store.shutdown()
+            raise
+        self.store = self._opened = store
+
     def setup(self, session: Any) -> None:
+        self.open()
         self._session = session
         self._zid, self._routers = _zenoh_ids(session)
         self.remember(self.settings.robot, how=Heard.SELF, zid=self._zid, routers=self._routers)
@@ -386,6 +428,10 @@ class FleetRoster:
         if self._thread is not None:
             self._thread.join(timeout=self.settings.timeout_s + 5)
             self._thread = None
+        opened, self._opened = self._opened, None
+        if opened is not None:
+            self.store = self.primary
+            opened.shutdown()
 
     def remember(self, robot: str, *, how: Heard, when: float | None = None, zid: str | None = None,
                  routers: list[str] | None = None) -> bool:
@@ -475,6 +521,23 @@ class FleetRoster:
                 log.debug("fleet roll call of %s: %d robots answered", self.settings.robot, len(heard))
             except Exception as exc:  # noqa: BLE001 - a store away or the session closing: the next roll call tries again
                 log.warning("fleet roll call of %s: %s", self.settings.robot, exc)
+
+
+def _move_roster(primary: Any, roster: Any) -> None:
+    """Move a roster kept in the robot's graph (before ``apart``) into the roster's own graph."""
+    from kgadapt.knowledge import schema as S
+
+    # Read only: a MATCH ... DELETE that finds nothing still counts as a write to the robot's graph.
+    rows = primary.execute(f"MATCH (r:{S.FLEET_ROBOT}) RETURN r.name AS name, r.first_seen AS first_seen, "
+                           "r.last_seen AS last_seen, r.heard AS heard, r.zid AS zid, r.routers AS routers",
+                           read_only=True)
+    if not rows:
+        return
+    roster.execute(
+        f"UNWIND $rows AS row MERGE (r:{S.FLEET_ROBOT} {{name: row.name}}) "
+        "ON CREATE SET r.first_seen = row.first_seen, r.last_seen = row.last_seen, r.heard = row.heard, "
+        "r.zid = row.zid, r.routers = row.routers", {"rows": rows})
+    primary.execute(f"MATCH (r:{S.FLEET_ROBOT}) DELETE r")
 
 
 def _zenoh_ids(session: Any) -> tuple[str | None, list[str]]:

@@ -25,7 +25,7 @@ never holds it while a question runs. Protocol on its stdin/stdout: frames of
 a 4-byte big-endian length and a msgpack map: first the settings
 (``{"store": {...}, "nice": n}``, answered ``{"ready": true}`` or
 ``{"error": ...}``), then requests ``{"cypher", "params", "limit_ms",
-"what"}`` each answered ``{"ok": <rows reply bytes>}`` or ``{"error": kind,
+"what", "cacheable"}`` each answered ``{"ok": <rows reply bytes>}`` or ``{"error": kind,
 "text": ...}``, one at a time, in order.
 
 One worker holds one question at a time. If no answer has come by the
@@ -134,8 +134,12 @@ class PublicWorker:
         with self._lock:
             self._stop()
 
-    def execute(self, cypher: str, params: Mapping[str, Any], *, limit_ms: int, what: str) -> bytes:
-        """The encoded ``rows`` reply to a read-only question; KgadaptError naming what went wrong."""
+    def execute(self, cypher: str, params: Mapping[str, Any], *, limit_ms: int, what: str,
+                cacheable: bool = False) -> bytes:
+        """The encoded ``rows`` reply to a read-only question; KgadaptError naming what went wrong.
+
+        ``cacheable``: see :meth:`kgadapt.knowledge.sandbox.QuerySandbox.execute`.
+        """
         wait_s = limit_ms / 1000 + _SANDBOX_GRACE_S + self.settings.slack_s
         with self._lock:
             if self._child is None or self._child.poll() is not None:
@@ -147,7 +151,8 @@ class PublicWorker:
                     raise QueryTimeLimit(f"{what}: not answered: the worker for other robots' questions is "
                                          "still busy with an earlier one")
                 self._owed -= 1
-            self._write({"cypher": cypher, "params": dict(params), "limit_ms": limit_ms, "what": what})
+            self._write({"cypher": cypher, "params": dict(params), "limit_ms": limit_ms, "what": what,
+                         "cacheable": cacheable})
             answer = self._read(deadline)
             if answer is None:
                 self._owed += 1
@@ -298,7 +303,8 @@ def _answer(sandbox: Any, request: Mapping[str, Any]) -> dict[str, Any]:
     what = str(request.get("what", "query"))
     start = time.perf_counter()
     try:
-        rows = sandbox.execute(request["cypher"], request.get("params") or {}, limit_s=request["limit_ms"] / 1000)
+        rows = sandbox.execute(request["cypher"], request.get("params") or {}, limit_s=request["limit_ms"] / 1000,
+                               cacheable=bool(request.get("cacheable")))
         return {"ok": rows_reply(rows, (time.perf_counter() - start) * 1000, what)}
     except QueryTimeLimit as exc:
         return {"error": "time_limit", "text": f"{what}: {exc}"}

@@ -25,6 +25,16 @@ lease) leave it alone: Redis' server-wide write counter, used before, moved
 with every one of them, so on a server holding many robots' graphs almost
 every question copied the graph again.
 
+A question marked ``cacheable`` (the knowledge service marks its named
+queries: fixed texts without a clock or a random number) that was answered on
+the current copy is answered with the same rows again, without running it:
+the copy has not changed since, so neither would the answer. Every question
+still checks for writes first, and every copy forgets the answers kept, so
+answers stay exactly as fresh as above. An idle robot asked the same fleet
+question over and over answers it from memory (a fleet question waits for its
+slowest robot, and on a shared machine the query in the sandbox server was a
+third of an answer's CPU).
+
 Every query gets a hard time limit. The store is asked to stop it then (its
 own timeout); if no answer has come ``grace_s`` later, the client stops
 waiting and the sandbox server is killed (``SIGKILL``) and started afresh,
@@ -37,6 +47,7 @@ costs only the questions being asked of it.
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import shutil
@@ -83,10 +94,17 @@ class SandboxSettings:
     # The store is asked to stop a question at its limit; only if no answer has come
     # ``grace_s`` later is the server killed. Restarting one costs ~50 ms of CPU.
     grace_s: float = 0.5
+    # Answers to cacheable questions kept for the current copy: at most answer_cache answers of answer_cache_rows
+    # rows in all (the least recently asked go first; fig4_literal's 1,000 rows are about 0.6 MB); 0: none.
+    answer_cache: int = 32
+    answer_cache_rows: int = 2000
 
     def __post_init__(self) -> None:
         if self.max_age_s is not None and self.max_age_s < 0:
             raise ConfigError(f"max_age_s {self.max_age_s!r}: not negative")
+        if self.answer_cache < 0 or self.answer_cache_rows < 0:
+            raise ConfigError(f"answer_cache {self.answer_cache!r}, answer_cache_rows {self.answer_cache_rows!r}: "
+                              "not negative")
 
 
 class QuerySandbox:
@@ -103,7 +121,11 @@ class QuerySandbox:
         self.source = cast(FalkorDBStore, source)  # the one backend declaring capabilities.sandbox
         self.settings = settings
         self.restarts = 0  # servers killed for running past a limit (or found dead)
-        self.copies = 0  # times the graph was copied in (tests and benchmarks count them)
+        self.copies = 0  # times the graph was copied in (tests and benchmarks count them); names the copy
+        self.cached_answers = 0  # questions answered with rows kept from an earlier one on the same copy
+        # (cypher, params) -> rows, answered on copy number self.copies (forgotten at every copy)
+        self._answers: collections.OrderedDict[tuple[str, str], list[Row]] = collections.OrderedDict()
+        self._kept_rows = 0  # rows in self._answers
         self._lock = threading.Lock()
         self._dir: Path | None = None
         self._server: EmbeddedServer | None = None
@@ -124,6 +146,12 @@ class QuerySandbox:
         """The sandbox server's process id (tests kill it)."""
         server = self._server
         return server.address.pid if server is not None and server.address is not None else None
+
+    @property
+    def unix_socket(self) -> str | None:
+        """The sandbox server's unix socket (tests read its command counts)."""
+        server = self._server
+        return server.address.unix_socket if server is not None and server.address is not None else None
 
     def setup(self) -> None:
         self._dir = Path(tempfile.mkdtemp(prefix="kgadapt-sandbox-"))
@@ -147,12 +175,24 @@ class QuerySandbox:
             shutil.rmtree(self._dir, ignore_errors=True)
             self._dir = None
 
-    def execute(self, cypher: str, params: Mapping[str, Any] | None = None, *, limit_s: float) -> list[Row]:
-        """Rows of a read-only query on a fresh enough copy; QueryTimeLimit after ``limit_s``."""
+    def execute(self, cypher: str, params: Mapping[str, Any] | None = None, *, limit_s: float,
+                cacheable: bool = False) -> list[Row]:
+        """Rows of a read-only query on a fresh enough copy; QueryTimeLimit after ``limit_s``.
+
+        ``cacheable``: the same text with the same parameters always gives the same rows on the same graph
+        (no clock, no random number): an answer kept from the current copy is given again (the rows are
+        shared: callers do not change them).
+        """
+        key = (cypher, repr(sorted((params or {}).items()))) if cacheable and self.settings.answer_cache else None
         for attempt in (1, 2):
-            store, generation = self._store_for(limit_s + self.settings.grace_s)
+            store, generation, copy, kept = self._store_for(limit_s + self.settings.grace_s, key)
+            if kept is not None:
+                return kept
             try:
-                return store.execute(cypher, params, read_only=True, timeout_ms=max(1, int(limit_s * 1000)))
+                rows = store.execute(cypher, params, read_only=True, timeout_ms=max(1, int(limit_s * 1000)))
+                if key is not None:
+                    self._keep(key, copy, rows)
+                return rows
             except QueryTimeLimit as exc:
                 if generation == self._generation:
                     self._restart(generation, f"a query ran {self.settings.grace_s:g} s past its {limit_s:g} s limit")
@@ -173,7 +213,10 @@ class QuerySandbox:
 
     # -- internals ------------------------------------------------------------
 
-    def _store_for(self, limit_s: float) -> tuple[FalkorDBStore, int]:
+    def _store_for(self, limit_s: float, key: tuple[str, str] | None = None
+                   ) -> tuple[FalkorDBStore, int, int, list[Row] | None]:
+        """The store of a fresh copy, its server's generation, the copy's number, and the answer kept for
+        ``key`` on that copy (None: run the question)."""
         with self._lock:
             if self._server is None:
                 self._start()
@@ -185,11 +228,35 @@ class QuerySandbox:
                 self._checked_at = now
                 if self._graph_written():
                     self._copy()
-            store = self._stores.get(limit_s)
-            if store is None:
-                store = self._connect(limit_s)
-                self._stores[limit_s] = store
-            return store, self._generation
+            if key is not None and (kept := self._answers.get(key)) is not None:
+                self._answers.move_to_end(key)
+                self.cached_answers += 1
+            else:
+                kept = None
+            return self._connect_for(limit_s), self._generation, self.copies, kept
+
+    def _forget_answers(self) -> None:
+        self._answers.clear()
+        self._kept_rows = 0
+
+    def _connect_for(self, limit_s: float) -> FalkorDBStore:
+        store = self._stores.get(limit_s)
+        if store is None:
+            store = self._connect(limit_s)
+            self._stores[limit_s] = store
+        return store
+
+    def _keep(self, key: tuple[str, str], copy: int, rows: list[Row]) -> None:
+        """Keep ``rows`` as the answer to ``key`` on copy number ``copy``, if that is still the copy."""
+        if len(rows) > self.settings.answer_cache_rows:
+            return
+        with self._lock:
+            if copy != self.copies:  # copied again while it ran: the answer may be older than the copy
+                return
+            self._kept_rows += len(rows) - len(self._answers.pop(key, ()))
+            self._answers[key] = rows
+            while len(self._answers) > self.settings.answer_cache or self._kept_rows > self.settings.answer_cache_rows:
+                self._kept_rows -= len(self._answers.popitem(last=False)[1])
 
     def _start(self) -> None:
         assert self._dir is not None, "setup() first"
@@ -202,7 +269,7 @@ class QuerySandbox:
             _lower_priority(address.pid)
         self._server = server
         self._stale = True
-        self._copy()
+        self._copy(replace_gone=False)
 
     def _connect(self, limit_s: float) -> FalkorDBStore:
         assert self._server is not None and self._server.address is not None
@@ -214,9 +281,13 @@ class QuerySandbox:
         store.setup()
         return store
 
-    def _copy(self) -> None:
+    def _copy(self, *, replace_gone: bool = True) -> None:
+        """Copy the graph in (under the lock). ``replace_gone``: a sandbox server found gone is started afresh
+        (it copies the graph itself); without that, a server killed between two questions while the graph was
+        written failed every later question at this copy."""
         graph = self.source.settings.graph
         self._stale = True  # until the copy is whole: a failed one is taken again at the next question
+        self._forget_answers()  # kept from a copy about to be replaced
         try:
             self._watch()  # before the DUMP: a write landing after it flags the watch (and may be copied too)
             blob = self.source.redis.dump(graph)
@@ -239,10 +310,16 @@ class QuerySandbox:
             if blob is not None:
                 pipe.restore(graph, 0, blob)
             pipe.execute()
-        except (redis.RedisError, OSError) as exc:
+        except (redis.ConnectionError, OSError) as exc:
+            if not replace_gone:
+                raise StoreUnavailable(f"cannot load the graph into the query sandbox: {exc}") from exc
+            self._replace(f"the server was gone ({exc})")
+            return
+        except redis.RedisError as exc:
             raise StoreUnavailable(f"cannot load the graph into the query sandbox: {exc}") from exc
         self._copied_at = self._checked_at = time.monotonic()
         self._stale = False
+        self._forget_answers()
         self.copies += 1
 
     def _watch(self) -> None:
@@ -291,11 +368,15 @@ class QuerySandbox:
         with self._lock:
             if generation != self._generation:
                 return  # someone else restarted it already
-            log.warning("query sandbox: %s; killing server pid %s and starting a new one", why, self.pid)
-            self.restarts += 1
-            self._stop()
-            self._generation += 1
-            self._start()
+            self._replace(why)
+
+    def _replace(self, why: str) -> None:
+        """Kill the server and start a new one, which copies the graph (under the lock)."""
+        log.warning("query sandbox: %s; killing server pid %s and starting a new one", why, self.pid)
+        self.restarts += 1
+        self._stop()
+        self._generation += 1
+        self._start()
 
     def _stop(self) -> None:
         for store in self._stores.values():

@@ -253,8 +253,10 @@ class KnowledgeService:
         self.sandboxes: list[Any] = []
         self.public_processes: list[Any] = []
         self._sandbox_pool: queue.Queue[Any] = queue.Queue()
+        # Kept apart from the robot's graph wherever its sandboxes copy that graph (see RosterSettings.apart).
         self.roster = (FleetRoster(store, RosterSettings(robot=settings.robot, cap=settings.roster_cap,
-                                                         interval_s=settings.roster_interval_s))
+                                                         interval_s=settings.roster_interval_s,
+                                                         apart=settings.sandbox))
                        if settings.roster else None)
         # Hosts of the models seen so far, and when each refused one was last looked up (status worker only);
         # the refused names, for stats (under _stats_lock).
@@ -295,6 +297,9 @@ class KnowledgeService:
                     self._sandbox_pool.put(worker)
             if self.settings.mark_offline_at_start:
                 self._mark_all_offline()
+            if self.roster is not None:  # where the roster is, before a roll call can reach the queryables
+                stack.callback(self.roster.shutdown)
+                self.roster.open()
             stack.enter_context(self._own)
             stack.enter_context(self._public)
             self._event_thread = threading.Thread(target=self._event_loop, name="knowledge-status", daemon=True)
@@ -321,7 +326,6 @@ class KnowledgeService:
             self._public.serve(session, keys.knowledge_query(robot, "*"), self._handler("query"), what="query")
             self._own.serve(session, keys.knowledge_own_query(robot, "*"), self._handler("own"), what="own")
             if self.roster is not None:  # after the queryables: whoever hears the roll call can ask back
-                stack.callback(self.roster.shutdown)
                 self.roster.setup(session)
             self._own.serve(session, keys.knowledge_own_stats(robot), self._handler("stats"), what="stats")
             self._stack = stack.pop_all()
@@ -375,9 +379,11 @@ class KnowledgeService:
         query = queries.QUERIES[name]
         if name == ROSTER_QUERY and self.roster is not None:
             self._heard_roll_call(queries.check_params(name, params))
-            # Bounded by the roster's cap, so answered from the store itself: a roll call writes the
-            # roster, and a sandbox would copy the whole graph again for every robot's roll call.
-            public = False
+            # Bounded by the roster's cap, so answered from where the roster is, not from a sandbox: the
+            # roster is not in the robot's graph that sandboxes copy.
+            start = time.perf_counter()
+            rows = queries.run_named(self.roster.store, name, params, timeout_ms=self.settings.query_timeout_ms)
+            return rows_reply(rows, (time.perf_counter() - start) * 1000, f"query {name!r}")
         start = time.perf_counter()
         if public or query.time_limit_ms is not None:
             limit_ms = min(self.settings.public_time_limit_ms, query.time_limit_ms or self.settings.public_time_limit_ms)
@@ -387,9 +393,10 @@ class KnowledgeService:
                 # Rows are parsed here, under the GIL the robot's own requests need too:
                 # fig4_literal's 21,344 rows cost them tens of ms. Same bound as free Cypher.
                 text = f"{text.rstrip()}\nLIMIT {CypherLimits().max_rows}"
+            # A named query's text has no clock or random number: on an unchanged copy, the same answer.
             if self.public_processes:
-                return self._run_in_public_process(text, values, limit_ms, f"query {name!r}")
-            rows = self._run_untrusted(text, values, limit_ms, f"query {name!r}")
+                return self._run_in_public_process(text, values, limit_ms, f"query {name!r}", cacheable=True)
+            rows = self._run_untrusted(text, values, limit_ms, f"query {name!r}", cacheable=True)
             self.own_first.wait_turn()  # encoding a large answer holds the interpreter too
         else:
             with self._store_lock:
@@ -422,26 +429,28 @@ class KnowledgeService:
         self.own_first.wait_turn()
         return rows_reply(rows, (time.perf_counter() - start) * 1000, "cypher")
 
-    def _run_in_public_process(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str) -> bytes:
+    def _run_in_public_process(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str, *,
+                               cacheable: bool = False) -> bytes:
         """The encoded reply, from a lower-priority child process (read, encoded there)."""
         self.own_first.wait_turn()
         worker = self._sandbox_pool.get()  # as many as public workers: never waits
         try:
-            return bytes(worker.execute(text, params, limit_ms=limit_ms, what=what))
+            return bytes(worker.execute(text, params, limit_ms=limit_ms, what=what, cacheable=cacheable))
         except QueryTimeLimit:
             self._count("time_limits_hit")
             raise
         finally:
             self._sandbox_pool.put(worker)
 
-    def _run_untrusted(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str) -> list[dict[str, Any]]:
+    def _run_untrusted(self, text: str, params: Mapping[str, Any], limit_ms: int, what: str, *,
+                       cacheable: bool = False) -> list[dict[str, Any]]:
         """In the sandbox when there is one (killed past the limit), else on the store with its timeout."""
         self.own_first.wait_turn()
         try:
             if self.sandboxes:
                 sandbox = self._sandbox_pool.get()  # as many as public workers: never waits
                 try:
-                    return sandbox.execute(text, params, limit_s=limit_ms / 1000)
+                    return sandbox.execute(text, params, limit_s=limit_ms / 1000, cacheable=cacheable)
                 finally:
                     self._sandbox_pool.put(sandbox)
             if not self.store.capabilities.timeouts:
@@ -479,7 +488,9 @@ class KnowledgeService:
             with self._store_lock:
                 if host is not None:
                     check_owner(self.store, verb, params, host=host, manager_host=self.settings.manager_host)
-                runtime.run_write(self.store, verb, params)  # checks names, types and bounds, naming them
+                # checks names, types and bounds, naming them; the roster's verb where the roster is
+                store = self.roster.store if verb == "fleet_forget" and self.roster is not None else self.store
+                runtime.run_write(store, verb, params)
         except UnknownHost as exc:
             self._refuse_host(exc.host, f"write {verb!r}")
             raise

@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -103,3 +104,52 @@ def test_a_roll_call_with_a_bad_announcement_is_refused_naming_it(resp_store):
     with pytest.raises(Exception, match="robot"):
         roster.heard({"announce": "r1/**"})
     assert roster_of(resp_store) == {}
+
+
+def _dumps(store) -> int:
+    """DUMP calls the store's server has served: each is a query sandbox copying a robot's graph."""
+    return int(store.redis.info("commandstats").get("cmdstat_dump", {}).get("calls", 0))
+
+
+def test_roll_calls_between_fleet_questions_copy_no_robots_graph_into_its_sandboxes(fleet):
+    """Every roll call writes every robot's roster. Kept beside the robot's graph, not in it, none of that makes
+    a sandbox copy the robot's graph again: idle robots answer the fleet's questions from the copies they have."""
+    from kgadapt.knowledge.fleet import FleetClient, FleetSettings
+
+    robots = sorted(fleet.robots)
+    client = FleetClient(fleet.client("b"), FleetSettings(timeout=10.0, expect=tuple(robots), discover_hosts=False))
+    for _ in range(4):  # each robot's public workers (two) have answered, so every sandbox holds a copy
+        assert client.ask("current_placement").complete
+    caller = fleet.services[robots[0]]
+    store = fleet.stores[robots[0]]
+    before = _dumps(store)
+    for _ in range(5):
+        when = time.time()
+        assert set(caller.roster.roll_call()) == set(robots[1:])  # the others answered (and were remembered)
+        answer = client.ask("current_placement")
+        assert answer.complete and all(a.rows for a in answer.robots)
+        for robot in robots[1:]:  # each heard the announcement and wrote its roster meanwhile
+            rows = roster_of(fleet.services[robot].roster.store)
+            assert rows[robots[0]]["last_seen"] >= when
+    assert _dumps(store) - before == 0
+    for robot in robots:  # and the robots' own graphs hold no roster
+        assert fleet.stores[robot].execute("MATCH (r:FleetRobot) RETURN count(r) AS n")[0]["n"] == 0
+
+
+def test_a_roster_kept_in_the_robots_graph_is_moved_beside_it(resp_store):
+    """A roster an older version kept in the robot's graph is moved into the roster's own graph at open()."""
+    resp_store.execute("CREATE (:FleetRobot {name: 'old', first_seen: 1.0, last_seen: 2.0, heard: 'answer', "
+                       "routers: ['ab12']})")
+    roster = FleetRoster(resp_store, RosterSettings(robot="me", apart=True))
+    roster.open()
+    try:
+        assert roster.store is not resp_store and roster.store.settings.graph.endswith(".fleet_roster")
+        assert roster.remember("me", how=Heard.SELF, when=3.0)
+        rows = roster_of(roster.store)
+        assert set(rows) == {"old", "me"}
+        assert (rows["old"]["first_seen"], rows["old"]["last_seen"], rows["old"]["routers"]) == (1.0, 2.0, ["ab12"])
+        assert roster_of(resp_store) == {}
+    finally:
+        roster.store.clear()
+        roster.shutdown()
+    assert roster.store is resp_store

@@ -148,3 +148,91 @@ def test_the_sandbox_server_keeps_house_once_a_second_with_one_query_thread(sand
         assert client.execute_command("GRAPH.CONFIG", "GET", "THREAD_COUNT") == [b"THREAD_COUNT", 1]
     finally:
         client.close()
+
+
+def _queries_run(box: QuerySandbox) -> int:
+    """Read-only queries the sandbox's own server has run."""
+    client = redis.Redis(unix_socket_path=box.unix_socket)
+    try:
+        return int(client.info("commandstats").get("cmdstat_graph.RO_QUERY", {}).get("calls", 0))
+    finally:
+        client.close()
+
+
+def test_a_cacheable_question_asked_again_of_an_unchanged_graph_is_answered_without_running_it(resp_store, primary,
+                                                                                             sandbox):
+    """An idle robot asked the same named query again answers from the rows it has; a write to its graph, made
+    any way, shows in the very next answer; other questions always run."""
+    by_value = "MATCH (n:Item) WHERE n.value >= $at_least RETURN count(n) AS items"
+    assert sandbox.execute(COUNT, limit_s=30.0, cacheable=True) == [{"items": 5, "total": 5}]
+    run = _queries_run(sandbox)
+    for _ in range(10):
+        assert sandbox.execute(COUNT, limit_s=30.0, cacheable=True) == [{"items": 5, "total": 5}]
+    assert _queries_run(sandbox) == run and sandbox.cached_answers == 10
+    # The parameters are part of the question: 1 and 1.0 and True are three questions.
+    for value in (1, 1.0, True, 2):
+        sandbox.execute(by_value, {"at_least": value}, limit_s=30.0, cacheable=True)
+    assert _queries_run(sandbox) == run + 4
+    # A question not marked cacheable (free Cypher) runs every time.
+    sandbox.execute(COUNT, limit_s=30.0)
+    sandbox.execute(COUNT, limit_s=30.0)
+    assert _queries_run(sandbox) == run + 6
+    # A write through the store API, then straight to the server: each shows in the next answer.
+    resp_store.execute("MATCH (n:Item {id: 1}) SET n.value = 10")
+    assert sandbox.execute(COUNT, limit_s=30.0, cacheable=True) == [{"items": 5, "total": 14}]
+    primary.execute_command("GRAPH.QUERY", resp_store.settings.graph, "CREATE (:Item {id: 6, value: 1})")
+    assert sandbox.execute(COUNT, limit_s=30.0, cacheable=True) == [{"items": 6, "total": 15}]
+    assert sandbox.execute(by_value, {"at_least": 2}, limit_s=30.0, cacheable=True) == [{"items": 1}]
+
+
+def test_a_server_killed_while_the_graph_was_written_is_started_again_and_shows_the_write(resp_store, sandbox):
+    """The next question finds the copy stale and the server gone: a new server, not a failure at every
+    question from then on (the copy is taken before any query could notice the server was gone)."""
+    import os
+    import signal
+
+    assert sandbox.execute(COUNT, limit_s=30.0, cacheable=True) == [{"items": 5, "total": 5}]
+    os.kill(sandbox.pid, signal.SIGKILL)
+    resp_store.execute("MATCH (n:Item {id: 2}) SET n.value = 3")
+    assert sandbox.execute(COUNT, limit_s=30.0, cacheable=True) == [{"items": 5, "total": 7}]
+    assert sandbox.execute(COUNT, limit_s=30.0) == [{"items": 5, "total": 7}]
+    assert sandbox.restarts == 1
+
+
+def test_every_named_query_gives_the_same_rows_on_the_same_graph():
+    """The knowledge service marks its named queries cacheable: none may read a clock or draw a random number."""
+    import re
+
+    from kgadapt.knowledge import queries
+
+    varying = re.compile(r"\b(rand|randomUUID|timestamp|date|datetime|localdatetime|localtime|time)\s*\(", re.I)
+    for name, query in queries.QUERIES.items():
+        text = query.text_for(queries.check_params(name, {
+            p: {"str": "x", "int": 1, "float": 1.0, "bool": True}.get(spec.type, "x")
+            for p, spec in query.params.items() if spec.required}))
+        assert not varying.search(text), f"named query {name!r} reads a clock or a random number"
+
+
+def test_the_answers_kept_are_bounded_in_count_and_in_rows(resp_store):
+    from kgadapt.knowledge.sandbox import SandboxSettings
+
+    resp_store.execute("UNWIND range(1, 5) AS i CREATE (:Item {id: i, value: 1})")
+    box = QuerySandbox(resp_store, SandboxSettings(answer_cache=2, answer_cache_rows=6))
+    box.setup()
+    try:
+        rows = "MATCH (n:Item) WHERE n.value >= $v RETURN n.id AS id ORDER BY id"
+        box.execute(rows, {"v": 1}, limit_s=30.0, cacheable=True)  # 5 rows kept
+        run = _queries_run(box)
+        box.execute(rows, {"v": 1}, limit_s=30.0, cacheable=True)
+        assert _queries_run(box) == run
+        box.execute(rows, {"v": 0}, limit_s=30.0, cacheable=True)  # 5 more: 10 > 6, the first goes
+        box.execute(rows, {"v": 1}, limit_s=30.0, cacheable=True)
+        assert _queries_run(box) == run + 2
+        for v in (2, 3, 4):  # no rows each: three answers, at most two kept
+            box.execute(rows, {"v": v}, limit_s=30.0, cacheable=True)
+        box.execute(rows, {"v": 2}, limit_s=30.0, cacheable=True)
+        assert _queries_run(box) == run + 6
+        box.execute(rows, {"v": 4}, limit_s=30.0, cacheable=True)
+        assert _queries_run(box) == run + 6
+    finally:
+        box.shutdown()
