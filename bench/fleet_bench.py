@@ -126,7 +126,7 @@ def serve(argv: Sequence[str]) -> int:
     from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
     from kgadapt.shared.agent import StopSignals
     from kgadapt.shared.readiness import announce_ready
-    from kgadapt.shared.session import ZenohSettings, open_session
+    from kgadapt.shared.session import SERVICE_RUNTIME, ZenohSettings, open_session
 
     p = argparse.ArgumentParser(prog="fleet_bench serve")
     p.add_argument("--listen", required=True)
@@ -139,7 +139,8 @@ def serve(argv: Sequence[str]) -> int:
     batch = {} if args.status_batch_s is None else {"status_batch_s": args.status_batch_s}
     robots = [r for r in args.robots.split(",") if r]
     with StopSignals() as stop:
-        session = open_session(ZenohSettings(mode="router", listen=(args.listen,), connect=tuple(args.connect)))
+        session = open_session(ZenohSettings(mode="router", listen=(args.listen,), connect=tuple(args.connect),
+                                             runtime=SERVICE_RUNTIME))  # as `kgadapt knowledge serve` opens it
         stores, services = [], []
         try:
             for robot in robots:

@@ -16,6 +16,7 @@ then undeclares everything and stops the store if it started it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from typing import Any
@@ -84,11 +85,12 @@ def run_serve(args: argparse.Namespace) -> int:
     from kgadapt.shared.agent import StopSignals
     from kgadapt.shared.notifier import ServiceNotifier
     from kgadapt.shared.readiness import announce_ready
-    from kgadapt.shared.session import DEFAULT_ENDPOINT, open_session, settings_from_args
+    from kgadapt.shared.session import DEFAULT_ENDPOINT, SERVICE_RUNTIME, open_session, settings_from_args
 
     log = logging.getLogger("kgadapt.knowledge.service")
     settings = ServiceSettings(robot=args.robot, writes=not args.read_only, workers=args.workers)
     zenoh = settings_from_args(args).with_defaults(mode="router", listen=[DEFAULT_ENDPOINT])
+    zenoh = dataclasses.replace(zenoh, runtime=SERVICE_RUNTIME)  # the status fan-in's receive path (session.py)
     with StopSignals() as stop:
         # The robot's own path is bounded too: a query unanswered for 10 s is abandoned.
         store = open_store(args.store, socket_timeout=10.0)

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
+from pathlib import Path
 
 import zenoh
 
@@ -12,6 +14,8 @@ from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.schema import ensure_indexes
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
 from kgadapt.shared import keys, messages
+from kgadapt.shared.session import ZenohSettings, open_session
+from tests.conftest import free_port
 from tests.zenoh.conftest import platform_row, wait_for, wait_until_serving
 
 BLOCK = zenoh.CongestionControl.BLOCK
@@ -256,3 +260,36 @@ def test_a_service_shut_down_while_statuses_pour_in_leaves_no_thread_failed(zeno
         pub.undeclare()
         threading.excepthook = hook
     assert failed == []
+
+
+def _thread_names(pid: int) -> list[str]:
+    names = []
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            names.append(Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip())
+        except OSError:  # a thread that ended meanwhile
+            pass
+    return names
+
+
+def test_the_knowledge_services_router_reads_each_status_on_zenohs_receive_threads_alone(tmp_path, children, robot):
+    # Each status is its own message; a link accepted on Zenoh's accept runtime stayed registered there, so
+    # each woke the acc thread and then an rx thread. `kgadapt knowledge serve` hands the accept runtime over
+    # to the receive runtime (session.SERVICE_RUNTIME): no acc thread, and the 8 rx threads kept. This test
+    # process has opened sessions itself, so its children inherit our default $ZENOH_RUNTIME: the service
+    # must still take its own.
+    open_session(ZenohSettings(mode="peer")).close()
+    assert os.environ.get("ZENOH_RUNTIME")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    service = children("service", "knowledge", "serve", "--store", f"embedded:{tmp_path / 'store'}",
+                       "--robot", robot, "--listen", endpoint)
+    service.wait_ready()
+    publisher = open_session(ZenohSettings(mode="client", connect=(endpoint,)))
+    try:  # a host's link, accepted by the service's router, carrying a status
+        publisher.put(keys.host_status(robot, "h1"), messages.encode("host_status", {
+            "host": "h1", "time": time.time(), "memory_total_mb": 1000.0, "memory_free_mb": 500.0, "cpu_load": 1.0}))
+        names = _thread_names(service.pid)
+    finally:
+        publisher.close()
+    assert [n for n in names if n.startswith("acc-")] == [], sorted(names)
+    assert sum(n.startswith("rx-") for n in names) >= 8, sorted(n for n in names if n != "python")
