@@ -79,8 +79,7 @@ def test_a_hung_server_found_by_another_process_is_replaced_not_joined(tmp_path)
         finally:
             second.shutdown()
     finally:
-        if _alive(hung):
-            os.kill(hung, signal.SIGKILL)
+        _kill_left([hung])
         try:
             first.shutdown()
         except StoreUnavailable:
@@ -101,6 +100,22 @@ def _store_with_hook(data, on_start, *, setup_timeout=1.0):
     return FalkorDBStore(settings, server=EmbeddedServer(data, on_start=on_start))
 
 
+def _stopping_the_first(stopped: list[int]):
+    """A server-start hook that stops the first server started (alive, its socket open, answering nothing:
+    as the hung server was) and notes its pid in ``stopped``."""
+    def stop_the_first(pid: int) -> None:
+        if not stopped:
+            os.kill(pid, signal.SIGSTOP)
+            stopped.append(pid)
+    return stop_the_first
+
+
+def _kill_left(pids) -> None:
+    for pid in pids:
+        if _alive(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
 def _seeded(data) -> None:
     with open_store(f"embedded:{data}") as store:
         store.execute("CREATE (:Mark {name: $name})", {"name": "before the start"})
@@ -112,11 +127,7 @@ def test_a_fresh_server_that_never_answers_its_first_statement_is_killed_and_sta
     _seeded(data)
     stopped: list[int] = []
 
-    def stop_the_first(pid: int) -> None:
-        if not stopped:
-            os.kill(pid, signal.SIGSTOP)  # alive, its socket open, answering nothing: as the hung server was
-            stopped.append(pid)
-
+    stop_the_first = _stopping_the_first(stopped)
     store = _store_with_hook(data, stop_the_first)
     try:
         store.setup()
@@ -126,9 +137,7 @@ def test_a_fresh_server_that_never_answers_its_first_statement_is_killed_and_sta
         assert store.execute("MATCH (m:Mark) RETURN m.name AS name", read_only=True) == [{"name": "before the start"}]
     finally:
         store.shutdown()
-        for pid in stopped:
-            if _alive(pid):
-                os.kill(pid, signal.SIGKILL)
+        _kill_left(stopped)
 
 
 @pytest.mark.timeout(60)
@@ -153,9 +162,7 @@ def test_when_the_restarted_server_hangs_too_the_error_says_what_each_was_doing(
         assert not _alive(stopped[0]) and not _alive(stopped[1])  # neither left behind, hung
     finally:
         store.shutdown()
-        for pid in stopped:
-            if _alive(pid):
-                os.kill(pid, signal.SIGKILL)
+        _kill_left(stopped)
 
 
 @pytest.mark.timeout(60)
@@ -173,8 +180,7 @@ def test_a_model_load_whose_own_server_stops_answering_runs_again_on_a_restarted
         assert store.execute("MATCH (m:Mark) RETURN m.name AS name", read_only=True) == [{"name": "kept"}]
     finally:
         store.shutdown()
-        if _alive(hung):
-            os.kill(hung, signal.SIGKILL)
+        _kill_left([hung])
 
 
 def test_a_server_found_stopped_is_described_by_its_state_and_threads(tmp_path):
@@ -200,11 +206,7 @@ def test_a_query_sandbox_whose_fresh_server_never_answers_its_first_copy_starts_
 
     stopped: list[int] = []
 
-    def stop_the_first(pid: int) -> None:
-        if not stopped:
-            os.kill(pid, signal.SIGSTOP)
-            stopped.append(pid)
-
+    stop_the_first = _stopping_the_first(stopped)
     # the sandbox makes its own server: hand it one that stops its first start (the seam is the hook alone)
     monkeypatch.setattr(sandbox_module, "EmbeddedServer",
                         lambda *args, **kwargs: EmbeddedServer(*args, on_start=stop_the_first, **kwargs))
@@ -216,6 +218,4 @@ def test_a_query_sandbox_whose_fresh_server_never_answers_its_first_copy_starts_
         assert box.execute("MATCH (n:Item) RETURN count(n) AS n", limit_s=5.0) == [{"n": 3}]
     finally:
         box.shutdown()
-        for pid in stopped:
-            if _alive(pid):
-                os.kill(pid, signal.SIGKILL)
+        _kill_left(stopped)
