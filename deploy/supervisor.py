@@ -620,8 +620,9 @@ class Supervisor:
             inst.stop_requested = True  # no restart: a program that cannot get ready will not by retrying
             inst.state = ProcessState.STOPPING
             inst.detail = f"not ready within {inst.spec.ready_timeout:g} s"
-        log.warning("instance %s (pid %s) not ready within %.1f s; stopping it",
-                    inst.spec.instance, run.pid, inst.spec.ready_timeout)
+        tail = " | ".join(list(run.watch.tail)[-5:]) or "nothing"
+        log.warning("instance %s (pid %s) not ready within %.1f s; stopping it; its last output: %s",
+                    inst.spec.instance, run.pid, inst.spec.ready_timeout, tail)
         # SIGINT is skipped: a program that cannot get ready may well be deaf to it.
         escalate(lambda sig: self._signal_group(run, sig), run.done.wait, inst.spec.stop,
                  what=f"instance {inst.spec.instance} (pid {run.pid})", first=signal.SIGTERM)

@@ -46,6 +46,26 @@ POOL_DEPLOYMENTS_ENV = "KGADAPT_POOL_DEPLOYMENTS"
 
 Payload = dict[str, Any]
 
+# Lines a child tells its parent on stdout are written whole, one write() each, under this lock: print()
+# writes the text and its newline separately, so another thread's line could land between them (a
+# detector's reflex recorded a swap while it announced itself ready, and the parent never saw the
+# readiness line: it began in the middle of the other).
+_STDOUT_LINES = threading.Lock()
+
+
+def say_line(text: str, out: TextIO | None = None) -> None:
+    """Write ``text`` and its newline to stdout (or ``out``) in one write, whole, and flush (a pipe would
+    hold the line back)."""
+    stream = out or sys.stdout
+    with _STDOUT_LINES:
+        stream.write(text + "\n")
+        stream.flush()
+
+
+def announce_configured(config: str, deployment: str, *, out: TextIO | None = None) -> None:
+    """Tell the parent (the deployer's supervisor) that this detector took ``config`` of ``deployment``."""
+    say_line(f"{CONFIGURED_TOKEN} {config} {deployment}", out)
+
 
 def ready_line(**payload: Any) -> str:
     """The readiness line for ``payload`` (this process's pid added)."""
@@ -65,9 +85,7 @@ def announce_ready(*, status: str = "", notifier: ServiceNotifier | None = None,
     """
     fields: Payload = {"pid": os.getpid(), **payload}
     (notifier or ServiceNotifier()).ready(status=status)
-    stream = out or sys.stdout
-    stream.write(_line(fields) + "\n")
-    stream.flush()  # a pipe would hold the line back
+    say_line(_line(fields), out)
     return fields
 
 

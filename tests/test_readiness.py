@@ -5,11 +5,13 @@ A real AF_UNIX datagram socket stands where systemd's ``$NOTIFY_SOCKET`` would b
 
 from __future__ import annotations
 
+import io
 import os
 import signal
 import socket
 import sys
 import textwrap
+import threading
 from pathlib import Path
 
 import psutil
@@ -17,7 +19,7 @@ import pytest
 
 from kgadapt.shared.children import ChildProcess, StopPolicy
 from kgadapt.shared.errors import NotReady, ReadinessTimeout
-from kgadapt.shared.readiness import READY_TOKEN, parse_ready, ready_line
+from kgadapt.shared.readiness import READY_TOKEN, announce_ready, parse_ready, ready_line
 from tests.conftest import REPO
 
 ENV = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
@@ -143,3 +145,45 @@ def test_no_module_but_the_readiness_module_spells_the_token():
             if path != own and READY_TOKEN in path.read_text(errors="replace"):
                 found.append(str(path.relative_to(REPO)))
     assert found == [], f"spell the token through kgadapt.shared.readiness instead: {found}"
+
+
+def test_a_detectors_record_and_its_readiness_line_written_from_two_threads_never_share_a_line():
+    # A detector's reflex may record a swap (KGADAPT_CONFIGURED) on its frame thread while the main thread
+    # announces it is ready; with the text and its newline written apart, the readiness line once began in
+    # the middle of the record and the deployer never saw it (the start timed out).
+    from kgadapt.shared.readiness import CONFIGURED_TOKEN, announce_configured
+
+    r, w = os.pipe()
+    # As a detector's stdout to its supervisor with PYTHONUNBUFFERED=1: every write goes to the pipe at once.
+    out = io.TextIOWrapper(io.FileIO(w, "w"), line_buffering=True, write_through=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(os.fdopen(r).read().splitlines()))
+    reader.start()
+    rounds = 2000
+    start = threading.Barrier(2)
+
+    def records() -> None:
+        start.wait()
+        for i in range(rounds):
+            announce_configured(f"config_{i}", "detector_day", out=out)
+
+    def readiness() -> None:
+        start.wait()
+        for i in range(rounds):
+            announce_ready(out=out, instance=f"i{i}")
+
+    threads = [threading.Thread(target=records), threading.Thread(target=readiness)]
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # threads take turns as often as they can: a loaded machine's worst case
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(interval)
+    out.close()
+    reader.join()
+    ready = [line for line in lines if parse_ready(line) is not None]
+    recorded = [line for line in lines if line.startswith(CONFIGURED_TOKEN + " ") and line.endswith(" detector_day")]
+    assert len(ready) == rounds and len(recorded) == rounds, [x for x in lines if x not in ready and x not in recorded][:3]

@@ -86,11 +86,11 @@ from kgadapt.shared.errors import (
     TransportError,
 )
 from kgadapt.shared.readiness import (
-    CONFIGURED_TOKEN,
     POOL_DEPLOYMENTS_ENV,
     READY_TOKEN,
     RESOLVED_CONFIG_ENV,
     START_IDLE_ENV,
+    announce_configured,
     announce_ready,
 )
 
@@ -612,7 +612,7 @@ class Detector:
             self._active = active
             if swap.deployment:
                 self.deployment = swap.deployment
-                print(f"{CONFIGURED_TOKEN} {swap.config} {swap.deployment}", flush=True)  # the deployer's record
+                announce_configured(swap.config, swap.deployment)  # the deployer's record
         s = self.settings
         body = messages.Reflex(
             instance=s.instance, host=s.host, config=swap.config, previous=swap.previous,
@@ -782,7 +782,7 @@ class Reconfigurer:
         generation = d.swap(config, core)
         build_ms = (time.perf_counter() - built) * 1e3
         d.deployment = str(target)
-        print(f"{CONFIGURED_TOKEN} {name} {target}", flush=True)  # the deployer's record follows
+        announce_configured(name, str(target))  # the deployer's record follows
         log.info("detector %s: %s -> %s in place", s.instance, previous, name)
         swapped = time.perf_counter()
         first = d.first_frame(generation, self.first_frame_s)
