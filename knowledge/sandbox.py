@@ -162,11 +162,7 @@ class QuerySandbox:
                 # The first copy's answer is bounded; a fresh FalkorDB that never gives it (seen in CI: one
                 # deadlocked at start) is killed, and another started once more.
                 server = self._server
-                log.warning("query sandbox: %s (server %s); starting another", exc,
-                            server.describe() if server is not None else "not started")
-                self._stop()
-                self._generation += 1
-                self._start()
+                self._replace(f"{exc} (server {server.describe() if server is not None else 'not started'})")
 
     def shutdown(self) -> None:
         with self._lock:
