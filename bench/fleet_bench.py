@@ -29,7 +29,11 @@ over the robots) publish ``host_status`` at ``--rate`` Hz from a publisher
 process; the CPU of the router processes (which hold the knowledge services
 that receive and apply them) beside an idle baseline, and the store's CPU;
 then the same statuses again, also received by one process that only
-decodes them (the floor under the services' figure: the rest is the writes).
+decodes them by a callback (as the services did before they took statuses from
+Zenoh's ring; kept so runs compare); then once more, each router's share to a
+router of its own that only takes them from its rings, subscribed as the
+services are (``zenoh_floor_cpu_pct``: what Zenoh alone costs to receive
+them, the floor under the services' figure).
 
 Records go to ``bench/results/fleet.json``.
 """
@@ -220,6 +224,37 @@ sys.stdin.read()
 sub.undeclare()
 session.close()
 print("decoded", count[0], flush=True)
+"""
+
+
+# What Zenoh alone costs a router process to receive the statuses its services subscribe to: a router
+# opened as the services' is (SERVICE_RUNTIME), one subscriber per robot on the same key into a ring of
+# the same size, every ring taken every status_batch_s and nothing decoded, written or checked. The
+# floor under the services' figure for the same statuses on the same links: what no work in Python
+# removes (issue 32).
+_FLOOR = r"""
+import sys, threading, zenoh
+from kgadapt.shared import keys
+from kgadapt.shared.session import SERVICE_RUNTIME, ZenohSettings, open_session
+listen, robots, period, ring = sys.argv[1], sys.argv[2].split(","), float(sys.argv[3]), int(sys.argv[4])
+session = open_session(ZenohSettings(mode="router", listen=(listen,), runtime=SERVICE_RUNTIME))
+subs = [session.declare_subscriber(keys.host_status(r, "*"), zenoh.handlers.RingChannel(ring)) for r in robots]
+done = threading.Event()
+count = [0]
+def take():
+    while not done.wait(period):
+        for sub in subs:
+            while sub.try_recv() is not None:
+                count[0] += 1
+threading.Thread(target=take, daemon=True).start()
+from kgadapt.shared.readiness import announce_ready
+announce_ready(role="floor", robots=len(subs))
+sys.stdin.read()
+done.set()
+for sub in subs:
+    sub.undeclare()
+session.close()
+print("taken", count[0], flush=True)
 """
 
 
@@ -505,13 +540,14 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
     services = 100.0 * sum(after[p] - before[p] for p in pids) / elapsed
     store = 100.0 * sum(after[p] - before[p] for p in store_pids) / elapsed
     sink = _sink_cpu(fleet, args, per_robot)
+    floor = _floor_cpu(fleet, args, per_robot, batch_s)
     return {"op": "status_fanin", "hosts": hosts, "rate_hz": args.rate, "statuses_per_s": hosts * args.rate,
             "robots": len(fleet.robots), "routers": fleet.routers, "window_s": round(elapsed, 2),
             "status_batch_s": batch_s, "phases": args.phases,
             "services_cpu_pct": round(services, 1), "services_idle_cpu_pct": round(idle, 1),
             "services_cpu_pct_above_idle": round(services - idle, 1), "store_cpu_pct": round(store, 1),
             "store_idle_cpu_pct": round(idle_cpu["store"], 1),
-            "publisher": sent_line.strip(), **sink}
+            "publisher": sent_line.strip(), **sink, **floor}
 
 
 def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -> dict[str, Any]:
@@ -538,6 +574,48 @@ def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -
     finally:
         sink.stop()
     return {"decode_only_receiver_cpu_pct": round(cpu, 1), "decode_only_receiver": decoded}
+
+
+def _floor_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int, batch_s: float) -> dict[str, Any]:
+    """The same statuses again, each router's share to a router that only takes them from its rings (see
+    _FLOOR): one such router per robot-hosting router, with the same robots' subscriptions and its own
+    publisher, as in the fan-in above."""
+    from kgadapt.knowledge.service import ServiceSettings
+
+    ring = ServiceSettings().max_pending_statuses
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    floors: list[ChildProcess] = []
+    pubs: list[ChildProcess] = []
+    try:
+        for k in range(len(fleet.endpoints)):
+            robots = fleet.share(k)
+            if not robots:
+                continue
+            endpoint = f"tcp/127.0.0.1:{_free_port()}"
+            floor = ChildProcess([sys.executable, "-c", _FLOOR, endpoint, ",".join(robots), str(batch_s), str(ring)],
+                                 name=f"floor {k}", cwd=REPO, env=env, stdin=subprocess.PIPE)
+            floors.append(floor)
+            floor.wait_ready(60.0)
+            pubs.append(ChildProcess([sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot),
+                                      str(args.rate), str(args.fanin_s + 3), args.phases],
+                                     name=f"floor publisher {k}", cwd=REPO, env=env))
+        for pub in pubs:
+            pub.wait_ready(60.0)
+        time.sleep(1.0)  # warm-up window, as above
+        cpu = measure_cpu([f.pid for f in floors], args.fanin_s)
+        for pub in pubs:
+            pub.wait(60)
+        taken = 0
+        for floor in floors:
+            assert floor.process.stdin is not None
+            floor.process.stdin.close()  # the floor's end: it prints what it took and exits
+            floor.wait(15)
+            taken += int(floor.output[-1].split()[-1])  # "taken N"
+    finally:
+        for child in pubs + floors:
+            if child.alive():
+                child.stop()
+    return {"zenoh_floor_cpu_pct": round(cpu, 1), "zenoh_floor_routers": len(floors), "zenoh_floor_taken": taken}
 
 
 def _store_pids(fleet: SimulatedFleet) -> list[int]:
@@ -603,7 +681,8 @@ def run(args: argparse.Namespace) -> int:
                   f"{r['routers']} routers: {r['services_cpu_pct']} % of one core "
                   f"({r['services_idle_cpu_pct']} % idle), store {r['store_cpu_pct']} % "
                   f"({r.get('store_idle_cpu_pct', '?')} % idle); a receiver that only "
-                  f"decodes them: {r['decode_only_receiver_cpu_pct']} %")
+                  f"decodes them: {r['decode_only_receiver_cpu_pct']} %; Zenoh alone (routers that only take them "
+                  f"from their rings): {r.get('zenoh_floor_cpu_pct', '?')} %")
     print(f"load average before {load_before[0]:.2f}, after {os.getloadavg()[0]:.2f} (2 cores: others' work "
           f"shares them)")
     print(f"results: {args.out}")

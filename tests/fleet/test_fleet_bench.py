@@ -27,6 +27,9 @@ def test_a_small_fleet_bench_gets_every_robots_answer_and_measures_the_fan_in(tm
     sent = int(fanin["publisher"].split()[-1])
     decoded = int(fanin["decode_only_receiver"].split()[-1])
     assert sent >= 60 * 2 and decoded > 0  # the statuses flowed through the routers
+    # The floor: one router per robot-hosting router, each taking its share of the statuses from its rings.
+    assert fanin["zenoh_floor_routers"] == 3 and fanin["zenoh_floor_cpu_pct"] >= 0
+    assert fanin["zenoh_floor_taken"] >= 60  # statuses reached the floor routers' subscribers
     assert "status fan-in: 60 hosts" in done.stdout
 
 
