@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from kgadapt.knowledge.schema import Graph
 from kgadapt.knowledge.store import STORE_ENV, open_store, rows_as_table
 from kgadapt.shared.errors import ConfigError
 
@@ -86,12 +87,15 @@ def _time_limit_arg(parser: argparse.ArgumentParser) -> None:
                              "(default 10; the paper's literal queries keep their own 1 s)")
 
 
-def _run_bounded(store_url: str | None, cypher: str, params: dict[str, Any], limit_s: float) -> list[dict[str, Any]]:
-    """Run a read-only query so that it ends by ``limit_s``: on FalkorDB in a QuerySandbox, killed at the
-    limit (killing this command alone would leave the store working on it); elsewhere with the store's timeout."""
+def _run_bounded(store_url: str | None, cypher: str, params: dict[str, Any], limit_s: float,
+                 graph: Graph = Graph.ROBOT) -> list[dict[str, Any]]:
+    """Run a read-only query on the robot's ``graph`` so that it ends by ``limit_s``: on FalkorDB in a
+    QuerySandbox, killed at the limit (killing this command alone would leave the store working on it);
+    elsewhere with the store's timeout."""
     if limit_s <= 0:
         raise ConfigError(f"--time-limit {limit_s}: must be positive")
-    with open_store(store_url) as store:
+    with open_store(store_url) as robot_store:
+        store = graph.store(robot_store)
         if not store.capabilities.sandbox:
             return store.execute(cypher, params, read_only=True, timeout_ms=int(limit_s * 1000))
         from kgadapt.knowledge.sandbox import QuerySandbox
@@ -145,7 +149,7 @@ def _query(args: argparse.Namespace) -> int:
     limit_s = args.time_limit
     if query.time_limit_ms is not None:
         limit_s = min(limit_s, query.time_limit_ms / 1000)
-    rows = _run_bounded(args.store, query.text_for(values), values, limit_s)
+    rows = _run_bounded(args.store, query.text_for(values), values, limit_s, query.graph)
     reason = _why_empty(args.store, args.name, values) if not rows else ""
     _print_rows(rows, args.json, reason)
     return 0

@@ -21,7 +21,9 @@ Run = Callable[[str, dict[str, Any]], list[dict[str, Any]]]
 _NEEDS_ONLINE = {"placement", "feature_deployments", "deployable_components", "cpu_overload"}
 _RUN_TIME = {"decisions": "no adaptation decision yet (is `kgadapt onboard --adapt` running?)",
              "current_placement": "no detector process is running according to the graph",
-             "low_memory_components": "no process profile with memory samples yet (no detector has run)"}
+             "low_memory_components": "no process profile with memory samples yet (no detector has run)",
+             "fleet_roster": "no robot heard yet: the robot's knowledge service (kgadapt knowledge serve) keeps "
+                             "the roster, itself first"}
 
 
 def store_is_empty(run: Run) -> bool:

@@ -317,11 +317,9 @@ class RosterSettings:
     interval_s: float = 600.0
     timeout_s: float = 2.0
     jitter_s: float = 1.0  # each roll call up to this much later: services started together do not call together
-    # Keep the roster in a graph of its own beside the robot's (``<graph>.fleet_roster`` on the same FalkorDB
-    # server over RESP; other backends: in the robot's graph, as before). The robot's query sandboxes copy its
-    # graph again after every write to it, and every roll call writes every robot's roster: in the robot's
-    # graph that made the fleet's next question to each robot pay a copy (issue 32).
-    apart: bool = False
+    # Where the roster is kept is the store's to say, not a setting: schema.Graph.FLEET_ROSTER (beside the
+    # robot's graph on FalkorDB over RESP), so whoever runs fleet_roster or fleet_forget on the robot's store
+    # reaches the same roster.
 
     def __post_init__(self) -> None:
         keys.check_name(self.robot, "robot name")
@@ -346,7 +344,8 @@ def check_routers(text: str | None, what: str) -> list[str] | None:
 
 
 def forget_robot(store: Any, *, robot: str) -> None:
-    """Write verb ``fleet_forget`` (operators): remove ``robot`` from the fleet roster (``kgadapt fleet forget``).
+    """Write verb ``fleet_forget`` (operators): remove ``robot`` from the fleet roster (``kgadapt fleet forget``)
+    of the robot whose store is ``store``, wherever the store keeps it (schema.Graph.FLEET_ROSTER).
 
     A robot that answers or announces again is remembered again.
     """
@@ -356,34 +355,28 @@ def forget_robot(store: Any, *, robot: str) -> None:
     # Any text is a value, never code: one that names no remembered robot removes nothing.
     if not isinstance(robot, str) or not robot:
         raise NamedQueryError(f"write 'fleet_forget': parameter 'robot' must be a robot's name, not {robot!r}")
-    store.execute(f"MATCH (r:{S.FLEET_ROBOT} {{name: $robot}}) DELETE r", {"robot": robot})
-
-
-ROSTER_GRAPH_SUFFIX = ".fleet_roster"
-
-
-def roster_graph(graph: str) -> str:
-    """The name of the graph that holds the roster of the robot whose graph is ``graph`` (``apart``)."""
-    return f"{graph}{ROSTER_GRAPH_SUFFIX}"
+    S.Graph.FLEET_ROSTER.store(store).execute(f"MATCH (r:{S.FLEET_ROBOT} {{name: $robot}}) DELETE r",
+                                              {"robot": robot})
 
 
 class FleetRoster:
     """The robots a knowledge service has heard answer or announce on the fleet keys, kept in its store.
 
-    ``open()`` connects to where the roster is kept: ``store`` itself, or with ``apart`` a graph of
-    its own beside it (see :class:`RosterSettings`), moving any roster an older version kept in the
-    robot's graph there. ``setup(session)`` (opening first if need be) records the service's own robot
-    and starts the roll calls (a thread of its own: a roll call waits on replies); ``shutdown()`` stops
-    them and closes what ``open()`` opened. :attr:`store` is where the roster is. Only what arrives on
-    the fleet keys is recorded: answers to the roll call (the robot from the reply's key) and other
-    robots' roll calls (the ``announce`` parameter, see :meth:`heard`). Bounded by ``cap``.
+    ``store`` is the robot's store; the roster is where that store keeps it (:attr:`store`, see
+    ``schema.Graph.FLEET_ROSTER``: a graph of its own beside the robot's on FalkorDB over RESP, the robot's
+    graph elsewhere), the same place the named query ``fleet_roster`` and the write verb ``fleet_forget``
+    reach on that store. ``open()`` connects there and moves any roster an older version kept in the
+    robot's graph. ``setup(session)`` (opening first if need be) records the service's own robot and starts
+    the roll calls (a thread of its own: a roll call waits on replies); ``shutdown()`` stops them (the
+    roster's graph closes with the robot's store). Only what arrives on the fleet keys is recorded: answers
+    to the roll call (the robot from the reply's key) and other robots' roll calls (the ``announce``
+    parameter, see :meth:`heard`). Bounded by ``cap``.
     """
 
     def __init__(self, store: Any, settings: RosterSettings) -> None:
         self.primary = store
-        self.store = store  # where the roster is: the primary until open() finds it kept apart
         self.settings = settings
-        self._opened: Any = None  # the store open() opened beside the primary (closed at shutdown)
+        self._opened = False
         self._session: Any = None
         self._zid: str | None = None
         self._routers: list[str] = []
@@ -391,28 +384,20 @@ class FleetRoster:
         self._thread: threading.Thread | None = None
         self.refused = 0  # robots not recorded because the roster was full
 
+    @property
+    def store(self) -> Any:
+        """Where the roster is (connected at first use: the robot's store keeps it)."""
+        from kgadapt.knowledge.schema import Graph
+
+        return Graph.FLEET_ROSTER.store(self.primary)
+
     def open(self) -> None:
-        """Connect to where the roster is kept (no-op when it is the primary or already open)."""
-        if self._opened is not None or not (self.settings.apart and self.primary.capabilities.sandbox):
+        """Connect to where the roster is kept and move there a roster kept in the robot's graph (once)."""
+        if self._opened:
             return
-        import dataclasses
-
-        from kgadapt.knowledge.falkordb_store import FalkorDBStore
-
-        primary = self.primary
-        settings = primary.settings
-        if settings.kind == "embedded":  # the primary runs the server: reach it on its socket
-            sock = primary.server.address.unix_socket
-            settings = dataclasses.replace(settings, kind="falkordb", url=f"falkordb+unix://{sock}", unix_socket=sock,
-                                           data_dir=None)
-        store = FalkorDBStore(dataclasses.replace(settings, graph=roster_graph(primary.settings.graph)))
-        store.setup()
-        try:
-            _move_roster(primary, store)
-        except BaseException:
-            store.shutdown()
-            raise
-        self.store = self._opened = store
+        if self.store is not self.primary:
+            _move_roster(self.primary, self.store)
+        self._opened = True
 
     def setup(self, session: Any) -> None:
         self.open()
@@ -428,10 +413,6 @@ class FleetRoster:
         if self._thread is not None:
             self._thread.join(timeout=self.settings.timeout_s + 5)
             self._thread = None
-        opened, self._opened = self._opened, None
-        if opened is not None:
-            self.store = self.primary
-            opened.shutdown()
 
     def remember(self, robot: str, *, how: Heard, when: float | None = None, zid: str | None = None,
                  routers: list[str] | None = None) -> bool:
@@ -524,7 +505,7 @@ class FleetRoster:
 
 
 def _move_roster(primary: Any, roster: Any) -> None:
-    """Move a roster kept in the robot's graph (before ``apart``) into the roster's own graph."""
+    """Move a roster kept in the robot's graph (before it had a graph of its own) into the roster's graph."""
     from kgadapt.knowledge import schema as S
 
     # Read only: a MATCH ... DELETE that finds nothing still counts as a write to the robot's graph.
