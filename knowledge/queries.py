@@ -478,7 +478,7 @@ RETURN r.instance AS instance, g.name AS config, r.host AS host, r.pid AS pid,
         "The robots this robot's knowledge service has heard answer or announce on the fleet keys (itself "
         "included), with when it first and last heard them and their Zenoh routers. A fleet question lists "
         "one that does not answer as silent. The parameters are a roll call's: the asking robot announces "
-        "itself, its Zenoh id and its routers (knowledge/fleet.py).",
+        "itself, its Zenoh id and its routers (knowledge/fleet_roster.py).",
         {"announce": Param("str", required=False, help="the asking robot, announcing itself"),
          "zid": Param("str", required=False, help="its knowledge service's Zenoh id"),
          "routers": Param("str", required=False, help="its Zenoh routers' ids, comma-separated")},

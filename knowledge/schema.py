@@ -26,7 +26,7 @@ changed model replaces its old version)::
     Marker            name ("site/id"), marker_id, size_m (printed side, m), dictionary,
                       marker_name, position ([north, east, down] m; both optional)
     FleetRobot        name (a robot), first_seen, last_seen, heard ("self"|"answer"|"announce"),
-                      zid, routers (list of Zenoh ids)      (run time: the fleet roster, knowledge/fleet.py)
+                      zid, routers (list of Zenoh ids)      (run time: the fleet roster, knowledge/fleet_roster.py)
 
 Relations (direction matters)::
 
@@ -108,7 +108,7 @@ class Graph(enum.Enum):
     """Which of a robot's graphs holds a part of its knowledge (what a named query reads, a write verb writes)."""
 
     ROBOT = ""  # the store's own graph: models, platforms, processes, decisions
-    # FleetRobot nodes (knowledge/fleet.py). Every roll call writes them, and the query sandboxes copy the
+    # FleetRobot nodes (knowledge/fleet_roster.py). Every roll call writes them, and the query sandboxes copy the
     # robot's graph again after any write to it: kept in the robot's graph, each roll call made the fleet's
     # next question to every robot pay a copy (issue 32). So they are kept beside it where the store can.
     FLEET_ROSTER = ".fleet_roster"

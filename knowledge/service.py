@@ -103,7 +103,8 @@ import zenoh
 from kgadapt.knowledge import queries, runtime
 from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.cypher_guard import CypherLimits, check_cypher
-from kgadapt.knowledge.fleet import ROSTER_QUERY, FleetRoster, RosterSettings
+from kgadapt.knowledge.fleet import ROSTER_QUERY
+from kgadapt.knowledge.fleet_roster import FleetRoster, RosterSettings
 from kgadapt.knowledge.params import check_params
 from kgadapt.knowledge.service_lock import ServiceLock
 from kgadapt.knowledge.store import GraphStore
@@ -184,7 +185,7 @@ class ServiceSettings:
     status_deadband_mb: float = 16.0
     status_deadband_load: float = 10.0
     status_refresh_s: float = 2.0
-    # The fleet roster (knowledge/fleet.py): robots heard on the fleet keys, at most roster_cap; roll
+    # The fleet roster (knowledge/fleet_roster.py): robots heard on the fleet keys, at most roster_cap; roll
     # calls at setup and 5 s later, then every roster_interval_s (0: no more). roster=False: none kept.
     roster: bool = True
     roster_cap: int = 1000

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from kgadapt.knowledge.fleet import FleetRoster, Heard, RosterSettings, forget_robot
+from kgadapt.knowledge.fleet_roster import FleetRoster, Heard, RosterSettings, forget_robot
 from kgadapt.knowledge.queries import run_named
 from kgadapt.knowledge.runtime import run_write
 from kgadapt.shared import messages

@@ -8,7 +8,7 @@ import os
 import pytest
 
 from kgadapt.knowledge.falkordb_store import FalkorDBStore
-from kgadapt.knowledge.fleet import FleetRoster, Heard, RosterSettings, forget_robot
+from kgadapt.knowledge.fleet_roster import FleetRoster, Heard, RosterSettings, forget_robot
 from kgadapt.knowledge.queries import run_named
 from kgadapt.knowledge.schema import Graph
 from kgadapt.knowledge.store import StoreSettings, open_store
