@@ -155,19 +155,19 @@ def _query(args: argparse.Namespace) -> int:
     return 0
 
 
-def _why_empty(store_url: str | None, name: str | None, values: dict[str, Any]) -> str:
+def _why_empty(store_url: str | None, name: str | None, values: dict[str, Any], cypher: str = "") -> str:
     """Why the answer is empty (or NamedQueryError when the question names what is not there)."""
-    from kgadapt.knowledge.empty_answers import explain_empty, store_is_empty
+    from kgadapt.knowledge.empty_answers import explain_empty, roster_outside, store_is_empty
     from kgadapt.knowledge.queries import run_named
 
     with open_store(store_url) as store:
         where = f"store {store.url}"
         run = lambda n, p: run_named(store, n, p)  # noqa: E731
-        if name is None:  # free Cypher: only an empty store is a reason we can know
+        if name is None:  # free Cypher: an empty store, or a roster kept beside the graph it read
             if store_is_empty(run):
                 raise ConfigError(f"{where} holds no models: nothing is loaded there (kgadapt knowledge load "
                                   "knowledge/models; a mistyped --store opens a new, empty store)")
-            return ""
+            return roster_outside(cypher) if Graph.FLEET_ROSTER.store(store) is not store else ""
         return explain_empty(name, values, run, where=where)
 
 
@@ -203,7 +203,7 @@ def _cypher(args: argparse.Namespace) -> int:
     from kgadapt.knowledge.cypher_guard import check_cypher
 
     rows = _run_bounded(args.store, check_cypher(args.text), params, args.time_limit)
-    _print_rows(rows, args.json, _why_empty(args.store, None, params) if not rows else "")
+    _print_rows(rows, args.json, _why_empty(args.store, None, params, args.text) if not rows else "")
     return 0
 
 

@@ -26,6 +26,17 @@ _RUN_TIME = {"decisions": "no adaptation decision yet (is `kgadapt onboard --ada
                              "the roster, itself first"}
 
 
+def roster_outside(cypher: str) -> str:
+    """Why free Cypher about the fleet roster answered nothing: it reads the robot's graph, and the roster is
+    kept beside it (schema.Graph.FLEET_ROSTER); "" when the text does not name FleetRobot."""
+    from kgadapt.knowledge import schema as S
+
+    if S.FLEET_ROBOT not in cypher:
+        return ""
+    return (f"{S.FLEET_ROBOT} nodes are kept in the fleet roster's own graph beside the robot's on FalkorDB, and "
+            "free Cypher reads the robot's graph: ask the named query fleet_roster")
+
+
 def store_is_empty(run: Run) -> bool:
     """No platform and no detector configuration: nothing was loaded."""
     from kgadapt.knowledge.queries import DEFAULT_FEATURE

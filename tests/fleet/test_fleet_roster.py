@@ -189,10 +189,12 @@ def test_a_service_that_keeps_no_roster_refuses_fleet_roster_naming_why(resp_sto
 def test_kgadapt_knowledge_query_on_a_served_store_lists_the_robots_its_service_heard(tmp_path):
     """``kgadapt knowledge query fleet_roster --store`` beside a running ``kgadapt knowledge serve``: the robots
     the service heard (itself, and a robot that announced itself in a roll call), and after ``kgadapt fleet
-    forget`` not that one."""
+    forget`` not that one. Free Cypher about FleetRobot nodes, which reads the robot's graph, says where they are."""
     from kgadapt.knowledge.client import KnowledgeClient
 
     robot, endpoint, store = f"k{os.getpid()}", f"tcp/127.0.0.1:{free_port()}", f"embedded:{tmp_path / 'store'}"
+    done = kgadapt("knowledge", "load", str(REPO / "knowledge" / "models"), "--store", store)
+    assert done.returncode == 0, done.stderr
     child = Child.kgadapt("serve", ["knowledge", "serve", "--robot", robot, "--store", store, "--listen", endpoint],
                           tmp_path)
     try:
@@ -212,6 +214,10 @@ def test_kgadapt_knowledge_query_on_a_served_store_lists_the_robots_its_service_
         done = kgadapt("fleet", "--robot", robot, "--connect", endpoint, "forget", "visitor")
         assert done.returncode == 0, done.stderr
         assert listed() == {robot}
+        for asked in (["knowledge", "cypher", "--store", store], ["ask", "--robot", robot, "--connect", endpoint,
+                                                                  "--cypher"]):
+            done = kgadapt(*asked, "MATCH (r:FleetRobot) RETURN r.name AS name")
+            assert done.returncode == 0 and "ask the named query fleet_roster" in done.stdout, done.stdout + done.stderr
     finally:
         if child.process.poll() is None:
             child.stop()
