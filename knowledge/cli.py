@@ -89,7 +89,7 @@ def _time_limit_arg(parser: argparse.ArgumentParser) -> None:
 
 def _run_bounded(store_url: str | None, cypher: str, params: dict[str, Any], limit_s: float,
                  graph: Graph = Graph.ROBOT) -> list[dict[str, Any]]:
-    """Run a read-only query on the robot's ``graph`` so that it ends by ``limit_s``: on FalkorDB in a
+    """Run a read-only query on ``graph`` of the robot's store so that it ends by ``limit_s``: on FalkorDB in a
     QuerySandbox, killed at the limit (killing this command alone would leave the store working on it);
     elsewhere with the store's timeout."""
     if limit_s <= 0:
@@ -167,7 +167,7 @@ def _why_empty(store_url: str | None, name: str | None, values: dict[str, Any], 
             if store_is_empty(run):
                 raise ConfigError(f"{where} holds no models: nothing is loaded there (kgadapt knowledge load "
                                   "knowledge/models; a mistyped --store opens a new, empty store)")
-            return roster_outside(cypher) if Graph.FLEET_ROSTER.store(store) is not store else ""
+            return roster_outside(cypher) if store.capabilities.graphs else ""  # the roster is kept beside
         return explain_empty(name, values, run, where=where)
 
 

@@ -44,9 +44,9 @@ class FalkorDBStore(GraphStore):
         self._setup_graph: Any = None
         self._preparing = threading.local()
         self._reconnect_lock = threading.RLock()  # _reopen() may meet a lost connection and reconnect
-        # Other graphs on the same server (sibling()), kept until shutdown(); a sibling shares its primary's
-        # embedded server and leaves starting (if it is found gone) to whichever first finds it so, stopping to
-        # the primary.
+        # Other graphs on the same server (sibling()), kept until shutdown(). A sibling shares this store's
+        # embedded server object: whichever of them first finds the server gone starts another (both then
+        # reach it), and only this store stops it.
         self._siblings: dict[str, FalkorDBStore] = {}
         self._siblings_lock = threading.Lock()
         self._stops_server = True

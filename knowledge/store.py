@@ -236,9 +236,10 @@ class GraphStore(ABC):
     def sibling(self, graph: str) -> "GraphStore":
         """The store of graph ``graph`` on the server this store reaches (``capabilities.graphs``).
 
-        Connected at the first call for that graph, then the same object for every caller; it never starts
-        or stops a server of its own and is shut down by this store's ``shutdown()``. ``graph`` equal to this
-        store's own graph: this store. A backend without several graphs raises ConfigError naming it.
+        Connected at the first call for that graph, then the same object for every caller, shut down by this
+        store's ``shutdown()``. It reaches the server as this store does (a server found gone is started
+        again as this store would) and never stops it. ``graph`` equal to this store's own graph: this store.
+        A backend without several graphs raises ConfigError naming it.
         """
         if graph == self.settings.graph:
             return self
