@@ -67,19 +67,27 @@ def _state(pid: int) -> str:
         return f.read().rsplit(")", 1)[1].split()[0]
 
 
-def test_the_roster_on_a_store_of_one_graph_is_in_the_robots_graph(bolt_store):
-    """Bolt (Memgraph, FalkorDB's Bolt listener): one graph, so the roster is in it, and fleet_roster and
-    fleet_forget on the store reach it there."""
-    with pytest.raises(ConfigError, match="one graph only"):
-        bolt_store.sibling("kgadapt.fleet_roster")
-    assert Graph.FLEET_ROSTER.store(bolt_store) is bolt_store
-    roster = FleetRoster(bolt_store, RosterSettings(robot="me"))
+def test_fleet_roster_and_fleet_forget_on_the_robots_store_reach_the_roster_on_every_backend(store):
+    """Where the store holds several graphs (FalkorDB over RESP) the roster is beside the robot's graph; on a
+    store of one graph (Bolt: Memgraph, Neo4j, FalkorDB's Bolt listener) it is in it. Either way what the
+    roster remembers is what fleet_roster lists and fleet_forget removes, given the robot's store."""
+    roster = FleetRoster(store, RosterSettings(robot="me"))
     roster.open()
-    assert roster.remember("quad2", how=Heard.ANSWER, when=1.0)
-    assert [row["robot"] for row in run_named(bolt_store, "fleet_roster")] == ["quad2"]
-    assert _count(bolt_store, "FleetRobot") == 1
-    forget_robot(bolt_store, robot="quad2")
-    assert run_named(bolt_store, "fleet_roster") == []
+    beside = store.capabilities.graphs
+    assert (roster.store is not store) == beside
+    if not beside:
+        with pytest.raises(ConfigError, match="one graph only"):
+            store.sibling("kgadapt.fleet_roster")
+    try:
+        assert roster.remember("quad2", how=Heard.ANSWER, when=1.0, routers=["ab12"])
+        rows = run_named(store, "fleet_roster")
+        assert [(r["robot"], r["heard"], r["routers"]) for r in rows] == [("quad2", "answer", ["ab12"])]
+        assert _count(store, "FleetRobot") == (0 if beside else 1)
+        forget_robot(store, robot="quad2")
+        assert run_named(store, "fleet_roster") == []
+    finally:
+        if beside:
+            roster.store.clear()
 
 
 def test_a_sibling_given_as_a_robots_store_is_refused_naming_its_graph(resp_store):
