@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from kgadapt.knowledge.schema import Graph
 from kgadapt.knowledge.store import STORE_ENV, open_store, rows_as_table
 from kgadapt.shared.errors import ConfigError
 
@@ -86,12 +87,15 @@ def _time_limit_arg(parser: argparse.ArgumentParser) -> None:
                              "(default 10; the paper's literal queries keep their own 1 s)")
 
 
-def _run_bounded(store_url: str | None, cypher: str, params: dict[str, Any], limit_s: float) -> list[dict[str, Any]]:
-    """Run a read-only query so that it ends by ``limit_s``: on FalkorDB in a QuerySandbox, killed at the
-    limit (killing this command alone would leave the store working on it); elsewhere with the store's timeout."""
+def _run_bounded(store_url: str | None, cypher: str, params: dict[str, Any], limit_s: float,
+                 graph: Graph = Graph.ROBOT) -> list[dict[str, Any]]:
+    """Run a read-only query on ``graph`` of the robot's store so that it ends by ``limit_s``: on FalkorDB in a
+    QuerySandbox, killed at the limit (killing this command alone would leave the store working on it);
+    elsewhere with the store's timeout."""
     if limit_s <= 0:
         raise ConfigError(f"--time-limit {limit_s}: must be positive")
-    with open_store(store_url) as store:
+    with open_store(store_url) as robot_store:
+        store = graph.store(robot_store)
         if not store.capabilities.sandbox:
             return store.execute(cypher, params, read_only=True, timeout_ms=int(limit_s * 1000))
         from kgadapt.knowledge.sandbox import QuerySandbox
@@ -145,25 +149,25 @@ def _query(args: argparse.Namespace) -> int:
     limit_s = args.time_limit
     if query.time_limit_ms is not None:
         limit_s = min(limit_s, query.time_limit_ms / 1000)
-    rows = _run_bounded(args.store, query.text_for(values), values, limit_s)
+    rows = _run_bounded(args.store, query.text_for(values), values, limit_s, query.graph)
     reason = _why_empty(args.store, args.name, values) if not rows else ""
     _print_rows(rows, args.json, reason)
     return 0
 
 
-def _why_empty(store_url: str | None, name: str | None, values: dict[str, Any]) -> str:
+def _why_empty(store_url: str | None, name: str | None, values: dict[str, Any], cypher: str = "") -> str:
     """Why the answer is empty (or NamedQueryError when the question names what is not there)."""
-    from kgadapt.knowledge.empty_answers import explain_empty, store_is_empty
+    from kgadapt.knowledge.empty_answers import explain_empty, roster_outside, store_is_empty
     from kgadapt.knowledge.queries import run_named
 
     with open_store(store_url) as store:
         where = f"store {store.url}"
         run = lambda n, p: run_named(store, n, p)  # noqa: E731
-        if name is None:  # free Cypher: only an empty store is a reason we can know
+        if name is None:  # free Cypher: an empty store, or a roster kept beside the graph it read
             if store_is_empty(run):
                 raise ConfigError(f"{where} holds no models: nothing is loaded there (kgadapt knowledge load "
                                   "knowledge/models; a mistyped --store opens a new, empty store)")
-            return ""
+            return roster_outside(cypher) if store.capabilities.graphs else ""  # the roster is kept beside
         return explain_empty(name, values, run, where=where)
 
 
@@ -199,7 +203,7 @@ def _cypher(args: argparse.Namespace) -> int:
     from kgadapt.knowledge.cypher_guard import check_cypher
 
     rows = _run_bounded(args.store, check_cypher(args.text), params, args.time_limit)
-    _print_rows(rows, args.json, _why_empty(args.store, None, params) if not rows else "")
+    _print_rows(rows, args.json, _why_empty(args.store, None, params, args.text) if not rows else "")
     return 0
 
 

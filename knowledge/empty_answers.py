@@ -21,7 +21,20 @@ Run = Callable[[str, dict[str, Any]], list[dict[str, Any]]]
 _NEEDS_ONLINE = {"placement", "feature_deployments", "deployable_components", "cpu_overload"}
 _RUN_TIME = {"decisions": "no adaptation decision yet (is `kgadapt onboard --adapt` running?)",
              "current_placement": "no detector process is running according to the graph",
-             "low_memory_components": "no process profile with memory samples yet (no detector has run)"}
+             "low_memory_components": "no process profile with memory samples yet (no detector has run)",
+             "fleet_roster": "no robot heard yet: the robot's knowledge service (kgadapt knowledge serve) keeps "
+                             "the roster, itself first"}
+
+
+def roster_outside(cypher: str) -> str:
+    """Why free Cypher about the fleet roster answered nothing: it reads the robot's graph, and the roster is
+    kept beside it (schema.Graph.FLEET_ROSTER); "" when the text does not name FleetRobot."""
+    from kgadapt.knowledge import schema as S
+
+    if S.FLEET_ROBOT not in cypher:
+        return ""
+    return (f"{S.FLEET_ROBOT} nodes are kept in the fleet roster's own graph beside the robot's on FalkorDB, and "
+            "free Cypher reads the robot's graph: ask the named query fleet_roster")
 
 
 def store_is_empty(run: Run) -> bool:

@@ -8,6 +8,7 @@ client is used only through its public ``query``/``ro_query``/``connection``.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -43,6 +44,12 @@ class FalkorDBStore(GraphStore):
         self._setup_graph: Any = None
         self._preparing = threading.local()
         self._reconnect_lock = threading.RLock()  # _reopen() may meet a lost connection and reconnect
+        # Other graphs on the same server (sibling()), kept until shutdown(). A sibling shares this store's
+        # embedded server object: whichever of them first finds the server gone starts another (both then
+        # reach it), and only this store stops it.
+        self._siblings: dict[str, FalkorDBStore] = {}
+        self._siblings_lock = threading.Lock()
+        self._stops_server = True
 
     def setup(self, *, timeout: float | None = None) -> None:
         self.prepare(lambda store: self._open(timeout))
@@ -161,7 +168,30 @@ class FalkorDBStore(GraphStore):
             self._open(None)  # nothing answers at the old address now: ensure() starts another server
             _close_replaced((old, old_setup), keep=(self._db, self._setup_db))
 
+    def sibling(self, graph: str) -> GraphStore:
+        """The store of graph ``graph`` on this store's server: connected at the first call, then kept (see
+        GraphStore.sibling). It reaches the server as this store does (an embedded one: the same server
+        object, so a restart by either is found by both) with the same limits."""
+        if graph == self.settings.graph:
+            return self
+        with self._siblings_lock:
+            found = self._siblings.get(graph)
+            if found is not None:
+                return found
+            if self._db is None:
+                raise StoreUnavailable(f"store {self.settings.url} is not set up; call setup() before "
+                                       f"reaching graph {graph!r} beside it")
+            store = FalkorDBStore(dataclasses.replace(self.settings, graph=graph), server=self.server)
+            store._stops_server = False
+            store.setup()
+            self._siblings[graph] = store
+            return store
+
     def shutdown(self) -> None:
+        with self._siblings_lock:
+            siblings, self._siblings = list(self._siblings.values()), {}
+        for sibling in siblings:
+            sibling.shutdown()
         for db in {id(db): db for db in (self._db, self._setup_db)}.values():
             if db is not None:
                 try:
@@ -170,7 +200,7 @@ class FalkorDBStore(GraphStore):
                     pass
         self._db = self._setup_db = None
         self._graph = self._setup_graph = None
-        if self.server is not None:
+        if self.server is not None and self._stops_server:
             self.server.stop()
 
     @property
@@ -181,9 +211,9 @@ class FalkorDBStore(GraphStore):
     def capabilities(self) -> Capabilities:
         # MULTI/EXEC batches; GRAPH.QUERY's TIMEOUT; GRAPH.RO_QUERY refuses writes. No TLS on
         # the unix socket of the embedded store. redis-py's connection pool serves many threads;
-        # DUMP/RESTORE copies the graph into a QuerySandbox.
+        # DUMP/RESTORE copies the graph into a QuerySandbox; a graph is a key, many on one server.
         return Capabilities(transactions=True, timeouts=True, tls=False, read_only="store",
-                            thread_safe=True, sandbox=True)
+                            thread_safe=True, sandbox=True, graphs=True)
 
     @property
     def redis(self) -> redis.Redis:

@@ -11,7 +11,8 @@
 Each robot's knowledge service answers on its own key, so a reply names its
 robot. Which robots were expected comes from four places: ``expect`` (the
 fleet you know of), the fleet roster of robot ``roster`` (the robots its
-knowledge service has heard answer or announce, see :class:`FleetRoster`),
+knowledge service has heard answer or announce, see
+:class:`~kgadapt.knowledge.fleet_roster.FleetRoster`),
 robots whose hosts show a liveliness token on ``kgadapt/*/host/*/alive``
 (another robot's router may not let those through, see docs/fleet.md) and
 robots that answered this client before; the roster and the tokens are asked
@@ -30,7 +31,6 @@ reach exactly that (deploy/zenoh/router.json5).
 from __future__ import annotations
 
 import enum
-import random
 import threading
 import time
 from dataclasses import dataclass
@@ -38,6 +38,8 @@ from typing import Any, Mapping
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, MessageError, RemoteError, TransportError
+
+ROSTER_QUERY = "fleet_roster"  # the named query of every robot's fleet roster (knowledge/fleet_roster.py)
 
 ROBOT_COLUMN = "robot"
 
@@ -219,7 +221,7 @@ class FleetClient:
                 refusals.append(str(reply))
                 continue
             key = reply.key
-            robot = _robot_of(key, name)
+            robot = robot_of(key, name)
             if robot is None:
                 malformed.append(f"reply on {key}: not a knowledge/query/{name} key")
                 continue
@@ -249,7 +251,7 @@ class FleetClient:
                 rows = messages.decode_as(reply.payload, messages.Rows).rows
             except MessageError:
                 continue
-            robots.extend(r["robot"] for r in rows if isinstance(r, dict) and _is_name(str(r.get("robot"))))
+            robots.extend(r["robot"] for r in rows if isinstance(r, dict) and is_name(str(r.get("robot"))))
         return robots
 
     @staticmethod
@@ -258,7 +260,7 @@ class FleetClient:
         for reply in handler:
             if reply.ok is not None:
                 robot = str(reply.ok.key_expr).split("/")[1]
-                if _is_name(robot):
+                if is_name(robot):
                     robots.append(robot)
         return robots
 
@@ -273,277 +275,19 @@ def _with_silent(answer: FleetAnswer, known: set[str]) -> FleetAnswer:
                        malformed=answer.malformed, wall_ms=answer.wall_ms)
 
 
-def _robot_of(key: str, name: str) -> str | None:
+def robot_of(key: str, name: str) -> str | None:
     """``<robot>`` of ``kgadapt/<robot>/knowledge/query/<name>``, or None for any other key."""
     parts = key.split("/")
     if len(parts) != 5 or parts[0] != keys.PREFIX or parts[2:] != ["knowledge", "query", name]:
         return None
-    return parts[1] if _is_name(parts[1]) else None
+    return parts[1] if is_name(parts[1]) else None
 
 
-def _is_name(text: str) -> bool:
+def is_name(text: str) -> bool:
+    """True when ``text`` is a valid robot name (a reply's key or a roster's row may carry anything)."""
     try:
         keys.check_name(text)
     except ConfigError:
         return False
     return True
 
-
-# -- the fleet roster: the robots a knowledge service has heard -------------------------------------------------
-
-ROSTER_QUERY = "fleet_roster"
-_MAX_ROUTERS = 16  # a robot's routers as announced: more is no robot of ours
-_ZID_CHARS = frozenset("0123456789abcdef")
-
-
-class Heard(enum.Enum):
-    """How a knowledge service came to know a robot of its roster."""
-
-    SELF = "self"  # the service's own robot
-    ANSWER = "answer"  # it answered this service's roll call
-    ANNOUNCE = "announce"  # it announced itself in its own roll call
-
-
-@dataclass(frozen=True, kw_only=True)
-class RosterSettings:
-    """How a knowledge service keeps its fleet roster."""
-
-    robot: str  # the service's own robot
-    cap: int = 1000  # robots remembered at most; a new one past it is not recorded (the known ones stay)
-    # A roll call (a fleet question for every robot's roster, announcing this robot) at setup and at these
-    # delays after it (a router link takes a moment), then every interval_s; 0: only those first ones.
-    # A robot that starts later announces itself to those already up, so the first calls are few.
-    first_calls_s: tuple[float, ...] = (0.0, 5.0)
-    interval_s: float = 600.0
-    timeout_s: float = 2.0
-    jitter_s: float = 1.0  # each roll call up to this much later: services started together do not call together
-    # Keep the roster in a graph of its own beside the robot's (``<graph>.fleet_roster`` on the same FalkorDB
-    # server over RESP; other backends: in the robot's graph, as before). The robot's query sandboxes copy its
-    # graph again after every write to it, and every roll call writes every robot's roster: in the robot's
-    # graph that made the fleet's next question to each robot pay a copy (issue 32).
-    apart: bool = False
-
-    def __post_init__(self) -> None:
-        keys.check_name(self.robot, "robot name")
-        if self.cap < 1:
-            raise ConfigError(f"roster cap {self.cap!r}: at least 1")
-        if self.interval_s < 0 or not self.timeout_s > 0:
-            raise ConfigError(f"roster interval {self.interval_s!r} s, timeout {self.timeout_s!r} s: "
-                              "interval at least 0, timeout more than 0")
-
-
-def check_routers(text: str | None, what: str) -> list[str] | None:
-    """Zenoh router ids from a comma-separated text (lower-case hex, at most 16); MessageError naming ``what``."""
-    if text is None:
-        return None
-    routers = [zid for zid in text.split(",") if zid]
-    if len(routers) > _MAX_ROUTERS:
-        raise MessageError(f"{what}: {len(routers)} routers, at most {_MAX_ROUTERS}")
-    for zid in routers:
-        if len(zid) > 32 or not set(zid) <= _ZID_CHARS:
-            raise MessageError(f"{what}: router id {zid[:40]!r} is not a Zenoh id (hex, at most 32 digits)")
-    return routers
-
-
-def forget_robot(store: Any, *, robot: str) -> None:
-    """Write verb ``fleet_forget`` (operators): remove ``robot`` from the fleet roster (``kgadapt fleet forget``).
-
-    A robot that answers or announces again is remembered again.
-    """
-    from kgadapt.knowledge import schema as S
-    from kgadapt.shared.errors import NamedQueryError
-
-    # Any text is a value, never code: one that names no remembered robot removes nothing.
-    if not isinstance(robot, str) or not robot:
-        raise NamedQueryError(f"write 'fleet_forget': parameter 'robot' must be a robot's name, not {robot!r}")
-    store.execute(f"MATCH (r:{S.FLEET_ROBOT} {{name: $robot}}) DELETE r", {"robot": robot})
-
-
-ROSTER_GRAPH_SUFFIX = ".fleet_roster"
-
-
-def roster_graph(graph: str) -> str:
-    """The name of the graph that holds the roster of the robot whose graph is ``graph`` (``apart``)."""
-    return f"{graph}{ROSTER_GRAPH_SUFFIX}"
-
-
-class FleetRoster:
-    """The robots a knowledge service has heard answer or announce on the fleet keys, kept in its store.
-
-    ``open()`` connects to where the roster is kept: ``store`` itself, or with ``apart`` a graph of
-    its own beside it (see :class:`RosterSettings`), moving any roster an older version kept in the
-    robot's graph there. ``setup(session)`` (opening first if need be) records the service's own robot
-    and starts the roll calls (a thread of its own: a roll call waits on replies); ``shutdown()`` stops
-    them and closes what ``open()`` opened. :attr:`store` is where the roster is. Only what arrives on
-    the fleet keys is recorded: answers to the roll call (the robot from the reply's key) and other
-    robots' roll calls (the ``announce`` parameter, see :meth:`heard`). Bounded by ``cap``.
-    """
-
-    def __init__(self, store: Any, settings: RosterSettings) -> None:
-        self.primary = store
-        self.store = store  # where the roster is: the primary until open() finds it kept apart
-        self.settings = settings
-        self._opened: Any = None  # the store open() opened beside the primary (closed at shutdown)
-        self._session: Any = None
-        self._zid: str | None = None
-        self._routers: list[str] = []
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.refused = 0  # robots not recorded because the roster was full
-
-    def open(self) -> None:
-        """Connect to where the roster is kept (no-op when it is the primary or already open)."""
-        if self._opened is not None or not (self.settings.apart and self.primary.capabilities.sandbox):
-            return
-        import dataclasses
-
-        from kgadapt.knowledge.falkordb_store import FalkorDBStore
-
-        primary = self.primary
-        settings = primary.settings
-        if settings.kind == "embedded":  # the primary runs the server: reach it on its socket
-            sock = primary.server.address.unix_socket
-            settings = dataclasses.replace(settings, kind="falkordb", url=f"falkordb+unix://{sock}", unix_socket=sock,
-                                           data_dir=None)
-        store = FalkorDBStore(dataclasses.replace(settings, graph=roster_graph(primary.settings.graph)))
-        store.setup()
-        try:
-            _move_roster(primary, store)
-        except BaseException:
-            store.shutdown()
-            raise
-        self.store = self._opened = store
-
-    def setup(self, session: Any) -> None:
-        self.open()
-        self._session = session
-        self._zid, self._routers = _zenoh_ids(session)
-        self.remember(self.settings.robot, how=Heard.SELF, zid=self._zid, routers=self._routers)
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._roll_calls, name="fleet-roster", daemon=True)
-        self._thread.start()
-
-    def shutdown(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=self.settings.timeout_s + 5)
-            self._thread = None
-        opened, self._opened = self._opened, None
-        if opened is not None:
-            self.store = self.primary
-            opened.shutdown()
-
-    def remember(self, robot: str, *, how: Heard, when: float | None = None, zid: str | None = None,
-                 routers: list[str] | None = None) -> bool:
-        """Record that ``robot`` was heard (now, or at ``when``); False when the roster is full and it is new."""
-        from kgadapt.knowledge import schema as S
-
-        keys.check_name(robot, "robot name")
-        params = {"name": robot, "time": time.time() if when is None else float(when), "heard": how.value,
-                  "zid": zid, "routers": routers}
-        # A robot heard before, the common case: one statement.
-        rows = self.store.execute(
-            f"MATCH (r:{S.FLEET_ROBOT} {{name: $name}}) SET r.last_seen = $time, r.heard = $heard, "
-            "r.zid = coalesce($zid, r.zid), r.routers = coalesce($routers, r.routers) RETURN count(r) AS n", params)
-        if rows and rows[0]["n"]:
-            return True
-        count = self.store.execute(f"MATCH (r:{S.FLEET_ROBOT}) RETURN count(r) AS n")
-        if count and count[0]["n"] >= self.settings.cap:
-            self.refused += 1
-            return False
-        self.store.execute(
-            f"MERGE (r:{S.FLEET_ROBOT} {{name: $name}}) ON CREATE SET r.first_seen = $time "
-            "SET r.last_seen = $time, r.heard = $heard, r.zid = $zid, r.routers = $routers", params)
-        return True
-
-    def heard(self, params: Mapping[str, Any]) -> None:
-        """A roll call of another robot arrived (the checked parameters of a ``fleet_roster`` question)."""
-        robot = params.get("announce")
-        if robot is None or robot == self.settings.robot:
-            return
-        what = f"roll call of {robot}"
-        zid = check_routers(params.get("zid"), what)
-        if zid is not None and len(zid) != 1:
-            raise MessageError(f"{what}: zid {params.get('zid')!r} is not one Zenoh id")
-        self.remember(keys.check_name(robot, "announcing robot"), how=Heard.ANNOUNCE,
-                      zid=zid[0] if zid else None, routers=check_routers(params.get("routers"), what))
-
-    def roll_call(self) -> list[str]:
-        """Ask every robot's roster, announcing this robot; remember those that answer. Their names."""
-        announce = {"announce": self.settings.robot, **({"zid": self._zid} if self._zid else {}),
-                    **({"routers": ",".join(self._routers)} if self._routers else {})}
-        payload = messages.encode(messages.QueryRequest(params=announce))
-        pending = rpc.ask(self._session, f"{keys.PREFIX}/*/knowledge/query/{ROSTER_QUERY}", payload,
-                          timeout=self.settings.timeout_s, every_reply=True)
-        heard = []
-        for reply in pending.replies():
-            if isinstance(reply, RemoteError):
-                continue  # an older robot without a roster: not attributable (see the module doc)
-            robot = _robot_of(reply.key, ROSTER_QUERY)
-            if robot is None or robot == self.settings.robot:
-                continue
-            try:
-                rows = messages.decode_as(reply.payload, messages.Rows).rows
-            except MessageError:
-                continue
-            own = next((r for r in rows if isinstance(r, dict) and r.get("robot") == robot), {})
-            zid = own.get("zid") if isinstance(own.get("zid"), str) else None
-            routers = own.get("routers")
-            try:
-                routers = check_routers(",".join(routers), f"roster of {robot}") if isinstance(routers, list) \
-                    and all(isinstance(z, str) for z in routers) else None
-            except MessageError:
-                routers = None
-            if self.remember(robot, how=Heard.ANSWER, zid=zid, routers=routers):
-                heard.append(robot)
-        return heard
-
-    def _roll_calls(self) -> None:
-        import logging
-
-        log = logging.getLogger(__name__)
-        start = time.monotonic()
-        delays = list(self.settings.first_calls_s)
-        while not self._stop.is_set():
-            if delays:
-                wait = max(0.0, start + delays.pop(0) - time.monotonic())
-            elif self.settings.interval_s > 0:
-                wait = self.settings.interval_s
-            else:
-                return
-            wait += random.uniform(0.0, self.settings.jitter_s)
-            if self._stop.wait(wait):
-                return
-            try:
-                self._zid, self._routers = _zenoh_ids(self._session)
-                self.remember(self.settings.robot, how=Heard.SELF, zid=self._zid, routers=self._routers)
-                heard = self.roll_call()
-                log.debug("fleet roll call of %s: %d robots answered", self.settings.robot, len(heard))
-            except Exception as exc:  # noqa: BLE001 - a store away or the session closing: the next roll call tries again
-                log.warning("fleet roll call of %s: %s", self.settings.robot, exc)
-
-
-def _move_roster(primary: Any, roster: Any) -> None:
-    """Move a roster kept in the robot's graph (before ``apart``) into the roster's own graph."""
-    from kgadapt.knowledge import schema as S
-
-    # Read only: a MATCH ... DELETE that finds nothing still counts as a write to the robot's graph.
-    rows = primary.execute(f"MATCH (r:{S.FLEET_ROBOT}) RETURN r.name AS name, r.first_seen AS first_seen, "
-                           "r.last_seen AS last_seen, r.heard AS heard, r.zid AS zid, r.routers AS routers",
-                           read_only=True)
-    if not rows:
-        return
-    roster.execute(
-        f"UNWIND $rows AS row MERGE (r:{S.FLEET_ROBOT} {{name: row.name}}) "
-        "ON CREATE SET r.first_seen = row.first_seen, r.last_seen = row.last_seen, r.heard = row.heard, "
-        "r.zid = row.zid, r.routers = row.routers", {"rows": rows})
-    primary.execute(f"MATCH (r:{S.FLEET_ROBOT}) DELETE r")
-
-
-def _zenoh_ids(session: Any) -> tuple[str | None, list[str]]:
-    """The session's own Zenoh id and its routers' (a router-mode session: the routers linked to it)."""
-    try:
-        info = session.info
-        return str(info.zid()), sorted(str(z) for z in info.routers_zid())[:_MAX_ROUTERS]
-    except Exception:  # noqa: BLE001 - zenoh.ZError: the session is closing
-        return None, []

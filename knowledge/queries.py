@@ -13,6 +13,10 @@ models share platforms, and Fig. 4's second MATCH is not joined to its first
 (it returns every deployment executable on the platform whenever the feature
 reaches any component).
 
+Each query declares the graph it reads (``graph``, :class:`kgadapt.knowledge.schema.Graph`): callers pass
+the robot's store and ``run_named`` runs it where that part of the knowledge is (``fleet_roster``: the
+fleet roster's graph beside the robot's, on FalkorDB).
+
 Where a query may be anchored on an optional parameter (``placement`` and
 ``cpu_overload`` on ``config``), ``cypher`` is the anchored text and
 ``when_missing`` holds the text used without it: one index seek instead of a
@@ -62,6 +66,8 @@ class NamedQuery:
     # A hard limit for queries that can run for ever (the paper's literal texts):
     # they always run in a query sandbox, killed when the limit is hit.
     time_limit_ms: int | None = None
+    # The graph it reads (schema.Graph): run_named runs it there, given the robot's store.
+    graph: S.Graph = S.Graph.ROBOT
 
     def text_for(self, values: Mapping[str, Any]) -> str:
         """The Cypher text for these (checked) values."""
@@ -472,7 +478,7 @@ RETURN r.instance AS instance, g.name AS config, r.host AS host, r.pid AS pid,
         "The robots this robot's knowledge service has heard answer or announce on the fleet keys (itself "
         "included), with when it first and last heard them and their Zenoh routers. A fleet question lists "
         "one that does not answer as silent. The parameters are a roll call's: the asking robot announces "
-        "itself, its Zenoh id and its routers (knowledge/fleet.py).",
+        "itself, its Zenoh id and its routers (knowledge/fleet_roster.py).",
         {"announce": Param("str", required=False, help="the asking robot, announcing itself"),
          "zid": Param("str", required=False, help="its knowledge service's Zenoh id"),
          "routers": Param("str", required=False, help="its Zenoh routers' ids, comma-separated")},
@@ -481,6 +487,7 @@ MATCH (r:{S.FLEET_ROBOT})
 RETURN r.name AS robot, r.first_seen AS first_seen, r.last_seen AS last_seen, r.heard AS heard,
        r.zid AS zid, r.routers AS routers
 ORDER BY robot""",
+        graph=S.Graph.FLEET_ROSTER,
     ),
     NamedQuery(
         "fig4_literal",
@@ -566,9 +573,11 @@ def _typed(name: str, key: str, kind: str, value: Any) -> Any:
 
 def run_named(store: GraphStore, name: str, params: Mapping[str, Any] | None = None, *,
               timeout_ms: int | None = None) -> list[dict[str, Any]]:
-    """Check the parameters, then run named query ``name`` read-only; return its rows."""
+    """Check the parameters, then run named query ``name`` read-only on the graph it reads (``store`` is the
+    robot's store: its own graph, or the one beside it that the query's ``graph`` names); return its rows."""
     values = check_params(name, params)
-    return store.execute(get_query(name).text_for(values), values, read_only=True, timeout_ms=timeout_ms)
+    query = get_query(name)
+    return query.graph.store(store).execute(query.text_for(values), values, read_only=True, timeout_ms=timeout_ms)
 
 
 _TRUE = {"true", "yes", "1", "on"}

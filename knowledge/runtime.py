@@ -22,7 +22,7 @@ import math
 from typing import Any, Callable, Mapping, Sequence
 
 from kgadapt.knowledge import schema as S
-from kgadapt.knowledge.fleet import forget_robot
+from kgadapt.knowledge.fleet_roster import forget_robot
 from kgadapt.knowledge.store import GraphStore
 from kgadapt.shared.errors import NamedQueryError, UnknownHost
 
@@ -443,7 +443,7 @@ WRITERS: dict[str, Callable[..., None]] = {
     "live_rate": record_live_rate,
     "decision": record_decision,
     "flight_state": update_flight_control,
-    "fleet_forget": forget_robot,  # the fleet roster (knowledge/fleet.py)
+    "fleet_forget": forget_robot,  # the fleet roster (knowledge/fleet_roster.py)
 }
 
 

@@ -26,7 +26,7 @@ changed model replaces its old version)::
     Marker            name ("site/id"), marker_id, size_m (printed side, m), dictionary,
                       marker_name, position ([north, east, down] m; both optional)
     FleetRobot        name (a robot), first_seen, last_seen, heard ("self"|"answer"|"announce"),
-                      zid, routers (list of Zenoh ids)      (run time: the fleet roster, knowledge/fleet.py)
+                      zid, routers (list of Zenoh ids)      (run time: the fleet roster, knowledge/fleet_roster.py)
 
 Relations (direction matters)::
 
@@ -49,6 +49,11 @@ Relations (direction matters)::
     (AdaptationDecision)-[:CHOSE]->(PerceptionGraph), (AdaptationDecision)-[:PLACED_ON]->(Platform)
     (Site)-[:HAS_MARKER]->(Marker)
 
+Graphs (:class:`Graph`): a robot's knowledge is the store's own graph, except the fleet roster
+(``FleetRobot``), which is written at every roll call: where the backend holds several graphs on one
+server it has a graph of its own beside the robot's, ``<graph>.fleet_roster``, reached only through
+:meth:`Graph.store`; elsewhere it is in the robot's graph.
+
 Late binding: ``Platform`` run-time properties and every ``ProcessProfile``
 figure are unset until known; queries treat a missing figure as unknown.
 Units: memory in MiB (``_mb``), CPU load in percent of one core, times in
@@ -57,7 +62,10 @@ seconds since the epoch (float).
 
 from __future__ import annotations
 
+import enum
+
 from kgadapt.knowledge.store import GraphStore
+from kgadapt.shared.errors import ConfigError
 
 FEATURE = "Feature"
 ILLUMINATION_BAND = "IlluminationBand"
@@ -94,6 +102,34 @@ RAN_CONFIG = "RAN_CONFIG"
 CHOSE = "CHOSE"
 PLACED_ON = "PLACED_ON"
 HAS_MARKER = "HAS_MARKER"
+
+
+class Graph(enum.Enum):
+    """Which of a robot's graphs holds a part of its knowledge (what a named query reads, a write verb writes)."""
+
+    ROBOT = ""  # the store's own graph: models, platforms, processes, decisions
+    # FleetRobot nodes (knowledge/fleet_roster.py). Every roll call writes them, and the query sandboxes copy the
+    # robot's graph again after any write to it: kept in the robot's graph, each roll call made the fleet's
+    # next question to every robot pay a copy (issue 32). So they are kept beside it where the store can.
+    FLEET_ROSTER = ".fleet_roster"
+
+    def store(self, robot_store: GraphStore) -> GraphStore:
+        """Where this part is for the robot whose store is ``robot_store``: that store, or (where the backend
+        holds several graphs, ``capabilities.graphs``) its sibling ``<graph><suffix>`` on the same server,
+        connected at first use and shut down with ``robot_store``. ConfigError when ``robot_store`` is itself
+        such a sibling: what is asked of it would be looked for in a graph that never holds it."""
+        graph = robot_store.settings.graph
+        if graph.endswith(_BESIDE):  # every named query runs through here: one test on the common path
+            kept = next(part for part in Graph if part.value and graph.endswith(part.value))
+            raise ConfigError(f"store {robot_store.url}: graph {graph!r} is a robot's {kept.name.lower()}, "
+                              "not the robot's own graph: give the robot's store")
+        if self is Graph.ROBOT or not robot_store.capabilities.graphs:
+            return robot_store
+        return robot_store.sibling(f"{robot_store.settings.graph}{self.value}")
+
+
+_BESIDE = tuple(part.value for part in Graph if part.value)  # the suffixes of the graphs beside a robot's
+
 
 # Every query starts from a named node; these make that start an index seek.
 INDEXED_NAMES = (

@@ -103,7 +103,8 @@ import zenoh
 from kgadapt.knowledge import queries, runtime
 from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.cypher_guard import CypherLimits, check_cypher
-from kgadapt.knowledge.fleet import ROSTER_QUERY, FleetRoster, RosterSettings
+from kgadapt.knowledge.fleet import ROSTER_QUERY
+from kgadapt.knowledge.fleet_roster import FleetRoster, RosterSettings
 from kgadapt.knowledge.params import check_params
 from kgadapt.knowledge.service_lock import ServiceLock
 from kgadapt.knowledge.store import GraphStore
@@ -184,7 +185,7 @@ class ServiceSettings:
     status_deadband_mb: float = 16.0
     status_deadband_load: float = 10.0
     status_refresh_s: float = 2.0
-    # The fleet roster (knowledge/fleet.py): robots heard on the fleet keys, at most roster_cap; roll
+    # The fleet roster (knowledge/fleet_roster.py): robots heard on the fleet keys, at most roster_cap; roll
     # calls at setup and 5 s later, then every roster_interval_s (0: no more). roster=False: none kept.
     roster: bool = True
     roster_cap: int = 1000
@@ -253,10 +254,9 @@ class KnowledgeService:
         self.sandboxes: list[Any] = []
         self.public_processes: list[Any] = []
         self._sandbox_pool: queue.Queue[Any] = queue.Queue()
-        # Kept apart from the robot's graph wherever its sandboxes copy that graph (see RosterSettings.apart).
+        # Kept where the store keeps it (schema.Graph.FLEET_ROSTER: beside the robot's graph on FalkorDB).
         self.roster = (FleetRoster(store, RosterSettings(robot=settings.robot, cap=settings.roster_cap,
-                                                         interval_s=settings.roster_interval_s,
-                                                         apart=settings.sandbox))
+                                                         interval_s=settings.roster_interval_s))
                        if settings.roster else None)
         # Hosts of the models seen so far, and when each refused one was last looked up (status worker only);
         # the refused names, for stats (under _stats_lock).
@@ -377,12 +377,18 @@ class KnowledgeService:
         else:
             params = {}
         query = queries.QUERIES[name]
-        if name == ROSTER_QUERY and self.roster is not None:
-            self._heard_roll_call(queries.check_params(name, params))
-            # Bounded by the roster's cap, so answered from where the roster is, not from a sandbox: the
-            # roster is not in the robot's graph that sandboxes copy.
+        if query.graph is S.Graph.FLEET_ROSTER:
+            if self.roster is None:  # its graph is not kept up to date: no answer rather than a stale one
+                raise NamedQueryError(f"query {name!r}: the knowledge service of {self.settings.robot} keeps no "
+                                      "fleet roster (ServiceSettings.roster is off)")
+            if name == ROSTER_QUERY:  # a roll call announces its asker
+                self._heard_roll_call(queries.check_params(name, params))
+        if query.graph is not S.Graph.ROBOT:
+            # Not in the robot's graph that sandboxes copy: run_named runs it where it is kept. The roster
+            # is bounded (its cap): it needs no sandbox's time limit either.
             start = time.perf_counter()
-            rows = queries.run_named(self.roster.store, name, params, timeout_ms=self.settings.query_timeout_ms)
+            with self._store_lock:
+                rows = queries.run_named(self.store, name, params, timeout_ms=self.settings.query_timeout_ms)
             return rows_reply(rows, (time.perf_counter() - start) * 1000, f"query {name!r}")
         start = time.perf_counter()
         if public or query.time_limit_ms is not None:
@@ -488,9 +494,8 @@ class KnowledgeService:
             with self._store_lock:
                 if host is not None:
                     check_owner(self.store, verb, params, host=host, manager_host=self.settings.manager_host)
-                # checks names, types and bounds, naming them; the roster's verb where the roster is
-                store = self.roster.store if verb == "fleet_forget" and self.roster is not None else self.store
-                runtime.run_write(store, verb, params)
+                # checks names, types and bounds, naming them; each verb writes where its part is kept
+                runtime.run_write(self.store, verb, params)
         except UnknownHost as exc:
             self._refuse_host(exc.host, f"write {verb!r}")
             raise

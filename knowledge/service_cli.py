@@ -148,7 +148,7 @@ def run_ask(args: argparse.Namespace) -> int:
     try:
         client = KnowledgeClient(session, args.robot, timeout=args.timeout)
         rows = client.query(args.query, params) if args.query else client.cypher(args.cypher, params)
-        reason = _why_empty(client, args.query, params) if not rows else ""
+        reason = _why_empty(client, args.query, params, args.cypher or "") if not rows else ""
     finally:
         session.close()
     if args.json:
@@ -160,14 +160,16 @@ def run_ask(args: argparse.Namespace) -> int:
     return 0
 
 
-def _why_empty(client: Any, query: str | None, params: dict[str, Any]) -> str:
+def _why_empty(client: Any, query: str | None, params: dict[str, Any], cypher: str = "") -> str:
     """Why the service answered nothing (knowledge/empty_answers.py), asked over the same Zenoh session."""
-    from kgadapt.knowledge.empty_answers import explain_empty, store_is_empty
+    from kgadapt.knowledge.empty_answers import explain_empty, roster_outside, store_is_empty
     from kgadapt.knowledge.queries import QUERIES, check_params
 
     where = f"the knowledge service of robot {client.robot}"
     if query is None or query not in QUERIES:  # free Cypher, or a query this checkout does not know
-        return f"{where} holds no models: nothing is loaded there" if store_is_empty(client.query) else ""
+        if store_is_empty(client.query):
+            return f"{where} holds no models: nothing is loaded there"
+        return roster_outside(cypher)  # a likely reason, said as such: the service's backend is not known here
     return explain_empty(query, check_params(query, params), client.query, where=where)
 
 

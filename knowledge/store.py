@@ -92,6 +92,9 @@ class Capabilities:
     read_only: str  # "store": the store's read-only entry point too; "check": our check only
     thread_safe: bool  # one store object may be called from several threads at once
     sandbox: bool  # the graph can be copied into a kgadapt.knowledge.sandbox.QuerySandbox (FalkorDB over RESP)
+    # Several named graphs on one server, each reached by GraphStore.sibling() (FalkorDB over RESP). Where
+    # False the store reaches one graph only, and a robot's knowledge is all in it (schema.Graph).
+    graphs: bool = False
 
 
 def parse_store_url(url: str | None = None) -> StoreSettings:
@@ -229,6 +232,19 @@ class GraphStore(ABC):
         by ``settings.setup_timeout`` where the backend can. Steps must be safe to run twice: a backend that
         restarts a server found hung runs them once more. Nested calls run ``steps`` as they are."""
         return steps(self)
+
+    def sibling(self, graph: str) -> "GraphStore":
+        """The store of graph ``graph`` on the server this store reaches (``capabilities.graphs``).
+
+        Connected at the first call for that graph, then the same object for every caller, shut down by this
+        store's ``shutdown()``. It reaches the server as this store does (a server found gone is started
+        again as this store would) and never stops it. ``graph`` equal to this store's own graph: this store.
+        A backend without several graphs raises ConfigError naming it.
+        """
+        if graph == self.settings.graph:
+            return self
+        raise ConfigError(f"store {self.url}: a {self.settings.kind} store reaches one graph only, "
+                          f"not graph {graph!r} beside its own")
 
     def compact(self) -> None:  # noqa: B027 - optional: only a backend with a durable copy to rewrite has one
         """Make the store's durable copy a snapshot of the graph as it is now (nothing to do where the

@@ -11,9 +11,10 @@ import time
 
 import pytest
 
-from kgadapt.knowledge.fleet import FleetRoster, Heard, RosterSettings, forget_robot
+from kgadapt.knowledge.fleet_roster import FleetRoster, Heard, RosterSettings, forget_robot
 from kgadapt.knowledge.queries import run_named
 from kgadapt.knowledge.runtime import run_write
+from kgadapt.shared import messages
 from kgadapt.shared.errors import MessageError, NamedQueryError
 from kgadapt.shared.session import ZenohSettings, open_session
 from tests.conftest import REPO, free_port
@@ -129,7 +130,7 @@ def test_roll_calls_between_fleet_questions_copy_no_robots_graph_into_its_sandbo
         answer = client.ask("current_placement")
         assert answer.complete and all(a.rows for a in answer.robots)
         for robot in robots[1:]:  # each heard the announcement and wrote its roster meanwhile
-            rows = roster_of(fleet.services[robot].roster.store)
+            rows = roster_of(fleet.stores[robot])
             assert rows[robots[0]]["last_seen"] >= when
     assert _dumps(store) - before == 0
     for robot in robots:  # and the robots' own graphs hold no roster
@@ -140,16 +141,83 @@ def test_a_roster_kept_in_the_robots_graph_is_moved_beside_it(resp_store):
     """A roster an older version kept in the robot's graph is moved into the roster's own graph at open()."""
     resp_store.execute("CREATE (:FleetRobot {name: 'old', first_seen: 1.0, last_seen: 2.0, heard: 'answer', "
                        "routers: ['ab12']})")
-    roster = FleetRoster(resp_store, RosterSettings(robot="me", apart=True))
+    roster = FleetRoster(resp_store, RosterSettings(robot="me"))
     roster.open()
     try:
-        assert roster.store is not resp_store and roster.store.settings.graph.endswith(".fleet_roster")
+        assert roster.store is resp_store.sibling(f"{resp_store.settings.graph}.fleet_roster")
         assert roster.remember("me", how=Heard.SELF, when=3.0)
-        rows = roster_of(roster.store)
+        rows = roster_of(resp_store)  # the named query, given the robot's store, reads the roster's graph
         assert set(rows) == {"old", "me"}
         assert (rows["old"]["first_seen"], rows["old"]["last_seen"], rows["old"]["routers"]) == (1.0, 2.0, ["ab12"])
-        assert roster_of(resp_store) == {}
+        assert resp_store.execute("MATCH (r:FleetRobot) RETURN count(r) AS n")[0]["n"] == 0
     finally:
         roster.store.clear()
         roster.shutdown()
-    assert roster.store is resp_store
+
+
+def test_fleet_roster_and_fleet_forget_run_on_the_robots_store_reach_the_roster_its_service_keeps(fleet):
+    """The store API's named query and write verb, given a robot's store, reach the roster its knowledge service
+    keeps beside the robot's graph: the robots the service heard, and a robot forgotten there is gone from
+    the service's answers."""
+    robots = sorted(fleet.robots)
+    robot = robots[0]
+    service, store = fleet.services[robot], fleet.stores[robot]
+    # Its own robot at setup, the others from the roll calls at their setups (up to 1 s late each).
+    wait_for(lambda: set(roster_of(store)) == set(robots), 15, f"{robot}'s roster, read on its store, to list {robots}")
+    assert service.roster.remember("ghost", how=Heard.ANNOUNCE)
+
+    def served() -> set[str]:
+        return {row["robot"] for row in messages.decode(service.answer_named("fleet_roster", None, public=True),
+                                                         "rows")["rows"]}
+
+    assert "ghost" in served() and "ghost" in roster_of(store)
+    run_write(store, "fleet_forget", {"robot": "ghost"})
+    assert "ghost" not in served() and "ghost" not in roster_of(store)
+    assert store.execute("MATCH (r:FleetRobot) RETURN count(r) AS n")[0]["n"] == 0  # nothing in the robot's graph
+
+
+def test_a_service_that_keeps_no_roster_refuses_fleet_roster_naming_why(resp_store):
+    """Its roster's graph is not kept up to date: an error saying so, never a list that looks like an answer."""
+    from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
+
+    service = KnowledgeService(resp_store, ServiceSettings(robot="me", roster=False, lock=False, sandbox=False))
+    for public in (False, True):
+        with pytest.raises(NamedQueryError, match="keeps no fleet roster"):
+            service.answer_named("fleet_roster", None, public=public)
+
+
+def test_kgadapt_knowledge_query_on_a_served_store_lists_the_robots_its_service_heard(tmp_path):
+    """``kgadapt knowledge query fleet_roster --store`` beside a running ``kgadapt knowledge serve``: the robots
+    the service heard (itself, and a robot that announced itself in a roll call), and after ``kgadapt fleet
+    forget`` not that one. Free Cypher about FleetRobot nodes, which reads the robot's graph, says where they are."""
+    from kgadapt.knowledge.client import KnowledgeClient
+
+    robot, endpoint, store = f"k{os.getpid()}", f"tcp/127.0.0.1:{free_port()}", f"embedded:{tmp_path / 'store'}"
+    done = kgadapt("knowledge", "load", str(REPO / "knowledge" / "models"), "--store", store)
+    assert done.returncode == 0, done.stderr
+    child = Child.kgadapt("serve", ["knowledge", "serve", "--robot", robot, "--store", store, "--listen", endpoint],
+                          tmp_path)
+    try:
+        child.wait_ready(60)
+        session = open_session(ZenohSettings(mode="client", connect=(endpoint,)))
+        try:  # a roll call of another robot: the service remembers it
+            KnowledgeClient(session, robot, timeout=5.0).query("fleet_roster", {"announce": "visitor"}, wait_s=10.0)
+        finally:
+            session.close()
+
+        def listed() -> set[str]:
+            done = kgadapt("knowledge", "query", "fleet_roster", "--store", store, "--json")
+            assert done.returncode == 0, done.stderr
+            return {row["robot"] for row in json.loads(done.stdout)}
+
+        assert listed() == {robot, "visitor"}
+        done = kgadapt("fleet", "--robot", robot, "--connect", endpoint, "forget", "visitor")
+        assert done.returncode == 0, done.stderr
+        assert listed() == {robot}
+        for asked in (["knowledge", "cypher", "--store", store], ["ask", "--robot", robot, "--connect", endpoint,
+                                                                  "--cypher"]):
+            done = kgadapt(*asked, "MATCH (r:FleetRobot) RETURN r.name AS name")
+            assert done.returncode == 0 and "ask the named query fleet_roster" in done.stdout, done.stdout + done.stderr
+    finally:
+        if child.process.poll() is None:
+            child.stop()

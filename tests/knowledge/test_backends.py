@@ -22,7 +22,7 @@ from kgadapt.knowledge import runtime as R
 from kgadapt.knowledge.bolt_store import BoltStore
 from kgadapt.knowledge.dialect import FALKORDB, MEMGRAPH, NEO4J, NEO4J_3, dialect_for_agent
 from kgadapt.knowledge.embedded import EmbeddedServer
-from kgadapt.knowledge.fleet import FleetRoster, Heard, RosterSettings
+from kgadapt.knowledge.fleet_roster import FleetRoster, Heard, RosterSettings
 from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.schema import INDEXED_NAMES, ensure_indexes
 from kgadapt.knowledge.store import open_store, parse_store_url
