@@ -221,3 +221,47 @@ def test_kgadapt_knowledge_query_on_a_served_store_lists_the_robots_its_service_
     finally:
         if child.process.poll() is None:
             child.stop()
+
+
+def test_a_served_robot_exported_and_imported_into_a_fresh_store_keeps_the_robots_its_service_heard(tmp_path):
+    """``kgadapt knowledge export --format cypher`` of a robot whose ``kgadapt knowledge serve`` heard another
+    robot, then ``kgadapt knowledge import`` into a new embedded store: ``fleet_roster`` there lists both (the
+    roster is kept beside the robot's graph on FalkorDB, and an export once held the robot's graph alone)."""
+    from kgadapt.knowledge.client import KnowledgeClient
+
+    robot, endpoint, store = f"x{os.getpid()}", f"tcp/127.0.0.1:{free_port()}", f"embedded:{tmp_path / 'store'}"
+    done = kgadapt("knowledge", "load", str(REPO / "knowledge" / "models"), "--store", store)
+    assert done.returncode == 0, done.stderr
+    child = Child.kgadapt("serve", ["knowledge", "serve", "--robot", robot, "--store", store, "--listen", endpoint],
+                          tmp_path)
+    try:
+        child.wait_ready(60)
+        session = open_session(ZenohSettings(mode="client", connect=(endpoint,)))
+        try:  # a roll call of another robot: the service remembers it
+            KnowledgeClient(session, robot, timeout=5.0).query("fleet_roster", {"announce": "visitor"}, wait_s=10.0)
+        finally:
+            session.close()
+    finally:
+        if child.process.poll() is None:
+            child.stop()
+
+    def listed(where: str) -> list[dict]:
+        done = kgadapt("knowledge", "query", "fleet_roster", "--store", where, "--json")
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout)
+
+    heard = listed(store)
+    assert {row["robot"] for row in heard} == {robot, "visitor"}
+    backup, fresh = tmp_path / "robot.cypher", f"embedded:{tmp_path / 'fresh'}"
+    done = kgadapt("knowledge", "export", "--format", "cypher", "-o", str(backup), "--store", store)
+    assert done.returncode == 0, done.stderr
+    done = kgadapt("knowledge", "import", str(backup), "--store", fresh, "--json")
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["nodes"]["fleet_roster"] == 2
+    assert listed(fresh) == heard
+    for asked in ("platforms", "detector_configs"):  # the robot's own graph came along too
+        rows = [kgadapt("knowledge", "query", asked, "--store", where, "--json").stdout for where in (store, fresh)]
+        assert rows[0] == rows[1] and json.loads(rows[0])
+    done = kgadapt("knowledge", "import", str(backup), "--store", fresh)  # the same again: refused, nothing doubled
+    assert done.returncode != 0 and "is not empty" in done.stderr, done.stdout + done.stderr
+    assert listed(fresh) == heard
