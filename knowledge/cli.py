@@ -1,4 +1,4 @@
-"""``kgadapt knowledge``: load models, ask named queries, run read-only Cypher, export the graph.
+"""``kgadapt knowledge``: load models, ask named queries, run read-only Cypher, export and import a robot's knowledge.
 
 Every subcommand takes ``--store URL`` (default ``$KGADAPT_STORE``, else the
 embedded store in the user's data directory); ``--json`` where the output is
@@ -71,13 +71,26 @@ def register(subparsers: Any) -> Any:
     _store_arg(cypher)
     cypher.set_defaults(func=_cypher)
 
-    export = sub.add_parser("export", help="export the graph as Graphviz dot or as Cypher statements",
-                            description="dot: to look at (dot -Tsvg). cypher: statements that recreate the graph "
-                                        "in an empty store, e.g. a Memgraph server (one per line).")
+    export = sub.add_parser("export", help="export the robot's knowledge as Graphviz dot or as Cypher statements",
+                            description="Every part of the robot's knowledge: its graph and its fleet roster (on "
+                                        "FalkorDB a graph beside it). dot: to look at (dot -Tsvg). cypher: "
+                                        "statements that recreate it in an empty store (one per line): kgadapt "
+                                        "knowledge import, or a console of e.g. a Memgraph server.")
     export.add_argument("--format", choices=("dot", "cypher"), default="dot", help="output format (default dot)")
     export.add_argument("--output", "-o", metavar="FILE", help="write here instead of standard output")
     _store_arg(export)
     export.set_defaults(func=_export)
+
+    restore = sub.add_parser("import", help="recreate a robot's knowledge from a Cypher export, in an empty store",
+                             description="Run a script of 'kgadapt knowledge export --format cypher' on an empty "
+                                         "store, each part where that store keeps it (the fleet roster beside the "
+                                         "robot's graph on FalkorDB, in it elsewhere); an export of an older "
+                                         "version too. A statement the store refuses is named by its line, and "
+                                         "the store is left empty again.")
+    restore.add_argument("file", metavar="FILE", help="the exported script ('-': standard input)")
+    restore.add_argument("--json", action="store_true", help="print the counts as JSON")
+    _store_arg(restore)
+    restore.set_defaults(func=_import)
     return sub  # kgadapt.knowledge.service_cli adds serve (the command registry, kgadapt/cli.py)
 
 
@@ -219,4 +232,24 @@ def _export(args: argparse.Namespace) -> int:
             raise ConfigError(f"cannot write {args.output}: {exc.strerror or exc}") from exc
     else:
         sys.stdout.write(text)
+    return 0
+
+
+def _import(args: argparse.Namespace) -> int:
+    from kgadapt.knowledge.export import node_counts, restore
+
+    source = "<stdin>" if args.file == "-" else args.file
+    try:
+        script = sys.stdin.read() if args.file == "-" else Path(args.file).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise ConfigError(f"cannot read {source}: {reason}") from exc
+    with open_store(args.store) as store:
+        statements = restore(store, script, source=source)
+        counts = node_counts(store)
+    if args.json:
+        _print_json({"statements": statements, "nodes": counts, "store": store.url})
+    else:
+        print(f"imported {source} into store {store.url}: {statements} statements; nodes "
+              + ", ".join(f"{part} {count}" for part, count in counts.items()))
     return 0

@@ -1,4 +1,12 @@
-"""Export the knowledge graph: Graphviz ``dot`` to look at, or Cypher to recreate it elsewhere.
+"""Export a robot's knowledge: Graphviz ``dot`` to look at, or Cypher to recreate it elsewhere.
+
+A robot's knowledge is in one or more graphs (:class:`kgadapt.knowledge.schema.Graph`: on FalkorDB over RESP
+its fleet roster has a graph of its own beside the robot's); an export holds every part, each under a line
+``// kgadapt graph PART: ...`` (``robot``, ``fleet_roster``), so that :func:`import_script` (``kgadapt
+knowledge import``) puts each part where the store it restores into keeps it. A console fed the whole
+script puts every part in one graph, where a store of one graph (Memgraph, Neo4j) keeps them all. A script
+without such lines (written before the roster had a graph of its own) is the robot's graph; a roster found
+in it is moved where the store keeps the roster.
 
 The Cypher export is the one place kgadapt writes values as literals: it is a
 script for another store (e.g. a Memgraph server) fed by a console, where
@@ -11,41 +19,73 @@ One statement per line, each ending in ``;``; ``//`` lines are comments.
 from __future__ import annotations
 
 import re
-from typing import Any, Iterator
+from typing import Any, Iterator, NamedTuple
 
 from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.params import cypher_literal as literal
 from kgadapt.knowledge.store import GraphStore
-from kgadapt.shared.errors import ConfigError
+from kgadapt.shared.errors import ConfigError, KgadaptError, QueryError, StoreUnavailable
 
 FORMATS = ("dot", "cypher")
-# A temporary label and key that tie relations to the nodes created by the same script.
+# A temporary label and key that tie relations to the nodes created by the same part of a script.
 EXPORT_LABEL = "KgadaptExport"
 EXPORT_KEY = "export_id"
+PART_LINE = "// kgadapt graph "  # then the part's name (schema.Graph, lower case), ":" and its counts
 _IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _PRIMARY = (S.FEATURE, S.ILLUMINATION_BAND, S.PERCEPTION_GRAPH, S.COMPONENT, S.PORT, S.DEPLOYMENT,
-            S.PLATFORM, S.PROCESS_PROFILE, S.ADAPTATION_DECISION, S.SITE, S.MARKER)
+            S.PLATFORM, S.PROCESS_PROFILE, S.ADAPTATION_DECISION, S.SITE, S.MARKER, S.FLEET_ROBOT)
 _COLOURS = {S.FEATURE: "#f4d03f", S.ILLUMINATION_BAND: "#f9e79f", S.PERCEPTION_GRAPH: "#5dade2",
             S.COMPONENT: "#aed6f1", S.PORT: "#eaeded", S.DEPLOYMENT: "#82e0aa", S.PLATFORM: "#f5b041",
             S.PROCESS_PROFILE: "#d7bde2", S.ADAPTATION_DECISION: "#f1948a", S.SITE: "#a3e4d7",
-            S.MARKER: "#d0ece7"}
+            S.MARKER: "#d0ece7", S.FLEET_ROBOT: "#cacfd2"}
 
 
-def snapshot(store: GraphStore) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Every node (id, labels, props) and relation (source, target, type, props), in id order."""
-    nodes = store.execute("MATCH (n) RETURN id(n) AS id, labels(n) AS labels, properties(n) AS props "
-                          "ORDER BY id", read_only=True)
-    edges = store.execute("MATCH (a)-[r]->(b) RETURN id(r) AS id, id(a) AS source, id(b) AS target, "
-                          "type(r) AS type, properties(r) AS props ORDER BY id", read_only=True)
-    return nodes, edges
+class Part(NamedTuple):
+    """One part of a robot's knowledge as read: which part, its nodes and its relations."""
+
+    graph: S.Graph
+    nodes: list[dict[str, Any]]
+    edges: list[dict[str, Any]]
+
+
+def part_name(part: S.Graph) -> str:
+    return part.name.lower()
+
+
+def snapshot(store: GraphStore, part: S.Graph = S.Graph.ROBOT) -> Part:
+    """Every node (id, labels, props) and relation (source, target, type, props) of ``part`` of the robot whose
+    store is ``store``, in id order: the graph that holds it, or, where that graph holds other parts too (a
+    store of one graph), its nodes told apart by label."""
+    graph = part.store(store)
+    nodes = graph.execute(f"MATCH (n) {_where(part, store, 'n')} RETURN id(n) AS id, labels(n) AS labels, "
+                          "properties(n) AS props ORDER BY id", read_only=True)
+    edges = graph.execute(f"MATCH (a)-[r]->(b) {_where(part, store, 'a', 'b')} RETURN id(r) AS id, "
+                          "id(a) AS source, id(b) AS target, type(r) AS type, properties(r) AS props ORDER BY id",
+                          read_only=True)
+    return Part(part, nodes, edges)
+
+
+def _where(part: S.Graph, store: GraphStore, *variables: str) -> str:
+    """``WHERE`` the nodes bound to ``variables`` are of ``part``, or "" where its graph holds it alone (labels
+    are the schema's names, never values)."""
+    graph = part.store(store)
+    others = [other for other in S.Graph if other is not part and other.store(store) is graph]
+    if not others:
+        return ""
+    if part.labels:
+        return "WHERE " + " AND ".join("(" + " OR ".join(f"{var}:{name(label)}" for label in part.labels) + ")"
+                                       for var in variables)
+    kept = [label for other in others for label in other.labels]  # the robot's part: whatever no other holds
+    return "WHERE " + " AND ".join("NOT (" + " OR ".join(f"{var}:{name(label)}" for label in kept) + ")"
+                                   for var in variables)
 
 
 def export(store: GraphStore, fmt: str) -> str:
-    """The whole graph in format ``fmt`` ("dot" or "cypher")."""
+    """Every part of the robot's knowledge whose store is ``store``, in format ``fmt`` ("dot" or "cypher")."""
     if fmt not in FORMATS:
         raise ConfigError(f"export format {fmt!r}: use one of {', '.join(FORMATS)}")
-    nodes, edges = snapshot(store)
-    return to_dot(nodes, edges) if fmt == "dot" else to_cypher(nodes, edges)
+    parts = [snapshot(store, part) for part in S.Graph]
+    return to_dot(parts) if fmt == "dot" else to_cypher(parts)
 
 
 # --- Cypher ---------------------------------------------------------------
@@ -62,41 +102,100 @@ def _map(props: dict[str, Any]) -> str:
     return "{" + ", ".join(items) + "}"
 
 
-def to_cypher(nodes: list[dict[str, Any]], edges: list[dict[str, Any]]) -> str:
-    """Statements that recreate the graph in an empty store (one per line)."""
-    lines = [f"// kgadapt knowledge export: {len(nodes)} nodes, {len(edges)} relations.",
-             "// Run on an empty graph, one statement per line.",
+def to_cypher(parts: list[Part]) -> str:
+    """Statements that recreate the parts in an empty store (one per line), each part under its line."""
+    nodes, edges = sum(len(p.nodes) for p in parts), sum(len(p.edges) for p in parts)
+    lines = [f"// kgadapt knowledge export: {nodes} nodes, {edges} relations.",
+             "// Run on an empty store, one statement per line: kgadapt knowledge import puts each part in the "
+             "graph its store keeps it in; a console fed it all puts every part in one graph.",
              ]
-    for node in nodes:
+    for part in parts:
+        lines.append(f"{PART_LINE}{part_name(part.graph)}: {len(part.nodes)} nodes, {len(part.edges)} relations")
+        lines.extend(_statements(part))
+    return "\n".join(lines) + "\n"
+
+
+def _statements(part: Part) -> list[str]:
+    lines = []
+    for node in part.nodes:
         labels = "".join(":" + name(label) for label in node["labels"]) + f":{EXPORT_LABEL}"
         props = {EXPORT_KEY: node["id"], **(node["props"] or {})}
         lines.append(f"CREATE ({labels} {_map(props)});")
-    for edge in edges:
+    for edge in part.edges:
         props = edge["props"] or {}
         body = f" {_map(props)}" if props else ""
         lines.append(
             f"MATCH (a:{EXPORT_LABEL} {{{EXPORT_KEY}: {edge['source']}}}), "
             f"(b:{EXPORT_LABEL} {{{EXPORT_KEY}: {edge['target']}}}) "
             f"CREATE (a)-[:{name(edge['type'])}{body}]->(b);")
-    lines.append(f"MATCH (n:{EXPORT_LABEL}) REMOVE n:{EXPORT_LABEL} REMOVE n.{EXPORT_KEY};")
-    return "\n".join(lines) + "\n"
+    if part.nodes:  # each part's ids are its graph's: a part's temporary keys are gone before the next part's
+        lines.append(f"MATCH (n:{EXPORT_LABEL}) REMOVE n:{EXPORT_LABEL} REMOVE n.{EXPORT_KEY};")
+    return lines
 
 
-def statements(script: str) -> Iterator[str]:
-    """The statements of an exported script (comments and blank lines skipped)."""
-    for line in script.split("\n"):
+def statements(script: str, source: str = "script") -> Iterator[tuple[S.Graph, int, str]]:
+    """The statements of an exported script: (the part they belong to, line number, statement), comments
+    and blank lines skipped. ConfigError naming ``source`` and the line for a part this version does not know."""
+    part = S.Graph.ROBOT  # a script without part lines: the robot's graph
+    parts = {part_name(graph): graph for graph in S.Graph}
+    for number, line in enumerate(script.split("\n"), 1):
         line = line.strip()
-        if line and not line.startswith("//"):
-            yield line[:-1] if line.endswith(";") else line
+        if line.startswith(PART_LINE):
+            named = line[len(PART_LINE):].partition(":")[0].strip()
+            if named not in parts:
+                raise ConfigError(f"{source}:{number}: unknown part {named!r} of a robot's knowledge "
+                                  f"(known: {', '.join(parts)})")
+            part = parts[named]
+        elif line and not line.startswith("//"):
+            yield part, number, line[:-1] if line.endswith(";") else line
 
 
-def import_script(store: GraphStore, script: str) -> int:
-    """Run an exported script against ``store``; return the number of statements."""
+def import_script(store: GraphStore, script: str, *, source: str = "script") -> int:
+    """Run an exported script against the robot's store ``store``, each part in the graph that store keeps it
+    in; a roster found in the robot's graph (a script of an older version) is then moved where the store keeps
+    it. The number of statements; QueryError naming ``source`` and the line of a statement the store refused."""
+    from kgadapt.knowledge.fleet_roster import move_roster
+
     count = 0
-    for statement in statements(script):
-        store.execute(statement)
+    for part, number, statement in list(statements(script, source)):  # a script naming an unknown part: nothing run
+        try:
+            part.store(store).execute(statement)
+        except QueryError as exc:
+            raise QueryError(f"{source}:{number}: {exc}") from exc
         count += 1
+    roster = S.Graph.FLEET_ROSTER.store(store)
+    if roster is not store:
+        move_roster(store, roster)
     return count
+
+
+def restore(store: GraphStore, script: str, *, source: str = "script") -> int:
+    """:func:`import_script` into a store that holds nothing of a robot yet (ConfigError naming what it holds);
+    a statement refused leaves it empty again, as it was, and raises naming the line."""
+    held = {part: count for part, count in node_counts(store).items() if count}
+    if held:
+        what = ", ".join(f"{count} nodes in its {part}" for part, count in held.items())
+        raise ConfigError(f"store {store.url} is not empty ({what}): import into an empty store, e.g. "
+                          "--store embedded:NEW_DIR")
+    try:
+        return import_script(store, script, source=source)
+    except BaseException as exc:
+        try:
+            store.clear()  # it was empty: nothing half-written stays
+        except KgadaptError as again:
+            raise StoreUnavailable(f"{exc}; emptying store {store.url} again failed too ({again}): it holds part "
+                                   "of the import") from exc
+        raise
+
+
+def node_counts(store: GraphStore) -> dict[str, int]:
+    """How many nodes each part of the robot's knowledge holds, by part name."""
+    counts = {}
+    for part in S.Graph:
+        rows = part.store(store).execute(f"MATCH (n) {_where(part, store, 'n')} RETURN count(n) AS n",
+                                         read_only=True)
+        counts[part_name(part)] = int(rows[0]["n"]) if rows else 0
+    return counts
 
 
 # --- dot ------------------------------------------------------------------
@@ -105,19 +204,23 @@ def _dot_text(text: str) -> str:
     return text.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
 
 
-def to_dot(nodes: list[dict[str, Any]], edges: list[dict[str, Any]]) -> str:
+def to_dot(parts: list[Part]) -> str:
     """A Graphviz digraph: one box per node (its main label and name), one arrow per relation."""
     out = ["digraph kgadapt {", "  rankdir=LR;",
            '  node [shape=box, style="rounded,filled", fontname="Helvetica", fontsize=10];',
            '  edge [fontname="Helvetica", fontsize=8];']
-    for node in nodes:
-        labels = node["labels"] or []
-        primary = next((label for label in _PRIMARY if label in labels), labels[0] if labels else "")
-        props = node["props"] or {}
-        title = str(props.get("name", node["id"]))
-        colour = _COLOURS.get(primary, "#ffffff")
-        out.append(f'  n{node["id"]} [label="{_dot_text(primary)}\\n{_dot_text(title)}", fillcolor="{colour}"];')
-    for edge in edges:
-        out.append(f'  n{edge["source"]} -> n{edge["target"]} [label="{_dot_text(edge["type"])}"];')
+    for part in parts:
+        # Ids are per graph: the parts kept beside the robot's graph get their own prefix.
+        prefix = "n" if part.graph is S.Graph.ROBOT else f"{part_name(part.graph)}_n"
+        for node in part.nodes:
+            labels = node["labels"] or []
+            primary = next((label for label in _PRIMARY if label in labels), labels[0] if labels else "")
+            props = node["props"] or {}
+            title = str(props.get("name", node["id"]))
+            colour = _COLOURS.get(primary, "#ffffff")
+            out.append(f'  {prefix}{node["id"]} [label="{_dot_text(primary)}\\n{_dot_text(title)}", '
+                       f'fillcolor="{colour}"];')
+        for edge in part.edges:
+            out.append(f'  {prefix}{edge["source"]} -> {prefix}{edge["target"]} [label="{_dot_text(edge["type"])}"];')
     out.append("}")
     return "\n".join(out) + "\n"

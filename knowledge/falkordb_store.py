@@ -368,6 +368,19 @@ class FalkorDBStore(GraphStore):
             log.warning("FalkorDB at %s: cannot rewrite the append-only file: %s", self.settings.url, exc)
 
     def clear(self) -> None:
+        """Delete this graph and, when it is a robot's, the graphs that hold the rest of that robot's knowledge
+        beside it (schema.Graph: its fleet roster). Other graphs on the server are left as they are; a
+        sibling's clear deletes its own graph alone."""
+        self._delete_graph()
+        from kgadapt.knowledge.schema import Graph, is_beside  # the schema knows the store, not the other way round
+
+        if is_beside(self.settings.graph):
+            return
+        for part in Graph:
+            if part is not Graph.ROBOT and self.redis.exists(part.beside(self.settings.graph)):
+                part.store(self).clear()  # the sibling's own graph alone
+
+    def _delete_graph(self) -> None:
         if self._graph is None or self._db is None:
             raise StoreUnavailable("store is not set up; call setup() first")
         try:

@@ -121,7 +121,7 @@ class FleetRoster:
         if self._opened:
             return
         if self.store is not self.primary:
-            _move_roster(self.primary, self.store)
+            move_roster(self.primary, self.store)
         self._opened = True
 
     def setup(self, session: Any) -> None:
@@ -227,8 +227,10 @@ class FleetRoster:
                 log.warning("fleet roll call of %s: %s", self.settings.robot, exc)
 
 
-def _move_roster(primary: Any, roster: Any) -> None:
-    """Move a roster kept in the robot's graph (before it had a graph of its own) into the roster's graph."""
+def move_roster(primary: Any, roster: Any) -> None:
+    """Move a roster kept in the robot's graph (before it had a graph of its own) into the roster's graph: at a
+    service's setup, and after an import of an export of that time (knowledge/export.py). A robot in both keeps
+    what the roster's graph says of it."""
     # Read only: a MATCH ... DELETE that finds nothing still counts as a write to the robot's graph.
     rows = primary.execute(f"MATCH (r:{S.FLEET_ROBOT}) RETURN r.name AS name, r.first_seen AS first_seen, "
                            "r.last_seen AS last_seen, r.heard AS heard, r.zid AS zid, r.routers AS routers",

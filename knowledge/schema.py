@@ -125,10 +125,27 @@ class Graph(enum.Enum):
                               "not the robot's own graph: give the robot's store")
         if self is Graph.ROBOT or not robot_store.capabilities.graphs:
             return robot_store
-        return robot_store.sibling(f"{robot_store.settings.graph}{self.value}")
+        return robot_store.sibling(self.beside(robot_store.settings.graph))
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        """The labels of the nodes this part holds; ROBOT: () (every node no other part holds). What tells the
+        parts apart where a store keeps them all in one graph (an export, knowledge/export.py)."""
+        return _LABELS.get(self, ())
+
+    def beside(self, robot_graph: str) -> str:
+        """The name of the graph that holds this part beside the robot's graph ``robot_graph`` on a store of
+        several graphs (ROBOT: ``robot_graph`` itself)."""
+        return f"{robot_graph}{self.value}"
 
 
 _BESIDE = tuple(part.value for part in Graph if part.value)  # the suffixes of the graphs beside a robot's
+_LABELS = {Graph.FLEET_ROSTER: (FLEET_ROBOT,)}
+
+
+def is_beside(graph: str) -> bool:
+    """True when ``graph`` is one of the graphs kept beside a robot's (a part of its knowledge), not a robot's."""
+    return graph.endswith(_BESIDE)
 
 
 # Every query starts from a named node; these make that start an index seek.

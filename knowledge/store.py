@@ -255,7 +255,9 @@ class GraphStore(ABC):
         self.execute("RETURN 1 AS one", read_only=True)
 
     def clear(self) -> None:
-        """Delete the whole graph (tests and benchmarks)."""
+        """Delete the robot's knowledge this store reaches (tests, benchmarks, ``kgadapt demo --queries``): its
+        graph, and on a backend of several graphs those kept beside it (schema.Graph: the fleet roster);
+        other graphs on the server stay. On a store of one graph: everything in it."""
         self.execute("MATCH (n) DETACH DELETE n")
 
     def __enter__(self) -> "GraphStore":

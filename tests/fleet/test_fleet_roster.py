@@ -3,11 +3,13 @@ gone is listed as silent by a fleet question that names no robot, until an opera
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import sys
 import time
+from typing import Iterator
 
 import pytest
 
@@ -186,13 +188,13 @@ def test_a_service_that_keeps_no_roster_refuses_fleet_roster_naming_why(resp_sto
             service.answer_named("fleet_roster", None, public=public)
 
 
-def test_kgadapt_knowledge_query_on_a_served_store_lists_the_robots_its_service_heard(tmp_path):
-    """``kgadapt knowledge query fleet_roster --store`` beside a running ``kgadapt knowledge serve``: the robots
-    the service heard (itself, and a robot that announced itself in a roll call), and after ``kgadapt fleet
-    forget`` not that one. Free Cypher about FleetRobot nodes, which reads the robot's graph, says where they are."""
+@contextlib.contextmanager
+def served_robot_that_heard_a_visitor(tmp_path, robot: str) -> Iterator[tuple[str, str]]:
+    """``kgadapt knowledge serve`` of ``robot`` on a new embedded store with the shipped models, after a roll call
+    of robot ``visitor`` reached it (so its roster remembers it): (store URL, endpoint); stopped after."""
     from kgadapt.knowledge.client import KnowledgeClient
 
-    robot, endpoint, store = f"k{os.getpid()}", f"tcp/127.0.0.1:{free_port()}", f"embedded:{tmp_path / 'store'}"
+    endpoint, store = f"tcp/127.0.0.1:{free_port()}", f"embedded:{tmp_path / 'store'}"
     done = kgadapt("knowledge", "load", str(REPO / "knowledge" / "models"), "--store", store)
     assert done.returncode == 0, done.stderr
     child = Child.kgadapt("serve", ["knowledge", "serve", "--robot", robot, "--store", store, "--listen", endpoint],
@@ -204,20 +206,54 @@ def test_kgadapt_knowledge_query_on_a_served_store_lists_the_robots_its_service_
             KnowledgeClient(session, robot, timeout=5.0).query("fleet_roster", {"announce": "visitor"}, wait_s=10.0)
         finally:
             session.close()
+        yield store, endpoint
+    finally:
+        if child.process.poll() is None:
+            child.stop()
 
-        def listed() -> set[str]:
-            done = kgadapt("knowledge", "query", "fleet_roster", "--store", store, "--json")
-            assert done.returncode == 0, done.stderr
-            return {row["robot"] for row in json.loads(done.stdout)}
 
-        assert listed() == {robot, "visitor"}
+def listed(store: str) -> list[dict]:
+    """``kgadapt knowledge query fleet_roster --store STORE --json``: the roster's rows."""
+    done = kgadapt("knowledge", "query", "fleet_roster", "--store", store, "--json")
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def test_kgadapt_knowledge_query_on_a_served_store_lists_the_robots_its_service_heard(tmp_path):
+    """``kgadapt knowledge query fleet_roster --store`` beside a running ``kgadapt knowledge serve``: the robots
+    the service heard (itself, and a robot that announced itself in a roll call), and after ``kgadapt fleet
+    forget`` not that one. Free Cypher about FleetRobot nodes, which reads the robot's graph, says where they are."""
+    robot = f"k{os.getpid()}"
+    with served_robot_that_heard_a_visitor(tmp_path, robot) as (store, endpoint):
+        assert {row["robot"] for row in listed(store)} == {robot, "visitor"}
         done = kgadapt("fleet", "--robot", robot, "--connect", endpoint, "forget", "visitor")
         assert done.returncode == 0, done.stderr
-        assert listed() == {robot}
+        assert {row["robot"] for row in listed(store)} == {robot}
         for asked in (["knowledge", "cypher", "--store", store], ["ask", "--robot", robot, "--connect", endpoint,
                                                                   "--cypher"]):
             done = kgadapt(*asked, "MATCH (r:FleetRobot) RETURN r.name AS name")
             assert done.returncode == 0 and "ask the named query fleet_roster" in done.stdout, done.stdout + done.stderr
-    finally:
-        if child.process.poll() is None:
-            child.stop()
+
+
+def test_a_served_robot_exported_and_imported_into_a_fresh_store_keeps_the_robots_its_service_heard(tmp_path):
+    """``kgadapt knowledge export --format cypher`` of a robot whose ``kgadapt knowledge serve`` heard another
+    robot, then ``kgadapt knowledge import`` into a new embedded store: ``fleet_roster`` there lists both (the
+    roster is kept beside the robot's graph on FalkorDB, and an export once held the robot's graph alone)."""
+    robot = f"x{os.getpid()}"
+    with served_robot_that_heard_a_visitor(tmp_path, robot) as (store, _):
+        pass
+    heard = listed(store)
+    assert {row["robot"] for row in heard} == {robot, "visitor"}
+    backup, fresh = tmp_path / "robot.cypher", f"embedded:{tmp_path / 'fresh'}"
+    done = kgadapt("knowledge", "export", "--format", "cypher", "-o", str(backup), "--store", store)
+    assert done.returncode == 0, done.stderr
+    done = kgadapt("knowledge", "import", str(backup), "--store", fresh, "--json")
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["nodes"]["fleet_roster"] == 2
+    assert listed(fresh) == heard
+    for asked in ("platforms", "detector_configs"):  # the robot's own graph came along too
+        rows = [kgadapt("knowledge", "query", asked, "--store", where, "--json").stdout for where in (store, fresh)]
+        assert rows[0] == rows[1] and json.loads(rows[0])
+    done = kgadapt("knowledge", "import", str(backup), "--store", fresh)  # the same again: refused, nothing doubled
+    assert done.returncode != 0 and "is not empty" in done.stderr, done.stdout + done.stderr
+    assert listed(fresh) == heard

@@ -117,7 +117,7 @@ def test_export_writes_cypher_to_a_file_and_dot_to_standard_output(cli_store, tm
 
 @pytest.mark.parametrize("args", [
     ("knowledge",), ("knowledge", "load"), ("knowledge", "query"), ("knowledge", "queries"),
-    ("knowledge", "cypher"), ("knowledge", "export"), ("demo",),
+    ("knowledge", "cypher"), ("knowledge", "export"), ("knowledge", "import"), ("demo",),
 ])
 def test_every_subcommand_has_help_with_a_store_option(args):
     result = kgadapt(*args, "--help")

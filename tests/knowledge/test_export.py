@@ -7,7 +7,11 @@ import pytest
 from kgadapt.knowledge import export as E
 from kgadapt.knowledge import runtime as R
 from kgadapt.knowledge.falkordb_store import FalkorDBStore
+from kgadapt.knowledge.fleet_roster import FleetRoster, Heard, RosterSettings
+from kgadapt.knowledge.loader import load_models
+from kgadapt.knowledge.queries import run_named
 from kgadapt.knowledge.store import StoreSettings
+from kgadapt.shared.errors import ConfigError, QueryError
 
 from .conftest import counts, signature
 
@@ -80,3 +84,73 @@ def test_dot_export_draws_every_node_and_relation(known_store):
     assert text.count(" -> ") == edges
     assert '[label="PerceptionGraph\\ng_a"' in text
     assert '[label="EXECUTABLE_ON"]' in text
+
+
+def _robots_graph(store) -> list[tuple]:
+    """The signature of the robot's own knowledge, the roster left out (where it is depends on the backend)."""
+    return [entry for entry in signature(store) if entry[0] != "node" or "FleetRobot" not in entry[1]]
+
+
+@pytest.mark.parametrize("source, target", [("resp", "resp"), ("resp", "bolt"), ("bolt", "resp"), ("bolt", "bolt")])
+def test_an_export_restores_the_robots_fleet_roster_in_a_fresh_store_of_either_backend(request, known_dir, source,
+                                                                                        target):
+    """What the robot's roster heard comes back from its export, wherever either store keeps the roster (FalkorDB
+    over RESP: a graph beside the robot's; Bolt: in it)."""
+    origin = request.getfixturevalue(f"{source}_store")
+    load_models(origin, [known_dir])
+    roster = FleetRoster(origin, RosterSettings(robot="me"))
+    roster.open()
+    roster.remember("me", how=Heard.SELF, when=1.0, zid="aa01", routers=["bb02"])
+    roster.remember("quad2", how=Heard.ANSWER, when=2.0, zid="cc03", routers=["bb02", "dd04"])
+    roster.remember("quad3", how=Heard.ANNOUNCE, when=3.0)
+    heard, robots_graph = run_named(origin, "fleet_roster"), _robots_graph(origin)
+    assert len(heard) == 3
+    script = E.export(origin, "cypher")
+    assert "// kgadapt graph fleet_roster: 3 nodes, 0 relations" in script
+
+    fresh = request.getfixturevalue("empty_graph" if target == "resp" else "bolt_store")
+    if fresh is origin:
+        fresh.clear()
+        assert run_named(fresh, "fleet_roster") == []
+    E.restore(fresh, script)
+    assert run_named(fresh, "fleet_roster") == heard
+    assert _robots_graph(fresh) == robots_graph
+    in_graph = fresh.execute("MATCH (r:FleetRobot) RETURN count(r) AS n")[0]["n"]
+    assert in_graph == (0 if fresh.capabilities.graphs else 3)
+    assert fresh.execute("MATCH (n:KgadaptExport) RETURN count(n) AS n")[0]["n"] == 0
+
+
+OLDER_EXPORT = """// kgadapt knowledge export: 2 nodes, 0 relations.
+// Run on an empty graph, one statement per line.
+CREATE (:Platform:KgadaptExport {export_id: 0, name: 'onboard', memory_total_mb: 1024});
+CREATE (:FleetRobot:KgadaptExport {export_id: 1, name: 'quad2', first_seen: 1.0, last_seen: 2.0, heard: 'answer', \
+routers: ['ab12']});
+MATCH (n:KgadaptExport) REMOVE n:KgadaptExport REMOVE n.export_id;
+""".replace("\\\n", "")
+
+
+def test_an_export_of_an_older_version_imports_with_its_roster_where_the_store_keeps_it(empty_graph):
+    """Before the roster had a graph of its own an export had no parts, the roster in the robot's graph."""
+    assert E.restore(empty_graph, OLDER_EXPORT) == 3
+    assert [(r["robot"], r["heard"], r["routers"]) for r in run_named(empty_graph, "fleet_roster")] == [
+        ("quad2", "answer", ["ab12"])]
+    assert empty_graph.execute("MATCH (n) RETURN labels(n) AS l, n.name AS name") == [
+        {"l": ["Platform"], "name": "onboard"}]
+
+
+def test_an_import_refused_midway_names_the_line_and_leaves_the_store_empty(resp_store):
+    script = E.to_cypher([E.Part(E.S.Graph.ROBOT, [], []),
+                          E.Part(E.S.Graph.FLEET_ROSTER, [{"id": 0, "labels": ["FleetRobot"], "props": {"name": "q"}}],
+                                 [])])
+    broken = script + "CREATE (:Platform {name: 'x', oops: });\n"
+    with pytest.raises(QueryError, match=r"^backup\.cypher:7: store rejected"):
+        E.restore(resp_store, broken, source="backup.cypher")
+    assert E.node_counts(resp_store) == {"robot": 0, "fleet_roster": 0}
+    with pytest.raises(ConfigError, match=r"backup\.cypher:4: unknown part 'wings'"):
+        E.restore(resp_store, script.replace("graph fleet_roster", "graph wings"), source="backup.cypher")
+    assert E.node_counts(resp_store) == {"robot": 0, "fleet_roster": 0}  # nothing run, not even the parts before
+
+    E.restore(resp_store, script)
+    with pytest.raises(ConfigError, match=r"is not empty \(1 nodes in its fleet_roster\)"):
+        E.restore(resp_store, script)
+    assert run_named(resp_store, "fleet_roster")[0]["robot"] == "q"

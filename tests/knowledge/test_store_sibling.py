@@ -97,3 +97,51 @@ def test_a_sibling_given_as_a_robots_store_is_refused_naming_its_graph(resp_stor
     for name in ("fleet_roster", "platforms"):
         with pytest.raises(ConfigError, match=r"\.fleet_roster'.*give the robot's store"):
             run_named(roster_store, name)
+
+
+def _robot_on(server, graph: str, *, heard: str) -> tuple[FalkorDBStore, FleetRoster]:
+    store = _store_on(server, graph)
+    store.setup()
+    store.execute("CREATE (:Platform {name: $name})", {"name": f"{graph}-host"})
+    roster = FleetRoster(store, RosterSettings(robot="me"))
+    roster.open()
+    roster.remember(heard, how=Heard.ANSWER, when=1.0)
+    return store, roster
+
+
+def test_clearing_a_robots_store_clears_its_roster_beside_it_and_no_other_robots_graphs(resp_server):
+    """A robot's knowledge cleared leaves nothing of it on the server, its roster's graph included; another
+    robot's graph and roster on the same server (one whose name starts like it too) and a graph that is no
+    part of a robot's knowledge stay as they were. A roster's store cleared clears the roster alone."""
+    base = f"clr{os.getpid()}"
+    robot, robot_roster = _robot_on(resp_server, base, heard="quad2")
+    other, other_roster = _robot_on(resp_server, f"{base}x", heard="quad9")
+    unrelated = robot.sibling(f"{base}.notes")
+    unrelated.execute("CREATE (:Note {v: 1})")
+    try:
+        assert robot.redis.exists(base, f"{base}.fleet_roster", f"{base}x", f"{base}x.fleet_roster") == 4
+        robot.clear()
+        assert robot.redis.exists(base, f"{base}.fleet_roster") == 0
+        assert run_named(robot, "fleet_roster") == [] and _count(robot, "Platform") == 0
+        assert [r["robot"] for r in run_named(other, "fleet_roster")] == ["quad9"]
+        assert _count(other, "Platform") == 1 and _count(unrelated, "Note") == 1
+
+        assert robot_roster.remember("quad3", how=Heard.ANNOUNCE)  # the cleared roster is written again
+        robot.execute("CREATE (:Platform {name: 'again'})")
+        robot_roster.store.clear()
+        assert run_named(robot, "fleet_roster") == [] and _count(robot, "Platform") == 1
+    finally:
+        unrelated.clear()
+        for store in (robot, other):
+            store.clear()
+            store.shutdown()
+
+
+def test_clearing_a_robots_store_leaves_no_roster_on_every_backend(store):
+    roster = FleetRoster(store, RosterSettings(robot="me"))
+    roster.open()
+    roster.remember("quad2", how=Heard.ANSWER)
+    store.execute("CREATE (:Platform {name: 'onboard'})")
+    store.clear()
+    assert run_named(store, "fleet_roster") == []
+    assert store.execute("MATCH (n) RETURN count(n) AS n")[0]["n"] == 0
