@@ -29,7 +29,7 @@ from neo4j import graph as neo4j_graph
 from kgadapt.knowledge.dialect import FALKORDB, NEO4J, Dialect, dialect_for_agent
 from kgadapt.knowledge.params import check_params
 from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings
-from kgadapt.shared.errors import QueryError, ReadOnlyViolation, StoreTimeout, StoreUnavailable
+from kgadapt.shared.errors import ConfigError, QueryError, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -205,6 +205,30 @@ class BoltStore(GraphStore):
                 tx.commit()
 
         self._with_errors(run_batch, None)
+
+    def execute_script(self, statements: Sequence[tuple[str, str]]) -> None:
+        """Run ``statements`` (each a label such as ``FILE:LINE`` and a statement without parameters) in one
+        explicit transaction: all of them or, when one is refused or the connection is lost (the importer
+        killed), none (the server rolls an unfinished transaction back). QueryError starting with the label of
+        the statement refused. A server without explicit transactions (FalkorDB's Bolt listener) is refused:
+        ConfigError, nothing run."""
+        if not self.capabilities.transactions:
+            raise ConfigError(f"store {self.settings.url}: this Bolt server has no explicit transactions")
+        current = ["(commit)"]
+
+        def run_all() -> None:
+            session = self._current_session()
+            with session.begin_transaction() as tx:
+                for label, cypher in statements:
+                    current[0] = label
+                    tx.run(cypher).consume()
+                current[0] = "(commit)"
+                tx.commit()
+
+        try:
+            self._with_errors(run_all, None)
+        except QueryError as exc:
+            raise QueryError(f"{current[0]}: {exc}") from exc
 
     def _current_session(self) -> neo4j.Session:
         if self._session is None:

@@ -18,7 +18,9 @@ One statement per line, each ending in ``;``; ``//`` lines are comments.
 
 from __future__ import annotations
 
+import logging
 import re
+import secrets
 from typing import Any, Iterator, NamedTuple
 
 from kgadapt.knowledge import schema as S
@@ -26,10 +28,15 @@ from kgadapt.knowledge.params import cypher_literal as literal
 from kgadapt.knowledge.store import GraphStore
 from kgadapt.shared.errors import ConfigError, KgadaptError, QueryError, StoreUnavailable
 
+log = logging.getLogger(__name__)
 FORMATS = ("dot", "cypher")
 # A temporary label and key that tie relations to the nodes created by the same part of a script.
 EXPORT_LABEL = "KgadaptExport"
 EXPORT_KEY = "export_id"
+# A staged import's graphs (FalkorDB over RESP): <robot graph>.import-partial.<token>[.fleet_roster], each holding
+# one node of this label until it is put in place.
+STAGED_MARK = ".import-partial."
+STAGED_LABEL = "KgadaptImport"
 PART_LINE = "// kgadapt graph "  # then the part's name (schema.Graph, lower case), ":" and its counts
 _IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _PRIMARY = (S.FEATURE, S.ILLUMINATION_BAND, S.PERCEPTION_GRAPH, S.COMPONENT, S.PORT, S.DEPLOYMENT,
@@ -170,13 +177,21 @@ def import_script(store: GraphStore, script: str, *, source: str = "script") -> 
 
 
 def restore(store: GraphStore, script: str, *, source: str = "script") -> int:
-    """:func:`import_script` into a store that holds nothing of a robot yet (ConfigError naming what it holds);
-    a statement refused leaves it empty again, as it was, and raises naming the line."""
-    held = {part: count for part, count in node_counts(store).items() if count}
-    if held:
-        what = ", ".join(f"{count} nodes in its {part}" for part, count in held.items())
-        raise ConfigError(f"store {store.url} is not empty ({what}): import into an empty store, e.g. "
-                          "--store embedded:NEW_DIR")
+    """:func:`import_script` into a store that holds nothing of a robot yet (ConfigError naming what it holds),
+    all or nothing as every reader of the store sees it; the number of statements run.
+
+    FalkorDB over RESP (``capabilities.graphs``): the script runs into staged graphs beside the robot's
+    (:func:`staged_name`), which one MULTI/EXEC then renames into place, so a refused statement, or an importer
+    killed midway, leaves the store's graphs untouched; staged graphs left by a killed import are deleted by the
+    next import. A store with transactions (Memgraph, Neo4j): one transaction. FalkorDB's Bolt listener has
+    none: statement by statement, a refused one empties the store again, and an importer killed midway leaves
+    part of the import (the next import names what the store holds)."""
+    planned = list(statements(script, source))  # a script naming an unknown part: nothing run
+    _refuse_unless_empty(store)
+    if store.capabilities.graphs:
+        return _staged(store, script, source)
+    if store.capabilities.transactions:
+        return _in_one_transaction(store, planned, source)
     try:
         return import_script(store, script, source=source)
     except BaseException as exc:
@@ -186,6 +201,57 @@ def restore(store: GraphStore, script: str, *, source: str = "script") -> int:
             raise StoreUnavailable(f"{exc}; emptying store {store.url} again failed too ({again}): it holds part "
                                    "of the import") from exc
         raise
+
+
+def _refuse_unless_empty(store: GraphStore) -> None:
+    held = {part: count for part, count in node_counts(store).items() if count}
+    if held:
+        what = ", ".join(f"{count} nodes in its {part}" for part, count in held.items())
+        raise ConfigError(f"store {store.url} is not empty ({what}): import into an empty store, e.g. "
+                          "--store embedded:NEW_DIR")
+
+
+def staged_name(graph: str, token: str) -> str:
+    """The graph an import into the robot's graph ``graph`` is written to before it is put in place: never a
+    robot's graph by name, and its parts beside it (``<staged>.fleet_roster``) start with it too."""
+    return f"{graph}{STAGED_MARK}{token}"
+
+
+def _staged(store: GraphStore, script: str, source: str) -> int:
+    from kgadapt.knowledge.falkordb_store import FalkorDBStore
+
+    if not isinstance(store, FalkorDBStore):  # capabilities.graphs: FalkorDB over RESP is the one such backend
+        raise ConfigError(f"store {store.url}: staged imports need FalkorDB over RESP")
+    robot_graph = store.settings.graph
+    for left in store.graph_names():  # a killed import's: never anyone's knowledge
+        if left.startswith(robot_graph + STAGED_MARK):
+            store.drop_graph(left)
+    token = secrets.token_hex(6)
+    staged = store.sibling(staged_name(robot_graph, token))
+    moves = {part: part.store(staged) for part in S.Graph}
+    try:
+        for graph in moves.values():  # the mark that this import wrote it, checked as it is put in place
+            graph.execute(f"CREATE (:{STAGED_LABEL} {{token: $token}})", {"token": token})
+        count = import_script(staged, script, source=source)
+        store.swap_in({graph.settings.graph: part.beside(robot_graph) for part, graph in moves.items()},
+                      marker=STAGED_LABEL, check=lambda: _refuse_unless_empty(store))
+        return count
+    except BaseException:
+        try:
+            for graph in moves.values():
+                store.drop_graph(graph.settings.graph)
+        except KgadaptError as again:  # the next import deletes them
+            log.warning("store %s: cannot delete the staged graphs of a failed import: %s", store.url, again)
+        raise
+
+
+def _in_one_transaction(store: GraphStore, planned: list[tuple[S.Graph, int, str]], source: str) -> int:
+    from kgadapt.knowledge.bolt_store import BoltStore
+
+    if not isinstance(store, BoltStore) or any(part.store(store) is not store for part, _, _ in planned):
+        raise ConfigError(f"store {store.url}: an import in one transaction needs a Bolt store of one graph")
+    store.execute_script([(f"{source}:{number}", statement) for _, number, statement in planned])
+    return len(planned)
 
 
 def node_counts(store: GraphStore) -> dict[str, int]:

@@ -24,7 +24,7 @@ from kgadapt.knowledge.dialect import FALKORDB, Dialect
 from kgadapt.knowledge.embedded import EmbeddedServer
 from kgadapt.knowledge.params import check_params, cypher_literal
 from kgadapt.knowledge.store import Capabilities, GraphStore, Row, Statement, StoreSettings
-from kgadapt.shared.errors import QueryError, QueryTimeLimit, ReadOnlyViolation, StoreTimeout, StoreUnavailable
+from kgadapt.shared.errors import ConfigError, QueryError, QueryTimeLimit, ReadOnlyViolation, StoreTimeout, StoreUnavailable
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -186,6 +186,82 @@ class FalkorDBStore(GraphStore):
             store.setup()
             self._siblings[graph] = store
             return store
+
+    def graph_names(self) -> list[str]:
+        """Every graph on this store's server (GRAPH.LIST)."""
+        try:
+            names = self.redis.execute_command("GRAPH.LIST")
+        except redis.RedisError as exc:
+            raise StoreUnavailable(f"FalkorDB at {self.settings.url}: cannot list its graphs: {exc}") from exc
+        return sorted(n.decode() if isinstance(n, bytes) else str(n) for n in names)
+
+    def drop_graph(self, graph: str) -> None:
+        """Delete graph ``graph`` on this store's server (none there: nothing to do) and close its sibling
+        store if one is kept; never this store's own graph (clear() does that)."""
+        if graph == self.settings.graph:
+            raise ConfigError(f"store {self.settings.url}: drop_graph is for graphs beside {graph!r}; use clear()")
+        with self._siblings_lock:
+            sibling = self._siblings.pop(graph, None)
+        if sibling is not None:
+            sibling.shutdown()  # a sibling never stops the server
+        try:
+            self.redis.delete(graph)  # a graph is a key: DEL frees it as GRAPH.DELETE does
+        except redis.RedisError as exc:
+            raise StoreUnavailable(f"FalkorDB at {self.settings.url}: cannot delete graph {graph!r}: {exc}") from exc
+
+    def swap_in(self, moves: Mapping[str, str], *, marker: str, check: Callable[[], None]) -> None:
+        """Put staged graphs in place as one step: for each ``staged -> target`` of ``moves``, delete the
+        staged graph's nodes labelled ``marker`` and RENAME it to ``target`` (replacing an empty one), all in
+        one MULTI/EXEC, so a reader sees every target as it was or every staged graph in its place, never a mix.
+
+        Every graph named is WATCHed first, then ``check()`` runs (it reads the targets and raises if they
+        may not be replaced) and each staged graph must still hold its ``marker`` node (it was not deleted,
+        and begun again by someone else, while it was being written). A write to any of them after the WATCH
+        aborts the EXEC: ConfigError, nothing moved. The staged graphs' sibling stores are closed after the
+        move and the stores of the targets select their graph again (the client caches a graph's schema)."""
+        keys = [*moves, *moves.values()]
+        pipe = self.redis.pipeline(transaction=True)
+        try:
+            pipe.watch(*keys)
+            check()
+            for staged in moves:
+                held = pipe.execute_command("GRAPH.RO_QUERY", staged, f"MATCH (m:{marker}) RETURN count(m)")
+                if not pipe.exists(staged) or held[1] != [[1]]:
+                    raise ConfigError(f"store {self.settings.url}: staged graph {staged!r} was deleted or written "
+                                      "by someone else while this import ran (another import into the same "
+                                      "store?): nothing imported")
+            pipe.multi()
+            for staged, target in moves.items():
+                pipe.execute_command("GRAPH.QUERY", staged, f"MATCH (m:{marker}) DELETE m")
+                pipe.rename(staged, target)
+            replies = pipe.execute()
+        except redis.WatchError as exc:
+            raise ConfigError(f"store {self.settings.url}: graphs {', '.join(moves.values())} changed while the "
+                              "import was being put in place: nothing imported") from exc
+        except redis.ResponseError as exc:
+            raise QueryError(f"store {self.settings.url}: putting the import in place failed: {exc}") from exc
+        except (redis.RedisError, OSError) as exc:
+            raise StoreUnavailable(f"lost FalkorDB at {self.settings.url} while putting the import in place: "
+                                   f"{exc}") from exc
+        finally:
+            pipe.reset()
+        failed = [reply for reply in replies if isinstance(reply, Exception)]
+        if failed:  # not seen: each command was checked above, inside the WATCH
+            raise QueryError(f"store {self.settings.url}: putting the import in place: {failed[0]}")
+        for staged in moves:
+            self.drop_graph(staged)  # gone by its name already: closes its sibling store
+        with self._siblings_lock:
+            stores = [self, *self._siblings.values()]
+        for store in stores:
+            if store.settings.graph in moves.values():
+                store._select_again()
+
+    def _select_again(self) -> None:
+        with self._reconnect_lock:
+            if self._db is not None:
+                self._graph = self._db.select_graph(self.settings.graph)
+            if self._setup_db is not None:
+                self._setup_graph = self._setup_db.select_graph(self.settings.graph)
 
     def shutdown(self) -> None:
         with self._siblings_lock:

@@ -2,16 +2,27 @@
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import subprocess
+import sys
+
 import pytest
+import redis
 
 from kgadapt.knowledge import export as E
 from kgadapt.knowledge import runtime as R
+from kgadapt.knowledge.embedded import EmbeddedServer
 from kgadapt.knowledge.falkordb_store import FalkorDBStore
 from kgadapt.knowledge.fleet_roster import FleetRoster, Heard, RosterSettings
 from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.queries import run_named
-from kgadapt.knowledge.store import StoreSettings
+from kgadapt.knowledge.store import StoreSettings, open_store
 from kgadapt.shared.errors import ConfigError, QueryError
+
+from tests.conftest import REPO
+from tests.support import wait_for
 
 from .conftest import counts, signature
 
@@ -154,3 +165,96 @@ def test_an_import_refused_midway_names_the_line_and_leaves_the_store_empty(resp
     with pytest.raises(ConfigError, match=r"is not empty \(1 nodes in its fleet_roster\)"):
         E.restore(resp_store, script)
     assert run_named(resp_store, "fleet_roster")[0]["robot"] == "q"
+
+
+# --- an importer killed midway ------------------------------------------------
+
+def _large_export(nodes: int) -> str:
+    """An export of ``nodes`` platforms in a chain and a roster of three: large enough that an importer is
+    caught midway."""
+    robot = [{"id": i, "labels": ["Platform"], "props": {"name": f"p{i}", "memory_total_mb": 1024 + i}}
+             for i in range(nodes)]
+    chain = [{"source": i, "target": i + 1, "type": "NEXT", "props": {"w": i}} for i in range(nodes - 1)]
+    roster = [{"id": i, "labels": ["FleetRobot"], "props": {"name": f"quad{i}", "heard": "answer"}} for i in range(3)]
+    return E.to_cypher([E.Part(E.S.Graph.ROBOT, robot, chain), E.Part(E.S.Graph.FLEET_ROSTER, roster, [])])
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if k != "KGADAPT_STORE"}
+    return subprocess.run([sys.executable, "-m", "kgadapt", *args], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=120)
+
+
+def _graphs(socket: str) -> dict[str, int]:
+    """Every graph on the server at ``socket`` and its node count, read through FalkorDB's own commands."""
+    client = redis.Redis(unix_socket_path=socket, decode_responses=True)
+    try:
+        return {name: client.execute_command("GRAPH.RO_QUERY", name, "MATCH (n) RETURN count(n)")[1][0][0]
+                for name in client.execute_command("GRAPH.LIST")}
+    finally:
+        client.close()
+
+
+def _written(socket: str) -> int:
+    """Nodes in the largest robot's graph on the server, staged or not (0 while the server is not up yet)."""
+    try:
+        graphs = _graphs(socket)
+    except (redis.ConnectionError, FileNotFoundError):
+        return 0
+    return max((count for name, count in graphs.items() if not name.endswith(".fleet_roster")), default=0)
+
+
+@pytest.mark.parametrize("server", ["kept", "dies_with_importer"])
+def test_an_importer_killed_midway_leaves_the_store_as_empty_as_before_and_the_next_import_succeeds(
+        tmp_path, server):
+    """kill -9 of ``kgadapt knowledge import`` once it has written part of a large export: every reader finds the
+    store empty (the CLI, the store API, FalkorDB's GRAPH.LIST: no robot graph, no roster graph), and the next
+    import puts all of it in place and deletes what the killed one left. ``kept``: the store's server runs on
+    (it was started by someone else); ``dies_with_importer``: the importer started it, so it dies too (as at a
+    power loss) and the next reader starts it again from its append-only file."""
+    nodes = 2000
+    script = tmp_path / "large.cypher"
+    script.write_text(_large_export(nodes))
+    data = tmp_path / "store"
+    url = f"embedded:{data}"
+    owner = None
+    if server == "kept":
+        owner = EmbeddedServer(data)
+        owner.ensure()
+    try:
+        env = {k: v for k, v in os.environ.items() if k != "KGADAPT_STORE"}
+        importer = subprocess.Popen([sys.executable, "-m", "kgadapt", "knowledge", "import", str(script),
+                                     "--store", url], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True)
+        try:
+            socket = wait_for(lambda: json.loads(EmbeddedServer(data).info_path.read_text())["unix_socket"]
+                              if EmbeddedServer(data).info_path.exists() else None, 30, "the store's server")
+            wait_for(lambda: _written(socket) >= nodes // 4 or importer.poll() is not None, 60,
+                     "a quarter of the import written")
+            importer.kill()
+        finally:
+            importer.kill()
+            out, err = importer.communicate(timeout=30)
+        assert importer.returncode == -signal.SIGKILL, (out, err)  # killed midway, not finished
+
+        if server == "kept":  # the killed import's staged graphs are there, named as such, the robot's are not
+            left = _graphs(socket)
+            assert "kgadapt" not in left and "kgadapt.fleet_roster" not in left
+            assert left and all(E.STAGED_MARK in name for name in left)
+        for read in (_cli("knowledge", "cypher", "MATCH (n) RETURN count(n) AS n", "--store", url, "--json"),
+                     _cli("knowledge", "query", "fleet_roster", "--store", url, "--json")):
+            assert read.returncode == 1 and "holds no models: nothing is loaded there" in read.stderr, read
+        with open_store(url) as store:
+            assert E.node_counts(store) == {"robot": 0, "fleet_roster": 0}
+
+        again = _cli("knowledge", "import", str(script), "--store", url, "--json")
+        assert again.returncode == 0, again.stderr
+        assert json.loads(again.stdout)["nodes"] == {"robot": nodes, "fleet_roster": 3}
+        with open_store(url) as store:
+            assert E.node_counts(store) == {"robot": nodes, "fleet_roster": 3}
+            assert store.execute("MATCH ()-[r:NEXT]->() RETURN count(r) AS n")[0]["n"] == nodes - 1
+            assert store.execute(f"MATCH (n:{E.STAGED_LABEL}) RETURN count(n) AS n")[0]["n"] == 0
+            assert sorted(store.graph_names()) == ["kgadapt", "kgadapt.fleet_roster"]  # the staged ones deleted
+    finally:
+        if owner is not None:
+            owner.stop()
