@@ -85,8 +85,10 @@ def register(subparsers: Any) -> Any:
                              description="Run a script of 'kgadapt knowledge export --format cypher' on an empty "
                                          "store, each part where that store keeps it (the fleet roster beside the "
                                          "robot's graph on FalkorDB, in it elsewhere); an export of an older "
-                                         "version too. A statement the store refuses is named by its line, and "
-                                         "the store is left empty again.")
+                                         "version too. All or nothing: a statement the store refuses is named by "
+                                         "its line and nothing stays; on FalkorDB (RESP) and Memgraph an import "
+                                         "killed midway leaves the store as empty as it was (FalkorDB's Bolt "
+                                         "listener: see docs/knowledge.md).")
     restore.add_argument("file", metavar="FILE", help="the exported script ('-': standard input)")
     restore.add_argument("--json", action="store_true", help="print the counts as JSON")
     _store_arg(restore)

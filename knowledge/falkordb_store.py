@@ -189,8 +189,9 @@ class FalkorDBStore(GraphStore):
 
     def graph_names(self) -> list[str]:
         """Every graph on this store's server (GRAPH.LIST)."""
+        client: Any = self.redis  # redis-py's execute_command is untyped
         try:
-            names = self.redis.execute_command("GRAPH.LIST")
+            names = client.execute_command("GRAPH.LIST")
         except redis.RedisError as exc:
             raise StoreUnavailable(f"FalkorDB at {self.settings.url}: cannot list its graphs: {exc}") from exc
         return sorted(n.decode() if isinstance(n, bytes) else str(n) for n in names)
@@ -220,21 +221,21 @@ class FalkorDBStore(GraphStore):
         aborts the EXEC: ConfigError, nothing moved. The staged graphs' sibling stores are closed after the
         move and the stores of the targets select their graph again (the client caches a graph's schema)."""
         keys = [*moves, *moves.values()]
-        pipe = self.redis.pipeline(transaction=True)
+        pipe: Any = self.redis.pipeline(transaction=True)  # its watch and execute_command are untyped
         try:
             pipe.watch(*keys)
             check()
             for staged in moves:
-                held = pipe.execute_command("GRAPH.RO_QUERY", staged, f"MATCH (m:{marker}) RETURN count(m)")
-                if not pipe.exists(staged) or held[1] != [[1]]:
-                    raise ConfigError(f"store {self.settings.url}: staged graph {staged!r} was deleted or written "
-                                      "by someone else while this import ran (another import into the same "
-                                      "store?): nothing imported")
+                if not pipe.exists(staged) or pipe.execute_command(
+                        "GRAPH.RO_QUERY", staged, f"MATCH (m:{marker}) RETURN count(m)")[1] != [[1]]:
+                    raise ConfigError(f"store {self.settings.url}: staged graph {staged!r} was deleted (and "
+                                      "begun again) by someone else while this import ran (another import into "
+                                      "the same store?): nothing imported")
             pipe.multi()
             for staged, target in moves.items():
                 pipe.execute_command("GRAPH.QUERY", staged, f"MATCH (m:{marker}) DELETE m")
                 pipe.rename(staged, target)
-            replies = pipe.execute()
+            replies = pipe.execute(raise_on_error=False)
         except redis.WatchError as exc:
             raise ConfigError(f"store {self.settings.url}: graphs {', '.join(moves.values())} changed while the "
                               "import was being put in place: nothing imported") from exc

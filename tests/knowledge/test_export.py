@@ -20,7 +20,6 @@ from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.queries import run_named
 from kgadapt.knowledge.store import StoreSettings, open_store
 from kgadapt.shared.errors import ConfigError, QueryError
-
 from tests.conftest import REPO
 from tests.support import wait_for
 
@@ -157,11 +156,14 @@ def test_an_import_refused_midway_names_the_line_and_leaves_the_store_empty(resp
     with pytest.raises(QueryError, match=r"^backup\.cypher:7: store rejected"):
         E.restore(resp_store, broken, source="backup.cypher")
     assert E.node_counts(resp_store) == {"robot": 0, "fleet_roster": 0}
+    assert [g for g in resp_store.graph_names() if g.startswith(resp_store.settings.graph)] == []  # none staged
     with pytest.raises(ConfigError, match=r"backup\.cypher:4: unknown part 'wings'"):
         E.restore(resp_store, script.replace("graph fleet_roster", "graph wings"), source="backup.cypher")
     assert E.node_counts(resp_store) == {"robot": 0, "fleet_roster": 0}  # nothing run, not even the parts before
 
     E.restore(resp_store, script)
+    assert [g for g in resp_store.graph_names() if g.startswith(resp_store.settings.graph)] == [
+        resp_store.settings.graph, f"{resp_store.settings.graph}.fleet_roster"]
     with pytest.raises(ConfigError, match=r"is not empty \(1 nodes in its fleet_roster\)"):
         E.restore(resp_store, script)
     assert run_named(resp_store, "fleet_roster")[0]["robot"] == "q"
@@ -258,3 +260,86 @@ def test_an_importer_killed_midway_leaves_the_store_as_empty_as_before_and_the_n
     finally:
         if owner is not None:
             owner.stop()
+
+
+# --- putting staged graphs in place (FalkorDB over RESP) --------------------
+
+def _stage(store: FalkorDBStore, token: str = "t1") -> dict[str, str]:
+    """A staged robot graph (with an index, a relation and the mark) and roster beside ``store``'s: the moves."""
+    graph = store.settings.graph
+    robot, roster = E.staged_name(graph, token), E.staged_name(graph, token) + ".fleet_roster"
+    for name in (robot, roster):
+        store.sibling(name).execute(f"CREATE (:{E.STAGED_LABEL} {{token: $t}})", {"t": token})
+    store.sibling(robot).execute("CREATE INDEX FOR (p:Platform) ON (p.name)")
+    store.sibling(robot).execute("CREATE (:Platform {name: 'onboard'})-[:HOSTS]->(:Site {name: 'lab'})")
+    store.sibling(roster).execute("CREATE (:FleetRobot {name: 'quad2'})")
+    return {robot: graph, roster: f"{graph}.fleet_roster"}
+
+
+def test_staged_graphs_renamed_into_place_answer_under_their_new_names_with_their_indexes(resp_store):
+    """RENAME of a FalkorDB graph key, checked through FalkorDB's own commands: GRAPH.QUERY reaches the graph
+    by its new name, its index is there and used, and the old names are gone."""
+    moves = _stage(resp_store)
+    resp_store.swap_in(moves, marker=E.STAGED_LABEL, check=lambda: None)
+    raw = resp_store.redis
+    assert raw.execute_command("GRAPH.QUERY", resp_store.settings.graph,
+                               "MATCH (p:Platform)-[:HOSTS]->(s) RETURN p.name, s.name")[1] == [["onboard", "lab"]]
+    indexes = resp_store.execute("CALL db.indexes() YIELD label, properties RETURN label, properties")
+    assert indexes == [{"label": "Platform", "properties": ["name"]}]
+    plan = raw.execute_command("GRAPH.EXPLAIN", resp_store.settings.graph, "MATCH (p:Platform {name: 'x'}) RETURN p")
+    assert any("Index Scan" in str(step) for step in plan)
+    assert resp_store.execute(f"MATCH (n:{E.STAGED_LABEL}) RETURN count(n) AS n")[0]["n"] == 0
+    assert run_named(resp_store, "fleet_roster")[0]["robot"] == "quad2"  # the roster's store selected it again
+    assert not any(E.STAGED_MARK in name for name in resp_store.graph_names())
+
+
+def test_a_target_written_while_staged_graphs_are_put_in_place_refuses_and_moves_nothing(resp_store):
+    moves = _stage(resp_store)
+    with pytest.raises(ConfigError, match="changed while the import was being put in place: nothing imported"):
+        resp_store.swap_in(moves, marker=E.STAGED_LABEL,
+                           check=lambda: resp_store.execute("CREATE (:Platform {name: 'meanwhile'})"))
+    assert resp_store.execute("MATCH (n) RETURN n.name AS name") == [{"name": "meanwhile"}]
+    assert all(name in resp_store.graph_names() for name in moves)  # nothing renamed
+
+
+def test_a_staged_graph_begun_again_by_someone_else_is_not_put_in_place(resp_store):
+    """Another import's clean-up deleted this one's staged graph midway and the rest of its statements made a new
+    one: it lacks the mark and is refused, so the tail of an import never stands for all of it."""
+    moves = _stage(resp_store)
+    robot = next(iter(moves))
+    resp_store.drop_graph(robot)
+    resp_store.sibling(robot).execute("CREATE (:Platform {name: 'tail'})")
+    with pytest.raises(ConfigError, match=f"staged graph '{robot}' was deleted"):
+        resp_store.swap_in(moves, marker=E.STAGED_LABEL, check=lambda: None)
+    assert E.node_counts(resp_store) == {"robot": 0, "fleet_roster": 0}
+
+
+def test_an_import_deletes_the_staged_graphs_a_killed_import_left_and_no_other_graph(resp_store, resp_server):
+    moves = _stage(resp_store, token="dead")
+    other = FalkorDBStore(StoreSettings(kind="falkordb", url="falkordb+unix://other",
+                                        unix_socket=resp_server.address.unix_socket,
+                                        graph=resp_store.settings.graph + "x.import-partial.live"))
+    other.setup()
+    try:
+        other.execute("CREATE (:Platform {name: 'another robot'})")
+        E.restore(resp_store, OLDER_EXPORT)
+        names = resp_store.graph_names()
+        assert not any(name in names for name in moves) and other.settings.graph in names
+        assert E.node_counts(resp_store) == {"robot": 1, "fleet_roster": 1}
+    finally:
+        other.clear()
+        other.shutdown()
+
+
+def test_a_bolt_server_without_transactions_is_not_given_a_script_to_run_as_one(bolt_store):
+    with pytest.raises(ConfigError, match="no explicit transactions"):
+        bolt_store.execute_script([("x.cypher:1", "CREATE (:Platform {name: 'a'})")])
+    assert bolt_store.execute("MATCH (n) RETURN count(n) AS n")[0]["n"] == 0
+
+
+def test_an_import_into_memgraph_refused_midway_leaves_nothing_and_names_the_line(memgraph_store):
+    script = E.to_cypher([E.Part(E.S.Graph.ROBOT, [{"id": 0, "labels": ["Platform"], "props": {"name": "a"}}], [])])
+    with pytest.raises(QueryError, match=r"^backup\.cypher:6: "):
+        E.restore(memgraph_store, script + "CREATE (:Platform {name: 'x', oops: });\n", source="backup.cypher")
+    assert memgraph_store.execute("MATCH (n) RETURN count(n) AS n")[0]["n"] == 0
+    assert E.restore(memgraph_store, script) == 2
