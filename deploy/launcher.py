@@ -579,6 +579,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     sock = socket.socket(fileno=args.fd)
     for name in PRELOAD:
         importlib.import_module(name)
+    for name in RUNNABLE:  # what every start of the module would otherwise do first, done once here
+        prepare = getattr(importlib.import_module(name), "prefork", None)
+        if callable(prepare):
+            prepare()
     if _threads() != 1:
         print(f"kgadapt.deploy.launcher: error: {_threads()} threads after the imports; cannot fork safely", file=sys.stderr)
         return 1
