@@ -105,8 +105,11 @@ log = logging.getLogger(__name__)
 # Modules a launcher may run with ``-m``; PRELOAD is what it imports first (the heavy parts). Runtime
 # detectors only: the tests' echo detector (kgadapt.sim) is started the plain way, as any program.
 RUNNABLE = ("kgadapt.onboard.perception.detector",)
+# The reflex module (with the light estimate and the live ranking it uses: 25 ms of imports) too: a
+# forked detector arms its reflex table on a thread after ready, and an import there would hold the
+# frame worker at the import lock.
 PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.perception.markers", "kgadapt.knowledge.client", "kgadapt.shared.session",
-           "kgadapt.shared.agent", *RUNNABLE)
+           "kgadapt.shared.agent", "kgadapt.onboard.perception.reflex", *RUNNABLE)
 _MAX_MESSAGE = 1 << 20
 # What differs between two starts a pool member can take: these flags' values and these variables.
 PER_START_ARGS = ("--instance", "--config")
