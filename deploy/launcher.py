@@ -568,6 +568,18 @@ def _run_module(module: str, argv: list[str], *, session: Any = None, adoption: 
     return code if isinstance(code, int) else 0
 
 
+def preload(modules: Sequence[str], runnable: Sequence[str]) -> None:
+    """Import ``modules``, then call each ``runnable`` module's ``prefork()`` if it has one: what every
+    start of it would otherwise do first in the fork (the detector builds its argument parser and reads a
+    made-up carried configuration), done once before any fork. A prefork starts no thread."""
+    for name in modules:
+        importlib.import_module(name)
+    for name in runnable:
+        prepare = getattr(importlib.import_module(name), "prefork", None)
+        if callable(prepare):
+            prepare()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m kgadapt.deploy.launcher",
                                      description="Fork detectors for the agent that started this (see deploy/launcher.py).")
@@ -580,12 +592,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     # OpenBLAS starts a thread pool at import; the launcher must stay single-threaded to fork safely.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sock = socket.socket(fileno=args.fd)
-    for name in PRELOAD:
-        importlib.import_module(name)
-    for name in RUNNABLE:  # what every start of the module would otherwise do first, done once here
-        prepare = getattr(importlib.import_module(name), "prefork", None)
-        if callable(prepare):
-            prepare()
+    preload(PRELOAD, RUNNABLE)
     if _threads() != 1:
         print(f"kgadapt.deploy.launcher: error: {_threads()} threads after the imports; cannot fork safely", file=sys.stderr)
         return 1
