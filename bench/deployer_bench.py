@@ -14,7 +14,9 @@ Three measurements, all on this machine with real processes:
    (deploy/launcher.py; *spawn* is then the fork request's round trip).
 2. **Deployer over Zenoh**: a ``start`` request (knowledge lookup, spawn, readiness) and a
    ``stop`` request, as the adaptation manager or ``kgadapt deploy`` sends them: on the host
-   ``onboard`` with its launcher, on ``remote`` without (``--no-launcher``).
+   ``onboard`` with its launcher, on ``remote`` without (``--no-launcher``); beside each real
+   detector's start, the time it says it took after ready to arm its reflex table (fetched and
+   every candidate built, off the frame path).
 3. **Planned migration** between two deployers with frames at 30 fps: frames that got no
    detections from any instance while the migration ran (target: 0), beside the same count
    over a quiet window of the same length (the baseline of frames a detector drops anyway).
@@ -318,26 +320,53 @@ def deployer_latencies(rig: _Rig, args: argparse.Namespace) -> list[dict[str, An
         cases.append(("detector_day", "marker_detection_day", args.detector_reps))
     records = []
     for (deployment, config, reps), host in [(c, h) for c in cases for h in ("onboard", "remote")]:
-        start, stop = [], []
+        start, stop, armed = [], [], []
         for i in range(reps + 1):
             p0 = time.perf_counter()
             client.start(host, deployment, config, instance=f"zbench{i}")
             start_ms = (time.perf_counter() - p0) * 1000.0
+            armed_ms = _armed_after_ready(client, host, f"zbench{i}") if deployment != "echo" else None
             p1 = time.perf_counter()
             client.stop(host, f"zbench{i}")
             stop_ms = (time.perf_counter() - p1) * 1000.0
             if i:
                 start.append(start_ms)
                 stop.append(stop_ms)
+                if armed_ms is not None:
+                    armed.append(armed_ms)
         how = "launcher" if host == "onboard" else "no launcher"
         common = {"store": "deployer over Zenoh", "n": None, "program": f"{deployment} ({config}), {how}"}
         records.append(make_record(op="start_request_to_ready", samples_ms=start, **common))
         records.append(make_record(op="stop_request", samples_ms=stop, **common))
+        if armed:
+            records.append(make_record(
+                op="ready_to_reflex_armed", samples_ms=armed, **common,
+                what="the detector's own figure: ready -> its reflex table fetched and every candidate built "
+                     "(after ready, off the frame path)"))
         print(f"  deployer: {deployment}, {how}: start p50 {summarize(start).p50_ms:.1f} ms, stop p50 "
-              f"{summarize(stop).p50_ms:.1f} ms", flush=True)
+              f"{summarize(stop).p50_ms:.1f} ms" + (f", reflex armed {summarize(armed).p50_ms:.1f} ms after ready"
+                                                    if armed else ""), flush=True)
     if rig.real_detector and _has_pool(rig):
         records += pooled_latencies(rig, args, client)
     return records
+
+
+def _armed_after_ready(client: Any, host: str, instance: str, timeout: float = 5.0) -> float | None:
+    """The ms a started detector says it took, after it was ready, to arm its reflex table (its record line
+    ``... armed after ready: N candidate configurations in M ms``); None when it does not say so in time
+    (a detector that arms before ready, or has no table)."""
+    import re
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for line in client.status(host, instance).output or []:
+            found = re.search(r"armed after ready: \d+ candidate configurations in ([0-9.]+) ms", line)
+            if found:
+                return float(found.group(1))
+            if "reflex table prepared in the launcher's pool" in line or "no reflex table" in line:
+                return None
+        time.sleep(0.05)
+    return None
 
 
 def _has_pool(rig: _Rig) -> bool:
@@ -522,10 +551,13 @@ def render(records: list[dict[str, Any]], *, markdown: bool = False) -> str:
     rows = []
     for program in dict.fromkeys(r["program"] for r in dep):
         by_op = {r["op"]: r for r in dep if r["program"] == program}
+        armed = by_op.get("ready_to_reflex_armed")
         rows.append([program, by_op["start_request_to_ready"]["p50_ms"], by_op["start_request_to_ready"]["p99_ms"],
-                     by_op["stop_request"]["p50_ms"], by_op["stop_request"]["p99_ms"]])
-    out += ["", "Deployer requests over Zenoh, ms:",
-            format_table(rows, ["deployment", "start p50", "start p99", "stop p50", "stop p99"], markdown=markdown)]
+                     by_op["stop_request"]["p50_ms"], by_op["stop_request"]["p99_ms"],
+                     armed["p50_ms"] if armed else None])
+    out += ["", "Deployer requests over Zenoh, ms (reflex armed: ready -> its candidates built, after ready):",
+            format_table(rows, ["deployment", "start p50", "start p99", "stop p50", "stop p99", "reflex armed p50"],
+                         markdown=markdown)]
     mig = [r for r in records if r["store"] == "migration"]
     rows = [[r["program"], r["migrations"], r["p50_ms"], r["frames_during"], r["frames_lost"], r["frames_lost_max"],
              r["baseline_frames_lost"]] for r in mig]

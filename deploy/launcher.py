@@ -105,8 +105,11 @@ log = logging.getLogger(__name__)
 # Modules a launcher may run with ``-m``; PRELOAD is what it imports first (the heavy parts). Runtime
 # detectors only: the tests' echo detector (kgadapt.sim) is started the plain way, as any program.
 RUNNABLE = ("kgadapt.onboard.perception.detector",)
+# The reflex module (with the light estimate and the live ranking it uses: 25 ms of imports) too: a
+# forked detector arms its reflex table on a thread after ready, and an import there would hold the
+# frame worker at the import lock.
 PRELOAD = ("numpy", "cv2", "zenoh", "kgadapt.onboard.perception.markers", "kgadapt.knowledge.client", "kgadapt.shared.session",
-           "kgadapt.shared.agent", *RUNNABLE)
+           "kgadapt.shared.agent", "kgadapt.onboard.perception.reflex", *RUNNABLE)
 _MAX_MESSAGE = 1 << 20
 # What differs between two starts a pool member can take: these flags' values and these variables.
 PER_START_ARGS = ("--instance", "--config")
@@ -565,6 +568,18 @@ def _run_module(module: str, argv: list[str], *, session: Any = None, adoption: 
     return code if isinstance(code, int) else 0
 
 
+def preload(modules: Sequence[str], runnable: Sequence[str]) -> None:
+    """Import ``modules``, then call each ``runnable`` module's ``prefork()`` if it has one: what every
+    start of it would otherwise do first in the fork (the detector builds its argument parser and reads a
+    made-up carried configuration), done once before any fork. A prefork starts no thread."""
+    for name in modules:
+        importlib.import_module(name)
+    for name in runnable:
+        prepare = getattr(importlib.import_module(name), "prefork", None)
+        if callable(prepare):
+            prepare()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m kgadapt.deploy.launcher",
                                      description="Fork detectors for the agent that started this (see deploy/launcher.py).")
@@ -577,8 +592,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     # OpenBLAS starts a thread pool at import; the launcher must stay single-threaded to fork safely.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sock = socket.socket(fileno=args.fd)
-    for name in PRELOAD:
-        importlib.import_module(name)
+    preload(PRELOAD, RUNNABLE)
     if _threads() != 1:
         print(f"kgadapt.deploy.launcher: error: {_threads()} threads after the imports; cannot fork safely", file=sys.stderr)
         return 1

@@ -64,7 +64,19 @@ T = TypeVar("T")
 # Zenoh's own query timeout is ours plus this, so that its end (and its "Timeout" error reply) comes after
 # our deadline: a reply is judged late by the clock, never by its text.
 GRACE = 0.05
-RESEND_PAUSE = 0.05  # between sends of a query that reached nobody
+RESEND_PAUSE = 0.05  # between sends of a query that reached nobody (at most)
+# The first pause: a session opened a moment ago learns the queryables within a few ms (a query sent
+# at once reached nobody, one sent 2 ms after the open was answered: measured with the knowledge service
+# over a local router), so the pauses start short and double up to RESEND_PAUSE.
+FIRST_RESEND_PAUSE = 0.002
+
+
+def resend_pauses() -> Iterator[float]:
+    """The pauses between sends of a query that reached nobody: short first, then RESEND_PAUSE."""
+    pause = FIRST_RESEND_PAUSE
+    while True:
+        yield pause
+        pause = min(pause * 2, RESEND_PAUSE)
 
 
 class _Undeclarable(Protocol):
@@ -165,6 +177,7 @@ def _exchange(session: zenoh.Session, key: str, payload: bytes, *, timeout: floa
         raise TransportError(f"query on {key}: timeout {timeout!r} s must be more than 0")
     start = time.monotonic()
     deadline = start + timeout
+    pauses = resend_pauses()
     while True:
         pending = ask(session, key, payload, timeout=max(0.001, deadline - time.monotonic()), attachment=attachment)
         got: list[Reply | RemoteError] = []
@@ -177,9 +190,10 @@ def _exchange(session: zenoh.Session, key: str, payload: bytes, *, timeout: floa
         if got:
             return got
         # Ended without a reply: nobody received the request, so sending it again is safe.
-        if time.monotonic() + RESEND_PAUSE >= min(deadline, start + resend_for):
+        pause = next(pauses)
+        if time.monotonic() + pause >= min(deadline, start + resend_for):
             raise NoResponder(f"nobody answers on {key}")
-        time.sleep(RESEND_PAUSE)
+        time.sleep(pause)
 
 
 def _decoded(reply: Reply | RemoteError, decode: Callable[[bytes], T]) -> T:

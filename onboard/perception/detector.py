@@ -22,12 +22,16 @@ so its deployer's record (and a restart) follow. Anything refused leaves the
 running configuration untouched.
 
 Reflexes (kgadapt.onboard.perception.reflex): a detector configured from the graph also
-fetches, at its start and after each in-place change, the named query
+fetches, once it has said it is ready (on a thread of its own, off the frame
+path) and after each in-place change, the named query
 ``reflex_table`` (what it may take in place on this host, band by band, with
 the bands' edges and margins and the feature's ms-per-frame budget), builds a
 detector for every configuration in it beforehand, and per frame reads the
 frame's light (the window-proof estimate, weighted around the markers it saw
-within the last second). On the evidence of a frame (its light past a band
+within the last second). Ready means it detects with the configuration it was given;
+its reflexes start with the first frame after the table is armed (a line on
+stderr says when), and a change asked for before that builds its detector on
+demand. On the evidence of a frame (its light past a band
 edge by the margin, its detections collapsing, a hedge finding the markers
 where the running configuration does not) it switches in place before the
 next detection, with no round trip to the adaptation manager, puts a
@@ -64,6 +68,7 @@ from __future__ import annotations
 import argparse
 import base64
 import binascii
+import enum
 import logging
 import os
 import sys
@@ -92,6 +97,7 @@ from kgadapt.shared.readiness import (
     START_IDLE_ENV,
     announce_configured,
     announce_ready,
+    say_line,
 )
 
 log = logging.getLogger("kgadapt.onboard.perception.detector")
@@ -218,13 +224,15 @@ def carried_config(name: str, environ: Mapping[str, str] = os.environ) -> tuple[
     return config, {"config": name, "deployment": resolved.deployment, "digest": resolved.digest}
 
 
-def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, wait_s: float = 2.0) -> Any:
-    """The ``reflex_table`` of a detector of ``deployment`` on ``host``, compiled (kgadapt.onboard.perception.reflex)."""
+def fetch_reflex_table(session: Any, robot: str, *, deployment: str, host: str, wait_s: float = 2.0,
+                       timeout: float = 2.0) -> Any:
+    """The ``reflex_table`` of a detector of ``deployment`` on ``host``, compiled (kgadapt.onboard.perception.reflex).
+    ``wait_s``: how long to ask again while no service answers; ``timeout``: how long one answer may take."""
     from kgadapt.knowledge.client import KnowledgeClient
     from kgadapt.onboard.perception.markers import parse_config
     from kgadapt.onboard.perception.reflex import ReflexTable
 
-    rows = KnowledgeClient(session, robot, own=True).query(
+    rows = KnowledgeClient(session, robot, own=True, timeout=timeout).query(
         "reflex_table", {"deployment": deployment, "host": host}, wait_s=wait_s)
     # Now: fresh live figures of this robot rank above calibration, as in the planner's ranking.
     return ReflexTable.from_rows(rows, parse=lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary),
@@ -332,6 +340,8 @@ class Detector:
         self._active = (config, MarkerDetector(config), 0)
         # (Reflex, detectors by configuration name): replaced whole by arm(), read once per frame.
         self._reflexes: tuple[Any, dict[str, Any]] | None = None
+        # Held for a few assignments: the deployment and the reflex table armed for it change together.
+        self._changing = threading.Lock()
         self._reflex_generation = 0  # the generation the reflex last knew of
         self._own_generations: set[int] = set()  # generations the reflex made (not the manager's)
         self.reflexes = 0  # reflexes so far: switches made on its own evidence, and bands it could not take
@@ -388,21 +398,41 @@ class Detector:
             return None
         return core, choice.deployment
 
-    def arm(self, table: Any, cores: dict[str, Any] | None = None) -> None:
+    def arm(self, table: Any, cores: dict[str, Any] | None = None, *, deployment: str | None = None) -> bool:
         """Hold the reflex ``table`` (kgadapt.onboard.perception.reflex.ReflexTable): its detectors are built here
-        (or given, built beforehand: ``cores``), off the frame path, so a reflex costs the frame nothing."""
+        (or given, built beforehand: ``cores``), off the frame path, so a reflex costs the frame nothing.
+        ``deployment``: the one the table was asked for; a table that arrives once the detector runs another
+        deployment's configuration (changed in place while it was asked for) is dropped: False."""
         from kgadapt.onboard.perception.reflex import Reflex
 
         if cores is None:
             cores = build_cores(table)
-        config, _core, generation = self._active
-        reflex = Reflex(table=table, running=config.name)
-        previous = self._reflexes
-        if previous is not None:  # the band it believed in and the markers it saw carry over
-            reflex.band, reflex.last_seen, reflex.seen_level = previous[0].band, previous[0].last_seen, \
-                previous[0].seen_level
-        self._reflex_generation = generation
-        self._reflexes = (reflex, cores)
+        with self._changing:
+            if deployment is not None and deployment != self.deployment:
+                return False
+            config, _core, generation = self._active
+            # generation 0 is the start's configuration; a later one not made by the reflex, the manager's.
+            reflex = Reflex(table=table, running=config.name,
+                            follow_light=generation != 0 and generation not in self._own_generations)
+            previous = self._reflexes
+            if previous is not None:  # the band it believed in and the markers it saw carry over
+                reflex.band, reflex.last_seen, reflex.seen_level = previous[0].band, previous[0].last_seen, \
+                    previous[0].seen_level
+            self._reflex_generation = generation
+            self._reflexes = (reflex, cores)
+        return True
+
+    def take(self, config: Any, core: Any, deployment: str) -> int:
+        """:meth:`swap` to ``config`` of ``deployment`` (a change asked of it); its generation."""
+        with self._changing:  # a reflex table asked for the deployment it leaves is not armed after this
+            generation = self.swap(config, core)
+            self.deployment = deployment
+        return generation
+
+    def candidates(self) -> list[str]:
+        """The configurations whose detectors the armed reflex table holds built (none before it is armed)."""
+        armed = self._reflexes
+        return sorted(armed[1]) if armed is not None else []
 
     def first_frame(self, generation: int, timeout: float) -> int | None:
         """The sequence number of the first frame processed with ``generation``, waiting up to ``timeout``."""
@@ -611,7 +641,8 @@ class Detector:
             self._reflex_generation = active[2]
             self._active = active
             if swap.deployment:
-                self.deployment = swap.deployment
+                with self._changing:
+                    self.deployment = swap.deployment
                 announce_configured(swap.config, swap.deployment)  # the deployer's record
         s = self.settings
         body = messages.Reflex(
@@ -706,16 +737,57 @@ def set_active(session: Any, robot: str, host: str, instance: str, active: bool,
         raise DeploymentError(f"activity of {instance} on {host}: bad reply: {exc}") from exc
 
 
-def arm(detector: Detector, session: Any) -> None:
-    """Give ``detector`` its reflex table from the graph; without one (no answer, a bad row) it keeps
-    the one it has, or runs without reflexes: the manager's loop still adapts it."""
+class Armed(enum.Enum):
+    """What :func:`arm` did."""
+
+    ARMED = "armed"
+    NO_TABLE = "no table"  # none from the graph (no answer, a bad row), or no deployment to ask for
+    DROPPED = "dropped"  # the detector took another deployment's configuration while its table was asked for
+
+
+def arm(detector: Detector, session: Any, *, wait_s: float = 2.0, timeout: float = 2.0) -> Armed:
+    """Give ``detector`` its reflex table from the graph, for the deployment it runs; without one (no
+    answer, a bad row) it keeps the one it has, or runs without reflexes: the manager's loop still adapts
+    it. ``wait_s`` and ``timeout``: :func:`fetch_reflex_table`'s."""
     s = detector.settings
-    if detector.deployment is None:
-        return
+    deployment = detector.deployment
+    if deployment is None:
+        return Armed.NO_TABLE
     try:
-        detector.arm(fetch_reflex_table(session, s.robot, deployment=detector.deployment, host=s.host))
+        table = fetch_reflex_table(session, s.robot, deployment=deployment, host=s.host, wait_s=wait_s, timeout=timeout)
     except KgadaptError as exc:
         log.warning("detector %s: no reflex table (%s); the adaptation manager alone changes it", s.instance, exc)
+        return Armed.NO_TABLE
+    return Armed.ARMED if detector.arm(table, deployment=deployment) else Armed.DROPPED
+
+
+def arm_after_ready(detector: Detector, session: Any) -> threading.Thread:
+    """:func:`arm` ``detector`` on a thread of its own, once it is ready: a start says ready when it detects
+    with the configuration it was given, and the reflex table (a question to the graph: the first one on a
+    new session waits for the service's declaration, 35 ms of a 63 ms forked start) and its candidates'
+    detectors follow, off the frame path. A change asked for meanwhile builds its detector on demand
+    (:class:`Reconfigurer`). Its record line says when the candidates were ready."""
+
+    def run() -> None:
+        started = time.perf_counter()
+        deployment = detector.deployment
+        try:
+            # Patient: nothing waits for it (a question answered late still arms; a start's 2 s would not).
+            armed = arm(detector, session, wait_s=10.0, timeout=5.0)
+        except Exception as exc:  # noqa: BLE001 - whatever a closing session raises: the detector is stopping
+            log.debug("detector %s: reflex table not armed: %s", detector.settings.instance, exc)
+            return
+        ms = (time.perf_counter() - started) * 1e3
+        if armed is Armed.ARMED:
+            say_line(f"detector {detector.settings.instance}: reflex table of {deployment} armed after ready: "
+                     f"{len(detector.candidates())} candidate configurations in {ms:.1f} ms", sys.stderr)
+        elif armed is Armed.DROPPED:  # the change's own table (Reconfigurer) is the one to hold
+            say_line(f"detector {detector.settings.instance}: reflex table of {deployment} dropped after {ms:.1f} ms: "
+                     f"it runs {detector.deployment} now", sys.stderr)
+
+    thread = threading.Thread(target=run, name="detector-arm", daemon=True)
+    thread.start()
+    return thread
 
 
 class Reconfigurer:
@@ -779,9 +851,8 @@ class Reconfigurer:
                                           f"{target} ({name}) in place on host {s.host}: start a new detector")
         check_ms = (time.perf_counter() - started) * 1e3
         built = time.perf_counter()
-        generation = d.swap(config, core)
+        generation = d.take(config, core, str(target))
         build_ms = (time.perf_counter() - built) * 1e3
-        d.deployment = str(target)
         announce_configured(name, str(target))  # the deployer's record follows
         log.info("detector %s: %s -> %s in place", s.instance, previous, name)
         swapped = time.perf_counter()
@@ -813,6 +884,19 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
     add_arguments(parser)
 
 
+# Built once in a launcher before it forks (:func:`prefork`): a forked detector parses with it.
+_PARSER: argparse.ArgumentParser | None = None
+
+
+def prefork() -> None:
+    """What a launcher (deploy/launcher.py) does once, before it forks detectors, so that no forked start
+    does it for the first time: build the argument parser and read a made-up carried configuration
+    (:func:`rehearse_carried`). Starts no thread."""
+    global _PARSER
+    _PARSER = build_parser()
+    rehearse_carried()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m kgadapt.onboard.perception.detector",
@@ -828,7 +912,8 @@ def main(argv: Sequence[str] | None = None, *, session: Any = None, adoption: Ca
     """``session``: one already open (a launcher's pool member opened it while it waited; closed at the end);
     ``adoption``: the pool member's wait to become its agent's child, called before it says it is ready
     (deploy/launcher.py), so that its own setup runs meanwhile."""
-    parser = session.parser if isinstance(session, WarmStart) and session.parser is not None else build_parser()
+    parser = session.parser if isinstance(session, WarmStart) and session.parser is not None else \
+        _PARSER or build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
@@ -948,11 +1033,9 @@ def run(args: argparse.Namespace, *, session: Any = None, adoption: Callable[[],
                 rpc.undeclare_quietly(warm.frame_subscriber)  # another camera's: the detector declares its own
             if prepared is not None:
                 detector.arm(*prepared)  # fetched and built while the pool member waited
-            elif detector.deployment is not None:
-                arm(detector, session)
             # For the record (the deployer keeps a process's last lines): what this start asked the graph.
             table = ("prepared in the launcher's pool" if prepared is not None else
-                     "asked of the knowledge service" if detector.deployment is not None else "none")
+                     "asked of the knowledge service after ready" if detector.deployment is not None else "none")
             print(f"detector {args.instance}: configuration {config.name} {source}; reflex table {table}",
                   file=sys.stderr, flush=True)
             detector.setup(session)
@@ -964,6 +1047,8 @@ def run(args: argparse.Namespace, *, session: Any = None, adoption: Callable[[],
             if adoption is not None:
                 adoption()
             announce_ready(instance=args.instance, config=config.name)
+            if prepared is None and detector.deployment is not None:
+                arm_after_ready(detector, session)
             log.info("detector %s ready: config %s, camera %s", args.instance, config.name, args.camera)
             stop.wait()
             log.info("detector %s: signal %s, stopping after %d frames", args.instance, stop.received, detector.processed)

@@ -284,6 +284,10 @@ class Reflex:
     counts: deque[tuple[float, int]] = field(default_factory=deque)  # (time, clean count) within memory_s
     fall: FallTrial | None = None  # a try after a fall of the count, being judged
     recheck: Recheck | None = None  # after that try went back: the previous configuration's count, watched
+    # The running configuration is the manager's choice, made before this table came (a change taken right
+    # after the start): its band is the light's on the first frame, not the configuration's, or the reflex
+    # would undo the change as if it were a start's stale configuration.
+    follow_light: bool = False
 
     @property
     def comparing(self) -> bool:
@@ -299,7 +303,8 @@ class Reflex:
         current = self.table.entry(self.band)
         if current is None:
             # Just started: the band it was configured for (a step while it started counts), else the light's.
-            current = self.table.band_for_config(self.running) or self.table.band_of(level)
+            current = (None if self.follow_light else self.table.band_for_config(self.running)) or \
+                self.table.band_of(level)
             self.band = current.band.name
         if current.band.contains(level, current.margin):
             return None
@@ -528,5 +533,7 @@ class Reflex:
         self.running = config
         self.trial, self.trying, self.wins, self.misses, self.fall, self.recheck = None, None, 0, 0, None, None
         self.counts.clear()
+        if self.band is None:  # before its first frame: the light's band, not the configuration's
+            self.follow_light = True
         if level is not None and math.isfinite(level) and self.table.entries:
             self.band = self.table.band_of(level).band.name

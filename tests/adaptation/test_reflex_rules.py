@@ -185,6 +185,20 @@ def test_what_the_manager_sets_is_followed_not_fought():
     assert r.running == "day" and r.on_light(5.0) is None and r.trial is None
 
 
+def test_a_table_that_arrives_after_the_manager_s_change_follows_the_light_not_the_configuration():
+    # The detector's reflex table comes after it said ready; the manager changed it to dark meanwhile, in
+    # light the table calls day. The manager's choice is followed (the band is the light's), not undone
+    # as a start's stale configuration would be; the light crossing an edge later still counts.
+    r = Reflex(table=table(), running="dark", follow_light=True)
+    assert r.on_light(120.0) is None and r.band == "day" and r.running == "dark"
+    swap = r.on_light(20.0)
+    assert (swap.config, swap.from_band, swap.band) == ("dusk", "day", "dusk")
+    # The same when the change comes after the table but before its first frame.
+    r2 = Reflex(table=table(), running="day")
+    r2.taken("dark")
+    assert r2.on_light(120.0) is None and r2.running == "dark"
+
+
 def test_the_shipped_models_give_every_band_an_in_place_configuration_onboard(tmp_path):
     with open_store(f"embedded:{tmp_path / 'store'}") as store:
         load_models(store, [str(models())])

@@ -85,6 +85,26 @@ def test_a_key_nobody_serves_raises_no_responder(zenoh_pair, key):
         rpc.gather(client, key, b"x", bytes, timeout=0.5, resend_for=0.3)
 
 
+def test_a_query_that_reached_nobody_is_sent_again_soon_then_less_often(zenoh_pair, key, monkeypatch):
+    """A session opened a moment ago does not know the queryables yet: its first query reaches nobody.
+    It is sent again after 2 ms, not 50 (the first question of a new detector's session waited 50 ms);
+    the pauses double up to RESEND_PAUSE, so a key nobody serves is not asked about in a tight loop."""
+    _server, client = zenoh_pair
+    slept: list[float] = []
+    real_sleep = rpc.time.sleep
+
+    def sleep(seconds: float) -> None:
+        if threading.current_thread() is threading.main_thread():
+            slept.append(seconds)
+        real_sleep(seconds)
+
+    monkeypatch.setattr(rpc.time, "sleep", sleep)
+    with pytest.raises(NoResponder):
+        rpc.call(client, key, b"x", bytes, timeout=2.0, resend_for=1.0)
+    assert slept[:5] == [0.002, 0.004, 0.008, 0.016, 0.032], slept
+    assert max(slept) == rpc.RESEND_PAUSE and len(slept) <= 25, slept
+
+
 def test_a_handler_slower_than_the_timeout_raises_request_timeout_not_an_error_reply(zenoh_pair, key):
     server, client = zenoh_pair
     release = threading.Event()
