@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from contextlib import contextmanager
 from pathlib import Path
 
 import psutil
@@ -554,6 +555,25 @@ def output_of(client: DeployerClient, instance: str) -> str:
     return "\n".join(client.status("onboard", instance).output or [])
 
 
+@contextmanager
+def forked_with_its_table_held(hosts, client_session, knowledge, instance):
+    """A detector_day started through the launcher while the service holds its reflex table (HeldTable),
+    30 fps of a marker on its camera; yields the client, the start's reply, the detections and the hold."""
+    launcher_of(hosts)
+    frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
+    markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
+    held = HeldTable(knowledge, "detector_day")
+    try:
+        client = DeployerClient(client_session, ROBOT)
+        info = client.start("onboard", "detector_day", DAY, instance=instance)
+        assert info.via == "launcher"
+        yield client, info, markers, held
+    finally:
+        held.close()
+        markers.close()
+        frames.close()
+
+
 def test_a_forked_detector_says_ready_before_its_reflex_table_which_arms_its_candidates_after(
         hosts, client_session, knowledge):
     """Issue 32: a launcher-forked detector fetched its reflex table and built every candidate's detector
@@ -561,14 +581,8 @@ def test_a_forked_detector_says_ready_before_its_reflex_table_which_arms_its_can
     detects with the configuration it was given; the table follows. Held at the service until the start
     is ready, the table still arms the candidates: a change to one then asks the graph nothing more.
     (Before, the start waited for the held table until its question timed out, and it ran without one.)"""
-    launcher_of(hosts)
-    frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
-    markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
-    held = HeldTable(knowledge, "detector_day")
-    try:
-        client = DeployerClient(client_session, ROBOT)
-        info = client.start("onboard", "detector_day", DAY, instance="early1")
-        assert info.via == "launcher" and info.state in ("ready", "running")
+    with forked_with_its_table_held(hosts, client_session, knowledge, "early1") as (client, info, markers, held):
+        assert info.state in ("ready", "running")
         assert not held.released.is_set()
         held.release()
         markers.wait_for(lambda d: d["instance"] == "early1" and d["ids"] and d["config"] == DAY)
@@ -589,10 +603,6 @@ def test_a_forked_detector_says_ready_before_its_reflex_table_which_arms_its_can
         assert report.config == "marker_detection_dark" and report.first_seq is not None, output_of(client, "early1")
         assert set(asked) <= {"reflex_table"}, asked  # built while armed: only the new deployment's table
         client.stop("onboard", "early1")
-    finally:
-        held.close()
-        markers.close()
-        frames.close()
 
 
 def test_a_change_asked_before_the_reflex_table_arrives_is_built_on_demand_and_the_late_table_dropped(
@@ -601,14 +611,7 @@ def test_a_change_asked_before_the_reflex_table_arrives_is_built_on_demand_and_t
     the detector builds the new configuration on demand (asking the graph, as before any table), swaps
     between two frames and keeps detecting; the table of the deployment it left, arriving late, is not
     armed over the new deployment's one."""
-    launcher_of(hosts)
-    frames = FrameSource(client_session, fps=30.0, jpeg=marker_jpeg(), size=(320, 240))
-    markers = Collector(client_session, keys.detector_markers(ROBOT, "*"), "detections")
-    held = HeldTable(knowledge, "detector_day")
-    try:
-        client = DeployerClient(client_session, ROBOT)
-        info = client.start("onboard", "detector_day", DAY, instance="early2")
-        assert info.via == "launcher"
+    with forked_with_its_table_held(hosts, client_session, knowledge, "early2") as (client, info, markers, held):
         assert held.asked.wait(10.0), "the detector did not ask for its reflex table"
         report = reconfigure(client_session, ROBOT, "onboard", "early2", "marker_detection_dark")
         assert (report.previous, report.config, report.deployment) == (DAY, "marker_detection_dark", "detector_dark")
@@ -626,10 +629,6 @@ def test_a_change_asked_before_the_reflex_table_arrives_is_built_on_demand_and_t
         assert "armed after ready" not in output_of(client, "early2")
         assert client.status("onboard", "early2").deployment == "detector_dark"
         client.stop("onboard", "early2")
-    finally:
-        held.close()
-        markers.close()
-        frames.close()
 
 
 def test_the_launcher_has_the_detector_build_its_parser_and_read_a_carried_configuration_before_it_forks():
