@@ -161,19 +161,22 @@ def import_script(store: GraphStore, script: str, *, source: str = "script") -> 
     """Run an exported script against the robot's store ``store``, each part in the graph that store keeps it
     in; a roster found in the robot's graph (a script of an older version) is then moved where the store keeps
     it. The number of statements; QueryError naming ``source`` and the line of a statement the store refused."""
+    return _run(store, list(statements(script, source)), source)  # a script naming an unknown part: nothing run
+
+
+def _run(store: GraphStore, planned: list[tuple[S.Graph, int, str]], source: str) -> int:
+    """:func:`import_script` of statements already read (:func:`statements`)."""
     from kgadapt.knowledge.fleet_roster import move_roster
 
-    count = 0
-    for part, number, statement in list(statements(script, source)):  # a script naming an unknown part: nothing run
+    for part, number, statement in planned:
         try:
             part.store(store).execute(statement)
         except QueryError as exc:
             raise QueryError(f"{source}:{number}: {exc}") from exc
-        count += 1
     roster = S.Graph.FLEET_ROSTER.store(store)
     if roster is not store:
         move_roster(store, roster)
-    return count
+    return len(planned)
 
 
 def restore(store: GraphStore, script: str, *, source: str = "script") -> int:
@@ -189,11 +192,11 @@ def restore(store: GraphStore, script: str, *, source: str = "script") -> int:
     planned = list(statements(script, source))  # a script naming an unknown part: nothing run
     _refuse_unless_empty(store)
     if store.capabilities.graphs:
-        return _staged(store, script, source)
+        return _staged(store, planned, source)
     if store.capabilities.transactions:
         return _in_one_transaction(store, planned, source)
     try:
-        return import_script(store, script, source=source)
+        return _run(store, planned, source)
     except BaseException as exc:
         try:
             store.clear()  # it was empty: nothing half-written stays
@@ -217,7 +220,7 @@ def staged_name(graph: str, token: str) -> str:
     return f"{graph}{STAGED_MARK}{token}"
 
 
-def _staged(store: GraphStore, script: str, source: str) -> int:
+def _staged(store: GraphStore, planned: list[tuple[S.Graph, int, str]], source: str) -> int:
     from kgadapt.knowledge.falkordb_store import FalkorDBStore
 
     if not isinstance(store, FalkorDBStore):  # capabilities.graphs: FalkorDB over RESP is the one such backend
@@ -232,7 +235,7 @@ def _staged(store: GraphStore, script: str, source: str) -> int:
     try:
         for graph in moves.values():  # the mark that this import wrote it, checked as it is put in place
             graph.execute(f"CREATE (:{STAGED_LABEL} {{token: $token}})", {"token": token})
-        count = import_script(staged, script, source=source)
+        count = _run(staged, planned, source)
         store.swap_in({graph.settings.graph: part.beside(robot_graph) for part, graph in moves.items()},
                       marker=STAGED_LABEL, check=lambda: _refuse_unless_empty(store))
         return count
