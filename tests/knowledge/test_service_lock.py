@@ -7,69 +7,124 @@ and release never gave it back.
 
 from __future__ import annotations
 
+import shutil
+import subprocess
+import warnings
+
 import pytest
+import redis
 
 from kgadapt.knowledge.embedded import EmbeddedServer
 from kgadapt.knowledge.falkordb_store import FalkorDBStore
 from kgadapt.knowledge.service_lock import ServiceLock, ServiceLockHeld
 from kgadapt.knowledge.store import StoreSettings
+from kgadapt.shared.errors import StoreUnavailable
 
 
-@pytest.fixture
-def server_store(tmp_path):
-    server = EmbeddedServer(tmp_path / "store", append_only=False)
-    address = server.ensure()
+class _Servers:
+    """A fresh FalkorDB server per attempt, and stores on it (what the tests' ``server_store`` is)."""
 
-    def store(graph: str = "g") -> FalkorDBStore:
-        s = FalkorDBStore(StoreSettings(kind="falkordb", url=f"falkordb+unix://{address.unix_socket}",
-                                        unix_socket=address.unix_socket, graph=graph, socket_timeout=2.0))
+    def __init__(self, where) -> None:
+        self.server = EmbeddedServer(where, append_only=False)
+        self.address = self.server.ensure()
+        self.opened: list[FalkorDBStore] = []
+
+    def __call__(self, graph: str = "g") -> FalkorDBStore:
+        s = FalkorDBStore(StoreSettings(kind="falkordb", url=f"falkordb+unix://{self.address.unix_socket}",
+                                        unix_socket=self.address.unix_socket, graph=graph, socket_timeout=2.0))
         s.setup()
-        opened.append(s)
+        self.opened.append(s)
         return s
-    opened: list[FalkorDBStore] = []
-    yield store
-    for s in opened:
-        s.shutdown()
-    server.stop()
+
+    def close(self) -> None:
+        for s in self.opened:
+            s.shutdown()
+        self.server.stop(timeout=2.0)
 
 
-def test_the_holder_renews_its_own_lease_and_release_gives_it_back(server_store):
-    store = server_store()
-    lock = ServiceLock(store, lease_s=30.0)  # no renewal thread round within the test
-    lock.acquire()
+def _threads_of(pid: int) -> str:
+    """Every thread's stack of a hung server, for the report (gdb, where installed)."""
+    gdb = shutil.which("gdb")
+    if gdb is None:
+        return "(no gdb here for the threads' stacks)"
     try:
-        store.redis.pexpire(lock.key, 500)  # nearly run out
-        assert lock.renew() is True
-        assert store.redis.pttl(lock.key) > 20_000  # extended to a whole lease again
-    finally:
-        lock.release()
-    assert store.redis.get(lock.key) is None  # given back: a new service need not wait for it to run out
-    second = ServiceLock(server_store(), lease_s=30.0)
-    second.acquire()  # at once
-    second.release()
+        done = subprocess.run([gdb, "-p", str(pid), "-batch", "-nx", "-ex", "thread apply all bt 12"],
+                              capture_output=True, text=True, timeout=60, check=False)
+    except subprocess.TimeoutExpired:
+        return "(gdb did not finish within 60 s)"
+    return "\n".join(line for line in done.stdout.splitlines() if line.startswith(("Thread", "#")))
 
 
-def test_a_lease_another_service_holds_is_neither_renewed_nor_released(server_store):
-    store = server_store()
-    lock = ServiceLock(store, lease_s=30.0)
-    lock.acquire()
-    try:
-        store.redis.set(lock.key, "someone else", px=30_000)  # it ran out and another took it
-        assert lock.renew() is False
-        with pytest.raises(ServiceLockHeld, match="someone else"):
-            ServiceLock(server_store(), lease_s=0.2).acquire()
-    finally:
-        lock.release()
-    assert store.redis.get(lock.key) == "someone else"
+def _on_a_server_that_answers(tmp_path, body) -> None:
+    """``body(server_store)`` on a fresh server; once more on another if the first was found hung.
+
+    A freshly started FalkorDB (4.x on redis 8.2) now and then stops answering everything, every thread
+    waiting on a lock: in CI once at its first graph statement (the store's setup restarts such a server)
+    and once at a plain DEL of this test's lease key. That is FalkorDB's (its issue #2129 reports the same
+    state under write load), not the lease's, which these tests are about. A timeout from a server that
+    still answers PING is a failure as any other; so is a second hung server.
+    """
+    for attempt in (1, 2):
+        servers = _Servers(tmp_path / f"store{attempt}")
+        try:
+            body(servers)
+            return
+        except (redis.TimeoutError, StoreUnavailable):
+            if attempt == 2 or servers.server.answers():
+                raise
+            pid = servers.address.pid
+            warnings.warn(f"the lease test's FalkorDB server hung ({servers.server.describe()}); "
+                          f"running the test once more on a new one. Its threads:\n{_threads_of(pid)}",
+                          stacklevel=1)
+            servers.server.kill()
+        finally:
+            servers.close()
 
 
-def test_a_run_out_lease_is_taken_again_by_its_holder(server_store):
-    store = server_store()
-    lock = ServiceLock(store, lease_s=30.0)
-    lock.acquire()
-    try:
-        store.redis.delete(lock.key)  # ran out (the holder stalled past its lease)
-        assert lock.renew() is True
-        assert store.redis.get(lock.key) == lock.holder
-    finally:
-        lock.release()
+def test_the_holder_renews_its_own_lease_and_release_gives_it_back(tmp_path):
+    def body(server_store):
+        store = server_store()
+        lock = ServiceLock(store, lease_s=30.0)  # no renewal thread round within the test
+        lock.acquire()
+        try:
+            store.redis.pexpire(lock.key, 500)  # nearly run out
+            assert lock.renew() is True
+            assert store.redis.pttl(lock.key) > 20_000  # extended to a whole lease again
+        finally:
+            lock.release()
+        assert store.redis.get(lock.key) is None  # given back: a new service need not wait for it to run out
+        second = ServiceLock(server_store(), lease_s=30.0)
+        second.acquire()  # at once
+        second.release()
+    _on_a_server_that_answers(tmp_path, body)
+
+
+def test_a_lease_another_service_holds_is_neither_renewed_nor_released(tmp_path):
+    def body(server_store):
+        store = server_store()
+        lock = ServiceLock(store, lease_s=30.0)
+        lock.acquire()
+        try:
+            store.redis.set(lock.key, "someone else", px=30_000)  # it ran out and another took it
+            assert lock.renew() is False
+            with pytest.raises(ServiceLockHeld, match="someone else"):
+                ServiceLock(server_store(), lease_s=0.2).acquire()
+        finally:
+            lock.release()
+        assert store.redis.get(lock.key) == "someone else"
+    _on_a_server_that_answers(tmp_path, body)
+
+
+def test_a_run_out_lease_is_taken_again_by_its_holder(tmp_path):
+    def body(server_store):
+        store = server_store()
+        lock = ServiceLock(store, lease_s=30.0)
+        lock.acquire()
+        try:
+            store.redis.delete(lock.key)  # ran out (the holder stalled past its lease)
+            assert lock.renew() is True
+            assert store.redis.get(lock.key) == lock.holder
+        finally:
+            lock.release()
+
+    _on_a_server_that_answers(tmp_path, body)
