@@ -21,6 +21,7 @@ from kgadapt.bench.perception_quality import shipped_configs
 from kgadapt.onboard.flight.site import SiteMarkers
 from kgadapt.onboard.perception.calibration import CalibrationSettings, best_per_band, calibrate, render_test_frames
 from kgadapt.onboard.perception.illumination import Band
+from kgadapt.onboard.perception.ranking import TIE_RATE
 from kgadapt.onboard.perception.recorded_calibration import label_and_score, read_frames
 from kgadapt.shared.errors import ConfigError
 from kgadapt.shared.resources import models
@@ -90,7 +91,7 @@ def _corner_shade(scene_settings, outward_px=2.0, *, sides=False, outward_of_sid
 def test_a_site_whose_markers_touch_is_drawn_so_and_ranks_the_configurations_as_such_a_board_does():
     # The markers of a ChArUco2 board (a marker in every square) touch at the corners: the day
     # configuration misses many of them, the dark one (CLAHE, wider windows) does not. Drawn apart, as
-    # before the site could say so, the day configuration ties and wins on speed.
+    # before the site could say so, the day configuration finds as many.
     from kgadapt.onboard.perception.scene import SceneSettings
 
     ids = {i: 0.022 for i in range(1, 46, 2)}
@@ -114,7 +115,11 @@ def test_a_site_whose_markers_touch_is_drawn_so_and_ranks_the_configurations_as_
     by = {r.config: r.detection_rate for r in on_board if r.condition == "all"}
     assert by["marker_detection_dark"] - by["marker_detection_day"] > 0.05, by
     assert best_per_band(on_board)["day"] == "marker_detection_dark"
-    assert best_per_band(calibrate(configs, [BANDS[2]], settings, site=apart))["day"] != "marker_detection_dark"
+    # Drawn apart, the dark configuration finds no more than the day one: which wins the tie is then
+    # speed beyond timing noise, which a loaded machine decides (CI once ranked the dark one first there).
+    by_apart = {r.config: r.detection_rate for r in calibrate(configs, [BANDS[2]], settings, site=apart)
+                if r.condition == "all"}
+    assert by_apart["marker_detection_dark"] - by_apart["marker_detection_day"] <= TIE_RATE, by_apart
 
 
 def _recording(folder, levels=(6.0, 25.0, None), count=2):
