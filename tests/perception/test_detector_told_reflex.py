@@ -1,0 +1,98 @@
+"""A band the running detector cannot take in place is told to the manager after the frame's detection.
+
+The manager answers such a reflex by starting the band's configuration as a new process; told before the
+detection, that start took the two cores from the very frame that showed the new light (the running dark
+configuration's detection of a day frame went from about 7 ms to 13-19). A real detector on a real Zenoh
+session: the step frame's detection is held open, and the reflex must not arrive while it is.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from kgadapt.onboard.perception import markers
+from kgadapt.onboard.perception.detector import Detector, DetectorSettings
+from kgadapt.onboard.perception.markers import parse_config
+from kgadapt.onboard.perception.reflex import ReflexTable
+from kgadapt.shared import keys, messages
+from kgadapt.shared.session import ZenohSettings, open_session
+
+CONFIG = '{"dictionary": "DICT_4X4_50", "preprocess": [], "parameters": {}}'
+
+
+def _row(band: str, low: float, high: float, config: str, *, in_place: bool) -> dict:
+    return {"band": band, "min_level": low, "max_level": high, "margin": 5.0, "config": config,
+            "dictionary": "DICT_4X4_50", "config_json": CONFIG, "detection_rate": None, "false_per_frame": 0.0,
+            "ms_per_frame": 3.0, "suited": True, "deployment": f"d_{config}", "in_place": in_place,
+            "budget_ms": None}
+
+
+def _frame(seq: int, shade: int) -> bytes:
+    image = np.full((120, 160), shade, np.uint8)
+    _ok, jpeg = cv2.imencode(".jpg", image)
+    return messages.encode(messages.Frame(camera="cam0", seq=seq, time=time.time(), width=160, height=120,
+                                          jpeg=jpeg.tobytes()))
+
+
+@pytest.fixture
+def session():
+    s = open_session(ZenohSettings(mode="peer", listen=("tcp/127.0.0.1:0",)))
+    yield s
+    s.close()
+
+
+@pytest.mark.parametrize("step_to", ["day", "dusk"])
+def test_a_band_nothing_here_takes_in_place_is_told_after_the_step_frame_is_detected(session, monkeypatch, step_to):
+    parse = lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary)  # noqa: E731
+    table = ReflexTable.from_rows([_row("dark", 0, 12, "dark", in_place=True),
+                                   _row("dusk", 12, 40, "dusk", in_place=step_to == "day"),
+                                   _row("day", 40, 256, "day", in_place=step_to == "dusk")], parse=parse)
+    # day: dusk may be taken in place, day only elsewhere; dusk: the other way round
+    shade = {"day": 200, "dusk": 25}[step_to]
+    reflexes: list[messages.Reflex] = []
+    arrived = threading.Event()
+
+    def on_reflex(sample) -> None:
+        reflexes.append(messages.decode_as(sample.payload.to_bytes(), messages.Reflex))
+        arrived.set()
+
+    listener = session.declare_subscriber(keys.detector_reflex("r1", "*"), on_reflex)
+    answered: dict[int, threading.Event] = {seq: threading.Event() for seq in (1, 2, 3)}
+    results = session.declare_subscriber(
+        keys.detector_markers("r1", "*"),
+        lambda sample: answered[messages.decode_as(sample.payload.to_bytes(), messages.Detections).seq].set())
+    step_seq = 3
+    during: list[bool] = []  # per detection of the step frame: had the reflex arrived before it ended?
+    real_detect = markers.MarkerDetector.detect
+
+    def detect(self, gray):
+        result = real_detect(self, gray)
+        if float(gray.mean()) > 20 and not during:  # the step frame (the dark ones are near 5)
+            during.append(arrived.wait(0.5))  # long enough for a reflex put before this detection to arrive
+        return result
+
+    monkeypatch.setattr(markers.MarkerDetector, "detect", detect)
+    detector = Detector(DetectorSettings(robot="r1", host="h1", instance="det1"),
+                        parse("dark", CONFIG, "DICT_4X4_50"), deployment="d_dark")
+    assert detector.arm(table, deployment="d_dark")
+    detector.setup(session)
+    try:
+        for seq in (1, 2):
+            detector.slot.put((_frame(seq, 5), time.time()))
+            assert answered[seq].wait(5), f"frame {seq} not answered"
+        assert not reflexes  # dark frames in the dark band: nothing to tell
+        detector.slot.put((_frame(step_seq, shade), time.time()))
+        assert arrived.wait(5), "no reflex for the step into a band nothing here takes in place"
+        assert answered[step_seq].wait(5)  # and the step frame's detections published
+    finally:
+        detector.shutdown()
+        listener.undeclare()
+        results.undeclare()
+    told = reflexes[0]
+    assert told.config is None and told.band == step_to and told.from_band == "dark" and told.seq == step_seq
+    assert during == [False], "the reflex arrived while the step frame was still being detected"
