@@ -545,7 +545,7 @@ class Detector:
         armed = self._reflexes
         level = None
         hedge: tuple[str, Any, float] | None = None  # (configuration, its result, ms)
-        told = None  # a band nothing here takes in place: told once this frame is detected (below)
+        told = None  # a band nothing here takes in place: told once its detections are out (below)
         if armed is not None:
             reflex, cores = armed
             if generation != self._reflex_generation:
@@ -559,13 +559,6 @@ class Detector:
             elif swap is not None:
                 config, core, generation = self._reflex_swap(swap, cores, frame, config)
         result = core.detect(gray)
-        if told is not None:
-            # Told after the detection, not before: the manager starts the band's configuration as a new
-            # process at once, and on two cores that start took the CPU from this very frame (its detection
-            # 6.6-10.9 ms told after, 15.2-19.1 told before, bench adaptation --changes new-process). Where
-            # the running configuration sees in the new light this frame is the pilot's fix; where it does
-            # not, the new process is told one detection later (docs/reliability.md).
-            self._reflex_swap(told, cores, frame, config)
         if armed is not None:
             reflex, cores = armed
             found = result.clean_count
@@ -579,6 +572,9 @@ class Detector:
             if hedge is not None and hedge[1].clean_count > found:
                 config, result = cores[hedge[0]].config, hedge[1]  # keep whichever finds the markers
             if swap is not None:
+                if told is not None:  # the light's evidence came first: told first
+                    self._reflex_swap(told, cores, frame, config)
+                    told = None
                 self._reflex_swap(swap, cores, frame, config)
         s = self.settings
         detections = messages.Detections(
@@ -595,6 +591,15 @@ class Detector:
             self._seen_markers = (float(frame.time), result.corners)
         self._publisher.put(messages.encode(detections))
         self.processed += 1
+        if told is not None:
+            # Told once this frame's detections are out, not before its detection: the manager starts the
+            # band's configuration as a new process at once, and on two cores that start took the CPU from
+            # this very frame (the running dark configuration's detection of the first day frame 15-19 ms
+            # told before, 7-8 told after; bench adaptation --changes new-process, traced). Where the running
+            # configuration sees in the new light, this frame is the pilot's fix; where it does not, it
+            # found nothing fast (about 1 ms for the day configuration on a dark frame) and the new process
+            # is told that much later.
+            self._reflex_swap(told, cores, frame, config)
         if generation not in self._first_frame:
             with self._generation_seen:
                 self._first_frame[generation] = int(frame.seq)

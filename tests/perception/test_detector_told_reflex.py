@@ -1,9 +1,10 @@
-"""A band the running detector cannot take in place is told to the manager after the frame's detection.
+"""A band the running detector cannot take in place is told to the manager once the frame's detections are out.
 
 The manager answers such a reflex by starting the band's configuration as a new process; told before the
 detection, that start took the two cores from the very frame that showed the new light (the running dark
-configuration's detection of a day frame went from about 7 ms to 13-19). A real detector on a real Zenoh
-session: the step frame's detection is held open, and the reflex must not arrive while it is.
+configuration's detection of a day frame went from about 7 ms to 15-19). A real detector on a real Zenoh
+session: the step frame is held open between its detection and the publication of its detections, and the
+reflex must not arrive while it is.
 """
 
 from __future__ import annotations
@@ -15,10 +16,9 @@ import cv2
 import numpy as np
 import pytest
 
-from kgadapt.onboard.perception import markers
 from kgadapt.onboard.perception.detector import Detector, DetectorSettings
 from kgadapt.onboard.perception.markers import parse_config
-from kgadapt.onboard.perception.reflex import ReflexTable
+from kgadapt.onboard.perception.reflex import Reflex, ReflexTable
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 
@@ -47,7 +47,7 @@ def session():
 
 
 @pytest.mark.parametrize("step_to", ["day", "dusk"])
-def test_a_band_nothing_here_takes_in_place_is_told_after_the_step_frame_is_detected(session, monkeypatch, step_to):
+def test_a_band_nothing_here_takes_in_place_is_told_once_the_step_frame_s_detections_are_out(session, monkeypatch, step_to):
     parse = lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary)  # noqa: E731
     table = ReflexTable.from_rows([_row("dark", 0, 12, "dark", in_place=True),
                                    _row("dusk", 12, 40, "dusk", in_place=step_to == "day"),
@@ -59,24 +59,27 @@ def test_a_band_nothing_here_takes_in_place_is_told_after_the_step_frame_is_dete
 
     def on_reflex(sample) -> None:
         reflexes.append(messages.decode_as(sample.payload.to_bytes(), messages.Reflex))
+        after_detections.append(answered[step_seq].is_set())
         arrived.set()
 
+    after_detections: list[bool] = []  # per reflex: were the step frame's detections out before it?
+    step_seq = 3
     listener = session.declare_subscriber(keys.detector_reflex("r1", "*"), on_reflex)
     answered: dict[int, threading.Event] = {seq: threading.Event() for seq in (1, 2, 3)}
     results = session.declare_subscriber(
         keys.detector_markers("r1", "*"),
         lambda sample: answered[messages.decode_as(sample.payload.to_bytes(), messages.Detections).seq].set())
-    step_seq = 3
-    during: list[bool] = []  # per detection of the step frame: had the reflex arrived before it ended?
-    real_detect = markers.MarkerDetector.detect
+    # The step frame's result is judged after its detection and before its detections go out: held open
+    # there long enough for a reflex put any earlier to arrive.
+    during: list[bool] = []
+    real_on_result = Reflex.on_result
 
-    def detect(self, gray):
-        result = real_detect(self, gray)
-        if float(gray.mean()) > 20 and not during:  # the step frame (the dark ones are near 5)
-            during.append(arrived.wait(0.5))  # long enough for a reflex put before this detection to arrive
-        return result
+    def on_result(self, found, now, **kwargs):
+        if kwargs.get("level") is not None and kwargs["level"] > 20 and not during:  # the step frame
+            during.append(arrived.wait(0.5))
+        return real_on_result(self, found, now, **kwargs)
 
-    monkeypatch.setattr(markers.MarkerDetector, "detect", detect)
+    monkeypatch.setattr(Reflex, "on_result", on_result)
     detector = Detector(DetectorSettings(robot="r1", host="h1", instance="det1"),
                         parse("dark", CONFIG, "DICT_4X4_50"), deployment="d_dark")
     assert detector.arm(table, deployment="d_dark")
@@ -95,4 +98,5 @@ def test_a_band_nothing_here_takes_in_place_is_told_after_the_step_frame_is_dete
         results.undeclare()
     told = reflexes[0]
     assert told.config is None and told.band == step_to and told.from_band == "dark" and told.seq == step_seq
-    assert during == [False], "the reflex arrived while the step frame was still being detected"
+    assert during == [False], "the reflex arrived before the step frame's detections went out"
+    assert after_detections == [True], "the reflex went out before the step frame's detections"
