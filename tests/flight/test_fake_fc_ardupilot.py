@@ -162,21 +162,40 @@ def test_takeoff_land_and_touchdown_move_the_landed_state_as_arducopter_does(ard
 
 # -- AC_PrecLand::run_estimator (KALMAN_FILTER): outlier rejection
 
-def test_a_single_outlier_is_rejected_and_three_in_a_row_are_taken(ardu):
-    link, fc = ardu(vehicle=HOVER)
+def _three_outliers_then_a_fourth(link, fc) -> bool:
+    """Acquire the target straight below, then send four far ones in a row, each once the last was taken in.
+    False when the estimator restarted on the way: all of it must fit in LANDING_TARGET_TIMEOUT_MS (2 s)
+    after the last fused target, or ArduPilot, and so the fake, loses the target (a stalled test on a
+    loaded machine); anything else the estimator does wrong fails the test."""
     _stream_targets(link, _angles(ax=0.0, ay=0.0), 20, 2.4)
     wait_until(lambda: fc.precland.acquired, 1, "acquired")
     assert fc.precland.target_ne == pytest.approx((0.0, 0.0), abs=0.01)
+    started, before = fc.precland.init_ms, fc.precland.counters["outliers"]
+
+    def restarted() -> bool:
+        return not fc.precland.acquired or fc.precland.init_ms != started
+
     far = _angles(ax=math.atan(0.5), ay=0.0)  # 4 m to the right: far outside the filter's spread
-    link.send_landing_target(far())
-    wait_until(lambda: fc.precland.counters["outliers"] == 1, 2, "the outlier rejected")
-    assert fc.precland.target_ne == pytest.approx((0.0, 0.0), abs=0.01)
-    for rejected in (2, 3):
+    for rejected in (1, 2, 3):
         link.send_landing_target(far())
-        wait_until(lambda: fc.precland.counters["outliers"] == rejected, 2, f"outlier {rejected} rejected")
+        wait_until(lambda: fc.precland.counters["outliers"] - before == rejected or restarted(), 2,
+                   f"outlier {rejected} rejected")
+        if restarted():
+            return False
+        assert fc.precland.target_ne == pytest.approx((0.0, 0.0), abs=0.01)
     link.send_landing_target(far())  # the 4th in a row is fused: three were rejected before it
-    wait_until(lambda: fc.precland.target_ne[1] > 0.5, 2, "the estimate moving right")
-    assert fc.precland.counters["outliers"] == 3
+    wait_until(lambda: fc.precland.target_ne[1] > 0.5 or restarted(), 2, "the estimate moving right")
+    if restarted():
+        return False
+    assert fc.precland.counters["outliers"] - before == 3
+    return True
+
+
+def test_a_single_outlier_is_rejected_and_three_in_a_row_are_taken(ardu):
+    link, fc = ardu(vehicle=HOVER)
+    # Up to three tries, each on a target acquired anew: only a restart of the estimator (the 2 s timeout) retries.
+    assert any(_three_outliers_then_a_fourth(link, fc) for _ in range(3)), \
+        "the estimator restarted in each of three tries: the test stalled beyond LANDING_TARGET_TIMEOUT_MS each time"
 
 
 # -- AC_PosControl::accel_to_lean_angles: LAND's correction towards the target tilts the vehicle
