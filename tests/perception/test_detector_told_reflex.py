@@ -17,19 +17,10 @@ import numpy as np
 import pytest
 
 from kgadapt.onboard.perception.detector import Detector, DetectorSettings
-from kgadapt.onboard.perception.markers import parse_config
 from kgadapt.onboard.perception.reflex import Reflex, ReflexTable
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
-
-CONFIG = '{"dictionary": "DICT_4X4_50", "preprocess": [], "parameters": {}}'
-
-
-def _row(band: str, low: float, high: float, config: str, *, in_place: bool) -> dict:
-    return {"band": band, "min_level": low, "max_level": high, "margin": 5.0, "config": config,
-            "dictionary": "DICT_4X4_50", "config_json": CONFIG, "detection_rate": None, "false_per_frame": 0.0,
-            "ms_per_frame": 3.0, "suited": True, "deployment": f"d_{config}", "in_place": in_place,
-            "budget_ms": None}
+from tests.adaptation.test_reflex_rules import CONFIG, parse, row
 
 
 def _frame(seq: int, shade: int) -> bytes:
@@ -48,10 +39,9 @@ def session():
 
 @pytest.mark.parametrize("step_to", ["day", "dusk"])
 def test_a_band_nothing_here_takes_in_place_is_told_once_the_step_frame_s_detections_are_out(session, monkeypatch, step_to):
-    parse = lambda name, raw, dictionary: parse_config(name, raw, dictionary=dictionary)  # noqa: E731
-    table = ReflexTable.from_rows([_row("dark", 0, 12, "dark", in_place=True),
-                                   _row("dusk", 12, 40, "dusk", in_place=step_to == "day"),
-                                   _row("day", 40, 256, "day", in_place=step_to == "dusk")], parse=parse)
+    table = ReflexTable.from_rows([row("dark", 0, 12, "dark", budget=None),  # no hedging
+                                   row("dusk", 12, 40, "dusk", in_place=step_to == "day", budget=None),
+                                   row("day", 40, 256, "day", in_place=step_to == "dusk", budget=None)], parse=parse)
     # day: dusk may be taken in place, day only elsewhere; dusk: the other way round
     shade = {"day": 200, "dusk": 25}[step_to]
     reflexes: list[messages.Reflex] = []
