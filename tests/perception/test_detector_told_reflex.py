@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from kgadapt.onboard.perception.detector import Detector, DetectorSettings
+from kgadapt.onboard.perception.detector import Detector, DetectorSettings, ReflexNotifier
 from kgadapt.onboard.perception.reflex import Reflex, ReflexTable
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
@@ -46,19 +46,21 @@ def test_a_band_nothing_here_takes_in_place_is_told_once_the_step_frame_s_detect
     shade = {"day": 200, "dusk": 25}[step_to]
     reflexes: list[messages.Reflex] = []
     arrived = threading.Event()
-
-    def on_reflex(sample) -> None:
-        reflexes.append(messages.decode_as(sample.payload.to_bytes(), messages.Reflex))
-        after_detections.append(answered[step_seq].is_set())
-        arrived.set()
-
     after_detections: list[bool] = []  # per reflex: were the step frame's detections out before it?
     step_seq = 3
-    listener = session.declare_subscriber(keys.detector_reflex("r1", "*"), on_reflex)
     answered: dict[int, threading.Event] = {seq: threading.Event() for seq in (1, 2, 3)}
-    results = session.declare_subscriber(
-        keys.detector_markers("r1", "*"),
-        lambda sample: answered[messages.decode_as(sample.payload.to_bytes(), messages.Detections).seq].set())
+
+    # One subscriber for both keys: Zenoh runs each subscriber's callbacks on a thread of its own, so only
+    # one subscriber sees two puts in the order they were made.
+    def on_sample(sample) -> None:
+        if str(sample.key_expr).endswith("/markers"):
+            answered[messages.decode_as(sample.payload.to_bytes(), messages.Detections).seq].set()
+        elif str(sample.key_expr).endswith("/reflex"):
+            reflexes.append(messages.decode_as(sample.payload.to_bytes(), messages.Reflex))
+            after_detections.append(answered[step_seq].is_set())
+            arrived.set()
+
+    listener = session.declare_subscriber(f"{keys.robot_root('r1')}/detector/det1/*", on_sample)
     # The step frame's result is judged after its detection and before its detections go out: held open
     # there long enough for a reflex put any earlier to arrive.
     during: list[bool] = []
@@ -70,6 +72,17 @@ def test_a_band_nothing_here_takes_in_place_is_told_once_the_step_frame_s_detect
         return real_on_result(self, found, now, **kwargs)
 
     monkeypatch.setattr(Reflex, "on_result", on_result)
+    # What the detector had published when it handed the reflex to its notifier: decided on the worker's
+    # own thread, where the subscriber's arrival order above also depends on the notifier's thread.
+    published_when_handed: list[int] = []
+    real_put = ReflexNotifier.put
+
+    def put(self, payload):
+        if payload:  # not the empty message that ends the notifier at shutdown
+            published_when_handed.append(detector.processed)
+        return real_put(self, payload)
+
+    monkeypatch.setattr(ReflexNotifier, "put", put)
     detector = Detector(DetectorSettings(robot="r1", host="h1", instance="det1"),
                         parse("dark", CONFIG, "DICT_4X4_50"), deployment="d_dark")
     assert detector.arm(table, deployment="d_dark")
@@ -85,8 +98,8 @@ def test_a_band_nothing_here_takes_in_place_is_told_once_the_step_frame_s_detect
     finally:
         detector.shutdown()
         listener.undeclare()
-        results.undeclare()
     told = reflexes[0]
     assert told.config is None and told.band == step_to and told.from_band == "dark" and told.seq == step_seq
     assert during == [False], "the reflex arrived before the step frame's detections went out"
     assert after_detections == [True], "the reflex went out before the step frame's detections"
+    assert published_when_handed == [step_seq], "the reflex was handed over before the step frame's detections went out"
