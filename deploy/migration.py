@@ -203,12 +203,17 @@ def reconfigure(session: Any, robot: str, host: str, instance: str, config: str,
     The detector checks with the graph that its deployment may take the new
     configuration's in place; refused or unanswered, the running configuration
     stays and :class:`DeploymentError` says why (the caller may then migrate).
+    A request that reached nobody is sent again until ``timeout``: a detector's
+    deployer says it is ready before every session has its queryable's
+    declaration (a change asked right after a start found none under load);
+    RequestTimeout then, naming it not reconfigurable.
     """
     key = keys.detector_configure(robot, host, instance)
     payload = messages.encode(messages.ConfigureRequest(config=config))
     sent = time.perf_counter()
     try:
-        body = rpc.call(session, key, payload, lambda data: messages.decode_as(data, messages.ConfigureReply), timeout=timeout)
+        body = rpc.call(session, key, payload, lambda data: messages.decode_as(data, messages.ConfigureReply),
+                        timeout=timeout, resend_for=timeout)
     except NoResponder as exc:
         raise RequestTimeout(f"detector {instance} on host {host} has no configure queryable (not reconfigurable)") from exc
     except RequestTimeout as exc:  # the detector took it, or not: its deployer's record says which

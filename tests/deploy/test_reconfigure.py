@@ -148,6 +148,25 @@ def test_an_activity_switch_asked_before_the_detector_is_up_reaches_it_once_it_i
         client.stop("onboard", "early1")
 
 
+def test_a_change_asked_before_the_detector_is_up_reaches_it_once_it_is(hosts, client_session, graph):
+    # As with the activity switch: a change asked right after a start may find the configure queryable's
+    # declaration not yet at the asking session (CI: "nobody answers" while the detector ran). reconfigure
+    # asks again until its timeout; nobody received the earlier requests, so nothing is changed twice.
+    replies: list = []
+    asking = threading.Thread(target=lambda: replies.append(
+        reconfigure(client_session, ROBOT, "onboard", "early2", "marker_detection_dark", timeout=30.0)), daemon=True)
+    asking.start()  # before the detector exists: no queryable matches yet
+    client = DeployerClient(client_session, ROBOT)
+    client.start("onboard", "detector_day", "marker_detection_day", instance="early2")
+    try:
+        asking.join(35)
+        assert replies and (replies[0].previous, replies[0].config) == ("marker_detection_day",
+                                                                         "marker_detection_dark"), replies
+        assert client.status("onboard", "early2").config == "marker_detection_dark"
+    finally:
+        client.stop("onboard", "early2")
+
+
 def test_a_detector_started_idle_publishes_nothing_until_made_active(hosts, client_session, graph):
     # A warm standby: started with idle (KGADAPT_START_IDLE in its environment), it does no detection
     # work from its first frame on, instead of detecting until the manager's request to idle reaches it.
