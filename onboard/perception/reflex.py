@@ -218,11 +218,18 @@ class ReflexSettings:
     # against a count still falling (the previous one could not run beside it) is taken again when the previous
     # one then finds fewer than the try did. 0 turns the recheck off.
     recheck_frames: int = 3
+    # A band only another process can take, reached by light still moving (by more than the band's margin
+    # since the last frame) towards a band beyond it, is told once the light settles there or after this many
+    # frames: a frame exposed while a lamp comes on reads in between (a step from dark to day told dusk first,
+    # and the process started for it took the CPU from the day frame after it). 0 tells it at once.
+    settle_frames: int = 3
 
     def __post_init__(self) -> None:
         if self.collapse_frames < 1 or self.trial_frames < 0 or self.confirm_frames < 1 or self.memory_s <= 0:
             raise ConfigError("reflex settings: collapse_frames >= 1, trial_frames >= 0, confirm_frames >= 1, "
                               "memory_s > 0")
+        if self.settle_frames < 0:
+            raise ConfigError(f"reflex settings: settle_frames >= 0, not {self.settle_frames}")
         if not 0 <= self.fall_fraction < 1 or self.fall_min_typical < 1 or self.recheck_frames < 0:
             raise ConfigError("reflex settings: 0 <= fall_fraction < 1, fall_min_typical >= 1, recheck_frames >= 0")
 
@@ -288,6 +295,8 @@ class Reflex:
     # after the start): its band is the light's on the first frame, not the configuration's, or the reflex
     # would undo the change as if it were a start's stale configuration.
     follow_light: bool = False
+    last_level: float | None = None  # the light of the previous frame that had an estimate
+    settling: int = 0  # frames a told band has waited for the light to settle (settle_frames)
 
     @property
     def comparing(self) -> bool:
@@ -300,6 +309,7 @@ class Reflex:
         """This frame's light; a Swap when it is past an edge of the band by more than the margin."""
         if level is None or not math.isfinite(level) or not self.table.entries:
             return None
+        previous, self.last_level = self.last_level, level
         current = self.table.entry(self.band)
         if current is None:
             # Just started: the band it was configured for (a step while it started counts), else the light's.
@@ -307,12 +317,17 @@ class Reflex:
                 self.table.band_of(level)
             self.band = current.band.name
         if current.band.contains(level, current.margin):
+            self.settling = 0
             return None
         new = self.table.band_of(level)
         if new.band.name == current.band.name:
+            self.settling = 0
             return None
-        self.band = new.band.name
         best = new.best
+        if best is None and self._passing(new, level, previous):
+            return None  # the band stays; the next frame says where the light went
+        self.settling = 0
+        self.band = new.band.name
         if best is None:  # nothing of that band runs here in place: tell, keep detecting with what runs
             self.told = True
             return Swap(None, self.running, new.band.name, current.band.name, ReflexEvidence.LIGHT, level,
@@ -323,6 +338,20 @@ class Reflex:
                 return Swap(None, self.running, new.band.name, current.band.name, ReflexEvidence.LIGHT, level)
             return None
         return self._swap(best, ReflexEvidence.LIGHT, level, from_band=current.band.name)
+
+    def _passing(self, new: BandEntry, level: float, previous: float | None) -> bool:
+        """The light is on its way through band ``new`` (see ``ReflexSettings.settle_frames``): it moved by more
+        than the band's margin since the last frame, towards a band beyond it, and has not waited long."""
+        if previous is None or self.settling >= self.settings.settle_frames:
+            return False
+        moved = level - previous
+        if abs(moved) <= new.margin:
+            return False  # settled (or drifting, as at dusk outdoors): tell now
+        below, above = self.table.neighbours(new.band.name)
+        if (above if moved > 0 else below) is None:
+            return False  # the last band that way: nowhere further to go
+        self.settling += 1
+        return True
 
     def hedge_for(self, level: float | None) -> str | None:
         """The configuration to run beside the running one on this frame, if any: the previous one

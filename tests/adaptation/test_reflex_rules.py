@@ -129,6 +129,67 @@ def test_a_band_nothing_may_take_in_place_is_reported_not_switched():
     assert r.on_light(5.0).config is None and r.on_light(6.0) is None
 
 
+def _told_only(in_place=("dark",), **settings):
+    """Dark running; the bands not in ``in_place`` only another process may take."""
+    rows = [row(b, lo, hi, b, in_place=b in in_place) for b, lo, hi in BANDS]
+    return Reflex(table=ReflexTable.from_rows(rows, parse=parse), running="dark", settings=ReflexSettings(**settings))
+
+
+def test_a_frame_caught_while_a_lamp_comes_on_tells_no_band_the_light_only_passes_through():
+    # A step dark -> day whose first frame was exposed while the lamp came on (a bench run: 23 of 32 such
+    # steps read 17-31): the dusk band, with the day band beyond it, is not told for that frame; day is.
+    r = _told_only()
+    assert r.on_light(5.0) is None and r.on_light(5.2) is None
+    assert r.on_light(19.0) is None and r.band == "dark"  # moved by 13.8 > the margin, day beyond
+    swap = r.on_light(120.0)
+    assert (swap.config, swap.band, swap.from_band) == (None, "day", "dark")
+    # Day -> dark through a frame that reads dusk: dark is told, dusk never.
+    r = _told_only(in_place=("day",))
+    r.running = "day"
+    assert r.on_light(120.0) is None and r.band == "day"
+    assert r.on_light(33.0) is None
+    swap = r.on_light(5.0)
+    assert (swap.config, swap.band, swap.from_band) == (None, "dark", "day")
+
+
+def test_a_band_the_light_settles_in_is_told_on_the_next_frame_and_a_moving_light_waits_a_bounded_time():
+    r = _told_only()
+    r.on_light(5.0)
+    assert r.on_light(19.0) is None
+    swap = r.on_light(21.0)  # within the margin of the last frame: settled in dusk
+    assert (swap.config, swap.band, swap.from_band) == (None, "dusk", "dark")
+    # Still moving by more than the margin every frame, still in dusk: told after settle_frames frames.
+    r = _told_only(settle_frames=2)
+    r.on_light(5.0)
+    assert r.on_light(19.0) is None and r.on_light(26.0) is None
+    swap = r.on_light(33.0)
+    assert (swap.band, swap.from_band) == ("dusk", "dark")
+    # 0: told at once, as before.
+    assert _told_only(settle_frames=0).on_light(5.0) is None
+    r = _told_only(settle_frames=0)
+    r.on_light(5.0)
+    assert r.on_light(19.0).band == "dusk"
+
+
+def test_a_step_to_the_last_band_a_drift_and_an_in_place_band_are_not_held():
+    r = _told_only()
+    r.on_light(5.0)
+    assert r.on_light(120.0).band == "day"  # nothing beyond day: told on the step's first frame
+    r = _told_only()
+    for level in (8.0, 11.0, 14.0, 17.5):  # a slow drift past the edge (12) and its margin (5): a frame never
+        got = r.on_light(level)            # moves more than the margin
+    assert got is not None and got.band == "dusk"
+    r = _told_only(in_place=("dark", "dusk"))
+    r.on_light(5.0)
+    swap = r.on_light(19.0)  # dusk runs here in place: swapped at once, no process to start
+    assert (swap.config, swap.band) == ("dusk", "dusk")
+
+
+def test_settle_frames_below_zero_is_refused():
+    with pytest.raises(ConfigError, match="settle_frames"):
+        ReflexSettings(settle_frames=-1)
+
+
 def test_after_a_switch_the_new_one_stays_when_it_finds_the_markers():
     r = Reflex(table=table(), running="day")
     r.on_light(120.0)

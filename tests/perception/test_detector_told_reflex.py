@@ -39,10 +39,13 @@ def session():
 
 @pytest.mark.parametrize("step_to", ["day", "dusk"])
 def test_a_band_nothing_here_takes_in_place_is_told_once_the_step_frame_s_detections_are_out(session, monkeypatch, step_to):
-    table = ReflexTable.from_rows([row("dark", 0, 12, "dark", budget=None),  # no hedging
-                                   row("dusk", 12, 40, "dusk", in_place=step_to == "day", budget=None),
-                                   row("day", 40, 256, "day", in_place=step_to == "dusk", budget=None)], parse=parse)
-    # day: dusk may be taken in place, day only elsewhere; dusk: the other way round
+    # day: dusk may be taken in place, day only elsewhere; dusk: the top band, only elsewhere (a band with one
+    # beyond it waits for the light to settle when it was reached by a step: test_reflex_rules)
+    rows = [row("dark", 0, 12, "dark", budget=None),  # no hedging
+            row("dusk", 12, 40 if step_to == "day" else 256, "dusk", in_place=step_to == "day", budget=None)]
+    if step_to == "day":
+        rows.append(row("day", 40, 256, "day", in_place=False, budget=None))
+    table = ReflexTable.from_rows(rows, parse=parse)
     shade = {"day": 200, "dusk": 25}[step_to]
     reflexes: list[messages.Reflex] = []
     arrived = threading.Event()
