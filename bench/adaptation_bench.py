@@ -160,7 +160,7 @@ def measure_steps(workdir: Path, cycles: int, hold: float, *, in_place: bool, cp
                 limit.__exit__()
     rec = robot.recorder
     rec.attribute_losses()
-    steps = rec.light_steps(classify)[:4 * cycles]
+    steps = rec.light_steps(classify, band_of=band_of)[:4 * cycles]
     changes = [d for d in rec.decisions if d.outcome.startswith(("migrated", "reconfigured", "switched"))]
     others = [d for d in rec.decisions if d.kind not in (TriggerKind.STARTUP, TriggerKind.STANDBY) and d not in changes
               and not d.outcome.startswith("kept")]
@@ -289,6 +289,11 @@ def measure_failovers(workdir: Path, count: int, *, cpu: float | None = None, st
     return times
 
 
+def band_of(kind: str) -> str:
+    """The reflex table's band of a light class of the bench profile (the window-lit dark is dark)."""
+    return "dark" if kind.endswith("dark") else kind
+
+
 def run(args: argparse.Namespace) -> int:
     from kgadapt.bench.footprint import HalfCore
 
@@ -377,6 +382,8 @@ def _records(result: dict[str, Any], *, store: str, how: str, onboard: str) -> l
         if blind:
             out.append(make_record(store=store, n=None, op=f"blind_time {kind}", samples_ms=blind, steps=len(steps),
                                    never_seen=unseen, headline=True, target_ms=target,
+                                   steps_with_a_frame_between=sum(s.between for s in steps),
+                                   reflexes_to_a_band_between=sum(s.bands_between for s in steps),
                                    what="total: first frame in the new light -> first published detection with a "
                                         "marker that frame shows", **common))
         band = [s.band_ms for s in steps if s.band_ms is not None]
@@ -451,5 +458,7 @@ def _lines(result: dict[str, Any], *, how: str, onboard: str) -> list[str]:
     return [f"{how}, onboard {onboard}: {len(result['steps'])} light steps, changes {kinds or 'none'}, "
             f"reflexes {result.get('reflexes')}, frames lost in changes {sum(d.frames_lost or 0 for d in changes)}, "
             f"hedging {hedging.get('hedge_ms_per_frame')} ms/frame ({hedging.get('hedged_share')} of frames), "
-            f"other decisions {[d.outcome.split(':')[0] for d in result['others']]}"
+            f"other decisions {[d.outcome.split(':')[0] for d in result['others']]}; "
+            f"steps with a frame exposed during them {sum(s.between for s in result['steps'])}, "
+            f"reflexes to a band in between {sum(s.bands_between for s in result['steps'])}"
             + (f"; never saw markers after {unseen}" if unseen else "")]

@@ -54,6 +54,10 @@ class LightStep:
     blind_ms: float | None  # capture of the first new-light frame -> publication of those detections
     band_ms: float | None  # capture of the first new-light frame -> the band change decided (EMA, hysteresis, dwell)
     change: str | None = None  # what the decision after the step did (reconfigure / migrate / kept)
+    # The frame just before it was exposed during the step (its level is between the two, which classify
+    # names None): the camera's frames kept the phase of a step period that is a whole number of frames.
+    between: bool = False
+    bands_between: int = 0  # the detectors' reflexes to a band neither side of the step, in the step's time
 
 
 @dataclass
@@ -279,7 +283,8 @@ class Recorder:
                             - self._dropped.get((d.instance or "", old_last), 0))
                 d.frames_lost_busy = min(d.frames_lost, max(0, rose))
 
-    def light_steps(self, classify: Callable[[float], str | None]) -> list[LightStep]:
+    def light_steps(self, classify: Callable[[float], str | None],
+                    band_of: Callable[[str], str] = lambda kind: kind) -> list[LightStep]:
         """Every step of the scenario's light between the classes ``classify`` gives levels
         (None: a level in between, e.g. a ramp), with the blind time after it.
 
@@ -288,22 +293,26 @@ class Recorder:
         contain a marker that frame shows (the camera's ground truth). It is
         what a pilot waiting for a position fix feels; ``band_ms`` is the part
         the light monitor and the band's dwell take before anything is decided.
+        ``band_of`` names the band of a class of light (for ``bands_between``).
         """
         with self._lock:
             frames = sorted(self.frames.items())
             found = sorted(self.found)
             decisions = sorted(((d.trigger_time, d) for d in self.decisions if d.trigger_time is not None),
                                key=lambda timed: timed[0])
+            reflexes = sorted(self.reflexes, key=lambda r: r.frame_time)
         steps: list[LightStep] = []
         previous: str | None = None
+        between = False
         for seq, (t, level, _) in frames:
             kind = classify(level) if level is not None else None
             if kind is None:
+                between = level is not None
                 continue
             if previous is not None and kind != previous:
                 steps.append(LightStep(kind=f"{previous}->{kind}", frame_seq=seq, frame_time=t,
-                                       seen_seq=None, blind_ms=None, band_ms=None))
-            previous = kind
+                                       seen_seq=None, blind_ms=None, band_ms=None, between=between))
+            previous, between = kind, False
         truth = {seq: ids for seq, (_, _, ids) in frames}
         for i, step in enumerate(steps):
             end = steps[i + 1].frame_seq if i + 1 < len(steps) else None
@@ -314,6 +323,9 @@ class Recorder:
                     step.seen_seq, step.blind_ms = seq, (published - step.frame_time) * 1000.0
                     break
             until = steps[i + 1].frame_time if i + 1 < len(steps) else float("inf")
+            sides = {band_of(side) for side in step.kind.split("->")}
+            since = step.frame_time - 0.1  # the frame exposed during the step comes a frame before it
+            step.bands_between = sum(1 for r in reflexes if since <= r.frame_time < until and r.band not in sides)
             after = next(((t, d) for t, d in decisions if step.frame_time <= t < until
                           and d.kind not in (TriggerKind.STARTUP, TriggerKind.HOST_BACK)), None)
             if after is not None:
