@@ -300,7 +300,7 @@ class Recorder:
             found = sorted(self.found)
             decisions = sorted(((d.trigger_time, d) for d in self.decisions if d.trigger_time is not None),
                                key=lambda timed: timed[0])
-            reflexes = sorted(self.reflexes, key=lambda r: r.frame_time)
+            reflexes = list(self.reflexes)
         steps: list[LightStep] = []
         previous: str | None = None
         between = False
