@@ -716,10 +716,13 @@ class RobotOnHosts:
                 time.sleep(0.2)
                 continue
             recent = {k: v for k, v in active.items() if v["last"] >= max(since, time.time() - 0.6)}
-            if len(live) == 1 and len(procs) == 1 and set(recent) == {live[0]["instance"]}:
+            # The deployer's snapshot must name the process found: a launcher's member runs, and may
+            # detect, a moment before its deployer has the fork's reply (the snapshot then has no pid).
+            if (len(live) == 1 and len(procs) == 1 and set(recent) == {live[0]["instance"]}
+                    and live[0].get("pid") == procs[0].pid):
                 return live[0]
-            last = (f"live {[(p['instance'], p['host'], p['state']) for p in live]}, processes "
-                    f"{[(d.instance, d.host) for d in procs]}, detecting {sorted(recent)}")
+            last = (f"live {[(p['instance'], p['host'], p['state'], p.get('pid')) for p in live]}, processes "
+                    f"{[(d.instance, d.host, d.pid) for d in procs]}, detecting {sorted(recent)}")
             time.sleep(0.2)
         raise TransportError(f"no single detector settled within {timeout:g} s: {last}")
 

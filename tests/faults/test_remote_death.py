@@ -43,17 +43,24 @@ def test_a_detector_runs_onboard_after_kill_9_of_the_remote_agent_also_right_aft
     # onboard detector stopped, so the loss is acted on with a new one), or its last step had not
     # been answered yet (the start's reply or the first detections reached the manager after the
     # kill: the migration fails and the onboard detector, never stopped, detects on).
+    def what_happened(exc: Exception) -> AssertionError:
+        seen = [e for e in robot.probe.events if e["t"] >= back_at and e["ev"] in ("decision", "deploy", "alive")]
+        return AssertionError(f"{exc}; killed at {killed_at:.3f}; since the remote host came back: {seen}; "
+                              f"the onboard agent's log:\n{robot.cluster.children['onboard'].tail(60)}")
+
     try:
         running = robot.settle(since=killed_at, timeout=30.0)
     except TransportError as exc:
-        seen = [e for e in robot.probe.events if e["t"] >= back_at and e["ev"] in ("decision", "deploy", "alive")]
-        raise AssertionError(f"{exc}; since the remote host came back: {seen}") from exc
+        raise what_happened(exc) from exc
     assert running["host"] == "onboard" and running["instance"] != placed["instance"]
     if running["instance"] == result["new_instance"]:
         # Recorded once the half-started remote detector's stop is given up on (its host is gone).
-        robot.probe.wait_event(lambda e: e["ev"] == "decision" and e["t"] >= back_at
-                               and str(e.get("outcome", "")).startswith("failed"), 60.0,
-                               "the failed migration's decision (the onboard detector detects on)")
+        try:
+            robot.probe.wait_event(lambda e: e["ev"] == "decision" and e["t"] >= back_at
+                                   and str(e.get("outcome", "")).startswith("failed"), 60.0,
+                                   "the failed migration's decision (the onboard detector detects on)")
+        except TransportError as exc:
+            raise what_happened(exc) from exc
     else:
         # The takeover was forked by the onboard host's launcher, or handed to the idle detector it keeps (--pool).
-        assert running["via"] in ("launcher", "pool")
+        assert running["via"] in ("launcher", "pool"), f"{running}"
