@@ -79,10 +79,7 @@ def _child_setup(parent_pid: int, death_signal: int) -> Callable[[], None]:
         if _libc_signal is not None:
             _libc_signal(signal.SIGINT, None)  # None = SIG_DFL (0)
             _libc_signal(signal.SIGTERM, None)
-        parent_death.set_death_signal(death_signal)
-        # The agent may have died between fork and prctl; then nobody would signal us.
-        if os.getppid() != parent_pid:
-            os.kill(os.getpid(), death_signal)
+        parent_death.tie_to_parent(parent_pid, death_signal)
 
     return setup
 

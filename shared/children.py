@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Callable, Mapping, Sequence
 
+from kgadapt.shared import parent_death
 from kgadapt.shared.errors import DeploymentError
 from kgadapt.shared.readiness import Payload, ReadyWatch
 
@@ -100,12 +101,16 @@ class ChildProcess:
     stderr is inherited. ``env`` replaces the environment (None: ours).
     ``on_line`` is called (on the reader thread) with every stdout line, then
     with None when the output ends: for children that speak more than readiness.
+    ``death_signal`` reaches the child when we die without stopping it (a ``kill -9`` of a test run or a
+    bench left their robots running); only for a child started on the main thread, because the kernel
+    sends it when the *thread* that started the child ends. None: the child outlives us.
     """
 
     def __init__(self, argv: Sequence[str], *, name: str, env: Mapping[str, str] | None = None,
                  cwd: str | Path | None = None, log: Path | None = None, log_stdout: bool = True,
                  append: bool = False, stdin: int | IO[Any] | None = subprocess.DEVNULL, keep: int = 50,
-                 on_line: Callable[[str | None], None] | None = None) -> None:
+                 on_line: Callable[[str | None], None] | None = None,
+                 death_signal: int | None = signal.SIGTERM) -> None:
         self.name = name
         self.argv = tuple(argv)
         self.log_path = log
@@ -116,10 +121,14 @@ class ChildProcess:
         self._on_line = on_line
         self._log: IO[str] | None = open(log, "a" if append else "w") if log is not None else None
         self._log_stdout = log_stdout and self._log is not None
+        tie = None
+        if death_signal is not None and threading.current_thread() is threading.main_thread():
+            parent, signum = os.getpid(), death_signal
+            tie = lambda: parent_death.tie_to_parent(parent, signum)  # noqa: E731 - a preexec_fn
         try:
             self.process = subprocess.Popen(
                 list(argv), stdout=subprocess.PIPE, stderr=self._log, stdin=stdin, text=True, errors="replace", cwd=cwd,
-                env=dict(env) if env is not None else None, start_new_session=True)
+                env=dict(env) if env is not None else None, start_new_session=True, preexec_fn=tie)
         except (OSError, ValueError, subprocess.SubprocessError) as exc:
             if self._log is not None:
                 self._log.close()

@@ -187,3 +187,57 @@ def test_a_detectors_record_and_its_readiness_line_written_from_two_threads_neve
     ready = [line for line in lines if parse_ready(line) is not None]
     recorded = [line for line in lines if line.startswith(CONFIGURED_TOKEN + " ") and line.endswith(" detector_day")]
     assert len(ready) == rounds and len(recorded) == rounds, [x for x in lines if x not in ready and x not in recorded][:3]
+
+
+_PARENT = """
+import sys, threading, time
+from kgadapt.shared.children import ChildProcess
+grandchild = [sys.executable, "-c", "import time; print('up', flush=True); time.sleep(120)"]
+made = []
+def start():
+    made.append(ChildProcess(grandchild, name="grandchild", death_signal=%s))
+if %r:
+    worker = threading.Thread(target=start)
+    worker.start()
+    worker.join()  # the thread that started it has ended
+else:
+    start()
+made[0].wait_for_line("up", 30)
+print(made[0].pid, flush=True)
+time.sleep(120)
+"""
+
+
+@pytest.mark.parametrize("death_signal, on_thread, ends", [
+    ("signal.SIGTERM", False, True),   # the default, from the main thread: tied to us
+    ("None", False, False),            # asked not to be
+    ("signal.SIGTERM", True, False),   # started on a thread that ended since: never tied
+], ids=["main-thread", "untied", "worker-thread"])
+def test_a_child_ends_when_its_parent_is_killed_unless_untied_or_started_on_another_thread(
+        death_signal, on_thread, ends):
+    import subprocess
+
+    code = "import signal\n" + _PARENT % (death_signal, on_thread)
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=ENV)
+    child = None
+    try:
+        line = parent.stdout.readline()
+        assert line.strip().isdigit(), f"the parent printed {line!r}, not its child's pid"
+        child = psutil.Process(int(line))
+        parent.kill()
+        parent.wait(10)
+        try:
+            child.wait(10 if ends else 1)
+            ended = True
+        except psutil.TimeoutExpired:
+            ended = False
+        assert ended is ends, f"the child {'outlived' if ends else 'did not outlive'} its killed parent"
+    finally:
+        parent.kill()
+        parent.wait(10)
+        if child is not None:
+            try:
+                child.kill()
+                child.wait(10)  # reaped here if it was handed to us (a test made this process a subreaper)
+            except psutil.NoSuchProcess:
+                pass
