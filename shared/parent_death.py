@@ -1,6 +1,6 @@
 """The parent-death signal: the kernel signals a child when the thread that forked it ends (Linux prctl).
 
-The one place that talks to prctl; the supervisor, the launcher and the embedded store's
+The one place that talks to prctl; the supervisor, the launcher, ChildProcess and the embedded store's
 starter use it. prctl is resolved at import, not in a freshly forked child: after fork
 only async-signal-safe work is wise.
 """
