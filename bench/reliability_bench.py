@@ -716,8 +716,8 @@ class RobotOnHosts:
                 time.sleep(0.2)
                 continue
             recent = {k: v for k, v in active.items() if v["last"] >= max(since, time.time() - 0.6)}
-            # The deployer's snapshot must name the process found: a launcher's member runs, and may
-            # detect, a moment before its deployer has the fork's reply (the snapshot then has no pid).
+            # The deployer's snapshot must name the process found: the three are read one after the other,
+            # and a snapshot still "starting" (no run, no pid) may come before the process and its detections.
             if (len(live) == 1 and len(procs) == 1 and set(recent) == {live[0]["instance"]}
                     and live[0].get("pid") == procs[0].pid):
                 return live[0]
