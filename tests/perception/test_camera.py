@@ -47,6 +47,45 @@ def test_the_camera_publishes_jpeg_frames_with_truth_and_matching_illumination(e
     assert reading["smoothed"] == pytest.approx(90, rel=0.1)
 
 
+def test_each_frame_is_out_before_its_light_is_reckoned(endpoint_session, robot, monkeypatch):
+    # Every detection waits for the frame; only the illumination message needs the light figures.
+    import threading
+
+    from kgadapt.onboard.perception import camera
+
+    _, session = endpoint_session
+    published = threading.Condition()
+    count = [0]
+
+    def on_frame(_sample) -> None:
+        with published:
+            count[0] += 1
+            published.notify_all()
+
+    subscriber = session.declare_subscriber(keys.camera_frame(robot, "cam0"), on_frame)
+    reckoned: list[bool] = []  # per light estimate: was its frame (the camera's k-th) out already?
+    real = camera.estimate_light
+
+    def estimate_light(*args, **kwargs):
+        k = len(reckoned) + 1
+        with published:
+            reckoned.append(published.wait_for(lambda: count[0] >= k, timeout=2.0))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(camera, "estimate_light", estimate_light)
+    part = CameraPart(CameraSettings(robot=robot, fps=60), SyntheticSource(IlluminationProfile.constant(90.0)))
+    heard: queue.Queue = queue.Queue()
+    part.add_listener(heard.put)
+    try:
+        part.setup(session)
+        for _ in range(3):
+            heard.get(timeout=10)
+    finally:
+        part.shutdown()
+        subscriber.undeclare()
+    assert reckoned[:3] == [True, True, True], "the light was reckoned before its frame went out"
+
+
 def test_the_queue_between_capture_and_publish_keeps_only_the_newest_frames():
     part = CameraPart(CameraSettings(robot="r", queue_size=2), SyntheticSource(IlluminationProfile.constant(50)))
     blank = np.zeros((4, 4), np.uint8)
