@@ -17,7 +17,7 @@ from hypothesis.extra.numpy import arrays
 
 from kgadapt.onboard.perception.markers import _percentiles, cells_are_clean
 from kgadapt.onboard.perception.scene import IlluminationProfile, SyntheticScene
-from sim.photos import PHOTO_DIR
+from kgadapt.sim.photos import PHOTO_DIR
 
 
 def plain_cells_are_clean(gray: np.ndarray, corners, *, cells: int = 6, max_mixed: float = 0.2) -> bool:
