@@ -231,13 +231,13 @@ def cells_are_clean(gray: np.ndarray, corners: Any, *, cells: int = 6, max_mixed
     values = values.reshape(cells * cells, 3, 3)  # cell, x sample, y sample
     means = values.mean(axis=(1, 2))
     p10, p90 = _percentiles(means, 10, 90)
-    contrast = p90 - p10
+    contrast = float(p90 - p10)  # in the values' dtype, as np.percentile's difference was
     if contrast <= 0:
         return False
     # In a dark, noisy frame the samples of a clean cell spread by noise alone: the cleanest
     # quarter of the cells (a marker's border cells are clean even on a coarser grid) says how much.
     spread = values.max(axis=(1, 2)) - values.min(axis=(1, 2))
-    limit = max(0.5 * contrast, 2.5 * _percentiles(spread, 25)[0])
+    limit = max(0.5 * contrast, 2.5 * float(_percentiles(spread, 25)[0]))
     return bool((spread > limit).mean() <= max_mixed)
 
 
@@ -256,10 +256,10 @@ def _cell_grid(cells: int) -> tuple[np.ndarray, np.ndarray]:
     return square, grid
 
 
-def _percentiles(values: np.ndarray, *qs: float) -> list[float]:
-    """``float(np.percentile(values, q))`` for each of ``qs``, the same figures (linear between the closest
-    ranks, in the values' own dtype, from the nearer rank), by one sort: for the few dozen values of a
-    marker's cells about 3 us, where each np.percentile took 19, three times a marker on every frame."""
+def _percentiles(values: np.ndarray, *qs: float) -> list[Any]:
+    """``np.percentile(values, q)`` for each of ``qs``, the same scalars (linear between the closest ranks,
+    in the values' own dtype, from the nearer rank), by one sort: for the few dozen values of a marker's
+    cells about 3 us, where each np.percentile took 19, three times a marker on every frame."""
     ranked = np.sort(values, axis=None)
     last = ranked.size - 1
     out = []
@@ -270,7 +270,7 @@ def _percentiles(values: np.ndarray, *qs: float) -> list[float]:
         t = at - low
         a, b = ranked[low], ranked[high]
         diff = b - a
-        out.append(float(a + diff * t if t < 0.5 else b - diff * (1 - t)))
+        out.append(a + diff * t if t < 0.5 else b - diff * (1 - t))
     return out
 
 
