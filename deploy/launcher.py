@@ -467,10 +467,9 @@ def _await_adoption(middle: int, parent: int, death_signal: int) -> None:
         if time.monotonic() > deadline:
             os._exit(1)
         time.sleep(0.0002)
-    # After the re-parenting: set before, the intermediate's exit would already have fired it.
-    parent_death.set_death_signal(death_signal)
-    if os.getppid() != parent:  # the agent died, or is not our subreaper: nobody would supervise us
-        os.kill(os.getpid(), death_signal)
+    # After the re-parenting: set before, the intermediate's exit would already have fired it. Not tied: the
+    # agent died, or is not our subreaper, and nobody would supervise us.
+    if not parent_death.tie_to_parent(parent, death_signal):
         os._exit(1)
 
 

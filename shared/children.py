@@ -11,6 +11,7 @@ SIGINT, then SIGTERM, then SIGKILL, each after its own bounded wait
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import queue
@@ -121,10 +122,9 @@ class ChildProcess:
         self._on_line = on_line
         self._log: IO[str] | None = open(log, "a" if append else "w") if log is not None else None
         self._log_stdout = log_stdout and self._log is not None
-        tie = None
+        tie = None  # a preexec_fn
         if death_signal is not None and threading.current_thread() is threading.main_thread():
-            parent, signum = os.getpid(), death_signal
-            tie = lambda: parent_death.tie_to_parent(parent, signum)  # noqa: E731 - a preexec_fn
+            tie = functools.partial(parent_death.tie_to_parent, os.getpid(), death_signal)
         try:
             self.process = subprocess.Popen(
                 list(argv), stdout=subprocess.PIPE, stderr=self._log, stdin=stdin, text=True, errors="replace", cwd=cwd,

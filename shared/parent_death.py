@@ -34,12 +34,15 @@ def set_death_signal(signum: int) -> bool:
     return _prctl is not None and _prctl(PR_SET_PDEATHSIG, signum, 0, 0, 0) == 0
 
 
-def tie_to_parent(parent_pid: int, signum: int) -> None:
+def tie_to_parent(parent_pid: int, signum: int) -> bool:
     """In a freshly forked child (a preexec_fn): ask for ``signum`` when the forking thread ends, and take it at
-    once if ``parent_pid`` has already died between the fork and this request (nobody would send it then)."""
+    once if ``parent_pid`` has already died between the fork and this request (nobody would send it then).
+    False when it was taken (and did not end this process)."""
     set_death_signal(signum)
     if os.getppid() != parent_pid:
         os.kill(os.getpid(), signum)
+        return False
+    return True
 
 
 def become_subreaper() -> None:
