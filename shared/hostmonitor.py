@@ -36,6 +36,7 @@ import re
 import secrets
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Collection
 
@@ -96,11 +97,15 @@ class TrustSettings:
     require_alive: bool = True  # refuse statuses of a host whose liveliness token is absent
     new_source_s: float = 5.0  # statuses of a host from a new sender count once it alone has spoken this long
     contest_s: float = 15.0  # after two senders interleave on one host, none of its statuses count this long
+    max_statuses: int = 128  # kept per host at most: a monitor sends 2 a second, 10 at most when its figures jump
 
     def __post_init__(self) -> None:
         if not self.window_s > 0 or self.min_statuses < 1 or not self.stale_s > 0:
             raise ConfigError(f"status trust: window {self.window_s!r} s, {self.min_statuses!r} statuses and "
                               f"staleness {self.stale_s!r} s must all be positive")
+        if self.max_statuses < self.min_statuses:
+            raise ConfigError(f"status trust: max_statuses {self.max_statuses!r} is below min_statuses "
+                              f"{self.min_statuses!r}")
 
 
 @dataclass
@@ -108,7 +113,9 @@ class _HostTrust:
     alive: bool = False
     total_mb: float | None = None  # the first total since the token came up: a host's total does not grow
     newest: float | None = None  # the newest accepted status's own time
-    recent: list[tuple[float, float]] = field(default_factory=list)  # (received, free) of accepted statuses
+    # (received, free) of accepted statuses, oldest first. Bounded by count as well as by age: a sender that
+    # floods its host's key costs each admit the same as one that keeps to its rate.
+    recent: deque[tuple[float, float]] = field(default_factory=deque)
     source: str | None = None  # the sender whose statuses count (its ``origin``; "" for a sender without one)
     seq: int | None = None  # that sender's last sequence number
     current_heard: float = 0.0  # when that sender last spoke
@@ -148,9 +155,9 @@ class StatusTrust:
 
     def alive(self, host: str, alive: bool) -> None:
         """The host's liveliness token came (a new session: its figures start afresh) or went."""
-        record = self._hosts.setdefault(host, _HostTrust())
+        record = self._hosts.get(host) or self._hosts.setdefault(host, self._record())
         if alive and not record.alive:
-            self._hosts[host] = _HostTrust(alive=True)
+            self._hosts[host] = self._record(alive=True)
         else:
             record.alive = alive
             if not alive:
@@ -165,7 +172,7 @@ class StatusTrust:
         s = self.settings
         try:
             check_status(host, body)
-            record = self._hosts.setdefault(host, _HostTrust())
+            record = self._hosts.get(host) or self._hosts.setdefault(host, self._record())
             if s.require_alive and not record.alive:
                 raise MessageError(f"host_status of {host}: the host has no liveliness token")
             stamp = float(body.time)
@@ -184,18 +191,24 @@ class StatusTrust:
         if record.total_mb is None:
             record.total_mb = total
         record.newest = stamp if record.newest is None else max(record.newest, stamp)
-        keep = max(s.window_s, s.stale_s)
-        record.recent = [(t, f) for t, f in record.recent if t > received - keep] + [(received, free)]
+        recent, oldest = record.recent, received - max(s.window_s, s.stale_s)
+        while recent and recent[0][0] <= oldest:
+            recent.popleft()
+        recent.append((received, free))  # the deque's maxlen drops the oldest of a flood
         return body
 
     def check_held(self, host: str, body: messages.HostStatus, *, used_mb: float) -> None:
         """Raise MessageError (counted in ``refused``) when ``body``, admitted before, claims more free
         memory than the host's running processes, recorded to hold ``used_mb``, leave."""
         try:
-            self._check_used(host, self._hosts.setdefault(host, _HostTrust()), body, used_mb)
+            self._check_used(host, self._hosts.get(host) or self._hosts.setdefault(host, self._record()), body,
+                             used_mb)
         except MessageError:
             self.refused += 1
             raise
+
+    def _record(self, *, alive: bool = False) -> _HostTrust:
+        return _HostTrust(alive=alive, recent=deque(maxlen=self.settings.max_statuses))
 
     def _check_used(self, host: str, record: _HostTrust, body: messages.HostStatus, used_mb: float) -> None:
         total, free = float(body.memory_total_mb), float(body.memory_free_mb)
@@ -259,8 +272,8 @@ class StatusTrust:
         if len(frees) < s.min_statuses:
             # Statuses come late on a loaded machine: then the last ``min_statuses`` of the last
             # ``stale_s`` seconds. Still never one status alone.
-            recent = [f for t, f in record.recent if t > now - s.stale_s]
-            frees = recent[-s.min_statuses:]
+            late = [f for t, f in record.recent if t > now - s.stale_s]
+            frees = late[-s.min_statuses:]
         return frees if len(frees) >= s.min_statuses else None
 
     def confirmed_free(self, host: str, now: float) -> float | None:

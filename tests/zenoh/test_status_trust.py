@@ -20,7 +20,7 @@ from kgadapt.knowledge.schema import ensure_indexes
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
 from kgadapt.knowledge.store import StoreSettings
 from kgadapt.shared import keys, messages
-from kgadapt.shared.errors import MessageError
+from kgadapt.shared.errors import ConfigError, MessageError
 from kgadapt.shared.hostmonitor import StatusTrust, TrustSettings
 from tests.zenoh.conftest import platform_row, wait_for
 
@@ -83,6 +83,19 @@ def test_no_single_status_decides_room_or_shortage():
     trust.alive("remote", True)  # a new session of the host starts afresh
     assert trust.confirmed_free("remote", 11.0) is None
 
+
+
+def test_a_host_flooding_its_key_is_judged_on_its_newest_statuses_alone():
+    # 40 statuses within one window from the host's own sender: only the newest max_statuses are kept, so a
+    # flood costs each admit what a status at the normal rate costs (the window is no longer than the bound).
+    trust = StatusTrust(TrustSettings(window_s=2.0, min_statuses=2, max_statuses=4))
+    trust.alive("remote", True)
+    for i in range(40):
+        trust.admit("remote", status(free=100.0 + 10 * i), received=10.0 + i / 100)
+    assert trust.confirmed_free("remote", 10.4) == 100.0 + 10 * 36  # the least of the last four
+    assert trust.roomiest("remote", 10.4) == 100.0 + 10 * 39
+    with pytest.raises(ConfigError, match="max_statuses 1 is below min_statuses 2"):
+        TrustSettings(min_statuses=2, max_statuses=1)
 
 # -- the knowledge service on real Zenoh ----------------------------------------------
 
