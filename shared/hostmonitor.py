@@ -45,6 +45,7 @@ import psutil
 
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, MessageError, NoResponder, RemoteError, RequestTimeout
+from kgadapt.shared.process_tree import ProcessTree
 
 log = logging.getLogger(__name__)
 
@@ -333,7 +334,7 @@ class HostMonitor:
         self._thread: threading.Thread | None = None
         self._publisher: Any = None
         self._stack = contextlib.ExitStack()
-        self._me: psutil.Process | None = None  # looked up on first use: __init__ does no I/O
+        self._tree: ProcessTree | None = None  # looked up on first use: __init__ does no I/O
         self._last: messages.HostStatus | None = None
         self.published = 0
         # Who sends (random per monitor life) and in which order: consumers tell a second sender on this
@@ -348,22 +349,10 @@ class HostMonitor:
 
     def ours_mb(self) -> float:
         """RSS of this process and all its descendants, in MiB (but the ``yielding`` ones)."""
-        if self._me is None:
-            self._me = psutil.Process(os.getpid())
-        total = 0
-        try:
-            procs = [self._me, *self._me.children(recursive=True)]
-        except psutil.Error:
-            procs = [self._me]
+        if self._tree is None:
+            self._tree = ProcessTree(os.getpid())
         left_out = set(self.yielding()) if self.yielding is not None else set()
-        for proc in procs:
-            if proc.pid in left_out:
-                continue
-            try:
-                total += proc.memory_info().rss
-            except psutil.Error:  # a child may exit between listing and reading
-                continue
-        return total / MIB
+        return self._tree.rss_bytes(left_out=left_out) / MIB
 
     def free_mb(self) -> float:
         """Free memory now, as ``sample()`` would publish it (for the deployer's start check)."""
