@@ -76,14 +76,15 @@ class LightSettings:
     marker_weight: float = 0.75  # share of the estimate given to the light around seen markers
     marker_margin: float = 0.5  # the region around a marker: its box widened by this share of its side
     step: int = 4  # every step-th pixel each way for the frame figure
+    marker_step: int = 2  # ... and for the light around the markers (it weighs most: a finer sample)
 
     def __post_init__(self) -> None:
         if not 0 <= self.black < self.saturated <= 255:
             raise ConfigError(f"light estimate: need 0 <= black ({self.black}) < saturated ({self.saturated}) <= 255")
         if not 0 <= self.trim < 0.5 or not 0 <= self.marker_weight <= 1 or not 0 < self.min_usable <= 1:
             raise ConfigError("light estimate: trim in [0, 0.5), marker_weight in [0, 1], min_usable in (0, 1]")
-        if self.step < 1 or self.marker_margin < 0:
-            raise ConfigError("light estimate: step >= 1 and marker_margin >= 0")
+        if self.step < 1 or self.marker_step < 1 or self.marker_margin < 0:
+            raise ConfigError("light estimate: step >= 1, marker_step >= 1 and marker_margin >= 0")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -136,10 +137,12 @@ def _region_light(hist: np.ndarray, settings: LightSettings) -> tuple[float, flo
     return mean, usable, LightSource.CLIPPED
 
 
-def marker_mask(shape: tuple[int, int], markers: Sequence[Any], margin: float) -> np.ndarray | None:
-    """A mask of the regions around ``markers`` (each 4 x [x, y] corners); None when none is in the frame."""
+def marker_mask(shape: tuple[int, int], markers: Sequence[Any], margin: float, *, step: int = 1) -> np.ndarray | None:
+    """A mask of the regions around ``markers`` (each 4 x [x, y] corners) over every ``step``-th pixel each
+    way of a frame of ``shape`` (the mask of ``frame[::step, ::step]``); None when none is in the frame."""
     h, w = shape
-    mask = np.zeros((h, w), np.uint8)
+    sh, sw = -(-h // step), -(-w // step)  # the shape of frame[::step, ::step]
+    mask = np.zeros((sh, sw), np.uint8)
     found = False
     for corners in markers:
         pts = np.asarray(corners, np.float32).reshape(-1, 2)
@@ -151,7 +154,8 @@ def marker_mask(shape: tuple[int, int], markers: Sequence[Any], margin: float) -
         xa, ya = int(max(x0 - pad, 0)), int(max(y0 - pad, 0))
         xb, yb = int(min(x1 + pad + 1, w)), int(min(y1 + pad + 1, h))
         if xb > xa and yb > ya:
-            mask[ya:yb, xa:xb] = 255
+            # Sampled pixels k*step with xa <= k*step < xb: k from ceil(xa / step) to ceil(xb / step).
+            mask[-(-ya // step):-(-yb // step), -(-xa // step):-(-xb // step)] = 255
             found = True
     return mask if found else None
 
@@ -175,9 +179,11 @@ def estimate_light(gray: np.ndarray, markers: Sequence[Any] = (), settings: Ligh
     black = float(hist[:settings.black + 1].sum()) / total
     frame_level, usable, source = _region_light(hist, settings)
     level, marker_level, seen = frame_level, None, 0
-    mask = marker_mask(gray.shape, markers, settings.marker_margin) if len(markers) else None
+    fine = settings.marker_step
+    mask = marker_mask(gray.shape, markers, settings.marker_margin, step=fine) if len(markers) else None
     if mask is not None:
-        region = cv2.calcHist([gray], [0], mask, [256], [0, 256]).ravel()
+        pixels = gray if fine == 1 else np.ascontiguousarray(gray[::fine, ::fine])
+        region = cv2.calcHist([pixels], [0], mask, [256], [0, 256]).ravel()
         marker_level, _usable, _how = _region_light(region, settings)
         seen = len(markers)
         level = settings.marker_weight * marker_level + (1.0 - settings.marker_weight) * frame_level

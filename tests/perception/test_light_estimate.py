@@ -5,9 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kgadapt.onboard.perception.illumination import LightSettings, LightSource, band_for_level, estimate_light, luminance
+from kgadapt.onboard.perception.illumination import (
+    LightSettings,
+    LightSource,
+    band_for_level,
+    estimate_light,
+    luminance,
+    marker_mask,
+)
 from kgadapt.onboard.perception.scene import IlluminationProfile, LightLayout, SceneSettings, SyntheticScene
 from kgadapt.shared.errors import ConfigError
+from kgadapt.sim.photos import PHOTO_DICTIONARIES, load_photo, photo_truth
 
 ROWS = [
     {"config": "marker_detection_dark", "band": "dark", "min_level": 0, "max_level": 12},
@@ -101,3 +109,29 @@ def test_bad_settings_and_images_are_refused():
         LightSettings(black=250, saturated=200)
     with pytest.raises(ConfigError, match="grey uint8"):
         estimate_light(np.zeros((4, 4, 3), np.uint8))
+
+
+def test_the_marker_mask_over_every_kth_pixel_is_the_full_masks_sample():
+    rng = np.random.default_rng(11)
+    for _ in range(2000):
+        h, w = (int(v) for v in rng.integers(5, 200, 2))
+        step = int(rng.integers(1, 5))
+        markers = [rng.uniform(-20, 250, (4, 2)).tolist() for _ in range(int(rng.integers(1, 4)))]
+        full, sampled = marker_mask((h, w), markers, 0.5), marker_mask((h, w), markers, 0.5, step=step)
+        assert (full is None) == (sampled is None)
+        if full is not None:
+            assert np.array_equal(full[::step, ::step], sampled), (h, w, step, markers)
+
+
+@pytest.mark.parametrize("name", sorted(n for n, d in PHOTO_DICTIONARIES.items() if d.startswith("DICT_")))
+def test_the_light_around_markers_from_every_second_pixel_reads_as_every_pixel_on_photographs(name):
+    # The region around the markers is sampled (marker_step 2, a quarter of the pixels); on the real
+    # photographs the estimate stays within a grey level of every pixel's (bands are tens of levels wide).
+    photo = load_photo(name)
+    markers = [m["corners"] for m in photo_truth(photo, PHOTO_DICTIONARIES[name])]
+    assert markers
+    every = estimate_light(photo, markers, LightSettings(marker_step=1))
+    sampled = estimate_light(photo, markers)
+    assert sampled.source is LightSource.MARKERS and sampled.markers == len(markers)
+    assert sampled.level == pytest.approx(every.level, abs=1.0)
+    assert sampled.frame_level == every.frame_level
