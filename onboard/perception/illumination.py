@@ -75,16 +75,16 @@ class LightSettings:
     min_usable: float = 0.2  # below this share of usable pixels, fall back to all unsaturated ones
     marker_weight: float = 0.75  # share of the estimate given to the light around seen markers
     marker_margin: float = 0.5  # the region around a marker: its box widened by this share of its side
-    step: int = 4  # every step-th pixel each way for the frame figure
-    marker_step: int = 2  # ... and for the light around the markers (it weighs most: a finer sample)
+    step: int = 4  # every step-th pixel each way for the frame figure (and at most for the markers' region)
+    marker_samples: int = 4096  # the markers' region is read as coarsely as leaves it at least this many pixels
 
     def __post_init__(self) -> None:
         if not 0 <= self.black < self.saturated <= 255:
             raise ConfigError(f"light estimate: need 0 <= black ({self.black}) < saturated ({self.saturated}) <= 255")
         if not 0 <= self.trim < 0.5 or not 0 <= self.marker_weight <= 1 or not 0 < self.min_usable <= 1:
             raise ConfigError("light estimate: trim in [0, 0.5), marker_weight in [0, 1], min_usable in (0, 1]")
-        if self.step < 1 or self.marker_step < 1 or self.marker_margin < 0:
-            raise ConfigError("light estimate: step >= 1, marker_step >= 1 and marker_margin >= 0")
+        if self.step < 1 or self.marker_samples < 1 or self.marker_margin < 0:
+            raise ConfigError("light estimate: step >= 1, marker_samples >= 1 and marker_margin >= 0")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -137,27 +137,68 @@ def _region_light(hist: np.ndarray, settings: LightSettings) -> tuple[float, flo
     return mean, usable, LightSource.CLIPPED
 
 
-def marker_mask(shape: tuple[int, int], markers: Sequence[Any], margin: float, *, step: int = 1) -> np.ndarray | None:
-    """A mask of the regions around ``markers`` (each 4 x [x, y] corners) over every ``step``-th pixel each
-    way of a frame of ``shape`` (the mask of ``frame[::step, ::step]``); None when none is in the frame."""
+Box = tuple[int, int, int, int]  # x0, y0, x1, y1: pixels x0 <= x < x1, y0 <= y < y1
+
+
+def marker_boxes(shape: tuple[int, int], markers: Sequence[Any], margin: float) -> list[Box]:
+    """The boxes around ``markers`` (each 4 x [x, y] corners), widened by ``margin`` of their side and cut to
+    a frame of ``shape``; markers with fewer than 3 finite corners or wholly outside are left out."""
     h, w = shape
-    sh, sw = -(-h // step), -(-w // step)  # the shape of frame[::step, ::step]
-    mask = np.zeros((sh, sw), np.uint8)
-    found = False
+    boxes = []
     for corners in markers:
-        pts = np.asarray(corners, np.float32).reshape(-1, 2)
-        if pts.shape[0] < 3 or not np.isfinite(pts).all():
+        xs, ys = _corner_coordinates(corners)
+        if len(xs) < 3 or not all(map(math.isfinite, xs + ys)):
             continue
-        (x0, y0), (x1, y1) = pts.min(axis=0), pts.max(axis=0)
-        side = max(x1 - x0, y1 - y0)
-        pad = margin * side
+        x0, y0, x1, y1 = min(xs), min(ys), max(xs), max(ys)
+        pad = margin * max(x1 - x0, y1 - y0)
         xa, ya = int(max(x0 - pad, 0)), int(max(y0 - pad, 0))
         xb, yb = int(min(x1 + pad + 1, w)), int(min(y1 + pad + 1, h))
         if xb > xa and yb > ya:
-            # Sampled pixels k*step with xa <= k*step < xb: k from ceil(xa / step) to ceil(xb / step).
-            mask[-(-ya // step):-(-yb // step), -(-xa // step):-(-xb // step)] = 255
-            found = True
-    return mask if found else None
+            boxes.append((xa, ya, xb, yb))
+    return boxes
+
+
+def _corner_coordinates(corners: Any) -> tuple[list[float], list[float]]:
+    """A marker's corners as x and y lists: plain Python for the lists a decoded detection carries (a numpy
+    call per marker cost more than the histogram), numpy for arrays or other nestings."""
+    if not isinstance(corners, np.ndarray):
+        try:
+            return [float(p[0]) for p in corners], [float(p[1]) for p in corners]
+        except (TypeError, IndexError, ValueError):
+            pass  # e.g. a [[[x, y], ...]] nesting: numpy's reshape below
+    pts = np.asarray(corners, np.float64).reshape(-1, 2)
+    return pts[:, 0].tolist(), pts[:, 1].tolist()
+
+
+def _box_mask(boxes: Sequence[Box], origin: tuple[int, int], shape: tuple[int, int], step: int) -> np.ndarray:
+    """The mask of ``boxes`` over the pixels (origin_y + i * step, origin_x + j * step) of ``shape``."""
+    ox, oy = origin
+    mask = np.zeros(shape, np.uint8)
+    for xa, ya, xb, yb in boxes:
+        # Sampled rows oy + i*step with ya <= oy + i*step < yb: i from ceil((ya - oy) / step) to ceil((yb - oy) / step).
+        mask[-(-(ya - oy) // step):-(-(yb - oy) // step), -(-(xa - ox) // step):-(-(xb - ox) // step)] = 255
+    return mask
+
+
+def marker_mask(shape: tuple[int, int], markers: Sequence[Any], margin: float, *, step: int = 1) -> np.ndarray | None:
+    """A mask of the regions around ``markers`` over every ``step``-th pixel each way of a frame of ``shape``
+    (the mask of ``frame[::step, ::step]``); None when none is in the frame."""
+    boxes = marker_boxes(shape, markers, margin)
+    h, w = shape
+    return _box_mask(boxes, (0, 0), (-(-h // step), -(-w // step)), step) if boxes else None
+
+
+def marker_histogram(gray: np.ndarray, boxes: Sequence[Box], step: int) -> np.ndarray:
+    """The grey-level histogram (256 bins) of the pixels in ``boxes``, each counted once, read from every
+    ``step``-th pixel each way of their bounding box (from its top left corner). Only that box is scanned:
+    a far marker's small region costs little, where a mask over the whole frame scanned every pixel."""
+    import cv2
+
+    x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
+    x1, y1 = max(b[2] for b in boxes), max(b[3] for b in boxes)
+    pixels = np.ascontiguousarray(gray[y0:y1:step, x0:x1:step])
+    mask = None if len(boxes) == 1 else _box_mask(boxes, (x0, y0), pixels.shape, step)
+    return cv2.calcHist([pixels], [0], mask, [256], [0, 256]).ravel()
 
 
 def estimate_light(gray: np.ndarray, markers: Sequence[Any] = (), settings: LightSettings = LightSettings()) -> LightEstimate:
@@ -179,11 +220,11 @@ def estimate_light(gray: np.ndarray, markers: Sequence[Any] = (), settings: Ligh
     black = float(hist[:settings.black + 1].sum()) / total
     frame_level, usable, source = _region_light(hist, settings)
     level, marker_level, seen = frame_level, None, 0
-    fine = settings.marker_step
-    mask = marker_mask(gray.shape, markers, settings.marker_margin, step=fine) if len(markers) else None
-    if mask is not None:
-        pixels = gray if fine == 1 else np.ascontiguousarray(gray[::fine, ::fine])
-        region = cv2.calcHist([pixels], [0], mask, [256], [0, 256]).ravel()
+    boxes = marker_boxes(gray.shape, markers, settings.marker_margin) if len(markers) else []
+    if boxes:
+        covered = min(sum((xb - xa) * (yb - ya) for xa, ya, xb, yb in boxes), gray.size)
+        fine = max(1, min(step, math.isqrt(covered // settings.marker_samples)))
+        region = marker_histogram(gray, boxes, fine)
         marker_level, _usable, _how = _region_light(region, settings)
         seen = len(markers)
         level = settings.marker_weight * marker_level + (1.0 - settings.marker_weight) * frame_level

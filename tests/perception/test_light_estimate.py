@@ -11,6 +11,8 @@ from kgadapt.onboard.perception.illumination import (
     band_for_level,
     estimate_light,
     luminance,
+    marker_boxes,
+    marker_histogram,
     marker_mask,
 )
 from kgadapt.onboard.perception.scene import IlluminationProfile, LightLayout, SceneSettings, SyntheticScene
@@ -123,14 +125,48 @@ def test_the_marker_mask_over_every_kth_pixel_is_the_full_masks_sample():
             assert np.array_equal(full[::step, ::step], sampled), (h, w, step, markers)
 
 
+def test_the_histogram_around_markers_counts_each_sampled_pixel_of_their_boxes_once():
+    rng = np.random.default_rng(12)
+    for _ in range(500):
+        h, w = (int(v) for v in rng.integers(20, 160, 2))
+        gray = rng.integers(0, 256, (h, w), dtype=np.uint8)
+        markers = [rng.uniform(-20, 180, (4, 2)).tolist() for _ in range(int(rng.integers(1, 5)))]
+        boxes = marker_boxes((h, w), markers, 0.5)
+        if not boxes:
+            continue
+        step = int(rng.integers(1, 5))
+        # The reference: every pixel of the union on the grid anchored at the boxes' top left corner.
+        x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
+        inside = np.zeros((h, w), bool)
+        for xa, ya, xb, yb in boxes:
+            inside[ya:yb, xa:xb] = True
+        grid = np.zeros((h, w), bool)
+        grid[y0::step, x0::step] = True
+        expected = np.bincount(gray[inside & grid], minlength=256)
+        assert np.array_equal(marker_histogram(gray, boxes, step), expected.astype(np.float32))
+        if step == 1:
+            assert np.array_equal(marker_histogram(gray, boxes, 1), np.bincount(gray[marker_mask((h, w), markers, 0.5) > 0],
+                                                                                minlength=256).astype(np.float32))
+
+
+def test_corners_as_arrays_nested_lists_or_flat_lists_make_the_same_boxes():
+    corners = [[10.5, 20.0], [60.0, 22.0], [58.0, 70.0], [12.0, 68.0]]
+    flat = marker_boxes((480, 640), [corners], 0.5)
+    assert flat == marker_boxes((480, 640), [np.array(corners, np.float32)], 0.5)
+    assert flat == marker_boxes((480, 640), [[corners]], 0.5)  # cv2's 1 x 4 x 2 nesting
+    assert marker_boxes((480, 640), [[[1.0, 2.0], [float("nan"), 3.0], [4.0, 5.0], [6.0, 7.0]]], 0.5) == []
+    assert marker_boxes((480, 640), [[[-90.0, -90.0], [-80.0, -90.0], [-80.0, -80.0]]], 0.5) == []  # outside
+
+
 @pytest.mark.parametrize("name", sorted(n for n, d in PHOTO_DICTIONARIES.items() if d.startswith("DICT_")))
-def test_the_light_around_markers_from_every_second_pixel_reads_as_every_pixel_on_photographs(name):
-    # The region around the markers is sampled (marker_step 2, a quarter of the pixels); on the real
-    # photographs the estimate stays within a grey level of every pixel's (bands are tens of levels wide).
+def test_the_light_around_markers_read_from_a_sample_reads_as_every_pixel_on_photographs(name):
+    # The region around the markers is read as coarsely as leaves marker_samples pixels (every 4th each way
+    # on these, where markers cover much of the frame); on the real photographs the estimate stays within a
+    # grey level of every pixel's (bands are tens of levels wide).
     photo = load_photo(name)
     markers = [m["corners"] for m in photo_truth(photo, PHOTO_DICTIONARIES[name])]
     assert markers
-    every = estimate_light(photo, markers, LightSettings(marker_step=1))
+    every = estimate_light(photo, markers, LightSettings(marker_samples=photo.size))
     sampled = estimate_light(photo, markers)
     assert sampled.source is LightSource.MARKERS and sampled.markers == len(markers)
     assert sampled.level == pytest.approx(every.level, abs=1.0)
