@@ -556,7 +556,15 @@ class Detector:
         armed = self._reflexes
         level = None
         hedge: tuple[str, Any, float] | None = None  # (configuration, its result, ms)
-        told = None  # a band nothing here takes in place: told once its detections are out (below)
+        # This frame's reflexes, carried out at once and told, in their order, once its detections are out:
+        # the message, the log line and the deployer's record wake other threads and processes, which on two
+        # cores took the CPU from the very frame the reflex was for. A band nothing here takes in place is told
+        # after them too: the manager starts the band's configuration as a new process at once, and on two
+        # cores that start took the CPU from this frame (the running dark configuration's detection of the
+        # first day frame 15-19 ms told before, 7-8 told after; bench adaptation --changes new-process,
+        # traced). Where the running configuration sees in the new light, this frame is the pilot's fix; where
+        # it does not, it found nothing fast (about 1 ms for the day configuration on a dark frame).
+        tells: list[tuple[Any, messages.Reflex, bool]] = []
         if armed is not None:
             reflex, cores = armed
             if generation != self._reflex_generation:
@@ -565,10 +573,10 @@ class Detector:
                 self._reflex_generation = generation
             level = self._light(gray, float(frame.time))
             swap = reflex.on_light(level)
-            if swap is not None and swap.config is None:
-                told = swap
-            elif swap is not None:
-                config, core, generation = self._reflex_swap(swap, cores, frame, config)
+            if swap is not None:
+                tells.append(self._reflex_take(swap, cores, frame))
+                if swap.config is not None:
+                    config, core, generation = self._active
         result = core.detect(gray)
         if armed is not None:
             reflex, cores = armed
@@ -583,10 +591,7 @@ class Detector:
             if hedge is not None and hedge[1].clean_count > found:
                 config, result = cores[hedge[0]].config, hedge[1]  # keep whichever finds the markers
             if swap is not None:
-                if told is not None:  # the light's evidence came first: told first
-                    self._reflex_swap(told, cores, frame, config)
-                    told = None
-                self._reflex_swap(swap, cores, frame, config)
+                tells.append(self._reflex_take(swap, cores, frame))
         s = self.settings
         detections = messages.Detections(
             instance=s.instance, config=config.name, host=s.host, seq=frame.seq,
@@ -602,15 +607,8 @@ class Detector:
             self._seen_markers = (float(frame.time), result.corners)
         self._publisher.put(messages.encode(detections))
         self.processed += 1
-        if told is not None:
-            # Told once this frame's detections are out, not before its detection: the manager starts the
-            # band's configuration as a new process at once, and on two cores that start took the CPU from
-            # this very frame (the running dark configuration's detection of the first day frame 15-19 ms
-            # told before, 7-8 told after; bench adaptation --changes new-process, traced). Where the running
-            # configuration sees in the new light, this frame is the pilot's fix; where it does not, it
-            # found nothing fast (about 1 ms for the day configuration on a dark frame) and the new process
-            # is told that much later.
-            self._reflex_swap(told, cores, frame, config)
+        for told in tells:
+            self._reflex_tell(*told)
         if generation not in self._first_frame:
             with self._generation_seen:
                 self._first_frame[generation] = int(frame.seq)
@@ -655,12 +653,13 @@ class Detector:
         self._hedge_ms[name] = ms if name not in self._hedge_ms else 0.8 * self._hedge_ms[name] + 0.2 * ms
         return name, result, ms
 
-    def _reflex_swap(self, swap: Any, cores: dict[str, Any], frame: messages.Frame,
-                     config: Any) -> tuple[Any, Any, int]:
-        """Carry a reflex out between two frames, tell the manager and the deployer; the new active triple."""
+    def _reflex_take(self, swap: Any, cores: dict[str, Any], frame: messages.Frame) -> tuple[Any, messages.Reflex, bool]:
+        """Carry a reflex out between two frames: what :meth:`_reflex_tell` then tells (the swap, its message,
+        whether this detector took a configuration)."""
         active = self._active
         self.reflexes += 1  # switches and reports alike: the manager counts them
-        if swap.config is not None and swap.config in cores:
+        took = swap.config is not None and swap.config in cores
+        if took:
             core = cores[swap.config]
             active = (core.config, core, active[2] + 1)
             self._own_generations.add(active[2])
@@ -669,19 +668,23 @@ class Detector:
             if swap.deployment:
                 with self._changing:
                     self.deployment = swap.deployment
-                announce_configured(swap.config, swap.deployment)  # the deployer's record
         s = self.settings
-        body = messages.Reflex(
+        body = self._hedging(messages.Reflex(
             instance=s.instance, host=s.host, config=swap.config, previous=swap.previous,
             deployment=swap.deployment, elsewhere=swap.elsewhere, band=swap.band,
             from_band=swap.from_band, evidence=swap.evidence,
             level=None if swap.level is None else round(swap.level, 2), seq=int(frame.seq),
-            frame_time=float(frame.time), time=time.time(), count=self.reflexes)
+            frame_time=float(frame.time), time=time.time(), count=self.reflexes))  # when it was carried out
+        return swap, body, took
+
+    def _reflex_tell(self, swap: Any, body: messages.Reflex, took: bool) -> None:
+        """Tell the deployer (its record), the manager and the log of a reflex carried out."""
+        if took and swap.deployment:
+            announce_configured(swap.config, swap.deployment)  # the deployer's record
         self._last_reflex = body
-        self._reflex_pub.put(messages.encode(self._hedging(body)))
-        log.info("detector %s: reflex (%s, light %s): %s -> %s", s.instance, swap.evidence, body.level,
+        self._reflex_pub.put(messages.encode(body))
+        log.info("detector %s: reflex (%s, light %s): %s -> %s", self.settings.instance, swap.evidence, body.level,
                  swap.previous, swap.config or f"nothing here for band {swap.band}")
-        return active
 
     def shutdown(self) -> None:
         for name in ("_token", "_subscriber"):

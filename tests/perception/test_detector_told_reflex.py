@@ -1,10 +1,12 @@
-"""A band the running detector cannot take in place is told to the manager once the frame's detections are out.
+"""A reflex is told once the frame's detections are out, whether the running detector takes the band in place or not.
 
-The manager answers such a reflex by starting the band's configuration as a new process; told before the
-detection, that start took the two cores from the very frame that showed the new light (the running dark
-configuration's detection of a day frame went from about 7 ms to 15-19). A real detector on a real Zenoh
-session: the step frame is held open between its detection and the publication of its detections, and the
-reflex must not arrive while it is.
+The manager answers a band nothing here takes by starting the band's configuration as a new process; told
+before the detection, that start took the two cores from the very frame that showed the new light (the
+running dark configuration's detection of a day frame went from about 7 ms to 15-19). A swap in place is
+carried out before the frame's detection (the frame is detected with the new configuration) but told after:
+its message, log line and the deployer's record wake other threads and processes. A real detector on a real
+Zenoh session: the step frame is held open between its detection and the publication of its detections, and
+the reflex must not arrive while it is.
 """
 
 from __future__ import annotations
@@ -16,9 +18,11 @@ import cv2
 import numpy as np
 import pytest
 
+from kgadapt.onboard.perception import detector as detector_module
 from kgadapt.onboard.perception.detector import Detector, DetectorSettings, ReflexNotifier
 from kgadapt.onboard.perception.reflex import Reflex, ReflexTable
 from kgadapt.shared import keys, messages
+from kgadapt.shared.readiness import CONFIGURED_TOKEN
 from kgadapt.shared.session import ZenohSettings, open_session
 from tests.adaptation.test_reflex_rules import CONFIG, parse, row
 
@@ -37,16 +41,19 @@ def session():
     s.close()
 
 
-@pytest.mark.parametrize("step_to", ["day", "dusk"])
-def test_a_band_nothing_here_takes_in_place_is_told_once_the_step_frame_s_detections_are_out(session, monkeypatch, step_to):
+@pytest.mark.parametrize("step_to", ["day", "dusk", "dusk in place"])
+def test_a_reflex_is_told_once_the_step_frame_s_detections_are_out(session, monkeypatch, capsys, step_to):
     # day: dusk may be taken in place, day only elsewhere; dusk: the top band, only elsewhere (a band with one
-    # beyond it waits for the light to settle when it was reached by a step: test_reflex_rules)
+    # beyond it waits for the light to settle when it was reached by a step: test_reflex_rules); dusk in
+    # place: the top band, taken here.
+    in_place = step_to == "dusk in place"
     rows = [row("dark", 0, 12, "dark", budget=None),  # no hedging
-            row("dusk", 12, 40 if step_to == "day" else 256, "dusk", in_place=step_to == "day", budget=None)]
+            row("dusk", 12, 40 if step_to == "day" else 256, "dusk", in_place=step_to != "dusk", budget=None)]
     if step_to == "day":
         rows.append(row("day", 40, 256, "day", in_place=False, budget=None))
     table = ReflexTable.from_rows(rows, parse=parse)
-    shade = {"day": 200, "dusk": 25}[step_to]
+    shade = {"day": 200, "dusk": 25, "dusk in place": 25}[step_to]
+    step_config: list[str] = []
     reflexes: list[messages.Reflex] = []
     arrived = threading.Event()
     after_detections: list[bool] = []  # per reflex: were the step frame's detections out before it?
@@ -57,7 +64,10 @@ def test_a_band_nothing_here_takes_in_place_is_told_once_the_step_frame_s_detect
     # one subscriber sees two puts in the order they were made.
     def on_sample(sample) -> None:
         if str(sample.key_expr).endswith("/markers"):
-            answered[messages.decode_as(sample.payload.to_bytes(), messages.Detections).seq].set()
+            detections = messages.decode_as(sample.payload.to_bytes(), messages.Detections)
+            if detections.seq == step_seq:
+                step_config.append(detections.config)
+            answered[detections.seq].set()
         elif str(sample.key_expr).endswith("/reflex"):
             reflexes.append(messages.decode_as(sample.payload.to_bytes(), messages.Reflex))
             after_detections.append(answered[step_seq].is_set())
@@ -86,6 +96,14 @@ def test_a_band_nothing_here_takes_in_place_is_told_once_the_step_frame_s_detect
         return real_put(self, payload)
 
     monkeypatch.setattr(ReflexNotifier, "put", put)
+    recorded_when: list[int] = []  # what the detector had published when it told its deployer the swap
+    real_announce = detector_module.announce_configured
+
+    def announce(config, deployment, **kwargs):
+        recorded_when.append(detector.processed)
+        return real_announce(config, deployment, **kwargs)
+
+    monkeypatch.setattr(detector_module, "announce_configured", announce)
     detector = Detector(DetectorSettings(robot="r1", host="h1", instance="det1"),
                         parse("dark", CONFIG, "DICT_4X4_50"), deployment="d_dark")
     assert detector.arm(table, deployment="d_dark")
@@ -102,7 +120,14 @@ def test_a_band_nothing_here_takes_in_place_is_told_once_the_step_frame_s_detect
         detector.shutdown()
         listener.undeclare()
     told = reflexes[0]
-    assert told.config is None and told.band == step_to and told.from_band == "dark" and told.seq == step_seq
+    if in_place:
+        assert told.config == "dusk" and told.band == "dusk" and told.from_band == "dark" and told.seq == step_seq
+        assert step_config == ["dusk"], "the step frame was not detected with the configuration the reflex took"
+        assert f"{CONFIGURED_TOKEN} dusk d_dusk" in capsys.readouterr().out  # the deployer's record ...
+        assert recorded_when == [step_seq], "the deployer's record was told before the step frame's detections went out"
+    else:
+        assert told.config is None and told.band == step_to and told.from_band == "dark" and told.seq == step_seq
+        assert step_config == ["dark"]
     assert during == [False], "the reflex arrived before the step frame's detections went out"
     assert after_detections == [True], "the reflex went out before the step frame's detections"
     assert published_when_handed == [step_seq], "the reflex was handed over before the step frame's detections went out"
