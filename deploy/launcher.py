@@ -304,9 +304,9 @@ def _fork_member(module: str, argv: list[str], env: dict[str, str], cwd: str | N
     if middle == 0:  # the intermediate process: fork the member, say its pid, exit when it is taken
         code = 1
         try:
-            parent_death.set_death_signal(signal.SIGKILL)  # dies with the launcher, and so its member
-            if os.getppid() != launcher:  # the launcher died before the request: nobody would signal us
-                os._exit(1)
+            # Dies with the launcher, and so its member; at once if the launcher died before the request.
+            if not parent_death.tie_to_parent(launcher, signal.SIGKILL):
+                os._exit(1)  # not reached: the signal is SIGKILL
             if lifeline is not None:  # ... and with the agent, at once
                 lifeline = _hold_lifeline(lifeline)
             me = os.getpid()
@@ -346,9 +346,9 @@ def _pool_member(middle: int, module: str, argv: list[str], env: dict[str, str],
         nonlocal argv
         kept = (member_sock.fileno(), release) if lifeline is None else (member_sock.fileno(), release, lifeline)
         _close_fds_but(*kept)  # the launcher's sockets, other members' ones
-        parent_death.set_death_signal(signal.SIGKILL)  # idle, it dies with its intermediate process
-        if os.getppid() != middle:
-            os._exit(1)
+        # Idle, it dies with its intermediate process; at once if that has ended already.
+        if not parent_death.tie_to_parent(middle, signal.SIGKILL):
+            os._exit(1)  # not reached: the signal is SIGKILL
         own_line = None if lifeline is None else _hold_lifeline(lifeline)  # ... and with the agent, at once
         os.setsid()
         devnull = os.open(os.devnull, os.O_RDWR)
