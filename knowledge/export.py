@@ -25,7 +25,7 @@ from typing import Any, Iterator, NamedTuple
 
 from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.params import cypher_literal as literal
-from kgadapt.knowledge.store import GraphStore
+from kgadapt.knowledge.store import STAGED_MARK, GraphStore
 from kgadapt.shared.errors import ConfigError, KgadaptError, QueryError, StoreUnavailable
 
 log = logging.getLogger(__name__)
@@ -35,7 +35,6 @@ EXPORT_LABEL = "KgadaptExport"
 EXPORT_KEY = "export_id"
 # A staged import's graphs (FalkorDB over RESP): <robot graph>.import-partial.<token>[.fleet_roster], each holding
 # one node of this label until it is put in place.
-STAGED_MARK = ".import-partial."
 STAGED_LABEL = "KgadaptImport"
 PART_LINE = "// kgadapt graph "  # then the part's name (schema.Graph, lower case), ":" and its counts
 _IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")

@@ -43,6 +43,9 @@ Row = dict[str, Any]
 Statement = tuple[str, Mapping[str, Any]]
 
 DEFAULT_GRAPH = "kgadapt"
+# The graphs an import writes before it puts them in place (FalkorDB over RESP): <robot graph>.import-partial.<token>.
+# One left by an import that did not finish is nobody's knowledge, so no store URL names one.
+STAGED_MARK = ".import-partial."
 STORE_ENV = "KGADAPT_STORE"
 STORE_CA_ENV = "KGADAPT_STORE_CA"
 
@@ -136,6 +139,10 @@ def parse_store_url(url: str | None = None) -> StoreSettings:
     if not parts.hostname:
         raise ConfigError(f"store URL {url!r}: no host")
     default_port = {"falkordb": 6379, "memgraph": 7687, "bolt": 7687}[scheme]
+    if scheme == "falkordb" and STAGED_MARK in graph:
+        raise ConfigError(f"store URL {url!r}: graph {graph!r} is an import's staging graph, left by an import "
+                          "that did not finish: part of a script, not a robot's knowledge (the next `kgadapt "
+                          "knowledge import` into its robot's graph deletes it)")
     return StoreSettings(
         kind=scheme,
         url=url,

@@ -92,7 +92,8 @@ def test_store_urls_name_their_backend(url, kind):
     assert parse_store_url(url).kind == kind
 
 
-@pytest.mark.parametrize("url", ["mysql://h:1", "falkordb://", "falkordb://h:notaport"])
+@pytest.mark.parametrize("url", ["mysql://h:1", "falkordb://", "falkordb://h:notaport",
+                                 "falkordb://h:6379/quad1.import-partial.0a1b2c3d4e5f"])
 def test_bad_store_urls_fail_with_the_url_named(url):
     with pytest.raises(ConfigError, match="store URL"):
         parse_store_url(url)

@@ -243,6 +243,11 @@ def test_an_importer_killed_midway_leaves_the_store_as_empty_as_before_and_the_n
             left = _graphs(socket)
             assert "kgadapt" not in left and "kgadapt.fleet_roster" not in left
             assert left and all(E.STAGED_MARK in name for name in left)
+            # ... and none of them can be opened as a robot's knowledge by naming it (before any connection).
+            staging = sorted(left)[0]
+            opened = _cli("knowledge", "cypher", "MATCH (n) RETURN count(n) AS n", "--store",
+                          f"falkordb://127.0.0.1:1/{staging}", "--json")
+            assert opened.returncode != 0 and f"graph {staging!r} is an import's staging graph" in opened.stderr, opened
         for read in (_cli("knowledge", "cypher", "MATCH (n) RETURN count(n) AS n", "--store", url, "--json"),
                      _cli("knowledge", "query", "fleet_roster", "--store", url, "--json")):
             assert read.returncode == 1 and "holds no models: nothing is loaded there" in read.stderr, read
