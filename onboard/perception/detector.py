@@ -577,38 +577,40 @@ class Detector:
                 tells.append(self._reflex_take(swap, cores, frame))
                 if swap.config is not None:
                     config, core, generation = self._active
-        result = core.detect(gray)
-        if armed is not None:
-            reflex, cores = armed
-            found = result.clean_count
-            # Only a frame the running configuration found nothing on can be won by the hedge: the others
-            # are published at once, without its cost; but a try after a fall of the count is judged on
-            # what both find on the same frames (reflex.comparing).
-            hedge = None if found and not reflex.comparing else \
-                self._hedge(reflex, cores, gray, level, result.processing_ms)
-            swap = reflex.on_result(found, time.time(), hedge=hedge[0] if hedge else None,
-                                    hedge_found=hedge[1].clean_count if hedge else 0, level=level)
-            if hedge is not None and hedge[1].clean_count > found:
-                config, result = cores[hedge[0]].config, hedge[1]  # keep whichever finds the markers
-            if swap is not None:
-                tells.append(self._reflex_take(swap, cores, frame))
-        s = self.settings
-        detections = messages.Detections(
-            instance=s.instance, config=config.name, host=s.host, seq=frame.seq,
-            frame_time=frame.time, time=time.time(),
-            ids=result.ids, corners=result.corners, processing_ms=round(result.processing_ms, 3),
-            camera=frame.camera, received=received, decode_ms=round(decode_ms, 3),
-            dropped=dropped, clean=result.clean, frame_sent=frame.sent,
-        )
-        if hedge is not None:
-            self.hedged += 1
-            self.hedge_ms_total += hedge[2]
-        if result.ids:
-            self._seen_markers = (float(frame.time), result.corners)
-        self._publisher.put(messages.encode(detections))
-        self.processed += 1
-        for told in tells:
-            self._reflex_tell(*told)
+        try:
+            result = core.detect(gray)
+            if armed is not None:
+                reflex, cores = armed
+                found = result.clean_count
+                # Only a frame the running configuration found nothing on can be won by the hedge: the others
+                # are published at once, without its cost; but a try after a fall of the count is judged on
+                # what both find on the same frames (reflex.comparing).
+                hedge = None if found and not reflex.comparing else \
+                    self._hedge(reflex, cores, gray, level, result.processing_ms)
+                swap = reflex.on_result(found, time.time(), hedge=hedge[0] if hedge else None,
+                                        hedge_found=hedge[1].clean_count if hedge else 0, level=level)
+                if hedge is not None and hedge[1].clean_count > found:
+                    config, result = cores[hedge[0]].config, hedge[1]  # keep whichever finds the markers
+                if swap is not None:
+                    tells.append(self._reflex_take(swap, cores, frame))
+            s = self.settings
+            detections = messages.Detections(
+                instance=s.instance, config=config.name, host=s.host, seq=frame.seq,
+                frame_time=frame.time, time=time.time(),
+                ids=result.ids, corners=result.corners, processing_ms=round(result.processing_ms, 3),
+                camera=frame.camera, received=received, decode_ms=round(decode_ms, 3),
+                dropped=dropped, clean=result.clean, frame_sent=frame.sent,
+            )
+            if hedge is not None:
+                self.hedged += 1
+                self.hedge_ms_total += hedge[2]
+            if result.ids:
+                self._seen_markers = (float(frame.time), result.corners)
+            self._publisher.put(messages.encode(detections))
+            self.processed += 1
+        finally:  # told even when this frame's detection failed: the swap was carried out
+            for told in tells:
+                self._reflex_tell(*told)
         if generation not in self._first_frame:
             with self._generation_seen:
                 self._first_frame[generation] = int(frame.seq)

@@ -20,6 +20,7 @@ import pytest
 
 from kgadapt.onboard.perception import detector as detector_module
 from kgadapt.onboard.perception.detector import Detector, DetectorSettings, ReflexNotifier
+from kgadapt.onboard.perception.markers import MarkerDetector
 from kgadapt.onboard.perception.reflex import Reflex, ReflexTable
 from kgadapt.shared import keys, messages
 from kgadapt.shared.readiness import CONFIGURED_TOKEN
@@ -131,3 +132,50 @@ def test_a_reflex_is_told_once_the_step_frame_s_detections_are_out(session, monk
     assert during == [False], "the reflex arrived before the step frame's detections went out"
     assert after_detections == [True], "the reflex went out before the step frame's detections"
     assert published_when_handed == [step_seq], "the reflex was handed over before the step frame's detections went out"
+
+
+def test_a_swap_in_place_is_told_even_when_the_step_frame_s_detection_fails(session, monkeypatch, capsys):
+    # The swap is carried out before the frame's detection; should that detection fail, the detector runs
+    # the new configuration all the same, so the manager and the deployer's record must still hear of it.
+    rows = [row("dark", 0, 12, "dark", budget=None), row("dusk", 12, 256, "dusk", budget=None)]
+    table = ReflexTable.from_rows(rows, parse=parse)
+    reflexes: list[messages.Reflex] = []
+    arrived = threading.Event()
+    answered: dict[int, threading.Event] = {seq: threading.Event() for seq in (1, 2, 3, 4)}
+
+    def on_sample(sample) -> None:
+        if str(sample.key_expr).endswith("/markers"):
+            answered[messages.decode_as(sample.payload.to_bytes(), messages.Detections).seq].set()
+        elif str(sample.key_expr).endswith("/reflex"):
+            reflexes.append(messages.decode_as(sample.payload.to_bytes(), messages.Reflex))
+            arrived.set()
+
+    listener = session.declare_subscriber(f"{keys.robot_root('r1')}/detector/det1/*", on_sample)
+    real_detect = MarkerDetector.detect
+
+    def detect(self, gray, *args, **kwargs):
+        if self.config.name == "dusk" and not answered[3].is_set() and not getattr(detect, "failed", False):
+            detect.failed = True  # the step frame's, once
+            raise RuntimeError("a detection that fails")
+        return real_detect(self, gray, *args, **kwargs)
+
+    monkeypatch.setattr(MarkerDetector, "detect", detect)
+    detector = Detector(DetectorSettings(robot="r1", host="h1", instance="det1"),
+                        parse("dark", CONFIG, "DICT_4X4_50"), deployment="d_dark")
+    assert detector.arm(table, deployment="d_dark")
+    detector.setup(session)
+    try:
+        for seq in (1, 2):
+            detector.slot.put((_frame(seq, 5), time.time()))
+            assert answered[seq].wait(5), f"frame {seq} not answered"
+        detector.slot.put((_frame(3, 25), time.time()))
+        assert arrived.wait(5), "the swap carried out before the failed detection was never told"
+        detector.slot.put((_frame(4, 25), time.time()))
+        assert answered[4].wait(5), "the detector stopped after the failed frame"
+    finally:
+        detector.shutdown()
+        listener.undeclare()
+    assert not answered[3].is_set() and detector.malformed == 1
+    assert [(r.config, r.seq) for r in reflexes] == [("dusk", 3)]
+    assert f"{CONFIGURED_TOKEN} dusk d_dusk" in capsys.readouterr().out
+    assert detector.config.name == "dusk"
