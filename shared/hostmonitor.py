@@ -347,18 +347,20 @@ class HostMonitor:
 
     # -- measurements -------------------------------------------------------
 
-    def ours_mb(self) -> float:
-        """RSS of this process and all its descendants, in MiB (but the ``yielding`` ones)."""
+    def ours_mb(self, *, exact: bool = False) -> float:
+        """RSS of this process and all its descendants, in MiB (but the ``yielding`` ones). ``exact``: walk every
+        process of the machine rather than read the tree's own children lists (shared/process_tree.py)."""
         if self._tree is None:
             self._tree = ProcessTree(os.getpid())
         left_out = set(self.yielding()) if self.yielding is not None else set()
-        return self._tree.rss_bytes(left_out=left_out) / MIB
+        return self._tree.rss_bytes(left_out=left_out, exact=exact) / MIB
 
     def free_mb(self) -> float:
         """Free memory now, as ``sample()`` would publish it (for the deployer's start check)."""
         s = self.settings
         if s.memory_budget_mb is not None:
-            return max(0.0, s.memory_budget_mb - self.ours_mb() - self._reserved_mb)
+            # A start is decided on it: the exact reading (about 1 ms), not the sampler's quick one.
+            return max(0.0, s.memory_budget_mb - self.ours_mb(exact=True) - self._reserved_mb)
         available: float = psutil.virtual_memory().available
         return max(0.0, available / MIB - self._reserved_mb)
 

@@ -8,7 +8,16 @@ more, most of it Python holding the GIL beside the camera. Linux lists each
 thread's children in ``/proc/<pid>/task/<tid>/children`` (every kernel built
 with CONFIG_PROC_CHILDREN, the default of the common distributions), so the
 tree is read from its own processes alone, and each one's RSS from
-``/proc/<pid>/statm``. Where those files are missing, psutil's walk is used.
+``/proc/<pid>/statm``.
+
+Those lists are exact only while nothing in them exits: a child exiting
+while its parent's list is read can make the kernel leave out a sibling that
+lives on (proc_tid_children(5)). So a listing that lacks a process the last
+reading had (an exit, or a sibling left out beside one) is not taken: that
+reading walks every process with psutil, as it does where the lists are
+missing and wherever an exact answer is asked for (``exact=True``, the
+deployer's check before a start). A child born since the last reading and
+left out beside an exit it did not know of is counted one reading later.
 
 A process that exits between being listed and being read is left out, as
 psutil's walk leaves it out.
@@ -17,6 +26,7 @@ psutil's walk leaves it out.
 from __future__ import annotations
 
 import os
+import threading
 from typing import Collection
 
 import psutil
@@ -42,12 +52,15 @@ def _rss(pid: int) -> int:
 
 
 class ProcessTree:
-    """The resident memory of the process ``root`` and all its descendants."""
+    """The resident memory of the process ``root`` and all its descendants. Thread-safe."""
 
     def __init__(self, root: int, *, listed: bool | None = None) -> None:
         self.root = root
         # Whether this kernel lists children per thread: None, found out on the first read; False, psutil's walk.
         self._listed = listed
+        self._lock = threading.Lock()
+        self._last: set[int] = set()  # the last reading's processes
+        self.walks = 0  # readings that walked every process (the lists not there, not trusted, or not asked for)
 
     def listed(self) -> bool:
         """Whether this kernel lists each thread's children (read once)."""
@@ -55,10 +68,30 @@ class ProcessTree:
             self._listed = os.path.exists(f"/proc/{self.root}/task/{self.root}/children")
         return self._listed
 
-    def pids(self) -> list[int]:
-        """``root`` and its descendants, parents before their children."""
-        if not self.listed():
-            return self._walked()
+    def pids(self, *, exact: bool = False) -> list[int]:
+        """``root`` and its descendants; ``exact``: from psutil's walk of every process."""
+        with self._lock:
+            tree = None if exact or not self.listed() else self._from_lists()
+            if tree is None or not self._last.issubset(tree):  # an exit, or a process left out beside one
+                tree = self._walked()
+                self.walks += 1
+            self._last = set(tree)
+            return tree
+
+    def rss_bytes(self, *, left_out: Collection[int] = (), exact: bool = False) -> int:
+        """Resident memory of the tree's processes but ``left_out``, in bytes."""
+        read = _rss if self.listed() else _psutil_rss
+        total = 0
+        for pid in self.pids(exact=exact):
+            if pid in left_out:
+                continue
+            try:
+                total += read(pid)
+            except (FileNotFoundError, ProcessLookupError, psutil.Error):  # exited since it was listed
+                continue
+        return total
+
+    def _from_lists(self) -> list[int]:
         tree, index = [self.root], 0
         while index < len(tree):
             try:
@@ -68,20 +101,6 @@ class ProcessTree:
             index += 1
         return tree
 
-    def rss_bytes(self, *, left_out: Collection[int] = ()) -> int:
-        """Resident memory of the tree's processes but ``left_out``, in bytes."""
-        if not self.listed():
-            return self._walked_rss(left_out)
-        total = 0
-        for pid in self.pids():
-            if pid in left_out:
-                continue
-            try:
-                total += _rss(pid)
-            except (FileNotFoundError, ProcessLookupError):  # exited since it was listed
-                continue
-        return total
-
     def _walked(self) -> list[int]:
         try:
             root = psutil.Process(self.root)
@@ -89,13 +108,7 @@ class ProcessTree:
         except psutil.Error:
             return [self.root]
 
-    def _walked_rss(self, left_out: Collection[int]) -> int:
-        total = 0
-        for pid in self._walked():
-            if pid in left_out:
-                continue
-            try:
-                total += psutil.Process(pid).memory_info().rss
-            except psutil.Error:
-                continue
-        return total
+
+def _psutil_rss(pid: int) -> int:
+    rss: int = psutil.Process(pid).memory_info().rss
+    return rss

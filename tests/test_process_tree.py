@@ -80,3 +80,26 @@ def test_a_tree_whose_root_is_gone_holds_nothing(listed):
     tree = ProcessTree(gone.pid, listed=listed)
     assert tree.pids() == [gone.pid]
     assert tree.rss_bytes() == 0
+
+
+class _LeavingOut(ProcessTree):
+    """The kernel's children lists as they can read while a child exits: a sibling that lives on left out."""
+
+    leave_out: int | None = None
+
+    def _from_lists(self) -> list[int]:
+        return [pid for pid in super()._from_lists() if pid != self.leave_out]
+
+
+@pytest.mark.skipif(not os.path.exists(f"/proc/{os.getpid()}/task/{os.getpid()}/children"),
+                    reason="this kernel does not list children per thread")
+def test_a_listing_that_lacks_a_process_of_the_last_one_is_not_taken(family):
+    child, grandchild = family
+    tree = _LeavingOut(child)
+    assert tree.pids() == [child, grandchild] and tree.walks == 0  # the lists alone
+    tree.leave_out = grandchild  # as when a sibling exits while the lists are read
+    assert sorted(tree.pids()) == [child, grandchild] and tree.walks == 1  # psutil's walk found it
+    assert tree.rss_bytes() == _psutil_rss([child, grandchild]) and tree.walks == 2
+    tree.leave_out = None
+    assert tree.pids() == [child, grandchild] and tree.walks == 2  # the lists again
+    assert sorted(tree.pids(exact=True)) == [child, grandchild] and tree.walks == 3  # asked for: the walk
