@@ -46,6 +46,11 @@ def family():
         child.wait(timeout=10)
 
 
+def _same(a: int, b: int) -> bool:
+    """Two readings of idle processes' memory, a moment apart: the same but for a few pages."""
+    return abs(a - b) <= 512 * 1024
+
+
 def _psutil_rss(pids) -> int:
     return sum(psutil.Process(pid).memory_info().rss for pid in pids)
 
@@ -58,17 +63,18 @@ def test_the_tree_read_from_its_own_processes_is_psutils_tree(family):
     assert tree.listed()
     assert tree.pids() == [child, grandchild]  # the grandchild was forked by a second thread
     assert set(ProcessTree(os.getpid()).pids()) >= {os.getpid(), child, grandchild}
-    expected = _psutil_rss([child, grandchild])
-    assert tree.rss_bytes() == expected
+    assert _same(tree.rss_bytes(), _psutil_rss([child, grandchild]))
     assert tree.rss_bytes() >= (40 + 24) * MIB
-    assert tree.rss_bytes(left_out={grandchild}) == _psutil_rss([child])
+    assert _same(tree.rss_bytes(left_out={grandchild}), _psutil_rss([child]))
+    assert tree.rss_bytes() - tree.rss_bytes(left_out={grandchild}) >= 24 * MIB
 
 
 def test_without_children_lists_psutils_walk_gives_the_same(family):
     child, grandchild = family
     walked, listed = ProcessTree(child, listed=False), ProcessTree(child)
     assert sorted(walked.pids()) == sorted(listed.pids()) == sorted([child, grandchild])
-    assert walked.rss_bytes() == listed.rss_bytes() == _psutil_rss([child, grandchild])
+    assert _same(walked.rss_bytes(), _psutil_rss([child, grandchild]))
+    assert _same(listed.rss_bytes(), _psutil_rss([child, grandchild]))
 
 
 @pytest.mark.parametrize("listed", [True, False])
@@ -99,7 +105,7 @@ def test_a_listing_that_lacks_a_process_of_the_last_one_is_not_taken(family):
     assert tree.pids() == [child, grandchild] and tree.walks == 0  # the lists alone
     tree.leave_out = grandchild  # as when a sibling exits while the lists are read
     assert sorted(tree.pids()) == [child, grandchild] and tree.walks == 1  # psutil's walk found it
-    assert tree.rss_bytes() == _psutil_rss([child, grandchild]) and tree.walks == 2
+    assert _same(tree.rss_bytes(), _psutil_rss([child, grandchild])) and tree.walks == 2
     tree.leave_out = None
     assert tree.pids() == [child, grandchild] and tree.walks == 2  # the lists again
     assert sorted(tree.pids(exact=True)) == [child, grandchild] and tree.walks == 3  # asked for: the walk
