@@ -15,8 +15,8 @@ while its parent's list is read can make the kernel leave out a sibling that
 lives on (proc_tid_children(5)). So a listing that lacks a process the last
 reading had (an exit, or a sibling left out beside one) is not taken: that
 reading walks every process with psutil, as it does where the lists are
-missing and wherever an exact answer is asked for (``exact=True``, the
-deployer's check before a start). A child born since the last reading and
+missing or cannot be read and wherever an exact answer is asked for
+(``exact=True``, the deployer's check before a start). A child born since the last reading and
 left out beside an exit it did not know of is counted one reading later.
 
 A process that exits between being listed and being read is left out, as
@@ -25,12 +25,14 @@ psutil's walk leaves it out.
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 from typing import Collection
 
 import psutil
 
+log = logging.getLogger(__name__)
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 
@@ -71,7 +73,14 @@ class ProcessTree:
     def pids(self, *, exact: bool = False) -> list[int]:
         """``root`` and its descendants; ``exact``: from psutil's walk of every process."""
         with self._lock:
-            tree = None if exact or not self.listed() else self._from_lists()
+            tree = None
+            if not exact and self.listed():
+                try:
+                    tree = self._from_lists()
+                except OSError as exc:  # e.g. not allowed to read them (a hardened unit): walk from now on
+                    log.warning("process tree of %d: cannot read /proc children lists (%s); walking every "
+                                "process instead", self.root, exc)
+                    self._listed = False
             if tree is None or not self._last.issubset(tree):  # an exit, or a process left out beside one
                 tree = self._walked()
                 self.walks += 1
@@ -80,15 +89,19 @@ class ProcessTree:
 
     def rss_bytes(self, *, left_out: Collection[int] = (), exact: bool = False) -> int:
         """Resident memory of the tree's processes but ``left_out``, in bytes."""
-        read = _rss if self.listed() else _psutil_rss
         total = 0
         for pid in self.pids(exact=exact):
             if pid in left_out:
                 continue
             try:
-                total += read(pid)
-            except (FileNotFoundError, ProcessLookupError, psutil.Error):  # exited since it was listed
+                total += _rss(pid) if self.listed() else _psutil_rss(pid)
+            except (FileNotFoundError, ProcessLookupError, psutil.NoSuchProcess):  # exited since it was listed
                 continue
+            except (OSError, psutil.Error):  # not readable this way: psutil's own reading, else left out
+                try:
+                    total += _psutil_rss(pid)
+                except psutil.Error:
+                    continue
         return total
 
     def _from_lists(self) -> list[int]:

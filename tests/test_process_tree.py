@@ -109,3 +109,17 @@ def test_a_listing_that_lacks_a_process_of_the_last_one_is_not_taken(family):
     tree.leave_out = None
     assert tree.pids() == [child, grandchild] and tree.walks == 2  # the lists again
     assert sorted(tree.pids(exact=True)) == [child, grandchild] and tree.walks == 3  # asked for: the walk
+
+
+class _Unreadable(ProcessTree):
+    """Children lists this process may not read (a hardened unit, another user's process)."""
+
+    def _from_lists(self) -> list[int]:
+        raise PermissionError(13, "Permission denied", f"/proc/{self.root}/task/{self.root}/children")
+
+
+def test_children_lists_that_cannot_be_read_give_way_to_psutils_walk(family):
+    child, grandchild = family
+    tree = _Unreadable(child, listed=True)
+    assert sorted(tree.pids()) == [child, grandchild] and not tree.listed()
+    assert _same(tree.rss_bytes(), _psutil_rss([child, grandchild]))
