@@ -160,13 +160,17 @@ def marker_boxes(shape: tuple[int, int], markers: Sequence[Any], margin: float) 
 
 def _corner_coordinates(corners: Any) -> tuple[list[float], list[float]]:
     """A marker's corners as x and y lists: plain Python for the lists a decoded detection carries (a numpy
-    call per marker cost more than the histogram), numpy for arrays or other nestings."""
+    call per marker cost more than the histogram), numpy for arrays or other nestings; none when they are not
+    (x, y) pairs of numbers (a malformed detection from the wire is left out, not an error of the frame)."""
     if not isinstance(corners, np.ndarray):
         try:
             return [float(p[0]) for p in corners], [float(p[1]) for p in corners]
         except (TypeError, IndexError, ValueError):
             pass  # e.g. a [[[x, y], ...]] nesting: numpy's reshape below
-    pts = np.asarray(corners, np.float64).reshape(-1, 2)
+    try:
+        pts = np.asarray(corners, np.float64).reshape(-1, 2)
+    except (TypeError, ValueError):
+        return [], []
     return pts[:, 0].tolist(), pts[:, 1].tolist()
 
 
@@ -226,7 +230,7 @@ def estimate_light(gray: np.ndarray, markers: Sequence[Any] = (), settings: Ligh
         fine = max(1, min(step, math.isqrt(covered // settings.marker_samples)))
         region = marker_histogram(gray, boxes, fine)
         marker_level, _usable, _how = _region_light(region, settings)
-        seen = len(markers)
+        seen = len(boxes)
         level = settings.marker_weight * marker_level + (1.0 - settings.marker_weight) * frame_level
         source = LightSource.MARKERS
     return LightEstimate(level=level, frame_level=frame_level, marker_level=marker_level, source=source,

@@ -171,3 +171,18 @@ def test_the_light_around_markers_read_from_a_sample_reads_as_every_pixel_on_pho
     assert sampled.source is LightSource.MARKERS and sampled.markers == len(markers)
     assert sampled.level == pytest.approx(every.level, abs=1.0)
     assert sampled.frame_level == every.frame_level
+
+
+def test_malformed_or_absent_markers_are_left_out_of_the_estimate_not_an_error_of_the_frame(scene):
+    # The camera weighs markers from any detector's detections on the wire: one malformed entry must not cost
+    # the frame its light figures.
+    frame = render(scene, 60)
+    good = [t.as_wire()["corners"] for t in frame.truth]
+    bad = [[[1, 2], [3]], [["a", "b"]], [[1, 2], [3, 4], [5, "x"]], [5], [[None]], [[float("nan"), 1.0]] * 4,
+           [[-90.0, -90.0], [-80.0, -90.0], [-80.0, -80.0], [-90.0, -80.0]]]  # the last: outside the frame
+    alone = estimate_light(frame.image, good)
+    mixed = estimate_light(frame.image, [*bad[:3], *good, *bad[3:]])
+    assert mixed.level == alone.level and mixed.markers == alone.markers == len(good)
+    nothing = estimate_light(frame.image, bad)
+    assert nothing.source is not LightSource.MARKERS and nothing.markers == 0
+    assert nothing.level == estimate_light(frame.image).level
