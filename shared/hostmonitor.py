@@ -156,7 +156,7 @@ class StatusTrust:
 
     def alive(self, host: str, alive: bool) -> None:
         """The host's liveliness token came (a new session: its figures start afresh) or went."""
-        record = self._hosts.get(host) or self._hosts.setdefault(host, self._record())
+        record = self._host(host)
         if alive and not record.alive:
             self._hosts[host] = self._record(alive=True)
         else:
@@ -173,7 +173,7 @@ class StatusTrust:
         s = self.settings
         try:
             check_status(host, body)
-            record = self._hosts.get(host) or self._hosts.setdefault(host, self._record())
+            record = self._host(host)
             if s.require_alive and not record.alive:
                 raise MessageError(f"host_status of {host}: the host has no liveliness token")
             stamp = float(body.time)
@@ -202,14 +202,20 @@ class StatusTrust:
         """Raise MessageError (counted in ``refused``) when ``body``, admitted before, claims more free
         memory than the host's running processes, recorded to hold ``used_mb``, leave."""
         try:
-            self._check_used(host, self._hosts.get(host) or self._hosts.setdefault(host, self._record()), body,
-                             used_mb)
+            self._check_used(host, self._host(host), body, used_mb)
         except MessageError:
             self.refused += 1
             raise
 
     def _record(self, *, alive: bool = False) -> _HostTrust:
         return _HostTrust(alive=alive, recent=deque(maxlen=self.settings.max_statuses))
+
+    def _host(self, host: str) -> _HostTrust:
+        """The host's record, made on first use (without building one per call when it exists)."""
+        record = self._hosts.get(host)
+        if record is None:
+            record = self._hosts[host] = self._record()
+        return record
 
     def _check_used(self, host: str, record: _HostTrust, body: messages.HostStatus, used_mb: float) -> None:
         total, free = float(body.memory_total_mb), float(body.memory_free_mb)

@@ -90,11 +90,13 @@ class ProcessTree:
     def rss_bytes(self, *, left_out: Collection[int] = (), exact: bool = False) -> int:
         """Resident memory of the tree's processes but ``left_out``, in bytes."""
         total = 0
-        for pid in self.pids(exact=exact):
+        pids = self.pids(exact=exact)
+        read = _rss if self.listed() else _psutil_rss  # after pids(): lists found unreadable there mean psutil
+        for pid in pids:
             if pid in left_out:
                 continue
             try:
-                total += _rss(pid) if self.listed() else _psutil_rss(pid)
+                total += read(pid)
             except (FileNotFoundError, ProcessLookupError, psutil.NoSuchProcess):  # exited since it was listed
                 continue
             except (OSError, psutil.Error):  # not readable this way: psutil's own reading, else left out

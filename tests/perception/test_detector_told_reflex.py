@@ -35,6 +35,21 @@ def _frame(seq: int, shade: int) -> bytes:
                                           jpeg=jpeg.tobytes()))
 
 
+def _dark_detector(session, table: ReflexTable) -> Detector:
+    """A real detector running the dark configuration, armed with ``table``, set up on ``session``."""
+    detector = Detector(DetectorSettings(robot="r1", host="h1", instance="det1"),
+                        parse("dark", CONFIG, "DICT_4X4_50"), deployment="d_dark")
+    assert detector.arm(table, deployment="d_dark")
+    detector.setup(session)
+    return detector
+
+
+def _two_dark_frames(detector: Detector, answered: dict[int, threading.Event]) -> None:
+    for seq in (1, 2):
+        detector.slot.put((_frame(seq, 5), time.time()))
+        assert answered[seq].wait(5), f"frame {seq} not answered"
+
+
 @pytest.fixture
 def session():
     s = open_session(ZenohSettings(mode="peer", listen=("tcp/127.0.0.1:0",)))
@@ -105,14 +120,9 @@ def test_a_reflex_is_told_once_the_step_frame_s_detections_are_out(session, monk
         return real_announce(config, deployment, **kwargs)
 
     monkeypatch.setattr(detector_module, "announce_configured", announce)
-    detector = Detector(DetectorSettings(robot="r1", host="h1", instance="det1"),
-                        parse("dark", CONFIG, "DICT_4X4_50"), deployment="d_dark")
-    assert detector.arm(table, deployment="d_dark")
-    detector.setup(session)
+    detector = _dark_detector(session, table)
     try:
-        for seq in (1, 2):
-            detector.slot.put((_frame(seq, 5), time.time()))
-            assert answered[seq].wait(5), f"frame {seq} not answered"
+        _two_dark_frames(detector, answered)
         assert not reflexes  # dark frames in the dark band: nothing to tell
         detector.slot.put((_frame(step_seq, shade), time.time()))
         assert arrived.wait(5), "no reflex for the step into a band nothing here takes in place"
@@ -152,22 +162,18 @@ def test_a_swap_in_place_is_told_even_when_the_step_frame_s_detection_fails(sess
 
     listener = session.declare_subscriber(f"{keys.robot_root('r1')}/detector/det1/*", on_sample)
     real_detect = MarkerDetector.detect
+    failed: list[int] = []
 
     def detect(self, gray, *args, **kwargs):
-        if self.config.name == "dusk" and not answered[3].is_set() and not getattr(detect, "failed", False):
-            detect.failed = True  # the step frame's, once
+        if self.config.name == "dusk" and not failed:
+            failed.append(1)  # the step frame's, once
             raise RuntimeError("a detection that fails")
         return real_detect(self, gray, *args, **kwargs)
 
     monkeypatch.setattr(MarkerDetector, "detect", detect)
-    detector = Detector(DetectorSettings(robot="r1", host="h1", instance="det1"),
-                        parse("dark", CONFIG, "DICT_4X4_50"), deployment="d_dark")
-    assert detector.arm(table, deployment="d_dark")
-    detector.setup(session)
+    detector = _dark_detector(session, table)
     try:
-        for seq in (1, 2):
-            detector.slot.put((_frame(seq, 5), time.time()))
-            assert answered[seq].wait(5), f"frame {seq} not answered"
+        _two_dark_frames(detector, answered)
         detector.slot.put((_frame(3, 25), time.time()))
         assert arrived.wait(5), "the swap carried out before the failed detection was never told"
         detector.slot.put((_frame(4, 25), time.time()))
