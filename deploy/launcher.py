@@ -59,7 +59,9 @@ a fork shares), and asks the kernel to send it SIGKILL when the pipe's last
 writer closes (``O_ASYNC`` with ``F_SETSIG``): the kernel closes a dying
 process's files before its parent can reap it, as it sends the parent-death
 signal. A member drops its lifeline once it has been adopted by the agent and
-has its parent-death signal instead (at ``adoption()``).
+has its parent-death signal instead (at ``adoption()``). A member killed with
+its agent before it has run its first lines (it is named idle once forked)
+ends one death later: the first of them finds its intermediate process gone.
 
 Protocol (JSON, one message per datagram)::
 

@@ -170,9 +170,14 @@ def dying(pid: int) -> bool:
     return fields[0] in (b"Z", b"X") or bool(int(fields[6]) & 0x4) or bool(pending & kill_bit)  # 0x4: PF_EXITING
 
 
-def holds_lifeline(pid: int) -> bool:
-    """Whether ``pid`` has a descriptor that signals it (O_ASYNC): a pool member's hold on the agent's lifeline."""
+def tied(pid: int) -> bool:
+    """Whether the pool member ``pid`` has asked for both of its deaths: its own session, which it takes
+    right after asking for its parent-death signal and for SIGKILL on the lifeline (``O_ASYNC`` on a
+    descriptor of its own). Its inherited descriptors prove nothing: a member just forked already holds
+    its intermediate process's lifeline, whose signal goes to that process, not to the member."""
     try:
+        if os.getsid(pid) != pid:
+            return False
         for fd in os.listdir(f"/proc/{pid}/fdinfo"):
             with open(f"/proc/{pid}/fdinfo/{fd}") as f:
                 flags = next((int(line.split()[1], 8) for line in f if line.startswith("flags:")), 0)
@@ -198,8 +203,9 @@ def test_killing_the_agent_with_sigkill_ends_every_process_under_it_idle_pool_me
         # Forked, or handed to the idle detector its launcher keeps (--pool 1).
         assert info.via in ("launcher", "pool") and psutil.Process(info.pid).ppid() == agent.pid
         idle = wait_until(lambda: client.launcher("onboard").idle_members, timeout=30.0, what="an idle pool member")
-        # A member holds its lifeline microseconds after its fork; on a loaded machine, wait for that.
-        wait_until(lambda: all(holds_lifeline(pid) for pid in idle), what="the idle members to hold the lifeline")
+        # The launcher names a member once it is forked, before the member has run a line: on a loaded machine
+        # it may not yet have asked for its deaths (it would die one death later, when it finds its parent gone).
+        wait_until(lambda: all(tied(pid) for pid in idle), what="the idle members to ask for their deaths")
         under = {p.pid: " ".join(p.cmdline()) for p in psutil.Process(agent.pid).children(recursive=True)}
         assert {info.pid, launcher.pid, *idle} <= set(under), under
         os.kill(agent.pid, signal.SIGKILL)
