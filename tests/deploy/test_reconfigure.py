@@ -19,7 +19,7 @@ from kgadapt.deploy.migration import reconfigure
 from kgadapt.knowledge.loader import load_models
 from kgadapt.shared import keys
 from kgadapt.shared.errors import DeploymentError
-from tests.deploy.conftest import ROBOT, Collector, FrameSource
+from tests.deploy.conftest import ROBOT, Collector, FrameSource, not_roll_calls
 from tests.deploy.test_real_detector import MODELS, marker_jpeg
 from tests.support import wait_for
 
@@ -63,7 +63,7 @@ def test_the_detector_takes_another_configuration_between_two_frames(hosts, clie
         # once the table came (after the start), so the swap asked the graph nothing and built nothing
         # (issue 32, item 3).
         # (Only the reflex table is fetched again, after the swap, for what the new deployment may take.)
-        assert set(swap_asked) <= {"reflex_table"}, swap_asked
+        assert set(not_roll_calls(swap_asked)) <= {"reflex_table"}, swap_asked
         assert report.build_ms < 1.0
         # Frames before first_seq were made with the old configuration, first_seq and after with the new.
         _, first_new = markers.wait_for(lambda d: d["instance"] == "det1" and d["seq"] == report.first_seq)
