@@ -62,6 +62,11 @@ from kgadapt.shared.states import FINAL_STATES, LIVE_STATES, SERVING_STATES, Pro
 
 log = logging.getLogger(__name__)
 
+# How long an exit's report waits for the reader to take the rest of the child's output (its last lines,
+# such as why it crashed, may still be in the pipe when the exit is seen). The whole process group is
+# killed first, so end of file follows at once unless a process that left the group holds the pipe.
+OUTPUT_DRAIN_S = 1.0
+
 try:  # libc's signal(): Python's refuses in a child forked from a non-main thread
     _libc_signal: Callable[[int, None], object] | None = ctypes.CDLL(None, use_errno=True).signal
     _libc_signal.argtypes = [ctypes.c_int, ctypes.c_void_p]  # type: ignore[union-attr]  # the CDLL function just set
@@ -209,6 +214,7 @@ class _Run:
         self.reaped = False  # once True the pid (and process group id) may be reused
         self.watch = ReadyWatch(run_id)  # its readiness line, and the last lines it printed
         self.done = threading.Event()
+        self.output_read = threading.Event()  # the reader reached the end of the child's output
         self.not_ready_in_time = False
 
 
@@ -562,6 +568,12 @@ class Supervisor:
         return pool_key(spec.argv, self.child_env(spec))
 
     def _read_output(self, inst: _Instance, run: _Run) -> None:
+        try:
+            self._read_lines(inst, run)
+        finally:
+            run.output_read.set()
+
+    def _read_lines(self, inst: _Instance, run: _Run) -> None:
         child_log = logging.getLogger(f"{__name__}.{inst.spec.instance}")
         assert run.proc.stdout is not None
         for raw in run.proc.stdout:
@@ -655,6 +667,7 @@ class Supervisor:
             run.reaped = True
             run.returncode = returncode
             run.ended_at = time.time()
+        run.output_read.wait(OUTPUT_DRAIN_S)  # its last lines (why it crashed) before the report
         run.done.set()
         run.watch.end(returncode)
         tail = "\n".join(list(run.watch.tail)[-5:]) or None

@@ -126,6 +126,32 @@ def test_a_crashing_child_is_restarted_up_to_the_limit_then_reported_failed(supe
     assert info.state == "failed" and info.returncode == 3 and info.restarts == 2
 
 
+def test_a_crash_is_reported_with_its_last_output_even_when_the_exit_is_seen_before_the_output_is_read(
+        supervisor, events):
+    """The child says ready, says why it fails and exits. Its reader is held (in the listener of the ready
+    event, as a loaded machine's scheduler may hold it) until the supervisor has reaped the child: the last
+    line is then still in the pipe. The exit's report waits for the reader (a loaded run once reported a
+    crash without its reason)."""
+    reaped = threading.Event()
+
+    def hold_the_reader(event: ProcessEvent) -> None:
+        if event.instance == "chatty" and event.event == "ready":
+            deadline = time.monotonic() + 10.0
+            while supervisor.status("chatty").returncode is None and time.monotonic() < deadline:
+                reaped.wait(0.02)  # the waiter's reap has no event of its own to wait on
+            reaped.set()
+
+    supervisor.add_listener(hold_the_reader)
+    code = f"import os; {SAY_READY}; print('why: boom', flush=True); os._exit(3)"
+    supervisor.start(spec("chatty", code, restart=RestartPolicy(max_restarts=0)))
+    events.wait_for("chatty", "failed")
+    assert reaped.is_set()
+    exited = [e for e in events.events if e.instance == "chatty" and e.event == "exited"]
+    assert exited[0].returncode == 3 and exited[0].detail == "why: boom", exited
+    info = supervisor.status("chatty")
+    assert info.state == "failed" and info.detail is not None and info.detail.endswith("last output: why: boom"), info
+
+
 def test_backoff_grows_between_restarts(supervisor, events):
     policy = RestartPolicy(max_restarts=2, backoff_initial=0.2, backoff_factor=2.0)
     with pytest.raises(DeploymentError):
