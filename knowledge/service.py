@@ -950,6 +950,7 @@ class OwnFirst:
     def __init__(self, *, max_wait_s: float) -> None:
         self.max_wait_s = max_wait_s
         self._serving = 0
+        self._waiting = 0
         self._idle = threading.Condition()
         self._mine = threading.local()  # set on a thread answering an own request: it never waits
 
@@ -967,10 +968,20 @@ class OwnFirst:
                 if not self._serving:
                     self._idle.notify_all()
 
+    @property
+    def waiting(self) -> int:
+        """Public steps waiting for their turn now."""
+        with self._idle:
+            return self._waiting
+
     def wait_turn(self) -> None:
         if self.max_wait_s > 0 and not getattr(self._mine, "own", False):
             with self._idle:
-                self._idle.wait_for(lambda: not self._serving, timeout=self.max_wait_s)
+                self._waiting += 1
+                try:
+                    self._idle.wait_for(lambda: not self._serving, timeout=self.max_wait_s)
+                finally:
+                    self._waiting -= 1
 
 
 class _RateLimitedLog:

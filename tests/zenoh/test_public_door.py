@@ -54,8 +54,12 @@ def test_one_askers_flood_cannot_take_another_askers_share(resp_store, zenoh_pai
             answers.put((asker, _ask(session, robot, asker)))
 
         with svc.own_first.serving():  # the public worker waits: every question queues meanwhile
+            # Its first question is held by the worker before the rest come (on a loaded machine the worker
+            # could otherwise take it only after the line had filled, and one more would be refused).
             flood = [threading.Thread(target=ask, args=("quad2",)) for _ in range(40)]  # more than the whole bound
-            for t in flood:
+            flood[0].start()
+            wait_for(lambda: svc.own_first.waiting == 1, 30, "the public worker holding quad2's first question")
+            for t in flood[1:]:
                 t.start()
             # The flood's questions beyond its own line (and the one the worker holds) are refused at once.
             refused = [answers.get(timeout=30) for _ in range(40 - 4 - 1)]
