@@ -34,7 +34,9 @@ def test_the_target_produces_output_before_the_source_stops(hosts, client_sessio
     report = migrate(client_session, ROBOT, "det1", "remote", new_instance="det2")
 
     assert (report.source_host, report.target_host, report.deployment, report.config) == ("onboard", "remote", "echo", CONFIG)
-    assert report.target_ready_ms <= report.first_output_ms <= report.source_stopped_ms
+    # The source is stopped only after the target was ready and had detected. The target's first detection
+    # may reach us before the reply that it is ready (two routes: a loaded run saw 170 ms against 184 ms).
+    assert max(report.target_ready_ms, report.first_output_ms) <= report.source_stopped_ms
     first_new, _ = markers.wait_for(lambda d: d["instance"] == "det2" and d["host"] == "remote")
     source_exit, _ = events.wait_for(lambda e: e["instance"] == "det1" and e["event"] == "exited")
     assert first_new < source_exit  # the new detector answered frames while the old one still ran
