@@ -17,9 +17,11 @@ def test_every_acknowledged_write_survives_kill_9_of_the_store_in_20_trials(tmp_
             # trial is run again on a fresh server.
             hung.append((i, result["acked"], result["first_failure"]))
             result = store_crash_trial(tmp_path / f"trial{i}-again", trial=i)
+        if result["restart_hung"]:  # the server started to count never answered; a second start counted
+            hung.append((i, "restart"))
         results.append(result)
 
-    assert len(hung) <= 1, f"the store stopped answering before the kill in more than one trial: {hung}"
+    assert len(hung) <= 1, f"the store stopped answering in more than one trial: {hung}"
 
     assert all(r["killed"] for r in results)
     assert all(r["acked"] >= r["kill_after"] for r in results)  # the kill came mid-burst, after the target
