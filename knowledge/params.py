@@ -44,6 +44,19 @@ def check_params(
 def _value(value: Any, where: str, error: type[KgadaptError], depth: int) -> Any:
     if depth > MAX_DEPTH:
         raise error(f"{where}: nested more than {MAX_DEPTH} deep")
+    # The built-in types first, by exact type: the ABC checks below (numbers, Mapping) cost several
+    # times more, and a status batch's rows are a few hundred such values a statement.
+    kind = type(value)
+    if kind is float:
+        if not math.isfinite(value):
+            raise error(f"{where}: {value} is not a finite number")
+        return value
+    if kind is int:
+        if not _INT64[0] <= value < _INT64[1]:
+            raise error(f"{where}: {value} does not fit in 64 bits")
+        return value
+    if kind is dict:
+        return _map(value, where, error, depth)
     if value is None or isinstance(value, (bool, str)):
         if isinstance(value, str) and "\x00" in value:
             raise error(f"{where}: a NUL character is not allowed in a string")
@@ -59,13 +72,17 @@ def _value(value: Any, where: str, error: type[KgadaptError], depth: int) -> Any
     if isinstance(value, (list, tuple)):
         return [_value(item, where, error, depth + 1) for item in value]
     if isinstance(value, Mapping):
-        out: dict[str, Any] = {}
-        for key, item in value.items():
-            if not isinstance(key, str):
-                raise error(f"{where}: map key {key!r} is not a string")
-            out[key] = _value(item, where, error, depth + 1)
-        return out
+        return _map(value, where, error, depth)
     raise error(f"{where}: a {type(value).__name__} is not a graph value")
+
+
+def _map(value: Mapping[Any, Any], where: str, error: type[KgadaptError], depth: int) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, item in value.items():
+        if not isinstance(key, str):
+            raise error(f"{where}: map key {key!r} is not a string")
+        out[key] = _value(item, where, error, depth + 1)
+    return out
 
 
 def cypher_literal(value: Any, *, name: str = "") -> str:
@@ -78,6 +95,11 @@ def cypher_literal(value: Any, *, name: str = "") -> str:
     (and Memgraph's lexer) lacks; map keys are back-quoted, and may be neither empty nor hold a
     backquote, which FalkorDB cannot escape. Errors name the parameter ``name`` when given.
     """
+    kind = type(value)
+    if kind is float and math.isfinite(value):  # the common cases first, by exact type (as _value)
+        return repr(value).replace("e+", "e")
+    if kind is dict:
+        return _map_literal(value, name)
     if value is None:
         return "null"
     if isinstance(value, bool):
@@ -95,12 +117,16 @@ def cypher_literal(value: Any, *, name: str = "") -> str:
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join([cypher_literal(item, name=name) for item in value]) + "]"
     if isinstance(value, dict):
-        for key in value:
-            if not isinstance(key, str) or not key or "`" in key:
-                raise QueryError(f"{_where(name)}: map key {key!r} cannot be written for FalkorDB "
-                                 "(empty, or with a backquote)")
-        return "{" + ", ".join([f"`{key}`: {cypher_literal(item, name=name)}" for key, item in value.items()]) + "}"
+        return _map_literal(value, name)
     raise QueryError(f"{_where(name)}: a {type(value).__name__} is not a graph value")
+
+
+def _map_literal(value: dict[Any, Any], name: str) -> str:
+    for key in value:
+        if not isinstance(key, str) or not key or "`" in key:
+            raise QueryError(f"{_where(name)}: map key {key!r} cannot be written for FalkorDB "
+                             "(empty, or with a backquote)")
+    return "{" + ", ".join([f"`{key}`: {cypher_literal(item, name=name)}" for key, item in value.items()]) + "}"
 
 
 def _where(name: str) -> str:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import collections
+
 import numpy as np
 import pytest
 
@@ -32,6 +34,11 @@ def test_the_header_quotes_and_escapes_every_kind_of_value():
     ({"x-y": 1}, r"bad parameter name 'x-y'"),
     ({"1x": 1}, r"bad parameter name '1x'"),
     ({"x": [[[[[[[[[[1]]]]]]]]]]}, rf"parameter 'x': nested more than {MAX_DEPTH} deep"),
+    # The same inside maps and rows, which the check takes by exact type first.
+    ({"rows": [{"free": 1.0}, {"free": float("-inf")}]}, r"parameter 'rows': -inf is not a finite number"),
+    ({"x": {"k": -(2**63) - 1}}, r"parameter 'x': -9223372036854775809 does not fit in 64 bits"),
+    ({"x": {"a": {"b": {"c": {"d": {"e": {"f": {"g": {"h": {"i": 1}}}}}}}}}},
+     rf"parameter 'x': nested more than {MAX_DEPTH} deep"),
 ])
 def test_what_no_store_can_take_is_refused_naming_the_parameter(params, message):
     with pytest.raises(QueryError, match=message):
@@ -46,9 +53,11 @@ def test_the_service_gets_the_same_check_with_its_own_error_and_words():
 
 
 def test_the_check_gives_plain_values():
-    clean = check_params({"i": np.int64(7), "f": np.float32(0.5), "t": (1, (2,)), "m": {"k": [True]}})
-    assert clean == {"i": 7, "f": 0.5, "t": [1, [2]], "m": {"k": [True]}}
-    assert type(clean["i"]) is int and type(clean["f"]) is float
+    clean = check_params({"i": np.int64(7), "f": np.float32(0.5), "t": (1, (2,)), "m": {"k": [True]},
+                          "b": True, "o": collections.OrderedDict(a=np.float64(2.0))})
+    assert clean == {"i": 7, "f": 0.5, "t": [1, [2]], "m": {"k": [True]}, "b": True, "o": {"a": 2.0}}
+    assert type(clean["i"]) is int and type(clean["f"]) is float and clean["b"] is True
+    assert type(clean["o"]) is dict and type(clean["o"]["a"]) is float
 
 
 def test_map_keys_falkordb_cannot_write_are_refused_by_the_header_only():
