@@ -132,14 +132,19 @@ def _platform_figures(store: GraphStore, *, name: str, time: float, memory_total
             if v is not None}
 
 
-def set_platform_online(store: GraphStore, *, name: str, online: bool, time: float) -> None:
-    """A host came or went (liveliness). ``last_seen`` moves only when it is online."""
-    _check("platform_online", name=(name, (str,), False), online=(online, (bool,), False), time=(time, _NUM, False))
+def set_platform_online(store: GraphStore, *, name: str, online: bool, time: float,
+                        heard: float | None = None) -> None:
+    """A host came or went (liveliness). ``last_seen`` becomes ``time`` when it comes; when it goes, the
+    time its last status was heard (``heard``) if that is later than what the graph holds (a status within
+    the deadband waits for the refresh, and a lost host's waiting status is not written)."""
+    _check("platform_online", name=(name, (str,), False), online=(online, (bool,), False), time=(time, _NUM, False),
+           heard=(heard, _NUM, True))
     rows = store.execute(
         f"MATCH (p:{S.PLATFORM} {{name: $name}}) "
         "SET p.online = $online, p.online_since = $time, "
-        "p.last_seen = CASE WHEN $online THEN $time ELSE p.last_seen END RETURN count(p) AS n",
-        {"name": name, "online": online, "time": float(time)})
+        "p.last_seen = CASE WHEN $online THEN $time WHEN $heard > coalesce(p.last_seen, 0.0) THEN $heard "
+        "ELSE p.last_seen END RETURN count(p) AS n",
+        {"name": name, "online": online, "time": float(time), "heard": None if heard is None else float(heard)})
     if not rows or not rows[0]["n"]:
         raise unknown_host("platform_online", name)
 

@@ -148,6 +148,34 @@ def test_waiting_statuses_are_written_at_the_refresh_checked_against_the_profile
         svc.shutdown()
 
 
+def test_a_lost_host_is_last_seen_when_its_last_status_was_heard_not_when_its_figures_were_last_written(
+        zenoh_pair, robot, resp_store):
+    # Statuses within the deadband wait for the refresh (10 s by default), and a lost host's waiting status
+    # is never written: without the loss recording it, "last seen" would be the last write, seconds early.
+    _, session = zenoh_pair
+    resp_store.execute("MERGE (:Platform {name: 'd2'})")
+    svc, client = _service(resp_store, zenoh_pair, robot, status_refresh_s=3600.0, status_deadband_mb=16.0)
+    token = session.liveliness().declare_token(keys.host_alive(robot, "d2"))
+    try:
+        wait_for(lambda: (platform_row(client, "d2") or {}).get("online") is True, 10, "d2 online")
+        session.put(keys.host_status(robot, "d2"), _status("d2", 500.0))
+        wait_for(_free(client, "d2", 500.0), 10, "the first status written")
+        written = platform_row(client, "d2")["last_seen"]
+        sent = time.time()
+        session.put(keys.host_status(robot, "d2"), _status("d2", 505.0))  # within the deadband: waits
+        wait_for(lambda: svc.stats().get("events_received", 0) >= 3, 10, "the waiting status received")
+        token.undeclare()
+        token = None
+        wait_for(lambda: platform_row(client, "d2")["online"] is False, 10, "d2 offline")
+        row = platform_row(client, "d2")
+        assert row["memory_free_mb"] == 500.0  # the waiting status's figures were not written
+        assert row["last_seen"] >= sent > written, (row, sent, written)
+    finally:
+        if token is not None:
+            token.undeclare()
+        svc.shutdown()
+
+
 def test_statuses_wait_in_zenohs_ring_for_the_status_worker_not_in_a_python_callback_each(zenoh_pair, robot,
                                                                                           resp_store):
     # 2,000 statuses a second into 100 services: a Python callback per status (its thread taking the
