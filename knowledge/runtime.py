@@ -132,11 +132,17 @@ def _platform_figures(store: GraphStore, *, name: str, time: float, memory_total
             if v is not None}
 
 
-def set_platform_online(store: GraphStore, *, name: str, online: bool, time: float,
-                        heard: float | None = None) -> None:
-    """A host came or went (liveliness). ``last_seen`` becomes ``time`` when it comes; when it goes, the
-    time its last status was heard (``heard``) if that is later than what the graph holds (a status within
-    the deadband waits for the refresh, and a lost host's waiting status is not written)."""
+def set_platform_online(store: GraphStore, *, name: str, online: bool, time: float) -> None:
+    """A host came or went (liveliness; the ``platform_online`` write verb). ``last_seen`` moves only when it
+    is online."""
+    set_platform_liveliness(store, name=name, online=online, time=time)
+
+
+def set_platform_liveliness(store: GraphStore, *, name: str, online: bool, time: float,
+                            heard: float | None = None) -> None:
+    """:func:`set_platform_online` for the knowledge service, which also knows when the host's last status was
+    heard: a lost host's ``last_seen`` becomes ``heard`` if that is later than what the graph holds (a status
+    within the deadband waits for the refresh, and a lost host's waiting status is not written)."""
     _check("platform_online", name=(name, (str,), False), online=(online, (bool,), False), time=(time, _NUM, False),
            heard=(heard, _NUM, True))
     rows = store.execute(

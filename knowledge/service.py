@@ -756,7 +756,7 @@ class KnowledgeService:
                 online, received, heard = due[0]
                 try:
                     with self._store_lock:
-                        runtime.set_platform_online(self.store, name=host, online=online, time=received, heard=heard)
+                        runtime.set_platform_liveliness(self.store, name=host, online=online, time=received, heard=heard)
                         if not online:
                             # Its processes are beyond reach: the profiles they opened before the loss end
                             # with the token. One that outlived a partition reopens with its next sample.

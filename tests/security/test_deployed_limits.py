@@ -201,7 +201,7 @@ def test_a_detectors_certificate_cannot_put_a_status_or_a_flight_state_as_their_
 
         wait_for(operator_heard, 5, "a route from the operator's flight state to the onboard agent")
         heard.clear()
-        for free in (2001.0, 2002.0, 2003.0):
+        for free in (2100.0, 2200.0, 2300.0):  # each beyond the service's deadband (16 MiB): written at once
             # Forged first, then the entitled sender's; each control waited for where it is received.
             detector.put(keys.host_status(ROBOT, "remote"), forged_status)
             detector.put(keys.flight_state(ROBOT), forged_flight)
