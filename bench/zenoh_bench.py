@@ -75,7 +75,11 @@ def direct(q):
 session.declare_queryable("bench/echo/direct", direct)
 session.declare_queryable("bench/echo/queued", lambda q: work.put(q))
 announce_ready(role="echo")
-sys.stdin.read()
+try:
+    sys.stdin.read()
+except KeyboardInterrupt:  # the bench stops its children with SIGINT first
+    pass
+session.close()
 """
 
 
@@ -104,14 +108,17 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--reps, --hosts, --rate and --duration must be positive")
     if not 0 < args.probe_hosts <= args.hosts:
         raise ConfigError(f"--probe-hosts {args.probe_hosts}: between 1 and --hosts ({args.hosts})")
+    load_before = round(os.getloadavg()[0], 2)
     with tempfile.TemporaryDirectory(prefix="kgadapt-zenoh-bench-") as tmp:
         with _Fabric(Path(tmp)) as fabric:
             records = _request_latency(fabric, reps=args.reps, warmup=args.warmup)
             records.append(_fan_in(fabric, hosts=args.hosts, rate=args.rate, duration=args.duration,
                                    probe_hosts=args.probe_hosts))
     info = machine_info()
+    load = [load_before, round(os.getloadavg()[0], 2)]  # 1-minute load before and after the run
     for record in records:
         record["machine"] = info
+        record["loadavg_1m"] = load
     write_records(args.out, records)
     if args.json:
         print(json.dumps(records, indent=1))
