@@ -224,7 +224,10 @@ class KnowledgeService:
                                   pending=FairQueue(maxsize=settings.max_pending_public,
                                                     per_asker=settings.max_pending_per_asker, asker_of=asker_of))
         self.own_first = OwnFirst(max_wait_s=settings.own_first_wait_s)
-        self._events: queue.Queue[Any] = queue.Queue(maxsize=settings.max_pending_statuses)
+        # Liveliness changes (and the statuses taken before each) for the status worker. A SimpleQueue: its
+        # timed get() is C, and the worker waits on it about four times a second (docs/fleet.md, issue 32);
+        # its bound is kept by the one producer, _on_alive, under _take_lock.
+        self._events: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._event_thread: threading.Thread | None = None
         # The status subscriber (its samples wait in Zenoh's ring until taken), and the lock that keeps a
         # liveliness change behind the statuses received before it: taking statuses and queueing a change
@@ -571,27 +574,23 @@ class KnowledgeService:
         arrival, at most ``status_batch_max`` (the rest wait in order for the next batch)."""
         batch = [] if first is None else [first]
         with self._take_lock:
-            while True:
-                try:
-                    batch.append(self._events.get_nowait())
-                except queue.Empty:
-                    break
+            while not self._events.empty():  # this thread alone takes from the queue
+                batch.append(self._events.get_nowait())
             batch.extend(self._received_statuses(max(0, self.settings.status_batch_max - len(batch))))
         return batch
 
     def _enqueue_event(self, event: tuple[Any, ...]) -> None:
-        try:
-            self._events.put_nowait(event)
-        except queue.Full:
+        """Queue ``event`` for the status worker, or drop it when max_pending_statuses wait (caller holds
+        _take_lock)."""
+        if self._events.qsize() >= self.settings.max_pending_statuses:
             self._drop(f"{event[0]} on {event[1]}: {self.settings.max_pending_statuses} events pending")
+            return
+        self._events.put(event)
 
     # -- the status worker -------------------------------------------------------------
 
     def _stop_event_worker(self) -> None:
-        try:
-            self._events.put(_STOP, timeout=5)
-        except queue.Full:
-            log.warning("status queue stayed full at shutdown")
+        self._events.put(_STOP)  # beyond the bound: the worker ends after what waits before it
         if self._event_thread is not None:
             self._event_thread.join(timeout=10)
             self._event_thread = None

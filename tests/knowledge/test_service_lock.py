@@ -128,3 +128,29 @@ def test_a_run_out_lease_is_taken_again_by_its_holder(tmp_path):
             lock.release()
 
     _on_a_server_that_answers(tmp_path, body)
+
+
+def test_a_renewal_whose_connection_the_server_closed_is_sent_again_on_a_new_one(tmp_path):
+    # A renewal goes out on a connection of its own (packed once, for its CPU): one the server closed (a
+    # restart, CLIENT KILL, a timeout) fails that renewal at most, and the next one opens another.
+    def body(server_store):
+        store = server_store()
+        lock = ServiceLock(store, lease_s=30.0)  # no renewal thread round within the test
+        lock.acquire()
+        try:
+            assert lock.renew() is True
+            store.redis.client_kill_filter(_type="normal", skipme=True)  # every connection but this one
+            outcomes = []
+            for _ in range(2):
+                try:
+                    outcomes.append(lock.renew())
+                except redis.ConnectionError:
+                    outcomes.append("closed")
+            assert outcomes[-1] is True, outcomes
+            store.redis.pexpire(lock.key, 500)
+            assert lock.renew() is True
+            assert store.redis.pttl(lock.key) > 20_000  # the new connection renews the whole lease
+        finally:
+            lock.release()
+        assert store.redis.get(lock.key) is None
+    _on_a_server_that_answers(tmp_path, body)

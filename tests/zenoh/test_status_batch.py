@@ -226,6 +226,46 @@ def test_a_liveliness_change_is_written_at_once_whatever_the_status_window(zenoh
         svc.shutdown()
 
 
+def test_liveliness_changes_beyond_max_pending_statuses_are_dropped_and_counted_while_the_worker_is_held(
+        zenoh_pair, robot, resp_store):
+    # The worker's queue is bounded by its one producer (the liveliness callback): a worker held up (a
+    # slow store) keeps max_pending_statuses changes, drops and counts the rest, and applies what it kept.
+    server, session = zenoh_pair
+    hosts = [f"b{i}" for i in range(8)]
+    resp_store.execute("UNWIND $names AS name MERGE (:Platform {name: name})", {"names": hosts})
+    ensure_indexes(resp_store)
+    svc = KnowledgeService(resp_store, ServiceSettings(robot=robot, max_pending_statuses=3, status_batch_s=3600.0))
+    held, release = threading.Event(), threading.Event()
+    apply = svc._apply_events
+
+    def held_up(batch):
+        held.set()
+        release.wait(30)
+        apply(batch)
+    svc._apply_events = held_up
+    svc.setup(server)
+    tokens = []
+    try:
+        wait_until_serving(session, robot)
+        client = KnowledgeClient(session, robot, timeout=3.0)
+        tokens.append(session.liveliness().declare_token(keys.host_alive(robot, hosts[0])))
+        assert held.wait(10), "the worker never took the first change"
+        tokens += [session.liveliness().declare_token(keys.host_alive(robot, h)) for h in hosts[1:]]
+        wait_for(lambda: svc.stats().get("events_dropped", 0) >= len(hosts) - 1 - 3, 10, "the changes beyond 3 dropped")
+        release.set()
+        kept = hosts[:1 + 3]
+        wait_for(lambda: all((platform_row(client, h) or {}).get("online") is True for h in kept), 10,
+                 "the first change and the three kept written")
+        stats = svc.stats()
+        assert stats["events_dropped"] == len(hosts) - len(kept), stats
+        assert "events pending" in stats.get("last_drop", ""), stats
+    finally:
+        release.set()
+        for token in tokens:
+            token.undeclare()
+        svc.shutdown()
+
+
 def test_a_service_that_hears_no_status_takes_zenohs_ring_once_a_second(zenoh_pair, robot, resp_store):
     # A hundred services taking an empty ring four times a second cost 3 % of a core doing nothing.
     server, session = zenoh_pair
