@@ -8,8 +8,9 @@ this lock; a second one refuses to start, naming the holder.
   The kernel releases it when the holder dies, so a restarted service (after
   ``kill -9``) takes it at once.
 - ``falkordb://`` server: a lease key in the server (``SET NX PX``), renewed
-  by a thread every third of its life, on a connection of its own. A holder that dies leaves it for at
-  most ``lease_s``; a new service waits that long for it before refusing.
+  by a thread every third of its life, on a connection of its own. A holder
+  that dies leaves it for at most ``lease_s``; a new service waits that long
+  for it before refusing.
 - Other stores (Bolt): no lock; the docs say to run one service per store.
 """
 
