@@ -865,6 +865,10 @@ class RobotOnHosts:
         self.cluster.kill("onboard", sig)
         agent.process.wait(timeout)
         stopped_ms = (time.time() - signalled_at) * 1000.0
+        # The onboard detectors follow their agent by the parent-death signal, each after its own stop, which
+        # may end just after the agent is reaped (seen once in a full test run): give them 5 s before looking,
+        # so a detector still stopping is not taken for one left behind. One alive after 5 s is.
+        _wait_until(lambda: not any(d.host == "onboard" for d in self.detector_processes(pooled=True)), 5.0)
         left = self.detector_processes()
         orphans_between = len(self.orphans())
         self.cluster.respawn("onboard")
