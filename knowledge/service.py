@@ -132,6 +132,16 @@ _QUIET_TAKES = 4  # status takes that found nothing before the ring is taken eve
 _QUIET_TAKE_S = 1.0
 
 
+def _next_tick(now: float, period: float) -> float:
+    """When a take ``period`` after the last one is due: the next multiple of ``period`` on the monotonic
+    clock. Services that take on this shared grid wake together and run one after another on warm
+    caches; a take alone costs several times one among others (docs/fleet.md). A period over a second
+    gains nothing from company and is kept whole."""
+    if period > _QUIET_TAKE_S:
+        return now + period
+    return (now // period + 1) * period
+
+
 @dataclass(frozen=True, kw_only=True)
 class ServiceSettings:
     """How the knowledge service serves."""
@@ -601,7 +611,7 @@ class KnowledgeService:
         # When no status has come for _QUIET_TAKES takes (no host publishes: hosts send at 2 Hz), the ring
         # is taken every _QUIET_TAKE_S until a status or a liveliness change comes (a hundred quiet services
         # taking it every 0.25 s cost about 3 % of a core).
-        due = time.monotonic() + self.settings.status_batch_s
+        due = _next_tick(time.monotonic(), self.settings.status_batch_s)
         empty_takes = 0
         while True:
             try:
@@ -620,9 +630,10 @@ class KnowledgeService:
             empty_takes = 0 if batch else empty_takes + 1
             if now >= due:
                 quiet = empty_takes >= _QUIET_TAKES
-                due = now + (max(self.settings.status_batch_s, _QUIET_TAKE_S) if quiet else self.settings.status_batch_s)
+                due = _next_tick(now, max(self.settings.status_batch_s, _QUIET_TAKE_S) if quiet
+                                 else self.settings.status_batch_s)
             elif first is not None:  # a liveliness change: its host's statuses follow
-                due = min(due, now + self.settings.status_batch_s)
+                due = min(due, _next_tick(now, self.settings.status_batch_s))
             stop = _STOP in batch
             if stop:
                 batch = batch[:batch.index(_STOP)]

@@ -8,9 +8,11 @@ this lock; a second one refuses to start, naming the holder.
   The kernel releases it when the holder dies, so a restarted service (after
   ``kill -9``) takes it at once.
 - ``falkordb://`` server: a lease key in the server (``SET NX PX``), renewed
-  by a thread every third of its life, on a connection of its own. A holder
-  that dies leaves it for at most ``lease_s``; a new service waits that long
-  for it before refusing.
+  by a thread every third of its life, on a connection of its own. The lease
+  names its holder's process (pid, start time, pid namespace, boot), so a
+  service started on the same machine after its predecessor died (``kill -9``
+  and restart) takes the lease at once. A holder elsewhere that dies leaves
+  it for at most ``lease_s``; a new service waits that long before refusing.
 - Other stores (Bolt): no lock; the docs say to run one service per store.
 """
 
@@ -48,12 +50,16 @@ class ServiceLockHeld(StoreError):
 class ServiceLock:
     """``acquire()`` takes the store's service lock or raises ServiceLockHeld; ``release()`` gives it back."""
 
-    def __init__(self, store: GraphStore, *, lease_s: float = 3.0) -> None:
+    def __init__(self, store: GraphStore, *, lease_s: float = 9.0) -> None:
         if lease_s <= 0:
             raise ConfigError(f"lease_s {lease_s!r}: must be positive")
         self.store = store
+        # 9 s, renewed every 3 s: a hundred services renewing once a second cost 0.7-0.9 % of a core
+        # (docs/fleet.md), and only a successor on another machine waits the lease out.
         self.lease_s = lease_s
-        self.holder = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "id": uuid.uuid4().hex[:8]})
+        self._process = _this_process()
+        self.holder = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "id": uuid.uuid4().hex[:8],
+                                  **self._process})
         self._file: Any = None
         self._stop = threading.Event()
         self._renewer: threading.Thread | None = None
@@ -123,10 +129,14 @@ class ServiceLock:
         while True:
             if redis.set(self.key, self.holder, nx=True, px=ttl_ms):
                 break
+            held_by = redis.get(self.key)
+            if isinstance(held_by, bytes):
+                held_by = held_by.decode(errors="replace")
+            # Compare-and-delete: only the lease of the process found gone, not one taken meanwhile.
+            if held_by and self._ended(held_by) and redis.eval(_RELEASE, 1, self.key, held_by):
+                log.info("took the knowledge service lease of %s, which has ended", held_by)
+                continue
             if time.monotonic() >= deadline:
-                held_by = redis.get(self.key)
-                if isinstance(held_by, bytes):
-                    held_by = held_by.decode(errors="replace")
                 raise ServiceLockHeld(
                     f"another knowledge service already serves the store {self.store.url} "
                     f"({held_by or 'unknown'}); refusing to start a second one"
@@ -134,6 +144,24 @@ class ServiceLock:
             time.sleep(0.1)
         self._renewer = threading.Thread(target=self._renew, name="knowledge-service-lease", daemon=True)
         self._renewer.start()
+
+    def _ended(self, held_by: str) -> bool:
+        """Whether the lease ``held_by`` names a process of this machine and pid namespace that has ended
+        (no such pid, another process under it, or a zombie). A holder elsewhere, or one that did not name
+        its process, is never taken for ended."""
+        try:
+            other = json.loads(held_by)
+        except ValueError:
+            return False
+        if not isinstance(other, dict) or not self._process:
+            return False
+        if other.get("boot") != self._process["boot"] or other.get("pidns") != self._process["pidns"]:
+            return False
+        pid, start = other.get("pid"), other.get("start")
+        if not isinstance(pid, int) or not isinstance(start, int):
+            return False
+        now = _process_of(pid)
+        return now is None or now[1] != start or now[0] in ("Z", "X")
 
     def renew(self) -> bool:
         """Extend the lease for another ``lease_s`` (taken again if it ran out); False when another holds it.
@@ -172,9 +200,35 @@ class ServiceLock:
         self._line = self._line_pool = self._renewal = None
 
     def _renew(self) -> None:
-        while not self._stop.wait(self.lease_s / 3):
+        period = self.lease_s / 3
+        # On a grid of the monotonic clock: the leases of the services of one process are renewed together,
+        # on warm caches (as the status workers take, knowledge/service.py).
+        while not self._stop.wait(period - time.monotonic() % period):
             try:
                 if not self.renew():
                     log.error("the knowledge service lease on %s is held by another service", self.store.url)
             except Exception as exc:  # noqa: BLE001 - any redis error: renewed again a third of a lease later
                 log.warning("cannot renew the knowledge service lease: %s", exc)
+
+
+def _process_of(pid: int) -> tuple[str, int] | None:
+    """The state and start time (clock ticks after boot) of process ``pid`` from /proc; None: no such process."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as handle:
+            fields = handle.read().rsplit(b")", 1)[1].split()  # the name, in parentheses, may hold anything
+    except (FileNotFoundError, ProcessLookupError):
+        return None
+    return fields[0].decode(), int(fields[19])
+
+
+def _this_process() -> dict[str, Any]:
+    """What tells this process from any other that held a lease: its start time, its pid namespace and the
+    machine's boot. Empty where /proc does not tell them (a lease then only ever runs out)."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id", encoding="ascii") as handle:
+            boot = handle.read().strip()
+        pidns = os.readlink("/proc/self/ns/pid")
+        mine = _process_of(os.getpid())
+    except OSError:
+        return {}
+    return {} if mine is None else {"start": mine[1], "pidns": pidns, "boot": boot}

@@ -7,8 +7,12 @@ and release never gave it back.
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
+import sys
+import threading
+import time
 import warnings
 
 import pytest
@@ -154,3 +158,80 @@ def test_a_renewal_whose_connection_the_server_closed_is_sent_again_on_a_new_one
             lock.release()
         assert store.redis.get(lock.key) is None
     _on_a_server_that_answers(tmp_path, body)
+
+
+_HOLDER = """
+import sys, time
+from kgadapt.knowledge.falkordb_store import FalkorDBStore
+from kgadapt.knowledge.service_lock import ServiceLock
+from kgadapt.knowledge.store import StoreSettings
+sock = sys.argv[1]
+store = FalkorDBStore(StoreSettings(kind="falkordb", url="falkordb+unix://" + sock, unix_socket=sock, graph="g"))
+store.setup()
+ServiceLock(store, lease_s=300.0).acquire()
+print("held", flush=True)
+time.sleep(600)
+"""
+
+
+@pytest.mark.parametrize("reaped", [True, False], ids=["reaped", "zombie"])
+def test_a_service_killed_on_this_machine_leaves_its_lease_to_its_successor_at_once(tmp_path, reaped):
+    # kill -9 and a restart on the same machine: the successor finds the lease's process gone (or a zombie
+    # its parent has not reaped yet) and takes the lease without waiting out its 300 s.
+    def body(server_store):
+        store = server_store()
+        child = subprocess.Popen([sys.executable, "-c", _HOLDER, str(store.settings.unix_socket)],
+                                 stdout=subprocess.PIPE, text=True)
+        try:
+            assert child.stdout.readline().strip() == "held"
+            held = store.redis.get(ServiceLock(store).key)
+            assert f'"pid": {child.pid}' in held
+            child.kill()
+            if reaped:
+                child.wait(timeout=10)
+            else:  # dead, not yet waited for
+                _wait_for(lambda: open(f"/proc/{child.pid}/stat").read().rsplit(")", 1)[1].split()[0] == "Z")
+            successor = ServiceLock(store, lease_s=300.0)
+            taking = threading.Thread(target=successor.acquire, daemon=True)
+            taking.start()
+            taking.join(timeout=60)  # without the takeover it waits out the dead holder's 300 s lease
+            assert not taking.is_alive(), "the successor waits for a dead holder's lease"
+            try:
+                assert store.redis.get(successor.key) == successor.holder
+            finally:
+                successor.release()
+        finally:
+            child.kill()
+            child.wait(timeout=10)
+            child.stdout.close()
+    _on_a_server_that_answers(tmp_path, body)
+
+
+def test_a_lease_of_a_living_process_elsewhere_or_unnamed_is_not_taken(tmp_path):
+    # Only a process of this machine and pid namespace that has ended gives its lease up early: a holder
+    # alive here, one on another machine (another boot) and one that names no process are all waited out.
+    def body(server_store):
+        store = server_store()
+        waiter = ServiceLock(store, lease_s=0.3)
+        here = json.loads(waiter.holder)
+        living = dict(here, id="other")  # this very process: alive, same start time
+        elsewhere = dict(here, boot="another-boot", pid=2**22 + 1)  # no such pid here, but not here either
+        reused = dict(here, start=here["start"] - 1)  # this pid, but a process that started earlier: ended
+        for holder, taken in ((living, False), (elsewhere, False), ({"pid": 2**22 + 1}, False), (reused, True)):
+            store.redis.set(waiter.key, json.dumps(holder), px=30_000)
+            if taken:
+                waiter.acquire()
+                assert store.redis.get(waiter.key) == waiter.holder
+                waiter.release()
+            else:
+                with pytest.raises(ServiceLockHeld):
+                    waiter.acquire()
+                assert json.loads(store.redis.get(waiter.key)) == holder
+    _on_a_server_that_answers(tmp_path, body)
+
+
+def _wait_for(condition, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "condition not met within the wait"
+        time.sleep(0.02)

@@ -361,3 +361,18 @@ def test_the_knowledge_services_router_reads_each_status_on_zenohs_receive_threa
         publisher.close()
     assert [n for n in names if n.startswith("acc-")] == [], sorted(names)
     assert sum(n.startswith("rx-") for n in names) >= 8, sorted(n for n in names if n != "python")
+
+
+def test_status_takes_fall_on_a_grid_of_the_clock_shared_by_every_service():
+    # Services take their rings on multiples of the window, so those of one process wake together and run
+    # one after another on warm caches (docs/fleet.md, ninth round); no take waits longer than the window.
+    from kgadapt.knowledge.service import _next_tick
+
+    for period in (0.25, 1.0):
+        for now in (1000.0, 1000.01, 1000.2499, 1000.25, 87_654.321):
+            due = _next_tick(now, period)
+            assert now < due <= now + period
+            assert abs(due / period - round(due / period)) < 1e-9, (now, period, due)
+        # two services whose last takes were apart within one window take next at the same instant
+        assert _next_tick(5000.01, period) == _next_tick(5000.01 + period * 0.9, period)
+    assert _next_tick(1000.1, 3600.0) == 1000.1 + 3600.0  # a long window is kept whole
