@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from kgadapt.knowledge.embedded import EmbeddedServer
@@ -104,3 +106,53 @@ def test_a_model_load_leaves_a_snapshot_so_a_restart_replays_no_graph_query(tmp_
     assert b"GRAPH.QUERY" not in replayed and b"MULTI" not in replayed
     with open_store(f"embedded:{data}") as store:
         assert store.execute("MATCH (f:Feature) RETURN count(f) AS n", read_only=True)[0]["n"] == features > 0
+
+
+def test_a_start_that_never_becomes_ready_is_killed_and_started_once_more(tmp_path):
+    """FalkorDB 4.16 has hung now and then replaying its AOF at a start under load, never ready; the same
+    files then loaded at once. Here the first server started is stopped (SIGSTOP) as soon as it appears:
+    the starter kills it after its timeout and the second one serves the data."""
+    import signal
+    import threading
+
+    import psutil
+    import redis
+
+    data = tmp_path / "store"
+    server = EmbeddedServer(data)
+    address = server.ensure()
+    client = redis.Redis(unix_socket_path=address.unix_socket)
+    client.execute_command("GRAPH.QUERY", "g", "UNWIND range(1, 1000) AS i CREATE (:N {i: i})")
+    client.close()
+    server.stop()
+
+    stopped: list[int] = []
+    done = threading.Event()
+
+    def stop_the_first() -> None:
+        me = psutil.Process()
+        while not done.is_set() and not stopped:
+            for child in me.children():
+                try:
+                    if "redis-server" in " ".join(child.cmdline()) and str(data) in " ".join(child.cmdline()):
+                        child.send_signal(signal.SIGSTOP)
+                        stopped.append(child.pid)
+                        break
+                except psutil.Error:
+                    continue
+            time.sleep(0.0005)
+
+    watcher = threading.Thread(target=stop_the_first, daemon=True)
+    watcher.start()
+    restarted = EmbeddedServer(data, start_timeout=10)
+    try:
+        address = restarted.ensure()
+        done.set()
+        assert stopped and address.pid != stopped[0]
+        assert not psutil.pid_exists(stopped[0]) or psutil.Process(stopped[0]).status() == psutil.STATUS_ZOMBIE
+        client = redis.Redis(unix_socket_path=address.unix_socket)
+        assert client.execute_command("GRAPH.RO_QUERY", "g", "MATCH (n:N) RETURN count(n)")[1][0][0] == 1000
+        client.close()
+    finally:
+        done.set()
+        restarted.stop()
