@@ -161,7 +161,7 @@ class ServiceLock:
         if not isinstance(pid, int) or not isinstance(start, int):
             return False
         now = _process_of(pid)
-        return now is None or now[1] != start or now[0] in ("Z", "X")
+        return now is None or now[0] in ("Z", "X") or now[1] not in (start, -1)
 
     def renew(self) -> bool:
         """Extend the lease for another ``lease_s`` (taken again if it ran out); False when another holds it.
@@ -212,12 +212,20 @@ class ServiceLock:
 
 
 def _process_of(pid: int) -> tuple[str, int] | None:
-    """The state and start time (clock ticks after boot) of process ``pid`` from /proc; None: no such process."""
+    """The state and start time (clock ticks after boot) of process ``pid`` from /proc; None: no such process;
+    start time -1: a process /proc does not show."""
     try:
         with open(f"/proc/{pid}/stat", "rb") as handle:
             fields = handle.read().rsplit(b")", 1)[1].split()  # the name, in parentheses, may hold anything
     except (FileNotFoundError, ProcessLookupError):
-        return None
+        # /proc mounted with hidepid hides other users' processes: only the kernel's answer says it is gone.
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:
+            pass
+        return "?", -1  # alive, its start time unknown: not taken for ended
     return fields[0].decode(), int(fields[19])
 
 
