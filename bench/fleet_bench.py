@@ -26,9 +26,11 @@ Measured, for each N of ``--sizes``:
                      and while asking back to back, divided by N
 Then, with the largest N, status fan-in: ``--hosts`` simulated hosts (spread
 over the robots) publish ``host_status`` at ``--rate`` Hz from a publisher
-process; the CPU of the router processes (which hold the knowledge services
-that receive and apply them) beside an idle baseline, and the store's CPU;
-then the same statuses again, also received by one process that only
+process per router, over one link (``--links shared``) or over a link of each
+host's own (``--links per-host``, as hosts' agents connect: each link then costs
+the router its keep-alives, four a lease each way at the 1 s lease); the CPU of
+the router processes (which hold the knowledge services that receive and apply
+them) beside an idle baseline, and the store's CPU; then the same statuses again, also received by one process that only
 decodes them by a callback (as the services did before they took statuses from
 Zenoh's ring; kept so runs compare); then once more, each router's share to a
 router of its own that only takes them from its rings, subscribed as the
@@ -171,12 +173,18 @@ from kgadapt.shared.session import ZenohSettings, open_session
 endpoints, robots = sys.argv[1].split(","), sys.argv[2].split(",")
 per_robot, rate, duration = int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
 spread = len(sys.argv) > 6 and sys.argv[6] == "spread"  # each host at its own phase, not all at once
+# "per-host": each host its own session, hence its own link to the router, as a host's agent has (the
+# router then pays per link: keep-alives, a receive task); "shared": one session carries every host's.
+per_host = len(sys.argv) > 7 and sys.argv[7] == "per-host"
 session = open_session(ZenohSettings(mode="client", connect=tuple(endpoints)))
+sessions = [session]
 pubs = []
 for r in robots:
     for h in range(per_robot):
         host = f"sim{h:03d}"
-        pubs.append((host, session.declare_publisher(keys.host_status(r, host))))
+        if per_host:
+            sessions.append(open_session(ZenohSettings(mode="client", connect=tuple(endpoints))))
+        pubs.append((host, sessions[-1].declare_publisher(keys.host_status(r, host))))
 from kgadapt.shared.readiness import announce_ready
 announce_ready(publishers=len(pubs))
 period = 1.0 / rate
@@ -196,8 +204,10 @@ while time.monotonic() - start < duration:
     delay = start + tick * period - time.monotonic()
     if delay > 0:
         time.sleep(delay)
+print("links", len(sessions) - int(per_host), flush=True)  # per-host: the first session carries none
 print("sent", sent, flush=True)
-session.close()
+for s in sessions:
+    s.close()
 """
 
 
@@ -267,6 +277,17 @@ def _free_port() -> int:
     return free_tcp_port()
 
 
+def _free_ports(n: int) -> list[int]:
+    """``n`` distinct free loopback ports: each pick is random, so two picks may name the same port, and
+    a router listening on it would then be another's (seen: "Address already in use" in a bench run)."""
+    ports: list[int] = []
+    while len(ports) < n:
+        port = _free_port()
+        if port not in ports:
+            ports.append(port)
+    return ports
+
+
 class SimulatedFleet:
     """N robots' knowledge services spread over R linked routers, on one FalkorDB server.
 
@@ -287,7 +308,7 @@ class SimulatedFleet:
         self.transit = transit
         self.start_timeout = start_timeout
         self.serve_args = list(serve_args)  # more options for every router's ``serve``
-        self.endpoints = [f"tcp/127.0.0.1:{_free_port()}" for _ in range(routers + int(transit))]
+        self.endpoints = [f"tcp/127.0.0.1:{port}" for port in _free_ports(routers + int(transit))]
         self.server: Any = None
         self.children: list[ChildProcess] = []
         self.seeded: dict[str, dict[str, Any]] = {}
@@ -520,7 +541,7 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
             if robots:
                 pubs.append(ChildProcess(
                     [sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
-                     str(args.fanin_s + 3), args.phases], name=f"publisher {k}", cwd=REPO, env=env))
+                     str(args.fanin_s + 3), args.phases, args.links], name=f"publisher {k}", cwd=REPO, env=env))
         for pub in pubs:
             pub.wait_ready(60.0)
         time.sleep(1.0)  # let the first seconds of declarations settle before measuring (a warm-up window)
@@ -532,6 +553,7 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
         for pub in pubs:
             pub.wait(60)
         sent = sum(int("".join(pub.output).split()[-1]) for pub in pubs)  # each one's last line: "sent N"
+        links = sum(int(line.split()[1]) for pub in pubs for line in pub.output if line.startswith("links "))
     finally:
         for pub in pubs:
             if pub.alive():
@@ -543,7 +565,7 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
     floor = _floor_cpu(fleet, args, per_robot, batch_s)
     return {"op": "status_fanin", "hosts": hosts, "rate_hz": args.rate, "statuses_per_s": hosts * args.rate,
             "robots": len(fleet.robots), "routers": fleet.routers, "window_s": round(elapsed, 2),
-            "status_batch_s": batch_s, "phases": args.phases,
+            "status_batch_s": batch_s, "phases": args.phases, "links": args.links, "publisher_links": links,
             "services_cpu_pct": round(services, 1), "services_idle_cpu_pct": round(idle, 1),
             "services_cpu_pct_above_idle": round(services - idle, 1), "store_cpu_pct": round(store, 1),
             "store_idle_cpu_pct": round(idle_cpu["store"], 1),
@@ -558,7 +580,7 @@ def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -
     try:
         sink.wait_ready(60.0)
         pub = ChildProcess([sys.executable, "-c", _PUBLISHER, fleet.endpoints[0], ",".join(fleet.robots),
-                            str(per_robot), str(args.rate), str(args.fanin_s + 3), args.phases],
+                            str(per_robot), str(args.rate), str(args.fanin_s + 3), args.phases, "shared"],
                            name="publisher", cwd=REPO, env=env)
         try:
             pub.wait_ready(60.0)
@@ -597,7 +619,7 @@ def _floor_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int, 
             floors.append(floor)
             floor.wait_ready(60.0)
             pubs.append(ChildProcess([sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot),
-                                      str(args.rate), str(args.fanin_s + 3), args.phases],
+                                      str(args.rate), str(args.fanin_s + 3), args.phases, args.links],
                                      name=f"floor publisher {k}", cwd=REPO, env=env))
         for pub in pubs:
             pub.wait_ready(60.0)
@@ -645,6 +667,9 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
                    help="how long each router may take to start its services, s (default 120; more on a busy machine)")
     p.add_argument("--phases", choices=("spread", "burst"), default="spread",
                    help="fan-in hosts publish each at its own phase (spread, as real hosts do) or all at once")
+    p.add_argument("--links", choices=("shared", "per-host"), default="shared",
+                   help="fan-in hosts share one Zenoh link per router (shared) or each has its own (per-host, as "
+                        "hosts' agents do: the routers then pay each link's keep-alives)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"result file (default {DEFAULT_OUT})")
     p.set_defaults(func=run)
 
@@ -678,7 +703,7 @@ def run(args: argparse.Namespace) -> int:
     for r in records:
         if r.get("op") == "status_fanin":
             print(f"status fan-in: {r['hosts']} hosts x {r['rate_hz']} Hz into {r['robots']} knowledge services on "
-                  f"{r['routers']} routers: {r['services_cpu_pct']} % of one core "
+                  f"{r['routers']} routers, {r.get('links', 'shared')} links: {r['services_cpu_pct']} % of one core "
                   f"({r['services_idle_cpu_pct']} % idle), store {r['store_cpu_pct']} % "
                   f"({r.get('store_idle_cpu_pct', '?')} % idle); a receiver that only "
                   f"decodes them: {r['decode_only_receiver_cpu_pct']} %; Zenoh alone (routers that only take them "
