@@ -30,12 +30,12 @@ process per router, over one link (``--links shared``) or over a link of each
 host's own (``--links per-host``, as hosts' agents connect: each link then costs
 the router its keep-alives, four a lease each way at the 1 s lease); the CPU of
 the router processes (which hold the knowledge services that receive and apply
-them) beside an idle baseline, and the store's CPU; then the same statuses again, also received by one process that only
-decodes them by a callback (as the services did before they took statuses from
-Zenoh's ring; kept so runs compare); then once more, each router's share to a
-router of its own that only takes them from its rings, subscribed as the
-services are (``zenoh_floor_cpu_pct``: what Zenoh alone costs to receive
-them, the floor under the services' figure).
+them) beside an idle baseline, and the store's CPU; then the same statuses
+again, also received by one process that only decodes them by a callback (as the
+services did before they took statuses from Zenoh's ring; kept so runs compare);
+then once more, each router's share to a router of its own that only takes them
+from its rings, subscribed as the services are (``zenoh_floor_cpu_pct``: what
+Zenoh alone costs to receive them, the floor under the services' figure).
 
 Records go to ``bench/results/fleet.json``.
 """
