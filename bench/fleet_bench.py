@@ -176,13 +176,12 @@ spread = len(sys.argv) > 6 and sys.argv[6] == "spread"  # each host at its own p
 # "per-host": each host its own session, hence its own link to the router, as a host's agent has (the
 # router then pays per link: keep-alives, a receive task); "shared": one session carries every host's.
 per_host = len(sys.argv) > 7 and sys.argv[7] == "per-host"
-session = open_session(ZenohSettings(mode="client", connect=tuple(endpoints)))
-sessions = [session]
+sessions = []
 pubs = []
 for r in robots:
     for h in range(per_robot):
         host = f"sim{h:03d}"
-        if per_host:
+        if per_host or not sessions:
             sessions.append(open_session(ZenohSettings(mode="client", connect=tuple(endpoints))))
         pubs.append((host, sessions[-1].declare_publisher(keys.host_status(r, host))))
 from kgadapt.shared.readiness import announce_ready
@@ -204,7 +203,7 @@ while time.monotonic() - start < duration:
     delay = start + tick * period - time.monotonic()
     if delay > 0:
         time.sleep(delay)
-print("links", len(sessions) - int(per_host), flush=True)  # per-host: the first session carries none
+print("links", len(sessions), flush=True)
 print("sent", sent, flush=True)
 for s in sessions:
     s.close()
