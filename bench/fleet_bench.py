@@ -26,11 +26,14 @@ Measured, for each N of ``--sizes``:
                      and while asking back to back, divided by N
 Then, with the largest N, status fan-in: ``--hosts`` simulated hosts (spread
 over the robots) publish ``host_status`` at ``--rate`` Hz from a publisher
-process per router, over one link (``--links shared``) or over a link of each
-host's own (``--links per-host``, as hosts' agents connect: each link then costs
-the router its keep-alives, four a lease each way at the 1 s lease); the CPU of
+process per router, over a link of each host's own (``--links per-host``, the
+default, as hosts' agents connect: each link then costs the router its
+keep-alives, four per lease each way) or over one link for all of a router's
+hosts (``--links shared``, the earlier setup); the CPU of
 the router processes (which hold the knowledge services that receive and apply
-them) beside an idle baseline, and the store's CPU; then the same statuses
+them) beside an idle baseline, and the store's CPU, with the share of the
+window's statuses the services took (``window_coverage``, from their own
+counters: the publishers send until the window ends); then the same statuses
 again, also received by one process that only decodes them by a callback (as the
 services did before they took statuses from Zenoh's ring; kept so runs compare);
 then once more, each router's share to a router of its own that only takes them
@@ -166,16 +169,20 @@ def serve(argv: Sequence[str]) -> int:
     return 0
 
 
+# Sends until its stdin closes, so that it covers the whole measurement window however long the other
+# publishers took to get ready (a fixed duration from its own start ended early for one that was ready first).
 _PUBLISHER = r"""
-import sys, time
+import sys, threading, time
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
 endpoints, robots = sys.argv[1].split(","), sys.argv[2].split(",")
-per_robot, rate, duration = int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
-spread = len(sys.argv) > 6 and sys.argv[6] == "spread"  # each host at its own phase, not all at once
+per_robot, rate = int(sys.argv[3]), float(sys.argv[4])
+spread = sys.argv[5] == "spread"  # each host at its own phase, not all at once
 # "per-host": each host its own session, hence its own link to the router, as a host's agent has (the
 # router then pays per link: keep-alives, a receive task); "shared": one session carries every host's.
-per_host = len(sys.argv) > 7 and sys.argv[7] == "per-host"
+per_host = sys.argv[6] == "per-host"
+done = threading.Event()
+threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
 sessions = []
 pubs = []
 for r in robots:
@@ -190,19 +197,19 @@ period = 1.0 / rate
 start = time.monotonic()
 sent = 0
 tick = 0
-while time.monotonic() - start < duration:
+while not done.is_set():
     for i, (host, pub) in enumerate(pubs):
         if spread:
             delay = start + (tick + i / len(pubs)) * period - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
+            if delay > 0 and done.wait(delay):
+                break
         pub.put(messages.encode("host_status", {"host": host, "time": time.time(), "memory_total_mb": 4000.0,
                                                 "memory_free_mb": 1000.0 + tick % 100, "cpu_load": 10.0}))
         sent += 1
     tick += 1
     delay = start + tick * period - time.monotonic()
     if delay > 0:
-        time.sleep(delay)
+        done.wait(delay)
 print("links", len(sessions), flush=True)
 print("sent", sent, flush=True)
 for s in sessions:
@@ -507,13 +514,42 @@ def run_size(n: int, args: argparse.Namespace, records: list[dict[str, Any]], wo
                                 for g, v in busy_cpu.items()}})
             out.append((n, routers, records[-2], records[-1]))
             if fanin:
-                records.append(run_fanin(fleet, args))
+                records.append(run_fanin(fleet, args, session))
         finally:
             session.close()
     return out
 
 
-def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]:
+def _publisher(endpoint: str, robots: Sequence[str], per_robot: int, args: argparse.Namespace, *, links: str,
+               name: str) -> ChildProcess:
+    """A publisher of ``per_robot`` hosts' statuses for each of ``robots``, sending until :func:`_finish` (see
+    _PUBLISHER)."""
+    return ChildProcess([sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
+                         args.phases, links], name=name, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
+                        stdin=subprocess.PIPE)
+
+
+def _finish(pubs: Sequence[ChildProcess]) -> tuple[int, int]:
+    """Stop the publishers (their stdin closed) and wait for them: the statuses they sent, their links."""
+    for pub in pubs:
+        assert pub.process.stdin is not None
+        pub.process.stdin.close()
+    for pub in pubs:
+        pub.wait(30)
+    sent = sum(int(line.split()[1]) for pub in pubs for line in pub.output if line.startswith("sent "))
+    links = sum(int(line.split()[1]) for pub in pubs for line in pub.output if line.startswith("links "))
+    return sent, links
+
+
+def _statuses_taken(session: Any, robots: Sequence[str]) -> int:
+    """How many events the robots' knowledge services have taken so far (their ``own/stats`` counters)."""
+    from kgadapt.knowledge.client import KnowledgeClient
+
+    return sum(int(KnowledgeClient(session, robot, timeout=10.0, own=True).service_stats().get("events_received", 0))
+               for robot in robots)
+
+
+def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace, session: Any) -> dict[str, Any]:
     from kgadapt.knowledge.service import ServiceSettings
 
     batch_s = ServiceSettings().status_batch_s if args.status_batch_s is None else args.status_batch_s
@@ -532,32 +568,30 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
     idle = idle_cpu["services"]
     # One publisher per robot-hosting router, for the hosts of its robots: a robot's hosts are
     # clients of its own router, so no status crosses to another router.
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
     pubs: list[ChildProcess] = []
     try:
         for k, endpoint in enumerate(fleet.endpoints):
             robots = fleet.share(k)
             if robots:
-                pubs.append(ChildProcess(
-                    [sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
-                     str(args.fanin_s + 3), args.phases, args.links], name=f"publisher {k}", cwd=REPO, env=env))
+                pubs.append(_publisher(endpoint, robots, per_robot, args, links=args.links, name=f"publisher {k}"))
         for pub in pubs:
             pub.wait_ready(60.0)
         time.sleep(1.0)  # let the first seconds of declarations settle before measuring (a warm-up window)
+        # The services' own count of what they took, read around the window: that every publisher sent
+        # throughout it shows as a coverage near 1.
+        t_taken0, taken0 = time.monotonic(), _statuses_taken(session, fleet.robots)
         before = {p: cpu_seconds([p]) for p in pids + store_pids}
         t0 = time.monotonic()
         time.sleep(args.fanin_s)  # the measurement window
         elapsed = time.monotonic() - t0
         after = {p: cpu_seconds([p]) for p in pids + store_pids}
-        for pub in pubs:
-            pub.wait(60)
-        sent = sum(int("".join(pub.output).split()[-1]) for pub in pubs)  # each one's last line: "sent N"
-        links = sum(int(line.split()[1]) for pub in pubs for line in pub.output if line.startswith("links "))
+        taken = _statuses_taken(session, fleet.robots) - taken0
+        taken_s = time.monotonic() - t_taken0
+        sent, links = _finish(pubs)
     finally:
         for pub in pubs:
             if pub.alive():
                 pub.stop()
-    sent_line = f"sent {sent}"
     services = 100.0 * sum(after[p] - before[p] for p in pids) / elapsed
     store = 100.0 * sum(after[p] - before[p] for p in store_pids) / elapsed
     sink = _sink_cpu(fleet, args, per_robot)
@@ -568,7 +602,11 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace) -> dict[str, Any]
             "services_cpu_pct": round(services, 1), "services_idle_cpu_pct": round(idle, 1),
             "services_cpu_pct_above_idle": round(services - idle, 1), "store_cpu_pct": round(store, 1),
             "store_idle_cpu_pct": round(idle_cpu["store"], 1),
-            "publisher": sent_line.strip(), **sink, **floor}
+            # Statuses the services took from the window's start to its end (with the reads of the counters
+            # around it), against what the hosts send in that time: below 1, the window was partly quiet.
+            "statuses_taken_in_window": taken,
+            "window_coverage": round(taken / (hosts * args.rate * taken_s), 3),
+            "publisher": f"sent {sent}", **sink, **floor}
 
 
 def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -> dict[str, Any]:
@@ -578,14 +616,12 @@ def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -
                         stdin=subprocess.PIPE)
     try:
         sink.wait_ready(60.0)
-        pub = ChildProcess([sys.executable, "-c", _PUBLISHER, fleet.endpoints[0], ",".join(fleet.robots),
-                            str(per_robot), str(args.rate), str(args.fanin_s + 3), args.phases, "shared"],
-                           name="publisher", cwd=REPO, env=env)
+        pub = _publisher(fleet.endpoints[0], fleet.robots, per_robot, args, links="shared", name="publisher")
         try:
             pub.wait_ready(60.0)
             time.sleep(1.0)  # warm-up window, as above
             cpu = measure_cpu([sink.pid], args.fanin_s)
-            pub.wait(60)
+            _finish([pub])
         finally:
             pub.stop()
         assert sink.process.stdin is not None
@@ -617,15 +653,12 @@ def _floor_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int, 
                                  name=f"floor {k}", cwd=REPO, env=env, stdin=subprocess.PIPE)
             floors.append(floor)
             floor.wait_ready(60.0)
-            pubs.append(ChildProcess([sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot),
-                                      str(args.rate), str(args.fanin_s + 3), args.phases, args.links],
-                                     name=f"floor publisher {k}", cwd=REPO, env=env))
+            pubs.append(_publisher(endpoint, robots, per_robot, args, links=args.links, name=f"floor publisher {k}"))
         for pub in pubs:
             pub.wait_ready(60.0)
         time.sleep(1.0)  # warm-up window, as above
         cpu = measure_cpu([f.pid for f in floors], args.fanin_s)
-        for pub in pubs:
-            pub.wait(60)
+        _finish(pubs)
         taken = 0
         for floor in floors:
             assert floor.process.stdin is not None
@@ -666,9 +699,10 @@ def register(bench_sub: argparse._SubParsersAction) -> None:
                    help="how long each router may take to start its services, s (default 120; more on a busy machine)")
     p.add_argument("--phases", choices=("spread", "burst"), default="spread",
                    help="fan-in hosts publish each at its own phase (spread, as real hosts do) or all at once")
-    p.add_argument("--links", choices=("shared", "per-host"), default="shared",
-                   help="fan-in hosts share one Zenoh link per router (shared) or each has its own (per-host, as "
-                        "hosts' agents do: the routers then pay each link's keep-alives)")
+    p.add_argument("--links", choices=("shared", "per-host"), default="per-host",
+                   help="fan-in hosts each on a Zenoh link of its own (per-host, the default: as hosts' agents "
+                        "connect, each link's keep-alives paid by its router) or sharing one link per router "
+                        "(shared, the setup of the runs before 2026-11-29)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"result file (default {DEFAULT_OUT})")
     p.set_defaults(func=run)
 
@@ -706,7 +740,8 @@ def run(args: argparse.Namespace) -> int:
                   f"({r['services_idle_cpu_pct']} % idle), store {r['store_cpu_pct']} % "
                   f"({r.get('store_idle_cpu_pct', '?')} % idle); a receiver that only "
                   f"decodes them: {r['decode_only_receiver_cpu_pct']} %; Zenoh alone (routers that only take them "
-                  f"from their rings): {r.get('zenoh_floor_cpu_pct', '?')} %")
+                  f"from their rings): {r.get('zenoh_floor_cpu_pct', '?')} %; the services took "
+                  f"{r.get('window_coverage', '?')} of the statuses sent in the window")
     print(f"load average before {load_before[0]:.2f}, after {os.getloadavg()[0]:.2f} (2 cores: others' work "
           f"shares them)")
     print(f"results: {args.out}")

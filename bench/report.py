@@ -97,7 +97,8 @@ HEADLINES = (
     Headline(what="statuses of 1,000 hosts at 2 Hz to 100 robots' knowledge services: CPU", file="fleet.json",
              match={"op": "status_fanin"},
              figure=lambda r: f"services {r['services_cpu_pct']:.1f} %, store {r['store_cpu_pct']:.1f} % of a core"
-             + (f" (Zenoh alone receiving them: {r['zenoh_floor_cpu_pct']:.1f} %)" if "zenoh_floor_cpu_pct" in r else ""),
+             + (f" (Zenoh alone receiving them: {r['zenoh_floor_cpu_pct']:.1f} %)" if "zenoh_floor_cpu_pct" in r else "")
+             + {"per-host": ", a link per host", "shared": ", one link per router's hosts"}.get(r.get("links"), ""),
              target="services ≤ 10 %, store ≤ 15 %"),
     Headline(what="real detector start → ready, forked by the launcher", file="deployer.json",
              match={"op": "start_to_ready", "program": "kgadapt.onboard.perception.detector, forked by the launcher"},
