@@ -1,18 +1,39 @@
-"""Helpers shared by the test folders: polling with a deadline, and child processes of ours (the one launcher)."""
+"""Helpers shared by the test folders: polling with a deadline, child processes of ours (the one launcher), and
+hosts as network namespaces."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
+
+import pytest
 
 from kgadapt.shared.children import ChildProcess, StopPolicy
 from kgadapt.shared.readiness import Payload
 
 REPO = Path(__file__).resolve().parent.parent
+
+
+@contextlib.contextmanager
+def host_network(hosts: tuple[str, ...], subnet: str) -> Iterator[Any]:
+    """``hosts`` as network namespaces on a bridge (kgadapt.operator.cluster.HostNetwork), removed afterwards;
+    the test is skipped, naming why, where namespaces cannot be made."""
+    from kgadapt.operator.cluster import HostNetwork, NetworkSettings
+
+    reason = HostNetwork.unavailable_reason()
+    if reason:
+        pytest.skip(f"network namespaces unavailable: {reason}")
+    network = HostNetwork(NetworkSettings(hosts=hosts, subnet=subnet))
+    network.setup()
+    try:
+        yield network
+    finally:
+        network.shutdown()
 
 
 def wait_for(predicate: Callable[[], object], timeout: float, what: str, interval: float = 0.02) -> Any:

@@ -23,7 +23,7 @@ from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.client import KnowledgeClient
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
 from kgadapt.shared.errors import RequestTimeout, TransportError
-from kgadapt.shared.session import ZenohSettings, open_session
+from kgadapt.shared.session import HOST_LEASE_MS, ROUTER_LEASE_MS, ZenohSettings, build_config, open_session
 from tests.conftest import free_port
 from tests.deploy.conftest import CONFIG, FAST_OPEN, add_deployment
 from tests.deploy.pki import TestCA
@@ -38,11 +38,15 @@ def test_the_router_and_both_host_configurations_are_shipped():
 
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
-def test_each_shipped_configuration_loads_with_tls_and_a_lease_of_one_second(path):
+def test_each_shipped_configuration_loads_with_tls_and_the_lease_of_its_kind(path):
+    # Hosts 1 s: the router drops a host's link after the host's lease. The router's own is longer
+    # (fewer keep-alives on every host link) and is what session.py gives a router that no file sets.
     config = zenoh.Config.from_file(str(path))
     tls = json.loads(config.get_json("transport/link/tls"))
     assert tls["enable_mtls"] is True and tls["root_ca_certificate"]
-    assert json.loads(config.get_json("transport/link/tx/lease")) == 1000
+    lease = json.loads(config.get_json("transport/link/tx/lease"))
+    assert lease == (ROUTER_LEASE_MS if path.name == "router.json5" else HOST_LEASE_MS)
+    assert json.loads(build_config(ZenohSettings(config_file=str(path))).get_json("transport/link/tx/lease")) == lease
     assert json.loads(config.get_json("scouting/multicast/enabled")) is False
     endpoints = json.loads(config.get_json("listen/endpoints" if path.name == "router.json5" else "connect/endpoints"))
     assert endpoints and all(e.startswith("tls/") for e in endpoints)

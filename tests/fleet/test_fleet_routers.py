@@ -22,9 +22,8 @@ import pytest
 
 from kgadapt.bench.fleet_bench import seed_robot
 from kgadapt.knowledge.store import open_store
-from kgadapt.operator.cluster import HostNetwork, NetworkSettings
 from tests.conftest import REPO
-from tests.support import Child
+from tests.support import Child, host_network
 
 ZENOH_DIR = REPO / "deploy" / "zenoh"
 SHIPPED_TLS_DIR = "/etc/kgadapt/tls"
@@ -102,13 +101,8 @@ def config_for(robot: str, name: str, tls: Path, out: Path, **changes: object) -
 
 @pytest.fixture
 def network():
-    reason = HostNetwork.unavailable_reason()
-    if reason:
-        pytest.skip(f"network namespaces unavailable: {reason}")
-    net = HostNetwork(NetworkSettings(hosts=("quad1", "quad2"), subnet="10.213.19"))
-    net.setup()
-    yield net
-    net.shutdown()
+    with host_network(("quad1", "quad2"), "10.213.19") as net:
+        yield net
 
 
 def kgadapt(*args: str) -> None:
