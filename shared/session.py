@@ -39,8 +39,8 @@ MODES = ("peer", "client", "router")
 # a router finds a hung or cut-off host within the host's lease, whatever its own. A router's own lease
 # says only how soon its clients notice it gone, and without their router they can reach nothing anyway.
 # At 1 s a router sent every host four keep-alives a second, more messages than the host's statuses at
-# 2 Hz: measured, 330 host links to one router process of 33 services, its CPU 10.2 % of a core at 1 s,
-# 6.7 % at 4 s and 6.8 % at 10 s (docs/fleet.md).
+# 2 Hz: measured, 330 host links to one router process of 33 services, its CPU 8.3-10.2 % of a core at
+# 1 s, 6.7-7.4 % at 4 s and 6.8-6.9 % at 10 s (docs/fleet.md, eleventh round).
 HOST_LEASE_MS = 1000
 ROUTER_LEASE_MS = 4000
 
