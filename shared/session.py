@@ -54,7 +54,7 @@ class ZenohSettings:
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
     multicast_scouting: bool = False
-    lease_ms: int | None = None  # None: ROUTER_LEASE_MS for a router, HOST_LEASE_MS for anything else
+    lease_ms: int | None = None  # None: ROUTER_LEASE_MS for a router (by mode or the file's), HOST_LEASE_MS else
     keep_alive: int = 4
     # Zenoh waits this long in open() for scouting answers (default 500 ms, measured
     # here for routers and gossiping peers); our endpoints are explicit, so none.
