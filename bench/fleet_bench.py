@@ -283,6 +283,11 @@ def _free_port() -> int:
     return free_tcp_port()
 
 
+def _child_env() -> dict[str, str]:
+    """The environment of the bench's child processes: this one's, importing kgadapt from this checkout."""
+    return {**os.environ, "PYTHONPATH": str(REPO)}
+
+
 def _free_ports(n: int) -> list[int]:
     """``n`` distinct free loopback ports: each pick is random, so two picks may name the same port, and
     a router listening on it would then be another's (seen: "Address already in use" in a bench run)."""
@@ -360,7 +365,7 @@ class SimulatedFleet:
                     "--socket", self.socket, "--robots", ",".join(self.share(k)), *self.serve_args]
             for j in range(k):
                 argv += ["--connect", self.endpoints[j]]
-            child = ChildProcess(argv, name=f"router {k}", cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
+            child = ChildProcess(argv, name=f"router {k}", cwd=REPO, env=_child_env(),
                                  log=self.workdir / f"router{k}.log")
             self.children.append(child)
             child.wait_ready(self.start_timeout)
@@ -525,7 +530,7 @@ def _publisher(endpoint: str, robots: Sequence[str], per_robot: int, args: argpa
     """A publisher of ``per_robot`` hosts' statuses for each of ``robots``, sending until :func:`_finish` (see
     _PUBLISHER)."""
     return ChildProcess([sys.executable, "-c", _PUBLISHER, endpoint, ",".join(robots), str(per_robot), str(args.rate),
-                         args.phases, links], name=name, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
+                         args.phases, links], name=name, cwd=REPO, env=_child_env(),
                         stdin=subprocess.PIPE)
 
 
@@ -611,7 +616,7 @@ def run_fanin(fleet: SimulatedFleet, args: argparse.Namespace, session: Any) -> 
 
 def _sink_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int) -> dict[str, Any]:
     """The same statuses again, also received by one process that only decodes them (see _SINK)."""
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env = _child_env()
     sink = ChildProcess([sys.executable, "-c", _SINK, fleet.endpoints[0]], name="sink", cwd=REPO, env=env,
                         stdin=subprocess.PIPE)
     try:
@@ -640,7 +645,7 @@ def _floor_cpu(fleet: SimulatedFleet, args: argparse.Namespace, per_robot: int, 
     from kgadapt.knowledge.service import ServiceSettings
 
     ring = ServiceSettings().max_pending_statuses
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env = _child_env()
     floors: list[ChildProcess] = []
     pubs: list[ChildProcess] = []
     try:

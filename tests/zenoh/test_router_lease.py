@@ -2,8 +2,8 @@
 and an idle host gets a quarter of the keep-alives it sends.
 
 Real processes on real links: a router (``ZenohSettings(mode="router")``, as the knowledge service opens
-it) in one network namespace and a host's client in another, joined by a bridge whose port for the host
-is taken down to cut it off.
+it) in one network namespace and a host's client in another, joined by a bridge whose port for the router
+is taken down to cut the two apart.
 """
 
 from __future__ import annotations
