@@ -40,7 +40,7 @@ def test_the_router_and_both_host_configurations_are_shipped():
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
 def test_each_shipped_configuration_loads_with_tls_and_the_lease_of_its_kind(path):
     # Hosts 1 s: the router drops a host's link after the host's lease. The router's own is longer
-    # (fewer keep-alives on every host link) and is what session.py gives any router.
+    # (fewer keep-alives on every host link) and is what session.py gives a router whose file sets none.
     config = zenoh.Config.from_file(str(path))
     tls = json.loads(config.get_json("transport/link/tls"))
     assert tls["enable_mtls"] is True and tls["root_ca_certificate"]
