@@ -99,7 +99,7 @@ import threading
 import time
 from typing import Any, Callable, NoReturn, Sequence
 
-from kgadapt.shared import parent_death
+from kgadapt.shared import parent_death, proc_stat
 from kgadapt.shared.errors import DeploymentError
 
 log = logging.getLogger(__name__)
@@ -532,9 +532,8 @@ def set_title(argv: Sequence[str]) -> bool:
     when it does not fit or the area cannot be written.
     """
     try:
-        with open("/proc/self/stat", "rb") as f:
-            fields = f.read().rsplit(b")", 1)[1].split()
-        start, end = int(fields[45]), int(fields[46])  # arg_start, arg_end (fields 48 and 49)
+        fields = proc_stat.stat_fields()
+        start, end = int(fields[proc_stat.ARG_START]), int(fields[proc_stat.ARG_END])
         title = " ".join(argv).encode()
         if len(title) + 2 > end - start:
             return False

@@ -35,6 +35,7 @@ from redis.retry import Retry
 from kgadapt.shared import parent_death
 from kgadapt.shared.children import StopPolicy, stop_process
 from kgadapt.shared.errors import DeploymentError, StoreUnavailable
+from kgadapt.shared.proc_stat import state_of
 
 log = logging.getLogger(__name__)
 
@@ -315,8 +316,8 @@ def _is_our_server(pid: int, sock: str) -> bool:
     try:
         # redis rewrites its title to "redis-server unixsocket:<path>", so match within the text
         cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
+        state = state_of(pid)
+    except OSError:
         return False
     return state != "Z" and b"redis-server" in cmdline and sock.encode() in cmdline
 
@@ -328,10 +329,9 @@ def describe_process(pid: int) -> str:
     every thread, where an idle redis waits in epoll): the next occurrence says which.
     """
     try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
+        state = state_of(pid)
     except OSError:
         return f"pid {pid} (gone)"
-    state = stat.rsplit(")", 1)[1].split()[0]
     channels: dict[str, int] = {}
     try:
         for tid in sorted(os.listdir(f"/proc/{pid}/task")):

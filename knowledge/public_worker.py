@@ -49,13 +49,13 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import IO, Any, Mapping
 
 import msgpack
 
 from kgadapt.knowledge.sandbox import SandboxSettings
 from kgadapt.shared.errors import ConfigError, KgadaptError, MessageError, QueryError, QueryTimeLimit, StoreUnavailable
+from kgadapt.shared.proc_stat import state_of
 
 log = logging.getLogger(__name__)
 
@@ -206,8 +206,8 @@ class PublicWorker:
             return (f"it was killed by signal {signal.Signals(-code).name}" if code < 0
                     else f"it ended with status {code}")
         try:
-            state = Path(f"/proc/{self._child.pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-        except (OSError, IndexError):
+            state = state_of(self._child.pid)
+        except OSError:
             state = "?"
         return (f"no answer in {self.settings.start_timeout_s:g} s from pid {self._child.pid} "
                 f"(state {state}{', stopped by a signal' if state in ('T', 't') else ''})")

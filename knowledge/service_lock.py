@@ -30,6 +30,7 @@ from typing import Any
 
 from kgadapt.knowledge.store import GraphStore
 from kgadapt.shared.errors import ConfigError, StoreError
+from kgadapt.shared.proc_stat import START_TIME, STATE, stat_fields
 
 log = logging.getLogger(__name__)
 
@@ -215,8 +216,7 @@ def _process_of(pid: int) -> tuple[str, int] | None:
     """The state and start time (clock ticks after boot) of process ``pid`` from /proc; None: no such process;
     start time -1: a process /proc does not show."""
     try:
-        with open(f"/proc/{pid}/stat", "rb") as handle:
-            fields = handle.read().rsplit(b")", 1)[1].split()  # the name, in parentheses, may hold anything
+        fields = stat_fields(pid)
     except (FileNotFoundError, ProcessLookupError):
         # /proc mounted with hidepid hides other users' processes: only the kernel's answer says it is gone.
         try:
@@ -226,7 +226,7 @@ def _process_of(pid: int) -> tuple[str, int] | None:
         except PermissionError:
             pass
         return "?", -1  # alive, its start time unknown: not taken for ended
-    return fields[0].decode(), int(fields[19])
+    return fields[STATE].decode(), int(fields[START_TIME])
 
 
 def _this_process() -> dict[str, Any]:

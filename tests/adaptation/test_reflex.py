@@ -21,6 +21,7 @@ import pytest
 
 from kgadapt.operator.cluster import ClusterSettings, WatchedRobot, write_profile
 from kgadapt.shared import keys, messages
+from kgadapt.shared.proc_stat import state_of
 
 pytestmark = pytest.mark.slow
 
@@ -84,7 +85,7 @@ def test_a_sudden_step_is_answered_by_the_detector_within_five_frames_while_the_
             step = run.wait_for(lambda: first_frame_of(run, lambda level: level < 60), STEP_S + 30, "the step")
             answers = run.wait_for(lambda: (a := answered_after(run, step)) and len(a) >= 8 and a, 20,
                                    "eight frames processed after the step")
-            still_stopped = onboard.process.poll() is None and open(f"/proc/{onboard.pid}/stat").read().split()[2] == "T"
+            still_stopped = onboard.process.poll() is None and state_of(onboard.pid) == "T"
         finally:
             os.kill(onboard.pid, signal.SIGCONT)
         resumed_at = time.time()

@@ -25,6 +25,7 @@ from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.loader import load_models
 from kgadapt.shared import keys
 from kgadapt.shared.errors import DeploymentError
+from kgadapt.shared.proc_stat import stat_fields
 from kgadapt.shared.readiness import READY_TOKEN
 from tests.deploy.conftest import ROBOT, Collector, DeployerHost, FrameSource, not_roll_calls, wait_for_deployers
 from tests.deploy.test_deployer import alive, wait_until
@@ -159,8 +160,7 @@ def test_the_launcher_forks_only_modules_it_preloaded(hosts):
 def dying(pid: int) -> bool:
     """Gone, exiting, or with SIGKILL pending: what the kernel has done to a process it was asked to end."""
     try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            fields = f.read().rsplit(b")", 1)[1].split()
+        fields = stat_fields(pid)
         with open(f"/proc/{pid}/status") as f:
             status = dict(line.split(":", 1) for line in f if ":" in line)
     except (FileNotFoundError, ProcessLookupError):

@@ -17,13 +17,13 @@ from kgadapt.knowledge.loader import load_models
 from kgadapt.knowledge.schema import ensure_indexes
 from kgadapt.knowledge.store import StoreSettings, open_store
 from kgadapt.shared.errors import QueryTimeLimit, StoreUnavailable
+from kgadapt.shared.proc_stat import state_of
 from kgadapt.shared.resources import models as shipped_models
 
 
 def _alive(pid: int) -> bool:
     try:
-        with open(f"/proc/{pid}/stat") as stat:
-            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+        return state_of(pid) != "Z"
     except OSError:
         return False
 
@@ -88,11 +88,6 @@ def test_a_hung_server_found_by_another_process_is_replaced_not_joined(tmp_path)
 
 
 # -- a fresh server that never answers its setup statements (seen twice in CI: every thread on a futex) ------
-
-
-def _state(pid: int) -> str:
-    with open(f"/proc/{pid}/stat") as stat:
-        return stat.read().rsplit(")", 1)[1].split()[0]
 
 
 def _store_with_hook(data, on_start, *, setup_timeout=1.0):
@@ -195,7 +190,7 @@ def test_a_server_found_stopped_is_described_by_its_state_and_threads(tmp_path):
         threads = len(os.listdir(f"/proc/{address.pid}/task"))
         counts = [int(part.rsplit(" x", 1)[1]) for part in text.split(": ", 1)[1].split(", ")]
         assert sum(counts) == threads
-        assert _state(address.pid) == "T"
+        assert state_of(address.pid) == "T"
     finally:
         os.kill(address.pid, signal.SIGKILL)
         server.stop()

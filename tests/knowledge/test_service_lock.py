@@ -23,6 +23,7 @@ from kgadapt.knowledge.falkordb_store import FalkorDBStore
 from kgadapt.knowledge.service_lock import ServiceLock, ServiceLockHeld
 from kgadapt.knowledge.store import StoreSettings
 from kgadapt.shared.errors import StoreUnavailable
+from kgadapt.shared.proc_stat import state_of
 
 
 class _Servers:
@@ -190,7 +191,7 @@ def test_a_service_killed_on_this_machine_leaves_its_lease_to_its_successor_at_o
             if reaped:
                 child.wait(timeout=10)
             else:  # dead, not yet waited for
-                _wait_for(lambda: open(f"/proc/{child.pid}/stat").read().rsplit(")", 1)[1].split()[0] == "Z")
+                _wait_for(lambda: state_of(child.pid) == "Z")
             successor = ServiceLock(store, lease_s=300.0)
             taking = threading.Thread(target=successor.acquire, daemon=True)
             taking.start()

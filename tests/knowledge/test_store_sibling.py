@@ -13,6 +13,7 @@ from kgadapt.knowledge.queries import run_named
 from kgadapt.knowledge.schema import Graph
 from kgadapt.knowledge.store import StoreSettings, open_store
 from kgadapt.shared.errors import ConfigError, StoreUnavailable
+from kgadapt.shared.proc_stat import state_of
 
 
 def _store_on(server, graph: str) -> FalkorDBStore:
@@ -59,12 +60,7 @@ def test_a_sibling_of_an_embedded_store_shares_its_server_and_leaves_stopping_it
         assert second != first and _count(store, "Own") == 1 and store.server.address.pid == second
     finally:
         store.shutdown()
-    assert not os.path.exists(f"/proc/{second}") or _state(second) == "Z"
-
-
-def _state(pid: int) -> str:
-    with open(f"/proc/{pid}/stat") as f:
-        return f.read().rsplit(")", 1)[1].split()[0]
+    assert not os.path.exists(f"/proc/{second}") or state_of(second) == "Z"
 
 
 def test_fleet_roster_and_fleet_forget_on_the_robots_store_reach_the_roster_on_every_backend(store):

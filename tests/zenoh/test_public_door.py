@@ -19,6 +19,7 @@ from kgadapt.knowledge.schema import ensure_indexes
 from kgadapt.knowledge.service import KnowledgeService, ServiceSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.fair_queue import FairQueue
+from kgadapt.shared.proc_stat import stat_fields, state_of
 from tests.zenoh.conftest import MODEL_HOSTS, wait_for, wait_until_serving
 
 
@@ -96,7 +97,7 @@ def test_the_fair_queue_serves_askers_in_turn_within_their_bounds():
 
 
 def _cpu_ticks(pid: int) -> int:
-    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    fields = stat_fields(pid)
     return int(fields[11]) + int(fields[12])  # utime + stime
 
 
@@ -134,7 +135,7 @@ def test_other_robots_questions_are_read_and_encoded_in_a_lower_priority_process
 def _gone(pid: int) -> bool:
     """Ended (a zombie not yet reaped by the service counts as ended)."""
     try:
-        return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] == "Z"
+        return state_of(pid) == "Z"
     except FileNotFoundError:
         return True
 
