@@ -30,6 +30,8 @@ def oddly_named(tmp_path):
 def test_the_fields_are_split_after_the_last_parenthesis(oddly_named):
     assert psutil.Process(oddly_named.pid).name() == ") S (1 2"
     os.kill(oddly_named.pid, signal.SIGSTOP)
+    _, status = os.waitpid(oddly_named.pid, os.WUNTRACED)  # the signal is delivered later; this waits for it
+    assert os.WIFSTOPPED(status)
     try:
         assert proc_stat.state_of(oddly_named.pid) == "T"
     finally:
