@@ -56,7 +56,8 @@ class ZenohSettings:
     mode: str | None = None
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
-    # These five are our defaults: each applies only where the config file says nothing.
+    # multicast_scouting, lease_ms, keep_alive, scouting_delay_ms and shared_memory are our defaults: each
+    # applies only where the config file says nothing (flags and extra win over the file).
     multicast_scouting: bool = False
     lease_ms: int | None = None  # None: ROUTER_LEASE_MS for a router (by mode or the file's), HOST_LEASE_MS else
     keep_alive: int = 4
