@@ -400,7 +400,13 @@ class _Parser:
 
     def additive(self) -> None:
         self.multiplicative()
-        while self.accept("+", "-"):
+        while self.at("+", "-"):
+            # (a)--(b) and (a)-[r]-(b) would otherwise read as arithmetic (a minus minus b, a minus a list):
+            # Cypher reads them as pattern predicates, which are refused like every pattern outside MATCH.
+            after_parenthesis = self.tokens[self.i - 1].kind == "punct" and self.tokens[self.i - 1].text == ")"
+            if self.tok.text == "-" and after_parenthesis and self.peek().text in ("-", "[", "->"):
+                self.fail("pattern predicates are not allowed (match the pattern in MATCH)")
+            self.i += 1
             self.multiplicative()
 
     def multiplicative(self) -> None:

@@ -11,6 +11,7 @@ deletes there. Whoever asks (the service's queryables, ``kgadapt ask``, ``kgadap
 from __future__ import annotations
 
 import enum
+import logging
 import random
 import threading
 import time
@@ -21,6 +22,8 @@ from kgadapt.knowledge import schema as S
 from kgadapt.knowledge.fleet import ROSTER_QUERY, robot_of
 from kgadapt.shared import keys, messages, rpc
 from kgadapt.shared.errors import ConfigError, MessageError, NamedQueryError, RemoteError
+
+log = logging.getLogger(__name__)
 
 _MAX_ROUTERS = 16  # a robot's routers as announced: more is no robot of ours
 _ZID_CHARS = frozenset("0123456789abcdef")
@@ -154,6 +157,9 @@ class FleetRoster:
         count = self.store.execute(f"MATCH (r:{S.FLEET_ROBOT}) RETURN count(r) AS n")
         if count and count[0]["n"] >= self.settings.cap:
             self.refused += 1
+            if self.refused & (self.refused - 1) == 0:  # the 1st, 2nd, 4th, 8th...: a flood of names logs little
+                log.warning("fleet roster full (%d robots): %s not recorded (%d turned away so far; "
+                            "kgadapt fleet forget makes room)", self.settings.cap, robot, self.refused)
             return False
         self.store.execute(
             f"MERGE (r:{S.FLEET_ROBOT} {{name: $name}}) ON CREATE SET r.first_seen = $time "
@@ -203,9 +209,6 @@ class FleetRoster:
         return heard
 
     def _roll_calls(self) -> None:
-        import logging
-
-        log = logging.getLogger(__name__)
         start = time.monotonic()
         delays = list(self.settings.first_calls_s)
         while not self._stop.is_set():

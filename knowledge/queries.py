@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from kgadapt.knowledge import schema as S
+from kgadapt.knowledge.cypher_guard import CypherLimits
 from kgadapt.knowledge.store import GraphStore
 from kgadapt.shared.errors import NamedQueryError
 
@@ -39,12 +40,15 @@ LITERAL_TIME_LIMIT_MS = 1000  # the paper's unbounded texts: 315 ms at N = 10, u
 
 @dataclass(frozen=True)
 class Param:
-    """A declared parameter: ``type`` is "str", "int", "float" or "bool"."""
+    """A declared parameter: ``type`` is "str", "int", "float" or "bool"; a number may be bounded (``low``,
+    ``high``, inclusive)."""
 
     type: str
     required: bool = True
     default: Any = None
     help: str = ""
+    low: float | None = None
+    high: float | None = None
 
     def describe(self, name: str) -> str:
         if self.required:
@@ -437,7 +441,8 @@ ORDER BY site, marker_id"""},
     NamedQuery(
         "decisions",
         "The adaptation decisions taken, newest first.",
-        {"limit": Param("int", required=False, default=20, help="how many")},
+        # At most the rows any public question gets (CypherLimits.max_rows): the text has its own LIMIT.
+        {"limit": Param("int", required=False, default=20, low=0, high=CypherLimits().max_rows, help="how many")},
         f"""
 MATCH (a:{S.ADAPTATION_DECISION})
 RETURN a.name AS name, a.time AS time, a.trigger AS trigger, a.inputs_json AS inputs_json,
@@ -547,6 +552,10 @@ def check_params(name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
             value = spec.default
         if value is not None:
             value = _typed(name, key, spec.type, value)
+            if (spec.low is not None and value < spec.low) or (spec.high is not None and value > spec.high):
+                raise NamedQueryError(f"query {name!r}: parameter {key!r} {value!r} is not between "
+                                      f"{spec.low if spec.low is not None else '-inf'} and "
+                                      f"{spec.high if spec.high is not None else 'inf'}")
         values[key] = value
     return values
 

@@ -120,13 +120,18 @@ def _platform_figures(store: GraphStore, *, name: str, time: float, memory_total
             cpu_cores=(cpu_cores, 1, MAX_CORES), cpu_load=(cpu_load, 0, 100 * (cpu_cores or MAX_CORES)))
     if memory_free_mb is not None:
         _within("platform", memory_free_mb=(memory_free_mb, 0, memory_total_mb or MAX_MEMORY_MB))
-        if memory_total_mb is None:  # free memory alone: bounded by the total the host reported before
-            rows = store.execute(f"MATCH (p:{S.PLATFORM} {{name: $name}}) RETURN p.memory_total_mb AS total",
-                                 {"name": name})
-            if not rows:
-                raise unknown_host("platform", name)
-            total = rows[0]["total"] if rows[0]["total"] is not None else MAX_MEMORY_MB
-            _within("platform", memory_free_mb=(memory_free_mb, 0, total))
+    # A figure given without the one that bounds it is bounded by what the graph holds of the host: free
+    # memory by its total, CPU load by its cores (the models' or the last reported).
+    if (memory_free_mb is not None and memory_total_mb is None) or (cpu_load is not None and cpu_cores is None):
+        rows = store.execute(f"MATCH (p:{S.PLATFORM} {{name: $name}}) "
+                             "RETURN p.memory_total_mb AS total, p.cpu_cores AS cores", {"name": name})
+        if not rows:
+            raise unknown_host("platform", name)
+        total, cores = rows[0]["total"], rows[0]["cores"]
+        if memory_total_mb is None:
+            _within("platform", memory_free_mb=(memory_free_mb, 0, MAX_MEMORY_MB if total is None else total))
+        if cpu_cores is None and isinstance(cores, int) and cores >= 1:
+            _within("platform", cpu_load=(cpu_load, 0, 100 * cores))
     return {k: v for k, v in {"memory_total_mb": memory_total_mb, "memory_free_mb": memory_free_mb,
                               "cpu_load": cpu_load, "cpu_cores": cpu_cores, "online": online}.items()
             if v is not None}
@@ -145,6 +150,7 @@ def set_platform_liveliness(store: GraphStore, *, name: str, online: bool, time:
     within the deadband waits for the refresh, and a lost host's waiting status is not written)."""
     _check("platform_online", name=(name, (str,), False), online=(online, (bool,), False), time=(time, _NUM, False),
            heard=(heard, _NUM, True))
+    _within("platform_online", time=(time, 0, math.inf), heard=(heard, 0, math.inf))
     rows = store.execute(
         f"MATCH (p:{S.PLATFORM} {{name: $name}}) "
         "SET p.online = $online, p.online_since = $time, "
@@ -215,8 +221,9 @@ def record_process_sample(store: GraphStore, *, run_id: str, rss_mb_last: float,
     _check("process_sample", run_id=(run_id, (str,), False), rss_mb_last=(rss_mb_last, _NUM, False),
            rss_mb_mean=(rss_mb_mean, _NUM, False), rss_mb_max=(rss_mb_max, _NUM, False),
            cpu_percent_mean=(cpu_percent_mean, _NUM, False), received=(received, _NUM, True))
-    _within("process_sample", rss_mb_last=(rss_mb_last, 0, MAX_MEMORY_MB), rss_mb_mean=(rss_mb_mean, 0, MAX_MEMORY_MB),
-            rss_mb_max=(rss_mb_max, 0, MAX_MEMORY_MB), cpu_percent_mean=(cpu_percent_mean, 0, 100 * MAX_CORES))
+    _within("process_sample", received=(received, 0, math.inf), rss_mb_last=(rss_mb_last, 0, MAX_MEMORY_MB),
+            rss_mb_mean=(rss_mb_mean, 0, MAX_MEMORY_MB), rss_mb_max=(rss_mb_max, 0, MAX_MEMORY_MB),
+            cpu_percent_mean=(cpu_percent_mean, 0, 100 * MAX_CORES))
     store.execute(
         f"MERGE (r:{S.PROCESS_PROFILE} {{name: $run_id}}) "
         "WITH r, (r.end_reason = 'host_lost' AND ($received IS NULL OR r.end_time < $received)) AS reopen "
@@ -235,6 +242,7 @@ def record_process_reconfigured(store: GraphStore, *, run_id: str, config: str, 
     (and is PROFILE_OF its deployment); ``reconfigured_at`` says since when. Unknown names link nothing."""
     _check("process_reconfigured", run_id=(run_id, (str,), False), config=(config, (str,), False),
            deployment=(deployment, (str,), False), time=(time, _NUM, False))
+    _within("process_reconfigured", time=(time, 0, math.inf))
     params = {"run_id": run_id, "config": config, "deployment": deployment, "time": float(time)}
     store.execute(
         f"MATCH (r:{S.PROCESS_PROFILE} {{name: $run_id}}) "
@@ -433,7 +441,7 @@ def update_flight_control(store: GraphStore, *, name: str, time: float, link: bo
            battery_pct=(battery_pct, _NUM, True), battery_v=(battery_v, _NUM, True),
            autopilot_load_pct=(autopilot_load_pct, _NUM, True), last_heartbeat=(last_heartbeat, _NUM, True))
     _within("flight_state", time=(time, 0, math.inf), battery_pct=(battery_pct, 0, 100), battery_v=(battery_v, 0, 1000),
-            autopilot_load_pct=(autopilot_load_pct, 0, 100))
+            autopilot_load_pct=(autopilot_load_pct, 0, 100), last_heartbeat=(last_heartbeat, 0, math.inf))
     # null in SET += removes the property (FalkorDB, Neo4j and Memgraph alike)
     figures = {"link": link, "armed": armed, "mode": mode, "landed_state": landed_state,
                "battery_pct": battery_pct, "battery_v": battery_v,

@@ -371,6 +371,8 @@ class KnowledgeService:
         restarts = sum(worker.restarts for worker in self.public_processes)
         if restarts:  # a public worker process found dead and started afresh
             counts["public_worker_restarts"] = restarts
+        if self.roster is not None and self.roster.refused:  # new robots turned away by a full roster
+            counts["roster_full_refused"] = self.roster.refused
         return {**counts, "last_drop": last_drop, "unknown_hosts": refused}
 
     # -- request handling, Zenoh-free (tests call these directly) -----------

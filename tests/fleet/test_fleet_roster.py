@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -80,12 +81,16 @@ def test_a_killed_robot_is_listed_as_silent_by_a_new_fleet_question_without_expe
                 child.stop()
 
 
-def test_the_roster_is_bounded_and_forgets_on_request(resp_store):
+def test_the_roster_is_bounded_and_forgets_on_request(resp_store, caplog):
     roster = FleetRoster(resp_store, RosterSettings(robot="me", cap=3))
     for robot in ("me", "r1", "r2"):
         assert roster.remember(robot, how=Heard.ANSWER, when=100.0, routers=["ab12"])
-    assert not roster.remember("r3", how=Heard.ANNOUNCE, when=101.0)  # full: a new robot is not recorded
-    assert roster.refused == 1
+    with caplog.at_level(logging.WARNING, logger="kgadapt.knowledge.fleet_roster"):
+        for k in range(5):  # full: a new robot is not recorded; a flood of them logs the 1st, 2nd and 4th
+            assert not roster.remember(f"new{k}", how=Heard.ANNOUNCE, when=101.0)
+    assert roster.refused == 5
+    logged = [r.getMessage() for r in caplog.records if "fleet roster full" in r.getMessage()]
+    assert len(logged) == 3 and "new0 not recorded" in logged[0] and "(4 turned away so far" in logged[2]
     assert roster.remember("r1", how=Heard.ANNOUNCE, when=200.0)  # a known one still is
     rows = roster_of(resp_store)
     assert set(rows) == {"me", "r1", "r2"}

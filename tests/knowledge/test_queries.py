@@ -245,6 +245,11 @@ def test_unknown_queries_and_bad_parameters_are_refused_by_name():
         Q.check_params("low_memory_components", {"threshold_mb": "lots"})
     with pytest.raises(NamedQueryError, match="'limit' must be int, not bool"):
         Q.check_params("decisions", {"limit": True})
+    # At most the rows any public question gets: the query's own LIMIT $limit must not lift that bound.
+    assert Q.check_params("decisions", {"limit": 1000}) == {"limit": 1000}
+    for limit in (1001, -1):
+        with pytest.raises(NamedQueryError, match=rf"'decisions': parameter 'limit' {limit} is not between 0 and 1000"):
+            Q.check_params("decisions", {"limit": limit})
     with pytest.raises(NamedQueryError, match="'limit' must be int, not 'ten'"):
         Q.coerce_params("decisions", {"limit": "ten"})
     assert Q.coerce_params("cpu_overload", {"limit_pct": "75", "platform": "a"}) == {"limit_pct": 75.0, "platform": "a"}

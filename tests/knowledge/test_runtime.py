@@ -158,6 +158,17 @@ def test_the_flight_state_lands_on_the_flight_control_component(known_store):
     assert _row(known_store, "MATCH (c:Component {name: 'fc'}) RETURN count(c) AS n")["n"] == 1
 
 
+def test_cpu_load_without_cores_is_bounded_by_the_cores_the_graph_holds(known_store):
+    cores = _row(known_store, "MATCH (p:Platform {name: 'alpha'}) RETURN p.cpu_cores AS n")["n"]
+    assert isinstance(cores, int) and cores >= 1
+    R.update_platform(known_store, name="alpha", time=1.0, cpu_load=100.0 * cores)
+    with pytest.raises(NamedQueryError, match=rf"cpu_load 5000.0 is not between 0 and {100 * cores}"):
+        R.update_platform(known_store, name="alpha", time=2.0, cpu_load=5000.0)
+    refused = R.update_platforms(known_store, [{"name": "alpha", "time": 3.0, "cpu_load": 5000.0}])
+    assert set(refused) == {"alpha"}
+    assert _row(known_store, "MATCH (p:Platform {name: 'alpha'}) RETURN p.cpu_load AS load")["load"] == 100.0 * cores
+
+
 def test_the_writers_are_the_contract_verbs():
     assert set(R.WRITERS) == {"platform", "platform_online", "process_start", "process_sample", "process_end",
                               "process_reconfigured",
@@ -174,6 +185,14 @@ def test_the_writers_are_the_contract_verbs():
     ("platform", {"name": "a", "time": 1.0, "memory_free_mb": True}, r"'memory_free_mb' must be a number, not a bool"),
     ("platform", {"name": "a", "time": float("nan")}, r"'time' must be a finite number"),
     ("platform_online", {"name": "", "online": True, "time": 1.0}, r"'name' is empty"),
+    # Negative times, each writer's (the contract: "negative times and durations" are refused).
+    ("platform_online", {"name": "a", "online": True, "time": -5.0}, r"'platform_online': time -5.0 is not between"),
+    ("process_reconfigured", {"run_id": "r", "config": "c", "deployment": "d", "time": -100.0},
+     r"'process_reconfigured': time -100.0 is not between"),
+    ("process_sample", {"run_id": "r", "rss_mb_last": 1.0, "rss_mb_mean": 1.0, "rss_mb_max": 1.0,
+                        "cpu_percent_mean": 1.0, "received": -1.0}, r"'process_sample': received -1.0"),
+    ("flight_state", {"name": "fc", "time": 1.0, "link": True, "last_heartbeat": -7.0},
+     r"'flight_state': last_heartbeat -7.0 is not between"),
 ])
 def test_a_malformed_write_is_refused_naming_the_verb_and_parameter(resp_store, verb, params, message):
     resp_store.execute("CREATE (:Marker {name: 'm'})")
