@@ -127,7 +127,9 @@ def parse_store_url(url: str | None = None) -> StoreSettings:
     unknown = sorted(set(query) - {"ca"})
     if unknown:
         raise ConfigError(f"store URL {url!r}: unknown option {unknown[0]!r} (only ?ca=FILE)")
-    ca_file = (query.get("ca") or [""])[-1] or os.environ.get(STORE_CA_ENV) or None
+    ca_file = (query.get("ca") or [""])[-1] or None
+    if ca_file is None and tls == "verify":  # the environment's CA is for +s:// URLs only, not a demand on others
+        ca_file = os.environ.get(STORE_CA_ENV) or None
     if ca_file and tls != "verify":
         raise ConfigError(f"store URL {url!r}: a CA file needs a +s:// scheme (memgraph+s or bolt+s)")
     if ca_file and not Path(ca_file).is_file():

@@ -38,7 +38,7 @@ def register_squeeze(subparsers: Any) -> None:
         description="Ask a host's monitor to subtract SIZE from its free memory (0 lifts the reservation); "
         "prints the status it then publishes.",
     )
-    add_agent_arguments(squeeze, default_host="remote")
+    add_agent_arguments(squeeze, default_host="remote", give_up=False)  # it asks once, within --timeout
     squeeze.add_argument("size", metavar="SIZE", help="memory to reserve, e.g. 300M, 1G, or 0")
     squeeze.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the host (default 2)")
     squeeze.add_argument("--json", action="store_true", help="print the status as JSON")

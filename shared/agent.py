@@ -228,14 +228,16 @@ class StopSignals:
                 tick()
 
 
-def add_agent_arguments(parser: argparse.ArgumentParser, *, default_host: str) -> None:
-    """``--robot``, ``--host`` and the Zenoh flags of an agent command."""
+def add_agent_arguments(parser: argparse.ArgumentParser, *, default_host: str, give_up: bool = True) -> None:
+    """``--robot``, ``--host`` and the Zenoh flags of an agent command; ``give_up``: and ``--give-up-after``, for a
+    command that keeps trying to reach the router (an agent), not one that asks once (squeeze)."""
     parser.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name, the key namespace (default {DEFAULT_ROBOT})")
     parser.add_argument("--host", default=default_host,
                         help=f"this host's name, as the models call its Platform (default {default_host})")
-    parser.add_argument("--give-up-after", type=float, default=None, metavar="S",
-                        help="exit (status 1) after S seconds without reaching the router (default: keep trying, "
-                             "saying so every 5 s)")
+    if give_up:
+        parser.add_argument("--give-up-after", type=float, default=None, metavar="S",
+                            help="exit (status 1) after S seconds without reaching the router (default: keep "
+                                 "trying, saying so every 5 s)")
     add_zenoh_arguments(parser)
 
 

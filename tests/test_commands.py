@@ -107,3 +107,21 @@ def test_building_the_parser_loads_neither_opencv_nor_a_store_driver_nor_mavlink
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
+
+
+
+@pytest.mark.parametrize("argv", [["flight", "bridge"], ["onboard"], ["remote"], ["status"], ["deploy", "list"],
+                                  ["knowledge", "serve"]])
+def test_a_command_that_talks_to_a_robot_defaults_to_quad1(argv):
+    # README: "Commands that talk to a robot take --robot NAME (default quad1)"; flight bridge required it.
+    from kgadapt.shared.keys import DEFAULT_ROBOT
+
+    assert cli.build_parser().parse_args(argv).robot == DEFAULT_ROBOT
+
+
+def test_squeeze_asks_once_and_offers_no_give_up_option(capsys):
+    # --give-up-after is an agent's (keep trying to reach the router); squeeze took it and ignored it.
+    with pytest.raises(SystemExit) as done:
+        cli.build_parser().parse_args(["squeeze", "--give-up-after", "600", "0"])
+    assert done.value.code == 2 and "--give-up-after" in capsys.readouterr().err
+    assert cli.build_parser().parse_args(["remote", "--give-up-after", "600"]).give_up_after == 600.0

@@ -18,6 +18,8 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any, Callable
 
+from kgadapt.shared.keys import DEFAULT_ROBOT
+
 if TYPE_CHECKING:
     from kgadapt.onboard.flight.mavlink import FlightState, LinkSettings
 
@@ -74,7 +76,7 @@ def register(
     from kgadapt.shared import session as zsession
 
     _add_link_arguments(bridge)
-    bridge.add_argument("--robot", required=True, help="robot name (key namespace)")
+    bridge.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name, the key namespace (default {DEFAULT_ROBOT})")
     bridge.add_argument("--detector", default="*", help="detector instance to follow (default: any)")
     bridge.add_argument("--target-id", type=int, default=None, help="marker id to land on (default: largest seen)")
     bridge.add_argument("--camera", help="read the intrinsics of this camera component from the knowledge service")

@@ -342,6 +342,20 @@ def test_store_urls_with_tls_are_parsed_and_bad_ones_named(tmp_path):
             parse_store_url(bad)
 
 
+def test_the_environments_ca_serves_verifying_urls_and_leaves_the_others_alone(tmp_path, monkeypatch):
+    # $KGADAPT_STORE_CA in a unit's environment file must not turn every other store URL into an error.
+    ca = tmp_path / "ca.pem"
+    ca.write_text("x")
+    monkeypatch.setenv("KGADAPT_STORE_CA", str(ca))
+    assert parse_store_url("memgraph+s://h").ca_file == str(ca)
+    for url, tls in (("memgraph+ssc://h", "self-signed"), ("memgraph://h", ""), ("bolt://h", ""),
+                     ("falkordb://h", "")):
+        settings = parse_store_url(url)
+        assert (settings.tls, settings.ca_file) == (tls, None), url
+    with pytest.raises(ConfigError, match="needs a \\+s"):
+        parse_store_url(f"bolt://h?ca={ca}")  # asked for in the URL itself: still refused
+
+
 def test_the_bolt_backend_is_the_driver_for_both_schemes():
     assert isinstance(open_store("memgraph://h:7687"), BoltStore)
     assert isinstance(open_store("bolt://h:7687"), BoltStore)
