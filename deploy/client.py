@@ -13,12 +13,21 @@ import logging
 from typing import Any
 
 from kgadapt.shared import keys, messages, rpc
-from kgadapt.shared.errors import DeploymentError, MessageError, NoResponder, ReadinessTimeout, RemoteError, RequestTimeout
+from kgadapt.shared.errors import (
+    ConfigError,
+    DeploymentError,
+    MessageError,
+    NoResponder,
+    ReadinessTimeout,
+    RemoteError,
+    RequestTimeout,
+)
 from kgadapt.shared.states import KEPT_STATES
 
 log = logging.getLogger(__name__)
 
-_ERRORS = {"ReadinessTimeout": ReadinessTimeout}
+# The refusals a deployer names (docs/deploy.md): raised here as the same class; any other as DeploymentError.
+_ERRORS: dict[str, type[Exception]] = {"ReadinessTimeout": ReadinessTimeout, "ConfigError": ConfigError}
 
 
 class DeployerClient:

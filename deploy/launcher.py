@@ -589,8 +589,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "(idle pool members die when the agent closes its end)")
     args = parser.parse_args(argv)
     set_title([sys.executable, "-m", "kgadapt.deploy.launcher", "--fd", str(args.fd)])
-    # OpenBLAS starts a thread pool at import; the launcher must stay single-threaded to fork safely.
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    # OpenBLAS starts a thread pool at import; the launcher must stay single-threaded to fork safely, so a
+    # value from the agent's environment (kgadapt.env) does not hold here: it made every launcher exit.
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
     sock = socket.socket(fileno=args.fd)
     preload(PRELOAD, RUNNABLE)
     if _threads() != 1:

@@ -403,7 +403,7 @@ class AdaptationManager:
         assert running is not None  # own_detection: it is our running detector's
         count = int(m.count)
         if count <= self._reflex_count(running.instance):
-            return None  # already followed (its message and its detections both tell)
+            return None  # already followed (the message is put again once a second, with the same count)
         self._reflexes_seen = (running.instance, count)
         config = m.config
         detail = {**policy.reflex_trigger_detail(m), "answered_ms": round((float(m.time) - float(m.frame_time))

@@ -3,7 +3,8 @@
 :class:`FlightBridge` is a part of the onboard agent. It follows the
 detections of the running marker detector (``kgadapt/<robot>/detector/*/markers``),
 turns the chosen marker of each detection into a LANDING_TARGET with the
-camera's intrinsics (:func:`landing_target`), and publishes the flight
+camera's model, intrinsics and mounting
+(:class:`kgadapt.onboard.flight.landing_targets.TargetBuilder`), and publishes the flight
 controller's state (:class:`kgadapt.onboard.flight.mavlink.FlightState`) as ``flight_state``
 on ``kgadapt/<robot>/flight/state`` every ``state_period_s`` and at once when
 the link, arming, mode or landed state changes.
@@ -13,9 +14,10 @@ Geometry. Angles are measured from the principal point with the pinhole model:
 ``(u, v)`` is the marker's centre in pixels (mean of its four corners), +x to
 the right and +y down the image, as LANDING_TARGET defines them. A pose, when
 a detection carries one, is the marker's position in the camera's optical
-frame (x right, y down, z out of the lens, metres); with the camera looking
-down and the top of the image towards the vehicle's nose it becomes body FRD
-as (forward, right, down) = (-y, x, z) and sets ``position_valid``.
+frame (x right, y down, z out of the lens, metres): it takes the place of the
+pose solved from the site's marker size, and goes through the camera's
+mounting to body FRD like it. :func:`landing_target` is the same for a camera
+mounted straight at the body's origin, without a site or an autopilot's profile.
 """
 
 from __future__ import annotations
@@ -213,7 +215,6 @@ class FlightBridge:
         if settings.state_period_s <= 0 or settings.max_target_hz <= 0:
             raise FlightLinkError("state_period_s and max_target_hz must be positive")
         self.settings = settings
-        self._intrinsics = settings.intrinsics
         AutopilotProfile.of(settings.profile)  # a bad name fails here, not at the first detection
         self._targets = TargetBuilder(settings.camera or _camera_of(settings.intrinsics), settings.markers)
         self._hold = TargetHold(hold_s=settings.hold_s, resend_hz=settings.resend_hz)
@@ -295,7 +296,6 @@ class FlightBridge:
 
     def set_intrinsics(self, intrinsics: CameraIntrinsics) -> None:
         """Use other intrinsics from the next detection on (the camera's resolution changed)."""
-        self._intrinsics = intrinsics
         camera = self._targets.camera
         self._targets.camera = CameraModel(fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy,
                                            distortion=camera.distortion, yaw_deg=camera.yaw_deg,
@@ -388,18 +388,11 @@ class FlightBridge:
                 self.counters["no_target"] += 1
                 return
             marker_id = marker_id_of(detections.ids[index]) or 0
-            pose = _pose_of(detections, index)
-            if pose is not None:  # the detector measured the pose itself
-                target, held = landing_target(
-                    detections.corners[index], self._intrinsics, frame_time=detections.frame_time,
-                    marker_id=marker_id, pose=pose,
-                ), None
-            else:
-                target, held = self._targets.build(
-                    marker_points(detections.corners[index]), marker_id=marker_id,
-                    frame_time=float(detections.frame_time), profile=self.profile, state=self.link.state,
-                    pose_at=self.link.pose_at,
-                )
+            target, held = self._targets.build(
+                marker_points(detections.corners[index]), marker_id=marker_id,
+                frame_time=float(detections.frame_time), profile=self.profile, state=self.link.state,
+                pose_at=self.link.pose_at, measured=_pose_of(detections, index),  # the detector's own pose, if any
+            )
         except (MessageError, FlightLinkError) as exc:
             self.counters["malformed"] += 1
             if self.counters["malformed"] % 100 == 1:

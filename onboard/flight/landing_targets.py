@@ -235,9 +235,14 @@ class TargetBuilder:
                      rate_rad_s=norm(rates) if rates else 0.0)
 
     def build(self, corners: Sequence[Sequence[float]], *, marker_id: int, frame_time: float,
-              profile: AutopilotProfile, state: FlightState,
-              pose_at: PoseAt | None = None) -> tuple[LandingTarget, "HeldTarget | None"]:
-        """The target to send now, and what to hold for re-sending (None if it cannot be predicted)."""
+              profile: AutopilotProfile, state: FlightState, pose_at: PoseAt | None = None,
+              measured: Sequence[float] | None = None) -> tuple[LandingTarget, "HeldTarget | None"]:
+        """The target to send now, and what to hold for re-sending (None if it cannot be predicted).
+
+        ``measured``: the marker's position in the camera's optical frame as the detector measured it (its
+        ``poses``), used in place of the pose solved here from the site's marker size; the camera's mounting,
+        the pad's landing point, the autopilot's frame and the hold apply to it alike.
+        """
         cam = self.camera
         u = sum(p[0] for p in corners) / 4.0
         v = sum(p[1] for p in corners) / 4.0
@@ -250,7 +255,10 @@ class TargetBuilder:
         attitude = pose[0] if pose else state.attitude
         position = pose[1] if pose and pose[1] is not None else state.position_ned
         size = self.markers.size_of(marker_id) if self.markers is not None else None
-        tvec = marker_pose(corners, size, cam) if size else None
+        if measured is not None:
+            tvec: Sequence[float] | None = tuple(float(c) for c in measured)
+        else:
+            tvec = marker_pose(corners, size, cam) if size else None
         common: dict[str, Any] = dict(time=float(frame_time), size_x=size_x, size_y=size_y,
                                       target_num=marker_id if 0 <= marker_id <= 255 else 0)
         if tvec is not None:

@@ -808,7 +808,9 @@ class FlightLink:
         now = time.monotonic()
         if kind == "HEARTBEAT":
             return self._handle_heartbeat(message, src, now)
-        if self._fc is None or src[0] != self._fc[0]:
+        # The autopilot is one component: another of its system (a gimbal, a camera, or our own messages coming
+        # back through a router) must neither change the flight state nor where replies go.
+        if self._fc is None or src != self._fc:
             return False
         if kind == "COMMAND_ACK":
             # A router may pass on acks meant for a ground station: only ours count.
@@ -817,7 +819,7 @@ class FlightLink:
                 self.commands.on_ack(message)
             return True
         field = _BOOT_TIME_FIELD.get(kind)
-        if field is not None and src == self._fc:
+        if field is not None:
             boot_ms = int(getattr(message, field))
             last = self.state.boot_ms
             # One autopilot's messages come in order, so its clock never goes back, unless it restarted.

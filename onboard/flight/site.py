@@ -221,16 +221,23 @@ def site_from_dict(data: Any, *, where: str, default_name: str = "", key_lines: 
             for mid in users:
                 if count is not None and mid >= count:
                     raise fail(f"marker id {mid} is not in dictionary {name!r} (ids 0..{count - 1})", lines.get(mid))
-    return SiteMarkers(site=site, dictionary=default_dictionary, sizes_m=sizes, names=names,
-                       dictionaries=dictionaries, positions=positions, layout=layout, source=where)
+    # Kept as found, an absolute path for a file: the models name their configurations' dictionary files so
+    # (knowledge/importers/rpsl.py), and the site's must compare equal to them from any working directory.
+    return SiteMarkers(site=site, dictionary=_resolved(default_dictionary, folder), sizes_m=sizes, names=names,
+                       dictionaries={mid: _resolved(name, folder) for mid, name in dictionaries.items()},
+                       positions=positions, layout=layout, source=where)
 
 
 def _resolved(name: str, folder: Path | None) -> str:
-    """A custom dictionary file named relative to the site file, as a path from here; other names as they are."""
-    if folder is None or name.startswith("DICT_") or Path(name).is_absolute():
+    """A custom dictionary file named relative to the site file, as its absolute path; other names as they are."""
+    if name.startswith("DICT_"):
+        return name
+    if Path(name).is_absolute():
+        return str(Path(name).resolve())
+    if folder is None:
         return name
     candidate = folder / name
-    return str(candidate) if candidate.exists() else name
+    return str(candidate.resolve()) if candidate.exists() else name
 
 
 _SPACE = re.compile(r"[ \t\n\r]*")

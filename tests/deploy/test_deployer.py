@@ -12,7 +12,7 @@ import pytest
 
 from kgadapt.deploy.client import DeployerClient
 from kgadapt.shared import keys, messages
-from kgadapt.shared.errors import DeploymentError, RequestTimeout
+from kgadapt.shared.errors import ConfigError, DeploymentError, RequestTimeout
 from tests.deploy.conftest import CONFIG, ROBOT, Collector, add_deployment, wait_for_deployers
 from tests.support import Child
 
@@ -101,6 +101,30 @@ def test_a_malformed_request_gets_an_error_reply_and_the_deployer_keeps_serving(
     reply = raw_request(client_session, "onboard", "stop", messages.encode("deploy_request", {"instance": "../x"}))
     assert "bad instance" in messages.decode(reply.ok.payload.to_bytes(), "deploy_reply")["detail"]["error"]
     assert DeployerClient(client_session, ROBOT).processes("onboard") == []
+
+
+def test_a_refusal_the_deployer_names_as_a_config_error_is_raised_as_one(hosts, client_session):
+    with pytest.raises(ConfigError, match="bad instance"):
+        DeployerClient(client_session, ROBOT).stop("onboard", "../x")
+
+
+def test_a_hosts_list_stays_within_the_message_bound_whatever_its_children_printed():
+    # One child that printed one 300,000-character line made every list and status of its host fail to encode
+    # (deploy_reply is bounded at 256 KiB) for as long as it was kept: 50 ended instances and the live ones.
+    from kgadapt.deploy.deployer import DETAIL_CHARS, OUTPUT_LINE_CHARS, _detail
+    from kgadapt.deploy.supervisor import ProcessInfo
+    from kgadapt.shared.states import ProcessState
+
+    loud = [ProcessInfo(instance=f"det{i}", deployment="echo", config=CONFIG, state=ProcessState.EXITED, pid=None,
+                        run_id=f"r{i}", restarts=0, started_at=1.0, ready_at=None, ended_at=2.0, returncode=1,
+                        argv=(sys.executable, "-m", "kgadapt.onboard.perception.detector", "--instance", f"det{i}"),
+                        detail="y" * 300_000, output=tuple("x" * 300_000 for _ in range(5))) for i in range(60)]
+    body = messages.DeployReply(ok=True, detail=messages.DeployDetail(
+        host="onboard", processes=[_detail(info, "onboard", messages.ProcessDetail) for info in loud]))
+    encoded = messages.encode(body)  # raised MessageError past the bound before
+    shown = messages.decode_as(encoded, messages.DeployReply).detail.processes[0]
+    assert all(len(line) == OUTPUT_LINE_CHARS and line.startswith("xxx") for line in shown.output)
+    assert len(shown.detail) == DETAIL_CHARS and shown.detail.endswith("yyy")
 
 
 def test_a_placeholder_outside_the_contract_is_refused_naming_it(graph, hosts, client_session):

@@ -290,3 +290,22 @@ def test_a_supervisor_in_a_process_that_ignores_sigint_still_stops_its_child_wit
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert int(out.stdout.strip().splitlines()[-1]) == -signal.SIGINT
+
+
+def test_a_launcher_gets_ready_whatever_openblas_threads_the_agents_environment_asks_for(tmp_path):
+    # A value in kgadapt.env (OPENBLAS_NUM_THREADS=2) made every launcher exit with "3 threads after the
+    # imports", restarted every 0.5 s for ever, each start then the plain way.
+    script = tmp_path / "agent.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {os.getcwd()!r})
+        from kgadapt.deploy.supervisor import Supervisor, SupervisorSettings
+        sup = Supervisor(SupervisorSettings(launcher=True)); sup.setup()
+        try:
+            print(sup.launcher.wait_ready(60.0), sup.launcher.starts, flush=True)
+        finally:
+            sup.shutdown()
+    """))
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "OPENBLAS_NUM_THREADS": "2"})
+    assert done.stdout.split() == ["True", "1"], done.stdout + done.stderr[-2000:]

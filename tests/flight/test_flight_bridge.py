@@ -8,6 +8,7 @@ import time
 import pytest
 
 from kgadapt.onboard.flight.flight import BridgeSettings, CameraIntrinsics, FlightBridge
+from kgadapt.onboard.flight.landing_targets import CameraModel
 from kgadapt.onboard.flight.mavlink import LINK_LOST, LINK_RESTORED, LinkSettings
 from kgadapt.shared import keys, messages
 from kgadapt.shared.session import ZenohSettings, open_session
@@ -188,6 +189,24 @@ def test_a_pose_in_the_detections_is_sent_as_a_valid_position(rig):
         publisher.undeclare()
     assert f["position_valid"] == 1
     assert (f["x"], f["y"], f["z"]) == pytest.approx((-0.2, 0.3, 4.0), abs=1e-6)
+
+
+def test_a_pose_in_the_detections_goes_through_the_cameras_mounting(rig):
+    # The camera turned 90° clockwise (the top of the image to the right) and 5 cm forward, 2 cm down of
+    # the body's origin: the detector's pose in the optical frame is moved and turned like a solved one.
+    camera = CameraModel(fx=K.fx, fy=K.fy, cx=K.cx, cy=K.cy, yaw_deg=90.0, offset_m=(0.05, 0.0, 0.02))
+    bridge, fc, observer = rig(camera=camera)
+    _publish_until_received(observer, fc)
+    fc.clear_received()
+    publisher = observer.declare_publisher(keys.detector_markers(ROBOT, "det1"))
+    try:
+        publisher.put(_detections(500, poses=[[0.3, 0.2, 4.0]]))
+        f = fc.wait_for("LANDING_TARGET", 1, timeout=2)[0].fields
+    finally:
+        publisher.undeclare()
+    assert f["position_valid"] == 1
+    # forward -y = -0.2, right x = 0.3, turned 90°: forward -0.3, right -0.2; plus the offset
+    assert (f["x"], f["y"], f["z"]) == pytest.approx((-0.25, -0.2, 4.02), abs=1e-6)
 
 
 def test_malformed_stale_duplicate_and_empty_detections_send_nothing_and_the_bridge_carries_on(rig):

@@ -27,7 +27,7 @@ from kgadapt.onboard.flight.mavlink import (
 )
 from kgadapt.shared.errors import FlightLinkError
 from kgadapt.sim.fake_fc import FakeFCSettings, FakeFlightController, VehicleState
-from tests.flight.conftest import free_udp_port, wait_until
+from tests.flight.conftest import FAST_STREAMS, free_udp_port, wait_until
 
 
 def _complete(link: FlightLink):
@@ -158,6 +158,32 @@ def test_malformed_datagrams_do_not_stop_the_reader_nor_steal_the_reply_address(
     fc.clear_received()
     link.send_landing_target(LandingTarget(time=time.time(), angle_x=0.1, angle_y=0.1))
     fc.wait_for("LANDING_TARGET", 1, timeout=2)  # still goes to the autopilot, not the intruder
+
+
+def test_another_component_of_the_autopilots_system_changes_neither_the_state_nor_where_replies_go():
+    # A gimbal (1/154) or our own LANDING_TARGET coming back through a router (1/191) shares the autopilot's
+    # system id; only the autopilot (1/1, whose heartbeat it follows) may fold into the state or move replies.
+    port = free_udp_port()
+    with FlightLink(LinkSettings(url=f"udpin:127.0.0.1:{port}", stream_rates=FAST_STREAMS)) as link:
+        fc = FakeFlightController(FakeFCSettings(url=f"udpout:127.0.0.1:{port}", heartbeat_hz=10.0,
+                                                 drain_pct_per_min=0.0), VehicleState())
+        fc.setup()
+        try:
+            link.wait_for_heartbeat(5.0)
+            gimbal, ours = mavlink2.MAVLink(None, 1, 154), mavlink2.MAVLink(None, 1, 191)
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as other:
+                other.sendto(gimbal.attitude_encode(1000, 0.5, 0.0, 1.0, 0.0, 0.0, 0.0).pack(gimbal),
+                             ("127.0.0.1", port))
+                other.sendto(ours.landing_target_encode(0, 0, mavlink2.MAV_FRAME_BODY_FRD, 0.1, 0.1, 5.0, 0, 0)
+                             .pack(ours), ("127.0.0.1", port))
+                fc.set(mode="RTL")  # sent after them: once it is seen, so were they
+                wait_until(lambda: link.state.mode == "RTL", 3, "the autopilot's change after the others")
+                assert link.state.attitude is None  # the gimbal's attitude was not taken for the vehicle's
+                fc.clear_received()
+                link.send_landing_target(LandingTarget(time=time.time(), angle_x=0.1, angle_y=0.1))
+                fc.wait_for("LANDING_TARGET", 1, timeout=2)  # replies still go to the autopilot
+        finally:
+            fc.shutdown()
 
 
 def test_a_heartbeat_from_a_ground_station_does_not_bring_the_link_up():

@@ -66,7 +66,7 @@ def test_a_deployment_of_a_module_python_can_find_loads():
     ("{python}", "-m json", 3, r"module 'json' .* cannot be found"),  # a package without __main__
     ("/usr/bin/no-such-detector", "--config {config}", 3, r"executable '/usr/bin/no-such-detector' does not exist"),
     ("{python}", "-m kgadapt flight bridg --robot {robot}", 3, r"invalid choice: 'bridg'"),
-    ("{python}", "-m kgadapt flight bridge --connect {connect}", 3, r"required: --robot"),
+    ("{python}", "-m kgadapt squeeze --host {host}", 3, r"required: SIZE"),  # a required argument left out
 ])
 def test_a_deployment_that_could_not_start_is_refused_at_load(executable, arguments, line, why):
     with pytest.raises(ModelError, match=rf"x\.deploy:{line}: .*{why}"):

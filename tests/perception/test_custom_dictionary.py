@@ -103,3 +103,28 @@ def test_a_misspelt_dictionary_name_is_refused_naming_the_line(tmp_path):
     with pytest.raises(ModelError) as caught:
         rpsl.parse(path.read_text(), str(path))
     assert caught.value.line == 6 and "DICT_6X6_205" in str(caught.value)
+
+
+def test_a_site_naming_a_dictionary_file_beside_it_matches_the_models_configuration_from_any_directory(
+        tmp_path, monkeypatch):
+    # The site keeps the file's absolute path, as the models keep their configurations' (rpsl above), so
+    # calibrate --site finds the site's ids for that configuration wherever it is run from.
+    from kgadapt.onboard.flight.site import load_site
+    from kgadapt.onboard.perception.calibration import CalibrationSettings, render_test_frames
+    from kgadapt.onboard.perception.illumination import Band
+
+    shutil.copy(DICT_FILE, tmp_path / "site_dict.yml")
+    model = rpsl.parse(_model(tmp_path).read_text(), str(tmp_path / "marker_detection_site.rpsl"))
+    configured = next(n for n in model.nodes if n.name == "aruco_site").props["dictionary"]
+    (tmp_path / "hall.site").write_text(
+        '{"site": "hall", "dictionary": "site_dict.yml", "markers": [{"id": 3, "size_m": 0.2}, {"id": 9, "size_m": 0.2}]}')
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    site = load_site(tmp_path / "hall.site")
+    assert site.dictionary == configured == str((tmp_path / "site_dict.yml").resolve())
+    frames = render_test_frames([Band("day", 120.0, 160.0)],
+                                CalibrationSettings(frames_per_level=1, levels_per_band=1, conditions=("clean",)),
+                                dictionary=configured, site=site)
+    (_, _, truth, _), = frames[("day", "clean")]
+    assert sorted(t.id for t in truth) == [3, 9]  # the site's markers, not the scene's own ids
