@@ -135,7 +135,8 @@ class StatusTrust:
     :func:`check_status`, a status of a host without a liveliness token, a
     status far older than the host's newest, a total above the host's total,
     free memory that the RSS of the host's own running processes (their
-    profiles) shows as used, a sequence number that does not grow. A status
+    profiles) shows as used, a sequence number that does not grow (or is left
+    out under the origin of a sender that numbers its statuses). A status
     from another sender than the host's current one (each monitor sends its
     random ``origin`` and a ``seq``) counts only once that sender alone has
     spoken for ``new_source_s`` (a restarted monitor); if the current sender
@@ -239,6 +240,12 @@ class StatusTrust:
                 record.recent.clear()  # the old sender's figures are not this one's
             record.source, record.seq, record.candidate = origin, None, None
         if origin == record.source:
+            if seq is None and record.seq is not None:
+                # A monitor numbers every status: one without a number under a numbering sender's origin is
+                # another sender that copied the (public) origin.
+                self._contest(record, received)
+                raise MessageError(f"host_status of {host}: no seq from sender {origin!r}, which numbers its "
+                                   "statuses (a second sender with its origin)")
             if seq is not None and record.seq is not None and seq <= record.seq:
                 self._contest(record, received)
                 raise MessageError(f"host_status of {host}: seq {seq} not after {record.seq} from sender "

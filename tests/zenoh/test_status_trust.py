@@ -212,6 +212,19 @@ def test_a_replayed_or_copied_sequence_number_is_refused_and_contests_the_host()
     assert trust.confirmed_free("onboard", 2.1) == 500.0  # held as before the copied number
 
 
+def test_a_status_without_a_number_under_a_numbering_senders_origin_is_refused_and_contests_the_host():
+    # The origin travels in every status (anyone who may read them has it); leaving out seq skipped the check.
+    trust = StatusTrust(TrustSettings(contest_s=15.0))
+    trust.alive("onboard", True)
+    trust.admit("onboard", sent("real", 7, host="onboard"), received=1.0)
+    trust.admit("onboard", sent("real", 8, host="onboard"), received=1.5)
+    forged = msgspec.structs.replace(status("onboard", free=0.0), origin="real")  # seq left out
+    with pytest.raises(MessageError, match="no seq from sender 'real'"):
+        trust.admit("onboard", forged, received=1.6)
+    trust.admit("onboard", sent("real", 9, host="onboard", free=100.0), received=2.0)
+    assert trust.confirmed_free("onboard", 2.1) == 500.0  # held as before the forgery, not 0
+
+
 def test_a_host_contested_before_any_figure_stays_unconfirmed():
     trust = StatusTrust(TrustSettings(contest_s=15.0))
     trust.alive("onboard", True)
