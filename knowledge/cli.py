@@ -34,11 +34,12 @@ def register(subparsers: Any) -> Any:
     sub.required = True
 
     load = sub.add_parser("load", help="check and load model files or directories (all or nothing)",
-                          description="Parse every model file (.rpsl .platform .service .deploy .features) under "
+                          description="Parse every model file (.rpsl .platform .service .deploy .features .site) under "
                                       "the given paths, check them all, then write them in one batch. Loading "
                                       "again replaces what the files said before; run-time facts are kept.")
     load.add_argument("paths", nargs="+", metavar="PATH", help="model file or directory (searched recursively)")
-    load.add_argument("--check", action="store_true", help="only parse and check; write nothing")
+    load.add_argument("--check", action="store_true",
+                      help="only parse and check; write nothing (with --store: names may come from models loaded there)")
     load.add_argument("--json", action="store_true", help="print the counts as JSON")
     _store_arg(load)
     load.set_defaults(func=_load)
@@ -142,8 +143,11 @@ def _print_json(data: Any) -> None:
 def _load(args: argparse.Namespace) -> int:
     from kgadapt.knowledge.loader import check_models, load_models, report
 
-    if args.check:
+    if args.check and args.store is None:  # nothing to compare with: names must be defined by these files
         result = report(check_models(args.paths))
+    elif args.check:  # names may be defined by models already in that store, as a load into it would find them
+        with open_store(args.store) as store:
+            result = report(check_models(args.paths, store))
     else:
         with open_store(args.store) as store:
             result = load_models(store, args.paths)

@@ -87,7 +87,7 @@ def collect_files(paths: Iterable[Path | str]) -> tuple[list[Path], list[Path]]:
             found = sorted(p for p in path.rglob("*") if p.is_file() and p.suffix in IMPORTERS)
             if not found:
                 raise ModelError(str(path), None, f"no model files here (looked for {', '.join(IMPORTERS)})")
-            roots.append(path)
+            roots.append(Path(os.path.normpath(path)))  # as the files are: "../m" must find what came from "m"
             files.extend(found)
         elif path.is_file():
             files.append(path)

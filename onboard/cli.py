@@ -105,10 +105,16 @@ class FlightPart:
         self.manager = manager  # the adaptation manager beside it: only its chosen detector steers
         self.bridge: Any = None
 
-    def landed_state(self) -> str | None:
-        """The flight controller's landed state as the bridge knows it (None before setup)."""
+    def in_final_descent(self) -> bool:
+        """Whether the vehicle is in a landing's final descent as the bridge knows its state (False before
+        setup): landed state LANDING, or in LAND/RTL with the landed state unknown or at most 10 m up."""
+        from kgadapt.onboard.flight.flight_phase import in_final_descent
+
         bridge = self.bridge
-        return bridge.state.landed_state if bridge is not None else None
+        if bridge is None:
+            return False
+        state = bridge.state
+        return in_final_descent({"landed_state": state.landed_state, "mode": state.mode, "alt_rel_m": state.alt_rel_m})
 
     def setup(self, session: Any) -> None:
         from kgadapt.knowledge.client import KnowledgeClient
@@ -181,12 +187,12 @@ def build_parts(args: argparse.Namespace) -> list[Any]:
         from kgadapt.onboard.adaptation.adaptation_manager import AdaptationManager, AdaptationSettings
 
         # In one process, the manager and the bridge trust each other directly: the bridge follows
-        # the manager's chosen detector, the manager the bridge's landed state (not Zenoh messages).
+        # the manager's chosen detector, the manager the bridge's flight phase (not Zenoh messages).
         manager = AdaptationManager(AdaptationSettings(
             robot=args.robot, camera=args.camera, preference=args.prefer, onboard_host=args.host,
             dwell_s=args.dwell, hysteresis=args.hysteresis, in_place=args.in_place,
             standby=args.standby),
-            landed_state=flight.landed_state if flight is not None else None)
+            final_descent=flight.in_final_descent if flight is not None else None)
         if flight is not None:
             flight.manager = manager
         parts.append(manager)

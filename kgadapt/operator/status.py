@@ -270,10 +270,10 @@ def _flight(message: messages.FlightState | None, graph_rows: list[dict[str, Any
         # Its known fields, as the graph's row names them (a nil one is unknown, as an absent one).
         state = {k: v for k, v in msgspec.structs.asdict(message).items() if v is not None}
         source = "flight_state"
-    elif graph_rows:
+    elif graph_rows and graph_rows[0].get("link") is not None:
         state, source = dict(graph_rows[0]), "graph"
         state["time"] = state.pop("last_seen", None)
-    else:
+    else:  # no message, and the models' FlightControl that no bridge has written yet (its link null)
         return None
     landed = state.get("landed_state")
     if not state.get("link", True):

@@ -275,11 +275,13 @@ class Analyzer:
         ``reflex`` trigger; the band follows it (see :meth:`BandTracker.jump`)."""
         before = self.tracker.current
         after = self.tracker.jump(band, now, hold_s)
-        if after is not None and after != before:
+        moved = after is not None and after != before
+        if moved:
             self.collapsed.clear()
             self.collapse.rearm()
         self.collapse.reset()
-        return Trigger(TriggerKind.REFLEX, now, detail)
+        # A band moved by a reflex is a band change too (the smoothed light that follows it changes nothing more).
+        return Trigger(TriggerKind.REFLEX, now, {**detail, "band_moved": True} if moved else dict(detail))
 
     def on_host_status(self, host: str, *, free_mb: float, cpu_load: float, now: float,
                        running: Placement | None) -> Trigger | None:

@@ -34,8 +34,9 @@ credited with what it holds, no configuration left out: a band change clears the
 running detector, the standby or the hosts lost change, or after ``ready_move_s``; the detector's
 reflex (or the manager's own band change) then acts on it at once. During final
 descent (flight state ``LANDING``, or landed state unknown in LAND/RTL:
-:func:`kgadapt.onboard.flight.flight_phase.in_final_descent`) planned changes are deferred; losing the
-running host is still acted on.
+:func:`kgadapt.onboard.flight.flight_phase.in_final_descent`, from the bridge beside it in the onboard agent,
+else from ``flight_state`` messages) planned changes are deferred; losing the running host is still acted
+on, another host's loss is deferred like them.
 
 Warm standby (``standby=True``, ``kgadapt onboard --standby``; off by default):
 when the ``placement`` query says a host has room for the configuration of the
@@ -50,7 +51,8 @@ idle the old one (it becomes the standby). Losing the host that runs the
 detector activates a standby on another host (reconfigured in place to the
 band's configuration if needed) rather than starting a process. The standby is
 the first thing stopped when memory gets short: a ``memory_short`` trigger
-stops it and nothing else; a new one starts only after the next band change.
+stops it and nothing else; a new one starts only after the next band change (the smoothed light's, or a
+reflex that took another band).
 
 Reflexes: the running detector may switch configuration in place on its own
 evidence (:mod:`kgadapt.onboard.perception.reflex`) and says so on its ``reflex`` key (its
@@ -134,12 +136,12 @@ class AdaptationManager:
 
     name = "adaptation"
 
-    def __init__(self, settings: AdaptationSettings, *, landed_state: Callable[[], Any] | None = None) -> None:
+    def __init__(self, settings: AdaptationSettings, *, final_descent: Callable[[], bool] | None = None) -> None:
         self.settings = settings
-        # With a flight bridge in the same process: its landed state, read directly. Then
-        # flight_state messages on Zenoh, which anyone holding a host certificate could
-        # forge, are not listened to.
-        self._landed_state = landed_state
+        # With a flight bridge in the same process: whether its flight state is a final descent
+        # (in_final_descent), read directly. Then flight_state messages on Zenoh, which anyone holding a
+        # host certificate could forge, are not listened to.
+        self._final_descent = final_descent
         self.current: Placement | None = None  # the running detector (its run id and held memory as last known)
         self.standby: Placement | None = None  # the warm standby (idle), when settings.standby
         # This run's decisions, oldest first; the graph keeps every one, memory the last history_size.
@@ -343,7 +345,7 @@ class AdaptationManager:
                 return self._on_host_status(keys.last_chunk(key, 2), payload, received, now)
             if kind == "flight_state":
                 flight = messages.decode_as(payload, messages.FlightState)  # malformed ones: dropped and logged
-                if self._landed_state is not None:
+                if self._final_descent is not None:
                     return None  # the bridge beside us is the one source
                 self._set_landing(in_final_descent(flight))  # landed state unknown in LAND/RTL counts as descent
                 return None
@@ -375,7 +377,7 @@ class AdaptationManager:
                 trigger = a.on_detection(found, now, expected, running.config)
                 if band is not None:
                     # The frame's own configuration: a reflex may have changed it before its message arrives.
-                    pad = self.landing or (self._landed_state is not None and self._landed_state() == "LANDING")
+                    pad = self.landing or (self._final_descent is not None and self._final_descent())
                     self._live.add(config=str(detections.config), band=band, found=found, now=now, pad_in_view=pad,
                                    run_id=running.run_id, host=running.host)
                     self._write_live(now)
@@ -603,9 +605,9 @@ class AdaptationManager:
             host_confirmed=self._trust.confirmed_free(str(trigger.detail.get("host")), time.time()) is not None)
         if waiting is not None:
             self._state = waiting
-        if self._landed_state is not None:
-            self._set_landing(self._landed_state() == "LANDING")
-        if trigger.kind == TriggerKind.BAND_CHANGED:
+        if self._final_descent is not None:
+            self._set_landing(self._final_descent())
+        if policy.band_moved(trigger):  # the standby stopped for memory may come back in a new band
             self._state = dataclasses.replace(self._state, standby_paused=False)
         lost = policy.lost_hosts(a.hosts)
         # Configurations whose detections collapsed in this band stay out until the band changes.

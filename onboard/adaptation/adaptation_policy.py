@@ -318,21 +318,34 @@ class Action(StrEnum):
     PLAN = "plan"
 
 
+def band_moved(trigger: Trigger) -> bool:
+    """Whether ``trigger`` moved the band: a change of the smoothed light, or a reflex that took another band."""
+    return trigger.kind == TriggerKind.BAND_CHANGED or (trigger.kind == TriggerKind.REFLEX
+                                                         and bool(trigger.detail.get("band_moved")))
+
+
 def running_lost(running: Placement | None, trigger: Trigger, lost: Sequence[str]) -> bool:
     """The running detector is gone: its host lost, or its deployer says so."""
     return running is not None and (running.host in lost or trigger.kind == TriggerKind.DETECTOR_GONE)
 
 
+# A host back waits for confirmed figures at most this many status windows (6 s at 1.5 s): statuses come late on
+# a loaded machine; after that it is planned as it stands (the unconfirmed host left out), not retried for ever.
+# Other triggers meanwhile are planned as they come.
+HOST_BACK_WINDOWS = 4
+
+
 def confirm_host_back(state: LoopState, trigger: Trigger, *, host_confirmed: bool, mono: float,
                       window_s: float) -> LoopState | None:
-    """A host back without a confirmed status yet: the state that retries it once they can be, else None.
+    """A host back without a confirmed status yet: the state that retries it a window later, else None (plan).
 
-    Planning now, without it, could move the detector needlessly to the other host.
+    Planning now, without it, could move the detector needlessly to the other host. Retried each window
+    until the figures are confirmed, at most :data:`HOST_BACK_WINDOWS` times.
     """
-    if (trigger.kind != TriggerKind.HOST_BACK or state.retry is not None or trigger.detail.get("confirming")
-            or host_confirmed):
+    tries = int(trigger.detail.get("confirming") or 0)
+    if trigger.kind != TriggerKind.HOST_BACK or state.retry is not None or host_confirmed or tries >= HOST_BACK_WINDOWS:
         return None
-    again = Trigger(trigger.kind, trigger.time, {**trigger.detail, "confirming": True})
+    again = Trigger(trigger.kind, trigger.time, {**trigger.detail, "confirming": tries + 1})
     return dataclasses.replace(state, retry=again, retry_at=mono + window_s)
 
 
@@ -345,7 +358,10 @@ def triage(trigger: Trigger, *, running: Placement | None, standby: Placement | 
         return Action.WAIT
     if trigger.kind == TriggerKind.MEMORY_SHORT and standby is not None:
         return Action.STOP_STANDBY
-    if landing and not (trigger.urgent or gone):
+    # In a descent a lost host matters only when it ran the detector (``gone``): another's loss would plan with
+    # the band as it is now, carrying out a change the same descent deferred.
+    urgent = trigger.urgent and trigger.kind != TriggerKind.HOST_LOST
+    if landing and not (urgent or gone):
         # One decision per kind of change and descent: a descent (forged or not) with a flapping
         # light or repeated triggers must not write a decision per message.
         return Action.DEFER_AGAIN if trigger.kind in set(deferred) else Action.DEFER

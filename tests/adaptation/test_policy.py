@@ -187,12 +187,31 @@ def test_the_first_placement_waits_for_a_band_our_host_in_the_graph_and_confirme
 def test_a_host_back_without_confirmed_figures_waits_unless_the_detector_is_lost():
     back = trigger(TriggerKind.HOST_BACK, host="remote")
     waiting = P.confirm_host_back(P.LoopState(), back, host_confirmed=False, mono=3.0, window_s=1.5)
-    assert waiting.retry.detail == {"host": "remote", "confirming": True} and waiting.retry_at == 4.5
+    assert waiting.retry.detail == {"host": "remote", "confirming": 1} and waiting.retry_at == 4.5
     assert P.confirm_host_back(P.LoopState(), back, host_confirmed=True, mono=3.0, window_s=1.5) is None
+    # Still unconfirmed a window later (statuses late on a loaded machine): it waits again, not plans...
+    retry, mono = waiting.retry, 4.5
+    for tries in range(2, P.HOST_BACK_WINDOWS + 1):
+        again = P.confirm_host_back(P.LoopState(), retry, host_confirmed=False, mono=mono, window_s=1.5)
+        assert again is not None and again.retry.detail["confirming"] == tries and again.retry_at == mono + 1.5
+        retry, mono = again.retry, mono + 1.5
+    # ...but not for ever: after HOST_BACK_WINDOWS it is planned as it stands.
+    assert P.confirm_host_back(P.LoopState(), retry, host_confirmed=False, mono=mono, window_s=1.5) is None
+    # one retry at a time: a state already waiting is not given another
     assert P.confirm_host_back(waiting, waiting.retry, host_confirmed=False, mono=5.0, window_s=1.5) is None
     kw = dict(standby=None, landing=False, deferred=())
     assert P.triage(back, running=RUNNING, lost=(), waiting=True, **kw) == P.Action.WAIT
     assert P.triage(back, running=RUNNING, lost=("onboard",), waiting=True, **kw) == P.Action.PLAN
+
+
+def test_in_a_descent_only_the_loss_of_the_detectors_own_host_is_acted_on():
+    kw = dict(standby=None, landing=True, deferred=())
+    assert P.triage(trigger(TriggerKind.HOST_LOST, host="onboard"), running=RUNNING, lost=("onboard",), **kw) \
+        == P.Action.PLAN
+    assert P.triage(trigger(TriggerKind.HOST_LOST, host="remote"), running=RUNNING, lost=("remote",), **kw) \
+        == P.Action.DEFER
+    assert P.triage(trigger(TriggerKind.HOST_LOST, host="remote"), running=RUNNING, lost=("remote",),
+                    **{**kw, "landing": False}) == P.Action.PLAN
 
 
 def test_memory_short_with_a_standby_stops_it_first_and_a_descent_defers_once_per_kind():

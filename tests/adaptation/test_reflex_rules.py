@@ -284,6 +284,12 @@ def test_the_manager_follows_a_reflex_and_the_smoothed_light_may_undo_it_only_af
     trigger = a.on_reflex("dark", 10.0, {"evidence": "light"}, hold_s=2.0)
     assert trigger.kind == TriggerKind.REFLEX and a.tracker.current.name == "dark"
     assert a.tracker.previous.name == "day"
+    # A band moved by a reflex counts as a band change (a standby stopped for memory may come back), one that
+    # keeps the band does not.
+    from kgadapt.onboard.adaptation import adaptation_policy as P
+    same = Analyzer(tracker=BandTracker(bands=bands, hysteresis=4.0, dwell_s=1.0))
+    same.on_illumination(5.0, 0.0)
+    assert P.band_moved(trigger) and not P.band_moved(same.on_reflex("dark", 1.0, {"evidence": "light"}, hold_s=2.0))
     # The smoothed level still says day (it lags): no band change back while the hold lasts ...
     assert all(a.on_illumination(100.0, 10.0 + t / 10) is None for t in range(20))
     # ... but a light that stays in the day past the hold and the dwell undoes it.

@@ -30,3 +30,24 @@ def test_a_flight_state_message_with_the_landed_state_unknown_in_land_is_final_d
     # what the bridge publishes when EXTENDED_SYS_STATE stopped during LAND
     body = FlightState(time=1.0, link=True, armed=True, mode="LAND", landed_state=None).as_message()
     assert in_final_descent(messages.decode_as(messages.encode(body), messages.FlightState))
+
+
+@pytest.mark.parametrize("state, expected", [
+    (FlightState(time=1.0, link=True, mode="LAND", landed_state=None), True),  # its stream stopped in LAND
+    (FlightState(time=1.0, link=True, mode="RTL", landed_state="IN_AIR", alt_rel_m=5.0), True),
+    (FlightState(time=1.0, link=True, mode="RTL", landed_state="IN_AIR", alt_rel_m=30.0), False),
+    (FlightState(time=1.0, link=True, mode="LOITER", landed_state="LANDING"), True),
+    (FlightState(time=1.0, link=True, mode="LOITER", landed_state="IN_AIR"), False),
+])
+def test_the_onboard_agents_manager_sees_the_bridges_final_descent_as_a_flight_state_message_would(state, expected):
+    # In one agent the manager reads the bridge beside it, not flight_state messages: it must see the same
+    # phase (it saw only a landed state of LANDING, so not LAND or RTL with the landed state unknown).
+    from types import SimpleNamespace
+
+    from kgadapt.onboard.cli import FlightPart
+
+    part = FlightPart(robot="quad1", url="udpin:127.0.0.1:14550", camera_model="cam")
+    assert part.in_final_descent() is False  # before setup
+    part.bridge = SimpleNamespace(state=state)
+    assert part.in_final_descent() is expected
+    assert in_final_descent(messages.decode_as(messages.encode(state.as_message()), messages.FlightState)) is expected

@@ -68,3 +68,12 @@ def test_a_command_rejected_until_its_retries_are_spent_is_a_warning_and_a_refus
     infos = [r for r in caplog.records if r.levelno == logging.INFO and "DO_SET_MODE(GUIDED)" in r.getMessage()]
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING and "DO_SET_MODE(GUIDED)" in r.getMessage()]
     assert len(infos) == 4 and len(warnings) == 1 and "retries spent" in warnings[0].getMessage()
+
+
+def test_a_flight_control_no_bridge_has_written_is_no_flight_state_not_a_lost_link():
+    # The models give every robot a FlightControl component; its run-time properties are null until a bridge
+    # writes them. That was shown as "link lost" (a phase PROBLEMS did not list).
+    never = [{"link": None, "armed": None, "mode": None, "landed_state": None, "last_seen": None}]
+    assert status._flight(None, never) is None
+    written = [{"link": False, "armed": None, "mode": None, "landed_state": None, "last_seen": 12.0}]
+    assert status._flight(None, written)["phase"] == "link lost"

@@ -70,6 +70,17 @@ def test_load_prints_counts_as_json(cli_store):
     assert report["labels"]["Deployment"] == 5 and report["relations"]["CONTAINS"] == 7 and report["written"]
 
 
+def test_a_check_with_a_store_resolves_names_an_earlier_load_defined_as_the_load_would(cli_store, tmp_path):
+    assert kgadapt("knowledge", "load", str(KNOWN), "--store", cli_store.url).returncode == 0
+    extra = tmp_path / "d_new.deploy"
+    extra.write_text("deploys: g_b\nexecutable: /bin/true\nexecutable_on: alpha\n")
+    alone = kgadapt("knowledge", "load", "--check", str(extra))  # no store: only these files count
+    assert alone.returncode == 1 and "g_b" in alone.stderr
+    checked = kgadapt("knowledge", "load", "--check", str(extra), "--store", cli_store.url)
+    assert checked.returncode == 0, checked.stderr
+    assert cli_store.execute("MATCH (d:Deployment {name: 'd_new'}) RETURN d") == []  # a check writes nothing
+
+
 def test_a_bad_model_fails_the_load_with_one_line_naming_file_and_line(cli_store, tmp_path):
     bad = tmp_path / "broken.rpsl"
     bad.write_text('rpsl.processing_component do\n  name "x"\n  memory_demand_mb -1\nend\n')

@@ -79,6 +79,19 @@ def test_a_model_file_removed_from_a_loaded_directory_takes_its_nodes_with_it(kn
     assert counts(known_store) == (26, 32)  # the deployment, its DEPLOYS and its EXECUTABLE_ON
 
 
+def test_a_file_removed_from_a_directory_named_through_dot_dot_takes_its_nodes_with_it(known_store, known_dir,
+                                                                                       monkeypatch):
+    # The files' paths were normalised, the directory's not: "../known" never matched what came from it.
+    elsewhere = known_dir.parent / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    dotted = f"../{known_dir.name}"
+    load_models(known_store, [dotted])
+    (known_dir / "d_other.deploy").unlink()
+    load_models(known_store, [dotted])
+    assert known_store.execute("MATCH (d:Deployment {name: 'd_other'}) RETURN d") == []
+
+
 def test_run_time_facts_survive_a_reload_of_the_models(known_store, known_dir):
     R.update_platform(known_store, name="alpha", time=50.0, memory_free_mb=321.0, cpu_load=12.5, online=True)
     R.record_process_start(known_store, run_id="run-1", instance="det-1", deployment="d_a", config="g_a",
