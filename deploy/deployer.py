@@ -740,25 +740,32 @@ D = TypeVar("D", bound=messages.ProcessDetail)
 
 
 # What a reply carries of a child's own words: the start of each of its last lines and the end of why it ended.
-# A child's single long line must not push a host's list past the message bound (256 KiB) and so fail it for
-# every asker (the adaptation manager adopts and stops twins by it): 60 instances (50 ended ones kept) of
-# 5 lines, their detail and argv stay near 170 KiB.
-OUTPUT_LINE_CHARS = 240
-DETAIL_CHARS = 1000
+# A child's single long line must not push a reply past the message bound (256 KiB) and so fail it for every
+# asker (the adaptation manager adopts and stops twins by a host's list). In a list, 60 instances (50 ended ones
+# kept) of 5 lines, their detail and argv stay near 170 KiB; one instance's reply (status, start, stop) keeps
+# more of each line (a probe's report of its own arguments, say).
+OUTPUT_LINE_CHARS = 240  # in a host's list
+DETAIL_CHARS = 1000  # in a host's list
+ONE_LINE_CHARS = 8000  # in one instance's reply
+ONE_DETAIL_CHARS = 8000
 
 
-def _clipped_line(line: str) -> str:
-    return line if len(line) <= OUTPUT_LINE_CHARS else line[:OUTPUT_LINE_CHARS - 1] + "…"
+def _clipped(text: str, room: int, *, keep_end: bool = False) -> str:
+    if len(text) <= room:
+        return text
+    return "…" + text[-(room - 1):] if keep_end else text[:room - 1] + "…"
 
 
 def _detail(info: ProcessInfo, host: str, cls: type[D]) -> D:
-    """``info`` as the wire's process detail, with its ``host``; the child's output and detail clipped."""
-    detail = info.detail if info.detail is None or len(info.detail) <= DETAIL_CHARS \
-        else "…" + info.detail[-(DETAIL_CHARS - 1):]
+    """``info`` as the wire's process detail, with its ``host``; the child's output and detail clipped (more
+    room in one instance's reply than in each entry of a list)."""
+    single = cls is messages.DeployDetail
+    line_room, detail_room = (ONE_LINE_CHARS, ONE_DETAIL_CHARS) if single else (OUTPUT_LINE_CHARS, DETAIL_CHARS)
+    detail = None if info.detail is None else _clipped(info.detail, detail_room, keep_end=True)
     return cls(instance=info.instance, host=host, deployment=info.deployment, config=info.config, state=info.state,
                pid=info.pid, run_id=info.run_id, restarts=info.restarts, started_at=info.started_at,
                ready_at=info.ready_at, ended_at=info.ended_at, returncode=info.returncode, argv=list(info.argv),
-               detail=detail, output=[_clipped_line(line) for line in info.output], via=info.via)
+               detail=detail, output=[_clipped(line, line_room) for line in info.output], via=info.via)
 
 
 # -- agent wiring -------------------------------------------------------------------

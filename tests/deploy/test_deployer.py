@@ -111,7 +111,7 @@ def test_a_refusal_the_deployer_names_as_a_config_error_is_raised_as_one(hosts, 
 def test_a_hosts_list_stays_within_the_message_bound_whatever_its_children_printed():
     # One child that printed one 300,000-character line made every list and status of its host fail to encode
     # (deploy_reply is bounded at 256 KiB) for as long as it was kept: 50 ended instances and the live ones.
-    from kgadapt.deploy.deployer import DETAIL_CHARS, OUTPUT_LINE_CHARS, _detail
+    from kgadapt.deploy.deployer import DETAIL_CHARS, ONE_DETAIL_CHARS, ONE_LINE_CHARS, OUTPUT_LINE_CHARS, _detail
     from kgadapt.deploy.supervisor import ProcessInfo
     from kgadapt.shared.states import ProcessState
 
@@ -125,6 +125,10 @@ def test_a_hosts_list_stays_within_the_message_bound_whatever_its_children_print
     shown = messages.decode_as(encoded, messages.DeployReply).detail.processes[0]
     assert all(len(line) == OUTPUT_LINE_CHARS and line.startswith("xxx") for line in shown.output)
     assert len(shown.detail) == DETAIL_CHARS and shown.detail.endswith("yyy")
+    # One instance's reply keeps more of each line, still within the bound.
+    one = _detail(loud[0], "onboard", messages.DeployDetail)
+    messages.encode(messages.DeployReply(ok=True, detail=one))
+    assert all(len(line) == ONE_LINE_CHARS for line in one.output) and len(one.detail) == ONE_DETAIL_CHARS
 
 
 def test_a_placeholder_outside_the_contract_is_refused_naming_it(graph, hosts, client_session):
