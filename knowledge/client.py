@@ -95,8 +95,8 @@ class KnowledgeClient:
                             timeout=self.timeout, resend_for=self.timeout, attachment=self._asker())
         except RemoteError as exc:
             raise RemoteError(f"{what} refused by the knowledge service of {self.robot}: {exc}") from exc
-        except RequestTimeout as exc:
-            raise RequestTimeout(
+        except RequestTimeout as exc:  # NoResponder (nothing serves the key) stays a NoResponder
+            raise type(exc)(
                 f"{what}: no answer from the knowledge service of robot {self.robot!r} on {key} "
                 f"within {self.timeout:.1f} s (is `kgadapt knowledge serve` running and reachable?)"
             ) from exc

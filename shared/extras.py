@@ -24,6 +24,15 @@ EXTRAS = {
 }
 
 
+def installed(module: str) -> bool:
+    """Whether ``module`` imports (for what is optional, such as a default plot)."""
+    try:
+        importlib.import_module(module)
+    except ModuleNotFoundError:
+        return False
+    return True
+
+
 def require(module: str, *, extra: str, what: str | None = None) -> ModuleType:
     """Import ``module``; if it (or one of its own imports) is missing, raise :class:`MissingExtra`."""
     if extra not in EXTRAS:

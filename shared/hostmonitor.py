@@ -490,7 +490,7 @@ def squeeze(session: Any, robot: str, host: str, reserve_mb: float, *, timeout: 
     except RemoteError as exc:
         raise RemoteError(f"squeeze on {key}: {exc}") from exc
     except NoResponder as exc:
-        raise RequestTimeout(f"squeeze on {key}: no host monitor answered within {timeout} s "
+        raise NoResponder(f"squeeze on {key}: no host monitor answered within {timeout} s "
                           f"(is the agent of {host!r} running?)") from exc
     except RequestTimeout as exc:
         raise RequestTimeout(f"squeeze on {key}: no answer within {timeout} s") from exc

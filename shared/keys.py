@@ -46,7 +46,7 @@ _CHUNK = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 def check_name(name: str, what: str = "name") -> str:
     """Return ``name`` if it is a safe single key chunk, else raise ConfigError."""
-    if not isinstance(name, str) or not _CHUNK.match(name):
+    if not isinstance(name, str) or not _CHUNK.fullmatch(name):  # fullmatch: "$" alone lets a final "\n" through
         raise ConfigError(f"bad {what} {name!r}: use 1-64 letters, digits, '_' or '-'")
     return name
 

@@ -160,7 +160,9 @@ def _register_calibrate(sub: argparse._SubParsersAction[argparse.ArgumentParser]
     p.add_argument("--out", default=None,
                    help=f"JSON output (default {RESULTS_DIR / 'calibration.json'}, with --frames-from "
                         f"{RESULTS_DIR / 'calibration_frames.json'})")
-    p.add_argument("--plot", default=str(RESULTS_DIR / "calibration.png"), help="PNG plot (default %(default)s)")
+    p.add_argument("--plot", default=None,
+                   help=f"PNG plot (default {RESULTS_DIR / 'calibration.png'} where the 'plots' extra is installed, "
+                        "else none; '' for none)")
     p.add_argument("--no-record", action="store_true", help="do not write the figures into the graph")
     p.add_argument("--json", action="store_true", help="print the results as JSON")
     p.set_defaults(func=_calibrate)
@@ -181,8 +183,15 @@ def _calibrate(args: argparse.Namespace) -> int:
 
         site = load_site(args.site)
     out = RESULTS_DIR / "calibration.json" if args.out is None else args.out
+    plot_path = args.plot
+    if plot_path is None:  # the default plot only where matplotlib is (a robot's install leaves it out)
+        from kgadapt.shared.extras import installed
+
+        plot_path = str(RESULTS_DIR / "calibration.png") if installed("matplotlib") else None
+        if plot_path is None:
+            print("no plot: matplotlib (kgadapt[plots]) is not installed", file=sys.stderr)
     data = run_calibration(args.store, feature=args.feature, settings=settings, write_store=not args.no_record,
-                           json_path=out or None, plot_path=args.plot or None, progress=progress, site=site)
+                           json_path=out or None, plot_path=plot_path or None, progress=progress, site=site)
     if args.json:
         print(json.dumps(data, indent=2))
         return 0

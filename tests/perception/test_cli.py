@@ -64,3 +64,18 @@ def test_the_transport_bench_measures_latency_to_a_detector_process():
     assert result["detections"] >= 5
     assert 0 < result["transport_p50_ms"] <= result["transport_p99_ms"]
     assert len(result["transport_ms"]) == result["detections"]
+
+
+def test_calibrate_without_the_plots_extra_records_its_figures_and_succeeds(tmp_path):
+    # A robot's install leaves matplotlib out (scripts/archive.py); the default plot made calibrate exit 1
+    # after it had recorded everything. An explicit --plot still needs the extra.
+    import sys
+
+    hide = "import sys; sys.modules['matplotlib'] = None; from kgadapt.cli import main; sys.exit(main(sys.argv[1:]))"
+    base = [sys.executable, "-c", hide, "perception", "calibrate", "--store", f"embedded:{tmp_path / 'store'}",
+            "--frames", "1", "--levels", "1", "--conditions", "clean", "--out", str(tmp_path / "cal.json")]
+    done = run(base, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "no plot: matplotlib" in done.stderr and "recorded" in done.stdout and (tmp_path / "cal.json").exists()
+    asked = run(base, "--no-record", "--plot", str(tmp_path / "cal.png"), timeout=300)
+    assert asked.returncode == 1 and "'plots' extra" in asked.stderr

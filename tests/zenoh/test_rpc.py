@@ -85,6 +85,29 @@ def test_a_key_nobody_serves_raises_no_responder(zenoh_pair, key):
         rpc.gather(client, key, b"x", bytes, timeout=0.5, resend_for=0.3)
 
 
+def test_the_knowledge_client_and_squeeze_keep_no_responder_for_a_robot_nobody_serves(zenoh_pair):
+    # CONTRACTS.md: "our clients raise NoResponder (a RequestTimeout)" for a query that reaches no queryable.
+    from kgadapt.knowledge.client import KnowledgeClient
+    from kgadapt.shared.hostmonitor import squeeze
+
+    _, client = zenoh_pair
+    with pytest.raises(NoResponder, match="knowledge service of robot 'nobody'"):
+        KnowledgeClient(client, "nobody", timeout=0.3).query("platforms")
+    with pytest.raises(NoResponder, match="no host monitor answered"):
+        squeeze(client, "nobody", "remote", 0.0, timeout=0.3)
+
+
+def test_a_name_with_a_trailing_newline_is_no_key_chunk():
+    # re's "$" matches before a final newline: "onboard\n" passed and made a key with a line break in a chunk.
+    from kgadapt.shared import keys
+    from kgadapt.shared.errors import ConfigError
+
+    for bad in ("onboard\n", "onboard\n\n", "\nonboard", "on board"):
+        with pytest.raises(ConfigError, match="bad host"):
+            keys.check_name(bad, "host")
+    assert keys.check_name("onboard-2_x", "host") == "onboard-2_x"
+
+
 def test_a_query_that_reached_nobody_is_sent_again_soon_then_less_often(zenoh_pair, key, monkeypatch):
     """A session opened a moment ago does not know the queryables yet: its first query reaches nobody.
     It is sent again after 2 ms, not 50 (the first question of a new detector's session waited 50 ms);
