@@ -231,3 +231,11 @@ def session_as(network):
     yield open_as
     for session in opened:
         session.close()
+
+
+def dropped_kind(outcome: object) -> object:
+    """What a request came to, for comparing: RequestTimeout for any timeout (NoResponder included: a request the
+    router drops reaches no queryable), else the outcome's own type (a reply, a refusal)."""
+    from kgadapt.shared.errors import RequestTimeout
+
+    return RequestTimeout if isinstance(outcome, RequestTimeout) else type(outcome)
