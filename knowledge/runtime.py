@@ -93,26 +93,47 @@ def update_platforms(store: GraphStore, statuses: Sequence[Mapping[str, Any]]) -
     for status in statuses:
         name = status.get("name")
         try:
-            figures = _platform_figures(store, **status)
+            figures = _platform_figures(store, load_by_graph=False, **status)
         except NamedQueryError as exc:
             refused[str(name)] = exc
             rows.pop(str(name), None)
             continue
         refused.pop(str(name), None)
-        rows[str(name)] = {"name": name, "figures": figures, "time": float(status["time"])}
+        # A load given without cores is bounded by the host's cores in the graph, in the write itself (no read
+        # per status on the status worker's path); a host not written is looked up below.
+        unbounded = figures.get("cpu_load") if "cpu_cores" not in figures else None
+        rows[str(name)] = {"name": name, "figures": figures, "time": float(status["time"]), "load": unbounded}
     if rows:
-        written = store.execute(f"UNWIND $rows AS row MATCH (p:{S.PLATFORM} {{name: row.name}}) "
-                                "SET p += row.figures, p.last_seen = row.time RETURN p.name AS name",
-                                {"rows": list(rows.values())})
-        for name in set(rows) - {str(row["name"]) for row in written}:
-            refused[name] = unknown_host("platform", name)
+        written = store.execute(
+            f"UNWIND $rows AS row MATCH (p:{S.PLATFORM} {{name: row.name}}) "
+            "WITH p, row WHERE row.load IS NULL OR row.load <= 100.0 * coalesce(p.cpu_cores, $max_cores) "
+            "SET p += row.figures, p.last_seen = row.time RETURN p.name AS name",
+            {"rows": list(rows.values()), "max_cores": MAX_CORES})
+        missing = sorted(set(rows) - {str(row["name"]) for row in written})
+        if missing:
+            cores = {str(r["name"]): r["cores"] for r in store.execute(
+                f"UNWIND $names AS name MATCH (p:{S.PLATFORM} {{name: name}}) RETURN p.name AS name, "
+                "p.cpu_cores AS cores", {"names": missing})}
+            for name in missing:
+                if name not in cores:
+                    refused[name] = unknown_host("platform", name)
+                    continue
+                try:
+                    _within("platform", cpu_load=(rows[name]["load"], 0, 100 * (cores[name] or MAX_CORES)))
+                except NamedQueryError as exc:
+                    refused[name] = exc
     return refused
 
 
 def _platform_figures(store: GraphStore, *, name: str, time: float, memory_total_mb: float | None = None,
                       memory_free_mb: float | None = None, cpu_load: float | None = None,
-                      cpu_cores: int | None = None, online: bool | None = None) -> dict[str, Any]:
-    """The checked figures of one host's status (NamedQueryError naming the field), None ones left out."""
+                      cpu_cores: int | None = None, online: bool | None = None,
+                      load_by_graph: bool = True) -> dict[str, Any]:
+    """The checked figures of one host's status (NamedQueryError naming the field), None ones left out.
+
+    ``load_by_graph``: a load without cores is checked here against the host's cores in the graph; False:
+    the caller bounds it in its own statement (:func:`update_platforms`).
+    """
     _check("platform", name=(name, (str,), False), time=(time, _NUM, False),
            memory_total_mb=(memory_total_mb, _NUM, True), memory_free_mb=(memory_free_mb, _NUM, True),
            cpu_load=(cpu_load, _NUM, True), cpu_cores=(cpu_cores, (int,), True), online=(online, (bool,), True))
@@ -122,7 +143,8 @@ def _platform_figures(store: GraphStore, *, name: str, time: float, memory_total
         _within("platform", memory_free_mb=(memory_free_mb, 0, memory_total_mb or MAX_MEMORY_MB))
     # A figure given without the one that bounds it is bounded by what the graph holds of the host: free
     # memory by its total, CPU load by its cores (the models' or the last reported).
-    if (memory_free_mb is not None and memory_total_mb is None) or (cpu_load is not None and cpu_cores is None):
+    load_unbounded = load_by_graph and cpu_load is not None and cpu_cores is None
+    if (memory_free_mb is not None and memory_total_mb is None) or load_unbounded:
         rows = store.execute(f"MATCH (p:{S.PLATFORM} {{name: $name}}) "
                              "RETURN p.memory_total_mb AS total, p.cpu_cores AS cores", {"name": name})
         if not rows:
